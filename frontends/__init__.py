@@ -1,0 +1,9 @@
+"""Sensor data in: laser scans, log readers (CARMEN), benchmark relations, and a simulator.
+
+A leaf package: it never imports ``iceg`` or ``graph``.
+"""
+
+from frontends.registry import LogReader, available_formats, open_log, register_reader
+from frontends.scan import LaserScan
+
+__all__ = ["LaserScan", "LogReader", "available_formats", "open_log", "register_reader"]

@@ -1,0 +1,10 @@
+"""Shared root of the ICEG distribution: the exception hierarchy and SE(2) algebra.
+
+``frontends`` and ``graph`` are leaves that must not import ``iceg`` or each other, yet the
+project has one exception hierarchy and one set of SE(2) conventions. Both live here, in a
+package with no project dependencies that every other package may import.
+"""
+
+from iceg_common.errors import ConfigError, GraphError, IcegError, LogFormatError
+
+__all__ = ["ConfigError", "GraphError", "IcegError", "LogFormatError"]

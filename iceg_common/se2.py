@@ -1,0 +1,69 @@
+"""SE(2) algebra on plain arrays, vectorized over leading dimensions.
+
+A pose is ``(..., 3)`` float64 ``[x_m, y_m, theta_rad]``; composition ``a ∘ b`` applies
+``b`` in the frame of ``a`` (the convention of gtsam ``Pose2.compose``). Angles are
+wrapped to ``[-pi, pi)``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+def wrap_angle(theta_rad: ArrayLike) -> FloatArray:
+    """Wrap angles (any shape, radians) to ``[-pi, pi)``."""
+    t = np.asarray(theta_rad, dtype=np.float64)
+    return (t + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def compose(a: ArrayLike, b: ArrayLike) -> FloatArray:
+    """``a ∘ b`` for poses of shape ``(..., 3)`` (broadcasting); returns ``(..., 3)``."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
+    y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
+    return np.stack([x, y, wrap_angle(a[..., 2] + b[..., 2])], axis=-1)
+
+
+def inverse(a: ArrayLike) -> FloatArray:
+    """Inverse pose ``a^-1`` for shape ``(..., 3)``."""
+    a = np.asarray(a, dtype=np.float64)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    x = -(c * a[..., 0] + s * a[..., 1])
+    y = -(-s * a[..., 0] + c * a[..., 1])
+    return np.stack([x, y, wrap_angle(-a[..., 2])], axis=-1)
+
+
+def between(a: ArrayLike, b: ArrayLike) -> FloatArray:
+    """Relative pose ``a^-1 ∘ b`` (``b`` expressed in the frame of ``a``), shape ``(..., 3)``."""
+    return compose(inverse(a), b)
+
+
+def transform_points(pose: ArrayLike, points_xy: ArrayLike) -> FloatArray:
+    """Map points ``(K, 2)`` from the frame of ``pose`` (3,) into its parent frame."""
+    p = np.asarray(pose, dtype=np.float64)
+    pts = np.asarray(points_xy, dtype=np.float64)
+    c, s = np.cos(p[2]), np.sin(p[2])
+    rot = np.array([[c, -s], [s, c]])
+    return pts @ rot.T + p[:2]
+
+
+def rotation_matrix(theta_rad: float) -> FloatArray:
+    """2x2 rotation matrix of ``theta_rad``."""
+    c, s = np.cos(theta_rad), np.sin(theta_rad)
+    return np.array([[c, -s], [s, c]])
+
+
+def adjoint(pose: ArrayLike) -> FloatArray:
+    """Adjoint ``(3, 3)`` of a pose, mapping a tangent vector ``(x, y, theta)`` in the
+    pose's own frame to the parent frame: ``Ad = [[R, [y, -x]^T], [0, 0, 1]]``.
+
+    Used to move a covariance between frames: ``cov_parent = Ad cov_child Ad^T``.
+    """
+    x, y, t = np.asarray(pose, dtype=np.float64)
+    c, s = np.cos(t), np.sin(t)
+    return np.array([[c, -s, y], [s, c, -x], [0.0, 0.0, 1.0]])
