@@ -36,4 +36,6 @@ def test_adjoint_matches_gtsam(a: np.ndarray) -> None:
 
 
 def test_wrap_angle_hand_values() -> None:
-    np.testing.assert_allclose(se2.wrap_angle([np.pi, 3 * np.pi / 2, -np.pi]), [-np.pi, -np.pi / 2, -np.pi])
+    np.testing.assert_allclose(
+        se2.wrap_angle([np.pi, 3 * np.pi / 2, -np.pi]), [-np.pi, -np.pi / 2, -np.pi]
+    )
