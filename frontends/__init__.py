@@ -7,3 +7,8 @@ from frontends.registry import LogReader, available_formats, open_log, register_
 from frontends.scan import LaserScan
 
 __all__ = ["LaserScan", "LogReader", "available_formats", "open_log", "register_reader"]
+
+# The simulator's types (the package frontends.simulate holds worlds and simulate()).
+from frontends.simulate import LaserModel, OdometryModel, SimulatedRun, World
+
+__all__ += ["LaserModel", "OdometryModel", "SimulatedRun", "World"]

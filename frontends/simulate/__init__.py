@@ -1,0 +1,65 @@
+"""A 2D laser simulator with exact ground truth: polygon worlds, a trajectory through them,
+vectorized ray casting (beams x walls) with the paper's SICK LMS200 model, noisy wheel
+odometry, and export to CARMEN / TUM files. Deterministic under a seed.
+
+Example::
+
+    from frontends.simulate import office_world, simulate
+    run = simulate(office_world(), seed=0)
+    run.scans[0].points_xy(), run.true_poses[0], run.world.corners()
+"""
+
+from frontends.simulate.odometry import OdometryModel
+from frontends.simulate.raycast import (
+    LaserModel,
+    cast_rays,
+    ray_ranges,
+    visible_corners,
+    visible_mask,
+    visible_wall_ends,
+)
+from frontends.simulate.run import SimulatedRun, simulate, simulate_pair, write_tum
+from frontends.simulate.trajectory import (
+    default_trajectory,
+    default_trajectory_duration_s,
+    trajectory_from_waypoints,
+)
+from frontends.simulate.worlds import (
+    WORLDS,
+    DynamicWalls,
+    World,
+    box_world,
+    corridor_world,
+    office_world,
+    pillar_world,
+    rectangle,
+    wall_with_doors,
+    world_by_name,
+)
+
+__all__ = [
+    "WORLDS",
+    "DynamicWalls",
+    "LaserModel",
+    "OdometryModel",
+    "SimulatedRun",
+    "World",
+    "box_world",
+    "cast_rays",
+    "corridor_world",
+    "default_trajectory",
+    "default_trajectory_duration_s",
+    "office_world",
+    "pillar_world",
+    "ray_ranges",
+    "rectangle",
+    "simulate",
+    "simulate_pair",
+    "trajectory_from_waypoints",
+    "visible_corners",
+    "visible_mask",
+    "visible_wall_ends",
+    "wall_with_doors",
+    "world_by_name",
+    "write_tum",
+]

@@ -1,0 +1,212 @@
+"""Laser model and vectorized ray casting (beams x walls), plus ground-truth visibility.
+
+Each beam is a ray ``o + t d`` (``t > 0``) from the laser origin; each wall a segment
+``p + s e`` (``0 <= s <= 1``). Solving ``o + t d = p + s e`` with 2D cross products gives
+``t = (w x e) / (d x e)`` and ``s = (w x d) / (d x e)`` with ``w = p - o``, for all beams and
+walls at once; the range of a beam is its smallest valid ``t``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from pydantic import BaseModel, ConfigDict, Field
+
+from frontends.simulate.worlds import World
+from iceg_common.se2 import compose, inverse, transform_points, wrap_angle
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+_PARALLEL_EPS = 1e-12
+_SEGMENT_EPS = 1e-12
+
+
+class LaserModel(BaseModel):
+    """A planar laser range finder; defaults are the paper's SICK LMS200 (§IV: 181 range
+    measurements at 5 Hz, 20 m maximum range, one-degree resolution).
+
+    Beam ``i`` has bearing ``-fov/2 + i * fov / (n_beams - 1)`` in the laser frame
+    (endpoint-inclusive, the CARMEN FLASER convention for 181 beams: ``-pi/2 + i pi/180``).
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    n_beams: int = Field(
+        181, ge=2, description="Number of beams (paper §IV: SICK LMS200, 181 measurements)."
+    )
+    fov_deg: float = Field(
+        180.0, gt=0.0, le=360.0, description="Field of view in degrees (paper §IV: 180 deg)."
+    )
+    range_min_m: float = Field(
+        0.0, ge=0.0, description="Minimum valid range in metres (a beam is valid if r > this)."
+    )
+    range_max_m: float = Field(
+        20.0,
+        gt=0.0,
+        description="Maximum range in metres (paper §IV: 20 m); a beam with no return reads "
+        "exactly this value, which LaserScan treats as invalid (r < range_max_m).",
+    )
+    range_sigma_m: float = Field(
+        0.01,
+        ge=0.0,
+        description="Standard deviation of the Gaussian range noise per beam, metres "
+        "(SICK LMS200 datasheet: about 1 cm).",
+    )
+    laser_offset: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0),
+        description="Laser pose in the robot frame [x_m, y_m, theta_rad].",
+    )
+
+    def angles_rad(self) -> FloatArray:
+        """``(n_beams,)`` float64 beam bearings in the laser frame, radians, CCW from ahead."""
+        fov = self.fov_deg / 180.0 * math.pi
+        return -fov / 2.0 + np.arange(self.n_beams) * (fov / (self.n_beams - 1))
+
+    def offset(self) -> FloatArray:
+        """``(3,)`` float64 laser pose in the robot frame."""
+        return np.asarray(self.laser_offset, dtype=np.float64)
+
+
+def ray_ranges(origin_xy: ArrayLike, directions_rad: ArrayLike, walls: FloatArray) -> FloatArray:
+    """Exact distance from ``origin_xy`` along each direction to the first wall.
+
+    Args:
+        origin_xy: ``(2,)`` ray origin, metres, world frame.
+        directions_rad: ``(B,)`` ray directions in the world frame, radians.
+        walls: ``(W, 2, 2)`` wall segments, metres, world frame.
+
+    Returns:
+        ``(B,)`` float64 ranges in metres; ``inf`` where a ray hits no wall.
+    """
+    o = np.asarray(origin_xy, dtype=np.float64)
+    phi = np.asarray(directions_rad, dtype=np.float64)
+    if walls.shape[0] == 0:
+        return np.full(phi.shape, np.inf)
+    dx, dy = np.cos(phi)[:, None], np.sin(phi)[:, None]  # (B, 1)
+    p = walls[:, 0]
+    e = walls[:, 1] - p
+    ex, ey = e[None, :, 0], e[None, :, 1]  # (1, W)
+    wx, wy = (p[:, 0] - o[0])[None], (p[:, 1] - o[1])[None]
+    denom = dx * ey - dy * ex  # (B, W)
+    ok = np.abs(denom) > _PARALLEL_EPS
+    safe = np.where(ok, denom, 1.0)
+    t = (wx * ey - wy * ex) / safe
+    s = (wx * dy - wy * dx) / safe
+    ok &= (t > 0.0) & (s >= -_SEGMENT_EPS) & (s <= 1.0 + _SEGMENT_EPS)
+    return np.where(ok, t, np.inf).min(axis=1)
+
+
+def cast_rays(
+    world: World,
+    pose: ArrayLike,
+    model: LaserModel | None = None,
+    rng: np.random.Generator | None = None,
+    stamp_s: float | None = None,
+) -> FloatArray:
+    """Simulate one scan: the ranges the laser on a robot at ``pose`` measures.
+
+    Args:
+        world: The world; its dynamic walls present at ``stamp_s`` are included.
+        pose: ``(3,)`` true robot pose ``[x_m, y_m, theta_rad]``, world frame. The laser sits
+            at ``pose ∘ model.laser_offset``.
+        model: Laser model (default: SICK LMS200, see :class:`LaserModel`).
+        rng: Source of the Gaussian range noise; ``None`` gives exact ranges.
+        stamp_s: Scan time in seconds for dynamic walls; ``None``: static walls only.
+
+    Returns:
+        ``(n_beams,)`` float64 ranges in metres, beam order of ``model.angles_rad()``. A beam
+        that hits nothing within ``range_max_m`` (or whose noisy range reaches it) reads
+        exactly ``range_max_m`` (invalid under ``LaserScan``'s strict ``r < range_max_m``).
+    """
+    model = LaserModel() if model is None else model
+    laser_pose = compose(np.asarray(pose, dtype=np.float64), model.offset())
+    ranges = ray_ranges(laser_pose[:2], laser_pose[2] + model.angles_rad(), world.walls_at(stamp_s))
+    if rng is not None and model.range_sigma_m > 0.0:
+        noise = rng.normal(0.0, model.range_sigma_m, size=ranges.shape)
+        ranges = np.maximum(ranges + noise, 0.0)  # inf stays inf
+    return np.where(ranges < model.range_max_m, ranges, model.range_max_m)
+
+
+def visible_mask(
+    world: World,
+    pose: ArrayLike,
+    points_world: ArrayLike,
+    model: LaserModel | None = None,
+    stamp_s: float | None = None,
+    clearance_m: float = 1e-6,
+) -> BoolArray:
+    """Which world points the laser can see: inside the field of view, nearer than
+    ``range_max_m``, and with a clear line of sight (no wall crosses the segment from the
+    laser to the point, except walls ending at the point itself).
+
+    Args:
+        world: The world (walls present at ``stamp_s``).
+        pose: ``(3,)`` true robot pose, world frame.
+        points_world: ``(P, 2)`` float64 metres, world frame.
+        model: Laser model (field of view, range, offset).
+        stamp_s: Time for dynamic walls; ``None``: static walls only.
+        clearance_m: A wall hit closer than ``distance - clearance_m`` occludes the point.
+
+    Returns:
+        ``(P,)`` bool.
+    """
+    model = LaserModel() if model is None else model
+    pts = np.asarray(points_world, dtype=np.float64).reshape(-1, 2)
+    if pts.shape[0] == 0:
+        return np.zeros(0, dtype=bool)
+    laser_pose = compose(np.asarray(pose, dtype=np.float64), model.offset())
+    rel = pts - laser_pose[:2]
+    dist = np.hypot(rel[:, 0], rel[:, 1])
+    direction = np.arctan2(rel[:, 1], rel[:, 0])
+    bearing = wrap_angle(direction - laser_pose[2])
+    angles = model.angles_rad()
+    half_step = 1e-9
+    in_fov = (bearing >= angles[0] - half_step) & (bearing <= angles[-1] + half_step)
+    if model.fov_deg >= 360.0:
+        in_fov[:] = True
+    in_range = (dist < model.range_max_m) & (dist > model.range_min_m)
+    hit = ray_ranges(laser_pose[:2], direction, world.walls_at(stamp_s))
+    clear = hit >= dist - clearance_m
+    return in_fov & in_range & clear
+
+
+def _visible_in_robot_frame(
+    world: World,
+    pose: ArrayLike,
+    points_world: FloatArray,
+    model: LaserModel | None,
+    stamp_s: float | None,
+) -> FloatArray:
+    mask = visible_mask(world, pose, points_world, model, stamp_s)
+    return transform_points(inverse(np.asarray(pose, dtype=np.float64)), points_world[mask])
+
+
+def visible_corners(
+    world: World,
+    pose: ArrayLike,
+    model: LaserModel | None = None,
+    stamp_s: float | None = None,
+) -> FloatArray:
+    """Ground-truth corners the laser at ``pose`` can see (see :func:`visible_mask`).
+
+    Returns:
+        ``(K, 2)`` float64 corner positions in metres in the **robot** frame.
+    """
+    return _visible_in_robot_frame(world, pose, world.corners(stamp_s), model, stamp_s)
+
+
+def visible_wall_ends(
+    world: World,
+    pose: ArrayLike,
+    model: LaserModel | None = None,
+    stamp_s: float | None = None,
+) -> FloatArray:
+    """Ground-truth free wall ends the laser at ``pose`` can see (see :func:`visible_mask`).
+
+    Returns:
+        ``(K, 2)`` float64 wall-end positions in metres in the **robot** frame.
+    """
+    return _visible_in_robot_frame(world, pose, world.wall_ends(stamp_s), model, stamp_s)
