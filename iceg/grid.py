@@ -275,7 +275,8 @@ class OccupancyGrid:
         return (
             f"OccupancyGrid({h}x{w} cells at {self.resolution_m:g} m, "
             f"x [{x0:.2f}, {x1:.2f}] m, y [{y0:.2f}, {y1:.2f}] m, "
-            f"occupied {np.count_nonzero(t == 100) / n:.1%}, free {np.count_nonzero(t == 0) / n:.1%})"
+            f"occupied {np.count_nonzero(t == 100) / n:.1%}, "
+            f"free {np.count_nonzero(t == 0) / n:.1%})"
         )
 
 
@@ -531,7 +532,7 @@ def _trace_scans(
         free_mark = 2 * s
         for b in range(b0, b1):
             if is_hit[b]:
-                c = int(math.floor(end_g[b, 1])) * width + int(math.floor(end_g[b, 0]))
+                c = math.floor(end_g[b, 1]) * width + math.floor(end_g[b, 0])
                 if stamp[c] != hit_mark:
                     stamp[c] = hit_mark
                     hits[c] += 1
@@ -539,13 +540,13 @@ def _trace_scans(
                     log_odds[c] = v if v < l_max else l_max
         x0 = origin_g[s, 0]
         y0 = origin_g[s, 1]
-        ix0 = int(math.floor(x0))
-        iy0 = int(math.floor(y0))
+        ix0 = math.floor(x0)
+        iy0 = math.floor(y0)
         for b in range(b0, b1):
             x1 = end_g[b, 0]
             y1 = end_g[b, 1]
-            ix_end = int(math.floor(x1))
-            iy_end = int(math.floor(y1))
+            ix_end = math.floor(x1)
+            iy_end = math.floor(y1)
             dx = x1 - x0
             dy = y1 - y0
             if dx > 0.0:
