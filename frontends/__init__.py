@@ -3,6 +3,7 @@
 A leaf package: it never imports ``iceg`` or ``graph``.
 """
 
+from frontends.carmen import CarmenReader, write_carmen
 from frontends.registry import LogReader, available_formats, open_log, register_reader
 from frontends.scan import LaserScan
 
@@ -12,3 +13,4 @@ __all__ = ["LaserScan", "LogReader", "available_formats", "open_log", "register_
 from frontends.simulate import LaserModel, OdometryModel, SimulatedRun, World
 
 __all__ += ["LaserModel", "OdometryModel", "SimulatedRun", "World"]
+__all__ += ["CarmenReader", "write_carmen"]
