@@ -11,8 +11,14 @@ Example::
 
 from frontends.simulate.odometry import OdometryModel
 from frontends.simulate.raycast import (
+    APPARENT_END,
+    CORNER,
+    HIDDEN,
+    NOTHING,
+    WALL_END,
     LaserModel,
     cast_rays,
+    classify_junctions,
     ray_ranges,
     visible_corners,
     visible_mask,
@@ -27,6 +33,7 @@ from frontends.simulate.trajectory import (
 from frontends.simulate.worlds import (
     WORLDS,
     DynamicWalls,
+    Junctions,
     World,
     box_world,
     corridor_world,
@@ -38,14 +45,21 @@ from frontends.simulate.worlds import (
 )
 
 __all__ = [
+    "APPARENT_END",
+    "CORNER",
+    "HIDDEN",
+    "NOTHING",
+    "WALL_END",
     "WORLDS",
     "DynamicWalls",
+    "Junctions",
     "LaserModel",
     "OdometryModel",
     "SimulatedRun",
     "World",
     "box_world",
     "cast_rays",
+    "classify_junctions",
     "corridor_world",
     "default_trajectory",
     "default_trajectory_duration_s",

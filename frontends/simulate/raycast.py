@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from frontends.simulate.worlds import World
+from frontends.simulate.worlds import CORNER_MAX_DEG, CORNER_MIN_DEG, World
 from iceg_common.se2 import compose, inverse, transform_points, wrap_angle
 
 FloatArray = NDArray[np.float64]
@@ -173,15 +173,68 @@ def visible_mask(
     return in_fov & in_range & clear
 
 
-def _visible_in_robot_frame(
+#: Junction classes returned by :func:`classify_junctions`.
+HIDDEN, CORNER, WALL_END, APPARENT_END, NOTHING = 0, 1, 2, 3, 4
+
+
+def classify_junctions(
     world: World,
     pose: ArrayLike,
-    points_world: FloatArray,
-    model: LaserModel | None,
-    stamp_s: float | None,
-) -> FloatArray:
-    mask = visible_mask(world, pose, points_world, model, stamp_s)
-    return transform_points(inverse(np.asarray(pose, dtype=np.float64)), points_world[mask])
+    model: LaserModel | None = None,
+    stamp_s: float | None = None,
+) -> tuple[NDArray[np.int64], FloatArray]:
+    """What the laser at ``pose`` sees at each wall endpoint of the world.
+
+    A point must first be visible (:func:`visible_mask`). The walls leaving it split the
+    plane around it into sectors; the laser sits in one, bounded by two walls. A face of a
+    bounding wall is seen if the laser is on that face's side (less than 180° from the wall
+    inside the sector). Then the point is:
+
+    - ``CORNER``: both bounding walls are seen and meet at 30°–150° (paper §III-B);
+    - ``WALL_END``: a free wall end (one wall);
+    - ``APPARENT_END``: a convex corner seen from a side where only one of its walls shows:
+      to the laser it is the end of that wall (the beams beyond it reach farther; DESIGN.md
+      EOW definition);
+    - ``NOTHING``: e.g. a T-junction seen from its straight side;
+    - ``HIDDEN``: out of the field of view, out of range, or occluded.
+
+    Args:
+        world: The world (walls present at ``stamp_s``).
+        pose: ``(3,)`` true robot pose, world frame.
+        model: Laser model (field of view, range, offset).
+        stamp_s: Time for dynamic walls; ``None``: static walls only.
+
+    Returns:
+        ``(P,)`` int64 classes aligned with ``world.junctions(stamp_s).points``, and those
+        points ``(P, 2)`` float64 in metres, world frame.
+    """
+    model = LaserModel() if model is None else model
+    j = world.junctions(stamp_s)
+    out = np.full(j.points.shape[0], HIDDEN, dtype=np.int64)
+    if j.points.shape[0] == 0:
+        return out, j.points
+    seen = visible_mask(world, pose, j.points, model, stamp_s)
+    laser_xy = compose(np.asarray(pose, dtype=np.float64), model.offset())[:2]
+    rel = laser_xy - j.points
+    psi = np.arctan2(rel[:, 1], rel[:, 0])[:, None]  # direction from the point to the laser
+    two_pi = 2.0 * np.pi
+    with np.errstate(invalid="ignore"):
+        d_ccw = np.mod(j.ray_angles_rad - psi, two_pi)  # from psi ccw to each wall
+        d_cw = np.mod(psi - j.ray_angles_rad, two_pi)  # from each wall ccw to psi
+    d_ccw = np.where(np.isnan(d_ccw) | (d_ccw == 0.0), two_pi, d_ccw)
+    d_cw = np.where(np.isnan(d_cw) | (d_cw == 0.0), two_pi, d_cw)
+    a, b = d_ccw.min(axis=1), d_cw.min(axis=1)
+    sector = a + b
+    opening = np.minimum(sector, two_pi - sector)
+    lo, hi = math.radians(CORNER_MIN_DEG), math.radians(CORNER_MAX_DEG)
+    both = (a < np.pi) & (b < np.pi)
+    one = (a < np.pi) ^ (b < np.pi)
+    multi = j.n_rays >= 2
+    out[seen] = NOTHING
+    out[seen & j.is_end] = WALL_END
+    out[seen & multi & one] = APPARENT_END
+    out[seen & multi & both & (opening >= lo - 1e-12) & (opening <= hi + 1e-12)] = CORNER
+    return out, j.points
 
 
 def visible_corners(
@@ -190,12 +243,14 @@ def visible_corners(
     model: LaserModel | None = None,
     stamp_s: float | None = None,
 ) -> FloatArray:
-    """Ground-truth corners the laser at ``pose`` can see (see :func:`visible_mask`).
+    """Ground-truth corners the laser at ``pose`` sees as corners: visible
+    (:func:`visible_mask`) and with both walls seen (see :func:`classify_junctions`).
 
     Returns:
         ``(K, 2)`` float64 corner positions in metres in the **robot** frame.
     """
-    return _visible_in_robot_frame(world, pose, world.corners(stamp_s), model, stamp_s)
+    cls, pts = classify_junctions(world, pose, model, stamp_s)
+    return transform_points(inverse(np.asarray(pose, dtype=np.float64)), pts[cls == CORNER])
 
 
 def visible_wall_ends(
@@ -203,10 +258,15 @@ def visible_wall_ends(
     pose: ArrayLike,
     model: LaserModel | None = None,
     stamp_s: float | None = None,
+    include_apparent: bool = True,
 ) -> FloatArray:
-    """Ground-truth free wall ends the laser at ``pose`` can see (see :func:`visible_mask`).
+    """Ground-truth wall ends the laser at ``pose`` sees: visible free wall ends and, with
+    ``include_apparent``, convex corners of which only one wall shows (they look like the
+    end of that wall; see :func:`classify_junctions`).
 
     Returns:
         ``(K, 2)`` float64 wall-end positions in metres in the **robot** frame.
     """
-    return _visible_in_robot_frame(world, pose, world.wall_ends(stamp_s), model, stamp_s)
+    cls, pts = classify_junctions(world, pose, model, stamp_s)
+    keep = (cls == WALL_END) | ((cls == APPARENT_END) & include_apparent)
+    return transform_points(inverse(np.asarray(pose, dtype=np.float64)), pts[keep])

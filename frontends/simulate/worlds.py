@@ -130,22 +130,33 @@ class World:
         return np.stack([pts.min(axis=0), pts.max(axis=0)])
 
     @cached_property
-    def _static_junctions(self) -> tuple[FloatArray, FloatArray]:
+    def _static_junctions(self) -> Junctions:
         return _junctions(self.walls)
+
+    def junctions(self, stamp_s: float | None = None) -> Junctions:
+        """All wall endpoints with the walls leaving them (see :class:`Junctions`).
+
+        Args:
+            stamp_s: Include the dynamic walls present at this time; ``None``: static only.
+        """
+        if stamp_s is None or not self.dynamic_walls:
+            return self._static_junctions
+        return _junctions(self.walls_at(stamp_s))
 
     def corners(self, stamp_s: float | None = None) -> FloatArray:
         """Ground-truth corners: ``(C, 2)`` float64 metres, world frame.
 
         A corner is a wall endpoint where two walls meet (shared endpoint, or an endpoint on
         another wall's interior: a T-junction) with an angle between them in 30°–150°
-        (paper §III-B, Fig. 1).
+        (paper §III-B, Fig. 1). Whether a corner *looks* like one depends on the side it is
+        seen from (a T-junction seen from its straight side does not): see
+        :func:`frontends.simulate.visible_corners`.
 
         Args:
             stamp_s: Include the dynamic walls present at this time; ``None``: static only.
         """
-        if stamp_s is None:
-            return self._static_junctions[0]
-        return _junctions(self.walls_at(stamp_s))[0]
+        j = self.junctions(stamp_s)
+        return j.points[j.is_corner]
 
     def wall_ends(self, stamp_s: float | None = None) -> FloatArray:
         """Ground-truth free wall ends (door frames, stubs): ``(E, 2)`` float64 metres, world
@@ -154,9 +165,8 @@ class World:
         Args:
             stamp_s: Include the dynamic walls present at this time; ``None``: static only.
         """
-        if stamp_s is None:
-            return self._static_junctions[1]
-        return _junctions(self.walls_at(stamp_s))[1]
+        j = self.junctions(stamp_s)
+        return j.points[j.is_end]
 
     def __repr__(self) -> str:
         return (
@@ -166,11 +176,38 @@ class World:
         )
 
 
-def _junctions(walls: FloatArray) -> tuple[FloatArray, FloatArray]:
+@dataclass(frozen=True, eq=False)
+class Junctions:
+    """Wall endpoints of a world and the walls leaving them (ground-truth ICE geometry).
+
+    Attributes:
+        points: ``(P, 2)`` float64 every distinct wall endpoint, metres, world frame.
+        ray_angles_rad: ``(P, R)`` float64 directions (world frame, radians, sorted
+            ascending in ``[-pi, pi]``) of the walls leaving each point; NaN-padded. A wall
+            through a point (a T-junction) gives two directions.
+        n_rays: ``(P,)`` int64 number of valid entries per row of ``ray_angles_rad``.
+        is_corner: ``(P,)`` bool: some pair of walls meets at 30°–150° (paper §III-B).
+        is_end: ``(P,)`` bool: a free wall end (one wall, touching no other).
+    """
+
+    points: FloatArray
+    ray_angles_rad: FloatArray
+    n_rays: NDArray[np.int64]
+    is_corner: NDArray[np.bool_]
+    is_end: NDArray[np.bool_]
+
+
+def _junctions(walls: FloatArray) -> Junctions:
     """Corners and free ends of a wall set; see :meth:`World.corners`."""
     if walls.shape[0] == 0:
-        return np.zeros((0, 2)), np.zeros((0, 2))
-    # Unique endpoints (rounded to the join tolerance).
+        return Junctions(
+            np.zeros((0, 2)),
+            np.zeros((0, 0)),
+            np.zeros(0, dtype=np.int64),
+            np.zeros(0, dtype=bool),
+            np.zeros(0, dtype=bool),
+        )
+    # Unique endpoints (rounded to the join tolerance), in first-seen order.
     ends = walls.reshape(-1, 2)
     keys = np.round(ends / JOIN_TOL_M).astype(np.int64)
     _, first = np.unique(keys, axis=0, return_index=True)
@@ -185,27 +222,26 @@ def _junctions(walls: FloatArray) -> tuple[FloatArray, FloatArray]:
     touch = np.linalg.norm(points[:, None, :] - closest, axis=2) <= JOIN_TOL_M
     at_a = np.linalg.norm(points[:, None, :] - a[None], axis=2) <= JOIN_TOL_M
     at_b = np.linalg.norm(points[:, None, :] - b[None], axis=2) <= JOIN_TOL_M
-    unit = e / np.sqrt(length2)[:, None]
     # Rays leaving each point along each touching wall: toward b unless at b, toward a unless
     # at a (an interior contact gives both).
-    ray_dir = np.concatenate(
-        [np.broadcast_to(unit, (*touch.shape, 2)), np.broadcast_to(-unit, (*touch.shape, 2))],
-        axis=1,
-    )  # (P, 2W, 2)
-    ray_ok = np.concatenate([touch & ~at_b, touch & ~at_a], axis=1)  # (P, 2W)
-    lo = math.cos(math.radians(CORNER_MAX_DEG))
-    hi = math.cos(math.radians(CORNER_MIN_DEG))
-    is_corner = np.zeros(points.shape[0], dtype=bool)
-    is_end = np.zeros(points.shape[0], dtype=bool)
-    n_rays = ray_ok.sum(axis=1)
-    for p in np.flatnonzero(n_rays >= 2):  # loop over junction points only (a few dozen)
-        d = ray_dir[p][ray_ok[p]]
-        cosines = np.clip(d @ d.T, -1.0, 1.0)
-        iu = np.triu_indices(d.shape[0], k=1)
-        c = cosines[iu]
-        is_corner[p] = bool(np.any((c >= lo) & (c <= hi)))
-    is_end[n_rays == 1] = True
-    return points[is_corner].copy(), points[is_end].copy()
+    fwd = np.arctan2(e[:, 1], e[:, 0])
+    back = np.arctan2(-e[:, 1], -e[:, 0])
+    angles = np.concatenate(
+        [np.broadcast_to(fwd, touch.shape), np.broadcast_to(back, touch.shape)], axis=1
+    )  # (P, 2W)
+    ok = np.concatenate([touch & ~at_b, touch & ~at_a], axis=1)  # (P, 2W)
+    n_rays = ok.sum(axis=1).astype(np.int64)
+    ray_angles = np.sort(np.where(ok, angles, np.nan), axis=1)[:, : max(int(n_rays.max()), 1)]
+    # Corner: some pair of rays at an unsigned angle in [30, 150] deg.
+    diff = np.abs(ray_angles[:, :, None] - ray_angles[:, None, :])  # (P, R, R), NaN-padded
+    unsigned = np.minimum(diff, 2.0 * np.pi - diff)
+    lo, hi = math.radians(CORNER_MIN_DEG), math.radians(CORNER_MAX_DEG)
+    with np.errstate(invalid="ignore"):
+        is_corner = np.any((unsigned >= lo - 1e-12) & (unsigned <= hi + 1e-12), axis=(1, 2))
+    is_end = n_rays == 1
+    for arr in (points, ray_angles, n_rays, is_corner, is_end):
+        arr.setflags(write=False)
+    return Junctions(points, ray_angles, n_rays, is_corner, is_end)
 
 
 # ----------------------------------------------------------------------------------------

@@ -10,12 +10,14 @@ import numpy as np
 import pytest
 
 from frontends.simulate import (
+    NOTHING,
     DynamicWalls,
     LaserModel,
     OdometryModel,
     World,
     box_world,
     cast_rays,
+    classify_junctions,
     corridor_world,
     default_trajectory,
     office_world,
@@ -180,12 +182,28 @@ def test_pillar_occludes_wall() -> None:
     pose = np.array([5.5, 2.0, math.pi / 2])
     assert visible_mask(w, pose, [[5.5, 8.0], [2.0, 8.0]]).tolist() == [False, True]
     assert cast_rays(w, pose, EXACT)[90] == pytest.approx(3.5, abs=1e-12)
-    # Visible corners: the room's two north corners and the pillar's two south corners; the
-    # pillar's north corners are hidden by the pillar itself, the south corners are behind.
-    vis = {(round(x, 9), round(y, 9)) for x, y in visible_corners(w, pose, EXACT)}
-    world_pts = np.array([[0, 8], [10, 8], [5, 5.5], [6, 5.5]], float)
-    robot_pts = transform_points([-2.0, 5.5, -math.pi / 2], world_pts)  # inverse of pose
-    assert vis == {(round(x, 9), round(y, 9)) for x, y in robot_pts}
+    # Visible corners: the room's two north corners. The pillar's north corners are hidden by
+    # the pillar itself; of its south corners only the south face shows, so to the laser they
+    # are ends of that face (apparent wall ends), not corners.
+    inv = [-2.0, 5.5, -math.pi / 2]  # inverse of pose
+
+    def as_set(pts: np.ndarray) -> set[tuple[float, float]]:
+        return {(round(float(x), 9), round(float(y), 9)) for x, y in pts}
+
+    assert as_set(visible_corners(w, pose, EXACT)) == as_set(
+        transform_points(inv, np.array([[0.0, 8.0], [10.0, 8.0]]))
+    )
+    assert as_set(visible_wall_ends(w, pose, EXACT)) == as_set(
+        transform_points(inv, np.array([[5.0, 5.5], [6.0, 5.5]]))
+    )
+    assert visible_wall_ends(w, pose, EXACT, include_apparent=False).shape[0] == 0
+    # From (3, 3) south-west of the pillar both its south and west faces show: (5, 5.5) is a
+    # corner, 3.2 m away straight ahead; (6, 5.5) and (5, 6.5) show one face each.
+    diag = np.array([3.0, 3.0, math.atan2(2.5, 2.0)])
+    corners = visible_corners(w, diag, EXACT)
+    assert np.min(np.hypot(corners[:, 0] - math.hypot(2.0, 2.5), corners[:, 1])) < 1e-9
+    ends = as_set(transform_points(diag, visible_wall_ends(w, diag, EXACT)))
+    assert ends == {(6.0, 5.5), (5.0, 6.5)}
 
 
 def test_visible_wall_ends_respect_fov_and_range() -> None:
@@ -200,6 +218,19 @@ def test_visible_wall_ends_respect_fov_and_range() -> None:
     assert not np.any(np.isclose(north[:, 0], -1.0))
     short = LaserModel(range_max_m=1.0)
     assert visible_wall_ends(w, [7.5, 5.0, -math.pi / 2], short).shape[0] == 0
+
+
+def test_t_junction_is_a_corner_from_one_side_only() -> None:
+    # Truth: office_world's partition x = 5 (y 0-4) ends on the corridor wall y = 4. From the
+    # corridor at (5, 5) facing south the wall is straight there: no corner at (5, 4). From
+    # inside the room east of the partition, at (7, 2) facing west, (5, 4) is the room's
+    # concave corner, seen straight on at 2 m, +2 m to the right... i.e. robot frame (2, -2).
+    w = office_world()
+    cls, pts = classify_junctions(w, [5.0, 5.0, -math.pi / 2], EXACT)
+    k = int(np.argmin(np.hypot(pts[:, 0] - 5.0, pts[:, 1] - 4.0)))
+    assert cls[k] == NOTHING
+    seen = visible_corners(w, [7.0, 2.0, math.pi], EXACT)
+    assert np.min(np.hypot(seen[:, 0] - 2.0, seen[:, 1] + 2.0)) < 1e-9
 
 
 def test_box_disappears_after_its_time() -> None:
