@@ -5,6 +5,7 @@ A leaf package: it never imports ``iceg`` or ``graph``.
 
 from frontends.carmen import CarmenReader, write_carmen
 from frontends.registry import LogReader, available_formats, open_log, register_reader
+from frontends.relations import Relations, match_stamps, read_relations, write_relations
 from frontends.scan import LaserScan
 
 __all__ = ["LaserScan", "LogReader", "available_formats", "open_log", "register_reader"]
@@ -14,3 +15,4 @@ from frontends.simulate import LaserModel, OdometryModel, SimulatedRun, World
 
 __all__ += ["LaserModel", "OdometryModel", "SimulatedRun", "World"]
 __all__ += ["CarmenReader", "write_carmen"]
+__all__ += ["Relations", "match_stamps", "read_relations", "write_relations"]
