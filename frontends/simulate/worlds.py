@@ -85,6 +85,7 @@ class World:
             route, or ``None``; see :func:`frontends.simulate.default_trajectory`.
         start_heading_rad: Heading at the first waypoint of the route (``None``: face the
             second waypoint).
+        description: Human-readable layout (the world function's docstring).
 
     Raises:
         ConfigError: walls of the wrong shape, non-finite or of zero length.

@@ -102,6 +102,25 @@ def test_no_return_beyond_range_is_invalid() -> None:
     assert not a.valid_mask().any() and not b.valid_mask().any()
 
 
+def test_beam_endpoints_are_visible_points() -> None:
+    # Truth: a noise-free beam endpoint is, by definition, a point the laser sees: in the
+    # field of view, in range, with nothing in between. The two code paths (cast_rays and
+    # visible_mask) must agree on 40 random poses in the pillar room; a point 5 cm beyond the
+    # endpoint along the beam (behind the wall) must not be visible.
+    w = pillar_world()
+    rng = np.random.default_rng(3)
+    angles = EXACT.angles_rad()
+    for _ in range(40):
+        pose = np.array([rng.uniform(0.3, 9.7), rng.uniform(0.3, 4.5), rng.uniform(-np.pi, np.pi)])
+        r = cast_rays(w, pose, EXACT)
+        ok = r < EXACT.range_max_m
+        bearing = pose[2] + angles[ok]
+        hit = pose[:2] + r[ok, None] * np.stack([np.cos(bearing), np.sin(bearing)], 1)
+        assert visible_mask(w, pose, hit, EXACT).all()
+        behind = hit + 0.05 * np.stack([np.cos(bearing), np.sin(bearing)], 1)
+        assert not visible_mask(w, pose, behind, EXACT).any()
+
+
 def test_range_noise_has_configured_sigma() -> None:
     # Truth: LaserModel.range_sigma_m = 0.01 (SICK LMS200); 200 scans x 181 beams inside a
     # closed room where every beam hits: the std of noisy - exact ranges must be 1 cm within 3%
