@@ -35,32 +35,32 @@ class OdometryModel(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     translation_sigma_per_m: float = Field(
-        0.05,
+        default=0.05,
         ge=0.0,
         description="Std of each of dx, dy errors per metre of the increment (m/m); "
         "Probabilistic Robotics §5.4 alpha model.",
     )
     rotation_sigma_per_rad: float = Field(
-        0.05,
+        default=0.05,
         ge=0.0,
         description="Std of the heading error per radian turned in the increment (rad/rad).",
     )
     rotation_sigma_per_m: float = Field(
-        0.01,
+        default=0.01,
         ge=0.0,
         description="Std of the heading error per metre driven in the increment (rad/m).",
     )
     translation_scale_bias: float = Field(
-        0.0,
+        default=0.0,
         gt=-1.0,
         description="Systematic scale error of the distance (e.g. 0.01: wheels 1% too large).",
     )
     rotation_bias_rad_per_m: float = Field(
-        0.002,
+        default=0.002,
         description="Systematic heading drift per metre driven, rad/m (uneven wheel radii).",
     )
     start: Literal["true", "zero"] = Field(
-        "true",
+        default="true",
         description="Odometry frame: 'true' starts at the true first pose, 'zero' at (0,0,0).",
     )
 

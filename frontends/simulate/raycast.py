@@ -35,35 +35,41 @@ class LaserModel(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     n_beams: int = Field(
-        181, ge=2, description="Number of beams (paper §IV: SICK LMS200, 181 measurements)."
+        default=181, ge=2, description="Number of beams (paper §IV: SICK LMS200, 181 measurements)."
     )
     fov_deg: float = Field(
-        180.0, gt=0.0, le=360.0, description="Field of view in degrees (paper §IV: 180 deg)."
+        default=180.0,
+        gt=0.0,
+        le=360.0,
+        description="Field of view in degrees (paper §IV: 180 deg).",
     )
     range_min_m: float = Field(
-        0.0, ge=0.0, description="Minimum valid range in metres (a beam is valid if r > this)."
+        default=0.0,
+        ge=0.0,
+        description="Minimum valid range in metres (a beam is valid if r > this).",
     )
     range_max_m: float = Field(
-        20.0,
+        default=20.0,
         gt=0.0,
         description="Maximum range in metres (paper §IV: 20 m); a beam with no return reads "
         "exactly this value, which LaserScan treats as invalid (r < range_max_m).",
     )
     range_sigma_m: float = Field(
-        0.01,
+        default=0.01,
         ge=0.0,
         description="Standard deviation of the Gaussian range noise per beam, metres "
         "(SICK LMS200 datasheet: about 1 cm).",
     )
     laser_offset: tuple[float, float, float] = Field(
-        (0.0, 0.0, 0.0),
+        default=(0.0, 0.0, 0.0),
         description="Laser pose in the robot frame [x_m, y_m, theta_rad].",
     )
 
     def angles_rad(self) -> FloatArray:
         """``(n_beams,)`` float64 beam bearings in the laser frame, radians, CCW from ahead."""
         fov = self.fov_deg / 180.0 * math.pi
-        return -fov / 2.0 + np.arange(self.n_beams) * (fov / (self.n_beams - 1))
+        step = fov / (self.n_beams - 1)
+        return np.asarray(-fov / 2.0 + np.arange(self.n_beams) * step, dtype=np.float64)
 
     def offset(self) -> FloatArray:
         """``(3,)`` float64 laser pose in the robot frame."""

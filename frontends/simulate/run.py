@@ -8,6 +8,7 @@ import os
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -62,7 +63,9 @@ class SimulatedRun:
             f"odometry end error={end_err:.3f} m, seed={self.seed})"
         )
 
-    def write_carmen(self, path: str | Path, laser_record: str = "FLASER") -> int:
+    def write_carmen(
+        self, path: str | Path, laser_record: Literal["FLASER", "ROBOTLASER1"] = "FLASER"
+    ) -> int:
         """Write the scans as a CARMEN log (see ``frontends.carmen.write_carmen``).
 
         Returns:
