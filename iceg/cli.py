@@ -1,0 +1,199 @@
+"""The ``iceg`` command line: a thin shell over the library.
+
+Errors of the ``IcegError`` family are caught here, and only here: one line on stderr and
+exit code 1.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from collections.abc import Callable
+from datetime import datetime
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Any, TypeVar
+
+import typer
+
+from iceg import __version__
+from iceg_common.errors import IcegError
+
+if TYPE_CHECKING:
+    from iceg.results import SlamResult
+
+app = typer.Typer(
+    name="iceg",
+    help="2D laser SLAM with ICE feature matching and a GTSAM iSAM2 pose graph.",
+    add_completion=False,
+    no_args_is_help=False,
+    pretty_exceptions_enable=False,
+)
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def _one_line_errors(func: F) -> F:
+    """Turn an ``IcegError`` into one line on stderr and exit code 1."""
+    import functools
+
+    @functools.wraps(func)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return func(*args, **kwargs)
+        except IcegError as exc:
+            typer.echo(f"iceg: error: {exc}", err=True)
+            raise typer.Exit(code=1) from None
+
+    return wrapper  # type: ignore[return-value]
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"iceg {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def main(
+    version: Annotated[
+        bool, typer.Option("--version", callback=_version, is_eager=True, help="Show version.")
+    ] = False,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log progress details.")] = False,
+) -> None:
+    """ICEG: ICE matching + iSAM2 2D laser SLAM."""
+    logging.basicConfig(
+        level=logging.INFO if verbose else logging.WARNING,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+
+
+def _default_out_dir() -> Path:
+    return Path("results") / datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+
+
+def _link_latest(out: Path) -> None:
+    latest = out.parent / "latest"
+    try:
+        if latest.is_symlink() or latest.exists():
+            latest.unlink()
+        latest.symlink_to(out.name)
+    except OSError:
+        pass
+
+
+def _print_table(rows: list[tuple[str, str]]) -> None:
+    width = max(len(k) for k, _ in rows)
+    for key, value in rows:
+        typer.echo(f"  {key:<{width}}  {value}")
+
+
+def _summary_rows(result: SlamResult, out: Path) -> list[tuple[str, str]]:
+    s = result.summary()
+    rows = [
+        ("scans", str(s["scans"])),
+        ("nodes", str(s["nodes"])),
+        ("factors", ", ".join(f"{k} {v}" for k, v in sorted(s["factors"].items()))),
+        (
+            "loop closures",
+            f"{s['loop_closures']['accepted']} accepted of {s['loop_closures']['attempts']} tried",
+        ),
+        ("time", f"{s['total_seconds']:.2f} s ({s['scans_per_second']:.0f} scans/s)"),
+    ]
+    if "relations" in s:
+        r = s["relations"]
+        rows.append(
+            (
+                "relation error",
+                f"{r['trans_mean_m']:.4f} ± {r['trans_std_m']:.4f} m, "
+                f"{r['rot_mean_deg']:.3f} ± {r['rot_std_deg']:.3f} deg "
+                f"({r['n_matched']}/{r['n_relations']} relations)",
+            )
+        )
+    if "ground_truth" in s:
+        g = s["ground_truth"]
+        rows.append(
+            (
+                "error vs truth",
+                f"mean {g['mean_m']:.4f} m, rmse {g['rmse_m']:.4f} m, max {g['max_m']:.4f} m, "
+                f"heading {g['rot_mean_deg']:.3f} deg",
+            )
+        )
+    rows.append(("output", str(out)))
+    return rows
+
+
+@app.command()
+@_one_line_errors
+def run(
+    log: Annotated[
+        Path | None,
+        typer.Argument(help="Laser log (CARMEN .clf/.log[.gz]). Omit to run the built-in demo."),
+    ] = None,
+    relations: Annotated[
+        Path | None, typer.Option(help="Kümmerle et al. 2009 .relations file to score against.")
+    ] = None,
+    config: Annotated[Path | None, typer.Option(help="YAML config (partial is fine).")] = None,
+    out: Annotated[
+        Path | None, typer.Option(help="Output folder (default: results/<date_time>).")
+    ] = None,
+    progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
+) -> None:
+    """Optimize a laser log end to end: trajectory, pose graph, map and metrics.
+
+    With no LOG, runs the built-in simulated office world and scores against its truth.
+    """
+    from iceg.pipeline import run_log, run_simulated_demo
+
+    cfg = _load_config(config)
+    if log is None:
+        result = run_simulated_demo(cfg, progress=progress)
+    else:
+        result = run_log(log, cfg, relations=relations, progress=progress)
+    out_dir = out if out is not None else _default_out_dir()
+    result.save(out_dir)
+    if out is None:
+        _link_latest(out_dir)
+    typer.echo(f"iceg run: {log if log is not None else 'built-in simulated office world'}")
+    _print_table(_summary_rows(result, out_dir))
+
+
+@app.command("eval")
+@_one_line_errors
+def eval_(
+    trajectory: Annotated[Path, typer.Argument(help="Trajectory in TUM format.")],
+    relations: Annotated[Path, typer.Argument(help="Kümmerle et al. 2009 .relations file.")],
+    tolerance_s: Annotated[float, typer.Option(help="Timestamp matching tolerance, s.")] = 1e-3,
+) -> None:
+    """Score a TUM trajectory with benchmark relations (mean/std translational and
+    rotational error)."""
+    from frontends.relations import read_relations
+    from frontends.tum import read_tum
+    from iceg.evaluation import relation_errors
+
+    stamps, poses = read_tum(trajectory)
+    rel = read_relations(relations)
+    summary, _ = relation_errors(stamps, poses, rel.stamps_s, rel.deltas, tolerance_s)
+    _print_table(
+        [(k, f"{v:.6g}" if isinstance(v, float) else str(v)) for k, v in summary.as_dict().items()]
+    )
+
+
+@app.command("dump-config")
+@_one_line_errors
+def dump_config(
+    config: Annotated[
+        Path | None, typer.Option(help="Show this file merged with defaults.")
+    ] = None,
+) -> None:
+    """Print the effective configuration as YAML."""
+    typer.echo(_load_config(config).to_yaml(), nl=False)
+
+
+def _load_config(path: Path | None) -> Any:
+    from iceg.config import IcegConfig, config_from_yaml
+
+    return IcegConfig() if path is None else config_from_yaml(path)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(app())

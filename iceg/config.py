@@ -1,0 +1,140 @@
+"""The whole configuration of a run: typed, validated, loadable from and writable to YAML.
+
+Each module owns the model of its own parameters (``FeatureConfig`` in ``iceg.features``,
+``MatchingConfig`` in ``iceg.matching``, ...); :class:`IcegConfig` composes them with the
+pipeline's own :class:`SlamConfig` and :class:`LoopClosureConfig`. ``iceg dump-config``
+prints the defaults; every result folder holds the effective ``config.yaml``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from graph import GraphConfig, OdometryNoiseConfig
+from iceg.feature_map import FeatureMapConfig
+from iceg.features import FeatureConfig
+from iceg.grid import GridConfig
+from iceg.matching import MatchingConfig
+from iceg_common.errors import ConfigError
+
+
+class SlamConfig(BaseModel):
+    """Keyframing, local matching and offline refinement of the pipeline."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    keyframe_distance_m: float = Field(
+        0.10, gt=0, description="A scan becomes a graph node after this odometry translation."
+    )
+    keyframe_rotation_deg: float = Field(
+        5.0, gt=0, description="... or after this odometry rotation."
+    )
+    keyframe_max_interval_s: float = Field(
+        30.0, gt=0, description="... or after this time without a node (robot standing)."
+    )
+    local_map_nodes: int = Field(
+        8, ge=1, description="Nodes whose landmarks form the local map for tracking."
+    )
+    match_max_translation_m: float = Field(
+        0.5, gt=0, description="Admissible translation around the odometry prediction (§III-C2)."
+    )
+    match_max_rotation_deg: float = Field(
+        20.0, gt=0, description="Admissible rotation around the odometry prediction (§III-C2)."
+    )
+    batch_refinement: bool = Field(
+        True, description="Run batch Levenberg–Marquardt over the whole graph after the run."
+    )
+
+
+class LoopClosureConfig(BaseModel):
+    """Loop-closure search among older nodes near the current estimate."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    enabled: bool = True
+    every_n_nodes: int = Field(3, ge=1, description="Search once every this many new nodes.")
+    min_node_gap: int = Field(
+        30, ge=1, description="Only nodes at least this many nodes older are loop candidates."
+    )
+    window_nodes: int = Field(
+        4, ge=0, description="Landmarks of the candidate ± this many nodes form the reference."
+    )
+    search_radius_m: float = Field(
+        2.0, gt=0, description="Base search radius around the current estimate."
+    )
+    search_n_sigma: float = Field(
+        3.0, ge=0, description="Radius grows by this many marginal position sigmas."
+    )
+    max_rotation_deg: float = Field(
+        30.0, gt=0, description="Base admissible rotation of a loop-closure match."
+    )
+    min_correlation: float = Field(
+        0.5, ge=0, le=1, description="Minimum ICE correlation (eq. 1) of a loop closure."
+    )
+    consistency_chi2: float = Field(
+        16.27, gt=0, description="Mahalanobis gate (chi-square, 3 dof, 99.9 %) on the innovation."
+    )
+    robust_kernel: Literal["huber", "cauchy"] = Field(
+        "cauchy", description="M-estimator wrapped around loop-closure factors."
+    )
+    robust_k: float = Field(1.0, gt=0, description="Kernel width in whitened units (sigmas).")
+
+
+class IcegConfig(BaseModel):
+    """Everything a run needs; each section is a module's own validated model."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    features: FeatureConfig = Field(default_factory=FeatureConfig)
+    matching: MatchingConfig = Field(default_factory=MatchingConfig)
+    feature_map: FeatureMapConfig = Field(default_factory=FeatureMapConfig)
+    graph: GraphConfig = Field(default_factory=GraphConfig)
+    odometry_noise: OdometryNoiseConfig = Field(default_factory=OdometryNoiseConfig)
+    slam: SlamConfig = Field(default_factory=SlamConfig)
+    loop_closure: LoopClosureConfig = Field(default_factory=LoopClosureConfig)
+    grid: GridConfig = Field(default_factory=GridConfig)
+
+    def to_yaml(self) -> str:
+        """The configuration as YAML text (round-trips through :func:`config_from_yaml`)."""
+        return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
+
+
+def config_from_dict(data: dict[str, Any], source: str = "<dict>") -> IcegConfig:
+    """Validate a (partial) configuration dict; missing values take their defaults.
+
+    Raises:
+        ConfigError: an unknown key or an invalid value, naming its path and the source.
+    """
+    try:
+        return IcegConfig.model_validate(data)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first["loc"])
+        raise ConfigError(
+            f"{source}: invalid config value at '{where}': {first['msg']}"
+            + (f" ({len(exc.errors()) - 1} more)" if len(exc.errors()) > 1 else "")
+        ) from exc
+
+
+def config_from_yaml(path: str | Path) -> IcegConfig:
+    """Load a configuration from a YAML file (partial files are filled with defaults).
+
+    Raises:
+        ConfigError: a missing or unparsable file, or an invalid value.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"{p}: no such config file")
+    try:
+        data = yaml.safe_load(p.read_text(encoding="utf-8")) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{p}: not valid YAML ({exc})") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(
+            f"{p}: the config must be a mapping of sections, got {type(data).__name__}"
+        )
+    return config_from_dict(data, source=str(p))

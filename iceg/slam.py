@@ -1,0 +1,356 @@
+"""The SLAM pipeline: ICE matching factors and wheel odometry in a GTSAM iSAM2 pose graph.
+
+Per scan (DESIGN "Data flow of one scan"): ICE features; prediction from odometry; keyframe
+decision; ICE match against the feature map of the recent nodes; odometry and scan-match
+factors (covariance from the match); iSAM2 update; feature-map update with time-validity
+pruning; and, every few nodes, a loop-closure search among older nodes near the current
+estimate. After the run an optional batch Levenberg–Marquardt refinement.
+
+The pipeline never reads files: it takes :class:`frontends.LaserScan` records.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field
+
+from frontends import LaserScan
+from graph import PoseGraph, odometry_covariance
+from iceg.config import IcegConfig
+from iceg.feature_map import FeatureMap
+from iceg.features import extract
+from iceg.matching import IceMatcher, MatchBounds
+from iceg.types import MatchResult, ScanFeatures
+from iceg_common import se2
+
+logger = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+
+
+class StageTimer:
+    """Accumulates wall time per pipeline stage (seconds)."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = defaultdict(float)
+
+    def add(self, stage: str, t0: float) -> float:
+        """Add ``now - t0`` to ``stage``; return now."""
+        now = time.perf_counter()
+        self.seconds[stage] += now - t0
+        return now
+
+
+@dataclass
+class FactorRecord:
+    """One factor of the run, for statistics and notebooks.
+
+    Attributes:
+        kind: ``"odometry"``, ``"scan_match"`` or ``"loop_closure"``.
+        node_from, node_to: node ids; ``measured`` is ``x_from^-1 ∘ x_to``.
+        measured: ``(3,)`` relative pose.
+        cov: ``(3, 3)`` covariance in the tangent space at ``measured`` (gtsam convention).
+        correlation: ICE correlation (eq. 1) for matches; NaN for odometry.
+    """
+
+    kind: str
+    node_from: int
+    node_to: int
+    measured: FloatArray
+    cov: FloatArray
+    correlation: float = float("nan")
+
+
+@dataclass
+class LoopClosureStats:
+    """Loop-closure bookkeeping: searches run, matches tried, accepted and rejected."""
+
+    searches: int = 0
+    attempts: int = 0
+    accepted: int = 0
+    rejected_match: int = 0
+    rejected_consistency: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        """Plain dict for JSON output."""
+        return dict(self.__dict__)
+
+
+@dataclass
+class _ScanRecord:
+    stamp_s: float
+    node_id: int
+    delta_from_node: FloatArray  # odometry delta from the node's scan to this scan
+
+
+@dataclass
+class SlamState:
+    """Mutable state of a run (exposed read-only through :class:`Slam`)."""
+
+    scans: list[LaserScan] = field(default_factory=list)
+    records: list[_ScanRecord] = field(default_factory=list)
+    node_scan_index: list[int] = field(default_factory=list)
+    node_odom: list[FloatArray] = field(default_factory=list)
+    factors: list[FactorRecord] = field(default_factory=list)
+    match_failures: dict[str, int] = field(default_factory=lambda: defaultdict(int))
+
+
+class Slam:
+    """Incremental ICE-matching SLAM, usable scan by scan.
+
+    Example:
+        >>> slam = Slam(IcegConfig())
+        >>> for scan in scans:
+        ...     pose = slam.process(scan)
+        >>> result = slam.finish()
+
+    Args:
+        config: The full configuration (:class:`iceg.config.IcegConfig`).
+    """
+
+    def __init__(self, config: IcegConfig | None = None) -> None:
+        self.config = config or IcegConfig()
+        self.graph = PoseGraph(self.config.graph)
+        self.matcher = IceMatcher(self.config.matching)
+        self.feature_map = FeatureMap(self.config.feature_map)
+        self.timer = StageTimer()
+        self.loop_stats = LoopClosureStats()
+        self._s = SlamState()
+        self._last_odom: FloatArray | None = None
+        self._synthetic_odom = np.zeros(3)
+
+    # ------------------------------------------------------------------ per scan
+
+    def process(self, scan: LaserScan) -> FloatArray:
+        """Process one scan; return its current pose estimate ``(3,)`` in the map frame.
+
+        The map frame is the odometry frame of the first scan (the first node is fixed at
+        the first odometry pose, or at the origin when the log has no odometry).
+        """
+        cfg = self.config.slam
+        t0 = time.perf_counter()
+        odom = self._odometry_of(scan)
+        s = self._s
+        s.scans.append(scan)
+        if not s.node_odom:
+            feats = extract(scan, self.config.features)
+            t0 = self.timer.add("features", t0)
+            self._add_node(scan, odom, feats, initial=odom, match=None)
+            self.timer.add("feature_map", t0)
+            return odom.copy()
+
+        last = len(s.node_odom) - 1
+        delta = se2.between(s.node_odom[last], odom)
+        dt = scan.stamp_s - s.scans[s.node_scan_index[last]].stamp_s
+        is_keyframe = (
+            np.hypot(delta[0], delta[1]) >= cfg.keyframe_distance_m
+            or abs(delta[2]) >= np.radians(cfg.keyframe_rotation_deg)
+            or dt >= cfg.keyframe_max_interval_s
+        )
+        if not is_keyframe:
+            s.records.append(_ScanRecord(scan.stamp_s, last, delta))
+            return se2.compose(self.graph.estimate(last), delta)
+
+        feats = extract(scan, self.config.features)
+        t0 = self.timer.add("features", t0)
+        recent = list(range(max(0, last - cfg.local_map_nodes + 1), last + 1))
+        ids, poses = self.graph.estimates()
+        node_poses = dict(zip(ids.tolist(), poses, strict=True))
+        reference = self.feature_map.reference(node_poses, recent, node_poses[last])
+        bounds = MatchBounds(
+            max_translation_m=cfg.match_max_translation_m,
+            max_rotation_rad=np.radians(cfg.match_max_rotation_deg),
+        )
+        result = self.matcher.match(feats, reference, delta, bounds)
+        t0 = self.timer.add("matching", t0)
+        if not result.success:
+            s.match_failures[result.reason or "unknown"] += 1
+        rel = result.pose if result.success else delta
+        initial = se2.compose(node_poses[last], rel)
+        new_id = self._add_node(scan, odom, feats, initial=initial, match=None, defer_map=True)
+        self._add_factor(
+            "odometry", last, new_id, delta, odometry_covariance(delta, self.config.odometry_noise)
+        )
+        if result.success:
+            self._add_factor(
+                "scan_match", last, new_id, result.pose, result.cov, result.correlation
+            )
+        t0 = self.timer.add("graph_build", t0)
+        self.graph.update()
+        t0 = self.timer.add("isam2", t0)
+        if (
+            self.config.loop_closure.enabled
+            and new_id % self.config.loop_closure.every_n_nodes == 0
+        ):
+            self._search_loop_closure(new_id, feats)
+            t0 = self.timer.add("loop_closure", t0)
+        self._update_map(new_id, feats, scan, result if result.success else None)
+        self.timer.add("feature_map", t0)
+        return self.graph.estimate(new_id)
+
+    # ------------------------------------------------------------------ internals
+
+    def _odometry_of(self, scan: LaserScan) -> FloatArray:
+        if scan.odom_pose is not None:
+            return np.asarray(scan.odom_pose, dtype=np.float64)
+        return self._synthetic_odom.copy()
+
+    def _add_node(
+        self,
+        scan: LaserScan,
+        odom: FloatArray,
+        feats: ScanFeatures,
+        initial: FloatArray,
+        match: MatchResult | None,
+        defer_map: bool = False,
+    ) -> int:
+        s = self._s
+        node_id = len(s.node_odom)
+        s.node_odom.append(odom)
+        s.node_scan_index.append(len(s.scans) - 1)
+        s.records.append(_ScanRecord(scan.stamp_s, node_id, np.zeros(3)))
+        self.graph.add_node(node_id, initial)
+        if node_id == 0:
+            self.graph.update()
+            self._update_map(0, feats, scan, None)
+        return node_id
+
+    def _add_factor(
+        self,
+        kind: str,
+        i: int,
+        j: int,
+        measured: FloatArray,
+        cov: FloatArray,
+        correlation: float = float("nan"),
+        robust: str | None = None,
+    ) -> None:
+        lc = self.config.loop_closure
+        self.graph.add_between(
+            i, j, measured, cov, kind=kind, robust=robust, robust_k=lc.robust_k if robust else 1.0
+        )
+        self._s.factors.append(FactorRecord(kind, i, j, measured.copy(), cov.copy(), correlation))
+
+    def _update_map(
+        self, node_id: int, feats: ScanFeatures, scan: LaserScan, match: MatchResult | None
+    ) -> None:
+        ids, poses = self.graph.estimates()
+        self.feature_map.update(
+            node_id=node_id,
+            node_pose=poses[node_id],
+            features=feats,
+            match=match,
+            scan=scan,
+            stamp_s=scan.stamp_s,
+        )
+
+    def _search_loop_closure(self, node_id: int, feats: ScanFeatures) -> None:
+        """Search older nodes near the current estimate and add a robust loop closure.
+
+        The search radius grows with the marginal position uncertainty of the current node
+        (``radius = base + n_sigma * sqrt(lambda_max(cov_xy))``). The candidate's landmarks
+        are matched with bounds of that radius; a match is accepted only if it is consistent
+        with the current estimate (Mahalanobis distance under the sum of the marginal and
+        match covariances below a chi-square gate) and then enters with a robust kernel.
+        """
+        lc = self.config.loop_closure
+        ids, poses = self.graph.estimates()
+        current = poses[node_id]
+        older = ids[ids <= node_id - lc.min_node_gap]
+        if older.size == 0:
+            return
+        self.loop_stats.searches += 1
+        marginal = self.graph.marginal_covariance(node_id)
+        sigma_xy = float(np.sqrt(max(np.linalg.eigvalsh(marginal[:2, :2]).max(), 0.0)))
+        radius = lc.search_radius_m + lc.search_n_sigma * sigma_xy
+        dist = np.hypot(*(poses[older, :2] - current[:2]).T)
+        near = older[dist <= radius]
+        if near.size == 0:
+            return
+        candidate = int(near[np.argmin(dist[dist <= radius])])
+        window = [
+            n
+            for n in range(candidate - lc.window_nodes, candidate + lc.window_nodes + 1)
+            if 0 <= n <= node_id - lc.min_node_gap
+        ]
+        node_poses = dict(zip(ids.tolist(), poses, strict=True))
+        reference = self.feature_map.reference(node_poses, window, node_poses[candidate])
+        prediction = se2.between(node_poses[candidate], current)
+        bounds = MatchBounds(
+            max_translation_m=radius,
+            max_rotation_rad=np.radians(lc.max_rotation_deg)
+            + lc.search_n_sigma * float(np.sqrt(max(marginal[2, 2], 0.0))),
+        )
+        self.loop_stats.attempts += 1
+        result = self.matcher.match(feats, reference, prediction, bounds)
+        if not result.success or result.correlation < lc.min_correlation:
+            self.loop_stats.rejected_match += 1
+            return
+        innovation = se2.between(prediction, result.pose)
+        innovation_cov = marginal + result.cov
+        d2 = float(innovation @ np.linalg.solve(innovation_cov, innovation))
+        if d2 > lc.consistency_chi2:
+            self.loop_stats.rejected_consistency += 1
+            logger.debug("loop closure %d->%d rejected: chi2 %.1f", candidate, node_id, d2)
+            return
+        self._add_factor(
+            "loop_closure",
+            candidate,
+            node_id,
+            result.pose,
+            result.cov,
+            result.correlation,
+            robust=lc.robust_kernel,
+        )
+        self.graph.update()
+        self.loop_stats.accepted += 1
+
+    # ------------------------------------------------------------------ results
+
+    def trajectory(self) -> tuple[FloatArray, FloatArray]:
+        """Current estimate of every processed scan: ``(stamps_s (N,), poses (N, 3))``.
+
+        A scan that is not a graph node takes its node's estimate composed with the
+        odometry delta from the node's scan (DESIGN "Data flow of one scan").
+        """
+        ids, poses = self.graph.estimates()
+        recs = self._s.records
+        stamps = np.array([r.stamp_s for r in recs])
+        node = np.array([r.node_id for r in recs], dtype=np.int64)
+        delta = np.array([r.delta_from_node for r in recs]).reshape(-1, 3)
+        return stamps, se2.compose(poses[node], delta)
+
+    def finish(self) -> SlamResult:
+        """Optionally batch-refine, render the grid, and return the :class:`SlamResult`."""
+        from iceg.grid import render
+        from iceg.results import SlamResult
+
+        t0 = time.perf_counter()
+        if self.config.slam.batch_refinement and self._s.node_odom:
+            self.graph.optimize_batch()
+            t0 = self.timer.add("batch_refinement", t0)
+        stamps, poses = self.trajectory()
+        grid = render(self._s.scans, poses, self.config.grid) if self._s.scans else None
+        self.timer.add("grid", t0)
+        ids, node_poses = self.graph.estimates()
+        return SlamResult(
+            stamps_s=stamps,
+            poses=poses,
+            node_ids=ids,
+            node_poses=node_poses,
+            node_scan_index=np.array(self._s.node_scan_index, dtype=np.int64),
+            factors=list(self._s.factors),
+            loop_closures=self.loop_stats,
+            match_failures=dict(self._s.match_failures),
+            stage_seconds=dict(self.timer.seconds),
+            feature_map=self.feature_map,
+            grid=grid,
+            graph=self.graph,
+            config=self.config,
+        )
