@@ -78,7 +78,7 @@ def main() -> None:
         return
     t0 = time.perf_counter()
     scans = list(open_log(path))
-    poses = np.stack([s.odom_pose for s in scans])
+    poses = np.stack([s.odom_pose for s in scans])  # type: ignore[misc]
     print(
         f"log: {path.name}: {len(scans)} scans x {scans[0].n_beams} beams, read in "
         f"{time.perf_counter() - t0:.2f} s (not timed below)"

@@ -25,7 +25,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -61,6 +61,10 @@ PGM_FREE = 254
 PGM_UNKNOWN = 205
 
 
+#: Sentinel default of OccupancyGrid.hits / misses: replaced by zeros of the grid's shape.
+_NO_COUNTS: NDArray[np.int32] = np.zeros((0, 0), dtype=np.int32)
+
+
 class GridError(IcegError):
     """Occupancy-grid inputs are inconsistent (pose count, shapes, non-finite poses), the grid
     would be too large, or an export cannot be written."""
@@ -76,69 +80,71 @@ class GridConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     resolution_m: float = Field(
-        0.05, gt=0.0, description="Cell edge length in metres (paper §IV renders a metric grid)."
+        default=0.05,
+        gt=0.0,
+        description="Cell edge length in metres (paper §IV renders a metric grid).",
     )
     l_occ: float = Field(
-        0.85,
+        default=0.85,
         gt=0.0,
         description="Log-odds added to the cell a beam ends in (inverse sensor model, Thrun et "
         "al. 2005, Probabilistic Robotics ch. 9, Table 9.2 l_occ); 0.85 = p_hit 0.7 as in "
         "OctoMap (Hornung et al. 2013).",
     )
     l_free: float = Field(
-        -0.4,
+        default=-0.4,
         lt=0.0,
         description="Log-odds added to every cell a beam passes through before its endpoint "
         "(Thrun et al. 2005, ch. 9, Table 9.2 l_free); -0.4 = p_miss 0.4 as in OctoMap.",
     )
     l_min: float = Field(
-        -2.0,
+        default=-2.0,
         lt=0.0,
         description="Lower clamping limit of a cell's log-odds (p 0.12), so a cell can turn "
         "occupied again after a change (OctoMap clamping, Hornung et al. 2013 §III-C).",
     )
     l_max: float = Field(
-        3.5,
+        default=3.5,
         gt=0.0,
         description="Upper clamping limit of a cell's log-odds (p 0.97; OctoMap clamping).",
     )
     occupied_thresh: float = Field(
-        0.65,
+        default=0.65,
         gt=0.0,
         lt=1.0,
         description="A cell with probability above this is occupied (ROS map_server default).",
     )
     free_thresh: float = Field(
-        0.196,
+        default=0.196,
         gt=0.0,
         lt=1.0,
         description="A cell with probability below this is free (ROS map_server default).",
     )
     margin_m: float = Field(
-        1.0, ge=0.0, description="Border added around the poses and beam endpoints, metres."
+        default=1.0, ge=0.0, description="Border added around the poses and beam endpoints, metres."
     )
     range_max_m: float | None = Field(
-        30.0,
+        default=30.0,
         gt=0.0,
         description="Beams at or beyond this range (or the scan's own range_max_m, whichever "
         "is smaller) are treated as no-return: no hit is drawn. Long beams smear walls under "
         "small heading errors (1 mrad at 30 m is 3 cm). None: the scan's range_max_m only.",
     )
     no_return_clear_m: float | None = Field(
-        None,
+        default=None,
         gt=0.0,
         description="None: a no-return beam changes nothing. Otherwise the cells along a "
         "no-return beam are marked free up to this distance from the laser, metres.",
     )
     mode: Literal["logodds", "binary"] = Field(
-        "logodds",
+        default="logodds",
         description="'logodds': Bayesian log-odds map (Thrun et al. ch. 9, paper Fig. 5). "
         "'binary': the paper's binary map (§IV, Fig. 3-4): a cell is occupied if beams ended "
         "in it in at least one scan and in at least as many scans as rays passed through it, "
         "free if rays passed through it in more scans than beams ended in it, else unknown.",
     )
     max_cells: int = Field(
-        25_000_000,
+        default=25_000_000,
         gt=0,
         description="Refuse to allocate a grid of more cells than this (about 20 bytes per "
         "cell while rendering); raise resolution_m or lower range_max_m instead.",
@@ -174,9 +180,10 @@ class OccupancyGrid:
         resolution_m: Cell edge length, metres.
         origin_xy: ``(2,)`` float64 world coordinate (metres) of the lower-left corner of
             cell ``(0, 0)``.
-        hits: ``(H, W)`` int32 number of scans with a beam ending in the cell, or ``None``.
-        misses: ``(H, W)`` int32 number of scans with a beam passing through the cell
-            (and none ending in it), or ``None``.
+        hits: ``(H, W)`` int32 number of scans with a beam ending in the cell (all zeros
+            when the grid was not rendered, e.g. built from an array).
+        misses: ``(H, W)`` int32 number of scans with a beam passing through the cell and
+            none ending in it (all zeros when the grid was not rendered).
         occupied_thresh: Probability above which a cell is occupied.
         free_thresh: Probability below which a cell is free.
     """
@@ -184,8 +191,8 @@ class OccupancyGrid:
     log_odds: NDArray[np.float32]
     resolution_m: float
     origin_xy: FloatArray
-    hits: NDArray[np.int32] | None = None
-    misses: NDArray[np.int32] | None = None
+    hits: NDArray[np.int32] = field(default_factory=lambda: _NO_COUNTS)
+    misses: NDArray[np.int32] = field(default_factory=lambda: _NO_COUNTS)
     occupied_thresh: float = 0.65
     free_thresh: float = 0.196
 
@@ -200,7 +207,9 @@ class OccupancyGrid:
             raise GridError(f"resolution_m must be positive, got {self.resolution_m}")
         for name in ("hits", "misses"):
             arr = getattr(self, name)
-            if arr is not None and np.shape(arr) != lo.shape:
+            if arr is _NO_COUNTS:
+                object.__setattr__(self, name, np.zeros(lo.shape, dtype=np.int32))
+            elif np.shape(arr) != lo.shape:
                 raise GridError(f"{name} has shape {np.shape(arr)}, log_odds {lo.shape}")
         object.__setattr__(self, "log_odds", lo)
         object.__setattr__(self, "origin_xy", origin)
@@ -471,8 +480,8 @@ def _render_flat(
         cfg.l_min,
         cfg.l_max,
         grid.log_odds.reshape(-1),
-        grid.hits.reshape(-1),  # type: ignore[union-attr]
-        grid.misses.reshape(-1),  # type: ignore[union-attr]
+        grid.hits.reshape(-1),
+        grid.misses.reshape(-1),
     )
     if cfg.mode == "binary":
         _binarize(grid, cfg)
@@ -492,7 +501,6 @@ def _binarize(grid: OccupancyGrid, cfg: GridConfig) -> None:
     (log-odds l_max) if ``hits >= 1 and hits >= misses``, free (l_min) if ``misses > hits``,
     unknown (0) if no ray reached the cell."""
     hits, misses = grid.hits, grid.misses
-    assert hits is not None and misses is not None
     occupied = (hits > 0) & (hits >= misses)
     free = misses > hits
     grid.log_odds[...] = np.where(occupied, cfg.l_max, np.where(free, cfg.l_min, 0.0))
@@ -696,8 +704,8 @@ def write_png(grid: OccupancyGrid, path: str | Path, trajectory: ArrayLike | Non
 def write_npz(grid: OccupancyGrid, path: str | Path) -> Path:
     """Write the grid's arrays to a compressed numpy archive, atomically.
 
-    Keys: ``log_odds`` (H, W) float32, ``hits`` and ``misses`` (H, W) int32 (absent when
-    the grid has none), ``resolution_m`` (), ``origin_xy`` (2,) float64,
+    Keys: ``log_odds`` (H, W) float32, ``hits`` and ``misses`` (H, W) int32,
+    ``resolution_m`` (), ``origin_xy`` (2,) float64,
     ``occupied_thresh`` and ``free_thresh`` (). Row 0 is the lowest y.
 
     Args:
@@ -717,11 +725,9 @@ def write_npz(grid: OccupancyGrid, path: str | Path) -> Path:
         "origin_xy": grid.origin_xy,
         "occupied_thresh": np.float64(grid.occupied_thresh),
         "free_thresh": np.float64(grid.free_thresh),
+        "hits": grid.hits,
+        "misses": grid.misses,
     }
-    if grid.hits is not None:
-        arrays["hits"] = grid.hits
-    if grid.misses is not None:
-        arrays["misses"] = grid.misses
     try:
         with atomic_write(out, "wb") as fh:
             np.savez_compressed(fh, **arrays)  # type: ignore[arg-type]

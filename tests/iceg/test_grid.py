@@ -17,6 +17,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.image import AxesImage
+from matplotlib.lines import Line2D
 from numpy.typing import NDArray
 from PIL import Image
 from pydantic import ValidationError
@@ -63,7 +65,10 @@ def rasterize_walls(grid: OccupancyGrid, walls: NDArray[np.float64]) -> NDArray[
 
 
 def visible_wall_cells(
-    grid: OccupancyGrid, scans: list[LaserScan], poses: NDArray[np.float64], walls
+    grid: OccupancyGrid,
+    scans: list[LaserScan],
+    poses: NDArray[np.float64],
+    walls: NDArray[np.float64],
 ) -> NDArray[np.bool_]:
     """Cells of the exact (noise-free) beam endpoints: the wall cells the laser could see."""
     seen = np.zeros(grid.shape, dtype=bool)
@@ -79,18 +84,20 @@ def visible_wall_cells(
 
 
 def occupancy_scores(
-    grid: OccupancyGrid, walls, scans: list[LaserScan], poses: NDArray[np.float64]
+    grid: OccupancyGrid,
+    walls: NDArray[np.float64],
+    scans: list[LaserScan],
+    poses: NDArray[np.float64],
 ) -> tuple[float, float, float]:
     """(precision, recall, free fraction) against the rasterized walls, within one cell."""
     truth = rasterize_walls(grid, walls)
     near_truth = ndimage.binary_dilation(truth, NEIGHBOURS_3X3)
     ternary = grid.ternary()
     occupied = ternary == 100
-    precision = np.count_nonzero(occupied & near_truth) / max(np.count_nonzero(occupied), 1)
+    precision = np.count_nonzero(occupied & near_truth) / max(int(np.count_nonzero(occupied)), 1)
     seen = visible_wall_cells(grid, scans, poses, walls)
     near_occupied = ndimage.binary_dilation(occupied, NEIGHBOURS_3X3)
     recall = np.count_nonzero(seen & near_occupied) / np.count_nonzero(seen)
-    assert grid.misses is not None
     passed_free = (grid.misses > 0) & ~near_truth  # truly free cells some ray passed through
     free_fraction = np.count_nonzero(passed_free & (ternary == 0)) / np.count_nonzero(passed_free)
     return precision, recall, free_fraction
@@ -100,7 +107,7 @@ def isolated_fraction(grid: OccupancyGrid) -> float:
     """Fraction of occupied cells with no occupied cell among their 8 neighbours."""
     occ = grid.ternary() == 100
     nb = ndimage.convolve(occ.astype(np.int32), np.ones((3, 3), np.int32), mode="constant") - 1
-    return np.count_nonzero(occ & (nb == 0)) / max(np.count_nonzero(occ), 1)
+    return np.count_nonzero(occ & (nb == 0)) / max(int(np.count_nonzero(occ)), 1)
 
 
 def local_wall_thickness_cells(grid: OccupancyGrid, radius: int = 4) -> NDArray[np.float64]:
@@ -237,7 +244,7 @@ def test_traversal_is_the_exact_cell_path(x0: float, y0: float, bearing: float, 
     g = render_ranges([[r]], [bearing], [[x0, y0, 0.0]], GridConfig(resolution_m=0.1, margin_m=0.1))
     path = {tuple(c) for c in np.argwhere((g.misses > 0) | (g.hits > 0)).tolist()}
     end = np.array([x0 + r * math.cos(bearing), y0 + r * math.sin(bearing)])
-    start_rc, end_rc = g.world_to_cell([[x0, y0], end])
+    start_rc, end_rc = g.world_to_cell(np.array([[x0, y0], end]))
     t = np.linspace(0.0, 1.0, math.ceil(r / 0.1 * 1000) + 2)
     samples = np.array([x0, y0]) + t[:, None] * (end - [x0, y0])
     sampled = {tuple(c) for c in g.world_to_cell(samples).tolist()}
@@ -409,6 +416,7 @@ def test_plot_grid_draws_in_metric_coordinates(room, tmp_path) -> None:
     ax = fig.subplots()
     traj = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 0.0]])
     image, line = plot.grid(ax, g, traj)
+    assert isinstance(image, AxesImage) and isinstance(line, Line2D)
     assert image.get_extent() == pytest.approx(list(g.extent_xy))
     np.testing.assert_array_equal(image.get_array(), g.probabilities())
     np.testing.assert_array_equal(line.get_xydata(), traj[:, :2])
@@ -462,7 +470,7 @@ def test_corrected_real_logs_give_single_straight_walls(relative: str, tmp_path)
     # Control: the same scans on poses perturbed by 5 cm / 1 deg (sigma) must fail the
     # thickness proxy, showing it detects smeared walls.
     scans = list(open_log(shared_file(relative)))
-    poses = np.stack([s.odom_pose for s in scans])
+    poses = np.stack([s.odom_pose for s in scans])  # type: ignore[misc]
     g = render(scans, poses)
     name = relative.split("/")[0]
     write_png(g, tmp_path / f"{name}.png", poses)
