@@ -469,10 +469,13 @@ def _render_flat(
     scan_start = np.zeros(n + 1, dtype=np.int64)
     np.cumsum(np.bincount(s, minlength=n), out=scan_start[1:])
     res = cfg.resolution_m
+    # Continuous cell coordinates (col, row). The clip only absorbs floating-point rounding at
+    # the grid's edges (the bounds contain every point): the compiled loop does not check them.
+    upper = np.nextafter(np.array([w, h], dtype=np.float64), 0.0)
     _trace_scans(
         scan_start,
-        (laser[:, :2] - origin) / res,
-        (end - origin) / res,
+        np.clip((laser[:, :2] - origin) / res, 0.0, upper),
+        np.clip((end - origin) / res, 0.0, upper),
         is_hit[keep],
         w,
         cfg.l_occ,
