@@ -51,7 +51,8 @@ FloatArray = NDArray[np.float64]
 CARMEN_NO_RETURN_M = 81.91
 
 _LASER_RECORDS = ("FLASER", "RLASER", "ROBOTLASER1")
-_SNIFF_PREFIXES = ("FLASER ", "RLASER ", "ROBOTLASER1 ", "ODOM ", "PARAM ")
+_SNIFF = re.compile(r"\s*(?:FLASER|RLASER|ROBOTLASER1|ODOM|PARAM)(?:\s|$)")
+_LASER_LINE = re.compile(r"\s*(?:FLASER|RLASER|ROBOTLASER1)(?:\s|$)")
 _RECORD_NAME = re.compile(r"[A-Z][A-Z0-9_]*\Z")
 _FIX_HINT = "fix or delete the line, or open the log with strict=False to skip malformed lines"
 
@@ -128,7 +129,7 @@ class _PendingScan:
 
 def _sniff(lines: list[str]) -> bool:
     """True if any of the first lines starts with a CARMEN laser, ODOM or PARAM record."""
-    return any(line.lstrip().startswith(_SNIFF_PREFIXES) for line in lines)
+    return any(_SNIFF.match(line) for line in lines)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -333,12 +334,12 @@ class CarmenReader:
         Raises:
             LogFormatError: the file cannot be read.
         """
-        prefixes = tuple(f"{r} " for r in _LASER_RECORDS)
+        match = _LASER_LINE.match
         count = 0
         try:
             with open_text(self.path) as fh:
                 for line in fh:
-                    if line.startswith(prefixes):
+                    if match(line):
                         count += 1
         except (OSError, EOFError, zlib.error) as exc:
             raise LogFormatError(f"{self.path}: cannot read the log ({exc})") from exc
