@@ -37,3 +37,19 @@ def test_atomic_path_leaves_nothing_on_error(tmp_path: Path) -> None:
     with atomic_path(target) as tmp:
         tmp.write_bytes(b"P5 done")
     assert target.read_bytes() == b"P5 done"
+
+
+def test_written_files_follow_the_umask(tmp_path: Path) -> None:
+    # mkstemp creates 0600 files; a result file must get the usual 0666 & ~umask.
+    import os
+
+    mask = os.umask(0o022)
+    try:
+        with atomic_write(tmp_path / "a.txt") as fh:
+            fh.write("x")
+        with atomic_path(tmp_path / "b.bin") as tmp:
+            tmp.write_bytes(b"x")
+    finally:
+        os.umask(mask)
+    assert (tmp_path / "a.txt").stat().st_mode & 0o777 == 0o644
+    assert (tmp_path / "b.bin").stat().st_mode & 0o777 == 0o644
