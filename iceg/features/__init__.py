@@ -1,0 +1,10 @@
+"""ICE features of a laser scan: segmentation, line fitting, Corner / EOW / Intersection.
+
+Paper §III-B and §III-C1; DESIGN.md "ICE matching, step by step", steps 1-4.
+``extract(scan, config) -> ScanFeatures`` is the entry point.
+"""
+
+from iceg.features.config import FeatureConfig
+from iceg.features.extract import extract
+
+__all__ = ["FeatureConfig", "extract"]

@@ -1,0 +1,291 @@
+"""Scan segmentation: adaptive breakpoints, then split-and-merge inside each cluster.
+
+DESIGN.md "ICE matching, step by step", steps 2-3; paper §III-C1. The breakpoint test is
+vectorized over the scan; the recursive end-point fit and the merge run in a numba-compiled
+loop (a few dozen segments per scan, each needing a pass over its points).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+def breakpoints(
+    points_xy: FloatArray,
+    ranges_m: FloatArray,
+    bearings_rad: FloatArray,
+    beam_index: IntArray,
+    sigma_range_m: float,
+    lambda_rad: float,
+) -> IntArray:
+    """Cluster boundaries of a scan by the adaptive breakpoint detector.
+
+    Two consecutive valid points ``p_{n-1}, p_n`` belong to different clusters when
+    ``|p_n - p_{n-1}| > r_{n-1} sin(dphi) / sin(lambda - dphi) + 3 sigma_r`` (Borges & Aldon
+    2004, "Line extraction in 2D range images for mobile robotics", eq. 8), or when an invalid
+    beam lies between them (their beam indices are not consecutive), or when
+    ``dphi >= lambda``.
+
+    Args:
+        points_xy: ``(P, 2)`` float64 valid beam endpoints, metres (any rigid frame).
+        ranges_m: ``(P,)`` float64 their ranges, metres.
+        bearings_rad: ``(P,)`` float64 their beam bearings, radians, increasing.
+        beam_index: ``(P,)`` int64 their indices in the full scan.
+        sigma_range_m: Range noise standard deviation, metres.
+        lambda_rad: Borges & Aldon's lambda, radians.
+
+    Returns:
+        ``(C + 1,)`` int64 cluster boundaries: cluster ``c`` is ``[b[c], b[c + 1])`` in point
+        index; ``[0]`` for an empty scan.
+    """
+    n = points_xy.shape[0]
+    if n == 0:
+        return np.zeros(1, dtype=np.int64)
+    step = np.diff(points_xy, axis=0)
+    jump = np.hypot(step[:, 0], step[:, 1])
+    dphi = np.diff(bearings_rad)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d_max = ranges_m[:-1] * np.sin(dphi) / np.sin(lambda_rad - dphi) + 3.0 * sigma_range_m
+    brk = (np.diff(beam_index) != 1) | (dphi >= lambda_rad) | (jump > d_max)
+    inner = np.flatnonzero(brk) + 1
+    out = np.empty(inner.shape[0] + 2, dtype=np.int64)
+    out[0] = 0
+    out[1:-1] = inner
+    out[-1] = n
+    return out
+
+
+@njit(cache=True)
+def _tls(x: FloatArray, y: FloatArray, s: int, e: int) -> tuple[float, float, float, float]:
+    """Unweighted total-least-squares line of points ``[s, e)``.
+
+    Returns ``(nx, ny, c, max_abs_residual)`` with the line ``nx x + ny y = c``.
+    """
+    m = e - s
+    mx = 0.0
+    my = 0.0
+    for i in range(s, e):
+        mx += x[i]
+        my += y[i]
+    mx /= m
+    my /= m
+    sxx = 0.0
+    syy = 0.0
+    sxy = 0.0
+    for i in range(s, e):
+        dx = x[i] - mx
+        dy = y[i] - my
+        sxx += dx * dx
+        syy += dy * dy
+        sxy += dx * dy
+    alpha = 0.5 * math.atan2(-2.0 * sxy, syy - sxx)
+    nx = math.cos(alpha)
+    ny = math.sin(alpha)
+    c = nx * mx + ny * my
+    worst = 0.0
+    for i in range(s, e):
+        d = abs(nx * x[i] + ny * y[i] - c)
+        if d > worst:
+            worst = d
+    return nx, ny, c, worst
+
+
+@njit(cache=True)
+def _sse(x: FloatArray, y: FloatArray, s: int, e: int) -> float:
+    """Sum of squared total-least-squares residuals of points ``[s, e)`` (0 below 2 points)."""
+    m = e - s
+    if m < 3:
+        return 0.0
+    mx = 0.0
+    my = 0.0
+    for i in range(s, e):
+        mx += x[i]
+        my += y[i]
+    mx /= m
+    my /= m
+    sxx = 0.0
+    syy = 0.0
+    sxy = 0.0
+    for i in range(s, e):
+        dx = x[i] - mx
+        dy = y[i] - my
+        sxx += dx * dx
+        syy += dy * dy
+        sxy += dx * dy
+    # Smallest eigenvalue of the scatter matrix.
+    half_tr = 0.5 * (sxx + syy)
+    disc = math.sqrt(max(0.25 * (sxx - syy) ** 2 + sxy * sxy, 0.0))
+    return max(half_tr - disc, 0.0)
+
+
+@njit(cache=True)
+def _refine_boundaries(
+    x: FloatArray,
+    y: FloatArray,
+    starts: IntArray,
+    stops: IntArray,
+    same: NDArray[np.bool_],
+    n_pieces: int,
+) -> None:
+    """Move each boundary between adjacent pieces of one cluster by up to two points to
+    where the two lines' summed squared residuals are smallest (in place)."""
+    for i in range(n_pieces - 1):
+        if not same[i] or stops[i] != starts[i + 1]:
+            continue
+        s = starts[i]
+        e = stops[i + 1]
+        b0 = stops[i]
+        best_b = b0
+        best = _sse(x, y, s, b0) + _sse(x, y, b0, e)
+        for db in range(-2, 3):
+            b = b0 + db
+            if db == 0 or b - s < 3 or e - b < 3:
+                continue
+            cost = _sse(x, y, s, b) + _sse(x, y, b, e)
+            if cost < best:
+                best = cost
+                best_b = b
+        stops[i] = best_b
+        starts[i + 1] = best_b
+
+
+@njit(cache=True)
+def split_and_merge(
+    x: FloatArray,
+    y: FloatArray,
+    bounds: IntArray,
+    joinable: NDArray[np.bool_],
+    split_distance_m: float,
+    merge_distance_m: float,
+    min_points: int,
+) -> IntArray:
+    """Split-and-merge line segmentation inside clusters (Nguyen et al. 2005, "A comparison
+    of line extraction algorithms using 2D laser rangefinder for indoor mobile robotics",
+    Alg. 1; paper §III-C1).
+
+    Split: a piece is divided at its point farthest from the chord of its first and last
+    points while that distance exceeds ``split_distance_m`` (recursive end-point fit, run
+    with an explicit stack). Merge: adjacent pieces of one cluster (or of two clusters
+    separated only by a dropout, ``joinable``) are joined while every point of the union lies
+    within ``merge_distance_m`` of the union's total-least-squares line. Before each merge
+    pass and at the end, boundaries between adjacent pieces of a cluster are moved by up to
+    two points to the position that minimises the two lines' summed squared residuals (so
+    the point at a corner goes to the wall it lies on and cannot block a merge).
+
+    Args:
+        x, y: ``(P,)`` float64 point coordinates, metres.
+        bounds: ``(C + 1,)`` int64 cluster boundaries from :func:`breakpoints`.
+        joinable: ``(max(C - 1, 0),)`` bool; ``joinable[c]`` lets the merge step join the
+            last piece of cluster ``c`` with the first of cluster ``c + 1``.
+        split_distance_m, merge_distance_m: Thresholds, metres.
+        min_points: Pieces with fewer points are dropped at the end.
+
+    Returns:
+        ``(M, 2)`` int64 ``[start, stop)`` point ranges of the segments, in point order.
+    """
+    n_clusters = bounds.shape[0] - 1
+    cap = x.shape[0] + 1
+    starts = np.empty(cap, dtype=np.int64)
+    stops = np.empty(cap, dtype=np.int64)
+    owner = np.empty(cap, dtype=np.int64)
+    n_pieces = 0
+    stack_s = np.empty(cap, dtype=np.int64)
+    stack_e = np.empty(cap, dtype=np.int64)
+    for c in range(n_clusters):
+        cs = bounds[c]
+        ce = bounds[c + 1]
+        if ce <= cs:
+            continue
+        # Depth-first with the right half pushed first, so pieces come out in point order.
+        stack_s[0] = cs
+        stack_e[0] = ce
+        top = 1
+        while top > 0:
+            top -= 1
+            s = stack_s[top]
+            e = stack_e[top]
+            k_best = -1
+            if e - s >= 3:
+                x0 = x[s]
+                y0 = y[s]
+                dx = x[e - 1] - x0
+                dy = y[e - 1] - y0
+                norm = math.sqrt(dx * dx + dy * dy)
+                d_best = split_distance_m
+                if norm > 1e-12:
+                    for i in range(s + 1, e - 1):
+                        d = abs((x[i] - x0) * dy - (y[i] - y0) * dx) / norm
+                        if d > d_best:
+                            d_best = d
+                            k_best = i
+                else:
+                    for i in range(s + 1, e - 1):
+                        d = math.sqrt((x[i] - x0) ** 2 + (y[i] - y0) ** 2)
+                        if d > d_best:
+                            d_best = d
+                            k_best = i
+            if k_best < 0:
+                starts[n_pieces] = s
+                stops[n_pieces] = e
+                owner[n_pieces] = c
+                n_pieces += 1
+            else:
+                # The farthest point ends the left piece; boundary refinement may move it.
+                stack_s[top] = k_best + 1
+                stack_e[top] = e
+                top += 1
+                stack_s[top] = s
+                stack_e[top] = k_best + 1
+                top += 1
+    # link[i]: pieces i and i + 1 may merge (same cluster, or clusters split by a dropout);
+    # same[i]: they are in one cluster (their boundary may move).
+    link = np.zeros(cap, dtype=np.bool_)
+    same = np.zeros(cap, dtype=np.bool_)
+    for i in range(n_pieces - 1):
+        same[i] = owner[i] == owner[i + 1]
+        link[i] = same[i] or (
+            owner[i + 1] == owner[i] + 1 and joinable[owner[i]] and stops[i] == starts[i + 1]
+        )
+    # Alternate boundary refinement and merging until nothing merges.
+    for _ in range(4):
+        _refine_boundaries(x, y, starts, stops, same, n_pieces)
+        merged = False
+        i = 0
+        while i < n_pieces - 1:
+            if link[i] and stops[i + 1] - starts[i] >= 3:
+                worst = _tls(x, y, starts[i], stops[i + 1])[3]
+                if worst < merge_distance_m:
+                    stops[i] = stops[i + 1]
+                    link[i] = link[i + 1]
+                    same[i] = same[i + 1]
+                    for j in range(i + 1, n_pieces - 1):
+                        starts[j] = starts[j + 1]
+                        stops[j] = stops[j + 1]
+                        link[j] = link[j + 1]
+                        same[j] = same[j + 1]
+                    n_pieces -= 1
+                    merged = True
+                    continue
+            i += 1
+        if not merged:
+            break
+    _refine_boundaries(x, y, starts, stops, same, n_pieces)
+    n_out = 0
+    for i in range(n_pieces):
+        if stops[i] - starts[i] >= min_points:
+            n_out += 1
+    out = np.empty((n_out, 2), dtype=np.int64)
+    k = 0
+    for i in range(n_pieces):
+        if stops[i] - starts[i] >= min_points:
+            out[k, 0] = starts[i]
+            out[k, 1] = stops[i]
+            k += 1
+    return out
