@@ -204,9 +204,10 @@ def _trailer(tokens: list[str], record: str) -> float:
 _ANGLE_CACHE: dict[tuple[str, int] | tuple[str, str, str, int], FloatArray] = {}
 
 
-def _readonly(a: FloatArray) -> FloatArray:
-    a.flags.writeable = False
-    return a
+def _readonly(a: NDArray[np.floating]) -> FloatArray:
+    out = np.asarray(a, dtype=np.float64)
+    out.flags.writeable = False
+    return out
 
 
 def flaser_angles(n: int) -> FloatArray:
@@ -224,7 +225,7 @@ def flaser_angles(n: int) -> FloatArray:
     angles = _ANGLE_CACHE.get(key)
     if angles is None:
         step = math.pi / (n - 1) if n in (181, 361) else math.pi / max(n, 1)
-        angles = _readonly(-math.pi / 2 + np.arange(n) * step)
+        angles = _readonly(-math.pi / 2 + np.arange(n, dtype=np.float64) * step)
         _ANGLE_CACHE[key] = angles
     return angles
 
@@ -235,7 +236,7 @@ def _robotlaser_angles(start_tok: str, res_tok: str, n: int) -> FloatArray:
     if angles is None:
         start = _float(start_tok, "ROBOTLASER1 start_angle")
         res = _float(res_tok, "ROBOTLASER1 angular_res")
-        angles = _readonly(start + np.arange(n) * res)
+        angles = _readonly(start + np.arange(n, dtype=np.float64) * res)
         if len(_ANGLE_CACHE) > 1024:
             _ANGLE_CACHE.clear()
         _ANGLE_CACHE[key] = angles
@@ -685,7 +686,7 @@ def write_carmen(
 class _TextSink:
     """Minimal text ``write`` over a binary stream (for gzip output)."""
 
-    def __init__(self, raw: IO[bytes]) -> None:
+    def __init__(self, raw: IO[bytes] | gzip.GzipFile) -> None:
         self._raw = raw
 
     def write(self, s: str) -> int:
