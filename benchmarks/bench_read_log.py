@@ -71,7 +71,7 @@ def main(argv: list[str] | None = None) -> None:
 
     relations = path.with_suffix(".relations")
     if relations.is_file():
-        rel = read_relations(relations)  # logs its quirks (e.g. a dropped duplicate) once
+        rel = read_relations(relations)  # logs its quirks (e.g. a duplicate line) once
         logging.getLogger("frontends.relations").setLevel(logging.ERROR)
         best, median, rel = _time(lambda: read_relations(relations))
         print(

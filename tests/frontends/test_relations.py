@@ -36,9 +36,10 @@ def quirky(tmp_path: Path) -> Path:
 
 def test_quirks(quirky: Path, caplog: pytest.LogCaptureFixture) -> None:
     with caplog.at_level(logging.WARNING, logger="frontends.relations"):
-        rel = read_relations(quirky)
-    assert "dropped 1 exact duplicate" in caplog.text
-    assert len(rel) == 4 and rel.n_lines == 5 and rel.n_duplicates_dropped == 1
+        rel = read_relations(quirky, drop_duplicates=True)
+    assert "1 exact duplicate relation line(s) (line 4 repeats line 1): dropped" in caplog.text
+    assert len(rel) == 4 and rel.n_lines == 5
+    assert rel.n_duplicates == 1 and rel.n_duplicates_dropped == 1
     assert rel.n_swapped == 1
     # Sorted by t1 then t2.
     np.testing.assert_array_equal(
@@ -54,10 +55,13 @@ def test_quirks(quirky: Path, caplog: pytest.LogCaptureFixture) -> None:
     assert rel.source == str(quirky)
 
 
-def test_keep_duplicates(quirky: Path) -> None:
-    rel = read_relations(quirky, drop_duplicates=False)
-    assert len(rel) == 5 and rel.n_duplicates_dropped == 0
+def test_duplicates_kept_by_default(quirky: Path, caplog: pytest.LogCaptureFixture) -> None:
+    with caplog.at_level(logging.WARNING, logger="frontends.relations"):
+        rel = read_relations(quirky)
+    assert "(line 4 repeats line 1): kept" in caplog.text
+    assert len(rel) == 5 and rel.n_duplicates == 1 and rel.n_duplicates_dropped == 0
     np.testing.assert_array_equal(rel.stamps_s[2], rel.stamps_s[3])
+    np.testing.assert_array_equal(rel.deltas[2], rel.deltas[3])
 
 
 @pytest.mark.parametrize(
@@ -120,12 +124,13 @@ def test_mit_csail_relations_match_scans() -> None:
     path = shared_file("mit-csail/mit-csail.relations")
     clf = shared_file("mit-csail/mit-csail.clf")
     # The file has 1172 lines; lines 1098 and 1099 are the same relation (checked with
-    # `sort | uniq -d`), so by default 1171 distinct relations remain.
-    every_line = read_relations(path, drop_duplicates=False)
-    assert len(every_line) == 1172
-    rel = read_relations(path)
+    # `sort | uniq -d`): kept by default (1172, as the reference evaluation counts them),
+    # 1171 distinct relations with drop_duplicates=True.
+    every_line = read_relations(path)
+    assert len(every_line) == 1172 and every_line.n_duplicates == 1
+    assert every_line.n_swapped == 0
+    rel = read_relations(path, drop_duplicates=True)
     assert rel.n_lines == 1172 and rel.n_duplicates_dropped == 1 and len(rel) == 1171
-    assert rel.n_swapped == 0
     scans = list(open_log(clf))
     stamps = np.array([s.stamp_s for s in scans])
     idx, ok = match_stamps(every_line.stamps_s, stamps, 1e-3)
