@@ -9,11 +9,11 @@ messages of the matching log. ``z roll pitch`` are 0 for the 2D datasets.
 Quirks of published files handled here (``../shared/data/README.md``): double spaces, 5 or 6
 decimals, lines with ``t1 > t2``, exact duplicate lines, unsorted lines.
 
-Duplicates are counted and reported but **kept by default**: the reference evaluation averages
-over every line of the file, and so do the published figures. On MIT CSAIL, lines 1098 and 1099
-are the same relation; keeping all 1172 lines gives raw odometry 1.681 m / 5.072 deg (the
-figures quoted for this benchmark), dropping the copy gives 1171 relations and 1.672 m /
-5.062 deg. Pass ``drop_duplicates=True`` to score each distinct relation once.
+Duplicates are counted and reported but **kept by default**, so that a score is the average
+over every line of the file, as the figures quoted for the benchmark are. On MIT CSAIL, lines
+1098 and 1099 are the same relation; keeping all 1172 lines gives raw odometry 1.681 m /
+5.072 deg (the quoted 1.68 m / 5.07 deg), dropping the copy gives 1171 relations and
+1.672 m / 5.062 deg. Pass ``drop_duplicates=True`` to score each distinct relation once.
 """
 
 from __future__ import annotations
@@ -97,9 +97,9 @@ def read_relations(path: str | Path, drop_duplicates: bool = False) -> Relations
 
     Args:
         path: The relations file.
-        drop_duplicates: Drop exact duplicate lines. Default ``False`` keeps every line, as
-            the reference evaluation does when it averages over the file's lines (so scores
-            compare with published figures; see the module docstring).
+        drop_duplicates: Drop exact duplicate lines. Default ``False`` keeps every line, so
+            scores average over the file's lines like the quoted benchmark figures (see the
+            module docstring).
 
     Returns:
         A :class:`Relations` with ``(M, 2)`` stamps and ``(M, 3)`` deltas.
@@ -140,7 +140,7 @@ def read_relations(path: str | Path, drop_duplicates: bool = False) -> Relations
         action = (
             "dropped"
             if drop_duplicates
-            else "kept, as the reference evaluation does; pass drop_duplicates=True to drop them"
+            else "kept (scores average over every line); pass drop_duplicates=True to drop them"
         )
         logger.warning(
             "%s: %d exact duplicate relation line(s) (%s%s): %s",

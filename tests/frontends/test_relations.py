@@ -124,7 +124,7 @@ def test_mit_csail_relations_match_scans() -> None:
     path = shared_file("mit-csail/mit-csail.relations")
     clf = shared_file("mit-csail/mit-csail.clf")
     # The file has 1172 lines; lines 1098 and 1099 are the same relation (checked with
-    # `sort | uniq -d`): kept by default (1172, as the reference evaluation counts them),
+    # `sort | uniq -d`): kept by default (1172, the count the benchmark figures use),
     # 1171 distinct relations with drop_duplicates=True.
     every_line = read_relations(path)
     assert len(every_line) == 1172 and every_line.n_duplicates == 1
