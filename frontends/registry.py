@@ -64,9 +64,9 @@ def available_formats() -> list[str]:
 
 def open_text(path: Path) -> io.TextIOBase:
     """Open ``path`` for streaming text reading; ``.gz`` is decompressed transparently."""
-    if path.suffix == ".gz":
+    if path.suffix.lower() == ".gz":
         return io.TextIOWrapper(gzip.open(path, "rb"), encoding="utf-8", errors="replace")
-    return open(path, encoding="utf-8", errors="replace")  # noqa: SIM115
+    return open(path, encoding="utf-8", errors="replace")
 
 
 def _first_lines(path: Path, n: int = 50) -> list[str]:

@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
+from frontends.relations import match_stamps
 from iceg_common import se2
 from iceg_common.errors import EvaluationError
 
@@ -60,30 +61,6 @@ class RelationErrors:
         return asdict(self)
 
 
-def nearest_stamp_indices(
-    query_s: ArrayLike, stamps_s: ArrayLike, tolerance_s: float
-) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
-    """Index of the nearest trajectory stamp for every query stamp.
-
-    Args:
-        query_s: ``(M,)`` query timestamps, seconds.
-        stamps_s: ``(N,)`` trajectory timestamps, seconds, non-decreasing.
-        tolerance_s: a query matches only if the nearest stamp is within this distance.
-
-    Returns:
-        ``(indices (M,), matched (M,) bool)``.
-    """
-    q = np.asarray(query_s, dtype=np.float64)
-    s = np.asarray(stamps_s, dtype=np.float64)
-    if s.size == 0:
-        return np.zeros(q.shape, dtype=np.int64), np.zeros(q.shape, dtype=bool)
-    hi = np.clip(np.searchsorted(s, q), 1, max(len(s) - 1, 1))
-    lo = hi - 1
-    pick_hi = np.abs(s[hi] - q) < np.abs(s[lo] - q)
-    idx = np.where(pick_hi, hi, lo).astype(np.int64)
-    return idx, np.abs(s[idx] - q) <= tolerance_s
-
-
 def relation_errors(
     stamps_s: ArrayLike,
     poses: ArrayLike,
@@ -118,8 +95,8 @@ def relation_errors(
         )
     if np.any(np.diff(t) < 0):
         raise EvaluationError("trajectory stamps must be non-decreasing")
-    i1, ok1 = nearest_stamp_indices(rs[:, 0], t, tolerance_s)
-    i2, ok2 = nearest_stamp_indices(rs[:, 1], t, tolerance_s)
+    i1, ok1 = match_stamps(rs[:, 0], t, tolerance_s)
+    i2, ok2 = match_stamps(rs[:, 1], t, tolerance_s)
     ok = ok1 & ok2
     n_matched = int(ok.sum())
     if n_matched == 0:

@@ -12,9 +12,9 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from frontends import LaserScan, open_log
-from frontends.relations import Relations, read_relations
+from frontends.relations import Relations, match_stamps, read_relations
 from iceg.config import IcegConfig
-from iceg.evaluation import nearest_stamp_indices, position_errors, relation_errors
+from iceg.evaluation import position_errors, relation_errors
 from iceg.results import SlamResult
 from iceg.slam import Slam
 from iceg_common.errors import EvaluationError, LogFormatError
@@ -52,8 +52,8 @@ def check_relations_match(relations: Relations, stamps_s: np.ndarray) -> None:
     Raises:
         EvaluationError: no relation has both timestamps within tolerance of a scan.
     """
-    _, ok1 = nearest_stamp_indices(relations.stamps_s[:, 0], stamps_s, RELATION_TOLERANCE_S)
-    _, ok2 = nearest_stamp_indices(relations.stamps_s[:, 1], stamps_s, RELATION_TOLERANCE_S)
+    _, ok1 = match_stamps(relations.stamps_s[:, 0], stamps_s, RELATION_TOLERANCE_S)
+    _, ok2 = match_stamps(relations.stamps_s[:, 1], stamps_s, RELATION_TOLERANCE_S)
     if not np.any(ok1 & ok2):
         raise EvaluationError(
             f"{relations.source}: none of its {len(relations.stamps_s)} relations matches a scan "

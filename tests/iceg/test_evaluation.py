@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from iceg.evaluation import nearest_stamp_indices, position_errors, relation_errors
+from iceg.evaluation import position_errors, relation_errors
 from iceg_common import se2
 from iceg_common.errors import EvaluationError
 from tests.conftest import shared_file
@@ -53,12 +53,6 @@ def test_unmatched_relations_raise_a_clear_error() -> None:
     stamps, poses = _truth()
     with pytest.raises(EvaluationError, match="none of the 1 relations"):
         relation_errors(stamps, poses, [[5.0, 6.0]], [[0.0, 0.0, 0.0]])
-
-
-def test_nearest_stamp_tolerance() -> None:
-    idx, ok = nearest_stamp_indices([0.0, 1.0004, 1.6, 9.0], [0.0, 1.0, 2.0], 1e-3)
-    assert idx.tolist() == [0, 1, 2, 2]
-    assert ok.tolist() == [True, True, False, False]
 
 
 def test_position_errors_recover_a_rigid_offset() -> None:
