@@ -26,48 +26,52 @@ IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
 
 
-def _line_intersections(
-    lines_a: FloatArray, cov_a: FloatArray, lines_b: FloatArray, cov_b: FloatArray
-) -> tuple[FloatArray, FloatArray]:
-    """Meeting points of line pairs and their covariance.
+def _meet(lines_a: FloatArray, lines_b: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Meeting points of line pairs and their Jacobians with respect to each line.
 
     Lines ``n_k·p = rho_k`` with ``n_k = (cos alpha_k, sin alpha_k)``; with ``N = [n_a; n_b]``
     the point is ``p = N^-1 (rho_a, rho_b)``. Perturbing ``alpha_k`` and ``rho_k`` gives
     ``N dp = (d rho_a - (t_a·p) d alpha_a, d rho_b - (t_b·p) d alpha_b)`` with ``t_k = (-sin
-    alpha_k, cos alpha_k)``; the covariance is ``J_a C_a J_a^T + J_b C_b J_b^T`` (the two lines
-    are fitted to disjoint points, hence independent).
+    alpha_k, cos alpha_k)``, so ``J_a = N^-1[:, 0] (-(t_a·p), 1)`` and likewise ``J_b``.
 
     Args:
         lines_a, lines_b: ``(Q, 2)`` float64 ``(alpha_rad, rho_m)``; not parallel.
-        cov_a, cov_b: ``(Q, 2, 2)`` float64 their covariances.
 
     Returns:
-        ``xy`` ``(Q, 2)`` float64 metres and ``cov`` ``(Q, 2, 2)`` float64 m².
+        ``xy`` ``(Q, 2)`` float64 metres; ``J_a``, ``J_b`` ``(Q, 2, 2)`` float64
+        ``d xy / d (alpha, rho)`` of each line.
     """
     ca, sa = np.cos(lines_a[:, 0]), np.sin(lines_a[:, 0])
     cb, sb = np.cos(lines_b[:, 0]), np.sin(lines_b[:, 0])
     det = ca * sb - sa * cb
     # N^-1 = [[sb, -sa], [-cb, ca]] / det
-    inv = np.empty((det.shape[0], 2, 2))
-    inv[:, 0, 0] = sb / det
-    inv[:, 0, 1] = -sa / det
-    inv[:, 1, 0] = -cb / det
-    inv[:, 1, 1] = ca / det
-    rho = np.stack([lines_a[:, 1], lines_b[:, 1]], axis=1)
-    xy = np.einsum("qij,qj->qi", inv, rho)
+    col_a = np.stack([sb, -cb], axis=1) / det[:, None]
+    col_b = np.stack([-sa, ca], axis=1) / det[:, None]
+    xy = col_a * lines_a[:, 1:2] + col_b * lines_b[:, 1:2]
     ta_p = -sa * xy[:, 0] + ca * xy[:, 1]
     tb_p = -sb * xy[:, 0] + cb * xy[:, 1]
-    # J_a = inv[:, :, 0] ⊗ (-(t_a·p), 1); likewise J_b with column 1.
     ga = np.stack([-ta_p, np.ones_like(ta_p)], axis=1)
     gb = np.stack([-tb_p, np.ones_like(tb_p)], axis=1)
-    var_a = np.einsum("qi,qij,qj->q", ga, cov_a, ga)
-    var_b = np.einsum("qi,qij,qj->q", gb, cov_b, gb)
-    col_a = inv[:, :, 0]
-    col_b = inv[:, :, 1]
-    cov = var_a[:, None, None] * np.einsum("qi,qj->qij", col_a, col_a) + var_b[
-        :, None, None
-    ] * np.einsum("qi,qj->qij", col_b, col_b)
-    return xy, cov
+    return xy, col_a[:, :, None] * ga[:, None, :], col_b[:, :, None] * gb[:, None, :]
+
+
+def _sandwich(j: FloatArray, c: FloatArray) -> FloatArray:
+    """``J C J^T`` for stacks ``(Q, 2, 2)``."""
+    return np.einsum("qij,qjk,qlk->qil", j, c, j)
+
+
+def _line_intersections(
+    lines_a: FloatArray, cov_a: FloatArray, lines_b: FloatArray, cov_b: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Meeting points of line pairs (see :func:`_meet`) and their covariance
+    ``J_a C_a J_a^T + J_b C_b J_b^T`` (the two lines are fitted to disjoint points, hence
+    independent).
+
+    Returns:
+        ``xy`` ``(Q, 2)`` float64 metres and ``cov`` ``(Q, 2, 2)`` float64 m².
+    """
+    xy, ja, jb = _meet(lines_a, lines_b)
+    return xy, _sandwich(ja, cov_a) + _sandwich(jb, cov_b)
 
 
 def _unit(v: FloatArray) -> FloatArray:
@@ -311,27 +315,36 @@ def extract(scan: LaserScan, config: FeatureConfig | None = None) -> ScanFeature
     with np.errstate(invalid="ignore"):
         farther = valid[nb_c] & (r_nb > r_pred + cfg.eow_range_margin_m)
     sees_past = inside & predicted & (farther | no_return[nb_c])
-    is_eow = np.all(sees_past, axis=2) & ~in_corner  # (M, 2)
+    # An endpoint whose next beams start another segment right there is a junction (a
+    # corner, or walls meeting at a shallow angle), not an end of wall.
+    flat_ends = endpoints.reshape(-1, 2)
+    flat_sp = spacing.reshape(-1)
+    flat_beam = end_beam.reshape(-1)
+    d_ends = np.linalg.norm(flat_ends[:, None, :] - flat_ends[None, :, :], axis=2)
+    touching = d_ends <= cfg.corner_gap_m + flat_sp[:, None] + flat_sp[None, :]
+    touching &= np.abs(flat_beam[:, None] - flat_beam[None, :]) <= cfg.eow_check_beams + 1
+    seg_of_end = np.repeat(np.arange(m), 2)
+    touching &= seg_of_end[:, None] != seg_of_end[None, :]
+    junction = touching.any(axis=1).reshape(m, 2)
+    is_eow = np.all(sees_past, axis=2) & ~in_corner & ~junction  # (M, 2)
     eow_seg, eow_end = np.nonzero(is_eow)
     n_e = eow_seg.size
     if n_e:
         end_xy = endpoints[eow_seg, eow_end]
         other_xy = endpoints[eow_seg, 1 - eow_end]
         wall_dir = _unit(other_xy - end_xy)  # from the end into the wall
-        # Where the first beam beyond would have met the wall's line.
-        first_u = u[eow_seg, eow_end, 0]
-        hit = origin + r_pred[eow_seg, eow_end, 0][:, None] * first_u
-        gap_len = np.abs(np.einsum("ki,ki->k", hit - end_xy, wall_dir))
-        eow_xy = end_xy - 0.5 * gap_len[:, None] * wall_dir
-        nrm = normals[eow_seg]
-        tang = np.stack([-nrm[:, 1], nrm[:, 0]], axis=1)
-        g = np.stack([np.einsum("ki,ki->k", tang, eow_xy), -np.ones(n_e)], axis=1)
-        var_n = np.einsum("ki,kij,kj->k", g, seg_cov[eow_seg], g)
-        last_u = beam_dirs[np.where(eow_end == 0, seg_range[eow_seg, 0], seg_range[eow_seg, 1] - 1)]
-        var_t = (
-            gap_len**2 / 12.0 + (cfg.sigma_range_m * np.einsum("ki,ki->k", last_u, wall_dir)) ** 2
-        )
-        eow_cov = var_n[:, None, None] * np.einsum("ki,kj->kij", nrm, nrm) + var_t[
+        # The wall ends between the ray of the endpoint's beam and the ray of the first beam
+        # beyond: both meet the wall's line; the EOW is the middle, uniform in between.
+        seg_lines = lines[eow_seg]
+        rays = []
+        for beam in (end_beam[eow_seg, eow_end], nb_c[eow_seg, eow_end, 0]):
+            ray_alpha = beam_angle_robot[beam] + 0.5 * np.pi  # normal of the beam's ray
+            ray_rho = np.cos(ray_alpha) * origin[0] + np.sin(ray_alpha) * origin[1]
+            rays.append(_meet(seg_lines, np.stack([ray_alpha, ray_rho], axis=1))[:2])
+        (hit_end, j_end), (hit_next, j_next) = rays
+        eow_xy = 0.5 * (hit_end + hit_next)
+        gap_len = np.linalg.norm(hit_next - hit_end, axis=1)
+        eow_cov = _sandwich(0.5 * (j_end + j_next), seg_cov[eow_seg]) + (gap_len**2 / 12.0)[
             :, None, None
         ] * np.einsum("ki,kj->kij", wall_dir, wall_dir)
         eow_dirs = np.stack([wall_dir, np.full((n_e, 2), np.nan)], axis=1)
