@@ -1,0 +1,22 @@
+"""ICE scan matching (paper §III-C2/C3; DESIGN.md "ICE matching, step by step", steps 5-10).
+
+Example::
+
+    from iceg.matching import IceMatcher, MatchBounds, MatchingConfig
+    matcher = IceMatcher(MatchingConfig())
+    result = matcher.match(new_features, reference, prediction, MatchBounds.local(0.5, 15.0))
+    if result.success:
+        result.pose, result.cov  # new scan in the reference frame; Pose2 tangent covariance
+"""
+
+from iceg.matching.config import MatchBounds, MatchingConfig
+from iceg.matching.geometry import transform_features, transform_lines
+from iceg.matching.matcher import IceMatcher
+
+__all__ = [
+    "IceMatcher",
+    "MatchBounds",
+    "MatchingConfig",
+    "transform_features",
+    "transform_lines",
+]

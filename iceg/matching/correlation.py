@@ -1,0 +1,214 @@
+"""The correlation fitness of paper eq. 1-3 as fixed in DESIGN.md step 7, vectorized over
+hypotheses."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from iceg.matching.geometry import FeatureGeometry, PolarProfile, rot
+from iceg.matching.hypotheses import (
+    CORNER_TO_EOW,
+    EOW_TO_CORNER,
+    INCOMPATIBLE,
+    INTERSECTIONS,
+    SAME_DIRECTED,
+)
+from iceg_common.se2 import wrap_angle
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+def fimp(d_m: FloatArray, near: float, far: float, range_m: float) -> FloatArray:
+    """Feature importance of paper eq. 3 as fixed in DESIGN step 7:
+    ``fImp(d) = near / (1 + k d)`` with ``k`` such that ``fImp(range_m) = far``
+    (defaults 0.65 and 0.1 at 20 m)."""
+    k = (near / far - 1.0) / range_m
+    return near / (1.0 + k * np.asarray(d_m, dtype=np.float64))
+
+
+@dataclass(frozen=True, eq=False)
+class Correlation:
+    """Correlation of each hypothesis (paper eq. 1) and its feature pairing.
+
+    Attributes:
+        score: ``(H,)`` float64 correlation in ``[0, 1]``.
+        dis, ang, count, acc: ``(H,)`` float64 the four terms of eq. 1.
+        match: ``(H, K_new)`` int64 reference index paired with each new feature (-1: none).
+        n_matched: ``(H,)`` int64 number of pairs.
+        n_visible: ``(H,)`` int64 reference features visible from the hypothesised pose.
+    """
+
+    score: FloatArray
+    dis: FloatArray
+    ang: FloatArray
+    count: FloatArray
+    acc: FloatArray
+    match: IntArray
+    n_matched: IntArray
+    n_visible: IntArray
+
+
+def pair_angle_error(
+    gn: FeatureGeometry, gr: FeatureGeometry, codes: IntArray, theta: FloatArray
+) -> FloatArray:
+    """Angle term of every (hypothesis, new, reference) pair: heading difference after the
+    hypothesis' rotation (Corner bisectors, EOW walls; Corner<->EOW: the closer Corner edge),
+    opening-angle difference for Intersections; ``inf`` for incompatible pairs.
+
+    Args:
+        theta: ``(H,)`` float64 hypothesis rotations, radians.
+
+    Returns:
+        ``(H, K_new, K_ref)`` float64 absolute angle errors, radians.
+    """
+    th = theta[:, None, None]
+    err = np.full((theta.shape[0], gn.n, gr.n), np.inf)
+    with np.errstate(invalid="ignore"):
+        same = np.abs(wrap_angle(gn.heading[None, :, None] + th - gr.heading[None, None, :]))
+        ce = np.fmin(
+            np.abs(wrap_angle(gn.edge[None, :, None, 0] + th - gr.edge[None, None, :, 0])),
+            np.abs(wrap_angle(gn.edge[None, :, None, 1] + th - gr.edge[None, None, :, 0])),
+        )
+        ec = np.fmin(
+            np.abs(wrap_angle(gn.edge[None, :, None, 0] + th - gr.edge[None, None, :, 0])),
+            np.abs(wrap_angle(gn.edge[None, :, None, 0] + th - gr.edge[None, None, :, 1])),
+        )
+        ii = np.abs(gn.opening[:, None] - gr.opening[None, :])[None]
+    c = codes[None]
+    err = np.where(c == SAME_DIRECTED, same, err)
+    err = np.where(c == CORNER_TO_EOW, ce, err)
+    err = np.where(c == EOW_TO_CORNER, ec, err)
+    err = np.where(c == INTERSECTIONS, np.broadcast_to(ii, err.shape), err)
+    err = np.where(c == INCOMPATIBLE, np.inf, err)
+    return np.where(np.isfinite(err), err, np.inf)
+
+
+def visible_reference(
+    poses: FloatArray,
+    gr: FeatureGeometry,
+    profile: PolarProfile,
+    range_max_m: float,
+    occlusion_tolerance_m: float,
+) -> NDArray[np.bool_]:
+    """Which reference features the new scan could see from each hypothesised pose: inside
+    the new scan's field of view and range, and not occluded (no pair of new beams around
+    its bearing is shorter than its distance minus the tolerance). DESIGN "Feature map and
+    time-validity"; used by the count term of eq. 1.
+
+    Returns:
+        ``(H, K_ref)`` bool.
+    """
+    h = poses.shape[0]
+    if gr.n == 0 or profile.bearing.shape[0] == 0:
+        return np.zeros((h, gr.n), dtype=bool)
+    r = rot(poses[:, 2])  # (H, 2, 2)
+    rel = gr.xy[None, :, :] - poses[:, None, :2]  # (H, K, 2)
+    local = np.einsum("hba,hkb->hka", r, rel)  # R^T rel
+    bearing = np.arctan2(local[..., 1], local[..., 0])
+    dist = np.hypot(local[..., 0], local[..., 1])
+    lo = profile.bearing[0] - profile.spacing
+    hi = profile.bearing[-1] + profile.spacing
+    rng = profile.lookup(bearing)
+    occluded = rng < dist - occlusion_tolerance_m  # NaN -> False
+    return (bearing >= lo) & (bearing <= hi) & (dist < range_max_m) & ~occluded
+
+
+def correlate(
+    poses: FloatArray,
+    gn: FeatureGeometry,
+    gr: FeatureGeometry,
+    codes: IntArray,
+    profile: PolarProfile,
+    *,
+    gate_distance_m: float,
+    gate_angle_rad: float,
+    fimp_near: float,
+    fimp_far: float,
+    fimp_range_m: float,
+    range_max_m: float,
+    occlusion_tolerance_m: float,
+    weights: tuple[float, float, float, float],
+) -> Correlation:
+    """Correlation of paper eq. 1-3 (DESIGN step 7) for ``H`` hypotheses at once.
+
+    Under each hypothesis the new features move into the reference frame and each pairs
+    with the nearest compatible reference feature inside the distance gate ``g_d`` and the
+    angle gate ``g_a`` (one new feature per reference feature, the nearest wins). With
+    ``w_i = fImp(d(nf_i)) fImp(d(of_i))`` (``d`` measured from each frame's origin):
+
+    - ``dis = sum w_i (1 - dis_i / g_d) / sum w_i``
+    - ``ang = sum w_i (1 - Angle_i / g_a) / sum w_i``
+    - ``count = n_matched / min(n_new, n_ref_visible)``
+    - ``acc = sum_matched w_i / sum_all_new fImp(d(nf))^2`` (eq. 2, clipped to 1)
+    - ``correlation = (0.4 dis + 0.2 ang + 0.2 count + 0.6 acc) / 1.4``
+
+    Args:
+        poses: ``(H, 3)`` float64 hypothesised poses of the new scan in the reference frame.
+        gn, gr: New and reference feature geometry.
+        codes: ``(K_new, K_ref)`` pair codes from :func:`~iceg.matching.hypotheses.pair_codes`.
+        profile: Polar profile of the new scan (visibility for ``count``).
+        weights: ``(w_dis, w_ang, w_count, w_acc)`` of eq. 1.
+
+    Returns:
+        A :class:`Correlation`.
+    """
+    h = poses.shape[0]
+    kn, kr = gn.n, gr.n
+    visible = visible_reference(poses, gr, profile, range_max_m, occlusion_tolerance_m)
+    n_visible = visible.sum(axis=1).astype(np.int64)
+    zeros = np.zeros(h)
+    if kn == 0 or kr == 0:
+        return Correlation(
+            zeros,
+            zeros,
+            zeros,
+            zeros,
+            zeros,
+            np.full((h, kn), -1, dtype=np.int64),
+            np.zeros(h, dtype=np.int64),
+            n_visible,
+        )
+    r = rot(poses[:, 2])
+    xy_t = np.einsum("hab,kb->hka", r, gn.xy) + poses[:, None, :2]  # (H, Kn, 2)
+    diff = xy_t[:, :, None, :] - gr.xy[None, None, :, :]
+    dist = np.hypot(diff[..., 0], diff[..., 1])  # (H, Kn, Kr)
+    aerr = pair_angle_error(gn, gr, codes, poses[:, 2])
+    ok = (dist < gate_distance_m) & (aerr < gate_angle_rad)
+    dmask = np.where(ok, dist, np.inf)
+    j = np.argmin(dmask, axis=2)  # (H, Kn)
+    hh, ii = np.meshgrid(np.arange(h), np.arange(kn), indexing="ij")
+    dbest = dmask[hh, ii, j]
+    matched = np.isfinite(dbest)
+    # One new feature per reference feature: keep the nearest.
+    hm, im = np.nonzero(matched)
+    if hm.shape[0] > 0:
+        jm = j[hm, im]
+        dm = dbest[hm, im]
+        order = np.lexsort((dm, jm, hm))
+        key = hm[order] * (kr + 1) + jm[order]
+        first = np.ones(order.shape[0], dtype=bool)
+        first[1:] = key[1:] != key[:-1]
+        drop = order[~first]
+        matched[hm[drop], im[drop]] = False
+    match = np.where(matched, j, -1).astype(np.int64)
+    fn = fimp(gn.dist, fimp_near, fimp_far, fimp_range_m)  # (Kn,)
+    fr = fimp(gr.dist, fimp_near, fimp_far, fimp_range_m)  # (Kr,)
+    w = np.where(matched, fn[None, :] * fr[j], 0.0)
+    sw = w.sum(axis=1)
+    safe = np.where(sw > 0, sw, 1.0)
+    d_term = np.where(matched, 1.0 - np.where(matched, dbest, 0.0) / gate_distance_m, 0.0)
+    a_best = aerr[hh, ii, j]
+    a_term = np.where(matched, 1.0 - np.where(matched, a_best, 0.0) / gate_angle_rad, 0.0)
+    dis = np.where(sw > 0, (w * d_term).sum(axis=1) / safe, 0.0)
+    ang = np.where(sw > 0, (w * a_term).sum(axis=1) / safe, 0.0)
+    n_matched = matched.sum(axis=1).astype(np.int64)
+    denom = np.maximum(1, np.minimum(kn, n_visible))
+    count = np.clip(n_matched / denom, 0.0, 1.0)
+    acc = np.clip(sw / np.sum(fn * fn), 0.0, 1.0)
+    wd, wa, wc, wacc = weights
+    score = (wd * dis + wa * ang + wc * count + wacc * acc) / (wd + wa + wc + wacc)
+    return Correlation(score, dis, ang, count, acc, match, n_matched, n_visible)

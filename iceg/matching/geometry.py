@@ -1,0 +1,372 @@
+"""Geometry shared by the matcher and the feature map: feature headings, moving features and
+segments between frames, a scan's polar range profile, point-to-segment association.
+
+All functions are vectorized over features, segments or points.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from iceg.types import FeatureKind, ScanFeatures
+from iceg_common.se2 import wrap_angle
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+BoolArray = NDArray[np.bool_]
+
+CORNER = int(FeatureKind.CORNER)
+EOW = int(FeatureKind.EOW)
+INTERSECTION = int(FeatureKind.INTERSECTION)
+
+
+def rot(theta: float | FloatArray) -> FloatArray:
+    """Rotation matrices ``(..., 2, 2)`` of angles ``(...)`` radians."""
+    t = np.asarray(theta, dtype=np.float64)
+    c, s = np.cos(t), np.sin(t)
+    return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+
+
+def empty_features(range_max_m: float = 20.0, stamp_s: float = 0.0) -> ScanFeatures:
+    """A :class:`ScanFeatures` with no points, segments or features."""
+    return ScanFeatures(
+        points_xy=np.zeros((0, 2)),
+        seg_endpoints=np.zeros((0, 2, 2)),
+        seg_lines=np.zeros((0, 2)),
+        seg_cov=np.zeros((0, 2, 2)),
+        seg_point_range=np.zeros((0, 2), dtype=np.int64),
+        kind=np.zeros(0, dtype=np.int64),
+        xy=np.zeros((0, 2)),
+        cov=np.zeros((0, 2, 2)),
+        directions=np.zeros((0, 2, 2)),
+        opening_rad=np.zeros(0),
+        segment_ids=np.zeros((0, 2), dtype=np.int64),
+        ids=np.zeros(0, dtype=np.int64),
+        range_max_m=range_max_m,
+        stamp_s=stamp_s,
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class FeatureGeometry:
+    """Per-feature quantities the matcher uses, precomputed once per scan.
+
+    Attributes:
+        kind: ``(K,)`` int64 :class:`FeatureKind`.
+        xy: ``(K, 2)`` float64 positions, metres, the features' frame.
+        cov: ``(K, 2, 2)`` float64 position covariances, m² (regularised to be positive).
+        heading: ``(K,)`` float64 radians: a Corner's bisector direction, an EOW's wall
+            direction, NaN for an Intersection.
+        edge: ``(K, 2)`` float64 radians: the direction angles of ``directions`` (NaN where
+            there is none).
+        opening: ``(K,)`` float64 opening angle, radians (NaN for an EOW).
+        dist: ``(K,)`` float64 distance from the frame's origin, metres.
+    """
+
+    kind: IntArray
+    xy: FloatArray
+    cov: FloatArray
+    heading: FloatArray
+    edge: FloatArray
+    opening: FloatArray
+    dist: FloatArray
+
+    @property
+    def n(self) -> int:
+        """Number of features."""
+        return int(self.kind.shape[0])
+
+
+def feature_geometry(features: ScanFeatures, min_std_m: float = 0.005) -> FeatureGeometry:
+    """Headings, edge angles and distances of a scan's features (paper §III-B: "vector
+    directions ... start from feature point"; a Corner's two edges define its bisector).
+
+    Args:
+        features: The scan's (or reference's) features.
+        min_std_m: Floor added to each position covariance (m), so that it is invertible.
+    """
+    kind = np.asarray(features.kind, dtype=np.int64)
+    xy = np.asarray(features.xy, dtype=np.float64).reshape(-1, 2)
+    d = np.asarray(features.directions, dtype=np.float64).reshape(-1, 2, 2)
+    edge = np.arctan2(d[..., 1], d[..., 0])  # NaN stays NaN
+    bis = d[:, 0] + d[:, 1]
+    heading = np.full(kind.shape, np.nan)
+    is_c = kind == CORNER
+    heading[is_c] = np.arctan2(bis[is_c, 1], bis[is_c, 0])
+    is_e = kind == EOW
+    heading[is_e] = edge[is_e, 0]
+    cov = np.asarray(features.cov, dtype=np.float64).reshape(-1, 2, 2)
+    cov = np.where(np.isfinite(cov), cov, 0.0) + (min_std_m**2) * np.eye(2)
+    return FeatureGeometry(
+        kind=kind,
+        xy=xy,
+        cov=cov,
+        heading=heading,
+        edge=edge,
+        opening=np.asarray(features.opening_rad, dtype=np.float64),
+        dist=np.hypot(xy[:, 0], xy[:, 1]),
+    )
+
+
+def transform_lines(
+    lines: FloatArray, cov: FloatArray, pose: ArrayLike
+) -> tuple[FloatArray, FloatArray]:
+    """Move Hessian lines ``(alpha_rad, rho_m)`` and their covariances into the parent frame
+    of ``pose`` (the frame in which ``pose`` is given).
+
+    A point ``p`` of the child frame maps to ``R p + t``; the line becomes
+    ``alpha' = alpha + theta``, ``rho' = rho + (cos alpha', sin alpha') · t``, flipped to keep
+    ``rho' >= 0``. The covariance follows with the Jacobian ``[[1, 0], [drho'/dalpha, 1]]``.
+
+    Args:
+        lines: ``(M, 2)`` float64 ``(alpha_rad, rho_m)``.
+        cov: ``(M, 2, 2)`` float64 covariance of ``(alpha, rho)``.
+        pose: ``(3,)`` float64 pose of the child frame in the parent frame, or ``(M, 3)``
+            one pose per line.
+
+    Returns:
+        ``(M, 2)`` lines and ``(M, 2, 2)`` covariances in the parent frame.
+    """
+    p = np.asarray(pose, dtype=np.float64)
+    x, y, th = p[..., 0], p[..., 1], p[..., 2]
+    a = lines[:, 0] + th
+    ca, sa = np.cos(a), np.sin(a)
+    rho = lines[:, 1] + ca * x + sa * y
+    jac = np.zeros((lines.shape[0], 2, 2))
+    jac[:, 0, 0] = 1.0
+    jac[:, 1, 1] = 1.0
+    jac[:, 1, 0] = -sa * x + ca * y
+    flip = rho < 0.0
+    a = np.where(flip, a + math.pi, a)
+    rho = np.abs(rho)
+    jac[flip, 1, :] *= -1.0
+    out_cov = jac @ cov @ np.swapaxes(jac, 1, 2)
+    return np.stack([wrap_angle(a), rho], axis=1), out_cov
+
+
+def transform_features(
+    features: ScanFeatures, pose: ArrayLike, keep_points: bool = True
+) -> ScanFeatures:
+    """Express a :class:`ScanFeatures` in the parent frame of ``pose``.
+
+    Args:
+        features: Features in the child frame.
+        pose: ``(3,)`` float64 pose of the child frame in the parent frame.
+        keep_points: Also move ``points_xy`` (else they are dropped and
+            ``seg_point_range`` set to -1).
+
+    Returns:
+        A new :class:`ScanFeatures` in the parent frame (``ids`` unchanged).
+    """
+    p = np.asarray(pose, dtype=np.float64)
+    r = rot(p[2])
+    t = p[:2]
+    lines, lcov = transform_lines(features.seg_lines, features.seg_cov, p)
+    if keep_points:
+        pts = features.points_xy @ r.T + t
+        spr = features.seg_point_range
+    else:
+        pts = np.zeros((0, 2))
+        spr = np.full_like(features.seg_point_range, -1)
+    return replace(
+        features,
+        points_xy=pts,
+        seg_endpoints=features.seg_endpoints @ r.T + t,
+        seg_lines=lines,
+        seg_cov=lcov,
+        seg_point_range=spr,
+        xy=features.xy @ r.T + t,
+        cov=r @ features.cov @ r.T,
+        directions=features.directions @ r.T,
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class PolarProfile:
+    """A scan's ranges by bearing, for occlusion and free-space tests.
+
+    Attributes:
+        bearing: ``(B,)`` float64 sorted bearings (radians) of the returns, from ``origin``.
+        range: ``(B,)`` float64 ranges (metres) of those returns.
+        spacing: Typical angular spacing of consecutive beams (radians).
+        range_max_m: Beams at or beyond this were invalid (not in the profile).
+    """
+
+    bearing: FloatArray
+    range: FloatArray
+    spacing: float
+    range_max_m: float
+
+    @classmethod
+    def from_points(cls, points_xy: FloatArray, range_max_m: float) -> PolarProfile:
+        """Profile of points ``(P, 2)`` (metres) seen from the frame's origin."""
+        pts = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
+        b = np.arctan2(pts[:, 1], pts[:, 0])
+        r = np.hypot(pts[:, 0], pts[:, 1])
+        order = np.argsort(b, kind="stable")
+        b, r = b[order], r[order]
+        if b.shape[0] >= 3:
+            gaps = np.diff(b)
+            spacing = float(np.median(gaps[gaps > 1e-9])) if np.any(gaps > 1e-9) else 0.01
+        else:
+            spacing = math.radians(1.0)
+        return cls(b, r, spacing, float(range_max_m))
+
+    def lookup(self, bearing: FloatArray, max_gap_beams: float = 1.6) -> FloatArray:
+        """Range of the return nearest in bearing, NaN where no return lies within
+        ``max_gap_beams`` beam spacings (outside the field of view or a gap of invalid
+        beams). Any shape."""
+        q = np.asarray(bearing, dtype=np.float64)
+        out = np.full(q.shape, np.nan)
+        n = self.bearing.shape[0]
+        if n == 0:
+            return out
+        k = np.searchsorted(self.bearing, q)
+        k0 = np.clip(k - 1, 0, n - 1)
+        k1 = np.clip(k, 0, n - 1)
+        d0 = np.abs(q - self.bearing[k0])
+        d1 = np.abs(self.bearing[k1] - q)
+        kk = np.where(d0 <= d1, k0, k1)
+        dd = np.minimum(d0, d1)
+        ok = dd <= max_gap_beams * self.spacing
+        out[ok] = self.range[kk[ok]]
+        return out
+
+
+def point_segment_index(features: ScanFeatures) -> IntArray:
+    """``(P,)`` int64: the segment each point of ``features.points_xy`` belongs to (-1 if
+    none), from ``seg_point_range``."""
+    n_pts = features.points_xy.shape[0]
+    out = np.full(n_pts, -1, dtype=np.int64)
+    spr = np.asarray(features.seg_point_range, dtype=np.int64).reshape(-1, 2)
+    ok = (spr[:, 0] >= 0) & (spr[:, 1] > spr[:, 0]) & (spr[:, 1] <= n_pts)
+    if not np.any(ok):
+        return out
+    seg = np.flatnonzero(ok)
+    lengths = spr[seg, 1] - spr[seg, 0]
+    idx = np.repeat(spr[seg, 0], lengths) + (
+        np.arange(lengths.sum()) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+    )
+    out[idx] = np.repeat(seg, lengths)
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class SegmentSet:
+    """Reference segments prepared for point association.
+
+    Attributes:
+        a: ``(M, 2)`` first endpoints, metres.
+        u: ``(M, 2)`` unit directions from ``a`` to the last endpoint.
+        length: ``(M,)`` lengths, metres.
+        normal: ``(M, 2)`` unit normals ``(cos alpha, sin alpha)`` of the fitted lines.
+        rho: ``(M,)`` line distances, metres.
+        alpha: ``(M,)`` line normal angles, radians.
+        cov: ``(M, 2, 2)`` covariance of ``(alpha, rho)``.
+    """
+
+    a: FloatArray
+    u: FloatArray
+    length: FloatArray
+    normal: FloatArray
+    rho: FloatArray
+    alpha: FloatArray
+    cov: FloatArray
+
+    @classmethod
+    def from_features(cls, features: ScanFeatures) -> SegmentSet:
+        """Segments of a :class:`ScanFeatures` (any frame)."""
+        ep = np.asarray(features.seg_endpoints, dtype=np.float64).reshape(-1, 2, 2)
+        a = ep[:, 0]
+        d = ep[:, 1] - a
+        length = np.hypot(d[:, 0], d[:, 1])
+        u = d / np.maximum(length, 1e-12)[:, None]
+        alpha = np.asarray(features.seg_lines[:, 0], dtype=np.float64).reshape(-1)
+        rho = np.asarray(features.seg_lines[:, 1], dtype=np.float64).reshape(-1)
+        normal = np.stack([np.cos(alpha), np.sin(alpha)], axis=1)
+        cov = np.asarray(features.seg_cov, dtype=np.float64).reshape(-1, 2, 2)
+        cov = np.where(np.isfinite(cov), cov, 0.0)
+        return cls(a, u, length, normal, rho, alpha, cov)
+
+    @property
+    def n(self) -> int:
+        """Number of segments."""
+        return int(self.a.shape[0])
+
+
+def associate_points(
+    q: FloatArray,
+    q_alpha: FloatArray,
+    segs: SegmentSet,
+    gate_m: float,
+    end_tol_m: float,
+    normal_gate_rad: float,
+) -> tuple[IntArray, FloatArray]:
+    """Nearest reference segment of each point, with gates (DESIGN step 8).
+
+    A point associates with the segment of least point-to-segment distance (the segment
+    extended by ``end_tol_m`` at both ends) among those whose line normal is within
+    ``normal_gate_rad`` of the point's own segment normal (modulo pi), if that distance is
+    below ``gate_m``.
+
+    Args:
+        q: ``(P, 2)`` float64 points in the reference frame, metres.
+        q_alpha: ``(P,)`` float64 normal angle (radians, reference frame) of the segment each
+            point lies on in its own scan.
+        segs: Reference segments.
+        gate_m: Distance gate, metres.
+        end_tol_m: Endpoint extension, metres.
+        normal_gate_rad: Normal-angle gate, radians (< pi/2).
+
+    Returns:
+        ``(P,)`` int64 segment index (-1: none) and ``(P,)`` float64 signed point-to-line
+        residual ``n · q - rho`` (NaN where none).
+    """
+    n_p = q.shape[0]
+    if segs.n == 0 or n_p == 0:
+        return np.full(n_p, -1, dtype=np.int64), np.full(n_p, np.nan)
+    rel_x = q[:, 0:1] - segs.a[None, :, 0]
+    rel_y = q[:, 1:2] - segs.a[None, :, 1]
+    s = rel_x * segs.u[None, :, 0] + rel_y * segs.u[None, :, 1]  # (P, M) along
+    perp = rel_x * segs.u[None, :, 1] - rel_y * segs.u[None, :, 0]  # (P, M) across
+    over = np.maximum(np.maximum(-end_tol_m - s, s - segs.length[None] - end_tol_m), 0.0)
+    d2 = perp * perp + over * over
+    sin_diff = np.abs(
+        np.sin(q_alpha)[:, None] * segs.normal[None, :, 0]
+        - np.cos(q_alpha)[:, None] * segs.normal[None, :, 1]
+    )
+    d2[sin_diff > math.sin(normal_gate_rad)] = np.inf
+    j = np.argmin(d2, axis=1)
+    best = d2[np.arange(n_p), j]
+    ok = best <= gate_m * gate_m
+    idx = np.where(ok, j, -1)
+    res = np.full(n_p, np.nan)
+    jj = j[ok]
+    res[ok] = np.einsum("ij,ij->i", q[ok], segs.normal[jj]) - segs.rho[jj]
+    return idx.astype(np.int64), res
+
+
+def sample_segments(endpoints: FloatArray, step_m: float) -> tuple[FloatArray, IntArray]:
+    """Points every ``step_m`` along segments (centred in each piece).
+
+    Args:
+        endpoints: ``(M, 2, 2)`` float64 segments, metres.
+        step_m: Sampling step, metres.
+
+    Returns:
+        ``(S, 2)`` float64 sample points and ``(S,)`` int64 segment index of each.
+    """
+    ep = np.asarray(endpoints, dtype=np.float64).reshape(-1, 2, 2)
+    if ep.shape[0] == 0:
+        return np.zeros((0, 2)), np.zeros(0, dtype=np.int64)
+    d = ep[:, 1] - ep[:, 0]
+    length = np.hypot(d[:, 0], d[:, 1])
+    n = np.maximum(1, np.ceil(length / step_m).astype(np.int64))
+    seg = np.repeat(np.arange(ep.shape[0]), n)
+    k = np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)
+    frac = (k + 0.5) / n[seg]
+    return ep[seg, 0] + frac[:, None] * d[seg], seg

@@ -1,0 +1,333 @@
+"""Hierarchical candidate filter, transform hypotheses from feature pairs, and voting
+(paper §III-C2 "Match process", §III-C3; DESIGN.md steps 5-6)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from iceg.matching.config import MatchBounds
+from iceg.matching.geometry import CORNER, INTERSECTION, FeatureGeometry, rot
+from iceg_common.se2 import wrap_angle
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+BoolArray = NDArray[np.bool_]
+
+#: Pair codes: how a new feature may match a reference feature (paper §III-C2, type level).
+INCOMPATIBLE, SAME_DIRECTED, CORNER_TO_EOW, EOW_TO_CORNER, INTERSECTIONS = 0, 1, 2, 3, 4
+
+
+def pair_codes(
+    gn: FeatureGeometry, gr: FeatureGeometry, corner_eow: bool, max_opening_diff_rad: float
+) -> IntArray:
+    """Type and opening-angle levels of the hierarchical filter for every (new, reference)
+    feature pair (paper §III-C2: same type, or Corner<->EOW through one edge; the opening
+    angles of two Corners or two Intersections may differ by a low threshold only).
+
+    Returns:
+        ``(K_new, K_ref)`` int64 pair codes (``INCOMPATIBLE`` where the pair is filtered out).
+    """
+    table = np.array(
+        [
+            [SAME_DIRECTED, CORNER_TO_EOW if corner_eow else 0, 0],
+            [EOW_TO_CORNER if corner_eow else 0, SAME_DIRECTED, 0],
+            [0, 0, INTERSECTIONS],
+        ],
+        dtype=np.int64,
+    )
+    codes = table[gn.kind[:, None], gr.kind[None, :]]
+    with np.errstate(invalid="ignore"):
+        open_diff = np.abs(gn.opening[:, None] - gr.opening[None, :])
+    has_opening = ((gn.kind[:, None] == CORNER) & (gr.kind[None, :] == CORNER)) | (
+        codes == INTERSECTIONS
+    )
+    bad = has_opening & ~(open_diff <= max_opening_diff_rad)
+    codes[bad] = INCOMPATIBLE
+    return codes
+
+
+def rotation_chord(max_rotation_rad: float) -> float:
+    """Largest displacement of a unit-distance point under a rotation of at most the bound."""
+    return 2.0 * math.sin(min(max_rotation_rad, math.pi) / 2.0)
+
+
+def feasible_pairs(
+    gn: FeatureGeometry,
+    gr: FeatureGeometry,
+    codes: IntArray,
+    prediction: FloatArray,
+    bounds: MatchBounds,
+    margin_m: float,
+) -> tuple[IntArray, IntArray]:
+    """Feasible-area level of the hierarchical filter (paper §III-C2: "only features placed
+    in the feasible area should be checked").
+
+    A new feature at ``p`` (new frame) can only be at ``prediction ∘ p`` moved by at most
+    ``max_translation_m + |p| * chord(max_rotation)``; reference candidates inside that disc
+    (plus ``margin_m``) are found with a KD-tree (``scipy.spatial.cKDTree.query_ball_point``).
+
+    Returns:
+        ``(Q,)`` new indices and ``(Q,)`` reference indices of pairs passing type, opening
+        and feasible-area levels.
+    """
+    if gn.n == 0 or gr.n == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    if math.isinf(bounds.max_translation_m):
+        i, j = np.nonzero(codes)
+        return i.astype(np.int64), j.astype(np.int64)
+    r0 = rot(prediction[2])
+    pred_xy = gn.xy @ r0.T + prediction[:2]
+    radius = bounds.max_translation_m + gn.dist * rotation_chord(bounds.max_rotation_rad) + margin_m
+    tree = cKDTree(gr.xy)
+    hits = tree.query_ball_point(pred_xy, r=radius)
+    lengths = np.fromiter((len(h) for h in hits), dtype=np.int64, count=len(hits))
+    if lengths.sum() == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    i = np.repeat(np.arange(gn.n, dtype=np.int64), lengths)
+    j = np.fromiter((k for h in hits for k in h), dtype=np.int64, count=int(lengths.sum()))
+    keep = codes[i, j] != INCOMPATIBLE
+    return i[keep], j[keep]
+
+
+@dataclass(frozen=True, eq=False)
+class Hypotheses:
+    """Transform hypotheses: poses of the new scan in the reference frame.
+
+    Attributes:
+        poses: ``(N, 3)`` float64 ``[x_m, y_m, theta_rad]``.
+        n_pairs: Number of candidate feature pairs that survived the filter.
+    """
+
+    poses: FloatArray
+    n_pairs: int
+
+
+def _within_bounds(
+    poses: FloatArray, prediction: FloatArray, bounds: MatchBounds, rot_tol: float, trans_tol: float
+) -> BoolArray:
+    ok = np.ones(poses.shape[0], dtype=bool)
+    if not bounds.rotation_unbounded:
+        ok &= np.abs(wrap_angle(poses[:, 2] - prediction[2])) <= bounds.max_rotation_rad + rot_tol
+    if not math.isinf(bounds.max_translation_m):
+        d = np.hypot(poses[:, 0] - prediction[0], poses[:, 1] - prediction[1])
+        ok &= d <= bounds.max_translation_m + trans_tol
+    return ok
+
+
+def directed_hypotheses(
+    gn: FeatureGeometry,
+    gr: FeatureGeometry,
+    i: IntArray,
+    j: IntArray,
+    codes: IntArray,
+) -> FloatArray:
+    """One SE(2) hypothesis per directed pair (DESIGN step 6; paper §III-C3: "vector and the
+    angle difference between them show the translation (dx, dy) and rotation (dtheta)").
+
+    Corner<->Corner and EOW<->EOW pairs align the headings (bisector / wall direction); a
+    Corner<->EOW pair gives one hypothesis per Corner edge. ``t = xy_ref - R(theta) xy_new``.
+
+    Returns:
+        ``(N, 3)`` float64 poses (unfiltered).
+    """
+    c = codes[i, j]
+    same = c == SAME_DIRECTED
+    ce = c == CORNER_TO_EOW
+    ec = c == EOW_TO_CORNER
+    parts_i, parts_j, parts_t = [], [], []
+    parts_i.append(i[same])
+    parts_j.append(j[same])
+    parts_t.append(gr.heading[j[same]] - gn.heading[i[same]])
+    for k in (0, 1):
+        parts_i.append(i[ce])
+        parts_j.append(j[ce])
+        parts_t.append(gr.edge[j[ce], 0] - gn.edge[i[ce], k])
+        parts_i.append(i[ec])
+        parts_j.append(j[ec])
+        parts_t.append(gr.edge[j[ec], k] - gn.edge[i[ec], 0])
+    ii = np.concatenate(parts_i)
+    jj = np.concatenate(parts_j)
+    th = wrap_angle(np.concatenate(parts_t))
+    ok = np.isfinite(th)
+    ii, jj, th = ii[ok], jj[ok], th[ok]
+    r = rot(th)  # (N, 2, 2)
+    t = gr.xy[jj] - np.einsum("nab,nb->na", r, gn.xy[ii])
+    return np.column_stack([t, th])
+
+
+def intersection_hypotheses(
+    gn: FeatureGeometry,
+    gr: FeatureGeometry,
+    i: IntArray,
+    j: IntArray,
+    prediction: FloatArray,
+    tolerance_m: float,
+    min_baseline_m: float,
+    max_pairs: int,
+) -> FloatArray:
+    """Hypotheses from two Intersection pairs each (DESIGN step 6: Intersections have no
+    direction, two pairs fix a transform).
+
+    Pairs ``(i1 -> j1)`` and ``(i2 -> j2)`` combine when ``|n_i1 n_i2|`` equals
+    ``|r_j1 r_j2|`` within ``tolerance_m`` and exceeds ``min_baseline_m``; the rotation aligns
+    the two baselines and the translation is the mean of both pairs'.
+
+    Returns:
+        ``(N, 3)`` float64 poses (unfiltered).
+    """
+    sel = (gn.kind[i] == INTERSECTION) & (gr.kind[j] == INTERSECTION)
+    i, j = i[sel], j[sel]
+    if i.shape[0] < 2:
+        return np.zeros((0, 3))
+    if i.shape[0] > max_pairs:
+        # Keep the pairs whose implied displacement is closest to the prediction's.
+        r0 = rot(prediction[2])
+        pred = gn.xy[i] @ r0.T + prediction[:2]
+        d = np.hypot(*(pred - gr.xy[j]).T)
+        keep = np.argsort(d, kind="stable")[:max_pairs]
+        i, j = i[keep], j[keep]
+    p, q = np.triu_indices(i.shape[0], k=1)
+    ok = (i[p] != i[q]) & (j[p] != j[q])
+    p, q = p[ok], q[ok]
+    vn = gn.xy[i[q]] - gn.xy[i[p]]
+    vr = gr.xy[j[q]] - gr.xy[j[p]]
+    dn = np.hypot(vn[:, 0], vn[:, 1])
+    dr = np.hypot(vr[:, 0], vr[:, 1])
+    ok = (dn >= min_baseline_m) & (np.abs(dn - dr) <= tolerance_m)
+    p, q, vn, vr = p[ok], q[ok], vn[ok], vr[ok]
+    if p.shape[0] == 0:
+        return np.zeros((0, 3))
+    th = wrap_angle(np.arctan2(vr[:, 1], vr[:, 0]) - np.arctan2(vn[:, 1], vn[:, 0]))
+    r = rot(th)
+    t1 = gr.xy[j[p]] - np.einsum("nab,nb->na", r, gn.xy[i[p]])
+    t2 = gr.xy[j[q]] - np.einsum("nab,nb->na", r, gn.xy[i[q]])
+    return np.column_stack([0.5 * (t1 + t2), th])
+
+
+def generate_hypotheses(
+    gn: FeatureGeometry,
+    gr: FeatureGeometry,
+    codes: IntArray,
+    prediction: FloatArray,
+    bounds: MatchBounds,
+    *,
+    margin_m: float,
+    direction_tolerance_rad: float,
+    intersection_tolerance_m: float,
+    intersection_min_baseline_m: float,
+    max_intersection_pairs: int,
+) -> Hypotheses:
+    """Steps 5-6 of DESIGN.md up to voting: filter candidates hierarchically (type, feasible
+    area, opening angle; direction against the predicted rotation) and build SE(2)
+    hypotheses from the survivors.
+
+    Returns:
+        The :class:`Hypotheses` inside the bounds (plus tolerances).
+    """
+    i, j = feasible_pairs(gn, gr, codes, prediction, bounds, margin_m)
+    directed = directed_hypotheses(gn, gr, i, j, codes)
+    inter = intersection_hypotheses(
+        gn,
+        gr,
+        i,
+        j,
+        prediction,
+        intersection_tolerance_m,
+        intersection_min_baseline_m,
+        max_intersection_pairs,
+    )
+    poses = np.concatenate([directed, inter], axis=0)
+    ok = _within_bounds(poses, prediction, bounds, direction_tolerance_rad, margin_m)
+    return Hypotheses(poses[ok], int(i.shape[0]))
+
+
+@dataclass(frozen=True, eq=False)
+class Clusters:
+    """Voted hypothesis clusters, best first.
+
+    Attributes:
+        poses: ``(C, 3)`` float64 cluster centres (mean of member hypotheses).
+        votes: ``(C,)`` int64 number of hypotheses in each cluster's 3x3x3 cell
+            neighbourhood.
+    """
+
+    poses: FloatArray
+    votes: IntArray
+
+
+def vote(poses: FloatArray, cell_m: float, cell_rad: float, max_clusters: int) -> Clusters:
+    """Cluster hypotheses on a grid in ``(x, y, theta)`` and return the most-voted local
+    maxima first (paper §III-C3: "we start it from the conversion with the most count").
+
+    Each hypothesis votes for its cell; a cell's score is the number of votes in its 3x3x3
+    neighbourhood (theta periodic); clusters are cells whose score is a local maximum, and
+    their centre is the mean of the hypotheses in the neighbourhood (theta about the cell).
+
+    Args:
+        poses: ``(N, 3)`` float64 hypotheses.
+        cell_m: Cell size in x and y, metres.
+        cell_rad: Cell size in theta, radians (rounded so that it divides 2 pi).
+        max_clusters: Most clusters returned.
+    """
+    n = poses.shape[0]
+    if n == 0:
+        return Clusters(np.zeros((0, 3)), np.zeros(0, dtype=np.int64))
+    n_t = max(1, round(2.0 * math.pi / cell_rad))
+    cell_t = 2.0 * math.pi / n_t
+    kx = np.floor(poses[:, 0] / cell_m).astype(np.int64)
+    ky = np.floor(poses[:, 1] / cell_m).astype(np.int64)
+    kt = np.floor((wrap_angle(poses[:, 2]) + math.pi) / cell_t).astype(np.int64) % n_t
+    x0, y0 = kx.min() - 1, ky.min() - 1
+    nx = int(kx.max() - x0 + 2)
+    ny = int(ky.max() - y0 + 2)
+
+    def encode(ax: IntArray, ay: IntArray, at: IntArray) -> IntArray:
+        return ((ax - x0) * ny + (ay - y0)) * n_t + (at % n_t)
+
+    keys = encode(kx, ky, kt)
+    ukeys, counts = np.unique(keys, return_counts=True)
+    ut = ukeys % n_t
+    uy = (ukeys // n_t) % ny + y0
+    ux = ukeys // (n_t * ny) + x0
+    offs = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)])
+    if n_t < 3:
+        offs = offs[offs[:, 2] == 0]
+    nkeys = encode(
+        ux[None, :] + offs[:, 0:1], uy[None, :] + offs[:, 1:2], ut[None, :] + offs[:, 2:3]
+    )  # (27, U)
+    nkeys = np.where(
+        (ux[None, :] + offs[:, 0:1] - x0 >= 0)
+        & (ux[None, :] + offs[:, 0:1] - x0 < nx)
+        & (uy[None, :] + offs[:, 1:2] - y0 >= 0)
+        & (uy[None, :] + offs[:, 1:2] - y0 < ny),
+        nkeys,
+        -1,
+    )
+    pos = np.clip(np.searchsorted(ukeys, nkeys), 0, ukeys.shape[0] - 1)
+    found = ukeys[pos] == nkeys
+    nsum = np.where(found, counts[pos], 0).sum(axis=0)  # (U,)
+    u = ukeys.shape[0]
+    score = nsum + 1e-3 * counts - 1e-9 * np.arange(u)
+    nscore = np.where(found, score[pos], -np.inf)
+    is_max = score >= nscore.max(axis=0)
+    peaks = np.flatnonzero(is_max)
+    peaks = peaks[np.argsort(-score[peaks], kind="stable")][:max_clusters]
+    # Members of each peak's neighbourhood: (C, N) masks.
+    hx, hy, ht = kx[None, :], ky[None, :], kt[None, :]
+    px, py, pt = ux[peaks, None], uy[peaks, None], ut[peaks, None]
+    dt = (ht - pt + 1) % n_t
+    member = (np.abs(hx - px) <= 1) & (np.abs(hy - py) <= 1) & ((dt <= 2) | (n_t < 3))
+    w = member.astype(np.float64)
+    cnt = w.sum(axis=1)
+    centre_t = (pt[:, 0] + 0.5) * cell_t - math.pi
+    dth = wrap_angle(poses[None, :, 2] - centre_t[:, None])
+    out = np.empty((peaks.shape[0], 3))
+    out[:, 0] = (w * poses[None, :, 0]).sum(axis=1) / cnt
+    out[:, 1] = (w * poses[None, :, 1]).sum(axis=1) / cnt
+    out[:, 2] = wrap_angle(centre_t + (w * dth).sum(axis=1) / cnt)
+    return Clusters(out, nsum[peaks].astype(np.int64))

@@ -1,0 +1,479 @@
+"""The ICE matcher: DESIGN.md steps 5-10 (paper §III-C2, §III-C3)."""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from iceg.matching.config import MatchBounds, MatchingConfig
+from iceg.matching.correlation import Correlation, correlate
+from iceg.matching.geometry import (
+    FeatureGeometry,
+    PolarProfile,
+    SegmentSet,
+    feature_geometry,
+    point_segment_index,
+    rot,
+    sample_segments,
+)
+from iceg.matching.hypotheses import generate_hypotheses, pair_codes, vote
+from iceg.matching.refine import (
+    Refined,
+    RefineSettings,
+    bounds_prior_information,
+    refine,
+)
+from iceg.types import MatchResult, ScanFeatures
+from iceg_common.errors import MatchingError
+from iceg_common.se2 import inverse, wrap_angle
+
+log = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+#: Failure reasons (``MatchResult.reason`` starts with one of these).
+REASON_NO_CANDIDATES = "too few candidates"
+REASON_LOW_CORRELATION = "correlation below threshold"
+REASON_FEW_INLIERS = "too few inliers"
+REASON_DEGENERATE = "degenerate"
+REASON_INCONSISTENT = "inconsistent with free space"
+REASON_AMBIGUOUS = "ambiguous"
+
+
+@dataclass(eq=False)
+class _Candidate:
+    """A refined hypothesis with its correlation and checks."""
+
+    from_prediction: bool
+    refined: Refined
+    corr: Correlation
+    failure: str = ""
+    rival: bool = False
+    see_through: float = 0.0
+
+    @property
+    def fitness(self) -> float:
+        """Ranking score: correlation (eq. 1) plus the point overlap of the refinement minus
+        twice the fraction of walls that the other scan sees through."""
+        return float(self.corr.score[0]) + self.refined.overlap - 2.0 * self.see_through
+
+
+def _same_pose(a: FloatArray, b: FloatArray, dist_m: float, angle_rad: float) -> bool:
+    return (
+        math.hypot(a[0] - b[0], a[1] - b[1]) <= dist_m
+        and abs(float(wrap_angle(a[2] - b[2]))) <= angle_rad
+    )
+
+
+def _check_features(f: ScanFeatures, what: str) -> None:
+    k = f.kind.shape[0]
+    shapes = {
+        "xy": (f.xy.shape, (k, 2)),
+        "cov": (f.cov.shape, (k, 2, 2)),
+        "directions": (f.directions.shape, (k, 2, 2)),
+        "opening_rad": (f.opening_rad.shape, (k,)),
+        "ids": (f.ids.shape, (k,)),
+    }
+    m = f.seg_endpoints.shape[0]
+    shapes.update(
+        {
+            "seg_endpoints": (f.seg_endpoints.shape, (m, 2, 2)),
+            "seg_lines": (f.seg_lines.shape, (m, 2)),
+            "seg_cov": (f.seg_cov.shape, (m, 2, 2)),
+        }
+    )
+    for name, (got, want) in shapes.items():
+        if tuple(got) != want:
+            raise MatchingError(
+                f"{what}.{name} has shape {tuple(got)}, expected {want} "
+                "(see iceg.types.ScanFeatures)"
+            )
+    if f.points_xy.ndim != 2 or f.points_xy.shape[1] != 2:
+        raise MatchingError(f"{what}.points_xy must have shape (P, 2), got {f.points_xy.shape}")
+
+
+class IceMatcher:
+    """ICE scan matching (paper §III-C2/C3; DESIGN.md "ICE matching, step by step", 5-10).
+
+    Steps: hierarchical candidate filter (type, Corner<->EOW exception, feasible area via a
+    KD-tree, opening angle, direction against the predicted rotation); SE(2) hypotheses from
+    directed pairs and Intersection pair pairs; voting; correlation (eq. 1-3); Gauss-Newton
+    refinement over feature pairs and point-to-line residuals; covariance from the
+    correlation landscape (Olson 2009) floored by the least-squares covariance; validation
+    (correlation, inliers, free-space consistency, degeneracy). A failure is a
+    :class:`~iceg.types.MatchResult` with ``success=False`` and a reason.
+
+    Args:
+        config: Matcher configuration (defaults: the paper's weights and fImp).
+    """
+
+    def __init__(self, config: MatchingConfig | None = None) -> None:
+        self.config = config or MatchingConfig()
+        c = self.config
+        self._settings = RefineSettings(
+            max_iterations=c.max_iterations,
+            gate_m=c.association_gate_m,
+            gate_sigmas=c.association_gate_sigmas,
+            gate_min_m=c.association_gate_min_m,
+            end_tol_m=c.segment_end_tolerance_m,
+            normal_gate_rad=math.radians(c.normal_gate_deg),
+            cauchy_sigmas=c.cauchy_scale_sigmas,
+            sigma_min_m=c.point_sigma_min_m,
+            feature_iterations=c.feature_iterations,
+            lattice_steps=c.lattice_steps,
+            lattice_sigmas=c.lattice_sigmas,
+            lattice_kappa=c.lattice_kappa,
+            lattice_cap_m=c.lattice_max_half_width_m,
+            lattice_cap_rad=math.radians(c.lattice_max_half_width_deg),
+        )
+
+    def __repr__(self) -> str:
+        return f"IceMatcher({self.config!r})"
+
+    # ------------------------------------------------------------------------------------
+    def match(
+        self,
+        features: ScanFeatures,
+        reference: ScanFeatures,
+        prediction: ArrayLike,
+        bounds: MatchBounds | None = None,
+    ) -> MatchResult:
+        """Match a new scan's features against a reference.
+
+        Args:
+            features: The new scan's :class:`~iceg.types.ScanFeatures`, robot frame, with
+                its ``points_xy`` (point-to-line refinement) and segments.
+            reference: Features and segments of the reference (a scan or a feature-map
+                reference) in the reference frame; ``points_xy`` may be empty.
+            prediction: ``(3,)`` float64 predicted pose of the new scan's robot frame in the
+                reference frame ``[x_m, y_m, theta_rad]``.
+            bounds: Admissible motion around the prediction; ``None`` or
+                :meth:`MatchBounds.global_` for a global match.
+
+        Returns:
+            A :class:`~iceg.types.MatchResult`: the pose of the new scan in the reference
+            frame, its covariance in the tangent space at that pose in the new scan's frame
+            (gtsam ``BetweenFactorPose2`` convention), the correlation of eq. 1, the inlier
+            feature pairs ``[new index, reference index]``; or a failure with its reason.
+
+        Raises:
+            MatchingError: inconsistent inputs (array shapes, a non-finite prediction).
+        """
+        c = self.config
+        bounds = bounds or MatchBounds.global_()
+        pred = np.asarray(prediction, dtype=np.float64).reshape(-1)
+        if pred.shape != (3,) or not np.all(np.isfinite(pred)):
+            raise MatchingError(f"prediction must be a finite (3,) pose, got {prediction!r}")
+        _check_features(features, "features")
+        _check_features(reference, "reference")
+
+        gn = feature_geometry(features)
+        gr = feature_geometry(reference)
+        codes = pair_codes(gn, gr, c.corner_eow_matching, math.radians(c.max_opening_diff_deg))
+        hyps = generate_hypotheses(
+            gn,
+            gr,
+            codes,
+            pred,
+            bounds,
+            margin_m=c.feasible_margin_m,
+            direction_tolerance_rad=math.radians(c.direction_tolerance_deg),
+            intersection_tolerance_m=c.intersection_pair_tolerance_m,
+            intersection_min_baseline_m=c.intersection_min_baseline_m,
+            max_intersection_pairs=c.max_intersection_pairs,
+        )
+        clusters = vote(hyps.poses, c.vote_cell_m, math.radians(c.vote_cell_deg), c.max_clusters)
+        starts = clusters.poses
+        from_prediction = np.zeros(starts.shape[0], dtype=bool)
+        if c.use_prediction_hypothesis and not bounds.is_global:
+            starts = np.concatenate([starts, pred[None]], axis=0)
+            from_prediction = np.append(from_prediction, True)
+        n_hyp = int(hyps.poses.shape[0])
+        if starts.shape[0] == 0:
+            return self._fail(
+                pred,
+                f"{REASON_NO_CANDIDATES}: no transform hypothesis "
+                f"({gn.n} new, {gr.n} reference features, {hyps.n_pairs} "
+                "candidate pairs)",
+                n_hyp,
+            )
+
+        range_max = float(features.range_max_m)
+        profile = PolarProfile.from_points(features.points_xy, range_max)
+        ref_profile = (
+            PolarProfile.from_points(reference.points_xy, float(reference.range_max_m))
+            if reference.points_xy.shape[0] > 0
+            else None
+        )
+        fimp_range = c.fimp_range_m or range_max
+        corr_kw = {
+            "gate_distance_m": c.gate_distance_m,
+            "gate_angle_rad": math.radians(c.gate_angle_deg),
+            "fimp_near": c.fimp_near,
+            "fimp_far": c.fimp_far,
+            "fimp_range_m": fimp_range,
+            "range_max_m": range_max,
+            "occlusion_tolerance_m": c.occlusion_tolerance_m,
+            "weights": (c.weight_dis, c.weight_ang, c.weight_count, c.weight_acc),
+        }
+
+        def correlation_at(poses: FloatArray) -> Correlation:
+            return correlate(poses, gn, gr, codes, profile, **corr_kw)
+
+        corr0 = correlation_at(starts)
+        # Order: correlation first (paper §III-C3: most count first, then correlation);
+        # the prediction competes like any cluster.
+        order = np.argsort(-corr0.score, kind="stable")
+        best0 = float(corr0.score[order[0]])
+        n_refine = c.max_refined_global if bounds.is_global else c.max_refined
+        chosen = [int(k) for k in order if corr0.score[k] >= best0 - c.refine_correlation_margin][
+            :n_refine
+        ]
+        if from_prediction.any():
+            kp = int(np.flatnonzero(from_prediction)[0])
+            if kp not in chosen:
+                chosen.append(kp)
+
+        # Points for the refinement: those on the new scan's segments.
+        pseg = point_segment_index(features)
+        on_seg = np.flatnonzero(pseg >= 0)
+        if on_seg.shape[0] > c.max_points:
+            on_seg = on_seg[np.linspace(0, on_seg.shape[0] - 1, c.max_points).astype(np.int64)]
+        points = features.points_xy[on_seg]
+        point_alpha = features.seg_lines[pseg[on_seg], 0] if on_seg.shape[0] else np.zeros(0)
+        segs = SegmentSet.from_features(reference)
+        prior = bounds_prior_information(bounds.max_translation_m, bounds.max_rotation_rad)
+
+        def pairs_at(pose: FloatArray) -> IntArray:
+            m = correlation_at(pose[None]).match[0]
+            i = np.flatnonzero(m >= 0)
+            return np.column_stack([i, m[i]]).astype(np.int64)
+
+        cands: list[_Candidate] = []
+        for k in chosen:
+            ref = refine(
+                starts[k], points, point_alpha, segs, gn, gr, pairs_at, prior, self._settings
+            )
+            if any(_same_pose(ref.pose, o.refined.pose, 0.05, math.radians(1.0)) for o in cands):
+                continue
+            corr = correlation_at(ref.pose[None])
+            cand = _Candidate(bool(from_prediction[k]), ref, corr)
+            cand.failure = self._check(cand, features, reference, gn, bounds, profile, ref_profile)
+            cands.append(cand)
+        return self._decide(cands, pred, n_hyp)
+
+    # ------------------------------------------------------------------------------------
+    def _fail(self, pred: FloatArray, reason: str, n_hyp: int) -> MatchResult:
+        log.debug("ICE match failed: %s", reason)
+        return MatchResult(
+            success=False,
+            pose=pred.copy(),
+            cov=np.full((3, 3), np.nan),
+            correlation=0.0,
+            n_hypotheses=n_hyp,
+            reason=reason,
+        )
+
+    def _check(
+        self,
+        cand: _Candidate,
+        features: ScanFeatures,
+        reference: ScanFeatures,
+        gn: FeatureGeometry,
+        bounds: MatchBounds,
+        profile: PolarProfile,
+        ref_profile: PolarProfile | None,
+    ) -> str:
+        """DESIGN step 10 checks of one refined hypothesis; returns the failure reason or
+        an empty string."""
+        c = self.config
+        ref = cand.refined
+        score = float(cand.corr.score[0])
+        n_matched = int(cand.corr.n_matched[0])
+        n_visible = int(cand.corr.n_visible[0])
+        few_features = min(gn.n, n_visible) < c.min_features_for_correlation
+        if not np.all(np.isfinite(ref.pose)):
+            return f"{REASON_DEGENERATE}: refinement diverged"
+        min_pairs = c.min_matched_features_global if bounds.is_global else c.min_matched_features
+        if n_matched >= min_pairs:
+            # Feature-supported: eq. 1 decides (paper §III-C3).
+            if score < c.min_correlation:
+                return f"{REASON_LOW_CORRELATION}: {score:.3f} < {c.min_correlation}"
+            min_overlap = c.min_point_overlap
+        elif not bounds.is_global and cand.from_prediction and few_features:
+            # Feature-poor scene tracked from the prediction: points decide, the covariance
+            # shows what the walls leave unconstrained.
+            min_overlap = c.min_point_overlap_featureless
+        else:
+            return (
+                f"{REASON_FEW_INLIERS}: {n_matched} feature pairs (< {min_pairs}; "
+                f"{gn.n} new, {n_visible} visible reference features)"
+            )
+        frac, length = self._see_through(ref.pose, features, reference, profile, ref_profile)
+        cand.see_through = frac
+        if frac > c.max_see_through_fraction and length >= c.see_through_min_length_m:
+            return (
+                f"{REASON_INCONSISTENT}: {frac:.0%} ({length:.1f} m) of the walls lie where "
+                "the other scan sees free space"
+            )
+        if not self._origins_visible(ref.pose, profile, ref_profile):
+            return (
+                f"{REASON_INCONSISTENT}: one scan's origin lies behind a wall the other scan sees"
+            )
+        # A consistent, feature-supported hypothesis is a rival of the best even if it
+        # explains too few points to be accepted itself.
+        cand.rival = True
+        if ref.overlap < min_overlap:
+            return (
+                f"{REASON_FEW_INLIERS}: {ref.overlap:.0%} of the scan's points on reference "
+                f"segments (< {min_overlap:.0%})"
+            )
+        return ""
+
+    def _decide(self, cands: list[_Candidate], pred: FloatArray, n_hyp: int) -> MatchResult:
+        """Pick the best refined hypothesis that passes the checks; fail when none does, when
+        a distinct rival scores nearly as well (ambiguous), or when the covariance is
+        degenerate (DESIGN step 10)."""
+        c = self.config
+        ok = [k for k in cands if not k.failure]
+        if not ok:
+            worst_first = sorted(cands, key=lambda k: -k.fitness)
+            return self._fail(pred, worst_first[0].failure, n_hyp)
+        ok.sort(key=lambda k: -k.fitness)
+        best = ok[0]
+        rivals = sorted((k for k in cands if k.rival and k is not best), key=lambda k: -k.fitness)
+        for other in rivals:
+            distinct = not _same_pose(
+                best.refined.pose,
+                other.refined.pose,
+                c.ambiguity_distance_m,
+                math.radians(c.ambiguity_angle_deg),
+            )
+            if distinct and other.fitness >= best.fitness - c.ambiguity_margin:
+                d = other.refined.pose - best.refined.pose
+                return self._fail(
+                    pred,
+                    f"{REASON_AMBIGUOUS}: two distinct hypotheses score {best.fitness:.2f} and "
+                    f"{other.fitness:.2f} (apart {math.hypot(d[0], d[1]):.2f} m, "
+                    f"{math.degrees(abs(float(wrap_angle(d[2])))):.1f} deg)",
+                    n_hyp,
+                )
+        ref = best.refined
+        cov_param = ref.cov
+        evals = np.linalg.eigvalsh(cov_param[:2, :2]) if np.all(np.isfinite(cov_param)) else None
+        if (
+            evals is None
+            or math.sqrt(max(evals[-1], 0.0)) > c.max_std_m
+            or math.sqrt(max(cov_param[2, 2], 0.0)) > math.radians(c.max_std_deg)
+        ):
+            return self._fail(
+                pred,
+                f"{REASON_DEGENERATE}: the scene does not constrain the pose (std beyond "
+                f"{c.max_std_m} m / {c.max_std_deg} deg)",
+                n_hyp,
+            )
+        # Covariance into the tangent space at the pose, new scan frame (Pose2 local coords).
+        m = np.eye(3)
+        m[:2, :2] = rot(ref.pose[2]).T
+        cov_body = m @ cov_param @ m.T
+        cov_body = 0.5 * (cov_body + cov_body.T)
+        mt = best.corr.match[0]
+        i = np.flatnonzero(mt >= 0)
+        pose = ref.pose.copy()
+        pose[2] = float(wrap_angle(pose[2]))
+        return MatchResult(
+            success=True,
+            pose=pose,
+            cov=cov_body,
+            correlation=float(best.corr.score[0]),
+            inlier_pairs=np.column_stack([i, mt[i]]).astype(np.int64),
+            n_hypotheses=n_hyp,
+            reason="",
+        )
+
+    def _origins_visible(
+        self, pose: FloatArray, profile: PolarProfile, ref_profile: PolarProfile | None
+    ) -> bool:
+        """Neither scan's origin lies behind a wall the other scan sees (a robot stands in
+        free space): the other scan's beams around its bearing must not be shorter than its
+        distance minus the see-through tolerance. Untestable cases pass."""
+        tol = self.config.see_through_tolerance_m
+        checks = [(inverse(pose)[:2], profile)]
+        if ref_profile is not None:
+            checks.append((pose[:2], ref_profile))
+        for xy, prof in checks:
+            if prof.bearing.shape[0] == 0:
+                continue
+            dist = math.hypot(xy[0], xy[1])
+            _, hi, _ = _bracket(prof, np.array([math.atan2(xy[1], xy[0])]))
+            if np.isfinite(hi[0]) and hi[0] < dist - tol:
+                return False
+        return True
+
+    def _see_through(
+        self,
+        pose: FloatArray,
+        features: ScanFeatures,
+        reference: ScanFeatures,
+        profile: PolarProfile,
+        ref_profile: PolarProfile | None,
+    ) -> tuple[float, float]:
+        """Free-space consistency: the fraction (and length, metres) of checked wall that
+        one scan places where the other scan's beams pass through. Reference segments are
+        checked against the new scan's beams; when the reference has points (a scan), the
+        new segments are checked against the reference's beams too."""
+        c = self.config
+        n_see = 0
+        n_cons = 0
+        inv_r = rot(pose[2]).T
+        ep_ref_new = (reference.seg_endpoints - pose[:2]) @ inv_r.T
+        checks = [(ep_ref_new, profile)]
+        if ref_profile is not None:
+            ep_new_ref = features.seg_endpoints @ rot(pose[2]).T + pose[:2]
+            checks.append((ep_new_ref, ref_profile))
+        for ep, prof in checks:
+            pts, seg = sample_segments(ep, c.see_through_step_m)
+            if pts.shape[0] == 0 or prof.bearing.shape[0] == 0:
+                continue
+            d = ep[:, 1] - ep[:, 0]
+            nrm = np.stack([-d[:, 1], d[:, 0]], axis=1)
+            nrm /= np.maximum(np.hypot(nrm[:, 0], nrm[:, 1]), 1e-12)[:, None]
+            dist = np.hypot(pts[:, 0], pts[:, 1])
+            ray = pts / np.maximum(dist, 1e-9)[:, None]
+            cos_inc = np.abs(np.einsum("na,na->n", ray, nrm[seg]))
+            bearing = np.arctan2(pts[:, 1], pts[:, 0])
+            rng_lo, _, rng_near = _bracket(prof, bearing)
+            ok = (
+                np.isfinite(rng_lo)
+                & (dist < prof.range_max_m - c.see_through_tolerance_m)
+                & (cos_inc > math.cos(math.radians(70.0)))
+            )
+            see = ok & (rng_lo > dist + c.see_through_tolerance_m)
+            cons = ok & (np.abs(rng_near - dist) <= c.see_through_tolerance_m)
+            n_see += int(see.sum())
+            n_cons += int(cons.sum())
+        total = n_see + n_cons
+        if total == 0:
+            return 0.0, 0.0
+        return n_see / total, n_see * c.see_through_step_m
+
+
+def _bracket(prof: PolarProfile, bearing: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Ranges of the two returns bracketing each bearing (their min and max) and of the
+    nearest; NaN where the bracket spans a gap of more than 1.6 beam spacings."""
+    n = prof.bearing.shape[0]
+    k = np.searchsorted(prof.bearing, bearing)
+    k0 = np.clip(k - 1, 0, n - 1)
+    k1 = np.clip(k, 0, n - 1)
+    b0, b1 = prof.bearing[k0], prof.bearing[k1]
+    ok = (k > 0) & (k < n) & (b1 - b0 <= 1.6 * prof.spacing)
+    r0, r1 = prof.range[k0], prof.range[k1]
+    near = np.where(np.abs(bearing - b0) <= np.abs(b1 - bearing), r0, r1)
+    lo = np.where(ok, np.minimum(r0, r1), np.nan)
+    hi = np.where(ok, np.maximum(r0, r1), np.nan)
+    return lo, hi, np.where(ok, near, np.nan)

@@ -1,0 +1,363 @@
+"""Refinement of a hypothesis (paper §III-C3 "an optimization problem"; DESIGN step 8) and
+its covariance (DESIGN step 9).
+
+Gauss-Newton over
+
+- point-to-line residuals of the new scan's points against the reference segments
+  (``r_i = n_m · (R p_i + t) - rho_m``; the segments are the ones ICE already extracted),
+  with gated association and Cauchy robust weights, and
+- feature pairs of the correlation: an EOW pair constrains the position along its wall
+  (what the lines cannot tell); Corner and Intersection pairs pull a coarse hypothesis in
+  during the first iterations and are then dropped (their position is already the lines').
+
+The covariance is the sandwich least-squares covariance ``H^-1 (J^T W S W J) H^-1`` whose
+middle term holds the point noise ``sigma^2`` (estimated from the residuals) **and** the
+reference lines' own ``(alpha, rho)`` covariance, propagated to the residuals of every point
+on the line (the errors of one reference line are shared by all its points). It is the floor
+of the correlation-landscape covariance of Olson 2009 ("Real-time correlative scan matching"):
+the robust log-likelihood evaluated on a small lattice of perturbations, weights
+``exp(kappa (s - s_max))``, second moment.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from iceg.matching.geometry import EOW, FeatureGeometry, SegmentSet, associate_points, rot
+from iceg_common.se2 import wrap_angle
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+@dataclass(frozen=True, eq=False)
+class RefineSettings:
+    """Numbers of the refinement in internal units (metres, radians); built from
+    :class:`~iceg.matching.config.MatchingConfig` by the matcher."""
+
+    max_iterations: int
+    gate_m: float
+    gate_sigmas: float
+    gate_min_m: float
+    end_tol_m: float
+    normal_gate_rad: float
+    cauchy_sigmas: float
+    sigma_min_m: float
+    feature_iterations: int
+    lattice_steps: int
+    lattice_sigmas: float
+    lattice_kappa: float
+    lattice_cap_m: float
+    lattice_cap_rad: float
+
+
+@dataclass(frozen=True, eq=False)
+class Refined:
+    """Result of :func:`refine`.
+
+    Attributes:
+        pose: ``(3,)`` float64 refined pose of the new scan in the reference frame.
+        cov_ls: ``(3, 3)`` least-squares (sandwich) covariance of ``pose`` as a perturbation
+            of ``(x, y, theta)`` in the **reference** frame (prior from the bounds included).
+        cov: ``(3, 3)`` final covariance (lattice second moment, floored by ``cov_ls``), same
+            frame as ``cov_ls``.
+        sigma_m: Estimated point-to-line noise, metres.
+        overlap: Fraction of the used points associated with a reference segment.
+        n_points: Points associated in the last iteration.
+        point_segment: ``(P,)`` int64 reference segment of each used point (-1: none).
+        iterations: Gauss-Newton iterations run.
+    """
+
+    pose: FloatArray
+    cov_ls: FloatArray
+    cov: FloatArray
+    sigma_m: float
+    overlap: float
+    n_points: int
+    point_segment: IntArray
+    iterations: int
+
+
+def _cauchy_weight(r: FloatArray, c: float) -> FloatArray:
+    return 1.0 / (1.0 + (r / c) ** 2)
+
+
+def _cauchy_cost(r: FloatArray, c: float) -> FloatArray:
+    return 0.5 * c * c * np.log1p((r / c) ** 2)
+
+
+@dataclass(frozen=True, eq=False)
+class _Rows:
+    """Linearised residual rows at one pose: residual, Jacobian (w.r.t. a perturbation of
+    ``(x, y, theta)`` in the reference frame), robust weight and variance."""
+
+    r: FloatArray
+    jac: FloatArray
+    w: FloatArray
+    var: FloatArray
+
+
+def _feature_rows(
+    pose: FloatArray,
+    gn: FeatureGeometry,
+    gr: FeatureGeometry,
+    pairs: IntArray,
+    use_positions: bool,
+) -> _Rows:
+    """Rows of the feature pairs ``(P, 2)`` ``[new, ref]``: a scalar along-wall row for each
+    pair that involves an EOW, two position rows for the others when ``use_positions``."""
+    if pairs.shape[0] == 0:
+        return _Rows(np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
+    r = rot(pose[2])
+    i, j = pairs[:, 0], pairs[:, 1]
+    rn = gn.xy[i] @ r.T
+    e = rn + pose[:2] - gr.xy[j]  # (P, 2)
+    jac = np.zeros((i.shape[0], 2, 3))
+    jac[:, 0, 0] = 1.0
+    jac[:, 1, 1] = 1.0
+    jac[:, 0, 2] = -rn[:, 1]
+    jac[:, 1, 2] = rn[:, 0]
+    cov = r @ gn.cov[i] @ r.T + gr.cov[j]
+    is_eow_r = gr.kind[j] == EOW
+    is_eow_n = gn.kind[i] == EOW
+    along = is_eow_r | is_eow_n
+    ang = np.where(is_eow_r, gr.edge[j, 0], gn.edge[i, 0] + pose[2])
+    d = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    rows_r, rows_j, rows_v = [], [], []
+    if np.any(along):
+        da = d[along]
+        rows_r.append(np.einsum("pa,pa->p", da, e[along]))
+        rows_j.append(np.einsum("pa,pak->pk", da, jac[along]))
+        rows_v.append(np.einsum("pa,pab,pb->p", da, cov[along], da))
+    if use_positions and np.any(~along):
+        pos = ~along
+        # Whiten the 2D residual with the Cholesky factor of its covariance.
+        lchol = np.linalg.cholesky(cov[pos])
+        linv = np.linalg.inv(lchol)
+        rows_r.append(np.einsum("pab,pb->pa", linv, e[pos]).reshape(-1))
+        rows_j.append(np.einsum("pab,pbk->pak", linv, jac[pos]).reshape(-1, 3))
+        rows_v.append(np.ones(2 * int(pos.sum())))
+    if not rows_r:
+        return _Rows(np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
+    rr = np.concatenate(rows_r)
+    vv = np.concatenate(rows_v)
+    w = _cauchy_weight(rr / np.sqrt(vv), 2.5)
+    return _Rows(rr, np.concatenate(rows_j), w, vv)
+
+
+@dataclass(frozen=True, eq=False)
+class _PointRows:
+    idx: IntArray  # used point -> segment (-1)
+    sel: NDArray[np.bool_]
+    r: FloatArray
+    jac: FloatArray
+    q: FloatArray  # associated points in the reference frame
+
+
+def _point_rows(
+    pose: FloatArray,
+    points: FloatArray,
+    point_alpha: FloatArray,
+    segs: SegmentSet,
+    gate_m: float,
+    s: RefineSettings,
+) -> _PointRows:
+    r = rot(pose[2])
+    rp = points @ r.T
+    q = rp + pose[:2]
+    idx, res = associate_points(
+        q, point_alpha + pose[2], segs, gate_m, s.end_tol_m, s.normal_gate_rad
+    )
+    sel = idx >= 0
+    n = segs.normal[idx[sel]]
+    rps = rp[sel]
+    jac = np.column_stack([n[:, 0], n[:, 1], n[:, 1] * rps[:, 0] - n[:, 0] * rps[:, 1]])
+    return _PointRows(idx, sel, res[sel], jac, q[sel])
+
+
+def refine(
+    pose0: FloatArray,
+    points: FloatArray,
+    point_alpha: FloatArray,
+    segs: SegmentSet,
+    gn: FeatureGeometry,
+    gr: FeatureGeometry,
+    pair_fn,
+    prior_info: FloatArray,
+    settings: RefineSettings,
+) -> Refined:
+    """Gauss-Newton refinement and covariance of one hypothesis (DESIGN steps 8-9).
+
+    Args:
+        pose0: ``(3,)`` float64 starting pose of the new scan in the reference frame.
+        points: ``(P, 2)`` float64 new scan points (new frame) that lie on new segments.
+        point_alpha: ``(P,)`` float64 normal angle of each point's own segment (new frame).
+        segs: Reference segments (reference frame).
+        gn, gr: New and reference feature geometry.
+        pair_fn: ``pair_fn(pose) -> (Q, 2) int64`` feature pairs ``[new, ref]`` at ``pose``
+            (the correlation's pairing).
+        prior_info: ``(3, 3)`` information of the bounds' prior (uniform variance of the
+            admissible motion; zeros for a global match). It regularises unobservable
+            directions and enters the covariance.
+        settings: Refinement settings.
+
+    Returns:
+        A :class:`Refined`.
+    """
+    s = settings
+    pose = np.asarray(pose0, dtype=np.float64).copy()
+    gate = s.gate_m
+    sigma = max(s.sigma_min_m, s.gate_m / 3.0)
+    n_pts = points.shape[0]
+    it = 0
+    final_gate_reached = False
+    for it in range(1, s.max_iterations + 1):
+        pr = _point_rows(pose, points, point_alpha, segs, gate, s)
+        if pr.r.shape[0] >= 6:
+            sigma = max(s.sigma_min_m, 1.4826 * float(np.median(np.abs(pr.r))))
+        c = s.cauchy_sigmas * sigma
+        w = _cauchy_weight(pr.r, c)
+        hess = (pr.jac.T * (w / sigma**2)) @ pr.jac
+        grad = (pr.jac.T * (w / sigma**2)) @ pr.r
+        fr = _feature_rows(pose, gn, gr, pair_fn(pose), it <= s.feature_iterations)
+        if fr.r.shape[0] > 0:
+            hess += (fr.jac.T * (fr.w / fr.var)) @ fr.jac
+            grad += (fr.jac.T * (fr.w / fr.var)) @ fr.r
+        a = hess + prior_info + 1e-9 * np.eye(3)
+        try:
+            delta = -np.linalg.solve(a, grad)
+        except np.linalg.LinAlgError:
+            break
+        pose[:2] += delta[:2]
+        pose[2] = float(wrap_angle(pose[2] + delta[2]))
+        new_gate = min(s.gate_m, max(s.gate_min_m, s.gate_sigmas * sigma))
+        if it >= 2:
+            gate = new_gate
+        small = np.hypot(delta[0], delta[1]) < 1e-5 and abs(delta[2]) < 1e-6
+        if small and final_gate_reached and it > s.feature_iterations:
+            break
+        final_gate_reached = it >= 2 and abs(gate - new_gate) < 1e-9
+    # Final linearisation at the refined pose.
+    pr = _point_rows(pose, points, point_alpha, segs, gate, s)
+    if pr.r.shape[0] >= 6:
+        sigma = max(s.sigma_min_m, 1.4826 * float(np.median(np.abs(pr.r))))
+    c = s.cauchy_sigmas * sigma
+    w = _cauchy_weight(pr.r, c)
+    fr = _feature_rows(pose, gn, gr, pair_fn(pose), False)
+    jw = pr.jac.T * (w / sigma**2)
+    hess = jw @ pr.jac
+    meat = (pr.jac.T * (w * w / sigma**2)) @ pr.jac
+    # Reference line noise: residual derivative w.r.t. (alpha_m, rho_m) of its segment.
+    seg = pr.idx[pr.sel]
+    if seg.shape[0] > 0:
+        al = segs.alpha[seg]
+        b = np.column_stack(
+            [-np.sin(al) * pr.q[:, 0] + np.cos(al) * pr.q[:, 1], -np.ones(seg.shape[0])]
+        )
+        contrib = jw.T[:, :, None] * b[:, None, :]  # (N, 3, 2)
+        g = np.zeros((segs.n, 3, 2))
+        np.add.at(g, seg, contrib)
+        used = np.unique(seg)
+        gm = g[used]
+        meat += np.einsum("mab,mbc,mdc->ad", gm, segs.cov[used], gm)
+    if fr.r.shape[0] > 0:
+        hess += (fr.jac.T * (fr.w / fr.var)) @ fr.jac
+        meat += (fr.jac.T * (fr.w**2 / fr.var)) @ fr.jac
+    a = hess + prior_info
+    try:
+        a_inv = np.linalg.inv(a)
+    except np.linalg.LinAlgError:
+        a_inv = np.full((3, 3), np.inf)
+    if np.all(np.isfinite(a_inv)):
+        cov_ls = a_inv @ (meat + prior_info) @ a_inv
+        cov_ls = 0.5 * (cov_ls + cov_ls.T)
+    else:
+        cov_ls = np.full((3, 3), np.inf)
+    cov = cov_ls
+    if np.all(np.isfinite(cov_ls)):
+        lat = _lattice_covariance(pose, pr, segs, fr, sigma, c, gate, a_inv, s)
+        if lat is not None:
+            cov = psd_max(cov_ls, lat)
+    overlap = float(pr.sel.sum()) / max(1, n_pts)
+    return Refined(pose, cov_ls, cov, sigma, overlap, int(pr.sel.sum()), pr.idx, it)
+
+
+def _lattice_covariance(
+    pose: FloatArray,
+    pr: _PointRows,
+    segs: SegmentSet,
+    fr: _Rows,
+    sigma: float,
+    c: float,
+    gate: float,
+    lik_cov: FloatArray,
+    s: RefineSettings,
+) -> FloatArray | None:
+    """Second moment of ``exp(kappa (score - score_max))`` on a lattice of perturbations
+    (Olson 2009). The score is the robust log-likelihood of the refinement with the final
+    associations: a point that slides beyond its segment's extent (plus tolerance) counts as
+    an outlier at the gate, so the landscape is flat where the walls give no constraint.
+
+    The lattice spans ``lattice_sigmas`` standard deviations of the likelihood covariance
+    along its principal axes (capped), ``lattice_steps`` points per axis.
+    """
+    evals, evecs = np.linalg.eigh(0.5 * (lik_cov + lik_cov.T))
+    if not np.all(np.isfinite(evals)) or np.any(evals <= 0):
+        return None
+    cap = 1.0 / np.sqrt(
+        (evecs[0] ** 2 + evecs[1] ** 2) / s.lattice_cap_m**2 + evecs[2] ** 2 / s.lattice_cap_rad**2
+    )
+    half = np.minimum(s.lattice_sigmas * np.sqrt(evals), cap)
+    k = np.linspace(-1.0, 1.0, s.lattice_steps)
+    g = np.stack(np.meshgrid(k, k, k, indexing="ij"), axis=-1).reshape(-1, 3) * half
+    deltas = g @ evecs.T  # (L, 3) in (x, y, theta)
+    cost = np.zeros(deltas.shape[0])
+    if pr.r.shape[0] > 0:
+        seg = pr.idx[pr.sel]
+        u = segs.u[seg]
+        # Along-segment coordinate and its derivative.
+        along = np.einsum("na,na->n", pr.q - segs.a[seg], u)
+        rq = pr.q - pose[:2]
+        j_along = np.column_stack([u[:, 0], u[:, 1], u[:, 1] * rq[:, 0] - u[:, 0] * rq[:, 1]])
+        r_l = pr.r[:, None] + pr.jac @ deltas.T  # (N, L)
+        a_l = along[:, None] + j_along @ deltas.T
+        outside = (a_l < -s.end_tol_m) | (a_l > segs.length[seg][:, None] + s.end_tol_m)
+        r_l = np.where(outside | (np.abs(r_l) > gate), gate, r_l)
+        cost += _cauchy_cost(r_l, c).sum(axis=0) / sigma**2
+    if fr.r.shape[0] > 0:
+        rf = (fr.r[:, None] + fr.jac @ deltas.T) / np.sqrt(fr.var)[:, None]
+        cost += _cauchy_cost(rf, 2.5).sum(axis=0)
+    score = -cost
+    w = np.exp(s.lattice_kappa * (score - score.max()))
+    w /= w.sum()
+    return (deltas.T * w) @ deltas
+
+
+def psd_max(a: FloatArray, b: FloatArray) -> FloatArray:
+    """A covariance that dominates both ``a`` and ``b`` (``a`` positive definite): in the
+    frame whitened by ``a``, ``b``'s eigenvalues are raised to at least 1."""
+    try:
+        lc = np.linalg.cholesky(a)
+    except np.linalg.LinAlgError:
+        return a
+    li = np.linalg.inv(lc)
+    m = li @ b @ li.T
+    evals, evecs = np.linalg.eigh(0.5 * (m + m.T))
+    d = np.maximum(evals, 1.0)
+    out = lc @ (evecs * d) @ evecs.T @ lc.T
+    return 0.5 * (out + out.T)
+
+
+def bounds_prior_information(max_translation_m: float, max_rotation_rad: float) -> FloatArray:
+    """Information ``diag(3 / t^2, 3 / t^2, 3 / r^2)`` of a uniform distribution over the
+    admissible motion (zeros where unbounded)."""
+    info = np.zeros((3, 3))
+    if math.isfinite(max_translation_m) and max_translation_m > 0:
+        info[0, 0] = info[1, 1] = 3.0 / max_translation_m**2
+    if max_rotation_rad < math.pi and max_rotation_rad > 0:
+        info[2, 2] = 3.0 / max_rotation_rad**2
+    return info
