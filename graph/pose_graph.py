@@ -1,0 +1,732 @@
+"""A small facade over gtsam for 2D pose graphs: iSAM2, batch Levenberg–Marquardt, marginals, g2o.
+
+Conventions (those of gtsam ``Pose2`` / ``BetweenFactorPose2``):
+
+- a pose is ``(3,)`` float64 ``[x_m, y_m, theta_rad]`` in the world frame;
+- a between-factor measures ``pose_i^-1 ∘ pose_j`` (``pose_j`` in the frame of ``pose_i``);
+  its error is ``Log(measured^-1 ∘ pose_i^-1 ∘ pose_j)``, so its covariance lives in the
+  tangent space of the measurement (the frame of ``pose_j`` as predicted from ``pose_i``),
+  ``(x, y, theta)`` order;
+- a marginal covariance ``P`` of a node means ``pose = estimate ∘ Exp(xi)``, ``xi ~ N(0, P)``:
+  the tangent space of the pose, i.e. its body frame, ``(x, y, theta)`` order.
+
+Node ids are the gtsam keys (non-negative integers), so a graph written to g2o keeps its ids.
+gtsam objects never leave this module: everything public takes and returns numpy arrays.
+
+State. Factors and nodes are buffered until :meth:`PoseGraph.update`, which hands iSAM2 (Kaess
+et al., IJRR 2012) only the new ones and clears the buffer; nothing is ever added twice.
+:meth:`PoseGraph.optimize_batch` runs Levenberg–Marquardt over every factor from the current
+estimate, then re-seeds iSAM2 with all factors linearized at the batch result, so that marginals
+and later incremental updates continue from the batch optimum. Until the next ``update()`` the
+estimates are the batch values themselves.
+"""
+
+from __future__ import annotations
+
+import logging
+import operator
+import os
+import re
+from collections import Counter
+from dataclasses import dataclass
+from enum import Enum
+from typing import Literal
+
+import gtsam
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from graph.config import GraphConfig
+from graph.g2o import load_g2o, write_g2o_file
+from iceg_common.errors import GraphError
+
+logger = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+RobustKernel = Literal["huber", "cauchy"]
+
+# What gtsam's C++ exceptions become through pybind11.
+_GTSAM_ERRORS = (RuntimeError, ValueError, IndexError, OverflowError)
+_NEAR_VARIABLE = re.compile(r"near variable\s+(\d+)")
+_MISSING_KEY = re.compile(r"key\s+\"?(\d+)\"?.*does not exist")
+
+
+class FactorKind(str, Enum):
+    """Label of a factor, kept for statistics and export (not used by the optimizer)."""
+
+    PRIOR = "prior"
+    ODOMETRY = "odometry"
+    SCAN_MATCH = "scan_match"
+    LOOP_CLOSURE = "loop_closure"
+
+
+@dataclass(frozen=True)
+class FactorRecord:
+    """Python-side record of one factor (read-only arrays).
+
+    Attributes:
+        index: position of the factor in the graph, which is also its iSAM2 factor slot.
+        kind: the factor's label.
+        i: first node (the only node of a prior).
+        j: second node; ``None`` for a prior.
+        measured: ``(3,)`` ``pose_i^-1 ∘ pose_j`` for a between-factor, the prior pose
+            (world frame) for a prior; ``[x_m, y_m, theta_rad]``.
+        cov: ``(3, 3)`` covariance in the tangent space of the measurement, (x, y, theta).
+        robust: ``None``, ``"huber"`` or ``"cauchy"``.
+        robust_k: kernel parameter in standard deviations of the whitened residual, or None.
+    """
+
+    index: int
+    kind: FactorKind
+    i: int
+    j: int | None
+    measured: FloatArray
+    cov: FloatArray
+    robust: str | None
+    robust_k: float | None
+
+
+@dataclass(frozen=True)
+class UpdateStats:
+    """What one :meth:`PoseGraph.update` did.
+
+    Attributes:
+        new_nodes: nodes handed to iSAM2.
+        new_factors: factors handed to iSAM2.
+        relinearized: variables iSAM2 relinearized.
+        reeliminated: variables iSAM2 re-eliminated.
+        reseeded: iSAM2 was rebuilt from every factor (after a failed update).
+    """
+
+    new_nodes: int
+    new_factors: int
+    relinearized: int
+    reeliminated: int
+    reseeded: bool
+
+
+@dataclass(frozen=True)
+class BatchStats:
+    """Outcome of :meth:`PoseGraph.optimize_batch`.
+
+    Attributes:
+        iterations: Levenberg–Marquardt iterations run.
+        error_before: gtsam graph error (0.5 · sum of squared whitened residuals, robust loss
+            for robust factors) at the starting estimate.
+        error_after: the same at the result.
+        converged: stopped on the error tolerance rather than on ``max_iterations``.
+    """
+
+    iterations: int
+    error_before: float
+    error_after: float
+    converged: bool
+
+
+def _readonly(a: FloatArray) -> FloatArray:
+    out = np.array(a, dtype=np.float64, copy=True)
+    out.setflags(write=False)
+    return out
+
+
+def _pose2(p: FloatArray) -> gtsam.Pose2:
+    return gtsam.Pose2(float(p[0]), float(p[1]), float(p[2]))
+
+
+def _array(pose: gtsam.Pose2) -> FloatArray:
+    return np.array([pose.x(), pose.y(), pose.theta()])
+
+
+class PoseGraph:
+    """2D pose graph over gtsam: incremental iSAM2, batch refinement, marginals, g2o.
+
+    Args:
+        config: settings; defaults to ``GraphConfig()``.
+        auto_prior: put a prior (``config.prior_sigma_*``) on the first node added, at its
+            initial pose, to fix the gauge. ``read_g2o`` turns it off for files that carry
+            their own priors.
+
+    Example:
+        >>> g = PoseGraph()
+        >>> g.add_node(0, [0.0, 0.0, 0.0])
+        >>> g.add_node(1, [1.0, 0.0, 0.0])
+        >>> _ = g.add_between(0, 1, [1.0, 0.0, 0.0], np.diag([1e-4, 1e-4, 1e-5]))
+        >>> _ = g.update()
+        >>> ids, poses = g.estimates()
+    """
+
+    def __init__(self, config: GraphConfig | None = None, *, auto_prior: bool = True) -> None:
+        self.config = config if config is not None else GraphConfig()
+        self._auto_prior = auto_prior
+        self._records: list[FactorRecord] = []
+        self._gfactors: list[gtsam.NonlinearFactor] = []
+        self._factors_of: dict[int, list[int]] = {}
+        self._initial: dict[int, FloatArray] = {}
+        self._pending_nodes: list[int] = []
+        self._pending_factors: list[int] = []
+        self._in_isam: set[int] = set()
+        self._isam: gtsam.ISAM2 | None = self._new_isam()
+        self._seed: gtsam.Values | None = None  # linearization point kept after a failure
+        self._served: gtsam.Values | None = None  # batch values, until the next update()
+
+    # ------------------------------------------------------------------ building the graph
+
+    def add_node(self, node_id: int, initial_pose: ArrayLike) -> None:
+        """Add a pose node with its initial value (buffered until :meth:`update`).
+
+        Args:
+            node_id: non-negative integer, unique in the graph.
+            initial_pose: ``(3,)`` ``[x_m, y_m, theta_rad]``, world frame.
+
+        Raises:
+            GraphError: the id is invalid or already used, or the pose is not finite ``(3,)``.
+        """
+        n = self._node_id(node_id, f"add_node({node_id!r})")
+        if n in self._initial:
+            raise GraphError(f"add_node: node {n} already exists; node ids must be unique")
+        pose = self._vector3(initial_pose, "initial_pose", f"add_node({n})")
+        first = not self._initial
+        self._initial[n] = pose
+        self._factors_of[n] = []
+        self._pending_nodes.append(n)
+        if first and self._auto_prior:
+            sxy, sth = self.config.prior_sigma_xy_m, self.config.prior_sigma_theta_rad
+            self.add_prior(n, pose, np.diag([sxy**2, sxy**2, sth**2]))
+
+    def add_prior(self, node_id: int, pose: ArrayLike, cov: ArrayLike) -> FactorRecord:
+        """Add a prior on a node (``gtsam.PriorFactorPose2``).
+
+        Args:
+            node_id: an existing node.
+            pose: ``(3,)`` prior mean ``[x_m, y_m, theta_rad]``, world frame.
+            cov: ``(3, 3)`` symmetric positive definite covariance in the tangent space of the
+                pose (body frame), ``(x, y, theta)`` order, m² / rad².
+
+        Returns:
+            The factor's record.
+
+        Raises:
+            GraphError: unknown node, or an invalid pose or covariance.
+        """
+        ctx = f"prior on node {node_id!r}"
+        n = self._existing(node_id, ctx)
+        mean = self._vector3(pose, "pose", ctx)
+        c = self._covariance(cov, ctx)
+        model = self._gaussian(c, ctx)
+        factor = gtsam.PriorFactorPose2(n, _pose2(mean), model)
+        return self._record(factor, FactorKind.PRIOR, n, None, mean, c, None, None)
+
+    def add_between(
+        self,
+        i: int,
+        j: int,
+        measured: ArrayLike,
+        cov: ArrayLike,
+        kind: FactorKind | str = FactorKind.ODOMETRY,
+        robust: RobustKernel | None = None,
+        robust_k: float | None = None,
+    ) -> FactorRecord:
+        """Add a between-factor (``gtsam.BetweenFactorPose2``) with a full covariance.
+
+        Args:
+            i: first node (must exist).
+            j: second node (must exist, ``j != i``).
+            measured: ``(3,)`` ``pose_i^-1 ∘ pose_j`` = ``[dx_m, dy_m, dtheta_rad]``, ``pose_j``
+                in the frame of ``pose_i``.
+            cov: ``(3, 3)`` symmetric positive definite covariance in the tangent space of the
+                measurement (gtsam convention: error ``Log(measured^-1 ∘ pose_i^-1 ∘ pose_j)``),
+                ``(x, y, theta)`` order, m² / rad².
+            kind: ``"odometry"``, ``"scan_match"`` or ``"loop_closure"`` (statistics, export).
+            robust: ``None`` for a Gaussian factor, ``"huber"`` or ``"cauchy"`` for an
+                M-estimator on the Mahalanobis distance (``noiseModel.Robust``).
+            robust_k: kernel parameter in standard deviations; defaults to
+                ``config.huber_k_sigma`` / ``config.cauchy_k_sigma``.
+
+        Returns:
+            The factor's record.
+
+        Raises:
+            GraphError: naming the factor (kind, i, j): unknown node, bad kind or kernel,
+                non-finite measurement, or a covariance that is not ``(3, 3)`` symmetric
+                positive definite.
+        """
+        try:
+            k_kind = FactorKind(kind)
+        except ValueError:
+            k_kind = None
+        if k_kind is None or k_kind is FactorKind.PRIOR:
+            valid = [k.value for k in FactorKind if k is not FactorKind.PRIOR]
+            raise GraphError(f"factor between {i} and {j}: kind {kind!r} is not one of {valid}")
+        ctx = f"{k_kind.value} factor between {i} and {j}"
+        a = self._existing(i, ctx)
+        b = self._existing(j, ctx)
+        if a == b:
+            raise GraphError(f"{ctx}: a between-factor needs two different nodes")
+        z = self._vector3(measured, "measured", ctx)
+        c = self._covariance(cov, ctx)
+        model = self._gaussian(c, ctx)
+        k: float | None = None
+        if robust is not None:
+            if robust not in ("huber", "cauchy"):
+                raise GraphError(f"{ctx}: robust must be None, 'huber' or 'cauchy', not {robust!r}")
+            default = self.config.huber_k_sigma if robust == "huber" else self.config.cauchy_k_sigma
+            k = float(default if robust_k is None else robust_k)
+            if not (np.isfinite(k) and k > 0.0):
+                raise GraphError(f"{ctx}: robust_k must be a positive number, got {robust_k!r}")
+            m_est = gtsam.noiseModel.mEstimator
+            estimator = m_est.Huber.Create(k) if robust == "huber" else m_est.Cauchy.Create(k)
+            model = gtsam.noiseModel.Robust.Create(estimator, model)
+        factor = gtsam.BetweenFactorPose2(a, b, _pose2(z), model)
+        return self._record(factor, k_kind, a, b, z, c, robust, k)
+
+    # ------------------------------------------------------------------ solving
+
+    def update(self) -> UpdateStats:
+        """One iSAM2 update with the buffered new nodes and factors; the buffer is cleared.
+
+        With an empty buffer this is one more iSAM2 iteration (relinearization of the nodes
+        whose update exceeds ``config.relinearize_threshold``, and a Gauss–Newton step): call it
+        a few times after the last node to converge the newest nodes.
+
+        Returns:
+            Counts of what was done (:class:`UpdateStats`).
+
+        Raises:
+            GraphError: a new node has no factor, or gtsam failed; the message names the node
+                (e.g. "indeterminant linear system near node 12") and its factors. After a
+                gtsam failure the next ``update()`` rebuilds iSAM2 from every factor.
+        """
+        self._check_connected(self._pending_nodes)
+        if self._isam is None:
+            return self._reseed(self._seed_values())
+        new_graph = gtsam.NonlinearFactorGraph()
+        for idx in self._pending_factors:
+            new_graph.add(self._gfactors[idx])
+        new_values = gtsam.Values()
+        for n in self._pending_nodes:
+            new_values.insert(n, _pose2(self._initial[n]))
+        try:
+            result = self._isam.update(new_graph, new_values)
+        except _GTSAM_ERRORS as exc:
+            self._mark_broken()
+            raise self._wrap(exc, "iSAM2 update") from exc
+        stats = UpdateStats(
+            new_nodes=len(self._pending_nodes),
+            new_factors=len(self._pending_factors),
+            relinearized=int(result.getVariablesRelinearized()),
+            reeliminated=int(result.getVariablesReeliminated()),
+            reseeded=False,
+        )
+        self._in_isam.update(self._pending_nodes)
+        self._pending_nodes.clear()
+        self._pending_factors.clear()
+        self._served = None
+        return stats
+
+    def optimize_batch(self, max_iterations: int = 100) -> BatchStats:
+        """Levenberg–Marquardt over every factor ever added, from the current estimate.
+
+        Buffered nodes and factors take part (buffered nodes start at their initial value)
+        and leave the buffer. Afterwards :meth:`estimate` / :meth:`estimates` return the batch
+        values until the next :meth:`update`, and iSAM2 is rebuilt with every factor linearized
+        at the batch result: :meth:`marginal_covariance` gives the batch marginals, and nodes
+        added later are solved incrementally from the batch optimum.
+
+        Levenberg–Marquardt as in gtsam (Marquardt 1963 diagonal damping when
+        ``config.batch_diagonal_damping``), linear solver per ``config.factorization``.
+
+        Args:
+            max_iterations: iteration cap; hitting it is logged as a warning.
+
+        Returns:
+            Iterations and errors (:class:`BatchStats`).
+
+        Raises:
+            GraphError: empty graph, a node without factor, or a gtsam failure (naming the node).
+        """
+        if not self._initial:
+            raise GraphError("optimize_batch: the graph has no node")
+        self._check_connected(self._pending_nodes)
+        values = self._current_values()
+        graph = self._full_graph()
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(int(max_iterations))
+        params.setRelativeErrorTol(self.config.batch_relative_error_tol)
+        params.setAbsoluteErrorTol(1e-12)  # error units; far below any meaningful change
+        params.setDiagonalDamping(self.config.batch_diagonal_damping)
+        solver = "MULTIFRONTAL_QR" if self.config.factorization == "qr" else "MULTIFRONTAL_CHOLESKY"
+        params.setLinearSolverType(solver)
+        error_before = graph.error(values)
+        try:
+            optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+            result = optimizer.optimize()
+        except _GTSAM_ERRORS as exc:
+            raise self._wrap(exc, "batch Levenberg–Marquardt") from exc
+        iterations = int(optimizer.iterations())
+        converged = iterations < max_iterations
+        stats = BatchStats(iterations, error_before, graph.error(result), converged)
+        if not stats.converged:
+            logger.warning(
+                "optimize_batch: no convergence in %d iterations (error %.6g -> %.6g)",
+                max_iterations,
+                stats.error_before,
+                stats.error_after,
+            )
+        self._reseed(result)
+        self._served = result
+        return stats
+
+    # ------------------------------------------------------------------ reading results
+
+    def estimate(self, node_id: int) -> FloatArray:
+        """Current estimate of one node.
+
+        Returns:
+            ``(3,)`` float64 ``[x_m, y_m, theta_rad]``, world frame: the batch value after
+            :meth:`optimize_batch`, else the iSAM2 estimate, else (node not yet through
+            :meth:`update`) its initial value.
+
+        Raises:
+            GraphError: unknown node.
+        """
+        n = self._existing(node_id, f"estimate({node_id!r})")
+        if self._served is not None and self._served.exists(n):
+            return _array(self._served.atPose2(n))
+        if self._isam is not None and n in self._in_isam:
+            return _array(self._isam.calculateEstimatePose2(n))
+        if self._isam is None and self._seed is not None and self._seed.exists(n):
+            return _array(self._seed.atPose2(n))
+        return self._initial[n].copy()
+
+    def estimates(self) -> tuple[NDArray[np.int64], FloatArray]:
+        """Current estimates of every node, sorted by id (same sources as :meth:`estimate`).
+
+        Returns:
+            ``ids`` ``(N,)`` int64 ascending, and ``poses`` ``(N, 3)`` float64
+            ``[x_m, y_m, theta_rad]`` in the world frame.
+        """
+        values = self._current_values()
+        ids = np.asarray(list(values.keys()), dtype=np.int64)
+        if ids.size == 0:
+            return ids, np.zeros((0, 3))
+        poses = np.asarray(gtsam.utilities.extractPose2(values), dtype=np.float64).reshape(-1, 3)
+        return ids, poses
+
+    def marginal_covariance(self, node_id: int) -> FloatArray:
+        """Marginal covariance of a node from iSAM2's Bayes tree.
+
+        After :meth:`optimize_batch` it is the batch marginal (iSAM2 is re-linearized at the
+        batch result).
+
+        Returns:
+            ``(3, 3)`` float64 ``P`` with ``pose = estimate ∘ Exp(xi)``, ``xi ~ N(0, P)``: the
+            tangent space of the pose (its body frame), ``(x, y, theta)`` order, m² / rad².
+
+        Raises:
+            GraphError: unknown node, node not yet through :meth:`update`, or the last update
+                failed.
+        """
+        ctx = f"marginal_covariance({node_id!r})"
+        n = self._existing(node_id, ctx)
+        if self._isam is None:
+            raise GraphError(f"{ctx}: the last update failed; fix the graph and call update()")
+        if n not in self._in_isam:
+            raise GraphError(f"{ctx}: node {n} has not been through update() yet")
+        try:
+            cov = np.asarray(self._isam.marginalCovariance(n), dtype=np.float64)
+        except _GTSAM_ERRORS as exc:
+            raise self._wrap(exc, ctx) from exc
+        return 0.5 * (cov + cov.T)
+
+    def residual_errors(self) -> dict[str, float]:
+        """Sum of the factor errors per kind at the current estimate.
+
+        A factor's error is gtsam's objective term: ``0.5 · e^T Σ^-1 e`` for a Gaussian factor
+        (half its chi²), the M-estimator loss of the Mahalanobis distance for a robust one. The
+        values sum to the total error the optimizers minimize.
+
+        Returns:
+            ``{kind value: error}`` for every kind present (keys ``"prior"``, ``"odometry"``,
+            ``"scan_match"``, ``"loop_closure"``).
+        """
+        values = self._current_values()
+        sums: dict[str, float] = {}
+        for record, factor in zip(self._records, self._gfactors, strict=True):
+            key = record.kind.value
+            sums[key] = sums.get(key, 0.0) + float(factor.error(values))
+        return sums
+
+    @property
+    def factors(self) -> tuple[FactorRecord, ...]:
+        """Every factor's record, in insertion order (read-only)."""
+        return tuple(self._records)
+
+    @property
+    def n_factors(self) -> int:
+        """Number of factors, priors included."""
+        return len(self._records)
+
+    @property
+    def n_nodes(self) -> int:
+        """Number of nodes."""
+        return len(self._initial)
+
+    @property
+    def isam2_factor_count(self) -> int:
+        """Number of factors held by gtsam's iSAM2 (each factor exactly once after update())."""
+        return 0 if self._isam is None else int(self._isam.getFactorsUnsafe().nrFactors())
+
+    @property
+    def n_pending(self) -> tuple[int, int]:
+        """``(nodes, factors)`` buffered for the next :meth:`update`."""
+        return len(self._pending_nodes), len(self._pending_factors)
+
+    def __repr__(self) -> str:
+        kinds = Counter(r.kind.value for r in self._records)
+        pending_nodes, pending_factors = self.n_pending
+        return (
+            f"PoseGraph(nodes={self.n_nodes}, factors={self.n_factors} {dict(kinds)}, "
+            f"pending={pending_nodes} nodes/{pending_factors} factors)"
+        )
+
+    # ------------------------------------------------------------------ g2o
+
+    def write_g2o(self, path: str | os.PathLike[str]) -> None:
+        """Write the graph to a 2D g2o file, atomically (see :func:`graph.g2o.write_g2o_file`).
+
+        Vertices are the current estimates (:meth:`estimates`); edges carry the information
+        matrix ``inv(cov)``; kinds, robust kernels and priors follow as ``# ICEG_*`` comment
+        lines after the last record. Floats are written exactly (``repr``).
+
+        Raises:
+            GraphError: the file cannot be written.
+        """
+        ids, poses = self.estimates()
+        write_g2o_file(path, ids, poses, self._records)
+
+    @classmethod
+    def read_g2o(cls, path: str | os.PathLike[str], config: GraphConfig | None = None) -> PoseGraph:
+        """Build a graph from a 2D g2o file (read through ``gtsam.readG2o``, is3D=False).
+
+        Nodes get the file's vertex poses as initial values; nothing is optimized yet (call
+        :meth:`update` or :meth:`optimize_batch`). Priors come from ``# ICEG_PRIOR`` lines when
+        the file has them, else the automatic prior is put on the smallest id. Kinds come from
+        ``# ICEG_EDGE`` lines, else ``j == i + 1`` is odometry and any other edge a loop
+        closure. The raw edge list is :func:`graph.load_g2o`.
+
+        Raises:
+            GraphError: the file is missing or malformed (see :func:`graph.load_g2o`).
+        """
+        data = load_g2o(path)
+        graph = cls(config, auto_prior=not data.priors)
+        for n, pose in zip(data.node_ids.tolist(), data.poses, strict=True):
+            graph.add_node(n, pose)
+        for what, idx in data.factor_order:
+            if what == "prior":
+                prior = data.priors[idx]
+                graph.add_prior(prior.node, prior.pose, prior.cov)
+                continue
+            k = float(data.edge_robust_k[idx])
+            graph.add_between(
+                int(data.edge_ij[idx, 0]),
+                int(data.edge_ij[idx, 1]),
+                data.edge_measured[idx],
+                data.edge_cov[idx],
+                kind=data.edge_kind[idx],
+                robust=data.edge_robust[idx],  # type: ignore[arg-type]
+                robust_k=None if np.isnan(k) else k,
+            )
+        return graph
+
+    # ------------------------------------------------------------------ internals
+
+    def _new_isam(self) -> gtsam.ISAM2:
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(self.config.relinearize_threshold)
+        params.relinearizeSkip = self.config.relinearize_skip
+        params.setFactorization("QR" if self.config.factorization == "qr" else "CHOLESKY")
+        return gtsam.ISAM2(params)
+
+    def _record(
+        self,
+        factor: gtsam.NonlinearFactor,
+        kind: FactorKind,
+        i: int,
+        j: int | None,
+        measured: FloatArray,
+        cov: FloatArray,
+        robust: str | None,
+        robust_k: float | None,
+    ) -> FactorRecord:
+        index = len(self._records)
+        record = FactorRecord(
+            index, kind, i, j, _readonly(measured), _readonly(cov), robust, robust_k
+        )
+        self._records.append(record)
+        self._gfactors.append(factor)
+        self._pending_factors.append(index)
+        self._factors_of[i].append(index)
+        if j is not None:
+            self._factors_of[j].append(index)
+        return record
+
+    def _full_graph(self) -> gtsam.NonlinearFactorGraph:
+        graph = gtsam.NonlinearFactorGraph()
+        for factor in self._gfactors:
+            graph.add(factor)
+        return graph
+
+    def _current_values(self) -> gtsam.Values:
+        """Estimate of every node as gtsam Values (served, iSAM2 or seed, then initial)."""
+        if self._served is not None:
+            values = gtsam.Values(self._served)
+        elif self._isam is not None:
+            values = self._isam.calculateEstimate() if self._in_isam else gtsam.Values()
+        else:
+            values = gtsam.Values(self._seed) if self._seed is not None else gtsam.Values()
+        for n, pose in self._initial.items():
+            if not values.exists(n):
+                values.insert(n, _pose2(pose))
+        return values
+
+    def _seed_values(self) -> gtsam.Values:
+        values = gtsam.Values(self._seed) if self._seed is not None else gtsam.Values()
+        for n, pose in self._initial.items():
+            if not values.exists(n):
+                values.insert(n, _pose2(pose))
+        return values
+
+    def _mark_broken(self) -> None:
+        """After a gtsam failure inside iSAM2: keep its linearization point, drop the object."""
+        seed = gtsam.Values()
+        if self._isam is not None:
+            try:
+                lin = self._isam.getLinearizationPoint()
+                for n in self._in_isam:
+                    if lin.exists(n):
+                        seed.insert(n, lin.atPose2(n))
+            except _GTSAM_ERRORS:
+                logger.warning("iSAM2 linearization point unreadable after a failed update")
+        self._seed = seed
+        self._isam = None
+        self._in_isam.clear()
+
+    def _reseed(self, values: gtsam.Values) -> UpdateStats:
+        """Rebuild iSAM2 from every factor, linearized at ``values``; clears the buffer."""
+        isam = self._new_isam()
+        try:
+            result = isam.update(self._full_graph(), values)
+        except _GTSAM_ERRORS as exc:
+            self._seed = gtsam.Values(values)
+            self._isam = None
+            self._in_isam.clear()
+            raise self._wrap(exc, "iSAM2 rebuild") from exc
+        self._isam = isam
+        self._seed = None
+        self._served = None
+        self._in_isam = set(self._initial)
+        stats = UpdateStats(
+            new_nodes=len(self._initial),
+            new_factors=len(self._gfactors),
+            relinearized=int(result.getVariablesRelinearized()),
+            reeliminated=int(result.getVariablesReeliminated()),
+            reseeded=True,
+        )
+        self._pending_nodes.clear()
+        self._pending_factors.clear()
+        return stats
+
+    def _check_connected(self, nodes: list[int]) -> None:
+        for n in nodes:
+            if not self._factors_of[n]:
+                raise GraphError(
+                    f"node {n} has no factor: add a between-factor (or a prior) that links it "
+                    "to the graph before update()"
+                )
+
+    def _describe(self, node: int) -> str:
+        indices = self._factors_of.get(node, [])
+        parts = []
+        for idx in indices[:6]:
+            r = self._records[idx]
+            parts.append(f"{r.kind.value} {r.i}" if r.j is None else f"{r.kind.value} {r.i}-{r.j}")
+        more = f", ... ({len(indices)} in all)" if len(indices) > 6 else ""
+        return f"its factors: {', '.join(parts)}{more}" if parts else "it has no factor"
+
+    def _wrap(self, exc: BaseException, action: str) -> GraphError:
+        text = str(exc).strip()
+        near = _NEAR_VARIABLE.search(text)
+        if near:
+            node = int(near.group(1))
+            hint = " (try factorization='qr')" if self.config.factorization == "cholesky" else ""
+            return GraphError(
+                f"{action}: indeterminant linear system near node {node} ({self._describe(node)})"
+                ": the node is under-constrained (no path of factors to a prior, or a covariance "
+                "so large in some direction that it constrains nothing) or the system is too "
+                f"ill-conditioned for the {self.config.factorization} factorization{hint}"
+            )
+        missing = _MISSING_KEY.search(text)
+        if missing:
+            return GraphError(f"{action}: node {missing.group(1)} has no initial value in gtsam")
+        first = text.splitlines()[0] if text else ""
+        return GraphError(f"{action}: gtsam raised {type(exc).__name__}: {first}")
+
+    def _node_id(self, node_id: object, ctx: str) -> int:
+        try:
+            n = operator.index(node_id)  # type: ignore[call-overload]
+        except TypeError:
+            raise GraphError(f"{ctx}: node id must be an integer, got {node_id!r}") from None
+        if n < 0:
+            raise GraphError(f"{ctx}: node id must be non-negative (a gtsam key), got {n}")
+        return int(n)
+
+    def _existing(self, node_id: object, ctx: str) -> int:
+        n = self._node_id(node_id, ctx)
+        if n not in self._initial:
+            raise GraphError(f"{ctx} references unknown node {n}: add_node({n}, pose) first")
+        return n
+
+    @staticmethod
+    def _vector3(value: ArrayLike, what: str, ctx: str) -> FloatArray:
+        try:
+            v = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise GraphError(f"{ctx}: {what} is not numeric: {value!r}") from None
+        if v.shape != (3,) or not np.all(np.isfinite(v)):
+            raise GraphError(
+                f"{ctx}: {what} must be a finite (3,) [x_m, y_m, theta_rad], got shape "
+                f"{v.shape} {v.tolist()}"
+            )
+        return v
+
+    @staticmethod
+    def _covariance(value: ArrayLike, ctx: str) -> FloatArray:
+        try:
+            c = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise GraphError(f"{ctx}: covariance is not numeric: {value!r}") from None
+        if c.shape != (3, 3) or not np.all(np.isfinite(c)):
+            raise GraphError(
+                f"{ctx}: covariance must be a finite (3, 3) matrix in (x, y, theta) order, got "
+                f"shape {c.shape}"
+            )
+        scale = float(np.max(np.abs(c)))
+        if float(np.max(np.abs(c - c.T))) > 1e-9 * scale:
+            raise GraphError(f"{ctx}: covariance is not symmetric: {c.tolist()}")
+        c = 0.5 * (c + c.T)
+        try:
+            np.linalg.cholesky(c)
+        except np.linalg.LinAlgError:
+            eig = np.linalg.eigvalsh(c)
+            raise GraphError(
+                f"{ctx}: covariance is not positive definite (eigenvalues {eig.tolist()}); "
+                "every direction needs a positive variance"
+            ) from None
+        return c
+
+    @staticmethod
+    def _gaussian(cov: FloatArray, ctx: str) -> gtsam.noiseModel.Base:
+        try:
+            return gtsam.noiseModel.Gaussian.Covariance(cov)
+        except _GTSAM_ERRORS as exc:
+            raise GraphError(f"{ctx}: gtsam rejected the covariance: {exc}") from exc

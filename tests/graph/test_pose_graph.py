@@ -1,0 +1,249 @@
+"""PoseGraph facade: conventions, buffer, batch state, statistics and error messages.
+
+Truth comes from closed-form least squares (linear problems where the optimum is computable by
+hand) and from the SE(2) helpers of iceg_common, never from gtsam itself.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.optimize import least_squares
+
+from graph import FactorKind, GraphConfig, PoseGraph
+from iceg_common.errors import GraphError
+from iceg_common.se2 import between, compose, wrap_angle
+
+COV = np.diag([1e-2, 1e-2, 1e-3])
+
+
+def _chain(n: int, config: GraphConfig | None = None) -> PoseGraph:
+    """Nodes 0..n-1 one metre apart along x, odometry between consecutive nodes."""
+    g = PoseGraph(config)
+    for k in range(n):
+        g.add_node(k, [float(k), 0.0, 0.0])
+        if k:
+            g.add_between(k - 1, k, [1.0, 0.0, 0.0], COV)
+    return g
+
+
+def _log(p: np.ndarray) -> np.ndarray:
+    """SE(2) logarithm (Barfoot 2017, §7.1): (V(theta)^-1 t, theta)."""
+    th = p[2]
+    a = 1.0 - th**2 / 6.0 if abs(th) < 1e-9 else np.sin(th) / th
+    b = th / 2.0 if abs(th) < 1e-9 else (1.0 - np.cos(th)) / th
+    v_inv = np.array([[a, b], [-b, a]]) / (a * a + b * b)
+    return np.array([*(v_inv @ p[:2]), th])
+
+
+def test_two_full_covariance_measurements_fuse_to_the_weighted_mean() -> None:
+    # Node 0 sits at (2, 1, 0.7) (prior at its initial pose). Two measurements of node 1 in
+    # node 0's frame with zero rotation and a heading variance of 1e-12 rad², which pins the
+    # relative heading to 0 (within 1e-12 rad) and leaves a linear problem in the translation:
+    # t* = (S1^-1 + S2^-1)^-1 (S1^-1 z1 + S2^-1 z2), the information-weighted mean; each
+    # factor's error is 0.5 (t* - z_k)^T S_k^-1 (t* - z_k). Hand-computable, gtsam-free.
+    s1 = np.array([[0.02, 0.01, 0.0], [0.01, 0.03, 0.0], [0.0, 0.0, 1e-12]])
+    s2 = np.diag([0.01, 0.04, 1e-12])
+    z1, z2 = np.array([1.0, 0.2, 0.0]), np.array([1.3, -0.1, 0.0])
+    x0 = np.array([2.0, 1.0, 0.7])
+    g = PoseGraph()
+    g.add_node(0, x0)
+    g.add_node(1, compose(x0, z1))
+    g.add_between(0, 1, z1, s1, kind="odometry")
+    g.add_between(0, 1, z2, s2, kind=FactorKind.SCAN_MATCH)
+    g.update()
+    g.update()
+
+    w1, w2 = np.linalg.inv(s1[:2, :2]), np.linalg.inv(s2[:2, :2])
+    t = np.linalg.solve(w1 + w2, w1 @ z1[:2] + w2 @ z2[:2])
+    np.testing.assert_allclose(g.estimate(0), x0, atol=1e-9)
+    np.testing.assert_allclose(between(g.estimate(0), g.estimate(1)), [*t, 0.0], atol=1e-9)
+    errors = g.residual_errors()
+    e1, e2 = t - z1[:2], t - z2[:2]
+    assert errors["odometry"] == pytest.approx(0.5 * e1 @ w1 @ e1, rel=1e-6)
+    assert errors["scan_match"] == pytest.approx(0.5 * e2 @ w2 @ e2, rel=1e-6)
+    assert errors["prior"] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_between_convention_matches_an_independent_least_squares() -> None:
+    # Truth: scipy least squares on the residuals written from the documented convention,
+    # r_k = chol(S_k^-1)^T Log(z_k^-1 ∘ x0^-1 ∘ x1), with iceg_common SE(2) and a numpy Log.
+    # Rotations are non-zero and the covariances full, so a wrong frame or a transposed
+    # covariance would move the optimum.
+    s1 = np.array([[0.02, 0.01, 0.002], [0.01, 0.03, -0.001], [0.002, -0.001, 0.01]])
+    s2 = np.array([[0.05, -0.02, 0.0], [-0.02, 0.01, 0.001], [0.0, 0.001, 0.002]])
+    z1, z2 = np.array([1.0, 0.4, 0.6]), np.array([1.3, 0.1, 0.9])
+    x0 = np.array([-1.0, 2.0, 2.5])
+    g = PoseGraph()
+    g.add_node(0, x0)
+    g.add_node(1, compose(x0, z1))
+    g.add_between(0, 1, z1, s1)
+    g.add_between(0, 1, z2, s2, kind="scan_match")
+    for _ in range(5):
+        g.update()
+
+    roots = [np.linalg.cholesky(np.linalg.inv(s)).T for s in (s1, s2)]
+
+    def residuals(x1: np.ndarray) -> np.ndarray:
+        rel = between(x0, x1)
+        pairs = zip(roots, (z1, z2), strict=True)
+        return np.concatenate([r @ _log(between(z, rel)) for r, z in pairs])
+
+    ref = least_squares(residuals, compose(x0, z1), xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    # iSAM2 stops relinearizing below relinearize_threshold (1e-3): close, not exact
+    np.testing.assert_allclose(g.estimate(1)[:2], ref.x[:2], atol=1e-5)
+    assert float(wrap_angle(g.estimate(1)[2] - ref.x[2])) == pytest.approx(0.0, abs=1e-5)
+    g.optimize_batch()  # Levenberg–Marquardt iterates to convergence
+    np.testing.assert_allclose(g.estimate(1)[:2], ref.x[:2], atol=1e-9)
+    assert float(wrap_angle(g.estimate(1)[2] - ref.x[2])) == pytest.approx(0.0, abs=1e-9)
+    r = residuals(ref.x)
+    errors = g.residual_errors()
+    assert errors["odometry"] == pytest.approx(0.5 * r[:3] @ r[:3], rel=1e-6)
+    assert errors["scan_match"] == pytest.approx(0.5 * r[3:] @ r[3:], rel=1e-6)
+
+
+def test_buffer_is_cleared_and_no_factor_is_added_twice() -> None:
+    g = _chain(3)
+    assert g.n_pending == (3, 3)  # nodes 0..2; prior + 2 odometry factors
+    stats = g.update()
+    assert (stats.new_nodes, stats.new_factors) == (3, 3)
+    assert g.n_pending == (0, 0)
+    for _ in range(3):  # empty updates are extra iterations, not re-additions
+        assert g.update().new_factors == 0
+    assert g.isam2_factor_count == g.n_factors == 3
+    g.add_node(3, [3.0, 0.0, 0.0])
+    g.add_between(2, 3, [1.0, 0.0, 0.0], COV)
+    g.add_between(0, 3, [3.0, 0.0, 0.0], COV, kind="loop_closure", robust="huber")
+    assert g.update().new_factors == 2
+    assert g.isam2_factor_count == g.n_factors == 5
+    kinds = [f.kind.value for f in g.factors]
+    assert kinds == ["prior", "odometry", "odometry", "odometry", "loop_closure"]
+    assert [f.index for f in g.factors] == [0, 1, 2, 3, 4]
+    assert g.factors[4].robust == "huber" and g.factors[4].robust_k == pytest.approx(1.345)
+    assert g.factors[0].j is None and g.factors[0].i == 0
+    with pytest.raises(ValueError):
+        g.factors[1].measured[0] = 5.0  # records are read-only
+
+
+def test_estimates_are_sorted_by_id_and_pending_nodes_report_their_initial_pose() -> None:
+    g = PoseGraph()
+    for n, x in [(5, 0.0), (2, 1.0), (9, 2.0)]:
+        g.add_node(n, [x, 0.0, 0.0])
+    g.add_between(5, 2, [1.0, 0.0, 0.0], COV)
+    g.add_between(2, 9, [1.0, 0.0, 0.0], COV)
+    g.update()
+    g.add_node(7, [10.0, 0.0, 0.0])
+    ids, poses = g.estimates()
+    np.testing.assert_array_equal(ids, [2, 5, 7, 9])
+    np.testing.assert_allclose(poses[:, 0], [1.0, 0.0, 10.0, 2.0], atol=1e-9)
+    np.testing.assert_allclose(g.estimate(7), [10.0, 0.0, 0.0])
+    assert g.n_nodes == 4
+
+
+def test_batch_result_is_served_then_incremental_continues_from_it() -> None:
+    # A square loop with a biased loop closure; the initial guess is off, so one iSAM2 step
+    # is not the optimum. After optimize_batch the estimates are the batch values; a node
+    # added afterwards with a single odometry factor lands exactly at batch estimate ∘ z.
+    g = PoseGraph()
+    truth = np.array([[0, 0, 0], [1, 0, np.pi / 2], [1, 1, np.pi], [0, 1, -np.pi / 2]], float)
+    for k, p in enumerate(truth):
+        g.add_node(k, p + np.array([0.05, -0.03, 0.02]) * k)
+    for k in range(3):
+        g.add_between(k, k + 1, between(truth[k], truth[k + 1]), COV)
+    biased = between(truth[3], truth[0]) + np.array([0.1, 0.0, 0.0])
+    g.add_between(3, 0, biased, COV, kind="loop_closure")
+    g.update()
+    stats = g.optimize_batch()
+    assert stats.converged and stats.error_after < stats.error_before
+    # served values are the ones the batch error was computed on
+    assert sum(g.residual_errors().values()) == pytest.approx(stats.error_after, rel=1e-12)
+    _, batch = g.estimates()
+    assert g.isam2_factor_count == g.n_factors == 5  # re-seeded once, nothing duplicated
+
+    z = np.array([0.5, 0.2, 0.3])
+    g.add_node(4, [0.0, 0.0, 0.0])  # deliberately poor initial value
+    g.add_between(3, 4, z, COV)
+    g.update()
+    g.update()
+    _, after = g.estimates()
+    np.testing.assert_allclose(after[:4], batch, atol=1e-7)
+    np.testing.assert_allclose(after[4], compose(batch[3], z), atol=1e-7)
+
+
+def test_optimize_batch_includes_buffered_nodes() -> None:
+    g = _chain(4)  # never updated
+    g.add_between(0, 3, [3.3, 0.0, 0.0], COV, kind="loop_closure")
+    g.optimize_batch()
+    # linear problem along x: 3 odometry steps of 1 m and a 3.3 m loop closure with equal
+    # variances share the 0.3 m discrepancy equally: each step 1.075 m (least squares)
+    np.testing.assert_allclose(g.estimates()[1][:, 0], [0.0, 1.075, 2.15, 3.225], atol=1e-6)
+    assert g.n_pending == (0, 0)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"cov": np.diag([1e-2, -1e-2, 1e-3])}, "not positive definite"),
+        ({"cov": np.array([[1e-2, 1e-3, 0], [0, 1e-2, 0], [0, 0, 1e-3]])}, "not symmetric"),
+        ({"cov": np.eye(2)}, r"finite \(3, 3\)"),
+        ({"cov": np.diag([np.nan, 1.0, 1.0])}, r"finite \(3, 3\)"),
+        ({"measured": [1.0, np.inf, 0.0]}, r"measured must be a finite \(3,\)"),
+        ({"measured": [1.0, 0.0]}, r"measured must be a finite \(3,\)"),
+        ({"robust": "tukey"}, "robust must be None"),
+        ({"robust": "cauchy", "robust_k": -1.0}, "robust_k must be a positive"),
+    ],
+)
+def test_invalid_factor_raises_graph_error_naming_the_factor(kwargs: dict, message: str) -> None:
+    g = _chain(2)
+    args = {"measured": [1.0, 0.0, 0.0], "cov": COV, "kind": "loop_closure"} | kwargs
+    with pytest.raises(GraphError, match=message) as info:
+        g.add_between(0, 1, **args)
+    assert "loop_closure factor between 0 and 1" in str(info.value)
+    assert g.n_factors == 2  # nothing was added
+
+
+def test_structural_errors_name_the_node() -> None:
+    g = _chain(2)
+    unknown = "scan_match factor between 1 and 5 references unknown node 5"
+    with pytest.raises(GraphError, match=unknown):
+        g.add_between(1, 5, [1.0, 0.0, 0.0], COV, kind="scan_match")
+    with pytest.raises(GraphError, match="node 1 already exists"):
+        g.add_node(1, [0.0, 0.0, 0.0])
+    with pytest.raises(GraphError, match="non-negative"):
+        g.add_node(-3, [0.0, 0.0, 0.0])
+    with pytest.raises(GraphError, match="kind 'wheel'"):
+        g.add_between(0, 1, [1.0, 0.0, 0.0], COV, kind="wheel")
+    with pytest.raises(GraphError, match="two different nodes"):
+        g.add_between(1, 1, [1.0, 0.0, 0.0], COV)
+    with pytest.raises(GraphError, match="unknown node 4"):
+        g.estimate(4)
+    g.add_node(7, [5.0, 0.0, 0.0])
+    with pytest.raises(GraphError, match="node 7 has no factor"):
+        g.update()
+    with pytest.raises(GraphError, match="node 7 has not been through update"):
+        g.marginal_covariance(7)
+
+
+def test_indeterminant_system_is_wrapped_and_recoverable() -> None:
+    # Nodes 5-6 form an island linked to nothing anchored: the linear system is singular.
+    g = _chain(2)
+    g.update()
+    g.add_node(5, [5.0, 0.0, 0.0])
+    g.add_node(6, [6.0, 0.0, 0.0])
+    g.add_between(5, 6, [1.0, 0.0, 0.0], COV)
+    with pytest.raises(GraphError, match=r"indeterminant linear system near node [56]") as info:
+        g.update()
+    assert "odometry 5-6" in str(info.value)
+    with pytest.raises(GraphError, match="last update failed"):
+        g.marginal_covariance(1)
+    # linking the island rebuilds iSAM2 from every factor, each exactly once
+    g.add_between(1, 5, [4.0, 0.0, 0.0], COV, kind="loop_closure")
+    stats = g.update()
+    assert stats.reseeded
+    assert g.isam2_factor_count == g.n_factors == 4
+    np.testing.assert_allclose(g.estimate(6), [6.0, 0.0, 0.0], atol=1e-9)
+
+
+def test_repr_counts_kinds() -> None:
+    g = _chain(3)
+    assert "nodes=3" in repr(g) and "'odometry': 2" in repr(g) and "pending=3" in repr(g)
