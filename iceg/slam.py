@@ -15,18 +15,20 @@ import logging
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
 
 from frontends import LaserScan
 from graph import PoseGraph, odometry_covariance
 from iceg.config import IcegConfig
 from iceg.feature_map import FeatureMap
 from iceg.features import extract
+from iceg.grid import render
 from iceg.matching import IceMatcher, MatchBounds
-from iceg.types import MatchResult, ScanFeatures
+from iceg.results import SlamResult
+from iceg.types import ScanFeatures
 from iceg_common import se2
 
 logger = logging.getLogger(__name__)
@@ -122,8 +124,6 @@ class Slam:
         self.timer = StageTimer()
         self.loop_stats = LoopClosureStats()
         self._s = SlamState()
-        self._last_odom: FloatArray | None = None
-        self._synthetic_odom = np.zeros(3)
 
     # ------------------------------------------------------------------ per scan
 
@@ -134,14 +134,16 @@ class Slam:
         the first odometry pose, or at the origin when the log has no odometry).
         """
         cfg = self.config.slam
+        s = self._s
         t0 = time.perf_counter()
         odom = self._odometry_of(scan)
-        s = self._s
         s.scans.append(scan)
         if not s.node_odom:
             feats = extract(scan, self.config.features)
             t0 = self.timer.add("features", t0)
-            self._add_node(scan, odom, feats, initial=odom, match=None)
+            self._add_node(scan, odom, initial=odom)
+            self.graph.update()
+            self.feature_map.update(0, feats, scan.stamp_s, scan=scan)
             self.timer.add("feature_map", t0)
             return odom.copy()
 
@@ -159,24 +161,19 @@ class Slam:
 
         feats = extract(scan, self.config.features)
         t0 = self.timer.add("features", t0)
-        recent = list(range(max(0, last - cfg.local_map_nodes + 1), last + 1))
         ids, poses = self.graph.estimates()
-        node_poses = dict(zip(ids.tolist(), poses, strict=True))
-        reference = self.feature_map.reference(node_poses, recent, node_poses[last])
-        bounds = MatchBounds(
-            max_translation_m=cfg.match_max_translation_m,
-            max_rotation_rad=np.radians(cfg.match_max_rotation_deg),
-        )
+        recent = ids[max(0, last - cfg.local_map_nodes + 1) : last + 1]
+        reference = self.feature_map.reference((ids, poses), recent, poses[last])
+        bounds = MatchBounds.local(cfg.match_max_translation_m, cfg.match_max_rotation_deg)
         result = self.matcher.match(feats, reference, delta, bounds)
         t0 = self.timer.add("matching", t0)
         if not result.success:
             s.match_failures[result.reason or "unknown"] += 1
-        rel = result.pose if result.success else delta
-        initial = se2.compose(node_poses[last], rel)
-        new_id = self._add_node(scan, odom, feats, initial=initial, match=None, defer_map=True)
-        self._add_factor(
-            "odometry", last, new_id, delta, odometry_covariance(delta, self.config.odometry_noise)
+        new_id = self._add_node(
+            scan, odom, initial=se2.compose(poses[last], result.pose if result.success else delta)
         )
+        odom_cov = odometry_covariance(delta, self.config.odometry_noise)
+        self._add_factor("odometry", last, new_id, delta, odom_cov)
         if result.success:
             self._add_factor(
                 "scan_match", last, new_id, result.pose, result.cov, result.correlation
@@ -184,13 +181,13 @@ class Slam:
         t0 = self.timer.add("graph_build", t0)
         self.graph.update()
         t0 = self.timer.add("isam2", t0)
-        if (
-            self.config.loop_closure.enabled
-            and new_id % self.config.loop_closure.every_n_nodes == 0
-        ):
+        lc = self.config.loop_closure
+        if lc.enabled and new_id % lc.every_n_nodes == 0:
             self._search_loop_closure(new_id, feats)
             t0 = self.timer.add("loop_closure", t0)
-        self._update_map(new_id, feats, scan, result if result.success else None)
+        self.feature_map.update(
+            new_id, feats, scan.stamp_s, reference=reference, match=result, scan=scan
+        )
         self.timer.add("feature_map", t0)
         return self.graph.estimate(new_id)
 
@@ -199,26 +196,15 @@ class Slam:
     def _odometry_of(self, scan: LaserScan) -> FloatArray:
         if scan.odom_pose is not None:
             return np.asarray(scan.odom_pose, dtype=np.float64)
-        return self._synthetic_odom.copy()
+        return np.zeros(3)
 
-    def _add_node(
-        self,
-        scan: LaserScan,
-        odom: FloatArray,
-        feats: ScanFeatures,
-        initial: FloatArray,
-        match: MatchResult | None,
-        defer_map: bool = False,
-    ) -> int:
+    def _add_node(self, scan: LaserScan, odom: FloatArray, initial: FloatArray) -> int:
         s = self._s
         node_id = len(s.node_odom)
         s.node_odom.append(odom)
         s.node_scan_index.append(len(s.scans) - 1)
         s.records.append(_ScanRecord(scan.stamp_s, node_id, np.zeros(3)))
         self.graph.add_node(node_id, initial)
-        if node_id == 0:
-            self.graph.update()
-            self._update_map(0, feats, scan, None)
         return node_id
 
     def _add_factor(
@@ -229,26 +215,11 @@ class Slam:
         measured: FloatArray,
         cov: FloatArray,
         correlation: float = float("nan"),
-        robust: str | None = None,
+        robust: Literal["huber", "cauchy"] | None = None,
     ) -> None:
-        lc = self.config.loop_closure
-        self.graph.add_between(
-            i, j, measured, cov, kind=kind, robust=robust, robust_k=lc.robust_k if robust else 1.0
-        )
+        robust_k = self.config.loop_closure.robust_k if robust else None
+        self.graph.add_between(i, j, measured, cov, kind=kind, robust=robust, robust_k=robust_k)
         self._s.factors.append(FactorRecord(kind, i, j, measured.copy(), cov.copy(), correlation))
-
-    def _update_map(
-        self, node_id: int, feats: ScanFeatures, scan: LaserScan, match: MatchResult | None
-    ) -> None:
-        ids, poses = self.graph.estimates()
-        self.feature_map.update(
-            node_id=node_id,
-            node_pose=poses[node_id],
-            features=feats,
-            match=match,
-            scan=scan,
-            stamp_s=scan.stamp_s,
-        )
 
     def _search_loop_closure(self, node_id: int, feats: ScanFeatures) -> None:
         """Search older nodes near the current estimate and add a robust loop closure.
@@ -279,9 +250,8 @@ class Slam:
             for n in range(candidate - lc.window_nodes, candidate + lc.window_nodes + 1)
             if 0 <= n <= node_id - lc.min_node_gap
         ]
-        node_poses = dict(zip(ids.tolist(), poses, strict=True))
-        reference = self.feature_map.reference(node_poses, window, node_poses[candidate])
-        prediction = se2.between(node_poses[candidate], current)
+        reference = self.feature_map.reference((ids, poses), window, poses[candidate])
+        prediction = se2.between(poses[candidate], current)
         bounds = MatchBounds(
             max_translation_m=radius,
             max_rotation_rad=np.radians(lc.max_rotation_deg)
@@ -319,7 +289,7 @@ class Slam:
         A scan that is not a graph node takes its node's estimate composed with the
         odometry delta from the node's scan (DESIGN "Data flow of one scan").
         """
-        ids, poses = self.graph.estimates()
+        _, poses = self.graph.estimates()
         recs = self._s.records
         stamps = np.array([r.stamp_s for r in recs])
         node = np.array([r.node_id for r in recs], dtype=np.int64)
@@ -328,9 +298,6 @@ class Slam:
 
     def finish(self) -> SlamResult:
         """Optionally batch-refine, render the grid, and return the :class:`SlamResult`."""
-        from iceg.grid import render
-        from iceg.results import SlamResult
-
         t0 = time.perf_counter()
         if self.config.slam.batch_refinement and self._s.node_odom:
             self.graph.optimize_batch()
