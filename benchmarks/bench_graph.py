@@ -1,0 +1,147 @@
+"""Benchmark: iSAM2 update time per node and batch time of graph.PoseGraph.
+
+Two runs, each fed node by node with one ``update()`` per node and the default GraphConfig:
+
+1. M3500b (``../shared/data/g2o/input_M3500b_g2o.g2o``, 3500 nodes, 5453 edges), through
+   ``graph.replay.replay_node_by_node``;
+2. a simulated Manhattan world of 10,000 nodes (``graph.simulate.simulate_manhattan``).
+
+For each: median, 99th percentile and maximum wall time of ``update()`` per node, the total,
+the time of ``optimize_batch()`` started from the incremental estimate (offline refinement),
+and, for M3500b, Levenberg–Marquardt from the file's initial values for comparison (time,
+iterations and the error it reaches). The simulated run also reports the mean position error
+against ground truth.
+
+Run: ``/work/venv/bin/python benchmarks/bench_graph.py [--nodes 10000] [--skip-m3500]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from graph import PoseGraph
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:  # run as a script from anywhere
+    sys.path.insert(0, str(REPO))
+SHARED = Path(os.environ.get("ICEG_SHARED_DATA", REPO.parent / "shared" / "data"))
+
+
+def _summary(label: str, times_s: list[float]) -> None:
+    t = np.asarray(times_s) * 1000.0
+    print(
+        f"  {label}: {len(t)} updates, median {np.median(t):.3f} ms, "
+        f"p99 {np.percentile(t, 99):.3f} ms, max {t.max():.1f} ms, total {t.sum() / 1000:.1f} s"
+    )
+
+
+def _converge(graph: PoseGraph) -> int:
+    for extra in range(1, 11):
+        if graph.update().relinearized == 0:
+            return extra
+    return 10
+
+
+def bench_m3500(path: Path) -> None:
+    """Replay M3500b node by node, then refine in batch; LM from the raw initial values too."""
+    from graph import PoseGraph, load_g2o
+    from graph.replay import replay_node_by_node
+
+    print(f"M3500b: {path}")
+    data = load_g2o(path)
+    times: list[float] = []
+    graph = replay_node_by_node(data, times_s=times)
+    _summary("iSAM2 update per node", times)
+    start = time.perf_counter()
+    extra = _converge(graph)
+    print(f"  {extra} extra update() to converge: {time.perf_counter() - start:.2f} s")
+    error_inc = sum(graph.residual_errors().values())
+    start = time.perf_counter()
+    stats = graph.optimize_batch()
+    print(
+        f"  batch LM from the iSAM2 estimate: {time.perf_counter() - start:.2f} s, "
+        f"{stats.iterations} iterations, error {error_inc:.4f} -> {stats.error_after:.4f}"
+    )
+    raw = PoseGraph.read_g2o(path)
+    start = time.perf_counter()
+    stats = raw.optimize_batch(max_iterations=100)
+    print(
+        f"  batch LM from the file's initial values: {time.perf_counter() - start:.2f} s, "
+        f"{stats.iterations} iterations, error {stats.error_before:.1f} -> "
+        f"{stats.error_after:.4f} (converged: {stats.converged})"
+    )
+
+
+def bench_simulated(n_nodes: int) -> None:
+    """Incremental run on a simulated Manhattan world with ground truth."""
+    from graph import PoseGraph, odometry_covariance
+    from graph.simulate import simulate_manhattan
+    from iceg_common.se2 import compose
+
+    sim = simulate_manhattan(n_nodes, seed=0, grid_cells=40)
+    print(
+        f"Simulated Manhattan world: {n_nodes} nodes, {n_nodes - 1} odometry factors, "
+        f"{len(sim.loop_ij)} loop closures"
+    )
+    loops_at: dict[int, list[int]] = {}
+    for idx, k in enumerate(sim.loop_ij[:, 1].tolist()):
+        loops_at.setdefault(k, []).append(idx)
+    graph = PoseGraph()
+    graph.add_node(0, sim.true_poses[0])
+    times: list[float] = []
+    for k in range(1, n_nodes):
+        z = sim.odometry_measured[k - 1]
+        graph.add_node(k, compose(graph.estimate(k - 1), z))
+        graph.add_between(k - 1, k, z, odometry_covariance(z))
+        for idx in loops_at.get(k, []):
+            m = int(sim.loop_ij[idx, 0])
+            graph.add_between(m, k, sim.loop_measured[idx], sim.loop_cov, kind="loop_closure")
+        start = time.perf_counter()
+        graph.update()
+        times.append(time.perf_counter() - start)
+    _summary("iSAM2 update per node", times)
+    extra = _converge(graph)
+    _, inc = graph.estimates()
+    start = time.perf_counter()
+    stats = graph.optimize_batch()
+    batch_s = time.perf_counter() - start
+    _, batch = graph.estimates()
+    print(
+        f"  batch LM from the iSAM2 estimate: {batch_s:.2f} s, {stats.iterations} iterations "
+        f"(after {extra} extra updates)"
+    )
+    err_inc = np.linalg.norm(inc[:, :2] - sim.true_poses[:, :2], axis=1)
+    err_batch = np.linalg.norm(batch[:, :2] - sim.true_poses[:, :2], axis=1)
+    print(
+        f"  mean position error vs truth (anchored at node 0): iSAM2 {err_inc.mean():.4f} m, "
+        f"batch {err_batch.mean():.4f} m; max |iSAM2 - batch| "
+        f"{np.linalg.norm(inc[:, :2] - batch[:, :2], axis=1).max() * 1000:.2f} mm"
+    )
+
+
+def main() -> None:
+    """Parse arguments, run both benchmarks, print the figures."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--nodes", type=int, default=10_000, help="simulated run size")
+    parser.add_argument("--skip-m3500", action="store_true", help="only the simulated run")
+    args = parser.parse_args()
+    m3500 = SHARED / "g2o" / "input_M3500b_g2o.g2o"
+    if args.skip_m3500:
+        pass
+    elif m3500.is_file():
+        bench_m3500(m3500)
+    else:
+        print(f"M3500b skipped: {m3500} is absent")
+    bench_simulated(args.nodes)
+
+
+if __name__ == "__main__":
+    main()
