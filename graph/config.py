@@ -30,30 +30,30 @@ class OdometryNoiseConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     sigma_xy_base_m: float = Field(
-        0.01,
+        default=0.01,
         gt=0.0,
         description="Floor of the translation standard deviation per step (m); keeps the "
         "covariance positive definite at zero motion (Thrun et al. 2005, §5.4, with a floor).",
     )
     sigma_xy_per_distance_m_per_m: float = Field(
-        0.02,
+        default=0.02,
         ge=0.0,
         description="Growth of the translation standard deviation with the distance travelled "
         "(m per m); alpha_3 of the odometry motion model (Thrun et al. 2005, §5.4).",
     )
     sigma_theta_base_deg: float = Field(
-        0.5,
+        default=0.5,
         gt=0.0,
         description="Floor of the heading standard deviation per step (deg).",
     )
     sigma_theta_per_rotation_deg_per_deg: float = Field(
-        0.05,
+        default=0.05,
         ge=0.0,
         description="Growth of the heading standard deviation with the rotation travelled "
         "(deg per deg); alpha_1 of the odometry motion model (Thrun et al. 2005, §5.4).",
     )
     sigma_theta_per_distance_deg_per_m: float = Field(
-        0.5,
+        default=0.5,
         ge=0.0,
         description="Growth of the heading standard deviation with the distance travelled "
         "(deg per m); alpha_2 of the odometry motion model (Thrun et al. 2005, §5.4).",
@@ -83,64 +83,64 @@ class GraphConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     prior_sigma_xy_m: float = Field(
-        1e-3,
+        default=1e-3,
         gt=0.0,
         description="Standard deviation of the prior that anchors the first node (m); it "
         "fixes the gauge freedom of a pose graph.",
     )
     prior_sigma_theta_deg: float = Field(
-        0.01,
+        default=0.01,
         gt=0.0,
         description="Standard deviation of the heading of the first-node prior (deg).",
     )
     relinearize_threshold: float = Field(
-        1e-3,
+        default=1e-3,
         gt=0.0,
         description="iSAM2 relinearizes a node when a component of its accumulated update "
         "exceeds this (m for x, y and rad for theta; Kaess et al. 2012, §5, Alg. 6). gtsam's "
         "default 0.1 leaves the M3500b estimate 7 cm from the batch optimum; 0.01 leaves 2 cm.",
     )
     relinearize_skip: int = Field(
-        1,
+        default=1,
         ge=1,
         description="Check for relinearization every this many update() calls "
         "(Kaess et al. 2012, §5).",
     )
     factorization: Literal["qr", "cholesky"] = Field(
-        "qr",
+        default="qr",
         description="Elimination of iSAM2 and of the batch linear solver. QR survives "
         "ill-conditioned covariances (INTEL has information matrices with condition number "
         "2.4e11, on which gtsam's Cholesky reports an indeterminant system); Cholesky is about "
         "twice as fast.",
     )
     huber_k_sigma: float = Field(
-        1.345,
+        default=1.345,
         gt=0.0,
         description="Default Huber threshold on the whitened residual norm (in standard "
         "deviations): 95 % efficiency on Gaussian noise (Huber 1981; Zhang 1997, 'Parameter "
         "estimation techniques', Table 1).",
     )
     cauchy_k_sigma: float = Field(
-        2.3849,
+        default=2.3849,
         gt=0.0,
         description="Default Cauchy scale on the whitened residual norm (in standard "
         "deviations): 95 % efficiency on Gaussian noise (Zhang 1997, Table 1).",
     )
     batch_relative_error_tol: float = Field(
-        1e-10,
+        default=1e-10,
         gt=0.0,
         description="Levenberg–Marquardt stops when the error decreases by less than this "
         "fraction. Tight on purpose: pose-graph costs are flat along long loops, and gtsam's "
         "default 1e-5 stops centimetres short of the optimum on M3500b.",
     )
     batch_diagonal_damping: bool = Field(
-        True,
+        default=True,
         description="Scale the Levenberg–Marquardt damping by the diagonal of the Hessian "
         "(Marquardt 1963) instead of the identity; needed when covariances span many orders "
         "of magnitude, as on INTEL.",
     )
     odometry: OdometryNoiseConfig = Field(
-        default_factory=OdometryNoiseConfig,
+        default=OdometryNoiseConfig(),  # frozen, so one shared default instance is safe
         description="Odometry noise model used by graph.odometry_covariance.",
     )
 

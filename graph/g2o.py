@@ -24,6 +24,7 @@ import tempfile
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, Protocol
 
 import gtsam
 import numpy as np
@@ -100,9 +101,11 @@ def _information(cov: NDArray[np.float64]) -> NDArray[np.float64]:
     return 0.5 * (info + info.T)
 
 
-def _covariance_of(noise_model: gtsam.noiseModel.Base) -> NDArray[np.float64]:
-    model = noise_model.noise() if isinstance(noise_model, gtsam.noiseModel.Robust) else noise_model
-    cov = np.linalg.inv(np.asarray(model.information(), dtype=np.float64))
+def _covariance_of(noise_model: Any) -> NDArray[np.float64]:  # a gtsam noise model
+    model: Any = noise_model
+    if isinstance(noise_model, gtsam.noiseModel.Robust):
+        model = noise_model.noise()
+    cov = np.linalg.inv(np.array(model.information(), dtype=np.float64))
     return 0.5 * (cov + cov.T)
 
 
@@ -177,7 +180,7 @@ def load_g2o(path: str | os.PathLike[str]) -> G2oGraph:
     measured = np.zeros((n_edge, 3))
     cov = np.zeros((n_edge, 3, 3))
     for m in range(n_edge):
-        factor = factors.at(m)
+        factor: Any = factors.at(m)  # BetweenFactorPose2 (readG2o, is3D=False)
         edge_ij[m] = factor.keys()
         pose = factor.measured()
         measured[m] = (pose.x(), pose.y(), pose.theta())
@@ -234,17 +237,23 @@ def load_g2o(path: str | os.PathLike[str]) -> G2oGraph:
     )
 
 
-@dataclass(frozen=True)
-class _Factor:
-    """What :func:`write_g2o_file` needs of a factor (duck-typed ``FactorRecord``)."""
+class _Factor(Protocol):
+    """What :func:`write_g2o_file` needs of a factor (``graph.FactorRecord`` has it)."""
 
-    kind: str
-    i: int
-    j: int | None
-    measured: NDArray[np.float64]
-    cov: NDArray[np.float64]
-    robust: str | None
-    robust_k: float | None
+    @property
+    def kind(self) -> object: ...
+    @property
+    def i(self) -> int: ...
+    @property
+    def j(self) -> int | None: ...
+    @property
+    def measured(self) -> NDArray[np.float64]: ...
+    @property
+    def cov(self) -> NDArray[np.float64]: ...
+    @property
+    def robust(self) -> str | None: ...
+    @property
+    def robust_k(self) -> float | None: ...
 
 
 def write_g2o_file(

@@ -310,6 +310,13 @@ class PoseGraph:
         except _GTSAM_ERRORS as exc:
             self._mark_broken()
             raise self._wrap(exc, "iSAM2 update") from exc
+        slots = list(result.getNewFactorsIndices())
+        if slots != self._pending_factors:  # FactorRecord.index must be the iSAM2 slot
+            self._mark_broken()
+            raise GraphError(
+                f"iSAM2 update: gtsam put the new factors in slots {slots[:5]}... instead of "
+                f"{self._pending_factors[:5]}...; the graph will be rebuilt at the next update()"
+            )
         stats = UpdateStats(
             new_nodes=len(self._pending_nodes),
             new_factors=len(self._pending_factors),
@@ -673,7 +680,7 @@ class PoseGraph:
 
     def _node_id(self, node_id: object, ctx: str) -> int:
         try:
-            n = operator.index(node_id)  # type: ignore[call-overload]
+            n = operator.index(node_id)  # type: ignore[arg-type]
         except TypeError:
             raise GraphError(f"{ctx}: node id must be an integer, got {node_id!r}") from None
         if n < 0:
