@@ -48,3 +48,99 @@ def grid(ax: Axes, grid: OccupancyGrid, trajectory: ArrayLike | None = None) -> 
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     return artists
+
+
+if TYPE_CHECKING:
+    from frontends.scan import LaserScan
+    from iceg.types import ScanFeatures
+
+
+def scan_features(
+    ax: Axes, scan: LaserScan, features: ScanFeatures, arrow_length_m: float = 0.5
+) -> list[Artist]:
+    """Draw a scan's points, line segments and ICE features in its robot frame (paper Fig. 1-2).
+
+    Points grey; segments as coloured lines; Corners as red squares with arrows along both
+    edges; ends of wall (EOW) as blue circles with an arrow along the wall; Intersections as
+    green crosses joined by dotted lines to the nearer endpoint of each of their segments.
+    The laser origin is a black triangle.
+
+    Args:
+        ax: The axes to draw on; aspect set equal, axes labelled in metres.
+        scan: The scan (its laser offset marks the sensor; its points are drawn if
+            ``features.points_xy`` is empty).
+        features: ``iceg.features.extract(scan)``, robot frame.
+        arrow_length_m: Length of the direction arrows, metres.
+
+    Returns:
+        The artists drawn.
+    """
+    from iceg.types import FeatureKind
+
+    artists: list[Artist] = []
+    pts = features.points_xy if features.points_xy.shape[0] else scan.points_xy()
+    if pts.shape[0]:
+        (p,) = ax.plot(pts[:, 0], pts[:, 1], ".", color="0.55", markersize=2.5, label="points")
+        artists.append(p)
+    off = np.asarray(scan.laser_offset, dtype=np.float64)
+    (o,) = ax.plot([off[0]], [off[1]], "^", color="k", markersize=7, label="laser")
+    artists.append(o)
+    for m, ends in enumerate(features.seg_endpoints):
+        (s,) = ax.plot(ends[:, 0], ends[:, 1], "-", linewidth=2.0, color=f"C{m % 10}")
+        artists.append(s)
+    style = {
+        FeatureKind.CORNER: ("s", "tab:red", "corner"),
+        FeatureKind.EOW: ("o", "tab:blue", "end of wall"),
+        FeatureKind.INTERSECTION: ("x", "tab:green", "intersection"),
+    }
+    for kind, (marker, color, label) in style.items():
+        sel = np.flatnonzero(features.kind == kind)
+        if sel.size == 0:
+            continue
+        xy = features.xy[sel]
+        (mk,) = ax.plot(
+            xy[:, 0],
+            xy[:, 1],
+            marker,
+            color=color,
+            markerfacecolor="none",
+            markersize=9,
+            markeredgewidth=1.8,
+            label=label,
+        )
+        artists.append(mk)
+        d = features.directions[sel].reshape(-1, 2)
+        base = np.repeat(xy, 2, axis=0)
+        ok = np.all(np.isfinite(d), axis=1)
+        if np.any(ok):
+            q = ax.quiver(
+                base[ok, 0],
+                base[ok, 1],
+                d[ok, 0] * arrow_length_m,
+                d[ok, 1] * arrow_length_m,
+                angles="xy",
+                scale_units="xy",
+                scale=1.0,
+                color=color,
+                width=0.004,
+            )
+            artists.append(q)
+        if kind == FeatureKind.INTERSECTION:
+            for k in sel:
+                for m in features.segment_ids[k]:
+                    if m < 0:
+                        continue
+                    ends = features.seg_endpoints[m]
+                    near = ends[np.argmin(np.linalg.norm(ends - features.xy[k], axis=1))]
+                    (ln,) = ax.plot(
+                        [near[0], features.xy[k, 0]],
+                        [near[1], features.xy[k, 1]],
+                        ":",
+                        color=color,
+                        linewidth=1.0,
+                    )
+                    artists.append(ln)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m] (robot frame)")
+    ax.set_ylabel("y [m] (robot frame)")
+    return artists

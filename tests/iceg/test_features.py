@@ -707,3 +707,29 @@ def test_csail_hand_inspected_scans() -> None:
         if not wanted:
             break
     assert not wanted
+
+
+def test_plot_scan_features_draws_the_features() -> None:
+    import matplotlib.pyplot as plt
+
+    from iceg.plot import scan_features
+
+    # The L-corner scene of test_l_corner_noise_free_exact: corner at (4, 3), EOW near (4, -3).
+    laser = LaserModel(range_sigma_m=0.0)
+    world = World("L", np.array([[[4.0, -3.0], [4.0, 3.0]], [[4.0, 3.0], [-1.0, 3.0]]]))
+    scan = _scan(cast_rays(world, np.zeros(3), laser), laser)
+    f = extract(scan)
+    fig, ax = plt.subplots()
+    try:
+        artists = scan_features(ax, scan, f)
+        by_label = {a.get_label(): a for a in artists if hasattr(a, "get_xdata")}
+        corner = by_label["corner"]
+        np.testing.assert_allclose(
+            np.c_[corner.get_xdata(), corner.get_ydata()], [[4.0, 3.0]], atol=1e-6
+        )
+        eow = by_label["end of wall"]
+        assert np.hypot(eow.get_xdata()[0] - 4.0, eow.get_ydata()[0] + 3.0) <= 0.06
+        assert by_label["points"].get_xdata().shape == (f.points_xy.shape[0],)
+        assert ax.get_aspect() == 1.0
+    finally:
+        plt.close(fig)
