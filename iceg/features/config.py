@@ -17,28 +17,28 @@ class FeatureConfig(BaseModel):
 
     # --- step 1: points -------------------------------------------------------------------
     range_max_m: float = Field(
-        20.0,
+        default=20.0,
         gt=0.0,
         description="Usable maximum range (DESIGN step 1; paper §IV: SICK LMS200, 20 m). Beams "
         "at or beyond min(this, scan.range_max_m) are dropped as points and remembered as 'no "
         "return' for the end-of-wall test; it is also ScanFeatures.range_max_m (paper eq. 3).",
     )
     sigma_range_m: float = Field(
-        0.01,
+        default=0.01,
         gt=0.0,
         description="Standard deviation of a beam's range noise: the 3 sigma_r term of the "
         "adaptive breakpoint threshold (Borges & Aldon 2004) and the point variance of the "
         "maximum-likelihood line fit (Pfister et al. 2003).",
     )
     sigma_bearing_deg: float = Field(
-        0.01,
+        default=0.01,
         ge=0.0,
         description="Standard deviation of a beam's bearing: the across-beam part of a point's "
         "covariance in the line fit (Pfister et al. 2003, eq. 4); matters at grazing incidence.",
     )
     # --- step 2: breakpoints --------------------------------------------------------------
     breakpoint_lambda_deg: float = Field(
-        10.0,
+        default=10.0,
         gt=0.0,
         lt=90.0,
         description="Borges & Aldon 2004 lambda: the shallowest angle between a beam and a "
@@ -47,67 +47,70 @@ class FeatureConfig(BaseModel):
     )
     # --- step 3: split-and-merge, line fit ------------------------------------------------
     split_distance_m: float = Field(
-        0.05,
+        default=0.05,
         gt=0.0,
         description="Split-and-merge (paper §III-C1, Nguyen et al. 2005): a cluster is split "
         "at its point farthest from the chord of its end points when that distance exceeds "
         "this.",
     )
     merge_distance_m: float = Field(
-        0.05,
+        default=0.05,
         gt=0.0,
         description="Split-and-merge merge step (Nguyen et al. 2005): two adjacent segments "
         "are merged when every point of their union lies within this of the union's "
         "total-least-squares line.",
     )
     dropout_max_beams: int = Field(
-        1,
+        default=1,
         ge=0,
         description="Adjacent collinear segments separated only by at most this many invalid "
         "beams (single-beam dropouts, common in real SICK data) are merged across the "
         "breakpoint the dropout caused (merge step of Nguyen et al. 2005).",
     )
     min_segment_points: int = Field(
-        5,
+        default=5,
         ge=3,
         description="Minimum number of points of a line segment (Nguyen et al. 2005, P_min); "
         "shorter pieces are dropped.",
     )
     min_segment_length_m: float = Field(
-        0.2,
+        default=0.2,
         ge=0.0,
         description="Minimum length of a line segment between its projected endpoints "
         "(Nguyen et al. 2005, L_min); shorter pieces are dropped.",
     )
     # --- step 4: features ------------------------------------------------------------------
     meeting_angle_min_deg: float = Field(
-        30.0,
+        default=30.0,
         gt=0.0,
         lt=90.0,
         description="Corner and Intersection: the two lines meet at an angle in [this, 180 - "
         "this] degrees (DESIGN step 4: 30°-150°; paper §III-B, Fig. 1-2).",
     )
     corner_gap_m: float = Field(
-        0.3,
+        default=0.3,
         gt=0.0,
         description="Corner (paper §III-B): the facing endpoints of the two segments, and the "
-        "lines' intersection, must all lie within this of each other.",
+        "lines' intersection, must lie within this of each other, plus the along-wall beam "
+        "spacing at each endpoint (r dphi / cos(incidence), incidence capped at "
+        "eow_max_incidence_deg): at grazing incidence the last point before a corner may lie "
+        "a whole beam gap away from it.",
     )
     eow_check_beams: int = Field(
-        2,
+        default=2,
         ge=1,
         description="End of wall (paper §III-B, Fig. 1): this many beams just beyond the "
         "endpoint (in beam order) must all see past the wall's extension; one beam alone may "
         "be a dropout. Fewer beams left before the scan's angular limit: no EOW.",
     )
     eow_range_margin_m: float = Field(
-        0.15,
+        default=0.15,
         gt=0.0,
         description="End of wall: a beam beyond the endpoint sees past the wall when its range "
         "exceeds the range at which it would hit the wall's extension by more than this.",
     )
     eow_max_incidence_deg: float = Field(
-        80.0,
+        default=80.0,
         gt=0.0,
         lt=90.0,
         description="End of wall: when the beams beyond the endpoint would meet the wall's "
@@ -115,19 +118,19 @@ class FeatureConfig(BaseModel):
         "unseen (grazing), so the endpoint is not an EOW.",
     )
     intersection_max_distance_m: float = Field(
-        3.0,
+        default=3.0,
         gt=0.0,
         description="Intersection (paper §III-B, Fig. 1-2; DESIGN step 4): the meeting point of "
         "the two infinite lines must lie within this of both segments.",
     )
     intersection_duplicate_m: float = Field(
-        0.3,
+        default=0.3,
         gt=0.0,
         description="Intersection: a meeting point within this of a Corner, or of a better "
         "determined Intersection, is the same feature and is dropped (DESIGN step 4).",
     )
     intersection_max_std_m: float = Field(
-        0.25,
+        default=0.25,
         gt=0.0,
         description="Intersection: dropped when the square root of the largest eigenvalue of "
         "its position covariance exceeds this (a far meeting of short, nearly parallel "

@@ -119,24 +119,29 @@ def extract(scan: LaserScan, config: FeatureConfig | None = None) -> ScanFeature
     4. Features (paper §III-B, Fig. 1-2):
 
        - Corner: two segments whose facing endpoints and whose lines' intersection lie within
-         ``corner_gap_m`` of each other, the lines meeting at 30°-150°. Position: the lines'
-         intersection, covariance propagated from both line covariances; directions: unit
-         vectors from the corner along each wall; opening angle between them.
-       - End of wall: an endpoint not in a corner beyond which the next
-         ``eow_check_beams`` beams all see past the wall's extension (a return farther than
-         where the beam would meet the extended wall, or no return where the extended wall
-         would have returned well inside the usable range). Not an EOW: an endpoint next to
-         nearer returns (occlusion), at the scan's angular limit, or where the wall's
-         extension would lie beyond the usable range or at grazing incidence (the wall may
-         continue unseen). Position: the wall's end is somewhere between the last hit and
-         where the first beam beyond would have met the wall, so the EOW is the middle of
-         that gap, with variance ``gap²/12`` along the wall plus the line's variance across
-         it. Direction: unit vector from the EOW along its wall.
+         ``corner_gap_m`` (plus the along-wall beam spacing at each endpoint) of each other,
+         the lines meeting at 30°-150°; each endpoint joins at most one corner (greedy by
+         gap). Position: the lines' intersection, covariance propagated from both line
+         covariances through the Jacobian of the intersection; directions: unit vectors from
+         the corner toward each segment's far endpoint; opening angle between them.
+       - End of wall: an endpoint that is neither in a corner nor a junction (another
+         segment starting within ``eow_check_beams + 1`` beams and the corner gap of it)
+         beyond which the next ``eow_check_beams`` beams all see past the wall's extension:
+         a return farther than where the beam would meet the extended wall, or no return
+         where the extended wall would have returned inside the usable range. Not an EOW: an
+         endpoint next to nearer returns (occlusion), at the scan's angular limit, or where
+         the wall's extension would lie beyond the usable range (a max-range gap: the wall
+         may continue unseen) or at grazing incidence. Position: the wall ends between the
+         ray of the endpoint's beam and the ray of the first beam beyond, so the EOW is the
+         middle of their meeting points with the wall's line; covariance: that midpoint's
+         Jacobian applied to the line covariance, plus ``gap² / 12`` along the wall
+         (uniform). Direction: unit vector from the EOW into its wall.
        - Intersection: two segments not forming a corner whose infinite lines meet at
          30°-150° within ``intersection_max_distance_m`` of both segments and inside the
-         usable range; not within ``intersection_duplicate_m`` of a corner or of a better
-         determined intersection. Opening angle between the rays from the point toward the
-         far endpoint of each segment; no direction.
+         usable range, with a position standard deviation at most
+         ``intersection_max_std_m``; not within ``intersection_duplicate_m`` of a corner or
+         of a better determined intersection. Opening angle between the rays from the point
+         toward the far endpoint of each segment; no direction.
 
     Args:
         scan: One laser scan.

@@ -238,7 +238,7 @@ def _nearest(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return d.min(axis=1), d.argmin(axis=1)
 
 
-def _eow_spacing(f: ScanFeatures, k: int, laser: LaserModel) -> float:
+def _eow_spacing(f: ScanFeatures, k: int | np.integer, laser: LaserModel) -> float:
     """Along-wall beam spacing at EOW ``k`` (from its position and its wall's normal)."""
     alpha = f.seg_lines[f.segment_ids[k, 0], 0]
     rel = f.xy[k] - laser.offset()[:2]
@@ -711,6 +711,7 @@ def test_csail_hand_inspected_scans() -> None:
 
 def test_plot_scan_features_draws_the_features() -> None:
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
 
     from iceg.plot import scan_features
 
@@ -722,14 +723,15 @@ def test_plot_scan_features_draws_the_features() -> None:
     fig, ax = plt.subplots()
     try:
         artists = scan_features(ax, scan, f)
-        by_label = {a.get_label(): a for a in artists if hasattr(a, "get_xdata")}
+        by_label = {a.get_label(): a for a in artists if isinstance(a, Line2D)}
         corner = by_label["corner"]
         np.testing.assert_allclose(
-            np.c_[corner.get_xdata(), corner.get_ydata()], [[4.0, 3.0]], atol=1e-6
+            np.c_[corner.get_xdata(), corner.get_ydata()], np.array([[4.0, 3.0]]), atol=1e-6
         )
         eow = by_label["end of wall"]
-        assert np.hypot(eow.get_xdata()[0] - 4.0, eow.get_ydata()[0] + 3.0) <= 0.06
-        assert by_label["points"].get_xdata().shape == (f.points_xy.shape[0],)
+        eow_xy = np.c_[eow.get_xdata(), eow.get_ydata()].astype(float)
+        assert np.linalg.norm(eow_xy[0] - [4.0, -3.0]) <= 0.06
+        assert np.asarray(by_label["points"].get_xdata()).shape == (f.points_xy.shape[0],)
         assert ax.get_aspect() == 1.0
     finally:
         plt.close(fig)
