@@ -45,14 +45,22 @@ def _meet(lines_a: FloatArray, lines_b: FloatArray) -> tuple[FloatArray, FloatAr
     cb, sb = np.cos(lines_b[:, 0]), np.sin(lines_b[:, 0])
     det = ca * sb - sa * cb
     # N^-1 = [[sb, -sa], [-cb, ca]] / det
-    col_a = np.stack([sb, -cb], axis=1) / det[:, None]
-    col_b = np.stack([-sa, ca], axis=1) / det[:, None]
+    q = det.shape[0]
+    inv_det = 1.0 / det
+    col_a = np.empty((q, 2))
+    col_a[:, 0] = sb * inv_det
+    col_a[:, 1] = -cb * inv_det
+    col_b = np.empty((q, 2))
+    col_b[:, 0] = -sa * inv_det
+    col_b[:, 1] = ca * inv_det
     xy = col_a * lines_a[:, 1:2] + col_b * lines_b[:, 1:2]
-    ta_p = -sa * xy[:, 0] + ca * xy[:, 1]
-    tb_p = -sb * xy[:, 0] + cb * xy[:, 1]
-    ga = np.stack([-ta_p, np.ones_like(ta_p)], axis=1)
-    gb = np.stack([-tb_p, np.ones_like(tb_p)], axis=1)
-    return xy, col_a[:, :, None] * ga[:, None, :], col_b[:, :, None] * gb[:, None, :]
+    ja = np.empty((q, 2, 2))
+    ja[:, :, 0] = col_a * (sa * xy[:, 0] - ca * xy[:, 1])[:, None]  # -(t_a·p)
+    ja[:, :, 1] = col_a
+    jb = np.empty((q, 2, 2))
+    jb[:, :, 0] = col_b * (sb * xy[:, 0] - cb * xy[:, 1])[:, None]
+    jb[:, :, 1] = col_b
+    return xy, ja, jb
 
 
 def _sandwich(j: FloatArray, c: FloatArray) -> FloatArray:
@@ -74,15 +82,20 @@ def _line_intersections(
     return xy, _sandwich(ja, cov_a) + _sandwich(jb, cov_b)
 
 
+def _norm(v: FloatArray) -> FloatArray:
+    """Euclidean norm over the last axis of ``(..., 2)`` vectors (cheaper than linalg.norm)."""
+    return np.hypot(v[..., 0], v[..., 1])
+
+
 def _unit(v: FloatArray) -> FloatArray:
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+    return v / _norm(v)[..., None]
 
 
 def _point_segment_distance(p: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
     """Distance of points ``p`` ``(Q, 2)`` to segments ``a``-``b`` ``(Q, 2)`` each, metres."""
     e = b - a
     s = np.clip(np.einsum("qi,qi->q", p - a, e) / np.einsum("qi,qi->q", e, e), 0.0, 1.0)
-    return np.linalg.norm(p - (a + s[:, None] * e), axis=1)
+    return _norm(p - (a + s[:, None] * e))
 
 
 def _empty_features(points_xy: FloatArray, range_max_m: float, stamp_s: float) -> ScanFeatures:
@@ -211,7 +224,7 @@ def extract(scan: LaserScan, config: FeatureConfig | None = None) -> ScanFeature
         cfg.sigma_range_m,
         math.radians(cfg.sigma_bearing_deg),
     )
-    seg_len = np.linalg.norm(endpoints[:, 1] - endpoints[:, 0], axis=1)
+    seg_len = _norm(endpoints[:, 1] - endpoints[:, 0])
     keep = seg_len >= cfg.min_segment_length_m
     seg_range, lines, seg_cov, endpoints = (
         seg_range[keep],
@@ -250,7 +263,7 @@ def extract(scan: LaserScan, config: FeatureConfig | None = None) -> ScanFeature
         # Facing endpoints: the combination (end of i, end of j) with the smallest gap.
         ei = endpoints[ii]  # (Q, 2, 2)
         ej = endpoints[jj]
-        gaps = np.linalg.norm(ei[:, :, None, :] - ej[:, None, :, :], axis=3).reshape(-1, 4)
+        gaps = _norm(ei[:, :, None, :] - ej[:, None, :, :]).reshape(-1, 4)
         best = np.argmin(gaps, axis=1)
         end_i = best // 2
         end_j = best % 2
@@ -258,8 +271,8 @@ def extract(scan: LaserScan, config: FeatureConfig | None = None) -> ScanFeature
         gap = gaps[q, best]
         pi_ = ei[q, end_i]
         pj_ = ej[q, end_j]
-        d_i = np.linalg.norm(pair_xy - pi_, axis=1)
-        d_j = np.linalg.norm(pair_xy - pj_, axis=1)
+        d_i = _norm(pair_xy - pi_)
+        d_j = _norm(pair_xy - pj_)
         sp_i = spacing[ii, end_i]
         sp_j = spacing[jj, end_j]
         ok = (
@@ -325,7 +338,7 @@ def extract(scan: LaserScan, config: FeatureConfig | None = None) -> ScanFeature
     flat_ends = endpoints.reshape(-1, 2)
     flat_sp = spacing.reshape(-1)
     flat_beam = end_beam.reshape(-1)
-    d_ends = np.linalg.norm(flat_ends[:, None, :] - flat_ends[None, :, :], axis=2)
+    d_ends = _norm(flat_ends[:, None, :] - flat_ends[None, :, :])
     touching = d_ends <= cfg.corner_gap_m + flat_sp[:, None] + flat_sp[None, :]
     touching &= np.abs(flat_beam[:, None] - flat_beam[None, :]) <= cfg.eow_check_beams + 1
     seg_of_end = np.repeat(np.arange(m), 2)
@@ -340,15 +353,15 @@ def extract(scan: LaserScan, config: FeatureConfig | None = None) -> ScanFeature
         wall_dir = _unit(other_xy - end_xy)  # from the end into the wall
         # The wall ends between the ray of the endpoint's beam and the ray of the first beam
         # beyond: both meet the wall's line; the EOW is the middle, uniform in between.
-        seg_lines = lines[eow_seg]
-        rays = []
-        for beam in (end_beam[eow_seg, eow_end], nb_c[eow_seg, eow_end, 0]):
-            ray_alpha = beam_angle_robot[beam] + 0.5 * np.pi  # normal of the beam's ray
-            ray_rho = np.cos(ray_alpha) * origin[0] + np.sin(ray_alpha) * origin[1]
-            rays.append(_meet(seg_lines, np.stack([ray_alpha, ray_rho], axis=1))[:2])
-        (hit_end, j_end), (hit_next, j_next) = rays
+        beams = np.concatenate([end_beam[eow_seg, eow_end], nb_c[eow_seg, eow_end, 0]])
+        rays = np.empty((2 * n_e, 2))
+        rays[:, 0] = beam_angle_robot[beams] + 0.5 * np.pi  # normal of the beam's ray
+        rays[:, 1] = np.cos(rays[:, 0]) * origin[0] + np.sin(rays[:, 0]) * origin[1]
+        hits, j_wall, _ = _meet(np.concatenate([lines[eow_seg], lines[eow_seg]]), rays)
+        hit_end, hit_next = hits[:n_e], hits[n_e:]
+        j_end, j_next = j_wall[:n_e], j_wall[n_e:]
         eow_xy = 0.5 * (hit_end + hit_next)
-        gap_len = np.linalg.norm(hit_next - hit_end, axis=1)
+        gap_len = _norm(hit_next - hit_end)
         eow_cov = _sandwich(0.5 * (j_end + j_next), seg_cov[eow_seg]) + (gap_len**2 / 12.0)[
             :, None, None
         ] * np.einsum("ki,kj->kij", wall_dir, wall_dir)
@@ -373,18 +386,18 @@ def extract(scan: LaserScan, config: FeatureConfig | None = None) -> ScanFeature
             ~is_corner_pair[ii, jj]
             & (d_seg_i <= cfg.intersection_max_distance_m)
             & (d_seg_j <= cfg.intersection_max_distance_m)
-            & (np.linalg.norm(pair_xy - origin, axis=1) < range_max)
+            & (_norm(pair_xy - origin) < range_max)
             & (eig_max <= cfg.intersection_max_std_m**2)
         )
         if n_c:
-            d_corner = np.linalg.norm(pair_xy[:, None, :] - corner_xy[None, :, :], axis=2)
+            d_corner = _norm(pair_xy[:, None, :] - corner_xy[None, :, :])
             ok &= d_corner.min(axis=1) > cfg.intersection_duplicate_m
         cand = np.flatnonzero(ok)
         if cand.size:
             # Duplicates (the same wall meeting split into collinear pieces): keep the best
             # determined (smallest covariance trace) of any cluster of nearby meeting points.
             cand = cand[np.argsort(np.trace(pair_cov[cand], axis1=1, axis2=2), kind="stable")]
-            d = np.linalg.norm(pair_xy[cand, None, :] - pair_xy[None, cand, :], axis=2)
+            d = _norm(pair_xy[cand, None, :] - pair_xy[None, cand, :])
             near = d <= cfg.intersection_duplicate_m
             keep_c = np.ones(cand.size, dtype=bool)
             for a in range(cand.size):  # a handful of candidates
@@ -399,7 +412,7 @@ def extract(scan: LaserScan, config: FeatureConfig | None = None) -> ScanFeature
         far = []
         for col in (0, 1):
             e = endpoints[inter_pairs[:, col]]  # (I, 2, 2)
-            dd = np.linalg.norm(e - inter_xy[:, None, :], axis=2)
+            dd = _norm(e - inter_xy[:, None, :])
             far.append(e[np.arange(n_i), np.argmax(dd, axis=1)])
         ra = _unit(far[0] - inter_xy)
         rb = _unit(far[1] - inter_xy)
