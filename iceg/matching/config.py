@@ -210,11 +210,19 @@ class MatchingConfig(BaseModel):
     weight_count: float = Field(0.2, ge=0.0, description="Weight of count in paper eq. 1.")
     weight_acc: float = Field(0.6, ge=0.0, description="Weight of acc in paper eq. 1-2.")
     min_correlation: float = Field(
+        0.25,
+        ge=0.0,
+        le=1.0,
+        description="A bounded match whose correlation (paper eq. 1) is below this fails "
+        "(DESIGN step 10). Real scans of cluttered rooms reach 0.25-0.45 at the true pose "
+        "(many new features lower acc), simulated ones 0.6-1.",
+    )
+    min_correlation_global: float = Field(
         0.45,
         ge=0.0,
         le=1.0,
-        description="A match whose correlation (paper eq. 1) is below this fails (DESIGN step "
-        "10), when the scene has enough features for eq. 1 to mean something.",
+        description="The same for a global match (a far larger hypothesis space needs stronger "
+        "evidence).",
     )
     min_matched_features: int = Field(
         1,
@@ -228,13 +236,6 @@ class MatchingConfig(BaseModel):
         description="Fewest feature pairs a global match needs: over the whole map a single "
         "Corner or EOW has many look-alikes, a configuration of two is distinctive.",
     )
-    min_features_for_correlation: int = Field(
-        3,
-        ge=1,
-        description="With fewer new or visible reference features than this the scene is "
-        "feature-poor: eq. 1 is not used as a gate, and only a bounded match from the "
-        "prediction may succeed (on point-to-line evidence).",
-    )
     occlusion_tolerance_m: float = Field(
         0.25,
         gt=0.0,
@@ -244,13 +245,15 @@ class MatchingConfig(BaseModel):
     )
     # --- step 8: refinement -----------------------------------------------------------------
     max_iterations: int = Field(
-        12, ge=1, description="Gauss-Newton iterations (paper §III-C3: 'an optimization problem')."
+        16, ge=2, description="Gauss-Newton iterations (paper §III-C3: 'an optimization problem')."
     )
     association_gate_m: float = Field(
         0.3,
         gt=0.0,
-        description="Initial point-to-segment association gate of the refinement (DESIGN step "
-        "8); shrinks to association_gate_sigmas times the estimated point noise.",
+        description="Point-to-segment association gate of the refinement's coarse phase "
+        "(DESIGN step 8; Corner/Intersection position pairs also pull then); once the steps "
+        "are small it shrinks to association_gate_sigmas times the estimated point noise and "
+        "only EOW pairs (along their wall) stay, since a Corner's position is its lines'.",
     )
     association_gate_sigmas: float = Field(
         4.0,
@@ -288,13 +291,24 @@ class MatchingConfig(BaseModel):
         description="Floor of the point-to-line noise estimated from the residuals (an honest "
         "point noise for sigma^2 (J^T J)^-1, DESIGN step 9).",
     )
-    feature_iterations: int = Field(
-        4,
-        ge=0,
-        description="Gauss-Newton iterations that also use the Corner/Intersection position "
-        "pairs (they pull a coarse hypothesis in; later their information is already in the "
-        "lines and they are dropped to avoid counting it twice). EOW pairs stay throughout "
-        "(along their wall only).",
+    line_angle_sigma_min_deg: float = Field(
+        0.2,
+        ge=0.0,
+        description="Floor of a reference line's angle standard deviation (about its "
+        "midpoint): real walls are not straight lines, and a fit covariance from the point "
+        "noise alone would let a tiny angle error pull along a corridor (DESIGN step 8-9).",
+    )
+    line_offset_sigma_min_m: float = Field(
+        0.003,
+        ge=0.0,
+        description="Floor of a reference line's offset standard deviation, metres.",
+    )
+    use_off_segment_points: bool = Field(
+        True,
+        description="Also use the scan's points that lie on no segment (clutter, short "
+        "structures such as door frames) with point-to-point residuals against the "
+        "reference's points, when the reference has points (DESIGN step 8 extension: they "
+        "constrain what long parallel walls leave open).",
     )
     max_points: int = Field(
         400,
@@ -354,7 +368,8 @@ class MatchingConfig(BaseModel):
         0.6,
         ge=0.0,
         le=1.0,
-        description="The same for a feature-poor scene matched from the prediction alone.",
+        description="The same for a bounded match from the prediction without any feature pair "
+        "(a corridor, or features too unstable to pair): the points alone must agree.",
     )
     see_through_tolerance_m: float = Field(
         0.3,

@@ -331,3 +331,48 @@ def vote(poses: FloatArray, cell_m: float, cell_rad: float, max_clusters: int) -
     out[:, 1] = (w * poses[None, :, 1]).sum(axis=1) / cnt
     out[:, 2] = wrap_angle(centre_t + (w * dth).sum(axis=1) / cnt)
     return Clusters(out, nsum[peaks].astype(np.int64))
+
+
+def segment_rotation(
+    new_lines: FloatArray,
+    new_lengths: FloatArray,
+    ref_lines: FloatArray,
+    ref_lengths: FloatArray,
+    theta0: float,
+    max_dev_rad: float,
+    kernel_rad: float,
+    min_support_m: float,
+) -> float | None:
+    """Rotation that best aligns the new scan's segment directions with the reference's,
+    near ``theta0`` (a weighted kernel-density peak over all segment pairs; lines are
+    undirected, so differences are taken modulo pi). Used to start the refinement from the
+    prediction with its rotation already right, where features give no hypothesis.
+
+    Args:
+        new_lines, ref_lines: ``(M, 2)`` Hessian lines ``(alpha_rad, rho_m)``.
+        new_lengths, ref_lengths: ``(M,)`` segment lengths, metres (pair weight: the shorter).
+        theta0: Predicted rotation, radians.
+        max_dev_rad: Largest admissible deviation from ``theta0``.
+        kernel_rad: Standard deviation of the Gaussian kernel.
+        min_support_m: Least weight (metres of agreeing segment length) at the peak.
+
+    Returns:
+        The rotation in radians, or ``None`` when no peak has enough support.
+    """
+    if new_lines.shape[0] == 0 or ref_lines.shape[0] == 0:
+        return None
+    d = ref_lines[None, :, 0] - new_lines[:, None, 0] - theta0
+    d = (d + 0.5 * math.pi) % math.pi - 0.5 * math.pi  # modulo pi, in [-pi/2, pi/2)
+    w = np.minimum(new_lengths[:, None], ref_lengths[None, :])
+    keep = np.abs(d) <= max_dev_rad + 2.0 * kernel_rad
+    d, w = d[keep], w[keep]
+    if d.shape[0] == 0:
+        return None
+    dens = (w[None, :] * np.exp(-0.5 * ((d[:, None] - d[None, :]) / kernel_rad) ** 2)).sum(axis=1)
+    dens[np.abs(d) > max_dev_rad] = -np.inf
+    k = int(np.argmax(dens))
+    if not np.isfinite(dens[k]) or dens[k] < min_support_m:
+        return None
+    # Mean of the pairs within one kernel width of the peak.
+    near = np.abs(d - d[k]) <= kernel_rad
+    return float(wrap_angle(theta0 + np.average(d[near], weights=w[near])))

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
 
 from iceg.matching.config import MatchBounds, MatchingConfig
 from iceg.matching.correlation import Correlation, correlate
@@ -20,8 +21,9 @@ from iceg.matching.geometry import (
     rot,
     sample_segments,
 )
-from iceg.matching.hypotheses import generate_hypotheses, pair_codes, vote
+from iceg.matching.hypotheses import generate_hypotheses, pair_codes, segment_rotation, vote
 from iceg.matching.refine import (
+    Cloud,
     Refined,
     RefineSettings,
     bounds_prior_information,
@@ -43,6 +45,7 @@ REASON_FEW_INLIERS = "too few inliers"
 REASON_DEGENERATE = "degenerate"
 REASON_INCONSISTENT = "inconsistent with free space"
 REASON_AMBIGUOUS = "ambiguous"
+REASON_OUT_OF_BOUNDS = "outside the bounds"
 
 
 @dataclass(eq=False)
@@ -61,6 +64,11 @@ class _Candidate:
         """Ranking score: correlation (eq. 1) plus the point overlap of the refinement minus
         twice the fraction of walls that the other scan sees through."""
         return float(self.corr.score[0]) + self.refined.overlap - 2.0 * self.see_through
+
+
+def _lengths(endpoints: FloatArray) -> FloatArray:
+    d = endpoints[:, 1] - endpoints[:, 0]
+    return np.hypot(d[:, 0], d[:, 1])
 
 
 def _same_pose(a: FloatArray, b: FloatArray, dist_m: float, angle_rad: float) -> bool:
@@ -124,7 +132,8 @@ class IceMatcher:
             normal_gate_rad=math.radians(c.normal_gate_deg),
             cauchy_sigmas=c.cauchy_scale_sigmas,
             sigma_min_m=c.point_sigma_min_m,
-            feature_iterations=c.feature_iterations,
+            line_angle_sigma_min_rad=math.radians(c.line_angle_sigma_min_deg),
+            line_offset_sigma_min_m=c.line_offset_sigma_min_m,
             lattice_steps=c.lattice_steps,
             lattice_sigmas=c.lattice_sigmas,
             lattice_kappa=c.lattice_kappa,
@@ -191,7 +200,20 @@ class IceMatcher:
         starts = clusters.poses
         from_prediction = np.zeros(starts.shape[0], dtype=bool)
         if c.use_prediction_hypothesis and not bounds.is_global:
-            starts = np.concatenate([starts, pred[None]], axis=0)
+            start = pred.copy()
+            th = segment_rotation(
+                features.seg_lines,
+                _lengths(features.seg_endpoints),
+                reference.seg_lines,
+                _lengths(reference.seg_endpoints),
+                float(pred[2]),
+                min(bounds.max_rotation_rad, math.pi / 2),
+                math.radians(1.0),
+                1.0,
+            )
+            if th is not None:
+                start[2] = th
+            starts = np.concatenate([starts, start[None]], axis=0)
             from_prediction = np.append(from_prediction, True)
         n_hyp = int(hyps.poses.shape[0])
         if starts.shape[0] == 0:
@@ -247,6 +269,21 @@ class IceMatcher:
         points = features.points_xy[on_seg]
         point_alpha = features.seg_lines[pseg[on_seg], 0] if on_seg.shape[0] else np.zeros(0)
         segs = SegmentSet.from_features(reference)
+        cloud = None
+        off_seg = np.flatnonzero(pseg < 0)
+        if c.use_off_segment_points and off_seg.shape[0] and reference.points_xy.shape[0]:
+            if off_seg.shape[0] > c.max_points // 2:
+                off_seg = off_seg[
+                    np.linspace(0, off_seg.shape[0] - 1, c.max_points // 2).astype(np.int64)
+                ]
+            rp = reference.points_xy
+            cloud = Cloud(
+                features.points_xy[off_seg],
+                cKDTree(rp),
+                rp,
+                np.hypot(rp[:, 0], rp[:, 1]),
+                profile.spacing,
+            )
         prior = bounds_prior_information(bounds.max_translation_m, bounds.max_rotation_rad)
 
         def pairs_at(pose: FloatArray) -> IntArray:
@@ -257,13 +294,25 @@ class IceMatcher:
         cands: list[_Candidate] = []
         for k in chosen:
             ref = refine(
-                starts[k], points, point_alpha, segs, gn, gr, pairs_at, prior, self._settings
+                starts[k],
+                points,
+                point_alpha,
+                segs,
+                gn,
+                gr,
+                pairs_at,
+                prior,
+                self._settings,
+                pred,
+                cloud,
             )
             if any(_same_pose(ref.pose, o.refined.pose, 0.05, math.radians(1.0)) for o in cands):
                 continue
             corr = correlation_at(ref.pose[None])
             cand = _Candidate(bool(from_prediction[k]), ref, corr)
-            cand.failure = self._check(cand, features, reference, gn, bounds, profile, ref_profile)
+            cand.failure = self._check(
+                cand, features, reference, gn, pred, bounds, profile, ref_profile
+            )
             cands.append(cand)
         return self._decide(cands, pred, n_hyp)
 
@@ -285,6 +334,7 @@ class IceMatcher:
         features: ScanFeatures,
         reference: ScanFeatures,
         gn: FeatureGeometry,
+        pred: FloatArray,
         bounds: MatchBounds,
         profile: PolarProfile,
         ref_profile: PolarProfile | None,
@@ -296,18 +346,28 @@ class IceMatcher:
         score = float(cand.corr.score[0])
         n_matched = int(cand.corr.n_matched[0])
         n_visible = int(cand.corr.n_visible[0])
-        few_features = min(gn.n, n_visible) < c.min_features_for_correlation
         if not np.all(np.isfinite(ref.pose)):
             return f"{REASON_DEGENERATE}: refinement diverged"
+        d = ref.pose - pred
+        dist, dth = math.hypot(d[0], d[1]), abs(float(wrap_angle(d[2])))
+        if dist > bounds.max_translation_m + c.feasible_margin_m or dth > (
+            bounds.max_rotation_rad + math.radians(c.direction_tolerance_deg)
+        ):
+            return (
+                f"{REASON_OUT_OF_BOUNDS}: refined pose {dist:.2f} m / {math.degrees(dth):.1f} deg "
+                "from the prediction"
+            )
         min_pairs = c.min_matched_features_global if bounds.is_global else c.min_matched_features
+        min_corr = c.min_correlation_global if bounds.is_global else c.min_correlation
         if n_matched >= min_pairs:
             # Feature-supported: eq. 1 decides (paper §III-C3).
-            if score < c.min_correlation:
-                return f"{REASON_LOW_CORRELATION}: {score:.3f} < {c.min_correlation}"
+            if score < min_corr:
+                return f"{REASON_LOW_CORRELATION}: {score:.3f} < {min_corr}"
             min_overlap = c.min_point_overlap
-        elif not bounds.is_global and cand.from_prediction and few_features:
-            # Feature-poor scene tracked from the prediction: points decide, the covariance
-            # shows what the walls leave unconstrained.
+        elif not bounds.is_global and cand.from_prediction and n_matched == 0:
+            # No feature pairs (a corridor, or features too unstable to pair), tracked from
+            # the prediction: the points decide, and the covariance shows what the walls
+            # leave unconstrained.
             min_overlap = c.min_point_overlap_featureless
         else:
             return (

@@ -47,7 +47,8 @@ class RefineSettings:
     normal_gate_rad: float
     cauchy_sigmas: float
     sigma_min_m: float
-    feature_iterations: int
+    line_angle_sigma_min_rad: float
+    line_offset_sigma_min_m: float
     lattice_steps: int
     lattice_sigmas: float
     lattice_kappa: float
@@ -150,6 +151,68 @@ def _feature_rows(
 
 
 @dataclass(frozen=True, eq=False)
+class Cloud:
+    """New-scan points that lie on no segment (clutter, short structures) and the
+    reference's points, for point-to-point rows.
+
+    Attributes:
+        points: ``(C, 2)`` float64 new points, new frame, metres.
+        tree: ``scipy.spatial.cKDTree`` of ``ref_points``.
+        ref_points: ``(R, 2)`` float64 reference points, reference frame.
+        ref_range: ``(R,)`` float64 distance of each reference point from its sensor
+            (approximated by the reference frame's origin), metres.
+        spacing_rad: Beam spacing, radians (the reference points sample a surface only
+            every ``range * spacing``; half of that is added to the residual's noise).
+    """
+
+    points: FloatArray
+    tree: object
+    ref_points: FloatArray
+    ref_range: FloatArray
+    spacing_rad: float
+
+
+def _cloud_rows(pose: FloatArray, cloud: Cloud | None, gate_m: float, sigma: float) -> _Rows:
+    """Point-to-point rows of the cloud points whose nearest reference point is within
+    the gate; each residual's variance is ``2 sigma^2 + (r spacing / 2)^2`` per axis."""
+    if cloud is None or cloud.points.shape[0] == 0:
+        return _Rows(np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
+    r = rot(pose[2])
+    rp = cloud.points @ r.T
+    q = rp + pose[:2]
+    dist, idx = cloud.tree.query(q, distance_upper_bound=gate_m)  # type: ignore[attr-defined]
+    ok = np.isfinite(dist)
+    if not np.any(ok):
+        return _Rows(np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
+    e = q[ok] - cloud.ref_points[idx[ok]]
+    rps = rp[ok]
+    n = e.shape[0]
+    jac = np.zeros((n, 2, 3))
+    jac[:, 0, 0] = 1.0
+    jac[:, 1, 1] = 1.0
+    jac[:, 0, 2] = -rps[:, 1]
+    jac[:, 1, 2] = rps[:, 0]
+    var = 2.0 * sigma**2 + (0.5 * cloud.ref_range[idx[ok]] * cloud.spacing_rad) ** 2
+    rr = e.reshape(-1)
+    vv = np.repeat(var, 2)
+    w = np.repeat(_cauchy_weight(np.hypot(e[:, 0], e[:, 1]) / np.sqrt(var), 2.5), 2)
+    return _Rows(rr, jac.reshape(-1, 3), w, vv)
+
+
+def _cat_rows(a: _Rows, b: _Rows) -> _Rows:
+    if b.r.shape[0] == 0:
+        return a
+    if a.r.shape[0] == 0:
+        return b
+    return _Rows(
+        np.concatenate([a.r, b.r]),
+        np.concatenate([a.jac, b.jac]),
+        np.concatenate([a.w, b.w]),
+        np.concatenate([a.var, b.var]),
+    )
+
+
+@dataclass(frozen=True, eq=False)
 class _PointRows:
     idx: IntArray  # used point -> segment (-1)
     sel: NDArray[np.bool_]
@@ -179,6 +242,71 @@ def _point_rows(
     return _PointRows(idx, sel, res[sel], jac, q[sel])
 
 
+def effective_line_cov(
+    segs: SegmentSet, angle_sigma_min_rad: float, offset_sigma_min_m: float
+) -> FloatArray:
+    """``(M, 2, 2)`` covariance of each reference line ``(alpha, rho)``: the fit covariance
+    plus a floor for how far real walls are from straight lines (a rotation of
+    ``angle_sigma_min_rad`` about the segment's midpoint and a shift of
+    ``offset_sigma_min_m``)."""
+    mid = segs.a + 0.5 * segs.length[:, None] * segs.u
+    tang = np.stack([-np.sin(segs.alpha), np.cos(segs.alpha)], axis=1)
+    k = np.einsum("ma,ma->m", tang, mid)  # d rho / d alpha about the midpoint
+    jac = np.zeros((segs.n, 2, 2))
+    jac[:, 0, 0] = 1.0
+    jac[:, 1, 1] = 1.0
+    jac[:, 1, 0] = k
+    floor = np.diag([angle_sigma_min_rad**2, offset_sigma_min_m**2])
+    return segs.cov + jac @ floor @ np.swapaxes(jac, 1, 2)
+
+
+def _gls_system(
+    pr: _PointRows, w: FloatArray, sigma: float, segs: SegmentSet, line_cov: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Normal equations ``(H, g)`` of the point-to-line residuals with the reference lines'
+    own uncertainty as a shared error of all points on a line (generalised least squares):
+    per segment, ``C = W^-1 + B S B^T`` with ``B`` the residuals' derivative w.r.t. the line's
+    ``(alpha, rho)`` and ``S`` its covariance; ``C^-1`` by the Woodbury identity, so each
+    segment costs a 2x2 inverse. A small angle error of a long line then no longer
+    masquerades as information along it (a corridor's axis)."""
+    seg = pr.idx[pr.sel]
+    if seg.shape[0] == 0:
+        return np.zeros((3, 3)), np.zeros(3)
+    al = segs.alpha[seg]
+    b = np.column_stack(
+        [-np.sin(al) * pr.q[:, 0] + np.cos(al) * pr.q[:, 1], -np.ones(seg.shape[0])]
+    )
+    jac, r = pr.jac, pr.r
+    wt = (w / sigma**2)[:, None]
+    feats = (
+        np.concatenate(
+            [
+                (jac[:, :, None] * jac[:, None, :]).reshape(-1, 9),
+                (jac[:, :, None] * b[:, None, :]).reshape(-1, 6),
+                (b[:, :, None] * b[:, None, :]).reshape(-1, 4),
+                jac * r[:, None],
+                b * r[:, None],
+            ],
+            axis=1,
+        )
+        * wt
+    )
+    order = np.argsort(seg, kind="stable")
+    ss = seg[order]
+    starts = np.flatnonzero(np.concatenate([[True], ss[1:] != ss[:-1]]))
+    sums = np.add.reduceat(feats[order], starts, axis=0)
+    u = ss[starts]
+    jj = sums[:, :9].reshape(-1, 3, 3)
+    jb = sums[:, 9:15].reshape(-1, 3, 2)
+    bb = sums[:, 15:19].reshape(-1, 2, 2)
+    jr = sums[:, 19:22]
+    br = sums[:, 22:24]
+    k = np.linalg.inv(np.linalg.inv(line_cov[u]) + bb)
+    hess = jj.sum(axis=0) - np.einsum("uab,ubc,udc->ad", jb, k, jb)
+    grad = jr.sum(axis=0) - np.einsum("uab,ubc,uc->a", jb, k, br)
+    return hess, grad
+
+
 def refine(
     pose0: FloatArray,
     points: FloatArray,
@@ -189,6 +317,8 @@ def refine(
     pair_fn,
     prior_info: FloatArray,
     settings: RefineSettings,
+    prior_mean: FloatArray | None = None,
+    cloud: Cloud | None = None,
 ) -> Refined:
     """Gauss-Newton refinement and covariance of one hypothesis (DESIGN steps 8-9).
 
@@ -204,29 +334,44 @@ def refine(
             admissible motion; zeros for a global match). It regularises unobservable
             directions and enters the covariance.
         settings: Refinement settings.
+        prior_mean: ``(3,)`` centre of the prior (the prediction); default ``pose0``.
+        cloud: Off-segment points of the new scan and the reference's points for
+            point-to-point rows (gated like the point-to-line rows); ``None``: none.
 
     Returns:
         A :class:`Refined`.
     """
     s = settings
     pose = np.asarray(pose0, dtype=np.float64).copy()
+    prior_mean = pose.copy() if prior_mean is None else np.asarray(prior_mean, dtype=np.float64)
+    line_cov = effective_line_cov(segs, s.line_angle_sigma_min_rad, s.line_offset_sigma_min_m)
     gate = s.gate_m
     sigma = max(s.sigma_min_m, s.gate_m / 3.0)
     n_pts = points.shape[0]
     it = 0
-    final_gate_reached = False
+    # Two phases: the wide gate until the steps are small (a coarse hypothesis is pulled
+    # in, Corner/Intersection positions help), then a gate of a few estimated sigmas until
+    # convergence (points off the matched segments stop pulling).
+    coarse = True
     for it in range(1, s.max_iterations + 1):
         pr = _point_rows(pose, points, point_alpha, segs, gate, s)
         if pr.r.shape[0] >= 6:
             sigma = max(s.sigma_min_m, 1.4826 * float(np.median(np.abs(pr.r))))
         c = s.cauchy_sigmas * sigma
         w = _cauchy_weight(pr.r, c)
-        hess = (pr.jac.T * (w / sigma**2)) @ pr.jac
-        grad = (pr.jac.T * (w / sigma**2)) @ pr.r
-        fr = _feature_rows(pose, gn, gr, pair_fn(pose), it <= s.feature_iterations)
+        hess, grad = _gls_system(pr, w, sigma, segs, line_cov)
+        fr = _cat_rows(
+            _feature_rows(pose, gn, gr, pair_fn(pose), coarse),
+            _cloud_rows(pose, cloud, gate, sigma),
+        )
         if fr.r.shape[0] > 0:
             hess += (fr.jac.T * (fr.w / fr.var)) @ fr.jac
             grad += (fr.jac.T * (fr.w / fr.var)) @ fr.r
+        # The bounds' prior pulls toward the prediction (MAP): it only matters along
+        # directions the scene leaves unconstrained (a corridor's axis).
+        dp = pose - prior_mean
+        dp[2] = float(wrap_angle(dp[2]))
+        grad += prior_info @ dp
         a = hess + prior_info + 1e-9 * np.eye(3)
         try:
             delta = -np.linalg.solve(a, grad)
@@ -234,49 +379,33 @@ def refine(
             break
         pose[:2] += delta[:2]
         pose[2] = float(wrap_angle(pose[2] + delta[2]))
-        new_gate = min(s.gate_m, max(s.gate_min_m, s.gate_sigmas * sigma))
-        if it >= 2:
-            gate = new_gate
-        small = np.hypot(delta[0], delta[1]) < 1e-5 and abs(delta[2]) < 1e-6
-        if small and final_gate_reached and it > s.feature_iterations:
-            break
-        final_gate_reached = it >= 2 and abs(gate - new_gate) < 1e-9
+        step_xy, step_th = math.hypot(delta[0], delta[1]), abs(delta[2])
+        if coarse:
+            if (step_xy < 2e-3 and step_th < 2e-3) or it >= s.max_iterations // 2:
+                coarse = False
+        else:
+            if step_xy < 1e-5 and step_th < 1e-6:
+                break
+        if not coarse:
+            gate = min(s.gate_m, max(s.gate_min_m, s.gate_sigmas * sigma))
     # Final linearisation at the refined pose.
     pr = _point_rows(pose, points, point_alpha, segs, gate, s)
     if pr.r.shape[0] >= 6:
         sigma = max(s.sigma_min_m, 1.4826 * float(np.median(np.abs(pr.r))))
     c = s.cauchy_sigmas * sigma
     w = _cauchy_weight(pr.r, c)
-    fr = _feature_rows(pose, gn, gr, pair_fn(pose), False)
-    jw = pr.jac.T * (w / sigma**2)
-    hess = jw @ pr.jac
-    meat = (pr.jac.T * (w * w / sigma**2)) @ pr.jac
-    # Reference line noise: residual derivative w.r.t. (alpha_m, rho_m) of its segment.
-    seg = pr.idx[pr.sel]
-    if seg.shape[0] > 0:
-        al = segs.alpha[seg]
-        b = np.column_stack(
-            [-np.sin(al) * pr.q[:, 0] + np.cos(al) * pr.q[:, 1], -np.ones(seg.shape[0])]
-        )
-        contrib = jw.T[:, :, None] * b[:, None, :]  # (N, 3, 2)
-        g = np.zeros((segs.n, 3, 2))
-        np.add.at(g, seg, contrib)
-        used = np.unique(seg)
-        gm = g[used]
-        meat += np.einsum("mab,mbc,mdc->ad", gm, segs.cov[used], gm)
+    fr = _cat_rows(
+        _feature_rows(pose, gn, gr, pair_fn(pose), False), _cloud_rows(pose, cloud, gate, sigma)
+    )
+    hess, _ = _gls_system(pr, w, sigma, segs, line_cov)
     if fr.r.shape[0] > 0:
         hess += (fr.jac.T * (fr.w / fr.var)) @ fr.jac
-        meat += (fr.jac.T * (fr.w**2 / fr.var)) @ fr.jac
     a = hess + prior_info
     try:
         a_inv = np.linalg.inv(a)
     except np.linalg.LinAlgError:
         a_inv = np.full((3, 3), np.inf)
-    if np.all(np.isfinite(a_inv)):
-        cov_ls = a_inv @ (meat + prior_info) @ a_inv
-        cov_ls = 0.5 * (cov_ls + cov_ls.T)
-    else:
-        cov_ls = np.full((3, 3), np.inf)
+    cov_ls = 0.5 * (a_inv + a_inv.T) if np.all(np.isfinite(a_inv)) else np.full((3, 3), np.inf)
     cov = cov_ls
     if np.all(np.isfinite(cov_ls)):
         lat = _lattice_covariance(pose, pr, segs, fr, sigma, c, gate, a_inv, s)
