@@ -284,9 +284,11 @@ class PoseGraph:
     def update(self) -> UpdateStats:
         """One iSAM2 update with the buffered new nodes and factors; the buffer is cleared.
 
-        With an empty buffer this is one more iSAM2 iteration (relinearization of the nodes
-        whose update exceeds ``config.relinearize_threshold``, and a Gauss–Newton step): call it
-        a few times after the last node to converge the newest nodes.
+        With an empty buffer this is one more iSAM2 iteration: a Gauss–Newton step, and every
+        ``config.relinearize_skip``-th call a relinearization of the nodes whose update exceeds
+        ``config.relinearize_threshold``. Nodes added in the last updates have had few steps:
+        to converge them (e.g. at the end of a run), call ``update()`` a few multiples of
+        ``relinearize_skip`` times, or :meth:`optimize_batch`.
 
         Returns:
             Counts of what was done (:class:`UpdateStats`).

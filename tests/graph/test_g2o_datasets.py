@@ -2,9 +2,11 @@
 
 Truth: the batch optimum of the same graph (Levenberg–Marquardt to a relative error change of
 1e-10, started from the incremental estimate). The graph is fed node by node the way a SLAM
-front-end would (graph.replay.replay_node_by_node), with the default GraphConfig; after the
-last node, update() is called until iSAM2 relinearizes nothing (the newest nodes have had only one
-Gauss–Newton step). Per-node agreement must be within 1 cm and 0.1 deg.
+front-end would (graph.replay.replay_node_by_node), with the default GraphConfig
+(relinearize_threshold 1e-3, relinearize_skip 10, QR); after the last node, update() is called
+3 * relinearize_skip more times (three relinearization checks: the newest loop closures have
+not been relinearized yet; without them M3500b ends 9.5 cm off). Per-node agreement must be
+within 1 cm and 0.1 deg.
 
 Why batch starts from the incremental estimate: from the file's odometry-composed initial
 values, Levenberg–Marquardt does not reach the optimum on either graph (INTEL: error 5123 after
@@ -30,18 +32,17 @@ from tests.conftest import shared_file
     "name",
     [
         "input_INTEL_g2o.g2o",
-        pytest.param("input_M3500b_g2o.g2o", marks=pytest.mark.slow),  # about 35 s
+        "input_M3500b_g2o.g2o",  # about 12 s
     ],
 )
 def test_incremental_reaches_the_batch_optimum(name: str) -> None:
     data = load_g2o(shared_file(f"g2o/{name}"))
     start = time.perf_counter()
     graph = replay_node_by_node(data)
-    extra = 0
-    while extra < 10:
-        extra += 1
-        if graph.update().relinearized == 0:
-            break
+    # the newest nodes have had few iterations: three relinearization checks more
+    extra = 3 * graph.config.relinearize_skip
+    for _ in range(extra):
+        graph.update()
     feed_s = time.perf_counter() - start
     assert graph.isam2_factor_count == data.n_edges + 1  # every edge once, plus the prior
     ids, incremental = graph.estimates()

@@ -79,7 +79,7 @@ def test_between_convention_matches_an_independent_least_squares() -> None:
     g.add_node(1, compose(x0, z1))
     g.add_between(0, 1, z1, s1)
     g.add_between(0, 1, z2, s2, kind="scan_match")
-    for _ in range(5):
+    for _ in range(3 * g.config.relinearize_skip):  # three relinearization checks
         g.update()
 
     roots = [np.linalg.cholesky(np.linalg.inv(s)).T for s in (s1, s2)]

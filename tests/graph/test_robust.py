@@ -56,7 +56,7 @@ def _solve(sim: SimulatedPoseGraph, robust: str | None) -> np.ndarray:
                 m, k, sim.loop_measured[idx], sim.loop_cov, kind="loop_closure", robust=robust
             )
         g.update()
-    for _ in range(3):
+    for _ in range(3 * g.config.relinearize_skip):  # converge the newest nodes
         g.update()
     return g.estimates()[1]
 
