@@ -292,16 +292,18 @@ class MatchingConfig(BaseModel):
         "point noise for sigma^2 (J^T J)^-1, DESIGN step 9).",
     )
     line_angle_sigma_min_deg: float = Field(
-        0.2,
+        0.0,
         ge=0.0,
         description="Floor of a reference line's angle standard deviation (about its "
-        "midpoint): real walls are not straight lines, and a fit covariance from the point "
-        "noise alone would let a tiny angle error pull along a corridor (DESIGN step 8-9).",
+        "midpoint), added to the fit covariance: model error of walls that are not straight "
+        "lines. 0 keeps the fit covariance alone, which is calibrated on simulated straight "
+        "walls (DESIGN step 9: mean NEES near 3).",
     )
     line_offset_sigma_min_m: float = Field(
-        0.003,
+        0.0,
         ge=0.0,
-        description="Floor of a reference line's offset standard deviation, metres.",
+        description="Floor of a reference line's offset standard deviation, metres (see "
+        "line_angle_sigma_min_deg).",
     )
     use_off_segment_points: bool = Field(
         True,
@@ -309,6 +311,13 @@ class MatchingConfig(BaseModel):
         "structures such as door frames) with point-to-point residuals against the "
         "reference's points, when the reference has points (DESIGN step 8 extension: they "
         "constrain what long parallel walls leave open).",
+    )
+    local_line_max_gap_m: float = Field(
+        0.5,
+        gt=0.0,
+        description="A reference point's local line (for the off-segment points' "
+        "point-to-line rows, Censi 2008 PL-ICP) runs through its beam neighbours closer than "
+        "this; a point without one gets a point-to-point residual.",
     )
     max_points: int = Field(
         400,

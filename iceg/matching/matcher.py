@@ -269,21 +269,7 @@ class IceMatcher:
         points = features.points_xy[on_seg]
         point_alpha = features.seg_lines[pseg[on_seg], 0] if on_seg.shape[0] else np.zeros(0)
         segs = SegmentSet.from_features(reference)
-        cloud = None
-        off_seg = np.flatnonzero(pseg < 0)
-        if c.use_off_segment_points and off_seg.shape[0] and reference.points_xy.shape[0]:
-            if off_seg.shape[0] > c.max_points // 2:
-                off_seg = off_seg[
-                    np.linspace(0, off_seg.shape[0] - 1, c.max_points // 2).astype(np.int64)
-                ]
-            rp = reference.points_xy
-            cloud = Cloud(
-                features.points_xy[off_seg],
-                cKDTree(rp),
-                rp,
-                np.hypot(rp[:, 0], rp[:, 1]),
-                profile.spacing,
-            )
+        cloud = self._cloud(features, reference, pseg)
         prior = bounds_prior_information(bounds.max_translation_m, bounds.max_rotation_rad)
 
         def pairs_at(pose: FloatArray) -> IntArray:
@@ -315,6 +301,43 @@ class IceMatcher:
             )
             cands.append(cand)
         return self._decide(cands, pred, n_hyp)
+
+    def _cloud(
+        self, features: ScanFeatures, reference: ScanFeatures, pseg: IntArray
+    ) -> Cloud | None:
+        """Off-segment points of the new scan (clutter, short structures) against all the
+        reference's points, point-to-line on the local line through a reference point and
+        its beam neighbours (Censi 2008, PL-ICP), so that points on walls add nothing along
+        the walls; an isolated reference point gives a point-to-point residual whose noise
+        includes half the distance to its nearest neighbour."""
+        c = self.config
+        if not c.use_off_segment_points or reference.points_xy.shape[0] < 3:
+            return None
+        new_off = np.flatnonzero(pseg < 0)
+        if new_off.shape[0] == 0:
+            return None
+        if new_off.shape[0] > c.max_points // 2:
+            pick = np.linspace(0, new_off.shape[0] - 1, c.max_points // 2).astype(np.int64)
+            new_off = new_off[pick]
+        rp = reference.points_xy
+        d = np.diff(rp, axis=0)
+        gaps = np.hypot(d[:, 0], d[:, 1])
+        g_prev = np.insert(gaps, 0, np.inf)
+        g_next = np.append(gaps, np.inf)
+        nn = np.minimum(g_prev, g_next)
+        # Local line: through the previous and next points when both are near, else the
+        # nearer one.
+        prev_pt = np.vstack([rp[:1], rp[:-1]])
+        next_pt = np.vstack([rp[1:], rp[-1:]])
+        lim = c.local_line_max_gap_m
+        a = np.where((g_prev <= lim)[:, None], prev_pt, rp)
+        b = np.where((g_next <= lim)[:, None], next_pt, rp)
+        t = b - a
+        tl = np.hypot(t[:, 0], t[:, 1])
+        has = tl > 1e-6
+        normal = np.full(rp.shape, np.nan)
+        normal[has] = np.stack([-t[has, 1], t[has, 0]], axis=1) / tl[has, None]
+        return Cloud(features.points_xy[new_off], cKDTree(rp), rp, nn, normal)
 
     # ------------------------------------------------------------------------------------
     def _fail(self, pred: FloatArray, reason: str, n_hyp: int) -> MatchResult:

@@ -153,38 +153,43 @@ def _feature_rows(
 @dataclass(frozen=True, eq=False)
 class Cloud:
     """New-scan points that lie on no segment (clutter, short structures) and the
-    reference's points, for point-to-point rows.
+    reference's points, for point-to-line rows on local lines (PL-ICP, Censi 2008) or
+    point-to-point rows where a reference point has no near neighbour.
 
     Attributes:
         points: ``(C, 2)`` float64 new points, new frame, metres.
         tree: ``scipy.spatial.cKDTree`` of ``ref_points``.
         ref_points: ``(R, 2)`` float64 reference points, reference frame.
-        ref_range: ``(R,)`` float64 distance of each reference point from its sensor
-            (approximated by the reference frame's origin), metres.
-        spacing_rad: Beam spacing, radians (the reference points sample a surface only
-            every ``range * spacing``; half of that is added to the residual's noise).
+        ref_spacing: ``(R,)`` float64 distance from each reference point to its nearest
+            neighbour in beam order, metres (noise of a point-to-point residual).
+        ref_normal: ``(R, 2)`` float64 unit normal of the local line through each
+            reference point's beam neighbours (NaN: isolated point).
     """
 
     points: FloatArray
     tree: object
     ref_points: FloatArray
-    ref_range: FloatArray
-    spacing_rad: float
+    ref_spacing: FloatArray
+    ref_normal: FloatArray
 
 
 def _cloud_rows(pose: FloatArray, cloud: Cloud | None, gate_m: float, sigma: float) -> _Rows:
-    """Point-to-point rows of the cloud points whose nearest reference point is within
-    the gate; each residual's variance is ``2 sigma^2 + (r spacing / 2)^2`` per axis."""
+    """Rows of the cloud points whose nearest reference point is within the gate: one
+    point-to-line row (variance ``2 sigma^2``) on the reference point's local line, or two
+    point-to-point rows (variance ``2 sigma^2 + (spacing / 2)^2`` each) for an isolated
+    reference point."""
+    empty = _Rows(np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
     if cloud is None or cloud.points.shape[0] == 0:
-        return _Rows(np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
+        return empty
     r = rot(pose[2])
     rp = cloud.points @ r.T
     q = rp + pose[:2]
     dist, idx = cloud.tree.query(q, distance_upper_bound=gate_m)  # type: ignore[attr-defined]
     ok = np.isfinite(dist)
     if not np.any(ok):
-        return _Rows(np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
-    e = q[ok] - cloud.ref_points[idx[ok]]
+        return empty
+    idx = idx[ok]
+    e = q[ok] - cloud.ref_points[idx]
     rps = rp[ok]
     n = e.shape[0]
     jac = np.zeros((n, 2, 3))
@@ -192,11 +197,22 @@ def _cloud_rows(pose: FloatArray, cloud: Cloud | None, gate_m: float, sigma: flo
     jac[:, 1, 1] = 1.0
     jac[:, 0, 2] = -rps[:, 1]
     jac[:, 1, 2] = rps[:, 0]
-    var = 2.0 * sigma**2 + (0.5 * cloud.ref_range[idx[ok]] * cloud.spacing_rad) ** 2
-    rr = e.reshape(-1)
-    vv = np.repeat(var, 2)
-    w = np.repeat(_cauchy_weight(np.hypot(e[:, 0], e[:, 1]) / np.sqrt(var), 2.5), 2)
-    return _Rows(rr, jac.reshape(-1, 3), w, vv)
+    nrm = cloud.ref_normal[idx]
+    line = np.isfinite(nrm[:, 0])
+    rows = empty
+    if np.any(line):
+        nl = nrm[line]
+        rr = np.einsum("na,na->n", nl, e[line])
+        jj = np.einsum("na,nak->nk", nl, jac[line])
+        vv = np.full(rr.shape[0], 2.0 * sigma**2)
+        rows = _Rows(rr, jj, _cauchy_weight(rr / np.sqrt(vv), 2.5), vv)
+    pt = ~line
+    if np.any(pt):
+        var = 2.0 * sigma**2 + (0.5 * np.minimum(cloud.ref_spacing[idx[pt]], 1e3)) ** 2
+        ep = e[pt]
+        w = np.repeat(_cauchy_weight(np.hypot(ep[:, 0], ep[:, 1]) / np.sqrt(var), 2.5), 2)
+        rows = _cat_rows(rows, _Rows(ep.reshape(-1), jac[pt].reshape(-1, 3), w, np.repeat(var, 2)))
+    return rows
 
 
 def _cat_rows(a: _Rows, b: _Rows) -> _Rows:
