@@ -144,3 +144,62 @@ def scan_features(
     ax.set_xlabel("x [m] (robot frame)")
     ax.set_ylabel("y [m] (robot frame)")
     return artists
+
+
+def covariance_ellipses(
+    ax: Axes,
+    poses: ArrayLike,
+    covariances: ArrayLike,
+    n_sigma: float = 3.0,
+    color: str = "tab:blue",
+) -> list[Artist]:
+    """Draw the ``n_sigma`` position ellipse of each pose's covariance.
+
+    Args:
+        ax: Matplotlib axes (map frame, metres).
+        poses: ``(K, 3)`` poses ``[x_m, y_m, theta_rad]``, map frame.
+        covariances: ``(K, 3, 3)`` pose covariances in the tangent space of each pose (body
+            frame, gtsam convention, e.g. ``PoseGraph.marginal_covariance``); the position
+            block is rotated into the map frame by the pose's heading.
+        n_sigma: ellipse scale in standard deviations.
+        color: edge colour.
+
+    Returns:
+        The ellipse patches.
+    """
+    from matplotlib.patches import Ellipse
+
+    p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    c = np.asarray(covariances, dtype=np.float64).reshape(-1, 3, 3)
+    artists: list[Artist] = []
+    for (x, y, th), cov in zip(p, c, strict=True):
+        rot = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+        cov_xy = rot @ cov[:2, :2] @ rot.T
+        vals, vecs = np.linalg.eigh(cov_xy)
+        width, height = 2.0 * n_sigma * np.sqrt(np.clip(vals[::-1], 0.0, None))
+        angle = np.degrees(np.arctan2(vecs[1, 1], vecs[0, 1]))
+        patch = Ellipse((x, y), width, height, angle=angle, fill=False, color=color, lw=1.2)
+        ax.add_patch(patch)
+        artists.append(patch)
+    ax.set_aspect("equal")
+    return artists
+
+
+def relation_errors(ax: Axes, per_relation: ArrayLike, bins: int = 40) -> list[Artist]:
+    """Histogram of the translational relation errors (Kümmerle et al. 2009).
+
+    Args:
+        ax: Matplotlib axes.
+        per_relation: ``(M, 2)`` ``[trans_err_m, rot_err_deg]`` as returned by
+            :func:`iceg.evaluation.relation_errors` (NaN rows are skipped).
+        bins: histogram bins.
+
+    Returns:
+        The bar patches.
+    """
+    e = np.asarray(per_relation, dtype=np.float64).reshape(-1, 2)
+    e = e[np.all(np.isfinite(e), axis=1)]
+    _, _, patches = ax.hist(e[:, 0], bins=bins, color="tab:blue")
+    ax.set_xlabel("translational relation error [m]")
+    ax.set_ylabel("relations")
+    return list(patches)

@@ -168,7 +168,8 @@ class Slam:
         result = self.matcher.match(feats, reference, delta, bounds)
         t0 = self.timer.add("matching", t0)
         if not result.success:
-            s.match_failures[result.reason or "unknown"] += 1
+            # Count by the reason's category (the text before the first colon).
+            s.match_failures[(result.reason or "unknown").split(":")[0]] += 1
         new_id = self._add_node(
             scan, odom, initial=se2.compose(poses[last], result.pose if result.success else delta)
         )
@@ -261,13 +262,27 @@ class Slam:
         result = self.matcher.match(feats, reference, prediction, bounds)
         if not result.success or result.correlation < lc.min_correlation:
             self.loop_stats.rejected_match += 1
+            logger.debug(
+                "loop closure %d->%d (radius %.2f m) not matched: %s (correlation %.2f)",
+                candidate,
+                node_id,
+                radius,
+                result.reason,
+                result.correlation,
+            )
             return
         innovation = se2.between(prediction, result.pose)
         innovation_cov = marginal + result.cov
         d2 = float(innovation @ np.linalg.solve(innovation_cov, innovation))
         if d2 > lc.consistency_chi2:
             self.loop_stats.rejected_consistency += 1
-            logger.debug("loop closure %d->%d rejected: chi2 %.1f", candidate, node_id, d2)
+            logger.debug(
+                "loop closure %d->%d rejected: innovation %s, chi2 %.1f",
+                candidate,
+                node_id,
+                np.round(innovation, 3),
+                d2,
+            )
             return
         self._add_factor(
             "loop_closure",
@@ -280,6 +295,14 @@ class Slam:
         )
         self.graph.update()
         self.loop_stats.accepted += 1
+        logger.debug(
+            "loop closure %d->%d accepted: innovation %s, chi2 %.1f, correlation %.2f",
+            candidate,
+            node_id,
+            np.round(innovation, 3),
+            d2,
+            result.correlation,
+        )
 
     # ------------------------------------------------------------------ results
 
