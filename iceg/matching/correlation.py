@@ -12,11 +12,9 @@ from iceg.matching.geometry import FeatureGeometry, PolarProfile, rot
 from iceg.matching.hypotheses import (
     CORNER_TO_EOW,
     EOW_TO_CORNER,
-    INCOMPATIBLE,
     INTERSECTIONS,
     SAME_DIRECTED,
 )
-from iceg_common.se2 import wrap_angle
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -52,38 +50,48 @@ class Correlation:
     n_visible: IntArray
 
 
+def _absw(x: FloatArray) -> FloatArray:
+    """``|wrap(x)|`` in ``[0, pi]``."""
+    return np.abs(np.remainder(x + np.pi, 2.0 * np.pi) - np.pi)
+
+
 def pair_angle_error(
-    gn: FeatureGeometry, gr: FeatureGeometry, codes: IntArray, theta: FloatArray
+    gn: FeatureGeometry,
+    gr: FeatureGeometry,
+    pi: IntArray,
+    pj: IntArray,
+    pcode: IntArray,
+    theta: FloatArray,
 ) -> FloatArray:
-    """Angle term of every (hypothesis, new, reference) pair: heading difference after the
-    hypothesis' rotation (Corner bisectors, EOW walls; Corner<->EOW: the closer Corner edge),
-    opening-angle difference for Intersections; ``inf`` for incompatible pairs.
+    """Angle term of compatible pairs under each hypothesis: heading difference after the
+    hypothesis' rotation (Corner bisectors, EOW walls; Corner<->EOW: the closer Corner
+    edge), opening-angle difference for Intersections.
 
     Args:
+        pi, pj, pcode: ``(Q,)`` new index, reference index and pair code of the compatible
+            pairs.
         theta: ``(H,)`` float64 hypothesis rotations, radians.
 
     Returns:
-        ``(H, K_new, K_ref)`` float64 absolute angle errors, radians.
+        ``(H, Q)`` float64 absolute angle errors, radians (``inf`` where undefined).
     """
-    th = theta[:, None, None]
-    err = np.full((theta.shape[0], gn.n, gr.n), np.inf)
+    th = theta[:, None]
+    err = np.full((theta.shape[0], pi.shape[0]), np.inf)
     with np.errstate(invalid="ignore"):
-        same = np.abs(wrap_angle(gn.heading[None, :, None] + th - gr.heading[None, None, :]))
-        ce = np.fmin(
-            np.abs(wrap_angle(gn.edge[None, :, None, 0] + th - gr.edge[None, None, :, 0])),
-            np.abs(wrap_angle(gn.edge[None, :, None, 1] + th - gr.edge[None, None, :, 0])),
-        )
-        ec = np.fmin(
-            np.abs(wrap_angle(gn.edge[None, :, None, 0] + th - gr.edge[None, None, :, 0])),
-            np.abs(wrap_angle(gn.edge[None, :, None, 0] + th - gr.edge[None, None, :, 1])),
-        )
-        ii = np.abs(gn.opening[:, None] - gr.opening[None, :])[None]
-    c = codes[None]
-    err = np.where(c == SAME_DIRECTED, same, err)
-    err = np.where(c == CORNER_TO_EOW, ce, err)
-    err = np.where(c == EOW_TO_CORNER, ec, err)
-    err = np.where(c == INTERSECTIONS, np.broadcast_to(ii, err.shape), err)
-    err = np.where(c == INCOMPATIBLE, np.inf, err)
+        m = pcode == SAME_DIRECTED
+        if np.any(m):
+            err[:, m] = _absw(gn.heading[pi[m]] + th - gr.heading[pj[m]])
+        m = pcode == CORNER_TO_EOW
+        if np.any(m):
+            base = th - gr.edge[pj[m], 0]
+            err[:, m] = np.fmin(_absw(gn.edge[pi[m], 0] + base), _absw(gn.edge[pi[m], 1] + base))
+        m = pcode == EOW_TO_CORNER
+        if np.any(m):
+            base = gn.edge[pi[m], 0] + th
+            err[:, m] = np.fmin(_absw(base - gr.edge[pj[m], 0]), _absw(base - gr.edge[pj[m], 1]))
+        m = pcode == INTERSECTIONS
+        if np.any(m):
+            err[:, m] = np.abs(gn.opening[pi[m]] - gr.opening[pj[m]])[None, :]
     return np.where(np.isfinite(err), err, np.inf)
 
 
@@ -132,6 +140,7 @@ def correlate(
     range_max_m: float,
     occlusion_tolerance_m: float,
     weights: tuple[float, float, float, float],
+    pairing_only: bool = False,
 ) -> Correlation:
     """Correlation of paper eq. 1-3 (DESIGN step 7) for ``H`` hypotheses at once.
 
@@ -152,14 +161,19 @@ def correlate(
         codes: ``(K_new, K_ref)`` pair codes from :func:`~iceg.matching.hypotheses.pair_codes`.
         profile: Polar profile of the new scan (visibility for ``count``).
         weights: ``(w_dis, w_ang, w_count, w_acc)`` of eq. 1.
+        pairing_only: Only pair the features (``match``, ``n_matched``); the scores and
+            ``n_visible`` are left at zero.
 
     Returns:
         A :class:`Correlation`.
     """
     h = poses.shape[0]
     kn, kr = gn.n, gr.n
-    visible = visible_reference(poses, gr, profile, range_max_m, occlusion_tolerance_m)
-    n_visible = visible.sum(axis=1).astype(np.int64)
+    if pairing_only:
+        n_visible = np.zeros(h, dtype=np.int64)
+    else:
+        visible = visible_reference(poses, gr, profile, range_max_m, occlusion_tolerance_m)
+        n_visible = visible.sum(axis=1).astype(np.int64)
     zeros = np.zeros(h)
     if kn == 0 or kr == 0:
         return Correlation(
@@ -172,13 +186,19 @@ def correlate(
             np.zeros(h, dtype=np.int64),
             n_visible,
         )
-    r = rot(poses[:, 2])
-    xy_t = np.einsum("hab,kb->hka", r, gn.xy) + poses[:, None, :2]  # (H, Kn, 2)
-    diff = xy_t[:, :, None, :] - gr.xy[None, None, :, :]
-    dist = np.hypot(diff[..., 0], diff[..., 1])  # (H, Kn, Kr)
-    aerr = pair_angle_error(gn, gr, codes, poses[:, 2])
-    ok = (dist < gate_distance_m) & (aerr < gate_angle_rad)
-    dmask = np.where(ok, dist, np.inf)
+    pi, pj = np.nonzero(codes)
+    pcode = codes[pi, pj]
+    c, sn = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
+    nx, ny = gn.xy[pi, 0][None], gn.xy[pi, 1][None]
+    dx = c * nx - sn * ny + poses[:, 0:1] - gr.xy[pj, 0][None]
+    dy = sn * nx + c * ny + poses[:, 1:2] - gr.xy[pj, 1][None]
+    dist_q = np.hypot(dx, dy)  # (H, Q)
+    aerr_q = pair_angle_error(gn, gr, pi, pj, pcode, poses[:, 2])
+    ok = (dist_q < gate_distance_m) & (aerr_q < gate_angle_rad)
+    dmask = np.full((h, kn, kr), np.inf)
+    dmask[:, pi, pj] = np.where(ok, dist_q, np.inf)
+    aerr = np.full((h, kn, kr), np.inf)
+    aerr[:, pi, pj] = aerr_q
     j = np.argmin(dmask, axis=2)  # (H, Kn)
     hh, ii = np.meshgrid(np.arange(h), np.arange(kn), indexing="ij")
     dbest = dmask[hh, ii, j]
@@ -195,6 +215,18 @@ def correlate(
         drop = order[~first]
         matched[hm[drop], im[drop]] = False
     match = np.where(matched, j, -1).astype(np.int64)
+    if pairing_only:
+        zeros = np.zeros(h)
+        return Correlation(
+            zeros,
+            zeros,
+            zeros,
+            zeros,
+            zeros,
+            match,
+            matched.sum(axis=1).astype(np.int64),
+            n_visible,
+        )
     fn = fimp(gn.dist, fimp_near, fimp_far, fimp_range_m)  # (Kn,)
     fr = fimp(gr.dist, fimp_near, fimp_far, fimp_range_m)  # (Kr,)
     w = np.where(matched, fn[None, :] * fr[j], 0.0)

@@ -273,12 +273,18 @@ class IceMatcher:
         prior = bounds_prior_information(bounds.max_translation_m, bounds.max_rotation_rad)
 
         def pairs_at(pose: FloatArray) -> IntArray:
-            m = correlation_at(pose[None]).match[0]
+            m = correlate(pose[None], gn, gr, codes, profile, pairing_only=True, **corr_kw).match[0]
             i = np.flatnonzero(m >= 0)
             return np.column_stack([i, m[i]]).astype(np.int64)
 
         cands: list[_Candidate] = []
+        near_d, near_a = c.ambiguity_distance_m, math.radians(c.ambiguity_angle_deg)
         for k in chosen:
+            # A start next to an already refined pose would converge to it again.
+            if any(_same_pose(starts[k], o.refined.pose, near_d, near_a) for o in cands):
+                continue
+            m0 = corr0.match[k]
+            i0 = np.flatnonzero(m0 >= 0)
             ref = refine(
                 starts[k],
                 points,
@@ -291,6 +297,7 @@ class IceMatcher:
                 self._settings,
                 pred,
                 cloud,
+                np.column_stack([i0, m0[i0]]).astype(np.int64),
             )
             if any(_same_pose(ref.pose, o.refined.pose, 0.05, math.radians(1.0)) for o in cands):
                 continue
@@ -300,6 +307,10 @@ class IceMatcher:
                 cand, features, reference, gn, pred, bounds, profile, ref_profile
             )
             cands.append(cand)
+            if not bounds.is_global and not cand.failure:
+                # Bounded match: the best-correlated hypothesis that passes is the answer
+                # (rivals come from the bounds' small neighbourhood only).
+                break
         return self._decide(cands, pred, n_hyp)
 
     def _cloud(

@@ -21,14 +21,15 @@ the robust log-likelihood evaluated on a small lattice of perturbations, weights
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
+from iceg.matching._kernels import feature_system, point_line_system
 from iceg.matching.geometry import EOW, FeatureGeometry, SegmentSet, associate_points, rot
-from iceg_common.se2 import wrap_angle
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -102,6 +103,9 @@ class _Rows:
     var: FloatArray
 
 
+_EMPTY_ROWS = _Rows(np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
+
+
 def _feature_rows(
     pose: FloatArray,
     gn: FeatureGeometry,
@@ -110,44 +114,55 @@ def _feature_rows(
     use_positions: bool,
 ) -> _Rows:
     """Rows of the feature pairs ``(P, 2)`` ``[new, ref]``: a scalar along-wall row for each
-    pair that involves an EOW, two position rows for the others when ``use_positions``."""
+    pair that involves an EOW, two whitened position rows for the others when
+    ``use_positions`` (plain arithmetic on the 2x2 blocks: this runs every iteration)."""
     if pairs.shape[0] == 0:
-        return _Rows(np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
-    r = rot(pose[2])
+        return _EMPTY_ROWS
+    c, s = math.cos(pose[2]), math.sin(pose[2])
     i, j = pairs[:, 0], pairs[:, 1]
-    rn = gn.xy[i] @ r.T
-    e = rn + pose[:2] - gr.xy[j]  # (P, 2)
-    jac = np.zeros((i.shape[0], 2, 3))
-    jac[:, 0, 0] = 1.0
-    jac[:, 1, 1] = 1.0
-    jac[:, 0, 2] = -rn[:, 1]
-    jac[:, 1, 2] = rn[:, 0]
-    cov = r @ gn.cov[i] @ r.T + gr.cov[j]
+    nx, ny = gn.xy[i, 0], gn.xy[i, 1]
+    rnx = c * nx - s * ny
+    rny = s * nx + c * ny
+    ex = rnx + pose[0] - gr.xy[j, 0]
+    ey = rny + pose[1] - gr.xy[j, 1]
+    cn = gn.cov[i]
+    a, b, d = cn[:, 0, 0], cn[:, 0, 1], cn[:, 1, 1]
+    cr = gr.cov[j]
+    ca = c * c * a - 2 * c * s * b + s * s * d + cr[:, 0, 0]
+    cb = c * s * (a - d) + (c * c - s * s) * b + cr[:, 0, 1]
+    cd = s * s * a + 2 * c * s * b + c * c * d + cr[:, 1, 1]
     is_eow_r = gr.kind[j] == EOW
-    is_eow_n = gn.kind[i] == EOW
-    along = is_eow_r | is_eow_n
-    ang = np.where(is_eow_r, gr.edge[j, 0], gn.edge[i, 0] + pose[2])
-    d = np.stack([np.cos(ang), np.sin(ang)], axis=1)
-    rows_r, rows_j, rows_v = [], [], []
+    along = is_eow_r | (gn.kind[i] == EOW)
+    rr_l, jj_l, vv_l = [], [], []
     if np.any(along):
-        da = d[along]
-        rows_r.append(np.einsum("pa,pa->p", da, e[along]))
-        rows_j.append(np.einsum("pa,pak->pk", da, jac[along]))
-        rows_v.append(np.einsum("pa,pab,pb->p", da, cov[along], da))
-    if use_positions and np.any(~along):
-        pos = ~along
-        # Whiten the 2D residual with the Cholesky factor of its covariance.
-        lchol = np.linalg.cholesky(cov[pos])
-        linv = np.linalg.inv(lchol)
-        rows_r.append(np.einsum("pab,pb->pa", linv, e[pos]).reshape(-1))
-        rows_j.append(np.einsum("pab,pbk->pak", linv, jac[pos]).reshape(-1, 3))
-        rows_v.append(np.ones(2 * int(pos.sum())))
-    if not rows_r:
-        return _Rows(np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
-    rr = np.concatenate(rows_r)
-    vv = np.concatenate(rows_v)
-    w = _cauchy_weight(rr / np.sqrt(vv), 2.5)
-    return _Rows(rr, np.concatenate(rows_j), w, vv)
+        ang = np.where(is_eow_r, gr.edge[j, 0], gn.edge[i, 0] + pose[2])[along]
+        dx, dy = np.cos(ang), np.sin(ang)
+        rr_l.append(dx * ex[along] + dy * ey[along])
+        jj_l.append(np.column_stack([dx, dy, dy * rnx[along] - dx * rny[along]]))
+        vv_l.append(dx * dx * ca[along] + 2 * dx * dy * cb[along] + dy * dy * cd[along])
+    if use_positions and not np.all(along):
+        p = ~along
+        l11 = np.sqrt(ca[p])
+        l21 = cb[p] / l11
+        l22 = np.sqrt(np.maximum(cd[p] - l21 * l21, 1e-18))
+        u1 = ex[p] / l11
+        u2 = (ey[p] - l21 * u1) / l22
+        n = u1.shape[0]
+        j1 = np.zeros((n, 3))
+        j1[:, 0] = 1.0 / l11
+        j1[:, 2] = -rny[p] / l11
+        j2 = np.zeros((n, 3))
+        j2[:, 0] = -l21 / l11 / l22
+        j2[:, 1] = 1.0 / l22
+        j2[:, 2] = (rnx[p] - l21 * (-rny[p]) / l11) / l22
+        rr_l.append(np.concatenate([u1, u2]))
+        jj_l.append(np.concatenate([j1, j2]))
+        vv_l.append(np.ones(2 * n))
+    if not rr_l:
+        return _EMPTY_ROWS
+    rr = np.concatenate(rr_l)
+    vv = np.concatenate(vv_l)
+    return _Rows(rr, np.concatenate(jj_l), _cauchy_weight(rr / np.sqrt(vv), 2.5), vv)
 
 
 @dataclass(frozen=True, eq=False)
@@ -335,6 +350,7 @@ def refine(
     settings: RefineSettings,
     prior_mean: FloatArray | None = None,
     cloud: Cloud | None = None,
+    initial_pairs: IntArray | None = None,
 ) -> Refined:
     """Gauss-Newton refinement and covariance of one hypothesis (DESIGN steps 8-9).
 
@@ -353,6 +369,7 @@ def refine(
         prior_mean: ``(3,)`` centre of the prior (the prediction); default ``pose0``.
         cloud: Off-segment points of the new scan and the reference's points for
             point-to-point rows (gated like the point-to-line rows); ``None``: none.
+        initial_pairs: Feature pairs at ``pose0`` if already known (else ``pair_fn``).
 
     Returns:
         A :class:`Refined`.
@@ -369,24 +386,66 @@ def refine(
     # in, Corner/Intersection positions help), then a gate of a few estimated sigmas until
     # convergence (points off the matched segments stop pulling).
     coarse = True
+    coarse_pairs: IntArray | None = initial_pairs
+    fine_pairs: IntArray | None = None
+    line_info = np.linalg.inv(line_cov + 1e-12 * np.eye(2))
+    new_edge0 = np.ascontiguousarray(gn.edge[:, 0])
+    ref_edge0 = np.ascontiguousarray(gr.edge[:, 0])
+    sin_gate = math.sin(s.normal_gate_rad)
     for it in range(1, s.max_iterations + 1):
-        pr = _point_rows(pose, points, point_alpha, segs, gate, s)
-        if pr.r.shape[0] >= 6:
-            sigma = max(s.sigma_min_m, 1.4826 * float(np.median(np.abs(pr.r))))
-        c = s.cauchy_sigmas * sigma
-        w = _cauchy_weight(pr.r, c)
-        hess, grad = _gls_system(pr, w, sigma, segs, line_cov)
-        fr = _cat_rows(
-            _feature_rows(pose, gn, gr, pair_fn(pose), coarse),
-            _cloud_rows(pose, cloud, gate, sigma),
+        hess, grad, sigma, _, _ = point_line_system(
+            pose,
+            points,
+            point_alpha,
+            segs.a,
+            segs.u,
+            segs.length,
+            segs.normal,
+            segs.rho,
+            line_info,
+            gate,
+            s.end_tol_m,
+            sin_gate,
+            sigma,
+            s.sigma_min_m,
+            s.cauchy_sigmas,
         )
+        if coarse:
+            if coarse_pairs is None:
+                coarse_pairs = pair_fn(pose)
+            pairs = coarse_pairs
+        else:
+            # The pairing is fixed once the coarse phase has converged.
+            if fine_pairs is None:
+                fine_pairs = pair_fn(pose)
+            pairs = fine_pairs
+        if pairs.shape[0]:
+            fh, fg = feature_system(
+                pose,
+                pairs[:, 0],
+                pairs[:, 1],
+                gn.xy,
+                gn.cov,
+                gn.kind,
+                new_edge0,
+                gr.xy,
+                gr.cov,
+                gr.kind,
+                ref_edge0,
+                EOW,
+                coarse,
+                2.5,
+            )
+            hess += fh
+            grad += fg
+        fr = _cloud_rows(pose, cloud, gate, sigma)
         if fr.r.shape[0] > 0:
             hess += (fr.jac.T * (fr.w / fr.var)) @ fr.jac
             grad += (fr.jac.T * (fr.w / fr.var)) @ fr.r
         # The bounds' prior pulls toward the prediction (MAP): it only matters along
         # directions the scene leaves unconstrained (a corridor's axis).
         dp = pose - prior_mean
-        dp[2] = float(wrap_angle(dp[2]))
+        dp[2] = (dp[2] + math.pi) % (2.0 * math.pi) - math.pi
         grad += prior_info @ dp
         a = hess + prior_info + 1e-9 * np.eye(3)
         try:
@@ -394,26 +453,46 @@ def refine(
         except np.linalg.LinAlgError:
             break
         pose[:2] += delta[:2]
-        pose[2] = float(wrap_angle(pose[2] + delta[2]))
+        pose[2] = (pose[2] + delta[2] + math.pi) % (2.0 * math.pi) - math.pi
         step_xy, step_th = math.hypot(delta[0], delta[1]), abs(delta[2])
         if coarse:
-            if (step_xy < 2e-3 and step_th < 2e-3) or it >= s.max_iterations // 2:
+            if (step_xy < 5e-3 and step_th < 3e-3) or it >= s.max_iterations // 2:
                 coarse = False
-        else:
-            if step_xy < 1e-5 and step_th < 1e-6:
-                break
+        elif step_xy < 3e-4 and step_th < 5e-5:
+            break
         if not coarse:
             gate = min(s.gate_m, max(s.gate_min_m, s.gate_sigmas * sigma))
     # Final linearisation at the refined pose.
-    pr = _point_rows(pose, points, point_alpha, segs, gate, s)
-    if pr.r.shape[0] >= 6:
-        sigma = max(s.sigma_min_m, 1.4826 * float(np.median(np.abs(pr.r))))
-    c = s.cauchy_sigmas * sigma
-    w = _cauchy_weight(pr.r, c)
-    fr = _cat_rows(
-        _feature_rows(pose, gn, gr, pair_fn(pose), False), _cloud_rows(pose, cloud, gate, sigma)
+    hess, _, sigma, idx, res = point_line_system(
+        pose,
+        points,
+        point_alpha,
+        segs.a,
+        segs.u,
+        segs.length,
+        segs.normal,
+        segs.rho,
+        line_info,
+        gate,
+        s.end_tol_m,
+        sin_gate,
+        sigma,
+        s.sigma_min_m,
+        s.cauchy_sigmas,
     )
-    hess, _ = _gls_system(pr, w, sigma, segs, line_cov)
+    c = s.cauchy_sigmas * sigma
+    sel = idx >= 0
+    rp = points[sel] @ rot(pose[2]).T
+    nrm = segs.normal[idx[sel]]
+    pr = _PointRows(
+        idx,
+        sel,
+        res[sel],
+        np.column_stack([nrm[:, 0], nrm[:, 1], nrm[:, 1] * rp[:, 0] - nrm[:, 0] * rp[:, 1]]),
+        rp + pose[:2],
+    )
+    pairs = fine_pairs if fine_pairs is not None else pair_fn(pose)
+    fr = _cat_rows(_feature_rows(pose, gn, gr, pairs, False), _cloud_rows(pose, cloud, gate, sigma))
     if fr.r.shape[0] > 0:
         hess += (fr.jac.T * (fr.w / fr.var)) @ fr.jac
     a = hess + prior_info
@@ -429,6 +508,13 @@ def refine(
             cov = psd_max(cov_ls, lat)
     overlap = float(pr.sel.sum()) / max(1, n_pts)
     return Refined(pose, cov_ls, cov, sigma, overlap, int(pr.sel.sum()), pr.idx, it)
+
+
+@functools.lru_cache(maxsize=4)
+def _unit_lattice(steps: int) -> FloatArray:
+    """``(steps^3, 3)`` lattice of ``[-1, 1]^3``."""
+    k = np.linspace(-1.0, 1.0, steps)
+    return np.stack(np.meshgrid(k, k, k, indexing="ij"), axis=-1).reshape(-1, 3)
 
 
 def _lattice_covariance(
@@ -457,8 +543,7 @@ def _lattice_covariance(
         (evecs[0] ** 2 + evecs[1] ** 2) / s.lattice_cap_m**2 + evecs[2] ** 2 / s.lattice_cap_rad**2
     )
     half = np.minimum(s.lattice_sigmas * np.sqrt(evals), cap)
-    k = np.linspace(-1.0, 1.0, s.lattice_steps)
-    g = np.stack(np.meshgrid(k, k, k, indexing="ij"), axis=-1).reshape(-1, 3) * half
+    g = _unit_lattice(s.lattice_steps) * half
     deltas = g @ evecs.T  # (L, 3) in (x, y, theta)
     cost = np.zeros(deltas.shape[0])
     if pr.r.shape[0] > 0:
