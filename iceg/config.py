@@ -78,6 +78,18 @@ class LoopClosureConfig(BaseModel):
     consistency_chi2: float = Field(
         16.27, gt=0, description="Mahalanobis gate (chi-square, 3 dof, 99.9 %) on the innovation."
     )
+    agreement_window_nodes: int = Field(
+        30,
+        ge=1,
+        description="A closure that fails the gate is held this many nodes; two held closures "
+        "implying the same correction are accepted together (pairwise consistency).",
+    )
+    agreement_translation_m: float = Field(
+        0.3, gt=0, description="Largest translation between two agreeing corrections."
+    )
+    agreement_rotation_deg: float = Field(
+        2.0, gt=0, description="Largest rotation between two agreeing corrections."
+    )
     robust_kernel: Literal["huber", "cauchy"] = Field(
         "cauchy", description="M-estimator wrapped around loop-closure factors."
     )

@@ -84,6 +84,16 @@ class LoopClosureStats:
         return dict(self.__dict__)
 
 
+@dataclass(frozen=True, eq=False)
+class _LoopCandidate:
+    node_from: int
+    node_to: int
+    measured: FloatArray
+    cov: FloatArray
+    correlation: float
+    correction: FloatArray  # (3,) world-frame correction the closure implies
+
+
 @dataclass
 class _ScanRecord:
     stamp_s: float
@@ -124,6 +134,7 @@ class Slam:
         self.timer = StageTimer()
         self.loop_stats = LoopClosureStats()
         self._s = SlamState()
+        self._pending_loops: list[_LoopCandidate] = []
 
     # ------------------------------------------------------------------ per scan
 
@@ -274,35 +285,77 @@ class Slam:
         innovation = se2.between(prediction, result.pose)
         innovation_cov = marginal + result.cov
         d2 = float(innovation @ np.linalg.solve(innovation_cov, innovation))
-        if d2 > lc.consistency_chi2:
-            self.loop_stats.rejected_consistency += 1
-            logger.debug(
-                "loop closure %d->%d rejected: innovation %s, chi2 %.1f",
-                candidate,
-                node_id,
-                np.round(innovation, 3),
-                d2,
-            )
-            return
-        self._add_factor(
-            "loop_closure",
+        closure = _LoopCandidate(
             candidate,
             node_id,
             result.pose,
             result.cov,
             result.correlation,
-            robust=lc.robust_kernel,
+            # Left correction mapping the current estimate onto the closure's implied pose.
+            correction=se2.compose(
+                se2.compose(poses[candidate], result.pose), se2.inverse(current)
+            ),
         )
-        self.graph.update()
-        self.loop_stats.accepted += 1
+        if d2 <= lc.consistency_chi2:
+            self._accept_loop_closures([closure])
+            logger.debug(
+                "loop closure %d->%d accepted: innovation %s, chi2 %.1f, correlation %.2f",
+                candidate,
+                node_id,
+                np.round(innovation, 3),
+                d2,
+                result.correlation,
+            )
+            return
+        agreeing = [c for c in self._pending_loops if self._agree(c, closure)]
+        if agreeing:
+            self._accept_loop_closures([*agreeing, closure])
+            self._pending_loops = [c for c in self._pending_loops if c not in agreeing]
+            logger.debug(
+                "loop closures %s->%d accepted by pairwise agreement (chi2 %.1f vs estimate)",
+                [c.node_from for c in agreeing],
+                node_id,
+                d2,
+            )
+            return
+        self.loop_stats.rejected_consistency += 1
+        self._pending_loops = [
+            c for c in self._pending_loops if node_id - c.node_to <= lc.agreement_window_nodes
+        ] + [closure]
         logger.debug(
-            "loop closure %d->%d accepted: innovation %s, chi2 %.1f, correlation %.2f",
+            "loop closure %d->%d held back: innovation %s, chi2 %.1f",
             candidate,
             node_id,
             np.round(innovation, 3),
             d2,
-            result.correlation,
         )
+
+    def _agree(self, a: _LoopCandidate, b: _LoopCandidate) -> bool:
+        """Two closures agree when they imply the same correction of the recent trajectory
+        (pairwise consistency, after Olson 2009 "Recognizing places using spectrally
+        clustered local matches", reduced to pairs)."""
+        lc = self.config.loop_closure
+        if b.node_to - a.node_to > lc.agreement_window_nodes or a.node_from == b.node_from:
+            return False
+        diff = se2.between(a.correction, b.correction)
+        return bool(
+            np.hypot(diff[0], diff[1]) <= lc.agreement_translation_m
+            and abs(diff[2]) <= np.radians(lc.agreement_rotation_deg)
+        )
+
+    def _accept_loop_closures(self, closures: list[_LoopCandidate]) -> None:
+        for c in closures:
+            self._add_factor(
+                "loop_closure",
+                c.node_from,
+                c.node_to,
+                c.measured,
+                c.cov,
+                c.correlation,
+                robust=self.config.loop_closure.robust_kernel,
+            )
+        self.graph.update()
+        self.loop_stats.accepted += len(closures)
 
     # ------------------------------------------------------------------ results
 
