@@ -38,7 +38,7 @@ from iceg.matching.geometry import (
 )
 from iceg.types import MatchResult, ScanFeatures
 from iceg_common.errors import MatchingError
-from iceg_common.se2 import between, inverse
+from iceg_common.se2 import between, compose, inverse
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +50,12 @@ BoolArray = NDArray[np.bool_]
 PRUNED_RATIO, PRUNED_VALIDITY = 1, 2
 
 NodePoses = Mapping[int, ArrayLike] | tuple[ArrayLike, ArrayLike]
+
+#: How much a feature kind tells (a Corner has a position and two walls, an EOW a position
+#: and one wall, an Intersection a virtual position): a landmark takes the kind of a matched
+#: observation that ranks higher.
+_RANK = np.zeros(3, dtype=np.int64)
+_RANK[CORNER], _RANK[EOW], _RANK[INTERSECTION] = 2, 1, 0
 
 
 class FeatureMapConfig(BaseModel):
@@ -114,8 +120,16 @@ class FeatureMapConfig(BaseModel):
     validity_s: float = Field(
         10.0,
         gt=0.0,
-        description="Pruned when expected and unmatched without a match for longer than this "
-        "(seconds since its first expected miss; paper §III-C3 'time-validity').",
+        description="Pruned when expected but not matched for longer than this since its last "
+        "match (seconds; paper §III-C3 'time-validity'), confirmed by min_misses expected "
+        "misses over miss_confirm_s.",
+    )
+    miss_confirm_s: float = Field(
+        3.0,
+        ge=0.0,
+        description="Validity pruning also needs the misses to have lasted this long (seconds "
+        "since the first expected miss after the last match): a landmark not seen for a long "
+        "while is not removed by one glance that misses it.",
     )
     min_misses: int = Field(
         3,
@@ -174,6 +188,8 @@ class MapUpdate:
         added_ids: ``(N,)`` int64 ids of new landmarks.
         expected_ids: ``(E,)`` int64 ids of landmarks expected in this scan.
         pruned_ids: ``(R,)`` int64 ids pruned after this scan.
+        merged_ids: ``(D,)`` int64 ids of duplicate landmarks merged into a matched one
+            (the same physical feature anchored to another node).
     """
 
     node_id: int
@@ -181,6 +197,7 @@ class MapUpdate:
     added_ids: IntArray
     expected_ids: IntArray
     pruned_ids: IntArray
+    merged_ids: IntArray
 
 
 @dataclass(frozen=True, eq=False)
@@ -216,6 +233,9 @@ _LM_FIELDS = {
     "dirs": (np.float64, (2, 2), np.nan),
     "opening": (np.float64, (), np.nan),
     "support": (np.float64, (3, 2), np.nan),
+    "wall_p": (np.float64, (2, 2), np.nan),
+    "wall_d": (np.float64, (2, 2), np.nan),
+    "wall_side": (np.float64, (2,), np.nan),
     "n_expected": (np.int64, (), 0),
     "n_matched": (np.int64, (), 0),
     "misses": (np.int64, (), 0),
@@ -257,21 +277,34 @@ def _lookup(table_ids: IntArray, query: IntArray) -> tuple[IntArray, BoolArray]:
     return pos, table_ids[pos] == query
 
 
-def _support_points(features: ScanFeatures, offset_m: float) -> FloatArray:
-    """``(K, 3, 2)`` support points of each feature in its scan's frame (NaN-padded): the
-    point and ``offset_m`` along each wall for Corners/EOWs; for Intersections the nearest
-    endpoints of their two segments."""
+def _geometry(
+    features: ScanFeatures, offset_m: float
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Visibility geometry of each feature in its scan's frame (NaN-padded).
+
+    Returns:
+        ``support`` ``(K, 3, 2)``: points that must be in view and not occluded: the point
+        and ``offset_m`` along each wall for Corners/EOWs; for an Intersection a point
+        ``offset_m`` inside each of its two segments from the end nearest to it.
+        ``wall_p``, ``wall_d`` ``(K, 2, 2)``: a point on each wall and the wall's direction.
+        ``wall_side`` ``(K, 2)``: on which side of each wall the sensor stood (+1 / -1): a
+        wall is extracted from the side it was seen from.
+    """
     k = features.n_features
-    out = np.full((k, 3, 2), np.nan)
+    support = np.full((k, 3, 2), np.nan)
+    wall_p = np.full((k, 2, 2), np.nan)
+    wall_d = np.full((k, 2, 2), np.nan)
     if k == 0:
-        return out
+        return support, wall_p, wall_d, np.full((k, 2), np.nan)
     kind = features.kind
     xy = features.xy
     d = features.directions
     direct = kind != INTERSECTION
-    out[direct, 0] = xy[direct]
-    out[direct, 1] = xy[direct] + offset_m * d[direct, 0]
-    out[direct, 2] = xy[direct] + offset_m * d[direct, 1]  # NaN for EOWs
+    support[direct, 0] = xy[direct]
+    support[direct, 1] = xy[direct] + offset_m * d[direct, 0]
+    support[direct, 2] = xy[direct] + offset_m * d[direct, 1]  # NaN for EOWs
+    wall_p[direct] = xy[direct, None, :]
+    wall_d[direct] = d[direct]
     inter = np.flatnonzero(kind == INTERSECTION)
     if inter.shape[0] and features.n_segments:
         for slot in (0, 1):
@@ -280,9 +313,18 @@ def _support_points(features: ScanFeatures, offset_m: float) -> FloatArray:
             rows = inter[ok]
             ep = features.seg_endpoints[sid[ok]]  # (n, 2, 2)
             dist = np.linalg.norm(ep - xy[rows, None, :], axis=2)
-            near = ep[np.arange(rows.shape[0]), np.argmin(dist, axis=1)]
-            out[rows, slot + 1] = near
-    return out
+            near_k = np.argmin(dist, axis=1)
+            ar = np.arange(rows.shape[0])
+            near = ep[ar, near_k]
+            far = ep[ar, 1 - near_k]
+            u = far - near
+            u /= np.maximum(np.linalg.norm(u, axis=1), 1e-9)[:, None]
+            support[rows, slot] = near + offset_m * u
+            wall_p[rows, slot] = near
+            wall_d[rows, slot] = u
+    with np.errstate(invalid="ignore"):
+        side = np.sign(wall_d[..., 1] * wall_p[..., 0] - wall_d[..., 0] * wall_p[..., 1])
+    return support, wall_p, wall_d, side
 
 
 class FeatureMap:
@@ -308,12 +350,13 @@ class FeatureMap:
         }
         self._nodes: set[int] = set()
         self._next_id = 0
+        self.n_merged = 0
         self._range_max_m = 20.0
         self._last_stamp_s = 0.0
-        # reference -> (landmark ids (K,), anchor-to-reference-frame poses (K, 3))
-        self._refs: weakref.WeakKeyDictionary[ScanFeatures, tuple[IntArray, FloatArray]] = (
-            weakref.WeakKeyDictionary()
-        )
+        # reference -> (landmark ids (K,), frame pose (3,), node ids (N,), node poses (N, 3))
+        self._refs: weakref.WeakKeyDictionary[
+            ScanFeatures, tuple[IntArray, FloatArray, IntArray, FloatArray]
+        ] = weakref.WeakKeyDictionary()
         self._pruned: dict[str, list[np.ndarray]] = {
             k: [] for k in ("ids", "anchor", "kind", "xy", "stamp_s", "created_s", "last_s", "why")
         }
@@ -329,7 +372,7 @@ class FeatureMap:
         return (
             f"FeatureMap(nodes={len(self._nodes)}, landmarks={len(self)} "
             f"[corner={kinds[CORNER]}, eow={kinds[EOW]}, intersection={kinds[INTERSECTION]}], "
-            f"segments={self._seg['node'].shape[0]}, pruned={n_pruned})"
+            f"segments={self._seg['node'].shape[0]}, pruned={n_pruned}, merged={self.n_merged})"
         )
 
     @property
@@ -444,7 +487,7 @@ class FeatureMap:
             range_max_m=self._range_max_m,
             stamp_s=self._last_stamp_s,
         )
-        self._refs[ref] = (view.ids, rel)
+        self._refs[ref] = (view.ids, frame, ids, poses)
         return ref
 
     # ------------------------------------------------------------------ update
@@ -457,28 +500,39 @@ class FeatureMap:
         reference: ScanFeatures | None = None,
         match: MatchResult | None = None,
         scan: LaserScan | None = None,
+        node_poses: NodePoses | None = None,
     ) -> MapUpdate:
         """Add a node's scan to the map: association, new landmarks, time-validity.
 
-        With a successful ``match`` against ``reference`` (built by :meth:`reference`): the
-        matched features update their landmarks' bookkeeping (and replace a landmark's stored
-        observation when they are more precise; an EOW landmark seen as a Corner becomes a
-        Corner, paper §III-C2); unmatched features within ``association_gate_m`` of a
-        compatible reference landmark are associated too; the rest become new landmarks
-        anchored to ``node_id``. Every reference landmark that is expected in this scan but
-        not matched counts a miss; then pruning runs (paper §III-C3).
+        With a successful ``match`` against ``reference`` (built by :meth:`reference`):
+
+        - the matcher's inlier pairs give the landmarks this scan matched; every other
+          landmark whose anchor has a pose is brought into the new node's frame and
+          associated with an unpaired new feature within ``association_gate_m`` (of any
+          kind: a Corner seen partially is an EOW, paper §III-C2, or an Intersection of its
+          two walls);
+        - a matched landmark keeps the more precise observation, and takes the kind of an
+          observation that tells more (Corner > EOW > Intersection);
+        - every landmark **expected** in this scan (support points inside its field of view
+          and ``expected_max_range_m``, not occluded by its own ranges, walls not at grazing
+          incidence) but not matched counts a miss; then pruning runs (paper §III-C3);
+        - the remaining new features become landmarks anchored to ``node_id``.
 
         Without a successful match (first node, failed match) every feature becomes a new
-        landmark anchored to ``node_id`` and no bookkeeping is done.
+        landmark anchored to ``node_id`` and no bookkeeping is done (the node's pose relative
+        to the map is not known well enough to judge visibility).
 
         Args:
             node_id: The new node's id (each node is added once).
             features: The node's scan features, robot frame (= node frame).
             stamp_s: Scan time, seconds.
-            reference: The reference the match was computed against.
+            reference: The reference ``match`` was computed against.
             match: The match of ``features`` against ``reference``.
             scan: The laser scan, for visibility (field of view, occlusion by its own
                 ranges); ``None`` uses ``features.points_xy`` instead.
+            node_poses: Current pose estimates of the nodes (map frame), to place every
+                landmark relative to the new node; ``None`` uses the poses given to
+                :meth:`reference` and ``frame_pose ∘ match.pose`` for the new node.
 
         Returns:
             A :class:`MapUpdate`.
@@ -494,6 +548,7 @@ class FeatureMap:
         empty = np.zeros(0, dtype=np.int64)
         matched_ids = empty
         expected_ids = empty
+        merged_ids = empty
         new_mask = np.ones(features.n_features, dtype=bool)
         if match is not None and match.success:
             if reference is None or reference not in self._refs:
@@ -501,16 +556,22 @@ class FeatureMap:
                     "FeatureMap.update: a successful match needs reference=<the ScanFeatures "
                     "returned by this map's reference() that match() was computed against>"
                 )
-            matched_ids, expected_ids, new_mask = self._bookkeep(
-                node_id, features, stamp, reference, match, scan
+            matched_ids, expected_ids, new_mask, merge_rows = self._bookkeep(
+                node_id, features, stamp, reference, match, scan, node_poses
             )
+            merged_ids = self._lm["id"][merge_rows].copy()
+            keep = np.ones(len(self), dtype=bool)
+            keep[merge_rows] = False
+            for k in self._lm:
+                self._lm[k] = self._lm[k][keep]
+            self.n_merged += int(merge_rows.shape[0])
         self._store_segments(node_id, features)
         added = self._add_landmarks(node_id, features, new_mask, stamp)
         pruned = self._prune(stamp)
         self._nodes.add(node_id)
         self._range_max_m = float(features.range_max_m)
         self._last_stamp_s = stamp
-        return MapUpdate(node_id, matched_ids, added, expected_ids, pruned)
+        return MapUpdate(node_id, matched_ids, added, expected_ids, pruned, merged_ids)
 
     def _store_segments(self, node_id: int, features: ScanFeatures) -> None:
         m = features.n_segments
@@ -530,7 +591,9 @@ class FeatureMap:
         n = rows.shape[0]
         ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
         self._next_id += n
-        support = _support_points(features, self.config.support_offset_m)[rows]
+        support, wall_p, wall_d, wall_side = (
+            a[rows] for a in _geometry(features, self.config.support_offset_m)
+        )
         new = {
             "id": ids,
             "anchor": np.full(n, node_id, dtype=np.int64),
@@ -540,6 +603,9 @@ class FeatureMap:
             "dirs": features.directions[rows],
             "opening": features.opening_rad[rows],
             "support": support,
+            "wall_p": wall_p,
+            "wall_d": wall_d,
+            "wall_side": wall_side,
             "n_expected": np.zeros(n, dtype=np.int64),
             "n_matched": np.zeros(n, dtype=np.int64),
             "misses": np.zeros(n, dtype=np.int64),
@@ -560,114 +626,134 @@ class FeatureMap:
         reference: ScanFeatures,
         match: MatchResult,
         scan: LaserScan | None,
-    ) -> tuple[IntArray, IntArray, BoolArray]:
-        """Association and expected/matched counting for one matched scan."""
+        node_poses: NodePoses | None,
+    ) -> tuple[IntArray, IntArray, BoolArray, IntArray]:
+        """Association and expected/matched counting for one matched scan; also returns the
+        rows of duplicate landmarks to merge."""
         cfg = self.config
         lm = self._lm
-        ref_ids, ref_rel = self._refs[reference]
-        pos, found = _lookup(lm["id"], ref_ids)  # reference index -> landmark row
-        # Pose of each reference landmark's anchor in the new scan's frame.
-        anchor_in_new = between(match.pose, ref_rel) if ref_rel.shape[0] else ref_rel
-        k_new = features.n_features
-        new_mask = np.ones(k_new, dtype=bool)
-        pairs = np.asarray(match.inlier_pairs, dtype=np.int64).reshape(-1, 2)
-        pairs = pairs[(pairs[:, 0] < k_new) & (pairs[:, 1] < ref_ids.shape[0])]
-        # Extra association: unmatched new features near a compatible reference landmark.
-        extra = self._extra_pairs(features, reference, match.pose, pairs)
-        pairs = np.concatenate([pairs, extra], axis=0)
-        pairs = pairs[found[pairs[:, 1]]]
-        new_mask[pairs[:, 0]] = False
-        rows = pos[pairs[:, 1]]
-        # Keep the better observation; an EOW seen as a Corner becomes a Corner.
-        new_in_anchor = inverse(anchor_in_new[pairs[:, 1]]) if rows.shape[0] else np.zeros((0, 3))
-        tr_new = np.trace(features.cov[pairs[:, 0]], axis1=1, axis2=2)
-        tr_old = np.trace(lm["cov"][rows], axis1=1, axis2=2)
-        upgrade = (lm["kind"][rows] == EOW) & (features.kind[pairs[:, 0]] == CORNER)
-        same = lm["kind"][rows] == features.kind[pairs[:, 0]]
-        better = same & (tr_new < cfg.replace_ratio * tr_old)
-        rep = np.flatnonzero(upgrade | better)
-        if rep.shape[0]:
-            rr = rows[rep]
-            fi = pairs[rep, 0]
-            na = new_in_anchor[rep]
-            r = rot(na[:, 2])
-            lm["xy"][rr] = np.einsum("nab,nb->na", r, features.xy[fi]) + na[:, :2]
-            lm["cov"][rr] = r @ features.cov[fi] @ np.swapaxes(r, 1, 2)
-            lm["dirs"][rr] = np.einsum("nab,nkb->nka", r, features.directions[fi])
-            lm["opening"][rr] = features.opening_rad[fi]
-            lm["kind"][rr] = features.kind[fi]
-            sup = _support_points(features, cfg.support_offset_m)[fi]
-            lm["support"][rr] = np.einsum("nab,nkb->nka", r, sup) + na[:, None, :2]
-        # Expected: reference landmarks whose support points the scan should see.
-        rows_ref = pos[found]
-        expected = self._expected(
-            lm["support"][rows_ref],
-            lm["dirs"][rows_ref],
-            lm["kind"][rows_ref],
-            anchor_in_new[found],
-            features,
-            scan,
+        ref_ids, frame, snap_ids, snap_poses = self._refs[reference]
+        if node_poses is not None:
+            tab_ids, tab_poses = _node_pose_table(node_poses)
+        else:
+            tab_ids, tab_poses = snap_ids, snap_poses
+        npos, nfound = _lookup(tab_ids, np.array([node_id]))
+        new_pose = tab_poses[npos[0]] if nfound[0] else compose(frame, match.pose)
+        # Every landmark whose anchor has a pose, in the new node's frame.
+        apos, afound = _lookup(tab_ids, lm["anchor"])
+        rows = np.flatnonzero(afound)
+        anchor_in_new = (
+            between(new_pose, tab_poses[apos[rows]]) if rows.shape[0] else np.zeros((0, 3))
         )
-        matched_rows = np.unique(rows)
-        is_matched = np.isin(rows_ref, matched_rows)
-        exp_rows = rows_ref[expected | is_matched]
+        r_an = rot(anchor_in_new[:, 2])
+        xy_new = np.einsum("nab,nb->na", r_an, lm["xy"][rows]) + anchor_in_new[:, :2]
+        slot = np.full(len(self), -1, dtype=np.int64)
+        slot[rows] = np.arange(rows.shape[0])
+        # 1. The matcher's pairs (reference index -> landmark id -> row).
+        k_new = features.n_features
+        pairs = np.asarray(match.inlier_pairs, dtype=np.int64).reshape(-1, 2)
+        pairs = pairs[(pairs[:, 0] >= 0) & (pairs[:, 0] < k_new)]
+        pairs = pairs[(pairs[:, 1] >= 0) & (pairs[:, 1] < ref_ids.shape[0])]
+        lpos, lfound = _lookup(lm["id"], ref_ids[pairs[:, 1]])
+        ok = lfound & (slot[lpos] >= 0)
+        pair_new = pairs[ok, 0]
+        pair_row = lpos[ok]
+        # 2. Geometric association of the other new features with the other landmarks.
+        free_n = np.setdiff1d(np.arange(k_new), pair_new)
+        free_s = np.setdiff1d(np.arange(rows.shape[0]), slot[pair_row])
+        if free_n.shape[0] and free_s.shape[0]:
+            d = np.linalg.norm(features.xy[free_n][:, None, :] - xy_new[free_s][None], axis=2)
+            jbest = np.argmin(d, axis=1)
+            good = d[np.arange(free_n.shape[0]), jbest] <= cfg.association_gate_m
+            cand_n = free_n[good]
+            cand_s = free_s[jbest[good]]
+            _, first = np.unique(cand_s, return_index=True)  # one feature per landmark
+            pair_new = np.concatenate([pair_new, cand_n[first]])
+            pair_row = np.concatenate([pair_row, rows[cand_s[first]]])
+        new_mask = np.ones(k_new, dtype=bool)
+        new_mask[pair_new] = False
+        # Duplicates: other landmarks within the gate of a paired feature are the same
+        # physical feature (anchored to another node); they merge into the paired one.
+        merge_rows = np.zeros(0, dtype=np.int64)
+        if pair_new.shape[0] and rows.shape[0]:
+            dd = np.linalg.norm(features.xy[pair_new][:, None, :] - xy_new[None], axis=2)
+            near = np.any(dd <= cfg.association_gate_m, axis=0)
+            near[slot[pair_row]] = False
+            merge_rows = rows[near]
+        # Keep the better observation; an EOW seen as a Corner becomes a Corner.
+        if pair_row.shape[0]:
+            new_in_anchor = inverse(anchor_in_new[slot[pair_row]])
+            tr_new = np.trace(features.cov[pair_new], axis1=1, axis2=2)
+            tr_old = np.trace(lm["cov"][pair_row], axis1=1, axis2=2)
+            upgrade = _RANK[features.kind[pair_new]] > _RANK[lm["kind"][pair_row]]
+            same = lm["kind"][pair_row] == features.kind[pair_new]
+            rep = np.flatnonzero(upgrade | (same & (tr_new < cfg.replace_ratio * tr_old)))
+            if rep.shape[0]:
+                rr = pair_row[rep]
+                fi = pair_new[rep]
+                na = new_in_anchor[rep]
+                r = rot(na[:, 2])
+                lm["xy"][rr] = np.einsum("nab,nb->na", r, features.xy[fi]) + na[:, :2]
+                lm["cov"][rr] = r @ features.cov[fi] @ np.swapaxes(r, 1, 2)
+                lm["dirs"][rr] = np.einsum("nab,nkb->nka", r, features.directions[fi])
+                lm["opening"][rr] = features.opening_rad[fi]
+                lm["kind"][rr] = features.kind[fi]
+                sup, wp, wd, _ = (a[fi] for a in _geometry(features, cfg.support_offset_m))
+                lm["support"][rr] = np.einsum("nab,nkb->nka", r, sup) + na[:, None, :2]
+                lm["wall_p"][rr] = np.einsum("nab,nkb->nka", r, wp) + na[:, None, :2]
+                lm["wall_d"][rr] = np.einsum("nab,nkb->nka", r, wd)
+                # The side seen from the new node, expressed for the anchor-frame wall.
+                o = na[:, None, :2]  # new node's origin in the anchor frame
+                wpa = lm["wall_p"][rr]
+                wda = lm["wall_d"][rr]
+                with np.errstate(invalid="ignore"):
+                    lm["wall_side"][rr] = np.sign(
+                        wda[..., 0] * (o[..., 1] - wpa[..., 1])
+                        - wda[..., 1] * (o[..., 0] - wpa[..., 0])
+                    )
+        # 3. Expected landmarks (all of them with a known anchor pose).
+        expected = self._expected(rows, anchor_in_new, features, scan)
+        matched_rows = np.unique(pair_row)
+        is_matched = np.zeros(len(self), dtype=bool)
+        is_matched[matched_rows] = True
+        exp_rows = rows[expected | is_matched[rows]]
         lm["n_expected"][exp_rows] += 1
         lm["n_matched"][matched_rows] += 1
         lm["last_matched_s"][matched_rows] = stamp
         lm["misses"][matched_rows] = 0
         lm["first_miss_s"][matched_rows] = np.nan
         lm["last_node"][matched_rows] = node_id
-        miss_rows = rows_ref[expected & ~is_matched]
+        miss_rows = rows[expected & ~is_matched[rows]]
         lm["misses"][miss_rows] += 1
         first = miss_rows[np.isnan(lm["first_miss_s"][miss_rows])]
         lm["first_miss_s"][first] = stamp
-        return lm["id"][matched_rows].copy(), lm["id"][exp_rows].copy(), new_mask
-
-    def _extra_pairs(
-        self,
-        features: ScanFeatures,
-        reference: ScanFeatures,
-        pose: FloatArray,
-        pairs: IntArray,
-    ) -> IntArray:
-        """Unpaired new features within the association gate of an unpaired reference
-        landmark of a compatible kind (Corner<->EOW compatible; paper §III-C2)."""
-        free_n = np.setdiff1d(np.arange(features.n_features), pairs[:, 0])
-        free_r = np.setdiff1d(np.arange(reference.n_features), pairs[:, 1])
-        if free_n.shape[0] == 0 or free_r.shape[0] == 0:
-            return np.zeros((0, 2), dtype=np.int64)
-        r = rot(pose[2])
-        xy = features.xy[free_n] @ r.T + pose[:2]
-        d = np.linalg.norm(xy[:, None, :] - reference.xy[free_r][None], axis=2)
-        kn = features.kind[free_n][:, None]
-        kr = reference.kind[free_r][None, :]
-        compat = (kn == kr) | ((kn != INTERSECTION) & (kr != INTERSECTION))
-        d = np.where(compat, d, np.inf)
-        j = np.argmin(d, axis=1)
-        ok = d[np.arange(free_n.shape[0]), j] <= self.config.association_gate_m
-        out = np.column_stack([free_n[ok], free_r[j[ok]]]).astype(np.int64)
-        # One new feature per reference landmark.
-        _, first = np.unique(out[:, 1], return_index=True)
-        return out[np.sort(first)]
+        return (
+            lm["id"][matched_rows].copy(),
+            lm["id"][exp_rows].copy(),
+            new_mask,
+            merge_rows,
+        )
 
     def _expected(
         self,
-        support: FloatArray,
-        dirs: FloatArray,
-        kind: IntArray,
+        rows: IntArray,
         anchor_in_new: FloatArray,
         features: ScanFeatures,
         scan: LaserScan | None,
     ) -> BoolArray:
-        """Which landmarks the scan should see (DESIGN: inside the field of view and range,
-        not occluded, walls not at grazing incidence)."""
+        """Which landmarks (``rows``, anchors at ``anchor_in_new`` in the new frame) the scan
+        should see (DESIGN: inside the field of view and range, not occluded; and its walls
+        (one for a Corner or EOW, both for an Intersection) seen from the side they were seen
+        from before, not at grazing incidence)."""
         cfg = self.config
-        n = support.shape[0]
+        lm = self._lm
+        n = rows.shape[0]
         if n == 0:
             return np.zeros(0, dtype=bool)
         r = rot(anchor_in_new[:, 2])
-        sup = np.einsum("nab,nkb->nka", r, support) + anchor_in_new[:, None, :2]  # new frame
-        d_new = np.einsum("nab,nkb->nka", r, dirs)
+        sup = np.einsum("nab,nkb->nka", r, lm["support"][rows]) + anchor_in_new[:, None, :2]
+        wp = np.einsum("nab,nkb->nka", r, lm["wall_p"][rows]) + anchor_in_new[:, None, :2]
+        wd = np.einsum("nab,nkb->nka", r, lm["wall_d"][rows])
         has = np.all(np.isfinite(sup), axis=2)  # (n, 3)
         if scan is not None:
             off = np.asarray(scan.laser_offset, dtype=np.float64)
@@ -704,16 +790,21 @@ class FeatureMap:
             clear = (np.fmin(r0, r1) >= dist - cfg.occlusion_tolerance_m) & ~gap
         ok_point = in_fov & in_range & clear
         visible = np.all(ok_point | ~has, axis=1) & np.any(has, axis=1)
-        # Grazing incidence of Corner/EOW walls.
-        feat = sup[:, 0]
-        ray = feat / np.maximum(np.hypot(feat[:, 0], feat[:, 1]), 1e-9)[:, None]
-        sin_inc = np.abs(ray[:, None, 0] * d_new[..., 1] - ray[:, None, 1] * d_new[..., 0])
-        wall_ok = np.all(
-            (sin_inc >= math.sin(math.radians(cfg.min_incidence_deg))) | ~np.isfinite(sin_inc),
-            axis=1,
-        )
-        wall_ok |= kind == INTERSECTION
-        return visible & wall_ok
+        # Each wall: seen from the same side as before, not at grazing incidence.
+        with np.errstate(invalid="ignore"):
+            side = np.sign(wd[..., 1] * wp[..., 0] - wd[..., 0] * wp[..., 1])
+            ray = wp / np.maximum(np.hypot(wp[..., 0], wp[..., 1]), 1e-9)[..., None]
+            sin_inc = np.abs(ray[..., 0] * wd[..., 1] - ray[..., 1] * wd[..., 0])
+            wall_ok = (side == lm["wall_side"][rows]) & (
+                sin_inc >= math.sin(math.radians(cfg.min_incidence_deg))
+            )
+        has_wall = np.isfinite(lm["wall_side"][rows])
+        # An Intersection needs both of its walls; a Corner shows as an EOW when only one
+        # of its walls faces the sensor (paper §III-C2), so one suffices.
+        all_seen = np.all(wall_ok | ~has_wall, axis=1) & np.any(has_wall, axis=1)
+        any_seen = np.any(wall_ok & has_wall, axis=1)
+        walls_seen = np.where(lm["kind"][rows] == INTERSECTION, all_seen, any_seen)
+        return visible & walls_seen
 
     def _prune(self, stamp: float) -> IntArray:
         cfg = self.config
@@ -722,9 +813,12 @@ class FeatureMap:
             lm["n_matched"] < cfg.min_match_ratio * lm["n_expected"]
         )
         with np.errstate(invalid="ignore"):
-            stale = (lm["misses"] >= cfg.min_misses) & (
-                stamp - lm["first_miss_s"] >= cfg.validity_s
+            stale = (
+                (lm["misses"] >= cfg.min_misses)
+                & (stamp - lm["last_matched_s"] >= cfg.validity_s)
+                & (stamp - lm["first_miss_s"] >= cfg.miss_confirm_s)
             )
+
         drop = ratio | stale
         if not np.any(drop):
             return np.zeros(0, dtype=np.int64)
