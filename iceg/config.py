@@ -45,6 +45,15 @@ class SlamConfig(BaseModel):
     match_max_rotation_deg: float = Field(
         20.0, gt=0, description="Admissible rotation around the odometry prediction (§III-C2)."
     )
+    no_odometry_sigma_m: float = Field(
+        0.5,
+        gt=0,
+        description="For logs without odometry: sigma of the constant-velocity "
+        "motion prior between consecutive nodes, metres.",
+    )
+    no_odometry_sigma_deg: float = Field(
+        20.0, gt=0, description="... and its rotation sigma, degrees."
+    )
     batch_refinement: bool = Field(
         True, description="Run batch Levenberg–Marquardt over the whole graph after the run."
     )

@@ -159,13 +159,24 @@ class Slam:
             return odom.copy()
 
         last = len(s.node_odom) - 1
-        delta = se2.between(s.node_odom[last], odom)
-        dt = scan.stamp_s - s.scans[s.node_scan_index[last]].stamp_s
-        is_keyframe = (
-            np.hypot(delta[0], delta[1]) >= cfg.keyframe_distance_m
-            or abs(delta[2]) >= np.radians(cfg.keyframe_rotation_deg)
-            or dt >= cfg.keyframe_max_interval_s
-        )
+        if scan.odom_pose is None:
+            # No wheel odometry: every scan is a node, predicted by constant velocity, and a
+            # weak motion prior keeps the graph connected where matching fails.
+            delta = self._constant_velocity_delta(last)
+            odom = se2.compose(s.node_odom[last], delta)
+            odom_cov = np.diag(
+                [cfg.no_odometry_sigma_m**2] * 2 + [np.radians(cfg.no_odometry_sigma_deg) ** 2]
+            )
+            is_keyframe = True
+        else:
+            delta = se2.between(s.node_odom[last], odom)
+            odom_cov = odometry_covariance(delta, self.config.odometry_noise)
+            dt = scan.stamp_s - s.scans[s.node_scan_index[last]].stamp_s
+            is_keyframe = bool(
+                np.hypot(delta[0], delta[1]) >= cfg.keyframe_distance_m
+                or abs(delta[2]) >= np.radians(cfg.keyframe_rotation_deg)
+                or dt >= cfg.keyframe_max_interval_s
+            )
         if not is_keyframe:
             s.records.append(_ScanRecord(scan.stamp_s, last, delta))
             return se2.compose(self.graph.estimate(last), delta)
@@ -184,7 +195,6 @@ class Slam:
         new_id = self._add_node(
             scan, odom, initial=se2.compose(poses[last], result.pose if result.success else delta)
         )
-        odom_cov = odometry_covariance(delta, self.config.odometry_noise)
         self._add_factor("odometry", last, new_id, delta, odom_cov)
         if result.success:
             self._add_factor(
@@ -209,6 +219,12 @@ class Slam:
         if scan.odom_pose is not None:
             return np.asarray(scan.odom_pose, dtype=np.float64)
         return np.zeros(3)
+
+    def _constant_velocity_delta(self, last: int) -> FloatArray:
+        """Motion of the last node pair (estimates), as the prediction of the next one."""
+        if last == 0:
+            return np.zeros(3)
+        return se2.between(self.graph.estimate(last - 1), self.graph.estimate(last))
 
     def _add_node(self, scan: LaserScan, odom: FloatArray, initial: FloatArray) -> int:
         s = self._s

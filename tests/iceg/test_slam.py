@@ -1,0 +1,101 @@
+"""The SLAM pipeline on simulated worlds with exact ground truth."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from frontends.simulate import box_world, corridor_world, office_world, simulate
+from iceg.evaluation import position_errors
+from iceg.pipeline import run_scans
+from iceg.slam import Slam
+from iceg_common import se2
+
+
+@pytest.fixture(scope="module")
+def office_run():  # type: ignore[no-untyped-def]
+    return simulate(office_world(), seed=1)
+
+
+def test_every_scan_gets_a_pose_and_non_nodes_follow_odometry(office_run) -> None:  # type: ignore[no-untyped-def]
+    slam = Slam()
+    online = np.array([slam.process(scan) for scan in office_run.scans])
+    result = slam.finish()
+    assert result.poses.shape == (len(office_run.scans), 3)
+    np.testing.assert_array_equal(result.stamps_s, office_run.stamps_s)
+    # DESIGN: a non-node scan takes its node's estimate composed with the odometry delta.
+    is_node = np.zeros(len(office_run.scans), dtype=bool)
+    is_node[result.node_scan_index] = True
+    assert 0 < is_node.sum() < len(is_node)
+    node_of_scan = np.maximum.accumulate(np.where(is_node, np.arange(len(is_node)), 0))
+    node_row = np.searchsorted(result.node_scan_index, node_of_scan)
+    expected = se2.compose(
+        result.node_poses[node_row],
+        se2.between(office_run.odom_poses[node_of_scan], office_run.odom_poses),
+    )
+    np.testing.assert_allclose(result.poses, expected, atol=1e-9)
+    # Truth: the simulator's poses. Online (iSAM2) and refined estimates both beat odometry.
+    odom = position_errors(office_run.odom_poses, office_run.true_poses, align=False).mean_m
+    assert position_errors(online, office_run.true_poses, align=False).mean_m < 0.05 < odom
+    assert position_errors(result.poses, office_run.true_poses, align=False).mean_m < 0.03
+
+
+def test_same_input_gives_bit_identical_output(office_run) -> None:  # type: ignore[no-untyped-def]
+    a = run_scans(office_run.scans[:200])
+    b = run_scans(office_run.scans[:200])
+    np.testing.assert_array_equal(a.poses, b.poses)
+
+
+def test_log_without_odometry_is_tracked_by_matching_alone(office_run) -> None:  # type: ignore[no-untyped-def]
+    scans = [dataclasses.replace(s, odom_pose=None) for s in office_run.scans[:300]]
+    result = run_scans(scans)
+    # Without odometry the map frame is the first scan's robot frame: compare after putting
+    # the truth in that frame.
+    truth = se2.between(office_run.true_poses[0], office_run.true_poses[:300])
+    err = position_errors(result.poses, truth, align=False)
+    assert err.mean_m < 0.05, err
+    assert result.factor_counts()["scan_match"] >= 0.95 * (len(scans) - 1)
+
+
+def test_corridor_match_covariance_shows_the_degeneracy() -> None:
+    # In the middle of a 40 m featureless corridor (ends beyond the 20 m range) a scan match
+    # fixes the lateral position and heading but not the position along the corridor: the
+    # covariance must say so, and the estimate must not be worse than odometry.
+    run = simulate(corridor_world(), seed=0)
+    result = run_scans(run.scans)
+    mid = [
+        f
+        for f in result.factors
+        if f.kind == "scan_match" and 15.0 < result.node_poses[f.node_to, 0] < 25.0
+    ]
+    assert mid, "no scan-match factor in the corridor's middle"
+    ratios = np.array([f.cov[0, 0] / f.cov[1, 1] for f in mid])  # robot x is along the corridor
+    assert np.median(ratios) >= 10.0, np.median(ratios)
+    odom = position_errors(run.odom_poses, run.true_poses, align=False).mean_m
+    slam = position_errors(result.poses, run.true_poses, align=False).mean_m
+    assert slam < odom, (slam, odom)
+
+
+def test_removed_box_is_pruned_from_the_feature_map() -> None:
+    # Truth: box_world removes its box (x 5.5-6.5, y 3.5-4.5) at 55 s. Its corners were
+    # landmarks before; by the end of the run none is left, and every corner of the static
+    # room is still there.
+    world = box_world()
+    run = simulate(world, seed=0)
+    result = run_scans(run.scans)
+    ids, poses = result.node_ids, result.node_poses
+    box_centre = np.array([6.0, 4.0])
+    pruned = result.feature_map.pruned
+    anchor_rows = np.searchsorted(ids, pruned.anchor)
+    as_poses = np.column_stack([pruned.xy, np.zeros(len(pruned.xy))])  # anchor frame
+    pruned_world = se2.compose(poses[anchor_rows], as_poses)[:, :2]
+    box_pruned = np.hypot(*(pruned_world - box_centre).T) < 0.9
+    assert box_pruned.sum() >= 2, "the box's corners never entered the map"
+    assert np.all(pruned.stamp_s[box_pruned] >= 55.0)
+    world_lm = result.feature_map.world_landmarks((ids, poses))
+    assert not np.any(np.hypot(*(world_lm.xy - box_centre).T) < 0.9), world_lm.xy
+    static_corners = world.corners(stamp_s=run.stamps_s[-1])
+    gaps = np.min(np.linalg.norm(static_corners[:, None] - world_lm.xy[None], axis=2), axis=1)
+    assert np.all(gaps < 0.05), gaps
