@@ -399,6 +399,20 @@ class MatchingConfig(BaseModel):
         description="The see-through test fails a match only if at least this much wall length "
         "is contradicted.",
     )
+    see_through_max_length_m: float = Field(
+        1.5,
+        gt=0.0,
+        description="A match also fails when this much wall length (metres) is contradicted, "
+        "whatever the fraction (real consecutive ACES scans at their corrected poses: at most "
+        "1.2 m, 99th percentile 0.56 m).",
+    )
+    robot_clearance_m: float = Field(
+        0.25,
+        ge=0.0,
+        description="No wall of one scan may pass closer than this to the other scan's sensor "
+        "(a robot has a body; real ACES/CSAIL scans keep at least 0.37 m from their own and "
+        "their neighbours' walls).",
+    )
     see_through_step_m: float = Field(
         0.1, gt=0.0, description="Sampling step along reference segments for the see-through test."
     )

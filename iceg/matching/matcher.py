@@ -66,6 +66,18 @@ class _Candidate:
         return float(self.corr.score[0]) + self.refined.overlap - 2.0 * self.see_through
 
 
+def _segment_distance(p: FloatArray, endpoints: FloatArray) -> float:
+    """Distance (metres) from point ``p`` (2,) to the nearest of segments ``(M, 2, 2)``."""
+    if endpoints.shape[0] == 0:
+        return math.inf
+    a = endpoints[:, 0]
+    e = endpoints[:, 1] - a
+    l2 = np.maximum(np.einsum("ma,ma->m", e, e), 1e-12)
+    t = np.clip(np.einsum("ma,ma->m", p - a, e) / l2, 0.0, 1.0)
+    d = p - (a + t[:, None] * e)
+    return float(np.sqrt(np.einsum("ma,ma->m", d, d).min()))
+
+
 def _lengths(endpoints: FloatArray) -> FloatArray:
     d = endpoints[:, 1] - endpoints[:, 0]
     return np.hypot(d[:, 0], d[:, 1])
@@ -410,10 +422,21 @@ class IceMatcher:
             )
         frac, length = self._see_through(ref.pose, features, reference, profile, ref_profile)
         cand.see_through = frac
-        if frac > c.max_see_through_fraction and length >= c.see_through_min_length_m:
+        if (
+            frac > c.max_see_through_fraction and length >= c.see_through_min_length_m
+        ) or length >= c.see_through_max_length_m:
             return (
                 f"{REASON_INCONSISTENT}: {frac:.0%} ({length:.1f} m) of the walls lie where "
                 "the other scan sees free space"
+            )
+        clear = min(
+            _segment_distance(ref.pose[:2], reference.seg_endpoints),
+            _segment_distance(inverse(ref.pose)[:2], features.seg_endpoints),
+        )
+        if clear < c.robot_clearance_m:
+            return (
+                f"{REASON_INCONSISTENT}: a wall of one scan passes {clear:.2f} m from the other "
+                f"scan's sensor (< {c.robot_clearance_m} m)"
             )
         if not self._origins_visible(ref.pose, profile, ref_profile):
             return (
