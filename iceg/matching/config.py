@@ -373,6 +373,14 @@ class MatchingConfig(BaseModel):
         description="Fewest fraction of the scan's segment points that must lie on reference "
         "segments after refinement (DESIGN step 10: too few inliers fails).",
     )
+    min_point_overlap_global: float = Field(
+        0.5,
+        ge=0.0,
+        le=1.0,
+        description="The same for a global match (no prediction to rule out look-alikes; "
+        "correct simulated global matches: 1st percentile 0.46 with the 180-degree scanner, "
+        "0.84 with a full turn).",
+    )
     min_point_overlap_featureless: float = Field(
         0.6,
         ge=0.0,

@@ -61,9 +61,15 @@ class _Candidate:
 
     @property
     def fitness(self) -> float:
-        """Ranking score: correlation (eq. 1) plus the point overlap of the refinement minus
-        twice the fraction of walls that the other scan sees through."""
-        return float(self.corr.score[0]) + self.refined.overlap - 2.0 * self.see_through
+        """Ranking score: correlation (eq. 1) plus the point overlap of the refinement, plus
+        0.1 per feature pair (up to 5), minus twice the fraction of walls that the other
+        scan sees through."""
+        return (
+            float(self.corr.score[0])
+            + self.refined.overlap
+            + 0.1 * min(int(self.corr.n_matched[0]), 5)
+            - 2.0 * self.see_through
+        )
 
 
 def _segment_distance(p: FloatArray, endpoints: FloatArray) -> float:
@@ -409,7 +415,7 @@ class IceMatcher:
             # Feature-supported: eq. 1 decides (paper §III-C3).
             if score < min_corr:
                 return f"{REASON_LOW_CORRELATION}: {score:.3f} < {min_corr}"
-            min_overlap = c.min_point_overlap
+            min_overlap = c.min_point_overlap_global if bounds.is_global else c.min_point_overlap
         elif not bounds.is_global and cand.from_prediction and n_matched == 0:
             # No feature pairs (a corridor, or features too unstable to pair), tracked from
             # the prediction: the points decide, and the covariance shows what the walls
