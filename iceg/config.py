@@ -69,11 +69,22 @@ class LoopClosureConfig(BaseModel):
     min_node_gap: int = Field(
         30, ge=1, description="Only nodes at least this many nodes older are loop candidates."
     )
+    min_path_m: float = Field(
+        10.0,
+        ge=0,
+        description="Only nodes at least this far back along the odometry path are candidates.",
+    )
     window_nodes: int = Field(
         4, ge=0, description="Landmarks of the candidate ± this many nodes form the reference."
     )
     search_radius_m: float = Field(
         2.0, gt=0, description="Base search radius around the current estimate."
+    )
+    max_search_radius_m: float = Field(
+        10.0, gt=0, description="Cap of the search radius (and of the match's translation bound)."
+    )
+    max_candidates: int = Field(
+        3, ge=1, description="Candidate places (distinct node windows) matched per search."
     )
     search_n_sigma: float = Field(
         3.0, ge=0, description="Radius grows by this many marginal position sigmas."

@@ -28,7 +28,7 @@ from iceg.features import extract
 from iceg.grid import render
 from iceg.matching import IceMatcher, MatchBounds
 from iceg.results import SlamResult
-from iceg.types import ScanFeatures
+from iceg.types import MatchResult, ScanFeatures
 from iceg_common import se2
 
 logger = logging.getLogger(__name__)
@@ -109,6 +109,7 @@ class SlamState:
     records: list[_ScanRecord] = field(default_factory=list)
     node_scan_index: list[int] = field(default_factory=list)
     node_odom: list[FloatArray] = field(default_factory=list)
+    node_path_m: list[float] = field(default_factory=list)  # odometry path length at node
     factors: list[FactorRecord] = field(default_factory=list)
     match_failures: dict[str, int] = field(default_factory=lambda: defaultdict(int))
 
@@ -229,6 +230,8 @@ class Slam:
     def _add_node(self, scan: LaserScan, odom: FloatArray, initial: FloatArray) -> int:
         s = self._s
         node_id = len(s.node_odom)
+        step = float(np.hypot(*(odom[:2] - s.node_odom[-1][:2]))) if s.node_odom else 0.0
+        s.node_path_m.append((s.node_path_m[-1] if s.node_path_m else 0.0) + step)
         s.node_odom.append(odom)
         s.node_scan_index.append(len(s.scans) - 1)
         s.records.append(_ScanRecord(scan.stamp_s, node_id, np.zeros(3)))
@@ -252,52 +255,67 @@ class Slam:
     def _search_loop_closure(self, node_id: int, feats: ScanFeatures) -> None:
         """Search older nodes near the current estimate and add a robust loop closure.
 
-        The search radius grows with the marginal position uncertainty of the current node
-        (``radius = base + n_sigma * sqrt(lambda_max(cov_xy))``). The candidate's landmarks
-        are matched with bounds of that radius; a match is accepted only if it is consistent
-        with the current estimate (Mahalanobis distance under the sum of the marginal and
-        match covariances below a chi-square gate) and then enters with a robust kernel.
+        Candidates are nodes at least ``min_node_gap`` nodes and ``min_path_m`` metres of
+        path back, within ``radius = base + n_sigma * sqrt(lambda_max(cov_xy))`` of the
+        current estimate (``cov_xy`` from the current node's marginal, capped at
+        ``max_search_radius_m``); up to ``max_candidates`` of the nearest, from distinct
+        places, are matched against their landmarks (candidate ± ``window_nodes``) and the
+        best-correlated match is kept. It is accepted when it is consistent with the current
+        estimate (Mahalanobis distance of the innovation under the marginal plus the match
+        covariance below a chi-square gate), or when it agrees with a recent closure that
+        failed the gate (see :meth:`_agree`); it enters with a robust kernel.
         """
         lc = self.config.loop_closure
         ids, poses = self.graph.estimates()
         current = poses[node_id]
-        older = ids[ids <= node_id - lc.min_node_gap]
+        path = np.asarray(self._s.node_path_m)
+        # A loop candidate is old in node count and far along the path: a node reached again
+        # after a detour, not the corridor just driven.
+        older = ids[
+            (ids <= node_id - lc.min_node_gap) & (path[node_id] - path[ids] >= lc.min_path_m)
+        ]
         if older.size == 0:
             return
         self.loop_stats.searches += 1
         marginal = self.graph.marginal_covariance(node_id)
         sigma_xy = float(np.sqrt(max(np.linalg.eigvalsh(marginal[:2, :2]).max(), 0.0)))
-        radius = lc.search_radius_m + lc.search_n_sigma * sigma_xy
+        radius = min(lc.search_radius_m + lc.search_n_sigma * sigma_xy, lc.max_search_radius_m)
         dist = np.hypot(*(poses[older, :2] - current[:2]).T)
-        near = older[dist <= radius]
-        if near.size == 0:
-            return
-        candidate = int(near[np.argmin(dist[dist <= radius])])
-        window = [
-            n
-            for n in range(candidate - lc.window_nodes, candidate + lc.window_nodes + 1)
-            if 0 <= n <= node_id - lc.min_node_gap
-        ]
-        reference = self.feature_map.reference((ids, poses), window, poses[candidate])
-        prediction = se2.between(poses[candidate], current)
+        order = np.argsort(dist, kind="stable")
+        candidates: list[int] = []
+        for k in order[dist[order] <= radius]:
+            if all(abs(int(older[k]) - c) > 2 * lc.window_nodes for c in candidates):
+                candidates.append(int(older[k]))
+            if len(candidates) == lc.max_candidates:
+                break
         bounds = MatchBounds(
             max_translation_m=radius,
             max_rotation_rad=np.radians(lc.max_rotation_deg)
             + lc.search_n_sigma * float(np.sqrt(max(marginal[2, 2], 0.0))),
         )
-        self.loop_stats.attempts += 1
-        result = self.matcher.match(feats, reference, prediction, bounds)
-        if not result.success or result.correlation < lc.min_correlation:
-            self.loop_stats.rejected_match += 1
-            logger.debug(
-                "loop closure %d->%d (radius %.2f m) not matched: %s (correlation %.2f)",
-                candidate,
-                node_id,
-                radius,
-                result.reason,
-                result.correlation,
-            )
+        best: tuple[int, FloatArray, MatchResult] | None = None
+        for candidate in candidates:
+            window = np.arange(candidate - lc.window_nodes, candidate + lc.window_nodes + 1)
+            window = window[(window >= 0) & (window <= node_id - lc.min_node_gap)]
+            reference = self.feature_map.reference((ids, poses), window, poses[candidate])
+            prediction = se2.between(poses[candidate], current)
+            self.loop_stats.attempts += 1
+            result = self.matcher.match(feats, reference, prediction, bounds)
+            if not result.success or result.correlation < lc.min_correlation:
+                self.loop_stats.rejected_match += 1
+                logger.debug(
+                    "loop closure %d->%d (radius %.2f m) not matched: %s (correlation %.2f)",
+                    candidate,
+                    node_id,
+                    radius,
+                    result.reason,
+                    result.correlation,
+                )
+            elif best is None or result.correlation > best[2].correlation:
+                best = (candidate, prediction, result)
+        if best is None:
             return
+        candidate, prediction, result = best
         innovation = se2.between(prediction, result.pose)
         innovation_cov = marginal + result.cov
         d2 = float(innovation @ np.linalg.solve(innovation_cov, innovation))
