@@ -60,7 +60,7 @@ def bench_m3500(path: Path) -> None:
     data = load_g2o(path)
     times: list[float] = []
     graph = replay_node_by_node(data, times_s=times)
-    _summary("iSAM2 update per node", times)
+    _summary(f"iSAM2 update per node ({graph.factorization})", times)
     start = time.perf_counter()
     extra = _converge(graph)
     print(f"  {extra} extra update() to converge: {time.perf_counter() - start:.2f} s")
@@ -119,7 +119,7 @@ def bench_simulated(n_nodes: int) -> None:
         start = time.perf_counter()
         graph.update()
         times.append(time.perf_counter() - start)
-    _summary("iSAM2 update per node", times)
+    _summary(f"iSAM2 update per node ({graph.factorization})", times)
     extra = _converge(graph)
     _, inc = graph.estimates()
     start = time.perf_counter()

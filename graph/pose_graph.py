@@ -165,6 +165,7 @@ class PoseGraph:
         self._pending_nodes: list[int] = []
         self._pending_factors: list[int] = []
         self._in_isam: set[int] = set()
+        self._qr = self.config.factorization == "qr"
         self._isam: gtsam.ISAM2 | None = self._new_isam()
         self._seed: gtsam.Values | None = None  # linearization point kept after a failure
         self._served: gtsam.Values | None = None  # batch values, until the next update()
@@ -311,6 +312,8 @@ class PoseGraph:
             result = self._isam.update(new_graph, new_values)
         except _GTSAM_ERRORS as exc:
             self._mark_broken()
+            if self._switch_to_qr(exc):
+                return self._reseed(self._seed_values())
             raise self._wrap(exc, "iSAM2 update") from exc
         slots = list(result.getNewFactorsIndices())
         if slots != self._pending_factors:  # FactorRecord.index must be the iSAM2 slot
@@ -342,7 +345,8 @@ class PoseGraph:
         added later are solved incrementally from the batch optimum.
 
         Levenberg–Marquardt as in gtsam (Marquardt 1963 diagonal damping when
-        ``config.batch_diagonal_damping``), linear solver per ``config.factorization``.
+        ``config.batch_diagonal_damping``), linear solver per ``config.factorization`` (with
+        'auto', a Cholesky failure switches the graph to QR and the run is repeated).
 
         Args:
             max_iterations: iteration cap; hitting it is logged as a warning.
@@ -363,14 +367,16 @@ class PoseGraph:
         params.setRelativeErrorTol(self.config.batch_relative_error_tol)
         params.setAbsoluteErrorTol(1e-12)  # error units; far below any meaningful change
         params.setDiagonalDamping(self.config.batch_diagonal_damping)
-        solver = "MULTIFRONTAL_QR" if self.config.factorization == "qr" else "MULTIFRONTAL_CHOLESKY"
-        params.setLinearSolverType(solver)
         error_before = graph.error(values)
-        try:
-            optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-            result = optimizer.optimize()
-        except _GTSAM_ERRORS as exc:
-            raise self._wrap(exc, "batch Levenberg–Marquardt") from exc
+        while True:
+            params.setLinearSolverType("MULTIFRONTAL_QR" if self._qr else "MULTIFRONTAL_CHOLESKY")
+            try:
+                optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+                result = optimizer.optimize()
+                break
+            except _GTSAM_ERRORS as exc:
+                if not self._switch_to_qr(exc):
+                    raise self._wrap(exc, "batch Levenberg–Marquardt") from exc
         iterations = int(optimizer.iterations())
         converged = iterations < max_iterations
         stats = BatchStats(iterations, error_before, graph.error(result), converged)
@@ -486,6 +492,11 @@ class PoseGraph:
         return 0 if self._isam is None else int(self._isam.getFactorsUnsafe().nrFactors())
 
     @property
+    def factorization(self) -> str:
+        """Factorization in use: ``"qr"`` or ``"cholesky"`` ('auto' may have moved to QR)."""
+        return "qr" if self._qr else "cholesky"
+
+    @property
     def n_pending(self) -> tuple[int, int]:
         """``(nodes, factors)`` buffered for the next :meth:`update`."""
         return len(self._pending_nodes), len(self._pending_factors)
@@ -553,7 +564,7 @@ class PoseGraph:
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(self.config.relinearize_threshold)
         params.relinearizeSkip = self.config.relinearize_skip
-        params.setFactorization("QR" if self.config.factorization == "qr" else "CHOLESKY")
+        params.setFactorization("QR" if self._qr else "CHOLESKY")
         return gtsam.ISAM2(params)
 
     def _record(
@@ -622,14 +633,18 @@ class PoseGraph:
 
     def _reseed(self, values: gtsam.Values) -> UpdateStats:
         """Rebuild iSAM2 from every factor, linearized at ``values``; clears the buffer."""
-        isam = self._new_isam()
-        try:
-            result = isam.update(self._full_graph(), values)
-        except _GTSAM_ERRORS as exc:
-            self._seed = gtsam.Values(values)
-            self._isam = None
-            self._in_isam.clear()
-            raise self._wrap(exc, "iSAM2 rebuild") from exc
+        while True:
+            isam = self._new_isam()
+            try:
+                result = isam.update(self._full_graph(), values)
+                break
+            except _GTSAM_ERRORS as exc:
+                if self._switch_to_qr(exc):
+                    continue
+                self._seed = gtsam.Values(values)
+                self._isam = None
+                self._in_isam.clear()
+                raise self._wrap(exc, "iSAM2 rebuild") from exc
         self._isam = isam
         self._seed = None
         self._served = None
@@ -644,6 +659,19 @@ class PoseGraph:
         self._pending_nodes.clear()
         self._pending_factors.clear()
         return stats
+
+    def _switch_to_qr(self, exc: BaseException) -> bool:
+        """With factorization 'auto', move from Cholesky to QR after an indeterminant system."""
+        if self._qr or self.config.factorization != "auto":
+            return False
+        if not _NEAR_VARIABLE.search(str(exc)):
+            return False
+        self._qr = True
+        logger.warning(
+            "Cholesky found an indeterminant system (%s); switching this graph to QR",
+            str(exc).strip().splitlines()[0] if str(exc).strip() else "",
+        )
+        return True
 
     def _check_connected(self, nodes: list[int]) -> None:
         for n in nodes:
@@ -667,12 +695,12 @@ class PoseGraph:
         near = _NEAR_VARIABLE.search(text)
         if near:
             node = int(near.group(1))
-            hint = " (try factorization='qr')" if self.config.factorization == "cholesky" else ""
+            hint = "" if self._qr else " (try factorization='qr')"
             return GraphError(
                 f"{action}: indeterminant linear system near node {node} ({self._describe(node)})"
                 ": the node is under-constrained (no path of factors to a prior, or a covariance "
                 "so large in some direction that it constrains nothing) or the system is too "
-                f"ill-conditioned for the {self.config.factorization} factorization{hint}"
+                f"ill-conditioned for the {self.factorization} factorization{hint}"
             )
         missing = _MISSING_KEY.search(text)
         if missing:

@@ -3,10 +3,10 @@
 Truth: the batch optimum of the same graph (Levenberg–Marquardt to a relative error change of
 1e-10, started from the incremental estimate). The graph is fed node by node the way a SLAM
 front-end would (graph.replay.replay_node_by_node), with the default GraphConfig
-(relinearize_threshold 1e-3, relinearize_skip 10, QR); after the last node, update() is called
-3 * relinearize_skip more times (three relinearization checks: the newest loop closures have
-not been relinearized yet; without them M3500b ends 9.5 cm off). Per-node agreement must be
-within 1 cm and 0.1 deg.
+(relinearize_threshold 1e-3, relinearize_skip 10, factorization 'auto'); after the last node,
+update() is called 3 * relinearize_skip more times (three relinearization checks: the newest
+loop closures have not been relinearized yet; without them M3500b ends 9.5 cm off). Per-node
+agreement must be within 1 cm and 0.1 deg.
 
 Why batch starts from the incremental estimate: from the file's odometry-composed initial
 values, Levenberg–Marquardt does not reach the optimum on either graph (INTEL: error 5123 after
@@ -29,13 +29,14 @@ from tests.conftest import shared_file
 
 
 @pytest.mark.parametrize(
-    "name",
+    ("name", "factorization"),
     [
-        "input_INTEL_g2o.g2o",
-        "input_M3500b_g2o.g2o",  # about 12 s
+        # INTEL's ill-conditioned covariances send 'auto' from Cholesky to QR at node 11
+        ("input_INTEL_g2o.g2o", "qr"),
+        ("input_M3500b_g2o.g2o", "cholesky"),  # about 6 s
     ],
 )
-def test_incremental_reaches_the_batch_optimum(name: str) -> None:
+def test_incremental_reaches_the_batch_optimum(name: str, factorization: str) -> None:
     data = load_g2o(shared_file(f"g2o/{name}"))
     start = time.perf_counter()
     graph = replay_node_by_node(data)
@@ -45,6 +46,7 @@ def test_incremental_reaches_the_batch_optimum(name: str) -> None:
         graph.update()
     feed_s = time.perf_counter() - start
     assert graph.isam2_factor_count == data.n_edges + 1  # every edge once, plus the prior
+    assert graph.factorization == factorization
     ids, incremental = graph.estimates()
     error_incremental = sum(graph.residual_errors().values())
 
@@ -71,8 +73,8 @@ def test_incremental_reaches_the_batch_optimum(name: str) -> None:
 
 def test_cholesky_on_intel_fails_with_the_node_named() -> None:
     # INTEL's information matrices reach condition number 2.4e11; gtsam's Cholesky declares
-    # the system indeterminant within the first dozen nodes (why the default is QR). The
-    # wrapped error must say where.
+    # the system indeterminant within the first dozen nodes (why 'auto' falls back to QR).
+    # With Cholesky forced, the wrapped error must say where.
     data = load_g2o(shared_file("g2o/input_INTEL_g2o.g2o"))
     with pytest.raises(
         GraphError, match=r"indeterminant linear system near node \d+ \(its factors"
