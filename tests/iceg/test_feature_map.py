@@ -1,0 +1,211 @@
+"""Tests of the feature map: anchored landmarks, references, association and time-validity
+(paper §III-C3, DESIGN.md "Feature map and time-validity").
+
+Truth: exact SE(2) algebra for frames; the simulator's ground truth (true poses, the box's
+geometry and removal time) for time-validity.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from frontends.simulate import box_world, office_world, simulate
+from iceg.feature_map import PRUNED_VALIDITY, FeatureMap, FeatureMapConfig
+from iceg.features import extract
+from iceg.matching import IceMatcher, MatchBounds
+from iceg.types import FeatureKind, MatchResult
+from iceg_common.errors import MatchingError
+from iceg_common.se2 import between, transform_points
+from tests.iceg.test_matching import hand_scan, point_features, room_walls
+
+
+def _unit(deg: float) -> list[float]:
+    return [math.cos(math.radians(deg)), math.sin(math.radians(deg))]
+
+
+def test_reference_is_in_the_frame_pose_frame() -> None:
+    rng = np.random.default_rng(0)
+    w = room_walls()
+    pa, pb = np.array([2.0, 2.0, 0.3]), np.array([3.0, 2.5, 0.6])
+    fa = hand_scan(w, pa, rng)
+    fm = FeatureMap()
+    up = fm.update(0, fa, 0.0)
+    assert up.added_ids.tolist() == list(range(fa.n_features))
+    poses = {0: pa, 1: pb}
+    ref = fm.reference(poses, [0], pb)
+    # Landmarks of node 0 seen from pb: exact SE(2) algebra.
+    rel = between(pb, pa)
+    np.testing.assert_allclose(ref.xy, transform_points(rel, fa.xy), atol=1e-12)
+    np.testing.assert_allclose(
+        ref.seg_endpoints,
+        transform_points(rel, fa.seg_endpoints.reshape(-1, 2)).reshape(-1, 2, 2),
+        atol=1e-12,
+    )
+    # Segment endpoints lie on their transformed lines (rho >= 0 form).
+    n = np.stack([np.cos(ref.seg_lines[:, 0]), np.sin(ref.seg_lines[:, 0])], axis=1)
+    for k in (0, 1):
+        np.testing.assert_allclose(
+            np.einsum("ma,ma->m", n, ref.seg_endpoints[:, k]), ref.seg_lines[:, 1], atol=0.02
+        )
+    assert np.all(ref.seg_lines[:, 1] >= 0)
+    np.testing.assert_array_equal(ref.ids, np.arange(fa.n_features))
+    assert ref.points_xy.shape == (0, 2)
+    # The same landmarks in the world frame, from a dict or an (ids, poses) tuple.
+    v1 = fm.world_landmarks(poses)
+    v2 = fm.world_landmarks((np.array([1, 0]), np.stack([pb, pa])))
+    np.testing.assert_allclose(v1.xy, transform_points(pa, fa.xy), atol=1e-12)
+    np.testing.assert_allclose(v2.xy, v1.xy)
+    # A node without landmarks gives an empty reference; unknown anchors are left out.
+    assert fm.reference(poses, [1], pb).n_features == 0
+    assert fm.reference({1: pb}, [0], pb).n_features == 0
+
+
+def test_update_checks_its_inputs() -> None:
+    fm = FeatureMap()
+    f = point_features([FeatureKind.INTERSECTION], [[1.0, 1.0]])
+    fm.update(0, f, 0.0)
+    with pytest.raises(MatchingError, match="already added"):
+        fm.update(0, f, 1.0)
+    ok = MatchResult(True, np.zeros(3), np.eye(3), 0.9)
+    with pytest.raises(MatchingError, match="reference"):
+        fm.update(1, f, 1.0, match=ok)
+    with pytest.raises(MatchingError, match="reference"):
+        fm.update(1, f, 1.0, match=ok, reference=f)  # not built by this map
+    # A failed match is no evidence: every feature becomes a landmark of the new node.
+    bad = MatchResult(False, np.zeros(3), np.full((3, 3), np.nan), 0.0, reason="x")
+    up = fm.update(1, f, 1.0, match=bad)
+    assert up.added_ids.tolist() == [1]
+
+
+def test_matched_features_update_landmarks_instead_of_duplicating_them() -> None:
+    rng = np.random.default_rng(4)
+    w = room_walls()
+    poses = {0: np.array([2.0, 2.0, 0.3]), 1: np.array([2.4, 2.3, 0.4])}
+    fa = hand_scan(w, poses[0], rng)
+    fb = hand_scan(w, poses[1], rng)
+    fm = FeatureMap()
+    fm.update(0, fa, 0.0)
+    ref = fm.reference(poses, [0], poses[0])
+    res = IceMatcher().match(fb, ref, between(poses[0], poses[1]), MatchBounds.local(0.3, 10))
+    assert res.success, res.reason
+    up = fm.update(1, fb, 0.2, reference=ref, match=res, node_poses=poses)
+    # Every feature of the second scan is a landmark of the first seen again (the two
+    # views of the room share all corners and door ends): nothing new is added.
+    assert up.added_ids.shape[0] == fb.n_features - up.matched_ids.shape[0]
+    assert up.matched_ids.shape[0] >= len(res.inlier_pairs)
+    v = fm.world_landmarks(poses)
+    m = np.isin(v.ids, up.matched_ids)
+    assert np.all(v.n_matched[m] == 1)
+    # Matched landmarks stay within 3 cm of the true room geometry.
+    corners = np.array([[0, 0], [10, 0], [10, 7], [0, 7], [6, 3], [7, 3], [7, 4.5], [6, 4.5]])
+    ends = np.array([[3, 0], [4, 0], [10, 4.5], [10, 5.4]])
+    truth = np.concatenate([corners, ends])
+    d = np.min(np.linalg.norm(v.xy[:, None] - truth[None], axis=2), axis=1)
+    assert np.all(d[v.kind != FeatureKind.INTERSECTION] < 0.03)
+
+
+def test_an_eow_seen_as_a_corner_becomes_a_corner() -> None:
+    # Paper §III-C2 (Fig. 1-2): point A is an EOW from P1 and a Corner from P2.
+    p0, p1 = np.array([0.0, 0.0, 0.0]), np.array([1.0, -1.0, 0.5])
+    corner_world = np.array([3.0, 1.0])
+    eow = point_features([FeatureKind.EOW], [corner_world], [[_unit(180), [np.nan, np.nan]]])
+    xy1 = transform_points(between(p1, p0), corner_world[None])[0]
+    corner = point_features(
+        [FeatureKind.CORNER], [xy1], [[_unit(180 - 28.6479), _unit(270 - 28.6479)]]
+    )
+    fm = FeatureMap()
+    fm.update(0, eow, 0.0)
+    poses = {0: p0, 1: p1}
+    ref = fm.reference(poses, [0], p0)
+    res = MatchResult(True, between(p0, p1), np.eye(3) * 1e-4, 0.9, np.array([[0, 0]]))
+    up = fm.update(1, corner, 0.2, reference=ref, match=res, node_poses=poses)
+    assert up.added_ids.shape[0] == 0
+    v = fm.world_landmarks(poses)
+    assert v.kind.tolist() == [FeatureKind.CORNER]
+    np.testing.assert_allclose(v.xy[0], corner_world, atol=1e-9)
+    # Its two walls in the world frame: the corner's edges rotated by the pose of node 1.
+    np.testing.assert_allclose(
+        v.directions[0, 0], _unit(180 - 28.6479 + math.degrees(0.5)), atol=1e-9
+    )
+
+
+def _run_map(world, seed: int, config: FeatureMapConfig):
+    """Feature map along a simulated run with true node poses: keyframes every 0.3 m or
+    10 deg, each matched against the landmarks of the last four nodes."""
+    run = simulate(world, seed=seed)
+    fm = FeatureMap(config)
+    m = IceMatcher()
+    poses: dict[int, np.ndarray] = {}
+    expected_at: dict[int, list[float]] = {}
+    last = None
+    for s, truth in zip(run.scans, run.true_poses, strict=True):
+        if last is not None:
+            d = between(last, truth)
+            if math.hypot(d[0], d[1]) < 0.3 and abs(d[2]) < math.radians(10):
+                continue
+        f = extract(s)
+        node = len(poses)
+        poses[node] = truth
+        if node == 0:
+            fm.update(0, f, s.stamp_s, scan=s)
+        else:
+            ref = fm.reference(poses, range(max(0, node - 4), node), poses[node - 1])
+            res = m.match(f, ref, between(poses[node - 1], truth), MatchBounds.local(0.3, 10))
+            up = fm.update(node, f, s.stamp_s, reference=ref, match=res, scan=s, node_poses=poses)
+            for i in up.expected_ids:
+                expected_at.setdefault(int(i), []).append(s.stamp_s)
+        last = truth
+    return fm, poses, expected_at
+
+
+def _pruned_world(fm: FeatureMap, poses) -> tuple[np.ndarray, object]:
+    p = fm.pruned
+    xy = np.array(
+        [transform_points(poses[int(a)], p.xy[i][None])[0] for i, a in enumerate(p.anchor)]
+    ).reshape(-1, 2)
+    return xy, p
+
+
+def test_time_validity_prunes_the_removed_box_and_no_static_wall_feature() -> None:
+    # Issue 4 acceptance: the box (x 5.5-6.5, y 3.5-4.5) is removed halfway through the run;
+    # its features are pruned within the validity window once the robot looks at where
+    # they were, and no feature of a static wall is ever pruned.
+    cfg = FeatureMapConfig()
+    world = box_world()
+    removed_s = world.dynamic_walls[0].present_until_s
+    fm, poses, expected_at = _run_map(world, 3, cfg)
+    xy, p = _pruned_world(fm, poses)
+    near_box = (np.abs(xy[:, 0] - 6.0) < 1.0) & (np.abs(xy[:, 1] - 4.0) < 1.0)
+    assert np.all(near_box), xy[~near_box]  # nothing static pruned
+    assert np.all(p.reason == PRUNED_VALIDITY)
+    # All four box corners went, and no landmark is left at the box.
+    box_corners = np.array([[5.5, 3.5], [6.5, 3.5], [6.5, 4.5], [5.5, 4.5]])
+    assert np.all(np.min(np.linalg.norm(box_corners[:, None] - xy[None], axis=2), axis=1) < 0.05)
+    v = fm.world_landmarks(poses)
+    assert not np.any((np.abs(v.xy[:, 0] - 6.0) < 1.0) & (np.abs(v.xy[:, 1] - 4.0) < 1.0))
+    for i in range(p.ids.shape[0]):
+        # Pruned only after the box was gone for longer than validity_s since the last match,
+        # and as soon as the misses since the first look after the last match are confirmed
+        # (miss_confirm_s), give or take one keyframe.
+        assert p.last_matched_s[i] <= removed_s + 0.2
+        assert p.stamp_s[i] - p.last_matched_s[i] >= cfg.validity_s
+        looks = np.array(expected_at[int(p.ids[i])])
+        first_miss = looks[looks > p.last_matched_s[i]].min()
+        due = max(p.last_matched_s[i] + cfg.validity_s, first_miss + cfg.miss_confirm_s)
+        assert due <= p.stamp_s[i] <= due + 1.0
+
+
+def test_no_landmark_of_a_static_office_is_pruned() -> None:
+    # A static world: nothing may be pruned along the office route (which passes every
+    # room again on its way back); duplicates of one corner are merged, not pruned.
+    fm, poses, _ = _run_map(office_world(), 0, FeatureMapConfig())
+    assert fm.pruned.ids.shape[0] == 0
+    assert len(fm) > 20
+    v = fm.world_landmarks(poses)
+    # Corners and wall ends of the map are the office's own (simulator ground truth).
+    truth = np.concatenate([office_world().corners(), office_world().wall_ends()])
+    d = np.min(np.linalg.norm(v.xy[:, None] - truth[None], axis=2), axis=1)
+    assert np.median(d[v.kind != FeatureKind.INTERSECTION]) < 0.03
