@@ -395,7 +395,7 @@ class MatchingConfig(BaseModel):
         "bearing reaches farther than its distance plus this (free-space consistency).",
     )
     max_see_through_fraction: float = Field(
-        0.15,
+        0.25,
         ge=0.0,
         le=1.0,
         description="A match fails when more than this fraction of the checked wall length "

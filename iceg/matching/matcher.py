@@ -19,7 +19,6 @@ from iceg.matching.geometry import (
     feature_geometry,
     point_segment_index,
     rot,
-    sample_segments,
 )
 from iceg.matching.hypotheses import generate_hypotheses, pair_codes, segment_rotation, vote
 from iceg.matching.refine import (
@@ -409,23 +408,8 @@ class IceMatcher:
                 f"{REASON_OUT_OF_BOUNDS}: refined pose {dist:.2f} m / {math.degrees(dth):.1f} deg "
                 "from the prediction"
             )
-        min_pairs = c.min_matched_features_global if bounds.is_global else c.min_matched_features
-        min_corr = c.min_correlation_global if bounds.is_global else c.min_correlation
-        if n_matched >= min_pairs:
-            # Feature-supported: eq. 1 decides (paper §III-C3).
-            if score < min_corr:
-                return f"{REASON_LOW_CORRELATION}: {score:.3f} < {min_corr}"
-            min_overlap = c.min_point_overlap_global if bounds.is_global else c.min_point_overlap
-        elif not bounds.is_global and cand.from_prediction and n_matched == 0:
-            # No feature pairs (a corridor, or features too unstable to pair), tracked from
-            # the prediction: the points decide, and the covariance shows what the walls
-            # leave unconstrained.
-            min_overlap = c.min_point_overlap_featureless
-        else:
-            return (
-                f"{REASON_FEW_INLIERS}: {n_matched} feature pairs (< {min_pairs}; "
-                f"{gn.n} new, {n_visible} visible reference features)"
-            )
+        # Free space first: a hypothesis that contradicts what a scan sees is no answer and
+        # no rival either.
         frac, length = self._see_through(ref.pose, features, reference, profile, ref_profile)
         cand.see_through = frac
         if (
@@ -448,9 +432,26 @@ class IceMatcher:
             return (
                 f"{REASON_INCONSISTENT}: one scan's origin lies behind a wall the other scan sees"
             )
-        # A consistent, feature-supported hypothesis is a rival of the best even if it
-        # explains too few points to be accepted itself.
-        cand.rival = True
+        # A consistent hypothesis with feature support is a rival of the best even if it
+        # is too weak to be accepted itself (one pair in a global match, few points).
+        cand.rival = n_matched >= 1
+        min_pairs = c.min_matched_features_global if bounds.is_global else c.min_matched_features
+        min_corr = c.min_correlation_global if bounds.is_global else c.min_correlation
+        if n_matched >= min_pairs:
+            # Feature-supported: eq. 1 decides (paper §III-C3).
+            if score < min_corr:
+                return f"{REASON_LOW_CORRELATION}: {score:.3f} < {min_corr}"
+            min_overlap = c.min_point_overlap_global if bounds.is_global else c.min_point_overlap
+        elif not bounds.is_global and cand.from_prediction and n_matched == 0:
+            # No feature pairs (a corridor, or features too unstable to pair), tracked from
+            # the prediction: the points decide, and the covariance shows what the walls
+            # leave unconstrained.
+            min_overlap = c.min_point_overlap_featureless
+        else:
+            return (
+                f"{REASON_FEW_INLIERS}: {n_matched} feature pairs (< {min_pairs}; "
+                f"{gn.n} new, {n_visible} visible reference features)"
+            )
         if ref.overlap < min_overlap:
             return (
                 f"{REASON_FEW_INLIERS}: {ref.overlap:.0%} of the scan's points on reference "
@@ -547,12 +548,12 @@ class IceMatcher:
         ref_profile: PolarProfile | None,
     ) -> tuple[float, float]:
         """Free-space consistency: the fraction (and length, metres) of checked wall that
-        one scan places where the other scan's beams pass through. Reference segments are
-        checked against the new scan's beams; when the reference has points (a scan), the
-        new segments are checked against the reference's beams too."""
+        one scan places where the other scan's beams pass through. The reference segments
+        are cast along the new scan's beams; when the reference has points (a scan), the new
+        segments along the reference's beams too."""
         c = self.config
-        n_see = 0
-        n_cons = 0
+        len_see = 0.0
+        len_cons = 0.0
         inv_r = rot(pose[2]).T
         ep_ref_new = (reference.seg_endpoints - pose[:2]) @ inv_r.T
         checks = [(ep_ref_new, profile)]
@@ -560,30 +561,43 @@ class IceMatcher:
             ep_new_ref = features.seg_endpoints @ rot(pose[2]).T + pose[:2]
             checks.append((ep_new_ref, ref_profile))
         for ep, prof in checks:
-            pts, seg = sample_segments(ep, c.see_through_step_m)
-            if pts.shape[0] == 0 or prof.bearing.shape[0] == 0:
-                continue
-            d = ep[:, 1] - ep[:, 0]
-            nrm = np.stack([-d[:, 1], d[:, 0]], axis=1)
-            nrm /= np.maximum(np.hypot(nrm[:, 0], nrm[:, 1]), 1e-12)[:, None]
-            dist = np.hypot(pts[:, 0], pts[:, 1])
-            ray = pts / np.maximum(dist, 1e-9)[:, None]
-            cos_inc = np.abs(np.einsum("na,na->n", ray, nrm[seg]))
-            bearing = np.arctan2(pts[:, 1], pts[:, 0])
-            rng_lo, _, rng_near = _bracket(prof, bearing)
-            ok = (
-                np.isfinite(rng_lo)
-                & (dist < prof.range_max_m - c.see_through_tolerance_m)
-                & (cos_inc > math.cos(math.radians(70.0)))
-            )
-            see = ok & (rng_lo > dist + c.see_through_tolerance_m)
-            cons = ok & (np.abs(rng_near - dist) <= c.see_through_tolerance_m)
-            n_see += int(see.sum())
-            n_cons += int(cons.sum())
-        total = n_see + n_cons
-        if total == 0:
+            see, cons = _ray_check(ep, prof, c.see_through_tolerance_m)
+            len_see += see
+            len_cons += cons
+        total = len_see + len_cons
+        if total <= 0.0:
             return 0.0, 0.0
-        return n_see / total, n_see * c.see_through_step_m
+        return len_see / total, len_see
+
+
+def _ray_check(ep: FloatArray, prof: PolarProfile, tol_m: float) -> tuple[float, float]:
+    """Cast the segments ``ep`` (M, 2, 2) (the checking scan's frame) along its beams (its
+    profile): a beam that reaches more than ``tol_m`` beyond the nearest segment it crosses
+    sees through that wall; one that ends within ``tol_m`` of it confirms it. Returns the
+    wall length (metres) seen through and confirmed; each beam counts the wall it covers
+    (``distance * spacing / cos(incidence)``) once, however many copies of the wall a map
+    reference holds. Walls met at more than 70 degrees incidence are not judged."""
+    if ep.shape[0] == 0 or prof.bearing.shape[0] == 0:
+        return 0.0, 0.0
+    dx, dy = np.cos(prof.bearing)[:, None], np.sin(prof.bearing)[:, None]
+    a = ep[:, 0]
+    e = ep[:, 1] - a
+    ex, ey = e[None, :, 0], e[None, :, 1]
+    denom = dx * ey - dy * ex  # (B, M)
+    safe = np.where(np.abs(denom) > 1e-12, denom, 1.0)
+    t = (a[None, :, 0] * ey - a[None, :, 1] * ex) / safe
+    u = (a[None, :, 0] * dy - a[None, :, 1] * dx) / safe
+    hit = np.where((np.abs(denom) > 1e-12) & (t > 0.0) & (u >= 0.0) & (u <= 1.0), t, np.inf)
+    k = np.argmin(hit, axis=1)
+    b = np.arange(hit.shape[0])
+    h = hit[b, k]
+    el = np.hypot(e[k, 0], e[k, 1])
+    cos_inc = np.abs(dx[:, 0] * e[k, 1] - dy[:, 0] * e[k, 0]) / np.maximum(el, 1e-12)
+    ok = np.isfinite(h) & (h < prof.range_max_m - tol_m) & (cos_inc > math.cos(math.radians(70)))
+    cover = np.where(ok, h * prof.spacing / np.maximum(cos_inc, 1e-3), 0.0)
+    see = ok & (prof.range > h + tol_m)
+    cons = ok & (np.abs(prof.range - h) <= tol_m)
+    return float(cover[see].sum()), float(cover[cons].sum())
 
 
 def _bracket(prof: PolarProfile, bearing: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
