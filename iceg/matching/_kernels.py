@@ -234,3 +234,104 @@ def feature_system(
                         jv[p] * (i00 * jv[q] + i01 * ju[q]) + ju[p] * (i01 * jv[q] + i11 * ju[q])
                     )
     return hess, grad
+
+
+@njit(cache=True, nogil=True)
+def _absw(x: float) -> float:
+    y = (x + math.pi) % (2.0 * math.pi) - math.pi
+    return abs(y)
+
+
+@njit(cache=True, nogil=True)
+def pair_nearest(
+    poses: np.ndarray,
+    new_xy: np.ndarray,
+    new_heading: np.ndarray,
+    new_edge: np.ndarray,
+    new_opening: np.ndarray,
+    ref_xy: np.ndarray,
+    ref_heading: np.ndarray,
+    ref_edge: np.ndarray,
+    ref_opening: np.ndarray,
+    codes: np.ndarray,
+    gate_distance_m: float,
+    gate_angle_rad: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Feature pairing of the correlation (see ``correlation.correlate``) for ``H`` poses:
+    each new feature pairs with the nearest compatible reference feature inside both gates,
+    and a reference feature keeps only its nearest new feature.
+
+    Pair codes (``hypotheses.pair_codes``): 1 same directed kind (heading difference),
+    2 new Corner / reference EOW and 3 new EOW / reference Corner (the closer Corner edge),
+    4 Intersections (opening-angle difference), 0 incompatible.
+
+    Returns:
+        ``match`` (H, K_new) reference index or -1, ``dist`` and ``angle`` (H, K_new) of the
+        pairs (NaN where unpaired).
+    """
+    h_n = poses.shape[0]
+    kn = new_xy.shape[0]
+    kr = ref_xy.shape[0]
+    match = np.full((h_n, kn), -1, dtype=np.int64)
+    dist = np.full((h_n, kn), np.nan)
+    angle = np.full((h_n, kn), np.nan)
+    owner = np.empty(kr, dtype=np.int64)
+    for h in range(h_n):
+        c = math.cos(poses[h, 2])
+        s = math.sin(poses[h, 2])
+        th = poses[h, 2]
+        for i in range(kn):
+            x = c * new_xy[i, 0] - s * new_xy[i, 1] + poses[h, 0]
+            y = s * new_xy[i, 0] + c * new_xy[i, 1] + poses[h, 1]
+            best = gate_distance_m
+            bj = -1
+            ba = 0.0
+            for j in range(kr):
+                code = codes[i, j]
+                if code == 0:
+                    continue
+                d = math.hypot(x - ref_xy[j, 0], y - ref_xy[j, 1])
+                if d >= best:
+                    continue
+                if code == 1:
+                    a = _absw(new_heading[i] + th - ref_heading[j])
+                elif code == 2:
+                    a = min(
+                        _absw(new_edge[i, 0] + th - ref_edge[j, 0]),
+                        _absw(new_edge[i, 1] + th - ref_edge[j, 0]),
+                    )
+                elif code == 3:
+                    a = min(
+                        _absw(new_edge[i, 0] + th - ref_edge[j, 0]),
+                        _absw(new_edge[i, 0] + th - ref_edge[j, 1]),
+                    )
+                else:
+                    a = abs(new_opening[i] - ref_opening[j])
+                if not (a < gate_angle_rad):  # NaN fails too
+                    continue
+                best = d
+                bj = j
+                ba = a
+            if bj >= 0:
+                match[h, i] = bj
+                dist[h, i] = best
+                angle[h, i] = ba
+        # One new feature per reference feature: the nearest keeps it.
+        owner[:] = -1
+        for i in range(kn):
+            j = match[h, i]
+            if j < 0:
+                continue
+            o = owner[j]
+            if o < 0:
+                owner[j] = i
+            elif dist[h, i] < dist[h, o]:
+                match[h, o] = -1
+                dist[h, o] = np.nan
+                angle[h, o] = np.nan
+                owner[j] = i
+            else:
+                match[h, i] = -1
+                dist[h, i] = np.nan
+                angle[h, i] = np.nan
+    return match, dist, angle

@@ -8,13 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from iceg.matching._kernels import pair_nearest
 from iceg.matching.geometry import FeatureGeometry, PolarProfile, rot
-from iceg.matching.hypotheses import (
-    CORNER_TO_EOW,
-    EOW_TO_CORNER,
-    INTERSECTIONS,
-    SAME_DIRECTED,
-)
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -48,51 +43,6 @@ class Correlation:
     match: IntArray
     n_matched: IntArray
     n_visible: IntArray
-
-
-def _absw(x: FloatArray) -> FloatArray:
-    """``|wrap(x)|`` in ``[0, pi]``."""
-    return np.abs(np.remainder(x + np.pi, 2.0 * np.pi) - np.pi)
-
-
-def pair_angle_error(
-    gn: FeatureGeometry,
-    gr: FeatureGeometry,
-    pi: IntArray,
-    pj: IntArray,
-    pcode: IntArray,
-    theta: FloatArray,
-) -> FloatArray:
-    """Angle term of compatible pairs under each hypothesis: heading difference after the
-    hypothesis' rotation (Corner bisectors, EOW walls; Corner<->EOW: the closer Corner
-    edge), opening-angle difference for Intersections.
-
-    Args:
-        pi, pj, pcode: ``(Q,)`` new index, reference index and pair code of the compatible
-            pairs.
-        theta: ``(H,)`` float64 hypothesis rotations, radians.
-
-    Returns:
-        ``(H, Q)`` float64 absolute angle errors, radians (``inf`` where undefined).
-    """
-    th = theta[:, None]
-    err = np.full((theta.shape[0], pi.shape[0]), np.inf)
-    with np.errstate(invalid="ignore"):
-        m = pcode == SAME_DIRECTED
-        if np.any(m):
-            err[:, m] = _absw(gn.heading[pi[m]] + th - gr.heading[pj[m]])
-        m = pcode == CORNER_TO_EOW
-        if np.any(m):
-            base = th - gr.edge[pj[m], 0]
-            err[:, m] = np.fmin(_absw(gn.edge[pi[m], 0] + base), _absw(gn.edge[pi[m], 1] + base))
-        m = pcode == EOW_TO_CORNER
-        if np.any(m):
-            base = gn.edge[pi[m], 0] + th
-            err[:, m] = np.fmin(_absw(base - gr.edge[pj[m], 0]), _absw(base - gr.edge[pj[m], 1]))
-        m = pcode == INTERSECTIONS
-        if np.any(m):
-            err[:, m] = np.abs(gn.opening[pi[m]] - gr.opening[pj[m]])[None, :]
-    return np.where(np.isfinite(err), err, np.inf)
 
 
 def visible_reference(
@@ -186,35 +136,22 @@ def correlate(
             np.zeros(h, dtype=np.int64),
             n_visible,
         )
-    pi, pj = np.nonzero(codes)
-    pcode = codes[pi, pj]
-    c, sn = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
-    nx, ny = gn.xy[pi, 0][None], gn.xy[pi, 1][None]
-    dx = c * nx - sn * ny + poses[:, 0:1] - gr.xy[pj, 0][None]
-    dy = sn * nx + c * ny + poses[:, 1:2] - gr.xy[pj, 1][None]
-    dist_q = np.hypot(dx, dy)  # (H, Q)
-    aerr_q = pair_angle_error(gn, gr, pi, pj, pcode, poses[:, 2])
-    ok = (dist_q < gate_distance_m) & (aerr_q < gate_angle_rad)
-    dmask = np.full((h, kn, kr), np.inf)
-    dmask[:, pi, pj] = np.where(ok, dist_q, np.inf)
-    aerr = np.full((h, kn, kr), np.inf)
-    aerr[:, pi, pj] = aerr_q
-    j = np.argmin(dmask, axis=2)  # (H, Kn)
-    hh, ii = np.meshgrid(np.arange(h), np.arange(kn), indexing="ij")
-    dbest = dmask[hh, ii, j]
-    matched = np.isfinite(dbest)
-    # One new feature per reference feature: keep the nearest.
-    hm, im = np.nonzero(matched)
-    if hm.shape[0] > 0:
-        jm = j[hm, im]
-        dm = dbest[hm, im]
-        order = np.lexsort((dm, jm, hm))
-        key = hm[order] * (kr + 1) + jm[order]
-        first = np.ones(order.shape[0], dtype=bool)
-        first[1:] = key[1:] != key[:-1]
-        drop = order[~first]
-        matched[hm[drop], im[drop]] = False
-    match = np.where(matched, j, -1).astype(np.int64)
+    match, dbest, a_best = pair_nearest(
+        poses,
+        gn.xy,
+        gn.heading,
+        gn.edge,
+        gn.opening,
+        gr.xy,
+        gr.heading,
+        gr.edge,
+        gr.opening,
+        codes,
+        gate_distance_m,
+        gate_angle_rad,
+    )
+    matched = match >= 0
+    j = np.where(matched, match, 0)
     if pairing_only:
         zeros = np.zeros(h)
         return Correlation(
@@ -233,7 +170,6 @@ def correlate(
     sw = w.sum(axis=1)
     safe = np.where(sw > 0, sw, 1.0)
     d_term = np.where(matched, 1.0 - np.where(matched, dbest, 0.0) / gate_distance_m, 0.0)
-    a_best = aerr[hh, ii, j]
     a_term = np.where(matched, 1.0 - np.where(matched, a_best, 0.0) / gate_angle_rad, 0.0)
     dis = np.where(sw > 0, (w * d_term).sum(axis=1) / safe, 0.0)
     ang = np.where(sw > 0, (w * a_term).sum(axis=1) / safe, 0.0)

@@ -456,9 +456,9 @@ def refine(
         pose[2] = (pose[2] + delta[2] + math.pi) % (2.0 * math.pi) - math.pi
         step_xy, step_th = math.hypot(delta[0], delta[1]), abs(delta[2])
         if coarse:
-            if (step_xy < 5e-3 and step_th < 3e-3) or it >= s.max_iterations // 2:
+            if (step_xy < 1e-2 and step_th < 5e-3) or it >= s.max_iterations // 2:
                 coarse = False
-        elif step_xy < 3e-4 and step_th < 5e-5:
+        elif step_xy < 5e-4 and step_th < 1e-4:
             break
         if not coarse:
             gate = min(s.gate_m, max(s.gate_min_m, s.gate_sigmas * sigma))
