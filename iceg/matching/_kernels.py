@@ -335,3 +335,175 @@ def pair_nearest(
                 dist[h, i] = np.nan
                 angle[h, i] = np.nan
     return match, dist, angle
+
+
+@njit(cache=True, nogil=True)
+def lattice_point_cost(
+    deltas: np.ndarray,
+    r0: np.ndarray,
+    jac: np.ndarray,
+    along0: np.ndarray,
+    jac_along: np.ndarray,
+    seg_len: np.ndarray,
+    end_tol_m: float,
+    gate_m: float,
+    cauchy_c: float,
+    sigma: float,
+) -> np.ndarray:
+    """Robust cost (Cauchy, in units of sigma^2) of the point-to-line residuals at each
+    lattice perturbation (see ``refine._lattice_covariance``): residuals and along-segment
+    coordinates move linearly with the perturbation; a point beyond its segment's extent
+    or beyond the gate costs as much as one at the gate."""
+    n_l = deltas.shape[0]
+    n = r0.shape[0]
+    out = np.zeros(n_l)
+    c2 = cauchy_c * cauchy_c
+    sat = 0.5 * c2 * math.log1p(gate_m * gate_m / c2)
+    for k in range(n_l):
+        dx, dy, dt = deltas[k, 0], deltas[k, 1], deltas[k, 2]
+        acc = 0.0
+        for i in range(n):
+            r = r0[i] + jac[i, 0] * dx + jac[i, 1] * dy + jac[i, 2] * dt
+            a = along0[i] + jac_along[i, 0] * dx + jac_along[i, 1] * dy + jac_along[i, 2] * dt
+            if a < -end_tol_m or a > seg_len[i] + end_tol_m or abs(r) > gate_m:
+                acc += sat
+            else:
+                acc += 0.5 * c2 * math.log1p(r * r / c2)
+        out[k] = acc / (sigma * sigma)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _solve3(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Solve the 3x3 system ``a x = b`` by cofactors; ``ok`` False if singular."""
+    c00 = a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1]
+    c01 = a[1, 2] * a[2, 0] - a[1, 0] * a[2, 2]
+    c02 = a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]
+    det = a[0, 0] * c00 + a[0, 1] * c01 + a[0, 2] * c02
+    x = np.zeros(3)
+    scale = abs(a[0, 0]) + abs(a[1, 1]) + abs(a[2, 2])
+    if not (abs(det) > 1e-300) or not math.isfinite(det) or scale == 0.0:
+        return x, False
+    inv = np.empty((3, 3))
+    inv[0, 0] = c00
+    inv[1, 0] = c01
+    inv[2, 0] = c02
+    inv[0, 1] = a[0, 2] * a[2, 1] - a[0, 1] * a[2, 2]
+    inv[1, 1] = a[0, 0] * a[2, 2] - a[0, 2] * a[2, 0]
+    inv[2, 1] = a[0, 1] * a[2, 0] - a[0, 0] * a[2, 1]
+    inv[0, 2] = a[0, 1] * a[1, 2] - a[0, 2] * a[1, 1]
+    inv[1, 2] = a[0, 2] * a[1, 0] - a[0, 0] * a[1, 2]
+    inv[2, 2] = a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]
+    for i in range(3):
+        x[i] = (inv[i, 0] * b[0] + inv[i, 1] * b[1] + inv[i, 2] * b[2]) / det
+    return x, True
+
+
+@njit(cache=True, nogil=True)
+def gn_phase(
+    pose0: np.ndarray,
+    prior_mean: np.ndarray,
+    prior_info: np.ndarray,
+    points: np.ndarray,
+    point_alpha: np.ndarray,
+    seg_a: np.ndarray,
+    seg_u: np.ndarray,
+    seg_len: np.ndarray,
+    seg_n: np.ndarray,
+    seg_rho: np.ndarray,
+    line_info: np.ndarray,
+    end_tol_m: float,
+    sin_normal_gate: float,
+    sigma_min: float,
+    cauchy_sigmas: float,
+    pair_new: np.ndarray,
+    pair_ref: np.ndarray,
+    new_xy: np.ndarray,
+    new_cov: np.ndarray,
+    new_kind: np.ndarray,
+    new_edge0: np.ndarray,
+    ref_xy: np.ndarray,
+    ref_cov: np.ndarray,
+    ref_kind: np.ndarray,
+    ref_edge0: np.ndarray,
+    eow_kind: int,
+    coarse: bool,
+    gate: float,
+    sigma: float,
+    max_it: int,
+    gate_m: float,
+    gate_sigmas: float,
+    gate_min_m: float,
+    tol_xy: float,
+    tol_th: float,
+) -> tuple[np.ndarray, float, float, int]:
+    """One phase of the Gauss-Newton refinement (``refine.refine``, without off-segment
+    points): point-to-line GLS rows, feature-pair rows (``pair_new``/``pair_ref``; full
+    positions in the coarse phase), the bounds' prior pulling toward ``prior_mean``; the
+    coarse phase keeps ``gate``, the fine phase sets it to ``gate_sigmas`` sigmas after each
+    step. Stops when a step is below ``tol_xy`` / ``tol_th`` or after ``max_it`` steps.
+
+    Returns:
+        The pose, the point noise estimate, the gate for the next phase and the number of
+        iterations run.
+    """
+    pose = pose0.copy()
+    it = 0
+    while it < max_it:
+        it += 1
+        hess, grad, sigma, _, _ = point_line_system(
+            pose,
+            points,
+            point_alpha,
+            seg_a,
+            seg_u,
+            seg_len,
+            seg_n,
+            seg_rho,
+            line_info,
+            gate,
+            end_tol_m,
+            sin_normal_gate,
+            sigma,
+            sigma_min,
+            cauchy_sigmas,
+        )
+        if pair_new.shape[0] > 0:
+            fh, fg = feature_system(
+                pose,
+                pair_new,
+                pair_ref,
+                new_xy,
+                new_cov,
+                new_kind,
+                new_edge0,
+                ref_xy,
+                ref_cov,
+                ref_kind,
+                ref_edge0,
+                eow_kind,
+                coarse,
+                2.5,
+            )
+            hess += fh
+            grad += fg
+        dp = pose - prior_mean
+        dp[2] = (dp[2] + math.pi) % (2.0 * math.pi) - math.pi
+        for i in range(3):
+            for k in range(3):
+                grad[i] += prior_info[i, k] * dp[k]
+                hess[i, k] += prior_info[i, k]
+            hess[i, i] += 1e-9
+        for i in range(3):
+            grad[i] = -grad[i]
+        delta, ok = _solve3(hess, grad)
+        if not ok:
+            break
+        pose[0] += delta[0]
+        pose[1] += delta[1]
+        pose[2] = (pose[2] + delta[2] + math.pi) % (2.0 * math.pi) - math.pi
+        if not coarse:
+            gate = min(gate_m, max(gate_min_m, gate_sigmas * sigma))
+        if math.hypot(delta[0], delta[1]) < tol_xy and abs(delta[2]) < tol_th:
+            break
+    return pose, sigma, gate, it

@@ -28,7 +28,12 @@ def rot(theta: float | FloatArray) -> FloatArray:
     """Rotation matrices ``(..., 2, 2)`` of angles ``(...)`` radians."""
     t = np.asarray(theta, dtype=np.float64)
     c, s = np.cos(t), np.sin(t)
-    return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+    out = np.empty((*t.shape, 2, 2))
+    out[..., 0, 0] = c
+    out[..., 0, 1] = -s
+    out[..., 1, 0] = s
+    out[..., 1, 1] = c
+    return out
 
 
 def empty_features(range_max_m: float = 20.0, stamp_s: float = 0.0) -> ScanFeatures:

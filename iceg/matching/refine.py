@@ -28,7 +28,12 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from iceg.matching._kernels import feature_system, point_line_system
+from iceg.matching._kernels import (
+    feature_system,
+    gn_phase,
+    lattice_point_cost,
+    point_line_system,
+)
 from iceg.matching.geometry import EOW, FeatureGeometry, SegmentSet, associate_points, rot
 
 FloatArray = NDArray[np.float64]
@@ -392,9 +397,13 @@ def refine(
     new_edge0 = np.ascontiguousarray(gn.edge[:, 0])
     ref_edge0 = np.ascontiguousarray(gr.edge[:, 0])
     sin_gate = math.sin(s.normal_gate_rad)
-    for it in range(1, s.max_iterations + 1):
-        hess, grad, sigma, _, _ = point_line_system(
-            pose,
+    if cloud is None:
+        # Both phases compiled (the usual case: a map reference has no points).
+        if coarse_pairs is None:
+            coarse_pairs = pair_fn(pose)
+        phase_args = (
+            prior_mean,
+            prior_info,
             points,
             point_alpha,
             segs.a,
@@ -403,65 +412,118 @@ def refine(
             segs.normal,
             segs.rho,
             line_info,
-            gate,
             s.end_tol_m,
             sin_gate,
-            sigma,
             s.sigma_min_m,
             s.cauchy_sigmas,
         )
-        if coarse:
-            if coarse_pairs is None:
-                coarse_pairs = pair_fn(pose)
-            pairs = coarse_pairs
-        else:
-            # The pairing is fixed once the coarse phase has converged.
-            if fine_pairs is None:
-                fine_pairs = pair_fn(pose)
-            pairs = fine_pairs
-        if pairs.shape[0]:
-            fh, fg = feature_system(
+        feat_args = (gn.xy, gn.cov, gn.kind, new_edge0, gr.xy, gr.cov, gr.kind, ref_edge0, EOW)
+        pose, sigma, gate, it = gn_phase(
+            pose,
+            *phase_args,
+            np.ascontiguousarray(coarse_pairs[:, 0]),
+            np.ascontiguousarray(coarse_pairs[:, 1]),
+            *feat_args,
+            True,
+            gate,
+            sigma,
+            max(1, s.max_iterations // 2),
+            s.gate_m,
+            s.gate_sigmas,
+            s.gate_min_m,
+            1e-2,
+            5e-3,
+        )
+        gate = min(s.gate_m, max(s.gate_min_m, s.gate_sigmas * sigma))
+        fine_pairs = pair_fn(pose)
+        pose, sigma, gate, it2 = gn_phase(
+            pose,
+            *phase_args,
+            np.ascontiguousarray(fine_pairs[:, 0]),
+            np.ascontiguousarray(fine_pairs[:, 1]),
+            *feat_args,
+            False,
+            gate,
+            sigma,
+            max(1, s.max_iterations - it),
+            s.gate_m,
+            s.gate_sigmas,
+            s.gate_min_m,
+            5e-4,
+            1e-4,
+        )
+        it += it2
+    else:
+        for it in range(1, s.max_iterations + 1):
+            hess, grad, sigma, _, _ = point_line_system(
                 pose,
-                pairs[:, 0],
-                pairs[:, 1],
-                gn.xy,
-                gn.cov,
-                gn.kind,
-                new_edge0,
-                gr.xy,
-                gr.cov,
-                gr.kind,
-                ref_edge0,
-                EOW,
-                coarse,
-                2.5,
+                points,
+                point_alpha,
+                segs.a,
+                segs.u,
+                segs.length,
+                segs.normal,
+                segs.rho,
+                line_info,
+                gate,
+                s.end_tol_m,
+                sin_gate,
+                sigma,
+                s.sigma_min_m,
+                s.cauchy_sigmas,
             )
-            hess += fh
-            grad += fg
-        fr = _cloud_rows(pose, cloud, gate, sigma)
-        if fr.r.shape[0] > 0:
-            hess += (fr.jac.T * (fr.w / fr.var)) @ fr.jac
-            grad += (fr.jac.T * (fr.w / fr.var)) @ fr.r
-        # The bounds' prior pulls toward the prediction (MAP): it only matters along
-        # directions the scene leaves unconstrained (a corridor's axis).
-        dp = pose - prior_mean
-        dp[2] = (dp[2] + math.pi) % (2.0 * math.pi) - math.pi
-        grad += prior_info @ dp
-        a = hess + prior_info + 1e-9 * np.eye(3)
-        try:
-            delta = -np.linalg.solve(a, grad)
-        except np.linalg.LinAlgError:
-            break
-        pose[:2] += delta[:2]
-        pose[2] = (pose[2] + delta[2] + math.pi) % (2.0 * math.pi) - math.pi
-        step_xy, step_th = math.hypot(delta[0], delta[1]), abs(delta[2])
-        if coarse:
-            if (step_xy < 1e-2 and step_th < 5e-3) or it >= s.max_iterations // 2:
-                coarse = False
-        elif step_xy < 5e-4 and step_th < 1e-4:
-            break
-        if not coarse:
-            gate = min(s.gate_m, max(s.gate_min_m, s.gate_sigmas * sigma))
+            if coarse:
+                if coarse_pairs is None:
+                    coarse_pairs = pair_fn(pose)
+                pairs = coarse_pairs
+            else:
+                # The pairing is fixed once the coarse phase has converged.
+                if fine_pairs is None:
+                    fine_pairs = pair_fn(pose)
+                pairs = fine_pairs
+            if pairs.shape[0]:
+                fh, fg = feature_system(
+                    pose,
+                    pairs[:, 0],
+                    pairs[:, 1],
+                    gn.xy,
+                    gn.cov,
+                    gn.kind,
+                    new_edge0,
+                    gr.xy,
+                    gr.cov,
+                    gr.kind,
+                    ref_edge0,
+                    EOW,
+                    coarse,
+                    2.5,
+                )
+                hess += fh
+                grad += fg
+            fr = _cloud_rows(pose, cloud, gate, sigma)
+            if fr.r.shape[0] > 0:
+                hess += (fr.jac.T * (fr.w / fr.var)) @ fr.jac
+                grad += (fr.jac.T * (fr.w / fr.var)) @ fr.r
+            # The bounds' prior pulls toward the prediction (MAP): it only matters along
+            # directions the scene leaves unconstrained (a corridor's axis).
+            dp = pose - prior_mean
+            dp[2] = (dp[2] + math.pi) % (2.0 * math.pi) - math.pi
+            grad += prior_info @ dp
+            a = hess + prior_info + 1e-9 * np.eye(3)
+            try:
+                delta = -np.linalg.solve(a, grad)
+            except np.linalg.LinAlgError:
+                break
+            pose[:2] += delta[:2]
+            pose[2] = (pose[2] + delta[2] + math.pi) % (2.0 * math.pi) - math.pi
+            step_xy, step_th = math.hypot(delta[0], delta[1]), abs(delta[2])
+            if coarse:
+                if (step_xy < 1e-2 and step_th < 5e-3) or it >= s.max_iterations // 2:
+                    coarse = False
+            elif step_xy < 5e-4 and step_th < 1e-4:
+                break
+            if not coarse:
+                gate = min(s.gate_m, max(s.gate_min_m, s.gate_sigmas * sigma))
     # Final linearisation at the refined pose.
     hess, _, sigma, idx, res = point_line_system(
         pose,
@@ -510,6 +572,10 @@ def refine(
     return Refined(pose, cov_ls, cov, sigma, overlap, int(pr.sel.sum()), pr.idx, it)
 
 
+#: Points evaluated on the lattice (evenly subsampled beyond; the cost is scaled up).
+_LATTICE_POINTS = 100
+
+
 @functools.lru_cache(maxsize=4)
 def _unit_lattice(steps: int) -> FloatArray:
     """``(steps^3, 3)`` lattice of ``[-1, 1]^3``."""
@@ -547,17 +613,28 @@ def _lattice_covariance(
     deltas = g @ evecs.T  # (L, 3) in (x, y, theta)
     cost = np.zeros(deltas.shape[0])
     if pr.r.shape[0] > 0:
-        seg = pr.idx[pr.sel]
+        # At most _LATTICE_POINTS points, evenly spread, their cost scaled up to all.
+        n_all = pr.r.shape[0]
+        pick = np.linspace(0, n_all - 1, min(n_all, _LATTICE_POINTS)).astype(np.int64)
+        pr = _PointRows(pr.idx, pr.sel, pr.r[pick], pr.jac[pick], pr.q[pick])
+        seg = pr.idx[pr.sel][pick]
         u = segs.u[seg]
         # Along-segment coordinate and its derivative.
         along = np.einsum("na,na->n", pr.q - segs.a[seg], u)
         rq = pr.q - pose[:2]
         j_along = np.column_stack([u[:, 0], u[:, 1], u[:, 1] * rq[:, 0] - u[:, 0] * rq[:, 1]])
-        r_l = pr.r[:, None] + pr.jac @ deltas.T  # (N, L)
-        a_l = along[:, None] + j_along @ deltas.T
-        outside = (a_l < -s.end_tol_m) | (a_l > segs.length[seg][:, None] + s.end_tol_m)
-        r_l = np.where(outside | (np.abs(r_l) > gate), gate, r_l)
-        cost += _cauchy_cost(r_l, c).sum(axis=0) / sigma**2
+        cost += (n_all / pick.shape[0]) * lattice_point_cost(
+            deltas,
+            np.ascontiguousarray(pr.r),
+            np.ascontiguousarray(pr.jac),
+            along,
+            j_along,
+            np.ascontiguousarray(segs.length[seg]),
+            s.end_tol_m,
+            gate,
+            c,
+            sigma,
+        )
     if fr.r.shape[0] > 0:
         rf = (fr.r[:, None] + fr.jac @ deltas.T) / np.sqrt(fr.var)[:, None]
         cost += _cauchy_cost(rf, 2.5).sum(axis=0)
