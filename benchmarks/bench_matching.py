@@ -47,16 +47,18 @@ def build_jobs(path: Path) -> list[tuple]:
     matcher = IceMatcher()
     poses: dict[int, np.ndarray] = {}
     jobs = []
-    last_odom = None
+    last_odom: np.ndarray | None = None
     for scan in open_log(path):
         odom = scan.odom_pose
+        if odom is None:
+            raise SystemExit(f"{scan.source}: the benchmark needs odometry poses")
         if last_odom is not None:
             d = between(last_odom, odom)
             if math.hypot(d[0], d[1]) < 0.3 and abs(d[2]) < math.radians(10):
                 continue
         feats = extract(scan)
         node = len(poses)
-        if node == 0:
+        if last_odom is None:
             poses[0] = odom.copy()
             fmap.update(0, feats, scan.stamp_s, scan=scan)
         else:

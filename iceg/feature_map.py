@@ -67,78 +67,78 @@ class FeatureMapConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     association_gate_m: float = Field(
-        0.3,
+        default=0.3,
         gt=0.0,
         description="A new feature the matcher did not pair is still associated with a "
         "reference landmark of a compatible kind within this distance (at the matched pose) "
         "instead of becoming a new landmark.",
     )
     expected_max_range_m: float = Field(
-        7.0,
+        default=7.0,
         gt=0.0,
         description="A landmark is expected only within this distance: farther features are "
         "extracted unreliably (paper eq. 3: precision falls with distance).",
     )
     fov_margin_deg: float = Field(
-        2.0,
+        default=2.0,
         ge=0.0,
         description="Margin inside the scan's angular limits for a support point to count as "
         "in the field of view (DESIGN: expected = inside the current field of view).",
     )
     occlusion_tolerance_m: float = Field(
-        0.2,
+        default=0.2,
         gt=0.0,
         description="A support point is occluded when a beam around its bearing is shorter "
         "than its distance minus this (DESIGN: the scan's range at its bearing is not shorter "
         "than its distance).",
     )
     support_offset_m: float = Field(
-        0.3,
+        default=0.3,
         gt=0.0,
         description="Distance along each wall of a Corner/EOW of its extra support points: a "
         "wall hidden behind another (a box corner with one face visible) is not expected.",
     )
     min_incidence_deg: float = Field(
-        20.0,
+        default=20.0,
         ge=0.0,
         lt=90.0,
         description="A Corner or EOW is not expected when one of its walls is seen at less "
         "than this angle (grazing: the extractor cannot find it).",
     )
     min_expected: int = Field(
-        15,
+        default=15,
         ge=1,
         description="Ratio pruning applies once a landmark was expected this many times "
         "(paper §III-C3: 'placed in visible area but observed rarely').",
     )
     min_match_ratio: float = Field(
-        0.15,
+        default=0.15,
         ge=0.0,
         le=1.0,
         description="Pruned when matched / expected falls below this after min_expected.",
     )
     validity_s: float = Field(
-        10.0,
+        default=10.0,
         gt=0.0,
         description="Pruned when expected but not matched for longer than this since its last "
         "match (seconds; paper §III-C3 'time-validity'), confirmed by min_misses expected "
         "misses over miss_confirm_s.",
     )
     miss_confirm_s: float = Field(
-        3.0,
+        default=3.0,
         ge=0.0,
         description="Validity pruning also needs the misses to have lasted this long (seconds "
         "since the first expected miss after the last match): a landmark not seen for a long "
         "while is not removed by one glance that misses it.",
     )
     min_misses: int = Field(
-        3,
+        default=3,
         ge=1,
         description="Validity pruning needs at least this many consecutive expected misses "
         "(one missed extraction does not remove a landmark).",
     )
     replace_ratio: float = Field(
-        0.5,
+        default=0.5,
         gt=0.0,
         le=1.0,
         description="A matched observation replaces a landmark's stored position when its "

@@ -69,19 +69,19 @@ class MatchingConfig(BaseModel):
 
     # --- step 5: hierarchical candidate filter -----------------------------------------------
     corner_eow_matching: bool = Field(
-        True,
+        default=True,
         description="Allow a Corner to match an EOW through one of its edges (paper §III-C2: "
         "'only one exception ... a Corner may be matched with an EOW', Fig. 1-2).",
     )
     max_opening_diff_deg: float = Field(
-        12.0,
+        default=12.0,
         gt=0.0,
         le=90.0,
         description="Largest difference between the opening angles of two matched Corners or "
         "Intersections (paper §III-C2: 'should not be more than a low threshold').",
     )
     direction_tolerance_deg: float = Field(
-        8.0,
+        default=8.0,
         ge=0.0,
         le=90.0,
         description="Noise allowance added to the rotation bound when checking a pair's "
@@ -89,128 +89,128 @@ class MatchingConfig(BaseModel):
         "feature directions of short edges are noisy by a few degrees).",
     )
     feasible_margin_m: float = Field(
-        0.3,
+        default=0.3,
         ge=0.0,
         description="Noise allowance added to the feasible-area radius (paper §III-C2, "
         "'feasible area defined by admissible motion distance') for feature position noise.",
     )
     intersection_pair_tolerance_m: float = Field(
-        0.15,
+        default=0.15,
         gt=0.0,
         description="Two Intersection pairs form a hypothesis only if the distance between "
         "the two new Intersections equals that between the two reference ones within this "
         "(DESIGN step 6: two Intersection pairs fix a transform).",
     )
     intersection_min_baseline_m: float = Field(
-        0.8,
+        default=0.8,
         gt=0.0,
         description="Smallest distance between the two Intersections of a two-pair hypothesis "
         "(a short baseline gives a poorly determined rotation; DESIGN step 6).",
     )
     max_intersection_pairs: int = Field(
-        600,
+        default=600,
         ge=2,
         description="Cap on candidate Intersection pairs combined two by two (quadratic cost); "
         "beyond it the nearest-to-prediction pairs are kept (DESIGN step 6).",
     )
     # --- step 6: voting ---------------------------------------------------------------------
     vote_cell_m: float = Field(
-        0.15,
+        default=0.15,
         gt=0.0,
         description="Grid cell (x and y) for clustering transform hypotheses (paper §III-C3: "
         "'we start from the conversion with the most count'); neighbouring cells vote "
         "together.",
     )
     vote_cell_deg: float = Field(
-        3.0,
+        default=3.0,
         gt=0.0,
         le=45.0,
         description="Grid cell (theta) for clustering transform hypotheses (paper §III-C3).",
     )
     max_clusters: int = Field(
-        12,
+        default=12,
         ge=1,
         description="Most-voted hypothesis clusters whose correlation is evaluated (paper "
         "§III-C3: most count first, then correlation).",
     )
     max_refined: int = Field(
-        3,
+        default=3,
         ge=1,
         description="Best-correlated clusters refined by Gauss-Newton in a bounded match "
         "(DESIGN step 8).",
     )
     max_refined_global: int = Field(
-        8,
+        default=8,
         ge=1,
         description="Best-correlated clusters refined in a global match (no prediction: more "
         "rival hypotheses must be checked before one is trusted).",
     )
     refine_correlation_margin: float = Field(
-        0.3,
+        default=0.3,
         ge=0.0,
         le=1.0,
         description="Only clusters whose correlation is within this of the best are refined.",
     )
     ambiguity_margin: float = Field(
-        0.1,
+        default=0.1,
         ge=0.0,
         description="A match fails as ambiguous when a distinct refined hypothesis that passes "
         "every check scores (correlation + point overlap) within this of the best (DESIGN step "
         "10: never a confident wrong pose in a self-similar scene).",
     )
     ambiguity_distance_m: float = Field(
-        0.3,
+        default=0.3,
         gt=0.0,
         description="Two refined hypotheses farther apart than this (or ambiguity_angle_deg) "
         "are distinct.",
     )
     ambiguity_angle_deg: float = Field(
-        5.0, gt=0.0, description="Angular distinctness threshold of two refined hypotheses."
+        default=5.0, gt=0.0, description="Angular distinctness threshold of two refined hypotheses."
     )
     use_prediction_hypothesis: bool = Field(
-        True,
+        default=True,
         description="For a bounded (local) match, also refine from the prediction itself, so a "
         "scene with few features (a corridor) still yields a point-to-line match whose "
         "covariance shows the degeneracy (DESIGN step 9).",
     )
     # --- step 7: correlation (paper eq. 1-3) ------------------------------------------------
     gate_distance_m: float = Field(
-        0.4,
+        default=0.4,
         gt=0.0,
         description="g_d of the correlation's dis term (DESIGN step 7, paper eq. 1): a new "
         "feature pairs with the nearest compatible reference feature within this distance.",
     )
     gate_angle_deg: float = Field(
-        15.0,
+        default=15.0,
         gt=0.0,
         le=90.0,
         description="g_a of the correlation's Angle term (DESIGN step 7, paper eq. 1).",
     )
     fimp_near: float = Field(
-        0.65,
+        default=0.65,
         gt=0.0,
         le=1.0,
         description="fImp(0) of paper eq. 3: importance of a feature next to the robot.",
     )
     fimp_far: float = Field(
-        0.1,
+        default=0.1,
         gt=0.0,
         le=1.0,
         description="fImp(range_max) of paper eq. 3: importance at the sensor's reliable "
         "range; fImp(d) = fimp_near / (1 + k d) with k set by this value.",
     )
     fimp_range_m: float | None = Field(
-        None,
+        default=None,
         gt=0.0,
         description="Range at which fImp reaches fimp_far (paper eq. 3: 'the laser reliable "
         "range is 20 meter'); None uses the scan's ScanFeatures.range_max_m.",
     )
-    weight_dis: float = Field(0.4, ge=0.0, description="Weight of dis in paper eq. 1.")
-    weight_ang: float = Field(0.2, ge=0.0, description="Weight of ang in paper eq. 1.")
-    weight_count: float = Field(0.2, ge=0.0, description="Weight of count in paper eq. 1.")
-    weight_acc: float = Field(0.6, ge=0.0, description="Weight of acc in paper eq. 1-2.")
+    weight_dis: float = Field(default=0.4, ge=0.0, description="Weight of dis in paper eq. 1.")
+    weight_ang: float = Field(default=0.2, ge=0.0, description="Weight of ang in paper eq. 1.")
+    weight_count: float = Field(default=0.2, ge=0.0, description="Weight of count in paper eq. 1.")
+    weight_acc: float = Field(default=0.6, ge=0.0, description="Weight of acc in paper eq. 1-2.")
     min_correlation: float = Field(
-        0.25,
+        default=0.25,
         ge=0.0,
         le=1.0,
         description="A bounded match whose correlation (paper eq. 1) is below this fails "
@@ -218,26 +218,26 @@ class MatchingConfig(BaseModel):
         "(many new features lower acc), simulated ones 0.6-1.",
     )
     min_correlation_global: float = Field(
-        0.45,
+        default=0.45,
         ge=0.0,
         le=1.0,
         description="The same for a global match (a far larger hypothesis space needs stronger "
         "evidence).",
     )
     min_matched_features: int = Field(
-        1,
+        default=1,
         ge=1,
         description="Fewest feature pairs a feature-supported bounded match needs (DESIGN step "
         "10); one directed pair fixes a full pose, and the bounds exclude far look-alikes.",
     )
     min_matched_features_global: int = Field(
-        2,
+        default=2,
         ge=1,
         description="Fewest feature pairs a global match needs: over the whole map a single "
         "Corner or EOW has many look-alikes, a configuration of two is distinctive.",
     )
     occlusion_tolerance_m: float = Field(
-        0.25,
+        default=0.25,
         gt=0.0,
         description="A reference feature counts as visible in the new scan (count term of eq. "
         "1) unless the new scan's range at its bearing is shorter than its distance minus "
@@ -245,10 +245,12 @@ class MatchingConfig(BaseModel):
     )
     # --- step 8: refinement -----------------------------------------------------------------
     max_iterations: int = Field(
-        16, ge=2, description="Gauss-Newton iterations (paper §III-C3: 'an optimization problem')."
+        default=16,
+        ge=2,
+        description="Gauss-Newton iterations (paper §III-C3: 'an optimization problem').",
     )
     association_gate_m: float = Field(
-        0.3,
+        default=0.3,
         gt=0.0,
         description="Point-to-segment association gate of the refinement's coarse phase "
         "(DESIGN step 8; Corner/Intersection position pairs also pull then); once the steps "
@@ -256,43 +258,43 @@ class MatchingConfig(BaseModel):
         "only EOW pairs (along their wall) stay, since a Corner's position is its lines'.",
     )
     association_gate_sigmas: float = Field(
-        4.0,
+        default=4.0,
         gt=1.0,
         description="Final association gate in units of the estimated point noise (DESIGN "
         "step 8: points not on a matched segment must not pull).",
     )
     association_gate_min_m: float = Field(
-        0.04,
+        default=0.04,
         gt=0.0,
         description="Smallest association gate, metres (covers unmodelled wall roughness).",
     )
     segment_end_tolerance_m: float = Field(
-        0.15,
+        default=0.15,
         ge=0.0,
         description="A point may associate with a reference segment up to this beyond its "
         "endpoints (endpoints of extracted segments are noisy; DESIGN step 3).",
     )
     normal_gate_deg: float = Field(
-        20.0,
+        default=20.0,
         gt=0.0,
         lt=90.0,
         description="A point associates only with a reference segment whose line is within "
         "this angle of the point's own segment's line (after the hypothesis' rotation).",
     )
     cauchy_scale_sigmas: float = Field(
-        2.5,
+        default=2.5,
         gt=0.0,
         description="Cauchy robust kernel scale in units of the estimated point noise "
         "(robust weights so that outlying points do not pull; DESIGN step 8).",
     )
     point_sigma_min_m: float = Field(
-        0.005,
+        default=0.005,
         gt=0.0,
         description="Floor of the point-to-line noise estimated from the residuals (an honest "
         "point noise for sigma^2 (J^T J)^-1, DESIGN step 9).",
     )
     line_angle_sigma_min_deg: float = Field(
-        0.0,
+        default=0.0,
         ge=0.0,
         description="Floor of a reference line's angle standard deviation (about its "
         "midpoint), added to the fit covariance: model error of walls that are not straight "
@@ -300,81 +302,81 @@ class MatchingConfig(BaseModel):
         "walls (DESIGN step 9: mean NEES near 3).",
     )
     line_offset_sigma_min_m: float = Field(
-        0.0,
+        default=0.0,
         ge=0.0,
         description="Floor of a reference line's offset standard deviation, metres (see "
         "line_angle_sigma_min_deg).",
     )
     use_off_segment_points: bool = Field(
-        True,
+        default=True,
         description="Also use the scan's points that lie on no segment (clutter, short "
         "structures such as door frames) with point-to-point residuals against the "
         "reference's points, when the reference has points (DESIGN step 8 extension: they "
         "constrain what long parallel walls leave open).",
     )
     local_line_max_gap_m: float = Field(
-        0.5,
+        default=0.5,
         gt=0.0,
         description="A reference point's local line (for the off-segment points' "
         "point-to-line rows, Censi 2008 PL-ICP) runs through its beam neighbours closer than "
         "this; a point without one gets a point-to-point residual.",
     )
     max_points: int = Field(
-        400,
+        default=400,
         ge=20,
         description="Most scan points used by the refinement (evenly subsampled beyond this).",
     )
     # --- step 9: covariance -----------------------------------------------------------------
     lattice_steps: int = Field(
-        5,
+        default=5,
         ge=3,
         description="Lattice points per axis for the correlation-landscape covariance (Olson "
         "2009, 'Real-time correlative scan matching'); odd so that it contains the estimate.",
     )
     lattice_sigmas: float = Field(
-        3.0,
+        default=3.0,
         gt=0.0,
         description="Half-width of the lattice in standard deviations of the least-squares "
         "covariance along each principal axis (Olson 2009).",
     )
     lattice_kappa: float = Field(
-        1.0,
+        default=1.0,
         gt=0.0,
         description="kappa of the lattice weights exp(kappa (s - s_max)); the score s is the "
         "robust log-likelihood of the refinement residuals, so 1 is the Bayesian value.",
     )
     lattice_max_half_width_m: float = Field(
-        1.0,
+        default=1.0,
         gt=0.0,
         description="Cap of the lattice half-width in translation (degenerate directions).",
     )
     lattice_max_half_width_deg: float = Field(
-        10.0,
+        default=10.0,
         gt=0.0,
         description="Cap of the lattice half-width in rotation (degenerate directions).",
     )
     max_std_m: float = Field(
-        0.5,
+        default=0.5,
         gt=0.0,
         description="A result whose translation standard deviation along any direction exceeds "
         "this is degenerate and fails (DESIGN step 10). Bounded matches cap unobserved "
         "directions at the uniform variance of the bounds first.",
     )
     max_std_deg: float = Field(
-        5.0,
+        default=5.0,
         gt=0.0,
         description="A result whose rotation standard deviation exceeds this is degenerate.",
     )
     # --- step 10: validation ----------------------------------------------------------------
     min_point_overlap: float = Field(
-        0.3,
+        default=0.3,
         ge=0.0,
         le=1.0,
         description="Fewest fraction of the scan's segment points that must lie on reference "
         "segments after refinement (DESIGN step 10: too few inliers fails).",
     )
     min_point_overlap_global: float = Field(
-        0.5,
+        default=0.5,
         ge=0.0,
         le=1.0,
         description="The same for a global match (no prediction to rule out look-alikes; "
@@ -382,47 +384,44 @@ class MatchingConfig(BaseModel):
         "0.84 with a full turn).",
     )
     min_point_overlap_featureless: float = Field(
-        0.6,
+        default=0.6,
         ge=0.0,
         le=1.0,
         description="The same for a bounded match from the prediction without any feature pair "
         "(a corridor, or features too unstable to pair): the points alone must agree.",
     )
     see_through_tolerance_m: float = Field(
-        0.3,
+        default=0.3,
         gt=0.0,
         description="A wall of one scan is contradicted when the other scan's beam at its "
         "bearing reaches farther than its distance plus this (free-space consistency).",
     )
     max_see_through_fraction: float = Field(
-        0.25,
+        default=0.25,
         ge=0.0,
         le=1.0,
         description="A match fails when more than this fraction of the checked wall length "
         "lies where the other scan sees free space (a confident wrong pose is worse than none).",
     )
     see_through_min_length_m: float = Field(
-        1.0,
+        default=1.0,
         ge=0.0,
         description="The see-through test fails a match only if at least this much wall length "
         "is contradicted.",
     )
     see_through_max_length_m: float = Field(
-        1.5,
+        default=1.5,
         gt=0.0,
         description="A match also fails when this much wall length (metres) is contradicted, "
         "whatever the fraction (real consecutive ACES scans at their corrected poses: at most "
         "1.2 m, 99th percentile 0.56 m).",
     )
     robot_clearance_m: float = Field(
-        0.25,
+        default=0.25,
         ge=0.0,
         description="No wall of one scan may pass closer than this to the other scan's sensor "
         "(a robot has a body; real ACES/CSAIL scans keep at least 0.37 m from their own and "
         "their neighbours' walls).",
-    )
-    see_through_step_m: float = Field(
-        0.1, gt=0.0, description="Sampling step along reference segments for the see-through test."
     )
 
     @model_validator(mode="after")

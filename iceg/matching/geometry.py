@@ -353,25 +353,3 @@ def associate_points(
     jj = j[ok]
     res[ok] = np.einsum("ij,ij->i", q[ok], segs.normal[jj]) - segs.rho[jj]
     return idx.astype(np.int64), res
-
-
-def sample_segments(endpoints: FloatArray, step_m: float) -> tuple[FloatArray, IntArray]:
-    """Points every ``step_m`` along segments (centred in each piece).
-
-    Args:
-        endpoints: ``(M, 2, 2)`` float64 segments, metres.
-        step_m: Sampling step, metres.
-
-    Returns:
-        ``(S, 2)`` float64 sample points and ``(S,)`` int64 segment index of each.
-    """
-    ep = np.asarray(endpoints, dtype=np.float64).reshape(-1, 2, 2)
-    if ep.shape[0] == 0:
-        return np.zeros((0, 2)), np.zeros(0, dtype=np.int64)
-    d = ep[:, 1] - ep[:, 0]
-    length = np.hypot(d[:, 0], d[:, 1])
-    n = np.maximum(1, np.ceil(length / step_m).astype(np.int64))
-    seg = np.repeat(np.arange(ep.shape[0]), n)
-    k = np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)
-    frac = (k + 0.5) / n[seg]
-    return ep[seg, 0] + frac[:, None] * d[seg], seg

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from dataclasses import dataclass
@@ -250,19 +251,20 @@ class IceMatcher:
             else None
         )
         fimp_range = c.fimp_range_m or range_max
-        corr_kw = {
-            "gate_distance_m": c.gate_distance_m,
-            "gate_angle_rad": math.radians(c.gate_angle_deg),
-            "fimp_near": c.fimp_near,
-            "fimp_far": c.fimp_far,
-            "fimp_range_m": fimp_range,
-            "range_max_m": range_max,
-            "occlusion_tolerance_m": c.occlusion_tolerance_m,
-            "weights": (c.weight_dis, c.weight_ang, c.weight_count, c.weight_acc),
-        }
+        corr_fn = functools.partial(
+            correlate,
+            gate_distance_m=c.gate_distance_m,
+            gate_angle_rad=math.radians(c.gate_angle_deg),
+            fimp_near=c.fimp_near,
+            fimp_far=c.fimp_far,
+            fimp_range_m=fimp_range,
+            range_max_m=range_max,
+            occlusion_tolerance_m=c.occlusion_tolerance_m,
+            weights=(c.weight_dis, c.weight_ang, c.weight_count, c.weight_acc),
+        )
 
         def correlation_at(poses: FloatArray) -> Correlation:
-            return correlate(poses, gn, gr, codes, profile, **corr_kw)
+            return corr_fn(poses, gn, gr, codes, profile)
 
         corr0 = correlation_at(starts)
         # Order: correlation first (paper §III-C3: most count first, then correlation);
@@ -290,7 +292,7 @@ class IceMatcher:
         prior = bounds_prior_information(bounds.max_translation_m, bounds.max_rotation_rad)
 
         def pairs_at(pose: FloatArray) -> IntArray:
-            m = correlate(pose[None], gn, gr, codes, profile, pairing_only=True, **corr_kw).match[0]
+            m = corr_fn(pose[None], gn, gr, codes, profile, pairing_only=True).match[0]
             i = np.flatnonzero(m >= 0)
             return np.column_stack([i, m[i]]).astype(np.int64)
 

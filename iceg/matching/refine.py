@@ -5,18 +5,24 @@ Gauss-Newton over
 
 - point-to-line residuals of the new scan's points against the reference segments
   (``r_i = n_m · (R p_i + t) - rho_m``; the segments are the ones ICE already extracted),
-  with gated association and Cauchy robust weights, and
+  with gated association and Cauchy robust weights, solved as generalised least squares:
+  the reference line's own ``(alpha, rho)`` uncertainty is an error shared by all points on
+  that line (per-line Woodbury inverse), so a small angle error of a long wall cannot pose
+  as information along it;
 - feature pairs of the correlation: an EOW pair constrains the position along its wall
   (what the lines cannot tell); Corner and Intersection pairs pull a coarse hypothesis in
-  during the first iterations and are then dropped (their position is already the lines').
+  during the first (wide-gate) phase and are then dropped (their position is the lines');
+- optionally, the new scan's off-segment points against the reference's points on local
+  lines (PL-ICP, Censi 2008) when the reference has points;
+- the bounds' prior (uniform variance of the admissible motion) pulling toward the
+  prediction, which only matters along directions the scene leaves unconstrained.
 
-The covariance is the sandwich least-squares covariance ``H^-1 (J^T W S W J) H^-1`` whose
-middle term holds the point noise ``sigma^2`` (estimated from the residuals) **and** the
-reference lines' own ``(alpha, rho)`` covariance, propagated to the residuals of every point
-on the line (the errors of one reference line are shared by all its points). It is the floor
-of the correlation-landscape covariance of Olson 2009 ("Real-time correlative scan matching"):
-the robust log-likelihood evaluated on a small lattice of perturbations, weights
-``exp(kappa (s - s_max))``, second moment.
+The least-squares covariance is the inverse of that information (point noise ``sigma``
+estimated from the residuals, floored). It is the floor of the correlation-landscape
+covariance of Olson 2009 ("Real-time correlative scan matching"): the robust
+log-likelihood evaluated on a small lattice of perturbations, weights
+``exp(kappa (s - s_max))``, second moment. Both are perturbations of ``(x, y, theta)`` in the
+reference frame; the matcher moves them to the new scan's frame.
 """
 
 from __future__ import annotations
@@ -559,7 +565,7 @@ def refine(
         hess += (fr.jac.T * (fr.w / fr.var)) @ fr.jac
     a = hess + prior_info
     try:
-        a_inv = np.linalg.inv(a)
+        a_inv = np.asarray(np.linalg.inv(a), dtype=np.float64)
     except np.linalg.LinAlgError:
         a_inv = np.full((3, 3), np.inf)
     cov_ls = 0.5 * (a_inv + a_inv.T) if np.all(np.isfinite(a_inv)) else np.full((3, 3), np.inf)

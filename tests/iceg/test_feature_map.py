@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from frontends.simulate import box_world, office_world, simulate
-from iceg.feature_map import PRUNED_VALIDITY, FeatureMap, FeatureMapConfig
+from iceg.feature_map import PRUNED_VALIDITY, FeatureMap, FeatureMapConfig, PrunedLandmarks
 from iceg.features import extract
 from iceg.matching import IceMatcher, MatchBounds
 from iceg.types import FeatureKind, MatchResult
@@ -161,7 +161,9 @@ def _run_map(world, seed: int, config: FeatureMapConfig):
     return fm, poses, expected_at
 
 
-def _pruned_world(fm: FeatureMap, poses) -> tuple[np.ndarray, object]:
+def _pruned_world(
+    fm: FeatureMap, poses: dict[int, np.ndarray]
+) -> tuple[np.ndarray, PrunedLandmarks]:
     p = fm.pruned
     xy = np.array(
         [transform_points(poses[int(a)], p.xy[i][None])[0] for i, a in enumerate(p.anchor)]

@@ -11,6 +11,7 @@ Truth comes from three places:
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -281,18 +282,19 @@ def test_correlation_of_an_exact_alignment() -> None:
     ref = transform_features(new, truth)
     gn, gr = feature_geometry(new), feature_geometry(ref)
     codes = pair_codes(gn, gr, True, math.radians(12))
-    kw = {
-        "gate_distance_m": 0.4,
-        "gate_angle_rad": math.radians(15),
-        "fimp_near": 0.65,
-        "fimp_far": 0.1,
-        "fimp_range_m": 20.0,
-        "range_max_m": 20.0,
-        "occlusion_tolerance_m": 0.25,
-        "weights": (0.4, 0.2, 0.2, 0.6),
-    }
+    kw = functools.partial(
+        correlate,
+        gate_distance_m=0.4,
+        gate_angle_rad=math.radians(15),
+        fimp_near=0.65,
+        fimp_far=0.1,
+        fimp_range_m=20.0,
+        range_max_m=20.0,
+        occlusion_tolerance_m=0.25,
+        weights=(0.4, 0.2, 0.2, 0.6),
+    )
     prof = PolarProfile.from_points(np.zeros((0, 2)), 20.0)
-    c = correlate(truth[None], gn, gr, codes, prof, **kw)
+    c = kw(truth[None], gn, gr, codes, prof)
     np.testing.assert_array_equal(c.match[0], [0, 1, 2])
     assert c.dis[0] == pytest.approx(1.0)
     assert c.ang[0] == pytest.approx(1.0)
@@ -306,7 +308,7 @@ def test_correlation_of_an_exact_alignment() -> None:
     assert c.acc[0] == pytest.approx(acc)
     assert c.score[0] == pytest.approx((0.4 + 0.2 + 0.2 + 0.6 * acc) / 1.4)
     # One metre off, nothing pairs inside the 0.4 m gate.
-    off = correlate((truth + np.array([1.0, 0, 0]))[None], gn, gr, codes, prof, **kw)
+    off = kw((truth + np.array([1.0, 0, 0]))[None], gn, gr, codes, prof)
     assert off.n_matched[0] == 0
     assert off.score[0] == pytest.approx(0.0)
 
@@ -415,7 +417,7 @@ def test_inputs_are_checked() -> None:
     with pytest.raises(ValidationError):
         MatchingConfig(fimp_far=0.7)
     with pytest.raises(ValidationError):
-        MatchingConfig(no_such_field=1)
+        MatchingConfig(no_such_field=1)  # type: ignore[call-arg]
 
 
 def test_empty_reference_is_a_failure_with_reason() -> None:
@@ -454,7 +456,7 @@ def _pairs(rng: np.random.Generator, offset_m: float, rot_deg: float, n: int, la
     """``n`` scan pairs in the office: a random free pose, and one ``offset_m`` away in a
     random direction and ``rot_deg`` turned either way; the robot could drive from one to the
     other (both 0.5 m clear of walls, line of sight between them)."""
-    out = []
+    out: list[tuple[np.ndarray, ScanFeatures, ScanFeatures]] = []
     while len(out) < n:
         pa = np.array([rng.uniform(0.5, 19.5), rng.uniform(0.5, 14.5), rng.uniform(-np.pi, np.pi)])
         if not _free(pa, 0.5):
@@ -525,7 +527,8 @@ def test_covariance_is_calibrated_on_500_simulated_pairs() -> None:
     # scanner, offsets up to 0.5 m / 14 deg, prediction off by ~0.1 m / 3 deg.
     rng = np.random.default_rng(11)
     m = IceMatcher()
-    nees, fails = [], 0
+    nees: list[float] = []
+    fails = 0
     while len(nees) + fails < 500:
         pa = np.array([rng.uniform(0.5, 19.5), rng.uniform(0.5, 14.5), rng.uniform(-np.pi, np.pi)])
         if not _free(pa, 0.3):
@@ -638,7 +641,9 @@ def test_aces_consecutive_pairs() -> None:
     m = IceMatcher()
     err_t, err_r = [], []
     for k in range(len(scans) - 1):
-        truth = between(scans[k].odom_pose, scans[k + 1].odom_pose)
+        pa, pb = scans[k].odom_pose, scans[k + 1].odom_pose
+        assert pa is not None and pb is not None  # the corrected poses
+        truth = between(pa, pb)
         a = rng.uniform(0, 2 * np.pi)
         pred = compose(
             truth, [0.3 * math.cos(a), 0.3 * math.sin(a), math.radians(10) * rng.choice([-1, 1])]
