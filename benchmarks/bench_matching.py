@@ -6,11 +6,13 @@ from the last four nodes (landmarks and segments), with the odometry delta as pr
 and bounds of 0.5 m / 15 deg, and then added to the map (node poses chained from the
 matches, as a front-end without the graph would). Only ``IceMatcher.match`` is timed.
 
-Prints: the numba compile/cache-load time of the first match, the median, 95th percentile
-and mean of ``match`` (wall clock, best of 3 passes over the same keyframes, so that other
-processes on the shared machine disturb it less), the success rate and failure reasons, and
-the compiled inner loop (association + GLS normal equations) against its numpy reference
-on the same data. Target: median <= 2 ms.
+Prints, for a reference of the nodes' segments and landmarks (the default) and for one that
+also carries the nodes' points (``FeatureMapConfig(reference_points=True)``): the numba
+compile/cache-load time of the first match, the median, 95th percentile and mean of
+``match`` (wall clock, best of 3 passes over the same keyframes, so that other processes on
+the shared machine disturb it less), the success rate and failure reasons; then the compiled
+inner loop (association + GLS normal equations) against its numpy reference on the same
+data. Target: median <= 2 ms.
 
 Run: ``/work/venv/bin/python benchmarks/bench_matching.py [path/to/mit-csail.clf]``
 """
@@ -26,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from frontends import open_log
-from iceg.feature_map import FeatureMap
+from iceg.feature_map import FeatureMap, FeatureMapConfig
 from iceg.features import extract
 from iceg.matching import IceMatcher, MatchBounds
 from iceg.matching._kernels import point_line_system
@@ -41,9 +43,9 @@ LOCAL_NODES = 4
 BOUNDS = MatchBounds.local(0.5, 15.0)
 
 
-def build_jobs(path: Path) -> list[tuple]:
+def build_jobs(path: Path, config: FeatureMapConfig | None = None) -> list[tuple]:
     """Keyframes with their features, the local-map reference and the prediction."""
-    fmap = FeatureMap()
+    fmap = FeatureMap(config)
     matcher = IceMatcher()
     poses: dict[int, np.ndarray] = {}
     jobs = []
@@ -109,23 +111,8 @@ def kernel_comparison(jobs: list[tuple], matcher: IceMatcher) -> tuple[float, fl
     return 1e3 * float(np.median(t_nb)), 1e3 * float(np.median(t_np))
 
 
-def main() -> None:
-    path = Path(sys.argv[1]) if len(sys.argv) > 1 else DEFAULT_LOG
-    if not path.is_file():
-        print(f"log {path} not found (it lives in ../shared/data beside the repo)")
-        return
-    t0 = time.perf_counter()
-    matcher = IceMatcher()
-    feats, ref, pred = None, None, None
-    jobs = build_jobs(path)
-    print(
-        f"{len(jobs)} keyframes matched against the last {LOCAL_NODES} nodes "
-        f"(setup incl. feature extraction and map updates {time.perf_counter() - t0:.1f} s)"
-    )
-    feats, ref, pred = jobs[0]
-    t0 = time.perf_counter()
-    matcher.match(feats, ref, pred, BOUNDS)
-    print(f"first match (numba cache load or compile): {1e3 * (time.perf_counter() - t0):.1f} ms")
+def time_matches(jobs: list[tuple], matcher: IceMatcher) -> tuple[np.ndarray, int, Counter[str]]:
+    """Best-of-3 wall time (ms) of each match, successes and failure reasons."""
     best = np.full(len(jobs), np.inf)
     reasons: Counter[str] = Counter()
     n_ok = 0
@@ -138,21 +125,49 @@ def main() -> None:
                 n_ok += res.success
                 if not res.success:
                     reasons[res.reason.split(":")[0]] += 1
-    ms = 1e3 * best
-    print(
-        f"match time: median {np.median(ms):.2f} ms, 95th percentile "
-        f"{np.percentile(ms, 95):.2f} ms, mean {ms.mean():.2f} ms, max {ms.max():.2f} ms "
-        f"(target: median <= 2 ms)"
-    )
-    print(
-        f"succeeded: {n_ok}/{len(jobs)} ({100 * n_ok / len(jobs):.1f} %); failures: {dict(reasons)}"
-    )
-    print(
-        f"reference size (median): {np.median([j[1].n_features for j in jobs]):.0f} landmarks, "
-        f"{np.median([j[1].n_segments for j in jobs]):.0f} segments; new scan: "
-        f"{np.median([j[0].points_xy.shape[0] for j in jobs]):.0f} points, "
-        f"{np.median([j[0].n_features for j in jobs]):.0f} features"
-    )
+    return 1e3 * best, n_ok, reasons
+
+
+def main() -> None:
+    path = Path(sys.argv[1]) if len(sys.argv) > 1 else DEFAULT_LOG
+    if not path.is_file():
+        print(f"log {path} not found (it lives in ../shared/data beside the repo)")
+        return
+    matcher = IceMatcher()
+    for label, cfg in (
+        ("segments and landmarks (default FeatureMapConfig)", FeatureMapConfig()),
+        ("plus the nodes' points (reference_points=True)", FeatureMapConfig(reference_points=True)),
+    ):
+        t0 = time.perf_counter()
+        jobs = build_jobs(path, cfg)
+        print(f"== reference: {label}")
+        print(
+            f"{len(jobs)} keyframes matched against the last {LOCAL_NODES} nodes (setup incl. "
+            f"feature extraction and map updates {time.perf_counter() - t0:.1f} s)"
+        )
+        feats, ref, pred = jobs[0]
+        t0 = time.perf_counter()
+        matcher.match(feats, ref, pred, BOUNDS)
+        print(
+            f"first match (numba cache load or compile): {1e3 * (time.perf_counter() - t0):.1f} ms"
+        )
+        ms, n_ok, reasons = time_matches(jobs, matcher)
+        print(
+            f"match time: median {np.median(ms):.2f} ms, 95th percentile "
+            f"{np.percentile(ms, 95):.2f} ms, mean {ms.mean():.2f} ms, max {ms.max():.2f} ms "
+            f"(target: median <= 2 ms)"
+        )
+        print(
+            f"succeeded: {n_ok}/{len(jobs)} ({100 * n_ok / len(jobs):.1f} %); "
+            f"failures: {dict(reasons)}"
+        )
+        print(
+            f"reference size (median): {np.median([j[1].n_features for j in jobs]):.0f} "
+            f"landmarks, {np.median([j[1].n_segments for j in jobs]):.0f} segments, "
+            f"{np.median([j[1].points_xy.shape[0] for j in jobs]):.0f} points; new scan: "
+            f"{np.median([j[0].points_xy.shape[0] for j in jobs]):.0f} points, "
+            f"{np.median([j[0].n_features for j in jobs]):.0f} features"
+        )
     t_nb, t_np = kernel_comparison(jobs, matcher)
     print(
         f"association + normal equations, one pass: numba {t_nb:.3f} ms, numpy {t_np:.3f} ms "

@@ -72,6 +72,16 @@ class _Candidate:
         )
 
 
+def _is_one_scan(points_xy: FloatArray) -> bool:
+    """Whether points look like one scan from the frame's origin: bearings increase along
+    the array (beam order), with at most one wrap-around."""
+    if points_xy.shape[0] < 3:
+        return False
+    d = np.diff(np.arctan2(points_xy[:, 1], points_xy[:, 0]))
+    back = d < -0.05
+    return int(back.sum()) == 0 or (int(back.sum()) == 1 and float(d[back][0]) < -math.pi)
+
+
 def _segment_distance(p: FloatArray, endpoints: FloatArray) -> float:
     """Distance (metres) from point ``p`` (2,) to the nearest of segments ``(M, 2, 2)``."""
     if endpoints.shape[0] == 0:
@@ -245,9 +255,11 @@ class IceMatcher:
 
         range_max = float(features.range_max_m)
         profile = PolarProfile.from_points(features.points_xy, range_max)
+        # The reference's beams can be checked only if its points are one scan seen from
+        # the reference origin (a feature-map reference gathers several nodes' points).
         ref_profile = (
             PolarProfile.from_points(reference.points_xy, float(reference.range_max_m))
-            if reference.points_xy.shape[0] > 0
+            if _is_one_scan(reference.points_xy)
             else None
         )
         fimp_range = c.fimp_range_m or range_max

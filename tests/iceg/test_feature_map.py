@@ -211,3 +211,31 @@ def test_no_landmark_of_a_static_office_is_pruned() -> None:
     truth = np.concatenate([office_world().corners(), office_world().wall_ends()])
     d = np.min(np.linalg.norm(v.xy[:, None] - truth[None], axis=2), axis=1)
     assert np.median(d[v.kind != FeatureKind.INTERSECTION]) < 0.03
+
+
+def test_reference_points_follow_their_nodes() -> None:
+    # With reference_points the nodes' scan points come along, in the frame of frame_pose,
+    # and each segment's point range still selects the points of that segment.
+    rng = np.random.default_rng(2)
+    w = room_walls()
+    poses = {0: np.array([2.0, 2.0, 0.3]), 1: np.array([3.0, 3.0, -0.4])}
+    fa, fb = hand_scan(w, poses[0], rng), hand_scan(w, poses[1], rng)
+    fm = FeatureMap(FeatureMapConfig(reference_points=True))
+    fm.update(0, fa, 0.0)
+    fm.update(1, fb, 0.2)  # no match: added as a new node
+    frame = np.array([1.0, -1.0, 0.2])
+    ref = fm.reference(poses, [0, 1], frame)
+    expect = np.concatenate(
+        [
+            transform_points(between(frame, poses[0]), fa.points_xy),
+            transform_points(between(frame, poses[1]), fb.points_xy),
+        ]
+    )
+    np.testing.assert_allclose(ref.points_xy, expect, atol=1e-12)
+    n = np.stack([np.cos(ref.seg_lines[:, 0]), np.sin(ref.seg_lines[:, 0])], axis=1)
+    for m in range(ref.n_segments):
+        a, b = ref.seg_point_range[m]
+        res = ref.points_xy[a:b] @ n[m] - ref.seg_lines[m, 1]
+        assert np.abs(res).max() < 0.05  # 1 cm range noise, TLS lines
+    # Without the option the reference carries no points.
+    assert FeatureMap().reference({}, [], frame).points_xy.shape == (0, 2)
