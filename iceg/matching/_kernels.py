@@ -507,3 +507,53 @@ def gn_phase(
         if math.hypot(delta[0], delta[1]) < tol_xy and abs(delta[2]) < tol_th:
             break
     return pose, sigma, gate, it
+
+
+@njit(cache=True, nogil=True)
+def ray_wall_check(
+    ep: np.ndarray,
+    bearing: np.ndarray,
+    ranges: np.ndarray,
+    spacing: float,
+    range_max_m: float,
+    tol_m: float,
+    cos_max_incidence: float,
+) -> tuple[float, float]:
+    """Cast segments ``ep`` (M, 2, 2) along beams (bearing, range) from the origin; see
+    ``matcher._ray_check``. Returns the wall length seen through and confirmed (metres)."""
+    see = 0.0
+    cons = 0.0
+    for b in range(bearing.shape[0]):
+        dx = math.cos(bearing[b])
+        dy = math.sin(bearing[b])
+        best = np.inf
+        bk = -1
+        for k in range(ep.shape[0]):
+            ax = ep[k, 0, 0]
+            ay = ep[k, 0, 1]
+            ex = ep[k, 1, 0] - ax
+            ey = ep[k, 1, 1] - ay
+            den = dx * ey - dy * ex
+            if abs(den) <= 1e-12:
+                continue
+            t = (ax * ey - ay * ex) / den
+            u = (ax * dy - ay * dx) / den
+            if t > 0.0 and 0.0 <= u <= 1.0 and t < best:
+                best = t
+                bk = k
+        if bk < 0 or best >= range_max_m - tol_m:
+            continue
+        ex = ep[bk, 1, 0] - ep[bk, 0, 0]
+        ey = ep[bk, 1, 1] - ep[bk, 0, 1]
+        el = math.hypot(ex, ey)
+        if el <= 1e-12:
+            continue
+        cos_inc = abs(dx * ey - dy * ex) / el
+        if cos_inc <= cos_max_incidence:
+            continue
+        cover = best * spacing / max(cos_inc, 1e-3)
+        if ranges[b] > best + tol_m:
+            see += cover
+        elif abs(ranges[b] - best) <= tol_m:
+            cons += cover
+    return see, cons

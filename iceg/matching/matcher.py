@@ -11,6 +11,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
+from iceg.matching._kernels import ray_wall_check
 from iceg.matching.config import MatchBounds, MatchingConfig
 from iceg.matching.correlation import Correlation, correlate
 from iceg.matching.geometry import (
@@ -593,25 +594,16 @@ def _ray_check(ep: FloatArray, prof: PolarProfile, tol_m: float) -> tuple[float,
     reference holds. Walls met at more than 70 degrees incidence are not judged."""
     if ep.shape[0] == 0 or prof.bearing.shape[0] == 0:
         return 0.0, 0.0
-    dx, dy = np.cos(prof.bearing)[:, None], np.sin(prof.bearing)[:, None]
-    a = ep[:, 0]
-    e = ep[:, 1] - a
-    ex, ey = e[None, :, 0], e[None, :, 1]
-    denom = dx * ey - dy * ex  # (B, M)
-    safe = np.where(np.abs(denom) > 1e-12, denom, 1.0)
-    t = (a[None, :, 0] * ey - a[None, :, 1] * ex) / safe
-    u = (a[None, :, 0] * dy - a[None, :, 1] * dx) / safe
-    hit = np.where((np.abs(denom) > 1e-12) & (t > 0.0) & (u >= 0.0) & (u <= 1.0), t, np.inf)
-    k = np.argmin(hit, axis=1)
-    b = np.arange(hit.shape[0])
-    h = hit[b, k]
-    el = np.hypot(e[k, 0], e[k, 1])
-    cos_inc = np.abs(dx[:, 0] * e[k, 1] - dy[:, 0] * e[k, 0]) / np.maximum(el, 1e-12)
-    ok = np.isfinite(h) & (h < prof.range_max_m - tol_m) & (cos_inc > math.cos(math.radians(70)))
-    cover = np.where(ok, h * prof.spacing / np.maximum(cos_inc, 1e-3), 0.0)
-    see = ok & (prof.range > h + tol_m)
-    cons = ok & (np.abs(prof.range - h) <= tol_m)
-    return float(cover[see].sum()), float(cover[cons].sum())
+    see, cons = ray_wall_check(
+        np.ascontiguousarray(ep, dtype=np.float64),
+        prof.bearing,
+        prof.range,
+        prof.spacing,
+        prof.range_max_m,
+        tol_m,
+        math.cos(math.radians(70.0)),
+    )
+    return float(see), float(cons)
 
 
 def _bracket(prof: PolarProfile, bearing: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
