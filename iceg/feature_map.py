@@ -341,7 +341,11 @@ class FeatureMap:
 
         ref = fmap.reference(node_poses, recent_node_ids, node_poses[last])
         res = matcher.match(features, ref, prediction, bounds)
-        fmap.update(new_id, features, scan.stamp_s, reference=ref, match=res, scan=scan)
+        # ... add the node and factors, update the graph ...
+        fmap.update(
+            new_id, features, scan.stamp_s, reference=ref, match=res, scan=scan,
+            node_poses=updated_node_poses,
+        )
 
     Args:
         config: Feature-map configuration.
@@ -526,6 +530,7 @@ class FeatureMap:
         match: MatchResult | None = None,
         scan: LaserScan | None = None,
         node_poses: NodePoses | None = None,
+        node_pose: ArrayLike | None = None,
     ) -> MapUpdate:
         """Add a node's scan to the map: association, new landmarks, time-validity.
 
@@ -558,6 +563,8 @@ class FeatureMap:
             node_poses: Current pose estimates of the nodes (map frame), to place every
                 landmark relative to the new node; ``None`` uses the poses given to
                 :meth:`reference` and ``frame_pose ∘ match.pose`` for the new node.
+            node_pose: ``(3,)`` map-frame pose of the new node, when ``node_poses`` does not
+                hold it (default ``frame_pose ∘ match.pose``).
 
         Returns:
             A :class:`MapUpdate`.
@@ -582,7 +589,7 @@ class FeatureMap:
                     "returned by this map's reference() that match() was computed against>"
                 )
             matched_ids, expected_ids, new_mask, merge_rows = self._bookkeep(
-                node_id, features, stamp, reference, match, scan, node_poses
+                node_id, features, stamp, reference, match, scan, node_poses, node_pose
             )
             merged_ids = self._lm["id"][merge_rows].copy()
             keep = np.ones(len(self), dtype=bool)
@@ -661,6 +668,7 @@ class FeatureMap:
         match: MatchResult,
         scan: LaserScan | None,
         node_poses: NodePoses | None,
+        node_pose: ArrayLike | None,
     ) -> tuple[IntArray, IntArray, BoolArray, IntArray]:
         """Association and expected/matched counting for one matched scan; also returns the
         rows of duplicate landmarks to merge."""
@@ -672,7 +680,12 @@ class FeatureMap:
         else:
             tab_ids, tab_poses = snap_ids, snap_poses
         npos, nfound = _lookup(tab_ids, np.array([node_id]))
-        new_pose = tab_poses[npos[0]] if nfound[0] else compose(frame, match.pose)
+        if nfound[0]:
+            new_pose = tab_poses[npos[0]]
+        elif node_pose is not None:
+            new_pose = np.asarray(node_pose, dtype=np.float64).reshape(3)
+        else:
+            new_pose = compose(frame, match.pose)
         # Every landmark whose anchor has a pose, in the new node's frame.
         apos, afound = _lookup(tab_ids, lm["anchor"])
         rows = np.flatnonzero(afound)
