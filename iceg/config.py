@@ -74,8 +74,10 @@ class LoopClosureConfig(BaseModel):
         ge=0,
         description="Only nodes at least this far back along the odometry path are candidates.",
     )
-    window_nodes: int = Field(
-        4, ge=0, description="Landmarks of the candidate ± this many nodes form the reference."
+    reference_nodes: int = Field(
+        10,
+        ge=1,
+        description="The old nodes nearest a candidate whose landmarks form its reference.",
     )
     search_radius_m: float = Field(
         2.0, gt=0, description="Base search radius around the current estimate."
@@ -103,6 +105,12 @@ class LoopClosureConfig(BaseModel):
         ge=1,
         description="A closure that fails the gate is held this many nodes; two held closures "
         "implying the same correction are accepted together (pairwise consistency).",
+    )
+    agreement_min_separation_m: float = Field(
+        2.0,
+        ge=0,
+        description="Agreeing closures must reach old nodes this far apart along the path "
+        "(matches to one place can share one aliasing error).",
     )
     agreement_translation_m: float = Field(
         0.3, gt=0, description="Largest translation between two agreeing corrections."

@@ -91,7 +91,7 @@ class _LoopCandidate:
     measured: FloatArray
     cov: FloatArray
     correlation: float
-    correction: FloatArray  # (3,) world-frame correction the closure implies
+    implied: FloatArray  # (3,) map-frame pose of node_to that the closure implies
 
 
 @dataclass
@@ -259,11 +259,12 @@ class Slam:
         path back, within ``radius = base + n_sigma * sqrt(lambda_max(cov_xy))`` of the
         current estimate (``cov_xy`` from the current node's marginal, capped at
         ``max_search_radius_m``); up to ``max_candidates`` of the nearest, from distinct
-        places, are matched against their landmarks (candidate ± ``window_nodes``) and the
-        best-correlated match is kept. It is accepted when it is consistent with the current
-        estimate (Mahalanobis distance of the innovation under the marginal plus the match
-        covariance below a chi-square gate), or when it agrees with a recent closure that
-        failed the gate (see :meth:`_agree`); it enters with a robust kernel.
+        places, are matched against the landmarks of the ``reference_nodes`` old nodes
+        nearest each candidate, and the best-correlated match is kept. It is accepted when it
+        is consistent with the current estimate (Mahalanobis distance of the innovation under
+        the marginal plus the match covariance below a chi-square gate), or when it agrees
+        with a recent closure that failed the gate (see :meth:`_agree`); it enters with a
+        robust kernel.
         """
         lc = self.config.loop_closure
         ids, poses = self.graph.estimates()
@@ -284,7 +285,7 @@ class Slam:
         order = np.argsort(dist, kind="stable")
         candidates: list[int] = []
         for k in order[dist[order] <= radius]:
-            if all(abs(int(older[k]) - c) > 2 * lc.window_nodes for c in candidates):
+            if all(abs(int(older[k]) - c) > lc.reference_nodes for c in candidates):
                 candidates.append(int(older[k]))
             if len(candidates) == lc.max_candidates:
                 break
@@ -295,8 +296,9 @@ class Slam:
         )
         best: tuple[int, FloatArray, MatchResult] | None = None
         for candidate in candidates:
-            window = np.arange(candidate - lc.window_nodes, candidate + lc.window_nodes + 1)
-            window = window[(window >= 0) & (window <= node_id - lc.min_node_gap)]
+            # The place's reference: the old nodes nearest the candidate (any pass through it).
+            near_cand = np.hypot(*(poses[older, :2] - poses[candidate, :2]).T)
+            window = older[np.argsort(near_cand, kind="stable")[: lc.reference_nodes]]
             reference = self.feature_map.reference((ids, poses), window, poses[candidate])
             prediction = se2.between(poses[candidate], current)
             self.loop_stats.attempts += 1
@@ -325,10 +327,7 @@ class Slam:
             result.pose,
             result.cov,
             result.correlation,
-            # Left correction mapping the current estimate onto the closure's implied pose.
-            correction=se2.compose(
-                se2.compose(poses[candidate], result.pose), se2.inverse(current)
-            ),
+            implied=se2.compose(poses[candidate], result.pose),
         )
         if d2 <= lc.consistency_chi2:
             self._accept_loop_closures([closure])
@@ -365,13 +364,20 @@ class Slam:
         )
 
     def _agree(self, a: _LoopCandidate, b: _LoopCandidate) -> bool:
-        """Two closures agree when they imply the same correction of the recent trajectory
-        (pairwise consistency, after Olson 2009 "Recognizing places using spectrally
+        """Two closures agree when ``a``'s implied pose, carried to ``b``'s node along the
+        current estimate of the short path between them, lands on ``b``'s implied pose
+        (pairwise consistency after Olson 2009, "Recognizing places using spectrally
         clustered local matches", reduced to pairs)."""
         lc = self.config.loop_closure
-        if b.node_to - a.node_to > lc.agreement_window_nodes or a.node_from == b.node_from:
+        path = self._s.node_path_m
+        if (
+            b.node_to - a.node_to > lc.agreement_window_nodes
+            # independent evidence: two different stretches of the old path
+            or abs(path[b.node_from] - path[a.node_from]) < lc.agreement_min_separation_m
+        ):
             return False
-        diff = se2.between(a.correction, b.correction)
+        carry = se2.between(self.graph.estimate(a.node_to), self.graph.estimate(b.node_to))
+        diff = se2.between(se2.compose(a.implied, carry), b.implied)
         return bool(
             np.hypot(diff[0], diff[1]) <= lc.agreement_translation_m
             and abs(diff[2]) <= np.radians(lc.agreement_rotation_deg)
