@@ -167,6 +167,19 @@ class MatchingConfig(BaseModel):
     ambiguity_angle_deg: float = Field(
         default=5.0, gt=0.0, description="Angular distinctness threshold of two refined hypotheses."
     )
+    tracking_max_translation_m: float = Field(
+        default=1.0,
+        gt=0.0,
+        description="Bounds up to this translation (and tracking_max_rotation_deg) are "
+        "tracking: one feature pair, the bounded correlation threshold and the first passing "
+        "hypothesis suffice. Wider bounds (loop closure) use the global thresholds and "
+        "compare all refined hypotheses (DESIGN step 10).",
+    )
+    tracking_max_rotation_deg: float = Field(
+        default=30.0,
+        gt=0.0,
+        description="Rotation limit of tracking bounds (see tracking_max_translation_m).",
+    )
     use_prediction_hypothesis: bool = Field(
         default=True,
         description="For a bounded (local) match, also refine from the prediction itself, so a "
@@ -233,8 +246,9 @@ class MatchingConfig(BaseModel):
     min_matched_features_global: int = Field(
         default=2,
         ge=1,
-        description="Fewest feature pairs a global match needs: over the whole map a single "
-        "Corner or EOW has many look-alikes, a configuration of two is distinctive.",
+        description="Fewest feature pairs a global (or wide-bounds) match needs: over the "
+        "whole map a single Corner or EOW has many look-alikes, a configuration of two is "
+        "distinctive.",
     )
     occlusion_tolerance_m: float = Field(
         default=0.25,

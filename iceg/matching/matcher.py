@@ -284,7 +284,8 @@ class IceMatcher:
         # the prediction competes like any cluster.
         order = np.argsort(-corr0.score, kind="stable")
         best0 = float(corr0.score[order[0]])
-        n_refine = c.max_refined_global if bounds.is_global else c.max_refined
+        strict = self._strict(bounds)
+        n_refine = c.max_refined_global if strict else c.max_refined
         chosen = [int(k) for k in order if corr0.score[k] >= best0 - c.refine_correlation_margin][
             :n_refine
         ]
@@ -339,7 +340,7 @@ class IceMatcher:
                 cand, features, reference, gn, pred, bounds, profile, ref_profile
             )
             cands.append(cand)
-            if not bounds.is_global and not cand.failure:
+            if not strict and not cand.failure:
                 # Bounded match: the best-correlated hypothesis that passes is the answer
                 # (rivals come from the bounds' small neighbourhood only).
                 break
@@ -381,6 +382,17 @@ class IceMatcher:
         normal = np.full(rp.shape, np.nan)
         normal[has] = np.stack([-t[has, 1], t[has, 0]], axis=1) / tl[has, None]
         return Cloud(features.points_xy[new_off], cKDTree(rp), rp, nn, normal)
+
+    def _strict(self, bounds: MatchBounds) -> bool:
+        """A global match, or one whose bounds are wider than tracking's (loop closure,
+        relocalisation): the hypothesis space is large, so the global evidence thresholds
+        apply and every chosen hypothesis is refined and compared (ambiguity)."""
+        c = self.config
+        return (
+            bounds.is_global
+            or bounds.max_translation_m > c.tracking_max_translation_m
+            or bounds.max_rotation_rad > math.radians(c.tracking_max_rotation_deg)
+        )
 
     # ------------------------------------------------------------------------------------
     def _fail(self, pred: FloatArray, reason: str, n_hyp: int) -> MatchResult:
@@ -450,14 +462,15 @@ class IceMatcher:
         # A consistent hypothesis with feature support is a rival of the best even if it
         # is too weak to be accepted itself (one pair in a global match, few points).
         cand.rival = n_matched >= 1
-        min_pairs = c.min_matched_features_global if bounds.is_global else c.min_matched_features
-        min_corr = c.min_correlation_global if bounds.is_global else c.min_correlation
+        strict = self._strict(bounds)
+        min_pairs = c.min_matched_features_global if strict else c.min_matched_features
+        min_corr = c.min_correlation_global if strict else c.min_correlation
         if n_matched >= min_pairs:
             # Feature-supported: eq. 1 decides (paper §III-C3).
             if score < min_corr:
                 return f"{REASON_LOW_CORRELATION}: {score:.3f} < {min_corr}"
-            min_overlap = c.min_point_overlap_global if bounds.is_global else c.min_point_overlap
-        elif not bounds.is_global and cand.from_prediction and n_matched == 0:
+            min_overlap = c.min_point_overlap_global if strict else c.min_point_overlap
+        elif not strict and cand.from_prediction and n_matched == 0:
             # No feature pairs (a corridor, or features too unstable to pair), tracked from
             # the prediction: the points decide, and the covariance shows what the walls
             # leave unconstrained.
