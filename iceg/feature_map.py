@@ -22,6 +22,7 @@ import math
 import weakref
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -136,6 +137,14 @@ class FeatureMapConfig(BaseModel):
         ge=1,
         description="Validity pruning needs at least this many consecutive expected misses "
         "(one missed extraction does not remove a landmark).",
+    )
+    bookkeeping_scope: Literal["reference", "all"] = Field(
+        default="reference",
+        description="Landmarks a matched scan associates, merges and counts as expected: "
+        "those of the reference it was matched against (the local map: a landmark can only "
+        "be matched where it was offered), or every landmark with an anchor pose. 'all' lets "
+        "a drifted revisit, before its loop closes, miss and prune the old place's landmarks "
+        "that the loop closure needs.",
     )
     reference_points: bool = Field(
         default=False,
@@ -686,8 +695,11 @@ class FeatureMap:
             new_pose = np.asarray(node_pose, dtype=np.float64).reshape(3)
         else:
             new_pose = compose(frame, match.pose)
-        # Every landmark whose anchor has a pose, in the new node's frame.
+        # Every landmark whose anchor has a pose (of the reference, by default), in the new
+        # node's frame.
         apos, afound = _lookup(tab_ids, lm["anchor"])
+        if cfg.bookkeeping_scope == "reference":
+            afound &= np.isin(lm["id"], ref_ids)
         rows = np.flatnonzero(afound)
         anchor_in_new = (
             between(new_pose, tab_poses[apos[rows]]) if rows.shape[0] else np.zeros((0, 3))

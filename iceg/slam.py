@@ -209,7 +209,13 @@ class Slam:
             self._search_loop_closure(new_id, feats)
             t0 = self.timer.add("loop_closure", t0)
         self.feature_map.update(
-            new_id, feats, scan.stamp_s, reference=reference, match=result, scan=scan
+            new_id,
+            feats,
+            scan.stamp_s,
+            reference=reference,
+            match=result,
+            scan=scan,
+            node_poses=self.graph.estimates(),
         )
         self.timer.add("feature_map", t0)
         return self.graph.estimate(new_id)
@@ -342,7 +348,9 @@ class Slam:
             return
         agreeing = [c for c in self._pending_loops if self._agree(c, closure)]
         if agreeing:
-            self._accept_loop_closures([*agreeing, closure])
+            # Two independent places agree: the pair is its own outlier test, and a robust
+            # kernel would all but ignore the large residual the drift gives it.
+            self._accept_loop_closures([*agreeing, closure], robust=False)
             self._pending_loops = [c for c in self._pending_loops if c not in agreeing]
             logger.debug(
                 "loop closures %s->%d accepted by pairwise agreement (chi2 %.1f vs estimate)",
@@ -383,7 +391,8 @@ class Slam:
             and abs(diff[2]) <= np.radians(lc.agreement_rotation_deg)
         )
 
-    def _accept_loop_closures(self, closures: list[_LoopCandidate]) -> None:
+    def _accept_loop_closures(self, closures: list[_LoopCandidate], robust: bool = True) -> None:
+        kernel = self.config.loop_closure.robust_kernel if robust else None
         for c in closures:
             self._add_factor(
                 "loop_closure",
@@ -392,7 +401,7 @@ class Slam:
                 c.measured,
                 c.cov,
                 c.correlation,
-                robust=self.config.loop_closure.robust_kernel,
+                robust=kernel,
             )
         self.graph.update()
         self.loop_stats.accepted += len(closures)
