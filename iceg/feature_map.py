@@ -22,7 +22,6 @@ import math
 import weakref
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -138,13 +137,15 @@ class FeatureMapConfig(BaseModel):
         description="Validity pruning needs at least this many consecutive expected misses "
         "(one missed extraction does not remove a landmark).",
     )
-    bookkeeping_scope: Literal["reference", "all"] = Field(
-        default="reference",
-        description="Landmarks a matched scan associates, merges and counts as expected: "
-        "those of the reference it was matched against (the local map: a landmark can only "
-        "be matched where it was offered), or every landmark with an anchor pose. 'all' lets "
-        "a drifted revisit, before its loop closes, miss and prune the old place's landmarks "
-        "that the loop closure needs.",
+    bookkeeping_recent_nodes: int | None = Field(
+        default=200,
+        ge=0,
+        description="Landmarks a matched scan associates, merges and counts as expected: those "
+        "of the reference it was matched against, plus those last matched (or created) by one "
+        "of this many most recent nodes; None: every landmark with an anchor pose. Older "
+        "landmarks are left alone because the estimate of a place revisited after a long "
+        "loop can be off by metres before the loop closes: there they would be missed, merged "
+        "or pruned wrongly, and the loop closure needs them.",
     )
     reference_points: bool = Field(
         default=False,
@@ -698,8 +699,9 @@ class FeatureMap:
         # Every landmark whose anchor has a pose (of the reference, by default), in the new
         # node's frame.
         apos, afound = _lookup(tab_ids, lm["anchor"])
-        if cfg.bookkeeping_scope == "reference":
-            afound &= np.isin(lm["id"], ref_ids)
+        if cfg.bookkeeping_recent_nodes is not None:
+            recent = lm["last_node"] >= node_id - cfg.bookkeeping_recent_nodes
+            afound &= recent | np.isin(lm["id"], ref_ids)
         rows = np.flatnonzero(afound)
         anchor_in_new = (
             between(new_pose, tab_poses[apos[rows]]) if rows.shape[0] else np.zeros((0, 3))
