@@ -18,9 +18,7 @@ information matrix (inverse covariance) in the tangent space of the measurement.
 
 from __future__ import annotations
 
-import contextlib
 import os
-import tempfile
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +28,7 @@ import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
+from iceg_common.atomic import atomic_write
 from iceg_common.errors import GraphError
 
 _SUPPORTED = ("VERTEX_SE2", "EDGE_SE2")
@@ -288,14 +287,8 @@ def write_g2o_file(
         kind = getattr(f.kind, "value", f.kind)
         meta.append(f"# ICEG_EDGE {kind} {f.robust or 'none'} {k!r}")
     text = "\n".join([*lines, *meta]) + "\n"
-    tmp = None
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{file.name}.", suffix=".tmp", dir=file.parent)
-        with os.fdopen(fd, "w", encoding="utf-8") as stream:
+        with atomic_write(file) as stream:
             stream.write(text)
-        os.replace(tmp, file)
     except OSError as exc:
-        if tmp is not None:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
         raise GraphError(f"{file}: cannot write the g2o file: {exc}") from exc

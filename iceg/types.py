@@ -73,6 +73,28 @@ class ScanFeatures:
     range_max_m: float = 20.0
     stamp_s: float = 0.0
 
+    @classmethod
+    def empty(
+        cls, points_xy: FloatArray | None = None, range_max_m: float = 20.0, stamp_s: float = 0.0
+    ) -> ScanFeatures:
+        """No segments and no features (``points_xy`` ``(P, 2)`` kept if given)."""
+        return cls(
+            points_xy=np.zeros((0, 2)) if points_xy is None else points_xy,
+            seg_endpoints=np.zeros((0, 2, 2)),
+            seg_lines=np.zeros((0, 2)),
+            seg_cov=np.zeros((0, 2, 2)),
+            seg_point_range=np.zeros((0, 2), dtype=np.int64),
+            kind=np.zeros(0, dtype=np.int64),
+            xy=np.zeros((0, 2)),
+            cov=np.zeros((0, 2, 2)),
+            directions=np.zeros((0, 2, 2)),
+            opening_rad=np.zeros(0),
+            segment_ids=np.zeros((0, 2), dtype=np.int64),
+            ids=np.zeros(0, dtype=np.int64),
+            range_max_m=range_max_m,
+            stamp_s=stamp_s,
+        )
+
     @property
     def n_features(self) -> int:
         """Number of features ``K``."""

@@ -24,7 +24,7 @@ from frontends.simulate.raycast import (
     visible_mask,
     visible_wall_ends,
 )
-from frontends.simulate.run import SimulatedRun, simulate, simulate_pair, write_tum
+from frontends.simulate.run import SimulatedRun, simulate, simulate_pair
 from frontends.simulate.trajectory import (
     default_trajectory,
     default_trajectory_duration_s,
@@ -75,5 +75,4 @@ __all__ = [
     "visible_wall_ends",
     "wall_with_doors",
     "world_by_name",
-    "write_tum",
 ]

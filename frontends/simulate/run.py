@@ -3,9 +3,6 @@ ground truth, deterministic under a seed, exportable to CARMEN and TUM files."""
 
 from __future__ import annotations
 
-import math
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -18,6 +15,7 @@ from frontends.simulate.odometry import OdometryModel
 from frontends.simulate.raycast import LaserModel, cast_rays
 from frontends.simulate.trajectory import DEFAULT_RATE_HZ, default_trajectory
 from frontends.simulate.worlds import World
+from frontends.tum import write_tum
 from iceg_common.errors import ConfigError
 
 FloatArray = NDArray[np.float64]
@@ -76,58 +74,12 @@ class SimulatedRun:
         return write_carmen(path, self.scans, laser_record=laser_record)
 
     def write_tum(self, path: str | Path) -> int:
-        """Write the true poses as a TUM trajectory (see :func:`write_tum`).
+        """Write the true poses as a TUM trajectory (:func:`frontends.tum.write_tum`).
 
         Returns:
             The number of poses written.
         """
         return write_tum(path, self.stamps_s, self.true_poses)
-
-
-def write_tum(path: str | Path, stamps_s: ArrayLike, poses: ArrayLike) -> int:
-    """Write a planar trajectory in the TUM format, atomically.
-
-    One line per pose: ``stamp x y z qx qy qz qw`` with ``z = qx = qy = 0``,
-    ``qz = sin(theta/2)``, ``qw = cos(theta/2)``; every number is written with ``repr`` (the
-    shortest text that reads back to the same float64).
-
-    Args:
-        path: Output file; written to a temporary file in the same folder, then renamed.
-        stamps_s: ``(N,)`` float64 timestamps, seconds.
-        poses: ``(N, 3)`` float64 poses ``[x_m, y_m, theta_rad]``.
-
-    Returns:
-        The number of poses written.
-
-    Raises:
-        ConfigError: shapes disagree.
-    """
-    t = np.asarray(stamps_s, dtype=np.float64)
-    x = np.asarray(poses, dtype=np.float64)
-    if x.ndim != 2 or x.shape[1] != 3 or t.shape != (x.shape[0],):
-        raise ConfigError(
-            f"write_tum: stamps_s {t.shape} and poses {x.shape} must be (N,) and (N, 3)"
-        )
-    lines = [
-        " ".join(
-            repr(float(v))
-            for v in (ti, xi, yi, 0.0, 0.0, 0.0, math.sin(th / 2.0), math.cos(th / 2.0))
-        )
-        for ti, (xi, yi, th) in zip(t, x, strict=True)
-    ]
-    _atomic_write_text(Path(path), "".join(line + "\n" for line in lines))
-    return len(lines)
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def simulate(

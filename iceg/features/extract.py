@@ -98,25 +98,6 @@ def _point_segment_distance(p: FloatArray, a: FloatArray, b: FloatArray) -> Floa
     return _norm(p - (a + s[:, None] * e))
 
 
-def _empty_features(points_xy: FloatArray, range_max_m: float, stamp_s: float) -> ScanFeatures:
-    return ScanFeatures(
-        points_xy=points_xy,
-        seg_endpoints=np.zeros((0, 2, 2)),
-        seg_lines=np.zeros((0, 2)),
-        seg_cov=np.zeros((0, 2, 2)),
-        seg_point_range=np.zeros((0, 2), dtype=np.int64),
-        kind=np.zeros(0, dtype=np.int64),
-        xy=np.zeros((0, 2)),
-        cov=np.zeros((0, 2, 2)),
-        directions=np.zeros((0, 2, 2)),
-        opening_rad=np.zeros(0),
-        segment_ids=np.zeros((0, 2), dtype=np.int64),
-        ids=np.zeros(0, dtype=np.int64),
-        range_max_m=range_max_m,
-        stamp_s=stamp_s,
-    )
-
-
 def extract(scan: LaserScan, config: FeatureConfig | None = None) -> ScanFeatures:
     """Segments and ICE features (Corner, End of wall, Intersection) of one scan.
 
@@ -186,7 +167,7 @@ def extract(scan: LaserScan, config: FeatureConfig | None = None) -> ScanFeature
     beam_index = np.flatnonzero(valid).astype(np.int64)
     points = scan.points_xy(valid)
     if points.shape[0] < cfg.min_segment_points:
-        return _empty_features(points, range_max, stamp)
+        return ScanFeatures.empty(points, range_max, stamp)
     r = ranges[valid]
     origin = scan.laser_offset[:2]
     beam_angle_robot = angles + scan.laser_offset[2]  # (N,) beam directions, robot frame
@@ -234,7 +215,7 @@ def extract(scan: LaserScan, config: FeatureConfig | None = None) -> ScanFeature
     )
     m = seg_range.shape[0]
     if m == 0:
-        return _empty_features(points, range_max, stamp)
+        return ScanFeatures.empty(points, range_max, stamp)
 
     sin_min = math.sin(math.radians(cfg.meeting_angle_min_deg))
     normals = np.stack([np.cos(lines[:, 0]), np.sin(lines[:, 0])], axis=1)  # (M, 2)

@@ -36,26 +36,6 @@ def rot(theta: float | FloatArray) -> FloatArray:
     return out
 
 
-def empty_features(range_max_m: float = 20.0, stamp_s: float = 0.0) -> ScanFeatures:
-    """A :class:`ScanFeatures` with no points, segments or features."""
-    return ScanFeatures(
-        points_xy=np.zeros((0, 2)),
-        seg_endpoints=np.zeros((0, 2, 2)),
-        seg_lines=np.zeros((0, 2)),
-        seg_cov=np.zeros((0, 2, 2)),
-        seg_point_range=np.zeros((0, 2), dtype=np.int64),
-        kind=np.zeros(0, dtype=np.int64),
-        xy=np.zeros((0, 2)),
-        cov=np.zeros((0, 2, 2)),
-        directions=np.zeros((0, 2, 2)),
-        opening_rad=np.zeros(0),
-        segment_ids=np.zeros((0, 2), dtype=np.int64),
-        ids=np.zeros(0, dtype=np.int64),
-        range_max_m=range_max_m,
-        stamp_s=stamp_s,
-    )
-
-
 @dataclass(frozen=True, eq=False)
 class FeatureGeometry:
     """Per-feature quantities the matcher uses, precomputed once per scan.
