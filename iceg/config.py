@@ -28,34 +28,41 @@ class SlamConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     keyframe_distance_m: float = Field(
-        0.10, gt=0, description="A scan becomes a graph node after this odometry translation."
+        default=0.10,
+        gt=0,
+        description="A scan becomes a graph node after this odometry translation.",
     )
     keyframe_rotation_deg: float = Field(
-        5.0, gt=0, description="... or after this odometry rotation."
+        default=5.0, gt=0, description="... or after this odometry rotation."
     )
     keyframe_max_interval_s: float = Field(
-        30.0, gt=0, description="... or after this time without a node (robot standing)."
+        default=30.0, gt=0, description="... or after this time without a node (robot standing)."
     )
     local_map_nodes: int = Field(
-        8, ge=1, description="Nodes whose landmarks form the local map for tracking."
+        default=8, ge=1, description="Nodes whose landmarks form the local map for tracking."
     )
     match_max_translation_m: float = Field(
-        0.5, gt=0, description="Admissible translation around the odometry prediction (§III-C2)."
+        default=0.5,
+        gt=0,
+        description="Admissible translation around the odometry prediction (§III-C2).",
     )
     match_max_rotation_deg: float = Field(
-        20.0, gt=0, description="Admissible rotation around the odometry prediction (§III-C2)."
+        default=20.0,
+        gt=0,
+        description="Admissible rotation around the odometry prediction (§III-C2).",
     )
     no_odometry_sigma_m: float = Field(
-        0.5,
+        default=0.5,
         gt=0,
         description="For logs without odometry: sigma of the constant-velocity "
         "motion prior between consecutive nodes, metres.",
     )
     no_odometry_sigma_deg: float = Field(
-        20.0, gt=0, description="... and its rotation sigma, degrees."
+        default=20.0, gt=0, description="... and its rotation sigma, degrees."
     )
     batch_refinement: bool = Field(
-        True, description="Run batch Levenberg–Marquardt over the whole graph after the run."
+        default=True,
+        description="Run batch Levenberg–Marquardt over the whole graph after the run.",
     )
 
 
@@ -65,63 +72,73 @@ class LoopClosureConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     enabled: bool = True
-    every_n_nodes: int = Field(3, ge=1, description="Search once every this many new nodes.")
+    every_n_nodes: int = Field(
+        default=3, ge=1, description="Search once every this many new nodes."
+    )
     min_node_gap: int = Field(
-        30, ge=1, description="Only nodes at least this many nodes older are loop candidates."
+        default=30,
+        ge=1,
+        description="Only nodes at least this many nodes older are loop candidates.",
     )
     min_path_m: float = Field(
-        10.0,
+        default=10.0,
         ge=0,
         description="Only nodes at least this far back along the odometry path are candidates.",
     )
     reference_nodes: int = Field(
-        10,
+        default=10,
         ge=1,
         description="The old nodes nearest a candidate whose landmarks form its reference.",
     )
     search_radius_m: float = Field(
-        2.0, gt=0, description="Base search radius around the current estimate."
+        default=2.0, gt=0, description="Base search radius around the current estimate."
     )
     max_search_radius_m: float = Field(
-        10.0, gt=0, description="Cap of the search radius (and of the match's translation bound)."
+        default=10.0,
+        gt=0,
+        description="Cap of the search radius (and of the match's translation bound).",
     )
     max_candidates: int = Field(
-        3, ge=1, description="Candidate places (distinct node windows) matched per search."
+        default=3, ge=1, description="Candidate places (distinct node windows) matched per search."
     )
     search_n_sigma: float = Field(
-        3.0, ge=0, description="Radius grows by this many marginal position sigmas."
+        default=3.0, ge=0, description="Radius grows by this many marginal position sigmas."
     )
     max_rotation_deg: float = Field(
-        30.0, gt=0, description="Base admissible rotation of a loop-closure match."
+        default=30.0, gt=0, description="Base admissible rotation of a loop-closure match."
     )
     min_correlation: float = Field(
-        0.5, ge=0, le=1, description="Minimum ICE correlation (eq. 1) of a loop closure."
+        default=0.5, ge=0, le=1, description="Minimum ICE correlation (eq. 1) of a loop closure."
     )
     consistency_chi2: float = Field(
-        16.27, gt=0, description="Mahalanobis gate (chi-square, 3 dof, 99.9 %) on the innovation."
+        default=16.27,
+        gt=0,
+        description="Mahalanobis gate (chi-square, 3 dof, 99.9 %) on the innovation.",
     )
     agreement_window_nodes: int = Field(
-        30,
+        default=30,
         ge=1,
         description="A closure that fails the gate is held this many nodes; two held closures "
         "implying the same correction are accepted together (pairwise consistency).",
     )
     agreement_min_separation_m: float = Field(
-        2.0,
+        default=2.0,
         ge=0,
         description="Agreeing closures must reach old nodes this far apart along the path "
         "(matches to one place can share one aliasing error).",
     )
     agreement_translation_m: float = Field(
-        0.3, gt=0, description="Largest translation between two agreeing corrections."
+        default=0.3, gt=0, description="Largest translation between two agreeing corrections."
     )
     agreement_rotation_deg: float = Field(
-        2.0, gt=0, description="Largest rotation between two agreeing corrections."
+        default=2.0, gt=0, description="Largest rotation between two agreeing corrections."
     )
     robust_kernel: Literal["huber", "cauchy"] = Field(
-        "cauchy", description="M-estimator wrapped around loop-closure factors."
+        default="cauchy", description="M-estimator wrapped around loop-closure factors."
     )
-    robust_k: float = Field(1.0, gt=0, description="Kernel width in whitened units (sigmas).")
+    robust_k: float = Field(
+        default=1.0, gt=0, description="Kernel width in whitened units (sigmas)."
+    )
 
 
 class IcegConfig(BaseModel):

@@ -5,7 +5,7 @@ Nothing here creates a figure, changes global matplotlib state or shows a window
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -13,6 +13,7 @@ from numpy.typing import ArrayLike
 if TYPE_CHECKING:
     from matplotlib.artist import Artist
     from matplotlib.axes import Axes
+    from matplotlib.container import BarContainer
 
     from iceg.grid import OccupancyGrid
 
@@ -199,7 +200,7 @@ def relation_errors(ax: Axes, per_relation: ArrayLike, bins: int = 40) -> list[A
     """
     e = np.asarray(per_relation, dtype=np.float64).reshape(-1, 2)
     e = e[np.all(np.isfinite(e), axis=1)]
-    _, _, patches = ax.hist(e[:, 0], bins=bins, color="tab:blue")
+    _, _, bars = ax.hist(e[:, 0], bins=bins, color="tab:blue")
     ax.set_xlabel("translational relation error [m]")
     ax.set_ylabel("relations")
-    return list(patches)
+    return list(cast("BarContainer", bars))

@@ -36,7 +36,8 @@ def atomic_write(path: str | Path, mode: str = "w") -> contextlib.AbstractContex
 def _atomic_write(path: Path, mode: str) -> Iterator[IO]:  # type: ignore[type-arg]
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
-        with os.fdopen(fd, mode, **({} if "b" in mode else {"encoding": "utf-8"})) as fh:
+        encoding = None if "b" in mode else "utf-8"
+        with os.fdopen(fd, mode, encoding=encoding) as fh:
             yield fh
             fh.flush()
             os.fsync(fh.fileno())
