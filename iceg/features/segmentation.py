@@ -63,11 +63,10 @@ def breakpoints(
 
 
 @njit(cache=True)
-def _tls(x: FloatArray, y: FloatArray, s: int, e: int) -> tuple[float, float, float, float]:
-    """Unweighted total-least-squares line of points ``[s, e)``.
-
-    Returns ``(nx, ny, c, max_abs_residual)`` with the line ``nx x + ny y = c``.
-    """
+def _scatter(
+    x: FloatArray, y: FloatArray, s: int, e: int
+) -> tuple[float, float, float, float, float]:
+    """Centroid and scatter ``(mx, my, sxx, syy, sxy)`` of points ``[s, e)``."""
     m = e - s
     mx = 0.0
     my = 0.0
@@ -85,6 +84,16 @@ def _tls(x: FloatArray, y: FloatArray, s: int, e: int) -> tuple[float, float, fl
         sxx += dx * dx
         syy += dy * dy
         sxy += dx * dy
+    return mx, my, sxx, syy, sxy
+
+
+@njit(cache=True)
+def _tls(x: FloatArray, y: FloatArray, s: int, e: int) -> tuple[float, float, float, float]:
+    """Unweighted total-least-squares line of points ``[s, e)``.
+
+    Returns ``(nx, ny, c, max_abs_residual)`` with the line ``nx x + ny y = c``.
+    """
+    mx, my, sxx, syy, sxy = _scatter(x, y, s, e)
     alpha = 0.5 * math.atan2(-2.0 * sxy, syy - sxx)
     nx = math.cos(alpha)
     ny = math.sin(alpha)
@@ -103,22 +112,7 @@ def _sse(x: FloatArray, y: FloatArray, s: int, e: int) -> float:
     m = e - s
     if m < 3:
         return 0.0
-    mx = 0.0
-    my = 0.0
-    for i in range(s, e):
-        mx += x[i]
-        my += y[i]
-    mx /= m
-    my /= m
-    sxx = 0.0
-    syy = 0.0
-    sxy = 0.0
-    for i in range(s, e):
-        dx = x[i] - mx
-        dy = y[i] - my
-        sxx += dx * dx
-        syy += dy * dy
-        sxy += dx * dy
+    _, _, sxx, syy, sxy = _scatter(x, y, s, e)
     # Smallest eigenvalue of the scatter matrix.
     half_tr = 0.5 * (sxx + syy)
     disc = math.sqrt(max(0.25 * (sxx - syy) ** 2 + sxy * sxy, 0.0))

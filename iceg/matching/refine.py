@@ -403,6 +403,27 @@ def refine(
     new_edge0 = np.ascontiguousarray(gn.edge[:, 0])
     ref_edge0 = np.ascontiguousarray(gr.edge[:, 0])
     sin_gate = math.sin(s.normal_gate_rad)
+
+    def system(pose: FloatArray, gate: float, sigma: float) -> tuple:  # type: ignore[type-arg]
+        """Point-to-line normal equations at ``pose`` (see :func:`point_line_system`)."""
+        return point_line_system(  # type: ignore[no-any-return]
+            pose,
+            points,
+            point_alpha,
+            segs.a,
+            segs.u,
+            segs.length,
+            segs.normal,
+            segs.rho,
+            line_info,
+            gate,
+            s.end_tol_m,
+            sin_gate,
+            sigma,
+            s.sigma_min_m,
+            s.cauchy_sigmas,
+        )
+
     if cloud is None:
         # Both phases compiled (the usual case: a map reference has no points).
         if coarse_pairs is None:
@@ -461,23 +482,7 @@ def refine(
         it += it2
     else:
         for it in range(1, s.max_iterations + 1):
-            hess, grad, sigma, _, _ = point_line_system(
-                pose,
-                points,
-                point_alpha,
-                segs.a,
-                segs.u,
-                segs.length,
-                segs.normal,
-                segs.rho,
-                line_info,
-                gate,
-                s.end_tol_m,
-                sin_gate,
-                sigma,
-                s.sigma_min_m,
-                s.cauchy_sigmas,
-            )
+            hess, grad, sigma, _, _ = system(pose, gate, sigma)
             if coarse:
                 if coarse_pairs is None:
                     coarse_pairs = pair_fn(pose)
@@ -531,23 +536,7 @@ def refine(
             if not coarse:
                 gate = min(s.gate_m, max(s.gate_min_m, s.gate_sigmas * sigma))
     # Final linearisation at the refined pose.
-    hess, _, sigma, idx, res = point_line_system(
-        pose,
-        points,
-        point_alpha,
-        segs.a,
-        segs.u,
-        segs.length,
-        segs.normal,
-        segs.rho,
-        line_info,
-        gate,
-        s.end_tol_m,
-        sin_gate,
-        sigma,
-        s.sigma_min_m,
-        s.cauchy_sigmas,
-    )
+    hess, _, sigma, idx, res = system(pose, gate, sigma)
     c = s.cauchy_sigmas * sigma
     sel = idx >= 0
     rp = points[sel] @ rot(pose[2]).T
