@@ -18,10 +18,10 @@ from iceg.grid import OccupancyGrid, write_map_server, write_png
 from iceg_common.atomic import atomic_write
 
 if TYPE_CHECKING:
-    from graph import PoseGraph
+    from graph import FactorRecord, PoseGraph
     from iceg.config import IcegConfig
     from iceg.feature_map import FeatureMap
-    from iceg.slam import FactorRecord, LoopClosureStats
+    from iceg.slam import LoopClosureStats
 
 FloatArray = NDArray[np.float64]
 
@@ -47,7 +47,10 @@ class SlamResult:
             in the map frame (non-node scans: their node's estimate ∘ odometry delta).
         node_ids: ``(M,)`` graph node ids; ``node_poses`` ``(M, 3)`` their estimates.
         node_scan_index: ``(M,)`` index of each node's scan in the input.
-        factors: every factor (kind, nodes, measurement, covariance, correlation).
+        factors: every factor of the graph (``graph.FactorRecord``: index, kind, nodes
+            ``i``/``j``, measurement, covariance, robust kernel), the prior first.
+        correlations: ICE correlation (eq. 1) of each scan-match and loop-closure factor,
+            by factor index.
         loop_closures: loop-closure statistics.
         match_failures: count of failed local matches per reason.
         stage_seconds: wall time per pipeline stage, seconds.
@@ -63,7 +66,8 @@ class SlamResult:
     node_ids: NDArray[np.int64]
     node_poses: FloatArray
     node_scan_index: NDArray[np.int64]
-    factors: list[FactorRecord]
+    factors: tuple[FactorRecord, ...]
+    correlations: dict[int, float]
     loop_closures: LoopClosureStats
     match_failures: dict[str, int]
     stage_seconds: dict[str, float]
@@ -80,7 +84,7 @@ class SlamResult:
 
     def factor_counts(self) -> dict[str, int]:
         """Number of factors per kind."""
-        return dict(Counter(f.kind for f in self.factors))
+        return dict(Counter(f.kind.value for f in self.factors))
 
     def summary(self) -> dict[str, Any]:
         """Counts, timing and evaluation figures as a JSON-ready dict."""

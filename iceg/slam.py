@@ -50,26 +50,6 @@ class StageTimer:
 
 
 @dataclass
-class FactorRecord:
-    """One factor of the run, for statistics and notebooks.
-
-    Attributes:
-        kind: ``"odometry"``, ``"scan_match"`` or ``"loop_closure"``.
-        node_from, node_to: node ids; ``measured`` is ``x_from^-1 ∘ x_to``.
-        measured: ``(3,)`` relative pose.
-        cov: ``(3, 3)`` covariance in the tangent space at ``measured`` (gtsam convention).
-        correlation: ICE correlation (eq. 1) for matches; NaN for odometry.
-    """
-
-    kind: str
-    node_from: int
-    node_to: int
-    measured: FloatArray
-    cov: FloatArray
-    correlation: float = float("nan")
-
-
-@dataclass
 class LoopClosureStats:
     """Loop-closure bookkeeping: searches run, matches tried, accepted and rejected."""
 
@@ -110,7 +90,7 @@ class SlamState:
     node_scan_index: list[int] = field(default_factory=list)
     node_odom: list[FloatArray] = field(default_factory=list)
     node_path_m: list[float] = field(default_factory=list)  # odometry path length at node
-    factors: list[FactorRecord] = field(default_factory=list)
+    correlations: dict[int, float] = field(default_factory=dict)  # factor index -> eq. 1
     match_failures: dict[str, int] = field(default_factory=lambda: defaultdict(int))
 
 
@@ -255,8 +235,11 @@ class Slam:
         robust: Literal["huber", "cauchy"] | None = None,
     ) -> None:
         robust_k = self.config.loop_closure.robust_k if robust else None
-        self.graph.add_between(i, j, measured, cov, kind=kind, robust=robust, robust_k=robust_k)
-        self._s.factors.append(FactorRecord(kind, i, j, measured.copy(), cov.copy(), correlation))
+        record = self.graph.add_between(
+            i, j, measured, cov, kind=kind, robust=robust, robust_k=robust_k
+        )
+        if np.isfinite(correlation):
+            self._s.correlations[record.index] = correlation
 
     def _search_loop_closure(self, node_id: int, feats: ScanFeatures) -> None:
         """Search older nodes near the current estimate and add a robust loop closure.
@@ -437,7 +420,8 @@ class Slam:
             node_ids=ids,
             node_poses=node_poses,
             node_scan_index=np.array(self._s.node_scan_index, dtype=np.int64),
-            factors=list(self._s.factors),
+            factors=self.graph.factors,
+            correlations=dict(self._s.correlations),
             loop_closures=self.loop_stats,
             match_failures=dict(self._s.match_failures),
             stage_seconds=dict(self.timer.seconds),

@@ -68,7 +68,7 @@ def test_corridor_match_covariance_shows_the_degeneracy() -> None:
     mid = [
         f
         for f in result.factors
-        if f.kind == "scan_match" and 15.0 < result.node_poses[f.node_to, 0] < 25.0
+        if f.kind == "scan_match" and 15.0 < result.node_poses[f.j, 0] < 25.0
     ]
     assert mid, "no scan-match factor in the corridor's middle"
     ratios = np.array([f.cov[0, 0] / f.cov[1, 1] for f in mid])  # robot x is along the corridor
