@@ -6,6 +6,7 @@ exit code 1.
 
 from __future__ import annotations
 
+import functools
 import logging
 import sys
 from collections.abc import Callable
@@ -34,7 +35,6 @@ F = TypeVar("F", bound=Callable[..., Any])
 
 def _one_line_errors(func: F) -> F:
     """Turn an ``IcegError`` into one line on stderr and exit code 1."""
-    import functools
 
     @functools.wraps(func)
     def wrapper(*args: Any, **kwargs: Any) -> Any:

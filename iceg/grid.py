@@ -509,6 +509,19 @@ def _binarize(grid: OccupancyGrid, cfg: GridConfig) -> None:
     grid.log_odds[...] = np.where(occupied, cfg.l_max, np.where(free, cfg.l_min, 0.0))
 
 
+@numba.njit(cache=True, inline="always")
+def _axis_start(p0: float, i0: int, d: float) -> tuple[int, float, float]:
+    """Amanatides & Woo (1987) set-up along one axis, in cell units: the step direction,
+    the ray parameter per cell, and the parameter of the first cell boundary."""
+    if d > 0.0:
+        t_delta = 1.0 / d
+        return 1, t_delta, (i0 + 1 - p0) * t_delta
+    if d < 0.0:
+        t_delta = -1.0 / d
+        return -1, t_delta, (p0 - i0) * t_delta
+    return 0, math.inf, math.inf
+
+
 @numba.njit(cache=True, nogil=True)
 def _trace_scans(
     scan_start: NDArray[np.int64],
@@ -535,7 +548,6 @@ def _trace_scans(
     """
     n_scans = scan_start.shape[0] - 1
     stamp = np.full(log_odds.shape[0], -1, dtype=np.int64)
-    inf = np.inf
     for s in range(n_scans):
         b0 = scan_start[s]
         b1 = scan_start[s + 1]
@@ -560,30 +572,8 @@ def _trace_scans(
             iy_end = math.floor(y1)
             dx = x1 - x0
             dy = y1 - y0
-            if dx > 0.0:
-                step_x = 1
-                t_delta_x = 1.0 / dx
-                t_max_x = (ix0 + 1 - x0) * t_delta_x
-            elif dx < 0.0:
-                step_x = -1
-                t_delta_x = -1.0 / dx
-                t_max_x = (x0 - ix0) * t_delta_x
-            else:
-                step_x = 0
-                t_delta_x = inf
-                t_max_x = inf
-            if dy > 0.0:
-                step_y = 1
-                t_delta_y = 1.0 / dy
-                t_max_y = (iy0 + 1 - y0) * t_delta_y
-            elif dy < 0.0:
-                step_y = -1
-                t_delta_y = -1.0 / dy
-                t_max_y = (y0 - iy0) * t_delta_y
-            else:
-                step_y = 0
-                t_delta_y = inf
-                t_max_y = inf
+            step_x, t_delta_x, t_max_x = _axis_start(x0, ix0, dx)
+            step_y, t_delta_y, t_max_y = _axis_start(y0, iy0, dy)
             ix = ix0
             iy = iy0
             n_steps = abs(ix_end - ix0) + abs(iy_end - iy0)

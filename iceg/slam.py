@@ -83,7 +83,7 @@ class _ScanRecord:
 
 @dataclass
 class SlamState:
-    """Mutable state of a run (exposed read-only through :class:`Slam`)."""
+    """Mutable per-run bookkeeping of :class:`Slam` (scans, nodes, match statistics)."""
 
     scans: list[LaserScan] = field(default_factory=list)
     records: list[_ScanRecord] = field(default_factory=list)
