@@ -37,7 +37,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from frontends.scan import LaserScan
 from iceg_common.atomic import atomic_path, atomic_write
-from iceg_common.errors import IcegError
+from iceg_common.errors import GridError
 from iceg_common.se2 import compose
 
 __all__ = [
@@ -63,11 +63,6 @@ PGM_UNKNOWN = 205
 
 #: Sentinel default of OccupancyGrid.hits / misses: replaced by zeros of the grid's shape.
 _NO_COUNTS: NDArray[np.int32] = np.zeros((0, 0), dtype=np.int32)
-
-
-class GridError(IcegError):
-    """Occupancy-grid inputs are inconsistent (pose count, shapes, non-finite poses), the grid
-    would be too large, or an export cannot be written."""
 
 
 def _logit(p: float) -> float:

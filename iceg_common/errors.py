@@ -31,3 +31,23 @@ class EvaluationError(IcegError):
 class MatchingError(IcegError):
     """The scan matcher was called with inconsistent inputs (not a failed match: that is
     a ``MatchResult`` with ``success=False``)."""
+
+
+class ScanError(IcegError):
+    """A laser scan is inconsistent (unsorted or non-finite bearings, a non-finite laser
+    offset, shapes that disagree, an absurd beam count)."""
+
+
+class FeatureMapError(IcegError):
+    """The feature map was updated or queried inconsistently (a node added twice, a match
+    that refers to no reference)."""
+
+
+class GridError(IcegError):
+    """Occupancy-grid inputs are inconsistent (pose count, shapes, non-finite poses), the grid
+    would be too large, or an export cannot be written."""
+
+
+class OutputError(IcegError):
+    """A result cannot be written where asked (an existing file in the way, a read-only
+    folder, no space)."""
