@@ -71,7 +71,7 @@ class OdometryNoiseConfig(BaseModel):
 
 
 class GraphConfig(BaseModel):
-    """Settings of :class:`graph.PoseGraph` (iSAM2, batch Levenberg–Marquardt, priors, kernels).
+    """Settings of :class:`graph.PoseGraph`: iSAM2, batch Levenberg–Marquardt, first-node prior.
 
     iSAM2 is Kaess et al., "iSAM2: Incremental smoothing and mapping using the Bayes tree",
     IJRR 31(2), 2012; the relinearization threshold and skip are its §5 (fluid
@@ -119,19 +119,6 @@ class GraphConfig(BaseModel):
         "starts with Cholesky and, at the first indeterminant system, rebuilds iSAM2 with QR "
         "from its linearization point and stays on QR.",
     )
-    huber_k_sigma: float = Field(
-        default=1.345,
-        gt=0.0,
-        description="Default Huber threshold on the whitened residual norm (in standard "
-        "deviations): 95 % efficiency on Gaussian noise (Huber 1981; Zhang 1997, 'Parameter "
-        "estimation techniques', Table 1).",
-    )
-    cauchy_k_sigma: float = Field(
-        default=2.3849,
-        gt=0.0,
-        description="Default Cauchy scale on the whitened residual norm (in standard "
-        "deviations): 95 % efficiency on Gaussian noise (Zhang 1997, Table 1).",
-    )
     batch_relative_error_tol: float = Field(
         default=1e-10,
         gt=0.0,
@@ -144,10 +131,6 @@ class GraphConfig(BaseModel):
         description="Scale the Levenberg–Marquardt damping by the diagonal of the Hessian "
         "(Marquardt 1963) instead of the identity; needed when covariances span many orders "
         "of magnitude, as on INTEL.",
-    )
-    odometry: OdometryNoiseConfig = Field(
-        default=OdometryNoiseConfig(),  # frozen, so one shared default instance is safe
-        description="Odometry noise model used by graph.odometry_covariance.",
     )
 
     @property

@@ -43,6 +43,12 @@ from iceg_common.errors import GraphError
 logger = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
+
+#: Default kernel widths on the whitened residual norm (standard deviations): 95 % asymptotic
+#: efficiency on Gaussian noise (Huber 1981; Zhang 1997, "Parameter estimation techniques",
+#: Table 1). Used when ``add_between`` gets a kernel but no ``robust_k``.
+HUBER_K_95 = 1.345
+CAUCHY_K_95 = 2.3849
 RobustKernel = Literal["huber", "cauchy"]
 
 # What gtsam's C++ exceptions become through pybind11.
@@ -240,8 +246,8 @@ class PoseGraph:
             kind: ``"odometry"``, ``"scan_match"`` or ``"loop_closure"`` (statistics, export).
             robust: ``None`` for a Gaussian factor, ``"huber"`` or ``"cauchy"`` for an
                 M-estimator on the Mahalanobis distance (``noiseModel.Robust``).
-            robust_k: kernel parameter in standard deviations; defaults to
-                ``config.huber_k_sigma`` / ``config.cauchy_k_sigma``.
+            robust_k: kernel parameter in standard deviations; defaults to the 95 %-efficiency
+                value of the kernel (:data:`HUBER_K_95`, :data:`CAUCHY_K_95`).
 
         Returns:
             The factor's record.
@@ -270,7 +276,7 @@ class PoseGraph:
         if robust is not None:
             if robust not in ("huber", "cauchy"):
                 raise GraphError(f"{ctx}: robust must be None, 'huber' or 'cauchy', not {robust!r}")
-            default = self.config.huber_k_sigma if robust == "huber" else self.config.cauchy_k_sigma
+            default = HUBER_K_95 if robust == "huber" else CAUCHY_K_95
             k = float(default if robust_k is None else robust_k)
             if not (np.isfinite(k) and k > 0.0):
                 raise GraphError(f"{ctx}: robust_k must be a positive number, got {robust_k!r}")
