@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from iceg.evaluation import position_errors, relation_errors
+from iceg.evaluation import evo_ape_rpe, position_errors, relation_errors
 from iceg_common import se2
 from iceg_common.errors import EvaluationError
 from tests.conftest import shared_file
@@ -80,3 +80,22 @@ def test_raw_odometry_on_mit_csail_matches_the_published_figure() -> None:
     assert summary.n_matched == 1172
     assert summary.trans_mean_m == pytest.approx(1.68, abs=0.01)
     assert summary.rot_mean_deg == pytest.approx(5.07, abs=0.01)
+
+
+def test_evo_ape_agrees_with_the_own_aligned_ate() -> None:
+    """evo's APE (SE(3) Umeyama) and the project's SE(2)-aligned ATE are the same number on a
+    planar trajectory; a rigid offset plus known noise gives the known RPE of a pure offset."""
+    rng = np.random.default_rng(3)
+    n = 200
+    t = np.linspace(0.0, 2 * np.pi, n)
+    truth = np.column_stack([5 * np.cos(t), 3 * np.sin(t), t + np.pi / 2])
+    noisy = truth + np.column_stack([rng.normal(0, 0.05, (n, 2)), np.zeros(n)])
+    estimate = se2.compose(np.array([1.0, -2.0, 0.4]), noisy)
+    stamps = np.arange(n, dtype=np.float64)
+    evo = evo_ape_rpe(stamps, estimate, truth)
+    own = position_errors(estimate, truth)
+    assert evo["ape_rmse_m"] == pytest.approx(own.rmse_m, rel=1e-6)
+    assert evo["ape_mean_m"] == pytest.approx(own.mean_m, rel=1e-6)
+    # RPE of a rigidly moved trajectory without noise is zero
+    clean = evo_ape_rpe(stamps, se2.compose(np.array([1.0, -2.0, 0.4]), truth), truth)
+    assert clean["rpe_trans_rmse_m"] == pytest.approx(0.0, abs=1e-9)
