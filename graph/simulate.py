@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from graph.config import OdometryNoiseConfig
 from graph.noise import odometry_covariance
+from iceg_common.errors import ConfigError
 from iceg_common.se2 import between, compose, wrap_angle
 
 FloatArray = NDArray[np.float64]
@@ -107,9 +108,51 @@ def simulate_manhattan(
         The measurements and the ground truth (:class:`SimulatedPoseGraph`).
     """
     if n_nodes < 2:
-        raise ValueError(f"n_nodes must be >= 2, got {n_nodes}")
+        raise ConfigError(f"simulate_manhattan: n_nodes must be >= 2, got {n_nodes}")
     rng = np.random.default_rng(seed)
     cfg = odometry if odometry is not None else OdometryNoiseConfig()
+    cells, headings = _manhattan_walk(n_nodes, rng, grid_cells, turn_probability)
+    true_poses = np.column_stack([cells * step_m, wrap_angle(headings * (math.pi / 2.0))]).astype(
+        np.float64
+    )
+
+    true_rel = between(true_poses[:-1], true_poses[1:])
+    odo_cov = np.stack([odometry_covariance(d, cfg) for d in true_rel])
+    odo = np.stack([_noisy(d, c, rng) for d, c in zip(true_rel, odo_cov, strict=True)])
+
+    sigma_theta_rad = math.radians(loop_sigma_theta_deg)
+    loop_cov = np.diag([loop_sigma_xy_m**2, loop_sigma_xy_m**2, sigma_theta_rad**2])
+    loop_ij = _revisits(cells, rng, loop_probability, loop_min_gap)
+    loop_measured = np.zeros((len(loop_ij), 3))
+    for n, (m, k) in enumerate(loop_ij):
+        loop_measured[n] = _noisy(between(true_poses[m], true_poses[k]), loop_cov, rng)
+    outlier = _inject_outliers(
+        true_poses,
+        loop_ij,
+        loop_measured,
+        loop_cov,
+        rng,
+        n_out=round(outlier_fraction * len(loop_ij)),
+        min_gap=loop_min_gap,
+        min_distance_m=outlier_min_distance_m,
+    )
+    return SimulatedPoseGraph(
+        true_poses=true_poses,
+        odometry_measured=odo,
+        odometry_cov=odo_cov,
+        loop_ij=loop_ij,
+        loop_measured=loop_measured,
+        loop_cov=loop_cov,
+        loop_is_outlier=outlier,
+    )
+
+
+def _manhattan_walk(
+    n_nodes: int, rng: np.random.Generator, grid_cells: int, turn_probability: float
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Grid cells ``(N, 2)`` and headings ``(N,)`` (quarter turns) of a random walk that turns
+    left or right with ``turn_probability`` and otherwise goes straight, staying inside the
+    ``grid_cells`` square (it tries the other directions, then turns back, at a border)."""
     moves = np.array([[1, 0], [0, 1], [-1, 0], [0, -1]])
     cell = np.array([0, 0])
     heading = 0
@@ -125,49 +168,50 @@ def simulate_manhattan(
                 heading, cell = h, nxt
                 break
         cells[k], headings[k] = cell, heading
-    true_poses = np.column_stack([cells * step_m, wrap_angle(headings * (math.pi / 2.0))]).astype(
-        np.float64
-    )
+    return cells, headings
 
-    true_rel = between(true_poses[:-1], true_poses[1:])
-    odo_cov = np.stack([odometry_covariance(d, cfg) for d in true_rel])
-    odo = np.stack([_noisy(d, c, rng) for d, c in zip(true_rel, odo_cov, strict=True)])
 
-    sigma_theta_rad = math.radians(loop_sigma_theta_deg)
-    loop_cov = np.diag([loop_sigma_xy_m**2, loop_sigma_xy_m**2, sigma_theta_rad**2])
+def _revisits(
+    cells: NDArray[np.int64], rng: np.random.Generator, probability: float, min_gap: int
+) -> NDArray[np.int64]:
+    """``(L, 2)`` node pairs ``(earlier, k)``: node ``k`` in a cell visited at least ``min_gap``
+    nodes before gets a loop closure with ``probability`` to a random earlier visit."""
     visits: dict[tuple[int, int], list[int]] = {}
     loops: list[tuple[int, int]] = []
-    for k in range(n_nodes):
+    for k in range(len(cells)):
         key = (int(cells[k, 0]), int(cells[k, 1]))
-        earlier = [m for m in visits.get(key, []) if k - m >= loop_min_gap]
-        if earlier and rng.random() < loop_probability:
+        earlier = [m for m in visits.get(key, []) if k - m >= min_gap]
+        if earlier and rng.random() < probability:
             loops.append((int(rng.choice(earlier)), k))
         visits.setdefault(key, []).append(k)
-    loop_ij = np.array(loops, dtype=np.int64).reshape(-1, 2)
-    loop_measured = np.zeros((len(loops), 3))
-    for n, (m, k) in enumerate(loops):
-        loop_measured[n] = _noisy(between(true_poses[m], true_poses[k]), loop_cov, rng)
+    return np.array(loops, dtype=np.int64).reshape(-1, 2)
 
-    outlier = np.zeros(len(loops), dtype=bool)
-    n_out = round(outlier_fraction * len(loops))
-    for n in rng.permutation(len(loops)):
+
+def _inject_outliers(
+    true_poses: FloatArray,
+    loop_ij: NDArray[np.int64],
+    loop_measured: FloatArray,
+    loop_cov: FloatArray,
+    rng: np.random.Generator,
+    *,
+    n_out: int,
+    min_gap: int,
+    min_distance_m: float,
+) -> NDArray[np.bool_]:
+    """Replace ``n_out`` loop closures, in place, by wrong ones: the earlier node becomes one at
+    least ``min_distance_m`` away and the measurement claims the same place, turned by a random
+    multiple of 90 degrees. Returns the ``(L,)`` outlier mask."""
+    outlier = np.zeros(len(loop_ij), dtype=bool)
+    for n in rng.permutation(len(loop_ij)):
         if outlier.sum() >= n_out:
             break
         k = int(loop_ij[n, 1])
-        dist = np.linalg.norm(true_poses[: k - loop_min_gap + 1, :2] - true_poses[k, :2], axis=1)
-        far = np.flatnonzero(dist >= outlier_min_distance_m)
+        dist = np.linalg.norm(true_poses[: k - min_gap + 1, :2] - true_poses[k, :2], axis=1)
+        far = np.flatnonzero(dist >= min_distance_m)
         if far.size == 0:
             continue
         loop_ij[n, 0] = int(rng.choice(far))
         claimed = np.array([0.0, 0.0, rng.integers(0, 4) * (math.pi / 2.0)])
         loop_measured[n] = _noisy(claimed, loop_cov, rng)
         outlier[n] = True
-    return SimulatedPoseGraph(
-        true_poses=true_poses,
-        odometry_measured=odo,
-        odometry_cov=odo_cov,
-        loop_ij=loop_ij,
-        loop_measured=loop_measured,
-        loop_cov=loop_cov,
-        loop_is_outlier=outlier,
-    )
+    return outlier
