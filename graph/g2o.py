@@ -31,6 +31,8 @@ from numpy.typing import NDArray
 from iceg_common.atomic import atomic_write
 from iceg_common.errors import GraphError
 
+FloatArray = NDArray[np.float64]
+
 _SUPPORTED = ("VERTEX_SE2", "EDGE_SE2")
 _UPPER = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
 
@@ -175,52 +177,14 @@ def load_g2o(path: str | os.PathLike[str]) -> G2oGraph:
         if n_vertex
         else np.zeros((0, 3))
     )
-    edge_ij = np.zeros((n_edge, 2), dtype=np.int64)
-    measured = np.zeros((n_edge, 3))
-    cov = np.zeros((n_edge, 3, 3))
-    for m in range(n_edge):
-        factor: Any = factors.at(m)  # BetweenFactorPose2 (readG2o, is3D=False)
-        edge_ij[m] = factor.keys()
-        pose = factor.measured()
-        measured[m] = (pose.x(), pose.y(), pose.theta())
-        cov[m] = _covariance_of(factor.noiseModel())
-
+    edge_ij, measured, cov = _edges(factors)
     kinds = ["odometry" if j == i + 1 else "loop_closure" for i, j in edge_ij.tolist()]
     robust: list[str | None] = [None] * n_edge
     robust_k = np.full(n_edge, np.nan)
     priors: list[G2oPrior] = []
-    order: list[tuple[str, int]] = []
+    order: list[tuple[str, int]] = [("edge", m) for m in range(n_edge)]
     if iceg:
-        n_meta_edges = 0
-        for line_no, tokens in iceg:
-            try:
-                if tokens[0] == "ICEG_PRIOR" and len(tokens) == 11:
-                    nums = np.array([float(t) for t in tokens[2:]])
-                    prior_cov = np.zeros((3, 3))
-                    prior_cov[_UPPER] = nums[3:]
-                    prior_cov = prior_cov + np.triu(prior_cov, 1).T
-                    order.append(("prior", len(priors)))
-                    priors.append(G2oPrior(int(tokens[1]), nums[:3], prior_cov))
-                elif tokens[0] == "ICEG_EDGE" and len(tokens) == 4 and n_meta_edges < n_edge:
-                    kinds[n_meta_edges] = tokens[1]
-                    robust[n_meta_edges] = None if tokens[2] == "none" else tokens[2]
-                    robust_k[n_meta_edges] = float(tokens[3])
-                    order.append(("edge", n_meta_edges))
-                    n_meta_edges += 1
-                else:
-                    raise ValueError("unexpected fields")
-            except ValueError as exc:
-                raise GraphError(
-                    f"{file}:{line_no}: malformed {tokens[0]} line ({exc}); expected "
-                    "'# ICEG_PRIOR node x y theta c11 c12 c13 c22 c23 c33' or "
-                    "'# ICEG_EDGE kind robust k', one ICEG_EDGE line per EDGE_SE2 record"
-                ) from exc
-        if n_meta_edges != n_edge:
-            raise GraphError(
-                f"{file}: {n_meta_edges} '# ICEG_EDGE' lines for {n_edge} EDGE_SE2 records"
-            )
-    else:
-        order = [("edge", m) for m in range(n_edge)]
+        order = _apply_iceg_lines(file, iceg, kinds, robust, robust_k, priors)
     return G2oGraph(
         path=file,
         node_ids=node_ids,
@@ -234,6 +198,70 @@ def load_g2o(path: str | os.PathLike[str]) -> G2oGraph:
         priors=tuple(priors),
         factor_order=tuple(order),
     )
+
+
+def _edges(factors: Any) -> tuple[NDArray[np.int64], FloatArray, FloatArray]:
+    """``(E, 2)`` node ids, ``(E, 3)`` measurements and ``(E, 3, 3)`` covariances of the
+    ``BetweenFactorPose2`` edges gtsam read (``gtsam.readG2o``, ``is3D=False``)."""
+    n_edge = factors.size()
+    edge_ij = np.zeros((n_edge, 2), dtype=np.int64)
+    measured = np.zeros((n_edge, 3))
+    cov = np.zeros((n_edge, 3, 3))
+    for m in range(n_edge):
+        factor: Any = factors.at(m)
+        edge_ij[m] = factor.keys()
+        pose = factor.measured()
+        measured[m] = (pose.x(), pose.y(), pose.theta())
+        cov[m] = _covariance_of(factor.noiseModel())
+    return edge_ij, measured, cov
+
+
+def _apply_iceg_lines(
+    file: Path,
+    iceg: list[tuple[int, list[str]]],
+    kinds: list[str],
+    robust: list[str | None],
+    robust_k: FloatArray,
+    priors: list[G2oPrior],
+) -> list[tuple[str, int]]:
+    """Apply the ``# ICEG_PRIOR`` / ``# ICEG_EDGE`` lines of :func:`write_g2o_file`: fill the
+    edges' kinds and kernels (in place) and the priors; return the factors' original order.
+
+    Raises:
+        GraphError: ``file:line`` of a malformed line, or an ICEG_EDGE count that differs from
+            the EDGE_SE2 count.
+    """
+    n_edge = len(kinds)
+    order: list[tuple[str, int]] = []
+    n_meta_edges = 0
+    for line_no, tokens in iceg:
+        try:
+            if tokens[0] == "ICEG_PRIOR" and len(tokens) == 11:
+                nums = np.array([float(t) for t in tokens[2:]])
+                prior_cov = np.zeros((3, 3))
+                prior_cov[_UPPER] = nums[3:]
+                prior_cov = prior_cov + np.triu(prior_cov, 1).T
+                order.append(("prior", len(priors)))
+                priors.append(G2oPrior(int(tokens[1]), nums[:3], prior_cov))
+            elif tokens[0] == "ICEG_EDGE" and len(tokens) == 4 and n_meta_edges < n_edge:
+                kinds[n_meta_edges] = tokens[1]
+                robust[n_meta_edges] = None if tokens[2] == "none" else tokens[2]
+                robust_k[n_meta_edges] = float(tokens[3])
+                order.append(("edge", n_meta_edges))
+                n_meta_edges += 1
+            else:
+                raise ValueError("unexpected fields")
+        except ValueError as exc:
+            raise GraphError(
+                f"{file}:{line_no}: malformed {tokens[0]} line ({exc}); expected "
+                "'# ICEG_PRIOR node x y theta c11 c12 c13 c22 c23 c33' or "
+                "'# ICEG_EDGE kind robust k', one ICEG_EDGE line per EDGE_SE2 record"
+            ) from exc
+    if n_meta_edges != n_edge:
+        raise GraphError(
+            f"{file}: {n_meta_edges} '# ICEG_EDGE' lines for {n_edge} EDGE_SE2 records"
+        )
+    return order
 
 
 class _Factor(Protocol):
