@@ -8,7 +8,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, cast
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 if TYPE_CHECKING:
     from matplotlib.artist import Artist
@@ -96,54 +96,76 @@ def scan_features(
     }
     for kind, (marker, color, label) in style.items():
         sel = np.flatnonzero(features.kind == kind)
-        if sel.size == 0:
-            continue
-        xy = features.xy[sel]
-        (mk,) = ax.plot(
-            xy[:, 0],
-            xy[:, 1],
-            marker,
-            color=color,
-            markerfacecolor="none",
-            markersize=9,
-            markeredgewidth=1.8,
-            label=label,
-        )
-        artists.append(mk)
-        d = features.directions[sel].reshape(-1, 2)
-        base = np.repeat(xy, 2, axis=0)
-        ok = np.all(np.isfinite(d), axis=1)
-        if np.any(ok):
-            q = ax.quiver(
-                base[ok, 0],
-                base[ok, 1],
-                d[ok, 0] * arrow_length_m,
-                d[ok, 1] * arrow_length_m,
-                angles="xy",
-                scale_units="xy",
-                scale=1.0,
-                color=color,
-                width=0.004,
-            )
-            artists.append(q)
-        if kind == FeatureKind.INTERSECTION:
-            for k in sel:
-                for m in features.segment_ids[k]:
-                    if m < 0:
-                        continue
-                    ends = features.seg_endpoints[m]
-                    near = ends[np.argmin(np.linalg.norm(ends - features.xy[k], axis=1))]
-                    (ln,) = ax.plot(
-                        [near[0], features.xy[k, 0]],
-                        [near[1], features.xy[k, 1]],
-                        ":",
-                        color=color,
-                        linewidth=1.0,
-                    )
-                    artists.append(ln)
+        if sel.size:
+            artists += _feature_markers(ax, features, sel, marker, color, label, arrow_length_m)
+        if sel.size and kind == FeatureKind.INTERSECTION:
+            artists += _intersection_links(ax, features, sel, color)
     ax.set_aspect("equal")
     ax.set_xlabel("x [m] (robot frame)")
     ax.set_ylabel("y [m] (robot frame)")
+    return artists
+
+
+def _feature_markers(
+    ax: Axes,
+    features: ScanFeatures,
+    sel: NDArray[np.int64],
+    marker: str,
+    color: str,
+    label: str,
+    arrow_length_m: float,
+) -> list[Artist]:
+    """Markers of the features ``sel`` and arrows along their (finite) directions."""
+    xy = features.xy[sel]
+    (mk,) = ax.plot(
+        xy[:, 0],
+        xy[:, 1],
+        marker,
+        color=color,
+        markerfacecolor="none",
+        markersize=9,
+        markeredgewidth=1.8,
+        label=label,
+    )
+    artists: list[Artist] = [mk]
+    d = features.directions[sel].reshape(-1, 2)
+    base = np.repeat(xy, 2, axis=0)
+    ok = np.all(np.isfinite(d), axis=1)
+    if np.any(ok):
+        q = ax.quiver(
+            base[ok, 0],
+            base[ok, 1],
+            d[ok, 0] * arrow_length_m,
+            d[ok, 1] * arrow_length_m,
+            angles="xy",
+            scale_units="xy",
+            scale=1.0,
+            color=color,
+            width=0.004,
+        )
+        artists.append(q)
+    return artists
+
+
+def _intersection_links(
+    ax: Axes, features: ScanFeatures, sel: NDArray[np.int64], color: str
+) -> list[Artist]:
+    """Dotted lines from each Intersection in ``sel`` to the nearer endpoint of its segments."""
+    artists: list[Artist] = []
+    for k in sel:
+        for m in features.segment_ids[k]:
+            if m < 0:
+                continue
+            ends = features.seg_endpoints[m]
+            near = ends[np.argmin(np.linalg.norm(ends - features.xy[k], axis=1))]
+            (ln,) = ax.plot(
+                [near[0], features.xy[k, 0]],
+                [near[1], features.xy[k, 1]],
+                ":",
+                color=color,
+                linewidth=1.0,
+            )
+            artists.append(ln)
     return artists
 
 
