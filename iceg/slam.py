@@ -222,9 +222,7 @@ class Slam:
             self._s.match_failures[(result.reason or _UNKNOWN_REASON).split(":")[0]] += 1
         return _LocalMatch(reference, result, poses[last])
 
-    def _add_keyframe(
-        self, scan: LaserScan, motion: _Motion, local: _LocalMatch, last: int
-    ) -> int:
+    def _add_keyframe(self, scan: LaserScan, motion: _Motion, local: _LocalMatch, last: int) -> int:
         """The keyframe's node (initialised by the match, else odometry) and its factors."""
         result = local.result
         step = result.pose if result.success else motion.delta
