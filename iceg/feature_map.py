@@ -21,7 +21,7 @@ import logging
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
-from typing import ClassVar, Self
+from typing import ClassVar, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -297,6 +297,9 @@ def _move_points(r: FloatArray, t: FloatArray, pts: FloatArray) -> FloatArray:
     return np.einsum("nab,nkb->nka", r, pts) + t[:, None, :]
 
 
+_C = TypeVar("_C", bound="_Columns")
+
+
 @dataclass
 class _Columns:
     """Rows held as one numpy array per field (first axis: row); subclasses are dataclasses
@@ -305,20 +308,20 @@ class _Columns:
     SPEC: ClassVar[dict[str, tuple[type, tuple[int, ...]]]] = {}
 
     @classmethod
-    def empty(cls) -> Self:
+    def empty(cls: type[_C]) -> _C:
         """No rows."""
         return cls(**{k: np.zeros((0, *shape), dtype=dt) for k, (dt, shape) in cls.SPEC.items()})
 
     def __len__(self) -> int:
         return int(getattr(self, next(iter(self.SPEC))).shape[0])
 
-    def append(self, other: Self) -> None:
+    def append(self: _C, other: _C) -> None:
         """Append ``other``'s rows (cast to this container's dtypes)."""
         for f in fields(self):
             mine = getattr(self, f.name)
             setattr(self, f.name, np.concatenate([mine, getattr(other, f.name).astype(mine.dtype)]))
 
-    def take(self, rows: IntArray | BoolArray) -> Self:
+    def take(self: _C, rows: IntArray | BoolArray) -> _C:
         """A copy holding the selected rows (indices or a mask)."""
         return type(self)(**{f.name: getattr(self, f.name)[rows] for f in fields(self)})
 

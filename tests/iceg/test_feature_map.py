@@ -35,7 +35,13 @@ def test_reference_is_in_the_frame_pose_frame() -> None:
     up = fm.update(0, fa, 0.0)
     assert up.added_ids.tolist() == list(range(fa.n_features))
     poses = {0: pa, 1: pb}
-    ref = fm.reference(poses, [0], pb).features
+    snapshot = fm.reference(poses, [0], pb)
+    ref = snapshot.features
+    # The reference carries the pose snapshot it was built from (sorted by node id).
+    np.testing.assert_array_equal(snapshot.node_ids, [0, 1])
+    np.testing.assert_array_equal(snapshot.node_poses, np.stack([pa, pb]))
+    np.testing.assert_array_equal(snapshot.frame_pose, pb)
+    np.testing.assert_array_equal(snapshot.landmark_ids, ref.ids)
     # Landmarks of node 0 seen from pb: exact SE(2) algebra.
     rel = between(pb, pa)
     np.testing.assert_allclose(ref.xy, transform_points(rel, fa.xy), atol=1e-12)
@@ -73,7 +79,13 @@ def test_update_checks_its_inputs() -> None:
     with pytest.raises(FeatureMapError, match="reference"):
         fm.update(1, f, 1.0, match=ok)
     with pytest.raises(FeatureMapError, match="reference"):
-        fm.update(1, f, 1.0, match=ok, reference=f)  # not built by this map
+        fm.update(1, f, 1.0, match=ok, reference=f)  # type: ignore[arg-type]  # not a MapReference
+    other = FeatureMap()
+    other.update(0, f, 0.0)
+    with pytest.raises(FeatureMapError, match="reference"):
+        fm.update(
+            1, f, 1.0, match=ok, reference=other.reference({0: np.zeros(3)}, [0], np.zeros(3))
+        )
     # A failed match is no evidence: every feature becomes a landmark of the new node.
     bad = MatchResult(False, np.zeros(3), np.full((3, 3), np.nan), 0.0, reason="x")
     up = fm.update(1, f, 1.0, match=bad)
