@@ -66,7 +66,7 @@ def build_jobs(path: Path, config: FeatureMapConfig | None = None) -> list[tuple
         else:
             pred = between(last_odom, odom)
             ref = fmap.reference(poses, range(max(0, node - LOCAL_NODES), node), poses[node - 1])
-            res = matcher.match(feats, ref, pred, BOUNDS)
+            res = matcher.match(feats, ref.features, pred, BOUNDS)
             poses[node] = compose(poses[node - 1], res.pose if res.success else pred)
             fmap.update(
                 node,
@@ -77,7 +77,7 @@ def build_jobs(path: Path, config: FeatureMapConfig | None = None) -> list[tuple
                 scan=scan,
                 node_poses=poses,
             )
-            jobs.append((feats, ref, pred))
+            jobs.append((feats, ref.features, pred))
         last_odom = odom
     return jobs
 

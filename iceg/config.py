@@ -2,14 +2,15 @@
 
 Each module owns the model of its own parameters (``FeatureConfig`` in ``iceg.features``,
 ``MatchingConfig`` in ``iceg.matching``, ...); :class:`IcegConfig` composes them with the
-pipeline's own :class:`SlamConfig` and :class:`LoopClosureConfig`. ``iceg dump-config``
+pipeline's own :class:`SlamConfig` and the :class:`~iceg.loop_closure.LoopClosureConfig` of
+:mod:`iceg.loop_closure` (re-exported here). ``iceg dump-config``
 prints the defaults; every result folder holds the effective ``config.yaml``.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -18,6 +19,7 @@ from graph import GraphConfig, OdometryNoiseConfig
 from iceg.feature_map import FeatureMapConfig
 from iceg.features import FeatureConfig
 from iceg.grid import GridConfig
+from iceg.loop_closure import LoopClosureConfig
 from iceg.matching import MatchingConfig
 from iceg_common.errors import ConfigError
 
@@ -63,81 +65,6 @@ class SlamConfig(BaseModel):
     batch_refinement: bool = Field(
         default=True,
         description="Run batch Levenberg–Marquardt over the whole graph after the run.",
-    )
-
-
-class LoopClosureConfig(BaseModel):
-    """Loop-closure search among older nodes near the current estimate."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    enabled: bool = True
-    every_n_nodes: int = Field(
-        default=3, ge=1, description="Search once every this many new nodes."
-    )
-    min_node_gap: int = Field(
-        default=30,
-        ge=1,
-        description="Only nodes at least this many nodes older are loop candidates.",
-    )
-    min_path_m: float = Field(
-        default=10.0,
-        ge=0,
-        description="Only nodes at least this far back along the odometry path are candidates.",
-    )
-    reference_nodes: int = Field(
-        default=10,
-        ge=1,
-        description="The old nodes nearest a candidate whose landmarks form its reference.",
-    )
-    search_radius_m: float = Field(
-        default=2.0, gt=0, description="Base search radius around the current estimate."
-    )
-    max_search_radius_m: float = Field(
-        default=10.0,
-        gt=0,
-        description="Cap of the search radius (and of the match's translation bound).",
-    )
-    max_candidates: int = Field(
-        default=3, ge=1, description="Candidate places (distinct node windows) matched per search."
-    )
-    search_n_sigma: float = Field(
-        default=3.0, ge=0, description="Radius grows by this many marginal position sigmas."
-    )
-    max_rotation_deg: float = Field(
-        default=30.0, gt=0, description="Base admissible rotation of a loop-closure match."
-    )
-    min_correlation: float = Field(
-        default=0.5, ge=0, le=1, description="Minimum ICE correlation (eq. 1) of a loop closure."
-    )
-    consistency_chi2: float = Field(
-        default=16.27,
-        gt=0,
-        description="Mahalanobis gate (chi-square, 3 dof, 99.9 %) on the innovation.",
-    )
-    agreement_window_nodes: int = Field(
-        default=30,
-        ge=1,
-        description="A closure that fails the gate is held this many nodes; two held closures "
-        "implying the same correction are accepted together (pairwise consistency).",
-    )
-    agreement_min_separation_m: float = Field(
-        default=2.0,
-        ge=0,
-        description="Agreeing closures must reach old nodes this far apart along the path "
-        "(matches to one place can share one aliasing error).",
-    )
-    agreement_translation_m: float = Field(
-        default=0.3, gt=0, description="Largest translation between two agreeing corrections."
-    )
-    agreement_rotation_deg: float = Field(
-        default=2.0, gt=0, description="Largest rotation between two agreeing corrections."
-    )
-    robust_kernel: Literal["huber", "cauchy"] = Field(
-        default="cauchy", description="M-estimator wrapped around loop-closure factors."
-    )
-    robust_k: float = Field(
-        default=1.0, gt=0, description="Kernel width in whitened units (sigmas)."
     )
 
 

@@ -19,25 +19,18 @@ from __future__ import annotations
 
 import logging
 import math
-import weakref
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields
+from typing import ClassVar, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from frontends.scan import LaserScan
-from iceg.matching.geometry import (
-    CORNER,
-    EOW,
-    INTERSECTION,
-    PolarProfile,
-    rot,
-    transform_lines,
-)
-from iceg.types import MatchResult, ScanFeatures
-from iceg_common.errors import MatchingError
+from iceg.matching import transform_lines
+from iceg.types import FeatureKind, MatchResult, ScanFeatures
+from iceg_common.errors import FeatureMapError
 from iceg_common.se2 import between, compose, inverse
 
 log = logging.getLogger(__name__)
@@ -50,6 +43,26 @@ BoolArray = NDArray[np.bool_]
 PRUNED_RATIO, PRUNED_VALIDITY = 1, 2
 
 NodePoses = Mapping[int, ArrayLike] | tuple[ArrayLike, ArrayLike]
+
+CORNER = int(FeatureKind.CORNER)
+EOW = int(FeatureKind.EOW)
+INTERSECTION = int(FeatureKind.INTERSECTION)
+
+#: Sensor range assumed for a reference before any scan was added, metres.
+_DEFAULT_RANGE_MAX_M = 20.0
+#: Beam spacing when too few beams to measure it, radians.
+_FALLBACK_SPACING_RAD = math.radians(1.0)
+#: Beam spacing of a profile whose bearings all coincide, radians.
+_DEGENERATE_SPACING_RAD = 0.01
+#: Fewest returns from which a profile measures its beam spacing.
+_MIN_BEAMS_FOR_SPACING = 3
+#: Bearing differences at or below this are the same bearing, radians.
+_MIN_GAP_RAD = 1e-9
+#: Two neighbouring returns farther apart than this many beam spacings leave a gap (missing
+#: beams) in which nothing can be judged visible.
+_MAX_GAP_BEAMS = 1.6
+#: Floor of a vector norm before dividing by it, metres.
+_MIN_NORM = 1e-9
 
 #: How much a feature kind tells (a Corner has a position and two walls, an EOW a position
 #: and one wall, an Intersection a virtual position): a landmark takes the kind of a matched
@@ -239,34 +252,273 @@ class PrunedLandmarks:
     reason: IntArray
 
 
-_LM_FIELDS = {
-    # name: (dtype, trailing shape, fill)
-    "id": (np.int64, (), -1),
-    "anchor": (np.int64, (), -1),
-    "kind": (np.int64, (), -1),
-    "xy": (np.float64, (2,), np.nan),
-    "cov": (np.float64, (2, 2), np.nan),
-    "dirs": (np.float64, (2, 2), np.nan),
-    "opening": (np.float64, (), np.nan),
-    "support": (np.float64, (3, 2), np.nan),
-    "wall_p": (np.float64, (2, 2), np.nan),
-    "wall_d": (np.float64, (2, 2), np.nan),
-    "wall_side": (np.float64, (2,), np.nan),
-    "n_expected": (np.int64, (), 0),
-    "n_matched": (np.int64, (), 0),
-    "misses": (np.int64, (), 0),
-    "created_s": (np.float64, (), np.nan),
-    "last_matched_s": (np.float64, (), np.nan),
-    "first_miss_s": (np.float64, (), np.nan),
-    "last_node": (np.int64, (), -1),
+@dataclass(frozen=True, eq=False)
+class MapReference:
+    """A matching reference built by :meth:`FeatureMap.reference`, with the snapshot of node
+    poses it was built from (what :meth:`FeatureMap.update` needs after a match against it).
+
+    Attributes:
+        features: The reference as :class:`~iceg.types.ScanFeatures` in the frame of
+            ``frame_pose`` (give this to the matcher); ``ids`` are landmark ids.
+        frame_pose: ``(3,)`` float64 map-frame pose of the reference frame,
+            ``[x_m, y_m, theta_rad]``.
+        node_ids: ``(N,)`` int64 ascending ids of the node-pose snapshot.
+        node_poses: ``(N, 3)`` float64 map-frame poses of those nodes.
+        map_token: Identity of the map that built it (a reference is only valid there).
+    """
+
+    features: ScanFeatures
+    frame_pose: FloatArray
+    node_ids: IntArray
+    node_poses: FloatArray
+    map_token: object = field(repr=False)
+
+    @property
+    def landmark_ids(self) -> IntArray:
+        """``(K,)`` int64 landmark id of each reference feature."""
+        return self.features.ids
+
+
+def _rot(theta: FloatArray) -> FloatArray:
+    """Rotation matrices ``(..., 2, 2)`` of angles ``(...)`` radians."""
+    t = np.asarray(theta, dtype=np.float64)
+    c, s = np.cos(t), np.sin(t)
+    out = np.empty((*t.shape, 2, 2))
+    out[..., 0, 0] = c
+    out[..., 0, 1] = -s
+    out[..., 1, 0] = s
+    out[..., 1, 1] = c
+    return out
+
+
+def _move_points(r: FloatArray, t: FloatArray, pts: FloatArray) -> FloatArray:
+    """``(n, k, 2)`` points moved by rotations ``r`` ``(n, 2, 2)`` and translations ``t``
+    ``(n, 2)``."""
+    return np.einsum("nab,nkb->nka", r, pts) + t[:, None, :]
+
+
+_C = TypeVar("_C", bound="_Columns")
+
+
+@dataclass
+class _Columns:
+    """Rows held as one numpy array per field (first axis: row); subclasses are dataclasses
+    whose ``SPEC`` gives each field's dtype and trailing shape."""
+
+    SPEC: ClassVar[dict[str, tuple[type, tuple[int, ...]]]] = {}
+
+    @classmethod
+    def empty(cls: type[_C]) -> _C:
+        """No rows."""
+        return cls(**{k: np.zeros((0, *shape), dtype=dt) for k, (dt, shape) in cls.SPEC.items()})
+
+    def __len__(self) -> int:
+        return int(getattr(self, next(iter(self.SPEC))).shape[0])
+
+    def append(self: _C, other: _C) -> None:
+        """Append ``other``'s rows (cast to this container's dtypes)."""
+        for f in fields(self):
+            mine = getattr(self, f.name)
+            setattr(self, f.name, np.concatenate([mine, getattr(other, f.name).astype(mine.dtype)]))
+
+    def take(self: _C, rows: IntArray | BoolArray) -> _C:
+        """A copy holding the selected rows (indices or a mask)."""
+        return type(self)(**{f.name: getattr(self, f.name)[rows] for f in fields(self)})
+
+
+@dataclass
+class _Landmarks(_Columns):
+    """Landmarks, one row each, geometry in the anchor node's frame (metres, radians)."""
+
+    SPEC: ClassVar[dict[str, tuple[type, tuple[int, ...]]]] = {
+        "id": (np.int64, ()),
+        "anchor": (np.int64, ()),
+        "kind": (np.int64, ()),
+        "xy": (np.float64, (2,)),
+        "cov": (np.float64, (2, 2)),
+        "dirs": (np.float64, (2, 2)),
+        "opening": (np.float64, ()),
+        "support": (np.float64, (3, 2)),
+        "wall_p": (np.float64, (2, 2)),
+        "wall_d": (np.float64, (2, 2)),
+        "wall_side": (np.float64, (2,)),
+        "n_expected": (np.int64, ()),
+        "n_matched": (np.int64, ()),
+        "misses": (np.int64, ()),
+        "created_s": (np.float64, ()),
+        "last_matched_s": (np.float64, ()),
+        "first_miss_s": (np.float64, ()),
+        "last_node": (np.int64, ()),
+    }
+
+    id: IntArray  # (L,) landmark id
+    anchor: IntArray  # (L,) anchor node
+    kind: IntArray  # (L,) FeatureKind
+    xy: FloatArray  # (L, 2) position
+    cov: FloatArray  # (L, 2, 2) position covariance, m²
+    dirs: FloatArray  # (L, 2, 2) unit wall directions (NaN where none)
+    opening: FloatArray  # (L,) opening angle, rad
+    support: FloatArray  # (L, 3, 2) visibility support points (see _geometry)
+    wall_p: FloatArray  # (L, 2, 2) a point on each wall
+    wall_d: FloatArray  # (L, 2, 2) each wall's direction
+    wall_side: FloatArray  # (L, 2) side of each wall the sensor stood on (+1 / -1)
+    n_expected: IntArray  # (L,) times expected
+    n_matched: IntArray  # (L,) times matched
+    misses: IntArray  # (L,) consecutive expected misses
+    created_s: FloatArray  # (L,) creation stamp
+    last_matched_s: FloatArray  # (L,) stamp of the last match (creation if never)
+    first_miss_s: FloatArray  # (L,) first expected miss since the last match (NaN: none)
+    last_node: IntArray  # (L,) node that last matched (or created) it
+
+    def in_frame(self, frame_from_anchor: FloatArray) -> LandmarkView:
+        """These landmarks in another frame, given each anchor's pose ``(L, 3)`` there."""
+        r = _rot(frame_from_anchor[:, 2])
+        return LandmarkView(
+            ids=self.id,
+            anchor=self.anchor,
+            kind=self.kind,
+            xy=np.einsum("nab,nb->na", r, self.xy) + frame_from_anchor[:, :2],
+            cov=r @ self.cov @ np.swapaxes(r, 1, 2),
+            directions=np.einsum("nab,nkb->nka", r, self.dirs),
+            opening_rad=self.opening,
+            n_expected=self.n_expected,
+            n_matched=self.n_matched,
+            last_matched_s=self.last_matched_s,
+        )
+
+
+@dataclass
+class _Segments(_Columns):
+    """Every node's line segments, one row each, in the node's frame."""
+
+    SPEC: ClassVar[dict[str, tuple[type, tuple[int, ...]]]] = {
+        "node": (np.int64, ()),
+        "ep": (np.float64, (2, 2)),
+        "lines": (np.float64, (2,)),
+        "cov": (np.float64, (2, 2)),
+        "pr": (np.int64, (2,)),
+    }
+
+    node: IntArray  # (M,) node id
+    ep: FloatArray  # (M, 2, 2) endpoints, metres
+    lines: FloatArray  # (M, 2) Hessian (alpha_rad, rho_m)
+    cov: FloatArray  # (M, 2, 2) covariance of (alpha, rho)
+    pr: IntArray  # (M, 2) point range in the node's own points (-1: none kept)
+
+    def in_frame(self, frame_from_node: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Endpoints ``(M, 2, 2)``, lines ``(M, 2)`` and their covariances ``(M, 2, 2)`` in
+        another frame, given each node's pose ``(M, 3)`` there."""
+        ep = _move_points(_rot(frame_from_node[:, 2]), frame_from_node[:, :2], self.ep)
+        lines, cov = transform_lines(self.lines, self.cov, frame_from_node)
+        return ep, lines, cov
+
+
+@dataclass
+class _Points(_Columns):
+    """Every node's scan points (kept with ``reference_points``), node frame, metres."""
+
+    SPEC: ClassVar[dict[str, tuple[type, tuple[int, ...]]]] = {
+        "node": (np.int64, ()),
+        "xy": (np.float64, (2,)),
+    }
+
+    node: IntArray  # (P,)
+    xy: FloatArray  # (P, 2)
+
+
+#: Dtype and trailing shape of each :class:`PrunedLandmarks` field.
+_PRUNED_SPEC: dict[str, tuple[type, tuple[int, ...]]] = {
+    "ids": (np.int64, ()),
+    "anchor": (np.int64, ()),
+    "kind": (np.int64, ()),
+    "xy": (np.float64, (2,)),
+    "stamp_s": (np.float64, ()),
+    "created_s": (np.float64, ()),
+    "last_matched_s": (np.float64, ()),
+    "reason": (np.int64, ()),
 }
-_SEG_FIELDS = {
-    "node": (np.int64, ()),
-    "ep": (np.float64, (2, 2)),
-    "lines": (np.float64, (2,)),
-    "cov": (np.float64, (2, 2)),
-    "pr": (np.int64, (2,)),  # point range in the node's own points (-1: none kept)
-}
+
+
+@dataclass(frozen=True, eq=False)
+class _BeamProfile:
+    """A scan's ranges sorted by bearing, the one bearing-to-range lookup of visibility.
+
+    Attributes:
+        bearing: ``(B,)`` float64 ascending bearings, radians, sensor frame.
+        range_m: ``(B,)`` float64 ranges, metres (0 for an invalid beam, inf beyond range).
+        spacing_rad: Typical angular spacing of consecutive beams.
+        sensor_pose: ``(3,)`` laser pose in the robot frame, or ``None`` when the bearings
+            are seen from the robot frame's origin.
+    """
+
+    bearing: FloatArray
+    range_m: FloatArray
+    spacing_rad: float
+    sensor_pose: FloatArray | None
+
+    @classmethod
+    def of_scan(cls, scan: LaserScan) -> _BeamProfile:
+        """Every beam of ``scan``: invalid returns block the view, max-range ones do not."""
+        order = np.argsort(scan.angles_rad, kind="stable")
+        ang = scan.angles_rad[order]
+        rng = scan.ranges_m[order]
+        valid = scan.valid_mask()[order]
+        with np.errstate(invalid="ignore"):
+            beyond = np.isfinite(rng) & (rng >= scan.range_max_m)
+        beam_r = np.where(valid, rng, np.where(beyond, np.inf, 0.0))
+        spacing = float(np.median(np.diff(ang))) if ang.shape[0] > 1 else _FALLBACK_SPACING_RAD
+        return cls(ang, beam_r, spacing, np.asarray(scan.laser_offset, dtype=np.float64))
+
+    @classmethod
+    def of_points(cls, points_xy: FloatArray) -> _BeamProfile:
+        """Points ``(P, 2)`` (metres) seen from the frame's origin."""
+        pts = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
+        b = np.arctan2(pts[:, 1], pts[:, 0])
+        r = np.hypot(pts[:, 0], pts[:, 1])
+        order = np.argsort(b, kind="stable")
+        b, r = b[order], r[order]
+        if b.shape[0] >= _MIN_BEAMS_FOR_SPACING:
+            gaps = np.diff(b)
+            real = gaps > _MIN_GAP_RAD
+            spacing = float(np.median(gaps[real])) if np.any(real) else _DEGENERATE_SPACING_RAD
+        else:
+            spacing = _FALLBACK_SPACING_RAD
+        return cls(b, r, spacing, None)
+
+    def to_sensor(self, pts: FloatArray) -> FloatArray:
+        """Robot-frame points ``(..., 2)`` in the frame the bearings are measured in."""
+        if self.sensor_pose is None:
+            return pts
+        off = self.sensor_pose
+        return np.einsum("ba,nkb->nka", _rot(off[2]), pts - off[:2])
+
+    def clear(self, bearing: FloatArray, dist: FloatArray, tolerance_m: float) -> BoolArray:
+        """Whether both beams around each ``bearing`` reach at least ``dist - tolerance_m``
+        (no occluder in front) with no gap of missing beams between them."""
+        nb = self.bearing.shape[0]
+        k = np.clip(np.searchsorted(self.bearing, bearing), 1, nb - 1)
+        gap = (self.bearing[k] - self.bearing[k - 1]) > _MAX_GAP_BEAMS * self.spacing_rad
+        with np.errstate(invalid="ignore"):
+            reach = np.fmin(self.range_m[k - 1], self.range_m[k]) >= dist - tolerance_m
+        return reach & ~gap
+
+
+@dataclass(frozen=True, eq=False)
+class _Near:
+    """Landmarks taking part in one scan's bookkeeping, placed in the new node's frame."""
+
+    rows: IntArray  # (n,) landmark rows
+    anchor_in_new: FloatArray  # (n, 3) anchor poses in the new node's frame
+    xy_new: FloatArray  # (n, 2) positions in the new node's frame
+    slot: IntArray  # (L,) row -> index into rows, -1 when not taking part
+
+
+@dataclass(frozen=True, eq=False)
+class _Bookkeeping:
+    matched_ids: IntArray
+    expected_ids: IntArray
+    new_mask: BoolArray  # (K,) new features that become landmarks
+    merge_rows: IntArray  # rows of duplicates to merge
 
 
 def _node_pose_table(node_poses: NodePoses) -> tuple[IntArray, FloatArray]:
@@ -278,7 +530,7 @@ def _node_pose_table(node_poses: NodePoses) -> tuple[IntArray, FloatArray]:
         poses = np.array([np.asarray(node_poses[k], dtype=np.float64) for k in node_poses])
         poses = poses.reshape(-1, 3)
     if ids.shape[0] != poses.shape[0]:
-        raise MatchingError(
+        raise FeatureMapError(
             f"node_poses: {ids.shape[0]} ids but {poses.shape[0]} poses; pass a dict "
             "{node_id: (3,) pose} or a tuple (ids (N,), poses (N, 3))"
         )
@@ -313,35 +565,53 @@ def _geometry(
     wall_d = np.full((k, 2, 2), np.nan)
     if k == 0:
         return support, wall_p, wall_d, np.full((k, 2), np.nan)
-    kind = features.kind
-    xy = features.xy
-    d = features.directions
-    direct = kind != INTERSECTION
+    xy, d = features.xy, features.directions
+    direct = features.kind != INTERSECTION
     support[direct, 0] = xy[direct]
     support[direct, 1] = xy[direct] + offset_m * d[direct, 0]
     support[direct, 2] = xy[direct] + offset_m * d[direct, 1]  # NaN for EOWs
     wall_p[direct] = xy[direct, None, :]
     wall_d[direct] = d[direct]
-    inter = np.flatnonzero(kind == INTERSECTION)
-    if inter.shape[0] and features.n_segments:
-        for slot in (0, 1):
-            sid = features.segment_ids[inter, slot]
-            ok = (sid >= 0) & (sid < features.n_segments)
-            rows = inter[ok]
-            ep = features.seg_endpoints[sid[ok]]  # (n, 2, 2)
-            dist = np.linalg.norm(ep - xy[rows, None, :], axis=2)
-            near_k = np.argmin(dist, axis=1)
-            ar = np.arange(rows.shape[0])
-            near = ep[ar, near_k]
-            far = ep[ar, 1 - near_k]
-            u = far - near
-            u /= np.maximum(np.linalg.norm(u, axis=1), 1e-9)[:, None]
-            support[rows, slot] = near + offset_m * u
-            wall_p[rows, slot] = near
-            wall_d[rows, slot] = u
+    _intersection_geometry(features, offset_m, support, wall_p, wall_d)
+    return support, wall_p, wall_d, _side_of_walls(wall_p, wall_d)
+
+
+def _intersection_geometry(
+    features: ScanFeatures,
+    offset_m: float,
+    support: FloatArray,
+    wall_p: FloatArray,
+    wall_d: FloatArray,
+) -> None:
+    """Fill the Intersections' rows: per segment, its end nearest the feature and the
+    direction away from it (in place)."""
+    inter = np.flatnonzero(features.kind == INTERSECTION)
+    if not (inter.shape[0] and features.n_segments):
+        return
+    xy = features.xy
+    for slot in (0, 1):
+        sid = features.segment_ids[inter, slot]
+        ok = (sid >= 0) & (sid < features.n_segments)
+        rows = inter[ok]
+        ep = features.seg_endpoints[sid[ok]]  # (n, 2, 2)
+        dist = np.linalg.norm(ep - xy[rows, None, :], axis=2)
+        near_k = np.argmin(dist, axis=1)
+        ar = np.arange(rows.shape[0])
+        near = ep[ar, near_k]
+        far = ep[ar, 1 - near_k]
+        u = far - near
+        u /= np.maximum(np.linalg.norm(u, axis=1), _MIN_NORM)[:, None]
+        support[rows, slot] = near + offset_m * u
+        wall_p[rows, slot] = near
+        wall_d[rows, slot] = u
+
+
+def _side_of_walls(wall_p: FloatArray, wall_d: FloatArray) -> FloatArray:
+    """``(..., 2)`` side (+1 / -1, NaN without a wall) of each wall (a point ``wall_p`` on it
+    and its direction ``wall_d``, ``(..., 2, 2)``, one frame) on which that frame's origin
+    (the sensor) lies."""
     with np.errstate(invalid="ignore"):
-        side = np.sign(wall_d[..., 1] * wall_p[..., 0] - wall_d[..., 0] * wall_p[..., 1])
-    return support, wall_p, wall_d, side
+        return np.sign(wall_d[..., 1] * wall_p[..., 0] - wall_d[..., 0] * wall_p[..., 1])
 
 
 class FeatureMap:
@@ -350,7 +620,7 @@ class FeatureMap:
     Typical use, per keyframe (see ``iceg.slam``)::
 
         ref = fmap.reference(node_poses, recent_node_ids, node_poses[last])
-        res = matcher.match(features, ref, prediction, bounds)
+        res = matcher.match(features, ref.features, prediction, bounds)
         # ... add the node and factors, update the graph ...
         fmap.update(
             new_id, features, scan.stamp_s, reference=ref, match=res, scan=scan,
@@ -363,39 +633,29 @@ class FeatureMap:
 
     def __init__(self, config: FeatureMapConfig | None = None) -> None:
         self.config = config or FeatureMapConfig()
-        self._lm: dict[str, np.ndarray] = {
-            k: np.zeros((0, *shape), dtype=dt) for k, (dt, shape, _) in _LM_FIELDS.items()
-        }
-        self._seg: dict[str, np.ndarray] = {
-            k: np.zeros((0, *shape), dtype=dt) for k, (dt, shape) in _SEG_FIELDS.items()
-        }
+        self._lm = _Landmarks.empty()
+        self._seg = _Segments.empty()
+        self._pts = _Points.empty()
         self._nodes: set[int] = set()
-        self._pt_node = np.zeros(0, dtype=np.int64)
-        self._pt_xy = np.zeros((0, 2))
         self._next_id = 0
         self.n_merged = 0
-        self._range_max_m = 20.0
+        self._range_max_m = _DEFAULT_RANGE_MAX_M
         self._last_stamp_s = 0.0
-        # reference -> (landmark ids (K,), frame pose (3,), node ids (N,), node poses (N, 3))
-        self._refs: weakref.WeakKeyDictionary[
-            ScanFeatures, tuple[IntArray, FloatArray, IntArray, FloatArray]
-        ] = weakref.WeakKeyDictionary()
-        self._pruned: dict[str, list[np.ndarray]] = {
-            k: [] for k in ("ids", "anchor", "kind", "xy", "stamp_s", "created_s", "last_s", "why")
-        }
+        self._token = object()  # identifies the references this map built
+        self._pruned: list[PrunedLandmarks] = []
 
     # ------------------------------------------------------------------ inspection
     def __len__(self) -> int:
         """Number of landmarks."""
-        return int(self._lm["id"].shape[0])
+        return len(self._lm)
 
     def __repr__(self) -> str:
-        kinds = np.bincount(self._lm["kind"], minlength=3) if len(self) else np.zeros(3, int)
-        n_pruned = sum(a.shape[0] for a in self._pruned["ids"])
+        kinds = np.bincount(self._lm.kind, minlength=len(FeatureKind))
+        n_pruned = sum(p.ids.shape[0] for p in self._pruned)
         return (
             f"FeatureMap(nodes={len(self._nodes)}, landmarks={len(self)} "
             f"[corner={kinds[CORNER]}, eow={kinds[EOW]}, intersection={kinds[INTERSECTION]}], "
-            f"segments={self._seg['node'].shape[0]}, pruned={n_pruned}, merged={self.n_merged})"
+            f"segments={len(self._seg)}, pruned={n_pruned}, merged={self.n_merged})"
         )
 
     @property
@@ -406,20 +666,12 @@ class FeatureMap:
     @property
     def pruned(self) -> PrunedLandmarks:
         """Every landmark pruned so far (positions in their anchor's frame)."""
-        p = self._pruned
-
-        def cat(key: str, shape: tuple[int, ...], dt: type) -> np.ndarray:
-            return np.concatenate(p[key]) if p[key] else np.zeros((0, *shape), dtype=dt)
-
+        if not self._pruned:
+            return PrunedLandmarks(
+                **{k: np.zeros((0, *shape), dtype=dt) for k, (dt, shape) in _PRUNED_SPEC.items()}
+            )
         return PrunedLandmarks(
-            ids=cat("ids", (), np.int64),
-            anchor=cat("anchor", (), np.int64),
-            kind=cat("kind", (), np.int64),
-            xy=cat("xy", (2,), np.float64),
-            stamp_s=cat("stamp_s", (), np.float64),
-            created_s=cat("created_s", (), np.float64),
-            last_matched_s=cat("last_s", (), np.float64),
-            reason=cat("why", (), np.int64),
+            **{k: np.concatenate([getattr(p, k) for p in self._pruned]) for k in _PRUNED_SPEC}
         )
 
     def world_landmarks(self, node_poses: NodePoses) -> LandmarkView:
@@ -428,31 +680,14 @@ class FeatureMap:
 
         Args:
             node_poses: ``{node_id: (3,) pose}`` or ``(ids (N,), poses (N, 3))``.
+
+        Raises:
+            FeatureMapError: ``node_poses`` holds different numbers of ids and poses.
         """
         ids, poses = _node_pose_table(node_poses)
-        pos, found = _lookup(ids, self._lm["anchor"])
+        pos, found = _lookup(ids, self._lm.anchor)
         sel = np.flatnonzero(found)
-        anchor_pose = poses[pos[sel]]
-        return self._view(sel, anchor_pose)
-
-    def _view(self, sel: IntArray, frame_from_anchor: FloatArray) -> LandmarkView:
-        lm = self._lm
-        r = rot(frame_from_anchor[:, 2])
-        xy = np.einsum("nab,nb->na", r, lm["xy"][sel]) + frame_from_anchor[:, :2]
-        cov = r @ lm["cov"][sel] @ np.swapaxes(r, 1, 2)
-        dirs = np.einsum("nab,nkb->nka", r, lm["dirs"][sel])
-        return LandmarkView(
-            ids=lm["id"][sel].copy(),
-            anchor=lm["anchor"][sel].copy(),
-            kind=lm["kind"][sel].copy(),
-            xy=xy,
-            cov=cov,
-            directions=dirs,
-            opening_rad=lm["opening"][sel].copy(),
-            n_expected=lm["n_expected"][sel].copy(),
-            n_matched=lm["n_matched"][sel].copy(),
-            last_matched_s=lm["last_matched_s"][sel].copy(),
-        )
+        return self._lm.take(sel).in_frame(poses[pos[sel]])
 
     # ------------------------------------------------------------------ reference
     def reference(
@@ -460,7 +695,7 @@ class FeatureMap:
         node_poses: NodePoses,
         node_ids: Sequence[int] | ArrayLike,
         frame_pose: ArrayLike,
-    ) -> ScanFeatures:
+    ) -> MapReference:
         """Build a matching reference from chosen nodes (recent ones for tracking, older
         ones near the current estimate for loop closure; DESIGN "Feature map").
 
@@ -475,42 +710,24 @@ class FeatureMap:
                 of the newest of ``node_ids``.
 
         Returns:
-            A :class:`~iceg.types.ScanFeatures` in the frame of ``frame_pose``; ``ids`` are
-            landmark ids; ``segment_ids`` -1; ``points_xy`` holds the nodes' scan points (with
-            ``seg_point_range`` into them) when ``config.reference_points``, else it is empty
-            and ``seg_point_range`` -1.
+            A :class:`MapReference`: its ``features`` are in the frame of ``frame_pose``;
+            ``ids`` are landmark ids; ``segment_ids`` -1; ``points_xy`` holds the nodes' scan
+            points (with ``seg_point_range`` into them) when ``config.reference_points``,
+            else it is empty and ``seg_point_range`` -1. It keeps the pose snapshot.
+
+        Raises:
+            FeatureMapError: ``node_poses`` holds different numbers of ids and poses.
         """
         frame = np.asarray(frame_pose, dtype=np.float64).reshape(3)
         ids, poses = _node_pose_table(node_poses)
         want = np.unique(np.asarray(node_ids, dtype=np.int64).reshape(-1))
-        lm, sg = self._lm, self._seg
-        apos, afound = _lookup(ids, lm["anchor"])
-        chosen = np.isin(lm["anchor"], want) | np.isin(lm["last_node"], want)
-        sel = np.flatnonzero(chosen & afound)
-        rel = between(frame, poses[apos[sel]]) if sel.shape[0] else np.zeros((0, 3))
-        spos, sfound = _lookup(ids, sg["node"])
-        ssel = np.flatnonzero(np.isin(sg["node"], want) & sfound)
+        view = self._reference_landmarks(ids, poses, want, frame)
+        spos, sfound = _lookup(ids, self._seg.node)
+        ssel = np.flatnonzero(np.isin(self._seg.node, want) & sfound)
         srel = between(frame, poses[spos[ssel]]) if ssel.shape[0] else np.zeros((0, 3))
-        view = self._view(sel, rel)
-        r_s = rot(srel[:, 2])
-        ep = np.einsum("nab,nkb->nka", r_s, sg["ep"][ssel]) + srel[:, None, :2]
-        lines, lcov = transform_lines(sg["lines"][ssel], sg["cov"][ssel], srel)
-        points = np.zeros((0, 2))
-        seg_pr = np.full((ssel.shape[0], 2), -1, dtype=np.int64)
-        if self.config.reference_points and self._pt_node.shape[0]:
-            ppos, pfound = _lookup(ids, self._pt_node)
-            psel = np.flatnonzero(np.isin(self._pt_node, want) & pfound)
-            prel = between(frame, poses[ppos[psel]])
-            points = np.einsum("nab,nb->na", rot(prel[:, 2]), self._pt_xy[psel]) + prel[:, :2]
-            # Each node's points are contiguous: shift its segments' ranges to its block.
-            nodes_sel, first = np.unique(self._pt_node[psel], return_index=True)
-            k = np.searchsorted(nodes_sel, sg["node"][ssel])
-            k = np.clip(k, 0, max(nodes_sel.shape[0] - 1, 0))
-            has = (nodes_sel.shape[0] > 0) & (sg["pr"][ssel, 0] >= 0)
-            if nodes_sel.shape[0]:
-                has &= nodes_sel[k] == sg["node"][ssel]
-            seg_pr = np.where(has[:, None], sg["pr"][ssel] + first[k][:, None], -1)
-        ref = ScanFeatures(
+        ep, lines, lcov = self._seg.take(ssel).in_frame(srel)
+        points, seg_pr = self._reference_points(ids, poses, want, frame, ssel)
+        features = ScanFeatures(
             points_xy=points,
             seg_endpoints=ep,
             seg_lines=lines,
@@ -521,13 +738,47 @@ class FeatureMap:
             cov=view.cov,
             directions=view.directions,
             opening_rad=view.opening_rad,
-            segment_ids=np.full((sel.shape[0], 2), -1, dtype=np.int64),
+            segment_ids=np.full((len(view), 2), -1, dtype=np.int64),
             ids=view.ids,
             range_max_m=self._range_max_m,
             stamp_s=self._last_stamp_s,
         )
-        self._refs[ref] = (view.ids, frame, ids, poses)
-        return ref
+        return MapReference(features, frame, ids, poses, self._token)
+
+    def _reference_landmarks(
+        self, ids: IntArray, poses: FloatArray, want: IntArray, frame: FloatArray
+    ) -> LandmarkView:
+        """Landmarks anchored to or last matched from ``want``, in the frame ``frame``."""
+        lm = self._lm
+        apos, afound = _lookup(ids, lm.anchor)
+        chosen = np.isin(lm.anchor, want) | np.isin(lm.last_node, want)
+        sel = np.flatnonzero(chosen & afound)
+        rel = between(frame, poses[apos[sel]]) if sel.shape[0] else np.zeros((0, 3))
+        return lm.take(sel).in_frame(rel)
+
+    def _reference_points(
+        self, ids: IntArray, poses: FloatArray, want: IntArray, frame: FloatArray, ssel: IntArray
+    ) -> tuple[FloatArray, IntArray]:
+        """Scan points of ``want`` in the frame ``frame`` and each chosen segment's
+        ``[start, stop)`` into them (-1 without points)."""
+        points = np.zeros((0, 2))
+        seg_pr = np.full((ssel.shape[0], 2), -1, dtype=np.int64)
+        if not (self.config.reference_points and len(self._pts)):
+            return points, seg_pr
+        sg, pt = self._seg, self._pts
+        ppos, pfound = _lookup(ids, pt.node)
+        psel = np.flatnonzero(np.isin(pt.node, want) & pfound)
+        prel = between(frame, poses[ppos[psel]])
+        points = np.einsum("nab,nb->na", _rot(prel[:, 2]), pt.xy[psel]) + prel[:, :2]
+        # Each node's points are contiguous: shift its segments' ranges to its block.
+        nodes_sel, first = np.unique(pt.node[psel], return_index=True)
+        k = np.searchsorted(nodes_sel, sg.node[ssel])
+        k = np.clip(k, 0, max(nodes_sel.shape[0] - 1, 0))
+        has = (nodes_sel.shape[0] > 0) & (sg.pr[ssel, 0] >= 0)
+        if nodes_sel.shape[0]:
+            has &= nodes_sel[k] == sg.node[ssel]
+        seg_pr = np.where(has[:, None], sg.pr[ssel] + first[k][:, None], -1)
+        return points, seg_pr
 
     # ------------------------------------------------------------------ update
     def update(
@@ -536,7 +787,7 @@ class FeatureMap:
         features: ScanFeatures,
         stamp_s: float,
         *,
-        reference: ScanFeatures | None = None,
+        reference: MapReference | None = None,
         match: MatchResult | None = None,
         scan: LaserScan | None = None,
         node_poses: NodePoses | None = None,
@@ -567,7 +818,7 @@ class FeatureMap:
             features: The node's scan features, robot frame (= node frame).
             stamp_s: Scan time, seconds.
             reference: The reference ``match`` was computed against.
-            match: The match of ``features`` against ``reference``.
+            match: The match of ``features`` against ``reference.features``.
             scan: The laser scan, for visibility (field of view, occlusion by its own
                 ranges); ``None`` uses ``features.points_xy`` instead.
             node_poses: Current pose estimates of the nodes (map frame), to place every
@@ -580,60 +831,60 @@ class FeatureMap:
             A :class:`MapUpdate`.
 
         Raises:
-            MatchingError: ``node_id`` was already added, or a successful ``match`` comes
-                without the ``reference`` built by this map.
+            FeatureMapError: ``node_id`` was already added, or a successful ``match`` comes
+                without a ``reference`` built by this map.
         """
         node_id = int(node_id)
         if node_id in self._nodes:
-            raise MatchingError(f"FeatureMap.update: node {node_id} was already added")
+            raise FeatureMapError(f"FeatureMap.update: node {node_id} was already added")
         stamp = float(stamp_s)
         empty = np.zeros(0, dtype=np.int64)
-        matched_ids = empty
-        expected_ids = empty
-        merged_ids = empty
-        new_mask = np.ones(features.n_features, dtype=bool)
+        book = _Bookkeeping(empty, empty, np.ones(features.n_features, dtype=bool), empty)
         if match is not None and match.success:
-            if reference is None or reference not in self._refs:
-                raise MatchingError(
-                    "FeatureMap.update: a successful match needs reference=<the ScanFeatures "
-                    "returned by this map's reference() that match() was computed against>"
-                )
-            matched_ids, expected_ids, new_mask, merge_rows = self._bookkeep(
-                node_id, features, stamp, reference, match, scan, node_poses, node_pose
-            )
-            merged_ids = self._lm["id"][merge_rows].copy()
-            keep = np.ones(len(self), dtype=bool)
-            keep[merge_rows] = False
-            for k in self._lm:
-                self._lm[k] = self._lm[k][keep]
-            self.n_merged += int(merge_rows.shape[0])
+            ref = self._own(reference)
+            book = self._bookkeep(node_id, features, stamp, ref, match, scan, node_poses, node_pose)
+        merged_ids = self._merge(book.merge_rows) if book.merge_rows.shape[0] else empty
         self._store_segments(node_id, features)
-        added = self._add_landmarks(node_id, features, new_mask, stamp)
+        added = self._add_landmarks(node_id, features, book.new_mask, stamp)
         pruned = self._prune(stamp)
         self._nodes.add(node_id)
         self._range_max_m = float(features.range_max_m)
         self._last_stamp_s = stamp
-        return MapUpdate(node_id, matched_ids, added, expected_ids, pruned, merged_ids)
+        return MapUpdate(node_id, book.matched_ids, added, book.expected_ids, pruned, merged_ids)
+
+    def _own(self, reference: MapReference | None) -> MapReference:
+        if not isinstance(reference, MapReference) or reference.map_token is not self._token:
+            raise FeatureMapError(
+                "FeatureMap.update: a successful match needs reference=<the MapReference "
+                "returned by this map's reference() that match() was computed against>"
+            )
+        return reference
+
+    def _merge(self, merge_rows: IntArray) -> IntArray:
+        """Remove duplicate landmarks (merged into a matched one); return their ids."""
+        merged_ids = self._lm.id[merge_rows].copy()
+        keep = np.ones(len(self), dtype=bool)
+        keep[merge_rows] = False
+        self._lm = self._lm.take(keep)
+        self.n_merged += int(merge_rows.shape[0])
+        return merged_ids
 
     def _store_segments(self, node_id: int, features: ScanFeatures) -> None:
         m = features.n_segments
         keep = self.config.reference_points
         pr = np.asarray(features.seg_point_range, dtype=np.int64).reshape(m, 2)
-        new = {
-            "node": np.full(m, node_id, dtype=np.int64),
-            "ep": np.asarray(features.seg_endpoints, dtype=np.float64).reshape(m, 2, 2),
-            "lines": np.asarray(features.seg_lines, dtype=np.float64).reshape(m, 2),
-            "cov": np.asarray(features.seg_cov, dtype=np.float64).reshape(m, 2, 2),
-            "pr": pr if keep else np.full((m, 2), -1, dtype=np.int64),
-        }
-        for k in self._seg:
-            self._seg[k] = np.concatenate([self._seg[k], new[k]])
+        self._seg.append(
+            _Segments(
+                node=np.full(m, node_id, dtype=np.int64),
+                ep=np.asarray(features.seg_endpoints, dtype=np.float64).reshape(m, 2, 2),
+                lines=np.asarray(features.seg_lines, dtype=np.float64).reshape(m, 2),
+                cov=np.asarray(features.seg_cov, dtype=np.float64).reshape(m, 2, 2),
+                pr=pr if keep else np.full((m, 2), -1, dtype=np.int64),
+            )
+        )
         if keep:
             pts = np.asarray(features.points_xy, dtype=np.float64).reshape(-1, 2)
-            self._pt_node = np.concatenate(
-                [self._pt_node, np.full(pts.shape[0], node_id, dtype=np.int64)]
-            )
-            self._pt_xy = np.concatenate([self._pt_xy, pts])
+            self._pts.append(_Points(np.full(pts.shape[0], node_id, dtype=np.int64), pts))
 
     def _add_landmarks(
         self, node_id: int, features: ScanFeatures, mask: BoolArray, stamp: float
@@ -645,156 +896,200 @@ class FeatureMap:
         support, wall_p, wall_d, wall_side = (
             a[rows] for a in _geometry(features, self.config.support_offset_m)
         )
-        new = {
-            "id": ids,
-            "anchor": np.full(n, node_id, dtype=np.int64),
-            "kind": np.asarray(features.kind, dtype=np.int64)[rows],
-            "xy": features.xy[rows],
-            "cov": features.cov[rows],
-            "dirs": features.directions[rows],
-            "opening": features.opening_rad[rows],
-            "support": support,
-            "wall_p": wall_p,
-            "wall_d": wall_d,
-            "wall_side": wall_side,
-            "n_expected": np.zeros(n, dtype=np.int64),
-            "n_matched": np.zeros(n, dtype=np.int64),
-            "misses": np.zeros(n, dtype=np.int64),
-            "created_s": np.full(n, stamp),
-            "last_matched_s": np.full(n, stamp),
-            "first_miss_s": np.full(n, np.nan),
-            "last_node": np.full(n, node_id, dtype=np.int64),
-        }
-        for k in self._lm:
-            self._lm[k] = np.concatenate([self._lm[k], new[k].astype(self._lm[k].dtype)])
+        self._lm.append(
+            _Landmarks(
+                id=ids,
+                anchor=np.full(n, node_id, dtype=np.int64),
+                kind=np.asarray(features.kind, dtype=np.int64)[rows],
+                xy=features.xy[rows],
+                cov=features.cov[rows],
+                dirs=features.directions[rows],
+                opening=features.opening_rad[rows],
+                support=support,
+                wall_p=wall_p,
+                wall_d=wall_d,
+                wall_side=wall_side,
+                n_expected=np.zeros(n, dtype=np.int64),
+                n_matched=np.zeros(n, dtype=np.int64),
+                misses=np.zeros(n, dtype=np.int64),
+                created_s=np.full(n, stamp),
+                last_matched_s=np.full(n, stamp),
+                first_miss_s=np.full(n, np.nan),
+                last_node=np.full(n, node_id, dtype=np.int64),
+            )
+        )
         return ids
 
+    # ------------------------------------------------------------------ bookkeeping
     def _bookkeep(
         self,
         node_id: int,
         features: ScanFeatures,
         stamp: float,
-        reference: ScanFeatures,
+        reference: MapReference,
         match: MatchResult,
         scan: LaserScan | None,
         node_poses: NodePoses | None,
         node_pose: ArrayLike | None,
-    ) -> tuple[IntArray, IntArray, BoolArray, IntArray]:
-        """Association and expected/matched counting for one matched scan; also returns the
+    ) -> _Bookkeeping:
+        """Association and expected/matched counting for one matched scan; also finds the
         rows of duplicate landmarks to merge."""
-        cfg = self.config
-        lm = self._lm
-        ref_ids, frame, snap_ids, snap_poses = self._refs[reference]
+        near = self._near(node_id, reference, match, node_poses, node_pose)
+        pair_new, pair_row = self._matcher_pairs(features, match, reference.landmark_ids, near)
+        pair_new, pair_row = self._associate(features, near, pair_new, pair_row)
+        new_mask = np.ones(features.n_features, dtype=bool)
+        new_mask[pair_new] = False
+        merge_rows = self._duplicates(features, near, pair_new, pair_row)
+        if pair_row.shape[0]:
+            self._keep_better(features, near, pair_new, pair_row)
+        expected = self._expected(near.rows, near.anchor_in_new, features, scan)
+        matched_rows, exp_rows = self._count(near.rows, expected, pair_row, stamp, node_id)
+        return _Bookkeeping(
+            self._lm.id[matched_rows].copy(), self._lm.id[exp_rows].copy(), new_mask, merge_rows
+        )
+
+    def _near(
+        self,
+        node_id: int,
+        reference: MapReference,
+        match: MatchResult,
+        node_poses: NodePoses | None,
+        node_pose: ArrayLike | None,
+    ) -> _Near:
+        """Every landmark whose anchor has a pose (restricted to the reference's and recently
+        matched ones by ``bookkeeping_recent_nodes``), in the new node's frame."""
+        cfg, lm = self.config, self._lm
         if node_poses is not None:
             tab_ids, tab_poses = _node_pose_table(node_poses)
         else:
-            tab_ids, tab_poses = snap_ids, snap_poses
+            tab_ids, tab_poses = reference.node_ids, reference.node_poses
         npos, nfound = _lookup(tab_ids, np.array([node_id]))
         if nfound[0]:
             new_pose = tab_poses[npos[0]]
         elif node_pose is not None:
             new_pose = np.asarray(node_pose, dtype=np.float64).reshape(3)
         else:
-            new_pose = compose(frame, match.pose)
-        # Every landmark whose anchor has a pose (of the reference, by default), in the new
-        # node's frame.
-        apos, afound = _lookup(tab_ids, lm["anchor"])
+            new_pose = compose(reference.frame_pose, match.pose)
+        apos, afound = _lookup(tab_ids, lm.anchor)
         if cfg.bookkeeping_recent_nodes is not None:
-            recent = lm["last_node"] >= node_id - cfg.bookkeeping_recent_nodes
-            afound &= recent | np.isin(lm["id"], ref_ids)
+            recent = lm.last_node >= node_id - cfg.bookkeeping_recent_nodes
+            afound &= recent | np.isin(lm.id, reference.landmark_ids)
         rows = np.flatnonzero(afound)
         anchor_in_new = (
             between(new_pose, tab_poses[apos[rows]]) if rows.shape[0] else np.zeros((0, 3))
         )
-        r_an = rot(anchor_in_new[:, 2])
-        xy_new = np.einsum("nab,nb->na", r_an, lm["xy"][rows]) + anchor_in_new[:, :2]
+        xy_new = (
+            np.einsum("nab,nb->na", _rot(anchor_in_new[:, 2]), lm.xy[rows]) + anchor_in_new[:, :2]
+        )
         slot = np.full(len(self), -1, dtype=np.int64)
         slot[rows] = np.arange(rows.shape[0])
-        # 1. The matcher's pairs (reference index -> landmark id -> row).
+        return _Near(rows, anchor_in_new, xy_new, slot)
+
+    def _matcher_pairs(
+        self, features: ScanFeatures, match: MatchResult, ref_ids: IntArray, near: _Near
+    ) -> tuple[IntArray, IntArray]:
+        """The matcher's pairs as (new feature index, landmark row), for landmarks taking
+        part."""
         k_new = features.n_features
         pairs = np.asarray(match.inlier_pairs, dtype=np.int64).reshape(-1, 2)
         pairs = pairs[(pairs[:, 0] >= 0) & (pairs[:, 0] < k_new)]
         pairs = pairs[(pairs[:, 1] >= 0) & (pairs[:, 1] < ref_ids.shape[0])]
-        lpos, lfound = _lookup(lm["id"], ref_ids[pairs[:, 1]])
-        ok = lfound & (slot[lpos] >= 0)
-        pair_new = pairs[ok, 0]
-        pair_row = lpos[ok]
-        # 2. Geometric association of the other new features with the other landmarks.
-        free_n = np.setdiff1d(np.arange(k_new), pair_new)
-        free_s = np.setdiff1d(np.arange(rows.shape[0]), slot[pair_row])
-        if free_n.shape[0] and free_s.shape[0]:
-            d = np.linalg.norm(features.xy[free_n][:, None, :] - xy_new[free_s][None], axis=2)
-            jbest = np.argmin(d, axis=1)
-            good = d[np.arange(free_n.shape[0]), jbest] <= cfg.association_gate_m
-            cand_n = free_n[good]
-            cand_s = free_s[jbest[good]]
-            _, first = np.unique(cand_s, return_index=True)  # one feature per landmark
-            pair_new = np.concatenate([pair_new, cand_n[first]])
-            pair_row = np.concatenate([pair_row, rows[cand_s[first]]])
-        new_mask = np.ones(k_new, dtype=bool)
-        new_mask[pair_new] = False
-        # Duplicates: other landmarks within the gate of a paired feature are the same
-        # physical feature (anchored to another node); they merge into the paired one.
-        merge_rows = np.zeros(0, dtype=np.int64)
-        if pair_new.shape[0] and rows.shape[0]:
-            dd = np.linalg.norm(features.xy[pair_new][:, None, :] - xy_new[None], axis=2)
-            near = np.any(dd <= cfg.association_gate_m, axis=0)
-            near[slot[pair_row]] = False
-            merge_rows = rows[near]
-        # Keep the better observation; an EOW seen as a Corner becomes a Corner.
-        if pair_row.shape[0]:
-            new_in_anchor = inverse(anchor_in_new[slot[pair_row]])
-            tr_new = np.trace(features.cov[pair_new], axis1=1, axis2=2)
-            tr_old = np.trace(lm["cov"][pair_row], axis1=1, axis2=2)
-            upgrade = _RANK[features.kind[pair_new]] > _RANK[lm["kind"][pair_row]]
-            same = lm["kind"][pair_row] == features.kind[pair_new]
-            rep = np.flatnonzero(upgrade | (same & (tr_new < cfg.replace_ratio * tr_old)))
-            if rep.shape[0]:
-                rr = pair_row[rep]
-                fi = pair_new[rep]
-                na = new_in_anchor[rep]
-                r = rot(na[:, 2])
-                lm["xy"][rr] = np.einsum("nab,nb->na", r, features.xy[fi]) + na[:, :2]
-                lm["cov"][rr] = r @ features.cov[fi] @ np.swapaxes(r, 1, 2)
-                lm["dirs"][rr] = np.einsum("nab,nkb->nka", r, features.directions[fi])
-                lm["opening"][rr] = features.opening_rad[fi]
-                lm["kind"][rr] = features.kind[fi]
-                sup, wp, wd, _ = (a[fi] for a in _geometry(features, cfg.support_offset_m))
-                lm["support"][rr] = np.einsum("nab,nkb->nka", r, sup) + na[:, None, :2]
-                lm["wall_p"][rr] = np.einsum("nab,nkb->nka", r, wp) + na[:, None, :2]
-                lm["wall_d"][rr] = np.einsum("nab,nkb->nka", r, wd)
-                # The side seen from the new node, expressed for the anchor-frame wall.
-                o = na[:, None, :2]  # new node's origin in the anchor frame
-                wpa = lm["wall_p"][rr]
-                wda = lm["wall_d"][rr]
-                with np.errstate(invalid="ignore"):
-                    lm["wall_side"][rr] = np.sign(
-                        wda[..., 0] * (o[..., 1] - wpa[..., 1])
-                        - wda[..., 1] * (o[..., 0] - wpa[..., 0])
-                    )
-        # 3. Expected landmarks (all of them with a known anchor pose).
-        expected = self._expected(rows, anchor_in_new, features, scan)
+        lpos, lfound = _lookup(self._lm.id, ref_ids[pairs[:, 1]])
+        ok = lfound & (near.slot[lpos] >= 0)
+        return pairs[ok, 0], lpos[ok]
+
+    def _associate(
+        self, features: ScanFeatures, near: _Near, pair_new: IntArray, pair_row: IntArray
+    ) -> tuple[IntArray, IntArray]:
+        """Add geometric pairs: each unpaired new feature with the nearest unpaired landmark
+        within ``association_gate_m`` (one feature per landmark)."""
+        free_n = np.setdiff1d(np.arange(features.n_features), pair_new)
+        free_s = np.setdiff1d(np.arange(near.rows.shape[0]), near.slot[pair_row])
+        if not (free_n.shape[0] and free_s.shape[0]):
+            return pair_new, pair_row
+        d = np.linalg.norm(features.xy[free_n][:, None, :] - near.xy_new[free_s][None], axis=2)
+        jbest = np.argmin(d, axis=1)
+        good = d[np.arange(free_n.shape[0]), jbest] <= self.config.association_gate_m
+        cand_n = free_n[good]
+        cand_s = free_s[jbest[good]]
+        _, first = np.unique(cand_s, return_index=True)  # one feature per landmark
+        return (
+            np.concatenate([pair_new, cand_n[first]]),
+            np.concatenate([pair_row, near.rows[cand_s[first]]]),
+        )
+
+    def _duplicates(
+        self, features: ScanFeatures, near: _Near, pair_new: IntArray, pair_row: IntArray
+    ) -> IntArray:
+        """Rows of other landmarks within the gate of a paired feature: the same physical
+        feature anchored to another node; they merge into the paired one."""
+        if not (pair_new.shape[0] and near.rows.shape[0]):
+            return np.zeros(0, dtype=np.int64)
+        dd = np.linalg.norm(features.xy[pair_new][:, None, :] - near.xy_new[None], axis=2)
+        close = np.any(dd <= self.config.association_gate_m, axis=0)
+        close[near.slot[pair_row]] = False
+        return near.rows[close]
+
+    def _keep_better(
+        self, features: ScanFeatures, near: _Near, pair_new: IntArray, pair_row: IntArray
+    ) -> None:
+        """Keep the better observation of each paired landmark: a new one replaces the stored
+        one when its covariance trace is below ``replace_ratio`` of it, or when it tells
+        more (an EOW seen as a Corner becomes a Corner)."""
+        lm = self._lm
+        new_in_anchor = inverse(near.anchor_in_new[near.slot[pair_row]])
+        tr_new = np.trace(features.cov[pair_new], axis1=1, axis2=2)
+        tr_old = np.trace(lm.cov[pair_row], axis1=1, axis2=2)
+        upgrade = _RANK[features.kind[pair_new]] > _RANK[lm.kind[pair_row]]
+        same = lm.kind[pair_row] == features.kind[pair_new]
+        rep = np.flatnonzero(upgrade | (same & (tr_new < self.config.replace_ratio * tr_old)))
+        if rep.shape[0]:
+            self._replace(features, pair_row[rep], pair_new[rep], new_in_anchor[rep])
+
+    def _replace(self, features: ScanFeatures, rr: IntArray, fi: IntArray, na: FloatArray) -> None:
+        """Landmark rows ``rr`` take new features ``fi``, whose node sits at ``na`` ``(n, 3)``
+        in each anchor's frame."""
+        lm = self._lm
+        r = _rot(na[:, 2])
+        lm.xy[rr] = np.einsum("nab,nb->na", r, features.xy[fi]) + na[:, :2]
+        lm.cov[rr] = r @ features.cov[fi] @ np.swapaxes(r, 1, 2)
+        lm.dirs[rr] = np.einsum("nab,nkb->nka", r, features.directions[fi])
+        lm.opening[rr] = features.opening_rad[fi]
+        lm.kind[rr] = features.kind[fi]
+        sup, wp, wd, _ = (a[fi] for a in _geometry(features, self.config.support_offset_m))
+        lm.support[rr] = _move_points(r, na[:, :2], sup)
+        lm.wall_p[rr] = _move_points(r, na[:, :2], wp)
+        lm.wall_d[rr] = np.einsum("nab,nkb->nka", r, wd)
+        # The side seen from the new node, expressed for the anchor-frame wall.
+        o = na[:, None, :2]  # new node's origin in the anchor frame
+        wpa, wda = lm.wall_p[rr], lm.wall_d[rr]
+        with np.errstate(invalid="ignore"):
+            lm.wall_side[rr] = np.sign(
+                wda[..., 0] * (o[..., 1] - wpa[..., 1]) - wda[..., 1] * (o[..., 0] - wpa[..., 0])
+            )
+
+    def _count(
+        self, rows: IntArray, expected: BoolArray, pair_row: IntArray, stamp: float, node_id: int
+    ) -> tuple[IntArray, IntArray]:
+        """Expected / matched / miss counters; returns the matched and expected rows."""
+        lm = self._lm
         matched_rows = np.unique(pair_row)
         is_matched = np.zeros(len(self), dtype=bool)
         is_matched[matched_rows] = True
         exp_rows = rows[expected | is_matched[rows]]
-        lm["n_expected"][exp_rows] += 1
-        lm["n_matched"][matched_rows] += 1
-        lm["last_matched_s"][matched_rows] = stamp
-        lm["misses"][matched_rows] = 0
-        lm["first_miss_s"][matched_rows] = np.nan
-        lm["last_node"][matched_rows] = node_id
+        lm.n_expected[exp_rows] += 1
+        lm.n_matched[matched_rows] += 1
+        lm.last_matched_s[matched_rows] = stamp
+        lm.misses[matched_rows] = 0
+        lm.first_miss_s[matched_rows] = np.nan
+        lm.last_node[matched_rows] = node_id
         miss_rows = rows[expected & ~is_matched[rows]]
-        lm["misses"][miss_rows] += 1
-        first = miss_rows[np.isnan(lm["first_miss_s"][miss_rows])]
-        lm["first_miss_s"][first] = stamp
-        return (
-            lm["id"][matched_rows].copy(),
-            lm["id"][exp_rows].copy(),
-            new_mask,
-            merge_rows,
-        )
+        lm.misses[miss_rows] += 1
+        first = miss_rows[np.isnan(lm.first_miss_s[miss_rows])]
+        lm.first_miss_s[first] = stamp
+        return matched_rows, exp_rows
 
+    # ------------------------------------------------------------------ visibility
     def _expected(
         self,
         rows: IntArray,
@@ -806,98 +1101,89 @@ class FeatureMap:
         should see (DESIGN: inside the field of view and range, not occluded; and its walls
         (one for a Corner or EOW, both for an Intersection) seen from the side they were seen
         from before, not at grazing incidence)."""
-        cfg = self.config
         lm = self._lm
         n = rows.shape[0]
         if n == 0:
             return np.zeros(0, dtype=bool)
-        r = rot(anchor_in_new[:, 2])
-        sup = np.einsum("nab,nkb->nka", r, lm["support"][rows]) + anchor_in_new[:, None, :2]
-        wp = np.einsum("nab,nkb->nka", r, lm["wall_p"][rows]) + anchor_in_new[:, None, :2]
-        wd = np.einsum("nab,nkb->nka", r, lm["wall_d"][rows])
+        profile = (
+            _BeamProfile.of_scan(scan)
+            if scan is not None
+            else _BeamProfile.of_points(features.points_xy)
+        )
+        if profile.bearing.shape[0] == 0:
+            return np.zeros(n, dtype=bool)
+        r = _rot(anchor_in_new[:, 2])
+        t = anchor_in_new[:, :2]
+        visible = self._in_view(_move_points(r, t, lm.support[rows]), profile)
+        wp = _move_points(r, t, lm.wall_p[rows])
+        wd = np.einsum("nab,nkb->nka", r, lm.wall_d[rows])
+        return visible & self._walls_seen(rows, wp, wd)
+
+    def _in_view(self, sup: FloatArray, profile: _BeamProfile) -> BoolArray:
+        """Whether every support point ``(n, 3, 2)`` (robot frame; NaN: none) is inside the
+        field of view and ``expected_max_range_m`` and not occluded."""
+        cfg = self.config
         has = np.all(np.isfinite(sup), axis=2)  # (n, 3)
-        if scan is not None:
-            off = np.asarray(scan.laser_offset, dtype=np.float64)
-            ro = rot(off[2])
-            pts = np.einsum("ba,nkb->nka", ro, sup - off[:2])  # laser frame
-            order = np.argsort(scan.angles_rad, kind="stable")
-            ang = scan.angles_rad[order]
-            rng = scan.ranges_m[order]
-            valid = scan.valid_mask()[order]
-            with np.errstate(invalid="ignore"):
-                beyond = np.isfinite(rng) & (rng >= scan.range_max_m)
-            beam_r = np.where(valid, rng, np.where(beyond, np.inf, 0.0))
-            spacing = float(np.median(np.diff(ang))) if ang.shape[0] > 1 else math.radians(1)
-            prof = PolarProfile(ang, beam_r, spacing, float(scan.range_max_m))
-            lo, hi = ang[0], ang[-1]
-        else:
-            pts = sup
-            prof = PolarProfile.from_points(features.points_xy, float(features.range_max_m))
-            if prof.bearing.shape[0] == 0:
-                return np.zeros(n, dtype=bool)
-            lo, hi = prof.bearing[0], prof.bearing[-1]
+        pts = profile.to_sensor(sup)
         bearing = np.arctan2(pts[..., 1], pts[..., 0])
         dist = np.hypot(pts[..., 0], pts[..., 1])
         margin = math.radians(cfg.fov_margin_deg)
+        lo, hi = profile.bearing[0], profile.bearing[-1]
         in_fov = (bearing >= lo + margin) & (bearing <= hi - margin)
         in_range = dist <= cfg.expected_max_range_m
-        # Both beams around the bearing must reach at least the distance minus tolerance.
-        nb = prof.bearing.shape[0]
-        k = np.clip(np.searchsorted(prof.bearing, bearing), 1, nb - 1)
-        r0 = prof.range[k - 1]
-        r1 = prof.range[k]
-        gap = (prof.bearing[k] - prof.bearing[k - 1]) > 1.6 * prof.spacing
+        ok_point = in_fov & in_range & profile.clear(bearing, dist, cfg.occlusion_tolerance_m)
+        return np.all(ok_point | ~has, axis=1) & np.any(has, axis=1)
+
+    def _walls_seen(self, rows: IntArray, wp: FloatArray, wd: FloatArray) -> BoolArray:
+        """Each wall (points ``wp``, directions ``wd``, ``(n, 2, 2)`` new frame) seen from the
+        same side as before and not at grazing incidence; an Intersection needs both of its
+        walls, a Corner shows as an EOW when only one faces the sensor (paper §III-C2)."""
+        lm = self._lm
+        side = _side_of_walls(wp, wd)
         with np.errstate(invalid="ignore"):
-            clear = (np.fmin(r0, r1) >= dist - cfg.occlusion_tolerance_m) & ~gap
-        ok_point = in_fov & in_range & clear
-        visible = np.all(ok_point | ~has, axis=1) & np.any(has, axis=1)
-        # Each wall: seen from the same side as before, not at grazing incidence.
-        with np.errstate(invalid="ignore"):
-            side = np.sign(wd[..., 1] * wp[..., 0] - wd[..., 0] * wp[..., 1])
-            ray = wp / np.maximum(np.hypot(wp[..., 0], wp[..., 1]), 1e-9)[..., None]
+            ray = wp / np.maximum(np.hypot(wp[..., 0], wp[..., 1]), _MIN_NORM)[..., None]
             sin_inc = np.abs(ray[..., 0] * wd[..., 1] - ray[..., 1] * wd[..., 0])
-            wall_ok = (side == lm["wall_side"][rows]) & (
-                sin_inc >= math.sin(math.radians(cfg.min_incidence_deg))
+            wall_ok = (side == lm.wall_side[rows]) & (
+                sin_inc >= math.sin(math.radians(self.config.min_incidence_deg))
             )
-        has_wall = np.isfinite(lm["wall_side"][rows])
-        # An Intersection needs both of its walls; a Corner shows as an EOW when only one
-        # of its walls faces the sensor (paper §III-C2), so one suffices.
+        has_wall = np.isfinite(lm.wall_side[rows])
         all_seen = np.all(wall_ok | ~has_wall, axis=1) & np.any(has_wall, axis=1)
         any_seen = np.any(wall_ok & has_wall, axis=1)
-        walls_seen = np.where(lm["kind"][rows] == INTERSECTION, all_seen, any_seen)
-        return visible & walls_seen
+        return np.where(lm.kind[rows] == INTERSECTION, all_seen, any_seen)
 
+    # ------------------------------------------------------------------ pruning
     def _prune(self, stamp: float) -> IntArray:
-        cfg = self.config
-        lm = self._lm
-        ratio = (lm["n_expected"] >= cfg.min_expected) & (
-            lm["n_matched"] < cfg.min_match_ratio * lm["n_expected"]
+        """Ratio and time-validity pruning (paper §III-C3); returns the pruned ids."""
+        cfg, lm = self.config, self._lm
+        ratio = (lm.n_expected >= cfg.min_expected) & (
+            lm.n_matched < cfg.min_match_ratio * lm.n_expected
         )
         with np.errstate(invalid="ignore"):
             stale = (
-                (lm["misses"] >= cfg.min_misses)
-                & (stamp - lm["last_matched_s"] >= cfg.validity_s)
-                & (stamp - lm["first_miss_s"] >= cfg.miss_confirm_s)
+                (lm.misses >= cfg.min_misses)
+                & (stamp - lm.last_matched_s >= cfg.validity_s)
+                & (stamp - lm.first_miss_s >= cfg.miss_confirm_s)
             )
-
         drop = ratio | stale
         if not np.any(drop):
             return np.zeros(0, dtype=np.int64)
         d = np.flatnonzero(drop)
-        p = self._pruned
-        p["ids"].append(lm["id"][d].copy())
-        p["anchor"].append(lm["anchor"][d].copy())
-        p["kind"].append(lm["kind"][d].copy())
-        p["xy"].append(lm["xy"][d].copy())
-        p["stamp_s"].append(np.full(d.shape[0], stamp))
-        p["created_s"].append(lm["created_s"][d].copy())
-        p["last_s"].append(lm["last_matched_s"][d].copy())
-        p["why"].append(np.where(stale[d], PRUNED_VALIDITY, PRUNED_RATIO).astype(np.int64))
-        keep = ~drop
-        for k in lm:
-            lm[k] = lm[k][keep]
+        gone = lm.take(d)
+        self._pruned.append(
+            PrunedLandmarks(
+                ids=gone.id,
+                anchor=gone.anchor,
+                kind=gone.kind,
+                xy=gone.xy,
+                stamp_s=np.full(d.shape[0], stamp),
+                created_s=gone.created_s,
+                last_matched_s=gone.last_matched_s,
+                reason=np.where(stale[d], PRUNED_VALIDITY, PRUNED_RATIO).astype(np.int64),
+            )
+        )
+        self._lm = lm.take(~drop)
         log.debug("pruned %d landmarks at %.2f s", d.shape[0], stamp)
-        return p["ids"][-1]
+        return self._pruned[-1].ids
 
 
 __all__ = [
@@ -906,6 +1192,7 @@ __all__ = [
     "FeatureMap",
     "FeatureMapConfig",
     "LandmarkView",
+    "MapReference",
     "MapUpdate",
     "PrunedLandmarks",
 ]

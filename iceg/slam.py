@@ -21,19 +21,26 @@ import numpy as np
 from numpy.typing import NDArray
 
 from frontends import LaserScan
-from graph import PoseGraph, odometry_covariance
+from graph import FactorKind, PoseGraph, odometry_covariance
 from iceg.config import IcegConfig
-from iceg.feature_map import FeatureMap
+from iceg.feature_map import FeatureMap, MapReference
 from iceg.features import extract
 from iceg.grid import render
+from iceg.loop_closure import LoopCloser, LoopClosureStats
 from iceg.matching import IceMatcher, MatchBounds
 from iceg.results import SlamResult
 from iceg.types import MatchResult, ScanFeatures
 from iceg_common import se2
+from iceg_common.errors import ScanError
 
 logger = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
+
+#: Failure category of a match whose reason is empty.
+_UNKNOWN_REASON = "unknown"
+
+__all__ = ["LoopClosureStats", "Slam", "SlamState", "StageTimer"]
 
 
 class StageTimer:
@@ -50,35 +57,29 @@ class StageTimer:
 
 
 @dataclass
-class LoopClosureStats:
-    """Loop-closure bookkeeping: searches run, matches tried, accepted and rejected."""
-
-    searches: int = 0
-    attempts: int = 0
-    accepted: int = 0
-    rejected_match: int = 0
-    rejected_consistency: int = 0
-
-    def as_dict(self) -> dict[str, int]:
-        """Plain dict for JSON output."""
-        return dict(self.__dict__)
-
-
-@dataclass(frozen=True, eq=False)
-class _LoopCandidate:
-    node_from: int
-    node_to: int
-    measured: FloatArray
-    cov: FloatArray
-    correlation: float
-    implied: FloatArray  # (3,) map-frame pose of node_to that the closure implies
-
-
-@dataclass
 class _ScanRecord:
     stamp_s: float
     node_id: int
     delta_from_node: FloatArray  # odometry delta from the node's scan to this scan
+
+
+@dataclass(frozen=True, eq=False)
+class _Motion:
+    """Motion of a scan relative to the last node, and whether the scan becomes a node."""
+
+    odom: FloatArray  # (3,) odometry pose of the scan (predicted when the log has none)
+    delta: FloatArray  # (3,) last node -> scan, odometry
+    cov: FloatArray  # (3, 3) covariance of delta, tangent space
+    is_keyframe: bool
+
+
+@dataclass(frozen=True, eq=False)
+class _LocalMatch:
+    """A keyframe's match against the local map of the recent nodes."""
+
+    reference: MapReference
+    result: MatchResult
+    last_pose: FloatArray  # (3,) estimate of the last node when the reference was built
 
 
 @dataclass
@@ -112,10 +113,14 @@ class Slam:
         self.graph = PoseGraph(self.config.graph)
         self.matcher = IceMatcher(self.config.matching)
         self.feature_map = FeatureMap(self.config.feature_map)
+        self.loop_closer = LoopCloser(self.config.loop_closure, self.matcher, self.feature_map)
         self.timer = StageTimer()
-        self.loop_stats = LoopClosureStats()
         self._s = SlamState()
-        self._pending_loops: list[_LoopCandidate] = []
+
+    @property
+    def loop_stats(self) -> LoopClosureStats:
+        """Loop-closure statistics of the run so far."""
+        return self.loop_closer.stats
 
     # ------------------------------------------------------------------ per scan
 
@@ -123,82 +128,142 @@ class Slam:
         """Process one scan; return its current pose estimate ``(3,)`` in the map frame.
 
         The map frame is the odometry frame of the first scan (the first node is fixed at
-        the first odometry pose, or at the origin when the log has no odometry).
+        the first odometry pose, or at the origin when the log has no odometry). Steps
+        (DESIGN "Data flow of one scan"): motion from odometry and keyframe decision; for a
+        keyframe ICE features, local match, node and factors, iSAM2 update, loop-closure
+        search and feature-map update.
+
+        Raises:
+            ScanError: the scan's stamp is earlier than the previous scan's.
         """
-        cfg = self.config.slam
-        s = self._s
+        self._check_order(scan)
         t0 = time.perf_counter()
         odom = self._odometry_of(scan)
-        s.scans.append(scan)
-        if not s.node_odom:
-            feats = extract(scan, self.config.features)
-            t0 = self.timer.add("features", t0)
-            self._add_node(scan, odom, initial=odom)
-            self.graph.update()
-            self.feature_map.update(0, feats, scan.stamp_s, scan=scan)
-            self.timer.add("feature_map", t0)
-            return odom.copy()
+        self._s.scans.append(scan)
+        if not self._s.node_odom:
+            return self._start(scan, odom, t0)
+        last = len(self._s.node_odom) - 1
+        motion = self._motion(scan, odom, last)
+        if not motion.is_keyframe:
+            self._s.records.append(_ScanRecord(scan.stamp_s, last, motion.delta))
+            return se2.compose(self.graph.estimate(last), motion.delta)
+        return self._process_keyframe(scan, motion, last, t0)
 
-        last = len(s.node_odom) - 1
+    # ------------------------------------------------------------------ steps
+
+    def _process_keyframe(
+        self, scan: LaserScan, motion: _Motion, last: int, t0: float
+    ) -> FloatArray:
+        """A keyframe: features, local match, node and factors, iSAM2, loop closure, map."""
+        feats = extract(scan, self.config.features)
+        t0 = self.timer.add("features", t0)
+        local = self._match_local(feats, motion.delta, last)
+        t0 = self.timer.add("matching", t0)
+        new_id = self._add_keyframe(scan, motion, local, last)
+        t0 = self.timer.add("graph_build", t0)
+        self.graph.update()
+        t0 = self.timer.add("isam2", t0)
+        if self.loop_closer.due(new_id):
+            self._close_loops(new_id, feats)
+            t0 = self.timer.add("loop_closure", t0)
+        self._update_map(new_id, feats, scan, local)
+        self.timer.add("feature_map", t0)
+        return self.graph.estimate(new_id)
+
+    def _check_order(self, scan: LaserScan) -> None:
+        if self._s.scans and scan.stamp_s < self._s.scans[-1].stamp_s:
+            raise ScanError(
+                f"scan at {scan.stamp_s:.6f} s is earlier than the previous scan at "
+                f"{self._s.scans[-1].stamp_s:.6f} s: Slam.process needs scans in time order"
+            )
+
+    def _start(self, scan: LaserScan, odom: FloatArray, t0: float) -> FloatArray:
+        """The first scan: node 0, fixed at its odometry pose, and its landmarks."""
+        feats = extract(scan, self.config.features)
+        t0 = self.timer.add("features", t0)
+        self._add_node(scan, odom, initial=odom)
+        self.graph.update()
+        self.feature_map.update(0, feats, scan.stamp_s, scan=scan)
+        self.timer.add("feature_map", t0)
+        return odom.copy()
+
+    def _motion(self, scan: LaserScan, odom: FloatArray, last: int) -> _Motion:
+        """Odometry delta from the last node and the keyframe decision."""
+        cfg = self.config.slam
+        s = self._s
         if scan.odom_pose is None:
             # No wheel odometry: every scan is a node, predicted by constant velocity, and a
             # weak motion prior keeps the graph connected where matching fails.
             delta = self._constant_velocity_delta(last)
-            odom = se2.compose(s.node_odom[last], delta)
-            odom_cov = np.diag(
+            cov = np.diag(
                 [cfg.no_odometry_sigma_m**2] * 2 + [np.radians(cfg.no_odometry_sigma_deg) ** 2]
             )
-            is_keyframe = True
-        else:
-            delta = se2.between(s.node_odom[last], odom)
-            odom_cov = odometry_covariance(delta, self.config.odometry_noise)
-            dt = scan.stamp_s - s.scans[s.node_scan_index[last]].stamp_s
-            is_keyframe = bool(
-                np.hypot(delta[0], delta[1]) >= cfg.keyframe_distance_m
-                or abs(delta[2]) >= np.radians(cfg.keyframe_rotation_deg)
-                or dt >= cfg.keyframe_max_interval_s
-            )
-        if not is_keyframe:
-            s.records.append(_ScanRecord(scan.stamp_s, last, delta))
-            return se2.compose(self.graph.estimate(last), delta)
+            return _Motion(se2.compose(s.node_odom[last], delta), delta, cov, True)
+        delta = se2.between(s.node_odom[last], odom)
+        cov = odometry_covariance(delta, self.config.odometry_noise)
+        dt = scan.stamp_s - s.scans[s.node_scan_index[last]].stamp_s
+        is_keyframe = bool(
+            np.hypot(delta[0], delta[1]) >= cfg.keyframe_distance_m
+            or abs(delta[2]) >= np.radians(cfg.keyframe_rotation_deg)
+            or dt >= cfg.keyframe_max_interval_s
+        )
+        return _Motion(odom, delta, cov, is_keyframe)
 
-        feats = extract(scan, self.config.features)
-        t0 = self.timer.add("features", t0)
+    def _match_local(self, feats: ScanFeatures, delta: FloatArray, last: int) -> _LocalMatch:
+        """ICE match against the landmarks of the ``local_map_nodes`` most recent nodes."""
+        cfg = self.config.slam
         ids, poses = self.graph.estimates()
         recent = ids[max(0, last - cfg.local_map_nodes + 1) : last + 1]
         reference = self.feature_map.reference((ids, poses), recent, poses[last])
         bounds = MatchBounds.local(cfg.match_max_translation_m, cfg.match_max_rotation_deg)
-        result = self.matcher.match(feats, reference, delta, bounds)
-        t0 = self.timer.add("matching", t0)
+        result = self.matcher.match(feats, reference.features, delta, bounds)
         if not result.success:
             # Count by the reason's category (the text before the first colon).
-            s.match_failures[(result.reason or "unknown").split(":")[0]] += 1
-        new_id = self._add_node(
-            scan, odom, initial=se2.compose(poses[last], result.pose if result.success else delta)
-        )
-        self._add_factor("odometry", last, new_id, delta, odom_cov)
+            self._s.match_failures[(result.reason or _UNKNOWN_REASON).split(":")[0]] += 1
+        return _LocalMatch(reference, result, poses[last])
+
+    def _add_keyframe(self, scan: LaserScan, motion: _Motion, local: _LocalMatch, last: int) -> int:
+        """The keyframe's node (initialised by the match, else odometry) and its factors."""
+        result = local.result
+        step = result.pose if result.success else motion.delta
+        new_id = self._add_node(scan, motion.odom, initial=se2.compose(local.last_pose, step))
+        self._add_factor(FactorKind.ODOMETRY, last, new_id, motion.delta, motion.cov)
         if result.success:
             self._add_factor(
-                "scan_match", last, new_id, result.pose, result.cov, result.correlation
+                FactorKind.SCAN_MATCH, last, new_id, result.pose, result.cov, result.correlation
             )
-        t0 = self.timer.add("graph_build", t0)
+        return new_id
+
+    def _close_loops(self, node_id: int, feats: ScanFeatures) -> None:
+        """Loop-closure search; accepted closures enter as factors, then iSAM2 updates."""
+        accepted = self.loop_closer.search(node_id, feats, self.graph, self._s.node_path_m)
+        if accepted is None:
+            return
+        for c in accepted.closures:
+            self._add_factor(
+                FactorKind.LOOP_CLOSURE,
+                c.node_from,
+                c.node_to,
+                c.measured,
+                c.cov,
+                c.correlation,
+                robust=accepted.robust_kernel,
+            )
         self.graph.update()
-        t0 = self.timer.add("isam2", t0)
-        lc = self.config.loop_closure
-        if lc.enabled and new_id % lc.every_n_nodes == 0:
-            self._search_loop_closure(new_id, feats)
-            t0 = self.timer.add("loop_closure", t0)
+
+    def _update_map(
+        self, node_id: int, feats: ScanFeatures, scan: LaserScan, local: _LocalMatch
+    ) -> None:
+        """Feature-map association and time-validity at the updated estimates."""
         self.feature_map.update(
-            new_id,
+            node_id,
             feats,
             scan.stamp_s,
-            reference=reference,
-            match=result,
+            reference=local.reference,
+            match=local.result,
             scan=scan,
             node_poses=self.graph.estimates(),
         )
-        self.timer.add("feature_map", t0)
-        return self.graph.estimate(new_id)
 
     # ------------------------------------------------------------------ internals
 
@@ -226,7 +291,7 @@ class Slam:
 
     def _add_factor(
         self,
-        kind: str,
+        kind: FactorKind,
         i: int,
         j: int,
         measured: FloatArray,
@@ -240,154 +305,6 @@ class Slam:
         )
         if np.isfinite(correlation):
             self._s.correlations[record.index] = correlation
-
-    def _search_loop_closure(self, node_id: int, feats: ScanFeatures) -> None:
-        """Search older nodes near the current estimate and add a robust loop closure.
-
-        Candidates are nodes at least ``min_node_gap`` nodes and ``min_path_m`` metres of
-        path back, within ``radius = base + n_sigma * sqrt(lambda_max(cov_xy))`` of the
-        current estimate (``cov_xy`` from the current node's marginal, capped at
-        ``max_search_radius_m``); up to ``max_candidates`` of the nearest, from distinct
-        places, are matched against the landmarks of the ``reference_nodes`` old nodes
-        nearest each candidate, and the best-correlated match is kept. It is accepted when it
-        is consistent with the current estimate (Mahalanobis distance of the innovation under
-        the marginal plus the match covariance below a chi-square gate), or when it agrees
-        with a recent closure that failed the gate (see :meth:`_agree`); it enters with a
-        robust kernel.
-        """
-        lc = self.config.loop_closure
-        ids, poses = self.graph.estimates()
-        current = poses[node_id]
-        path = np.asarray(self._s.node_path_m)
-        # A loop candidate is old in node count and far along the path: a node reached again
-        # after a detour, not the corridor just driven.
-        older = ids[
-            (ids <= node_id - lc.min_node_gap) & (path[node_id] - path[ids] >= lc.min_path_m)
-        ]
-        if older.size == 0:
-            return
-        self.loop_stats.searches += 1
-        marginal = self.graph.marginal_covariance(node_id)
-        sigma_xy = float(np.sqrt(max(np.linalg.eigvalsh(marginal[:2, :2]).max(), 0.0)))
-        radius = min(lc.search_radius_m + lc.search_n_sigma * sigma_xy, lc.max_search_radius_m)
-        dist = np.hypot(*(poses[older, :2] - current[:2]).T)
-        order = np.argsort(dist, kind="stable")
-        candidates: list[int] = []
-        for k in order[dist[order] <= radius]:
-            if all(abs(int(older[k]) - c) > lc.reference_nodes for c in candidates):
-                candidates.append(int(older[k]))
-            if len(candidates) == lc.max_candidates:
-                break
-        bounds = MatchBounds(
-            max_translation_m=radius,
-            max_rotation_rad=np.radians(lc.max_rotation_deg)
-            + lc.search_n_sigma * float(np.sqrt(max(marginal[2, 2], 0.0))),
-        )
-        best: tuple[int, FloatArray, MatchResult] | None = None
-        for candidate in candidates:
-            # The place's reference: the old nodes nearest the candidate (any pass through it).
-            near_cand = np.hypot(*(poses[older, :2] - poses[candidate, :2]).T)
-            window = older[np.argsort(near_cand, kind="stable")[: lc.reference_nodes]]
-            reference = self.feature_map.reference((ids, poses), window, poses[candidate])
-            prediction = se2.between(poses[candidate], current)
-            self.loop_stats.attempts += 1
-            result = self.matcher.match(feats, reference, prediction, bounds)
-            if not result.success or result.correlation < lc.min_correlation:
-                self.loop_stats.rejected_match += 1
-                logger.debug(
-                    "loop closure %d->%d (radius %.2f m) not matched: %s (correlation %.2f)",
-                    candidate,
-                    node_id,
-                    radius,
-                    result.reason,
-                    result.correlation,
-                )
-            elif best is None or result.correlation > best[2].correlation:
-                best = (candidate, prediction, result)
-        if best is None:
-            return
-        candidate, prediction, result = best
-        innovation = se2.between(prediction, result.pose)
-        innovation_cov = marginal + result.cov
-        d2 = float(innovation @ np.linalg.solve(innovation_cov, innovation))
-        closure = _LoopCandidate(
-            candidate,
-            node_id,
-            result.pose,
-            result.cov,
-            result.correlation,
-            implied=se2.compose(poses[candidate], result.pose),
-        )
-        if d2 <= lc.consistency_chi2:
-            self._accept_loop_closures([closure])
-            logger.debug(
-                "loop closure %d->%d accepted: innovation %s, chi2 %.1f, correlation %.2f",
-                candidate,
-                node_id,
-                np.round(innovation, 3),
-                d2,
-                result.correlation,
-            )
-            return
-        agreeing = [c for c in self._pending_loops if self._agree(c, closure)]
-        if agreeing:
-            # Two independent places agree: the pair is its own outlier test, and a robust
-            # kernel would all but ignore the large residual the drift gives it.
-            self._accept_loop_closures([*agreeing, closure], robust=False)
-            self._pending_loops = [c for c in self._pending_loops if c not in agreeing]
-            logger.debug(
-                "loop closures %s->%d accepted by pairwise agreement (chi2 %.1f vs estimate)",
-                [c.node_from for c in agreeing],
-                node_id,
-                d2,
-            )
-            return
-        self.loop_stats.rejected_consistency += 1
-        self._pending_loops = [
-            c for c in self._pending_loops if node_id - c.node_to <= lc.agreement_window_nodes
-        ] + [closure]
-        logger.debug(
-            "loop closure %d->%d held back: innovation %s, chi2 %.1f",
-            candidate,
-            node_id,
-            np.round(innovation, 3),
-            d2,
-        )
-
-    def _agree(self, a: _LoopCandidate, b: _LoopCandidate) -> bool:
-        """Two closures agree when ``a``'s implied pose, carried to ``b``'s node along the
-        current estimate of the short path between them, lands on ``b``'s implied pose
-        (pairwise consistency after Olson 2009, "Recognizing places using spectrally
-        clustered local matches", reduced to pairs)."""
-        lc = self.config.loop_closure
-        path = self._s.node_path_m
-        if (
-            b.node_to - a.node_to > lc.agreement_window_nodes
-            # independent evidence: two different stretches of the old path
-            or abs(path[b.node_from] - path[a.node_from]) < lc.agreement_min_separation_m
-        ):
-            return False
-        carry = se2.between(self.graph.estimate(a.node_to), self.graph.estimate(b.node_to))
-        diff = se2.between(se2.compose(a.implied, carry), b.implied)
-        return bool(
-            np.hypot(diff[0], diff[1]) <= lc.agreement_translation_m
-            and abs(diff[2]) <= np.radians(lc.agreement_rotation_deg)
-        )
-
-    def _accept_loop_closures(self, closures: list[_LoopCandidate], robust: bool = True) -> None:
-        kernel = self.config.loop_closure.robust_kernel if robust else None
-        for c in closures:
-            self._add_factor(
-                "loop_closure",
-                c.node_from,
-                c.node_to,
-                c.measured,
-                c.cov,
-                c.correlation,
-                robust=kernel,
-            )
-        self.graph.update()
-        self.loop_stats.accepted += len(closures)
 
     # ------------------------------------------------------------------ results
 

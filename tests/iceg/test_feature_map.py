@@ -17,7 +17,7 @@ from iceg.feature_map import PRUNED_VALIDITY, FeatureMap, FeatureMapConfig, Prun
 from iceg.features import extract
 from iceg.matching import IceMatcher, MatchBounds
 from iceg.types import FeatureKind, MatchResult
-from iceg_common.errors import MatchingError
+from iceg_common.errors import FeatureMapError
 from iceg_common.se2 import between, transform_points
 from tests.iceg.test_matching import hand_scan, point_features, room_walls
 
@@ -35,7 +35,13 @@ def test_reference_is_in_the_frame_pose_frame() -> None:
     up = fm.update(0, fa, 0.0)
     assert up.added_ids.tolist() == list(range(fa.n_features))
     poses = {0: pa, 1: pb}
-    ref = fm.reference(poses, [0], pb)
+    snapshot = fm.reference(poses, [0], pb)
+    ref = snapshot.features
+    # The reference carries the pose snapshot it was built from (sorted by node id).
+    np.testing.assert_array_equal(snapshot.node_ids, [0, 1])
+    np.testing.assert_array_equal(snapshot.node_poses, np.stack([pa, pb]))
+    np.testing.assert_array_equal(snapshot.frame_pose, pb)
+    np.testing.assert_array_equal(snapshot.landmark_ids, ref.ids)
     # Landmarks of node 0 seen from pb: exact SE(2) algebra.
     rel = between(pb, pa)
     np.testing.assert_allclose(ref.xy, transform_points(rel, fa.xy), atol=1e-12)
@@ -59,21 +65,27 @@ def test_reference_is_in_the_frame_pose_frame() -> None:
     np.testing.assert_allclose(v1.xy, transform_points(pa, fa.xy), atol=1e-12)
     np.testing.assert_allclose(v2.xy, v1.xy)
     # A node without landmarks gives an empty reference; unknown anchors are left out.
-    assert fm.reference(poses, [1], pb).n_features == 0
-    assert fm.reference({1: pb}, [0], pb).n_features == 0
+    assert fm.reference(poses, [1], pb).features.n_features == 0
+    assert fm.reference({1: pb}, [0], pb).features.n_features == 0
 
 
 def test_update_checks_its_inputs() -> None:
     fm = FeatureMap()
     f = point_features([FeatureKind.INTERSECTION], [[1.0, 1.0]])
     fm.update(0, f, 0.0)
-    with pytest.raises(MatchingError, match="already added"):
+    with pytest.raises(FeatureMapError, match="already added"):
         fm.update(0, f, 1.0)
     ok = MatchResult(True, np.zeros(3), np.eye(3), 0.9)
-    with pytest.raises(MatchingError, match="reference"):
+    with pytest.raises(FeatureMapError, match="reference"):
         fm.update(1, f, 1.0, match=ok)
-    with pytest.raises(MatchingError, match="reference"):
-        fm.update(1, f, 1.0, match=ok, reference=f)  # not built by this map
+    with pytest.raises(FeatureMapError, match="reference"):
+        fm.update(1, f, 1.0, match=ok, reference=f)  # type: ignore[arg-type]  # not a MapReference
+    other = FeatureMap()
+    other.update(0, f, 0.0)
+    with pytest.raises(FeatureMapError, match="reference"):
+        fm.update(
+            1, f, 1.0, match=ok, reference=other.reference({0: np.zeros(3)}, [0], np.zeros(3))
+        )
     # A failed match is no evidence: every feature becomes a landmark of the new node.
     bad = MatchResult(False, np.zeros(3), np.full((3, 3), np.nan), 0.0, reason="x")
     up = fm.update(1, f, 1.0, match=bad)
@@ -89,7 +101,9 @@ def test_matched_features_update_landmarks_instead_of_duplicating_them() -> None
     fm = FeatureMap()
     fm.update(0, fa, 0.0)
     ref = fm.reference(poses, [0], poses[0])
-    res = IceMatcher().match(fb, ref, between(poses[0], poses[1]), MatchBounds.local(0.3, 10))
+    res = IceMatcher().match(
+        fb, ref.features, between(poses[0], poses[1]), MatchBounds.local(0.3, 10)
+    )
     assert res.success, res.reason
     up = fm.update(1, fb, 0.2, reference=ref, match=res, node_poses=poses)
     # Every feature of the second scan is a landmark of the first seen again (the two
@@ -153,7 +167,9 @@ def _run_map(world, seed: int, config: FeatureMapConfig):
             fm.update(0, f, s.stamp_s, scan=s)
         else:
             ref = fm.reference(poses, range(max(0, node - 4), node), poses[node - 1])
-            res = m.match(f, ref, between(poses[node - 1], truth), MatchBounds.local(0.3, 10))
+            res = m.match(
+                f, ref.features, between(poses[node - 1], truth), MatchBounds.local(0.3, 10)
+            )
             up = fm.update(node, f, s.stamp_s, reference=ref, match=res, scan=s, node_poses=poses)
             for i in up.expected_ids:
                 expected_at.setdefault(int(i), []).append(s.stamp_s)
@@ -224,7 +240,7 @@ def test_reference_points_follow_their_nodes() -> None:
     fm.update(0, fa, 0.0)
     fm.update(1, fb, 0.2)  # no match: added as a new node
     frame = np.array([1.0, -1.0, 0.2])
-    ref = fm.reference(poses, [0, 1], frame)
+    ref = fm.reference(poses, [0, 1], frame).features
     expect = np.concatenate(
         [
             transform_points(between(frame, poses[0]), fa.points_xy),
@@ -238,4 +254,4 @@ def test_reference_points_follow_their_nodes() -> None:
         res = ref.points_xy[a:b] @ n[m] - ref.seg_lines[m, 1]
         assert np.abs(res).max() < 0.05  # 1 cm range noise, TLS lines
     # Without the option the reference carries no points.
-    assert FeatureMap().reference({}, [], frame).points_xy.shape == (0, 2)
+    assert FeatureMap().reference({}, [], frame).features.points_xy.shape == (0, 2)

@@ -12,6 +12,7 @@ from iceg.evaluation import position_errors
 from iceg.pipeline import run_scans
 from iceg.slam import Slam
 from iceg_common import se2
+from iceg_common.errors import ScanError
 
 
 @pytest.fixture(scope="module")
@@ -99,3 +100,15 @@ def test_removed_box_is_pruned_from_the_feature_map() -> None:
     static_corners = world.corners(stamp_s=run.stamps_s[-1])
     gaps = np.min(np.linalg.norm(static_corners[:, None] - world_lm.xy[None], axis=2), axis=1)
     assert np.all(gaps < 0.05), gaps
+
+
+def test_out_of_order_scan_is_refused_naming_both_stamps(office_run) -> None:  # type: ignore[no-untyped-def]
+    slam = Slam()
+    first, second = office_run.scans[0], office_run.scans[1]
+    slam.process(first)
+    slam.process(second)
+    with pytest.raises(ScanError, match=rf"{first.stamp_s:.6f} s .* {second.stamp_s:.6f} s"):
+        slam.process(first)
+    # The refused scan left no trace: the next in-order scan is processed as usual.
+    slam.process(office_run.scans[2])
+    np.testing.assert_array_equal(slam.trajectory()[0], office_run.stamps_s[:3])

@@ -1,0 +1,118 @@
+"""Loop closure: the chi-square gate and pairwise agreement on hand-made poses and
+covariances with known answers, and closures found on a simulated loop checked against the
+simulator's ground truth."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from frontends.simulate import office_world, simulate
+from graph import FactorKind
+from iceg.config import IcegConfig
+from iceg.loop_closure import (
+    LoopCloser,
+    LoopClosure,
+    LoopClosureConfig,
+    closures_agree,
+    innovation_chi2,
+)
+from iceg.slam import Slam
+from iceg_common import se2
+
+
+def _closure(node_from: int, node_to: int, implied: list[float]) -> LoopClosure:
+    return LoopClosure(
+        node_from, node_to, np.zeros(3), np.eye(3) * 1e-4, 0.9, np.asarray(implied, dtype=float)
+    )
+
+
+def test_innovation_is_in_the_predicted_frame_and_its_chi2_is_exact() -> None:
+    # Predicted pose turned 90 deg: a measurement 1 m further along world +y is 1 m along the
+    # predicted frame's +x. Covariance diag(0.25, 1, 1) (marginal 0.2 + match 0.05 on x).
+    prediction = np.array([0.0, 0.0, math.pi / 2])
+    measured = np.array([0.0, 1.0, math.pi / 2])
+    marginal = np.diag([0.2, 0.5, 0.5])
+    match_cov = np.diag([0.05, 0.5, 0.5])
+    innovation, d2 = innovation_chi2(prediction, measured, marginal, match_cov)
+    np.testing.assert_allclose(innovation, [1.0, 0.0, 0.0], atol=1e-15)
+    assert d2 == pytest.approx(1.0 / 0.25, rel=1e-12)
+    # A correlated covariance: d2 = x^T C^-1 x by hand for x = (1, 0, 0).
+    c = np.array([[0.5, 0.2, 0.0], [0.2, 0.5, 0.0], [0.0, 0.0, 0.1]])
+    _, d2c = innovation_chi2(prediction, measured, c, np.zeros((3, 3)))
+    assert d2c == pytest.approx(0.5 / (0.25 - 0.04), rel=1e-12)
+
+
+def test_chi2_gate_is_the_99_9_percent_point_of_three_dof() -> None:
+    # The default gate accepts a 3-sigma innovation on one axis (d2 = 9) and rejects a
+    # 4.1-sigma one (d2 = 16.81 > 16.27, the 99.9 % chi-square point with 3 dof).
+    gate = LoopClosureConfig().consistency_chi2
+    sigma = 0.1
+    cov = np.eye(3) * sigma**2 / 2
+    _, d2_in = innovation_chi2(np.zeros(3), np.array([3 * sigma, 0, 0]), cov, cov)
+    _, d2_out = innovation_chi2(np.zeros(3), np.array([0, 4.1 * sigma, 0]), cov, cov)
+    assert d2_in == pytest.approx(9.0) and d2_in <= gate
+    assert d2_out == pytest.approx(16.81) and d2_out > gate
+
+
+def test_pairwise_agreement_on_hand_made_closures() -> None:
+    cfg = LoopClosureConfig()  # 0.3 m, 2 deg, window 30 nodes, separation 2 m
+    path_m = np.arange(200, dtype=float)  # 1 m of path per node
+    a = _closure(10, 100, [5.0, 5.0, 0.1])
+    carry = np.array([1.0, 0.0, 0.0])  # node 100 -> node 103 along the estimate
+    landing = se2.compose(a.implied, carry)
+
+    def b_at(offset_xy: tuple[float, float], dtheta_deg: float = 0.0, node_from: int = 20):
+        implied = landing + np.array([*offset_xy, math.radians(dtheta_deg)])
+        return _closure(node_from, 103, implied.tolist())
+
+    assert closures_agree(a, b_at((0.0, 0.0)), carry, path_m, cfg)
+    assert closures_agree(a, b_at((0.2, 0.2)), carry, path_m, cfg)  # 0.283 m
+    assert not closures_agree(a, b_at((0.25, 0.2)), carry, path_m, cfg)  # 0.320 m
+    assert closures_agree(a, b_at((0.0, 0.0), 1.9), carry, path_m, cfg)
+    assert not closures_agree(a, b_at((0.0, 0.0), 2.1), carry, path_m, cfg)
+    # Not independent: the old nodes are 1 m apart along the path (< 2 m).
+    assert not closures_agree(a, b_at((0.0, 0.0), node_from=11), carry, path_m, cfg)
+    # Too far apart in time: more than 30 nodes between the current nodes.
+    late = _closure(20, 131, landing.tolist())
+    assert not closures_agree(a, late, carry, path_m, cfg)
+
+
+def test_loop_closer_searches_every_n_nodes_only_when_enabled() -> None:
+    slam = Slam()
+    closer = slam.loop_closer
+    assert [n for n in range(10) if closer.due(n)] == [0, 3, 6, 9]
+    off = LoopCloser(LoopClosureConfig(enabled=False), slam.matcher, slam.feature_map)
+    assert not any(off.due(n) for n in range(10))
+
+
+@pytest.fixture(scope="module")
+def office_slam() -> tuple[Slam, np.ndarray]:
+    run = simulate(office_world(), seed=1)
+    slam = Slam(IcegConfig())
+    for scan in run.scans:
+        slam.process(scan)
+    return slam, run.true_poses
+
+
+def test_simulated_loop_closes_with_closures_that_match_the_truth(office_slam) -> None:  # type: ignore[no-untyped-def]
+    # The office route passes every room again on its way back: closures are found, and
+    # each one's measurement is the true relative pose of its two nodes (simulator truth).
+    slam, true_poses = office_slam
+    stats = slam.loop_stats
+    # A search with no old node within its radius tries no match.
+    assert stats.searches >= stats.attempts > 0
+    loops = [f for f in slam.graph.factors if f.kind is FactorKind.LOOP_CLOSURE]
+    assert len(loops) == stats.accepted >= 2
+    scan_of = slam._s.node_scan_index
+    for f in loops:
+        assert f.j is not None
+        truth = se2.between(true_poses[scan_of[f.i]], true_poses[scan_of[f.j]])
+        err = se2.between(truth, f.measured)
+        assert math.hypot(err[0], err[1]) < 0.05, (f.i, f.j, err)
+        assert abs(math.degrees(err[2])) < 1.0, (f.i, f.j, err)
+        # Closures link old places to new nodes, at least min_node_gap apart.
+        assert f.j - f.i >= LoopClosureConfig().min_node_gap
+        assert f.robust in (None, LoopClosureConfig().robust_kernel)
