@@ -25,11 +25,11 @@ from graph import PoseGraph, odometry_covariance
 from iceg.config import IcegConfig
 from iceg.feature_map import FeatureMap
 from iceg.features import extract
-from iceg.grid import render
 from iceg.matching import IceMatcher, MatchBounds
 from iceg.results import SlamResult
 from iceg.types import MatchResult, ScanFeatures
 from iceg_common import se2
+from iceg_common.errors import GraphError
 
 logger = logging.getLogger(__name__)
 
@@ -116,6 +116,7 @@ class Slam:
         self.loop_stats = LoopClosureStats()
         self._s = SlamState()
         self._pending_loops: list[_LoopCandidate] = []
+        self._result: SlamResult | None = None
 
     # ------------------------------------------------------------------ per scan
 
@@ -125,6 +126,8 @@ class Slam:
         The map frame is the odometry frame of the first scan (the first node is fixed at
         the first odometry pose, or at the origin when the log has no odometry).
         """
+        if self._result is not None:
+            raise GraphError("Slam.process() after finish(): start a new Slam for a new run")
         cfg = self.config.slam
         s = self._s
         t0 = time.perf_counter()
@@ -405,16 +408,22 @@ class Slam:
         return stamps, se2.compose(poses[node], delta)
 
     def finish(self) -> SlamResult:
-        """Optionally batch-refine, render the grid, and return the :class:`SlamResult`."""
+        """Optionally batch-refine and return the :class:`SlamResult` (idempotent: a second
+        call returns the same result; :meth:`process` is refused afterwards).
+
+        The occupancy grid is not rendered here: the result carries the scans, and
+        :meth:`SlamResult.render_map` (called by :meth:`SlamResult.save` after the trajectory,
+        graph and metrics are written) renders it along the optimized poses.
+        """
+        if self._result is not None:
+            return self._result
         t0 = time.perf_counter()
         if self.config.slam.batch_refinement and self._s.node_odom:
             self.graph.optimize_batch()
             t0 = self.timer.add("batch_refinement", t0)
         stamps, poses = self.trajectory()
-        grid = render(self._s.scans, poses, self.config.grid) if self._s.scans else None
-        self.timer.add("grid", t0)
         ids, node_poses = self.graph.estimates()
-        return SlamResult(
+        self._result = SlamResult(
             stamps_s=stamps,
             poses=poses,
             node_ids=ids,
@@ -426,7 +435,8 @@ class Slam:
             match_failures=dict(self._s.match_failures),
             stage_seconds=dict(self.timer.seconds),
             feature_map=self.feature_map,
-            grid=grid,
             graph=self.graph,
             config=self.config,
+            scans=tuple(self._s.scans),
         )
+        return self._result
