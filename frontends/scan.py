@@ -7,7 +7,22 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from iceg_common.errors import ScanError
+
 FloatArray = NDArray[np.float64]
+
+
+def _pose3(value: object, what: str, scan: LaserScan) -> FloatArray:
+    try:
+        pose = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ScanError(f"{scan.source}: {what} is not numeric: {value!r}") from None
+    if pose.shape != (3,) or not np.isfinite(pose).all():
+        raise ScanError(
+            f"{scan.source}: {what} must be a finite (3,) pose [x_m, y_m, theta_rad], got "
+            f"{pose.tolist()}"
+        )
+    return pose
 
 
 @dataclass(frozen=True, eq=False)
@@ -26,6 +41,13 @@ class LaserScan:
             in the odometry frame, or ``None`` when the log has none.
         laser_offset: ``(3,)`` float64 laser pose in the robot frame ``[x_m, y_m, theta_rad]``.
         source: Where the record came from, ``"path:line"``, for error messages.
+        odom_break: True when the reader found the odometry discontinuous just before this
+            scan (a jump, or a record in a second odometry frame): the odometry delta from
+            the previous scan is meaningless, and no odometry factor may span it.
+
+    Raises:
+        ScanError: ranges and bearings are not 1-D arrays of one length, a bearing is not
+            finite, or ``laser_offset`` / ``odom_pose`` is not a finite ``(3,)`` pose.
     """
 
     stamp_s: float
@@ -36,20 +58,26 @@ class LaserScan:
     odom_pose: FloatArray | None
     laser_offset: FloatArray = field(default_factory=lambda: np.zeros(3))
     source: str = "<memory>"
+    odom_break: bool = False
 
     def __post_init__(self) -> None:
         ranges = np.asarray(self.ranges_m, dtype=np.float64)
         angles = np.asarray(self.angles_rad, dtype=np.float64)
         if ranges.ndim != 1 or ranges.shape != angles.shape:
-            raise ValueError(
+            raise ScanError(
                 f"{self.source}: ranges_m {ranges.shape} and angles_rad {angles.shape} "
                 "must be 1-D arrays of the same length"
             )
+        if not np.isfinite(angles).all():
+            raise ScanError(
+                f"{self.source}: bearing {int(np.argmin(np.isfinite(angles)))} of "
+                f"{angles.shape[0]} is not finite; every beam needs a finite bearing"
+            )
         object.__setattr__(self, "ranges_m", ranges)
         object.__setattr__(self, "angles_rad", angles)
-        object.__setattr__(self, "laser_offset", np.asarray(self.laser_offset, dtype=np.float64))
+        object.__setattr__(self, "laser_offset", _pose3(self.laser_offset, "laser_offset", self))
         if self.odom_pose is not None:
-            object.__setattr__(self, "odom_pose", np.asarray(self.odom_pose, dtype=np.float64))
+            object.__setattr__(self, "odom_pose", _pose3(self.odom_pose, "odom_pose", self))
 
     @property
     def n_beams(self) -> int:
