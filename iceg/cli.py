@@ -16,6 +16,7 @@ import sys
 import threading
 from collections.abc import Callable
 from datetime import datetime
+from enum import Enum
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, TypeVar
 
@@ -36,6 +37,13 @@ app = typer.Typer(
 )
 
 F = TypeVar("F", bound=Callable[..., Any])
+
+
+class StampChoice(str, Enum):
+    """``--stamps`` policy (see ``frontends.scan.order_by_stamp``)."""
+
+    sort = "sort"
+    refuse = "refuse"
 
 
 def _one_line_errors(func: F) -> F:
@@ -158,6 +166,13 @@ def run(
         Path | None, typer.Option(help="Output folder (default: results/<date_time>).")
     ] = None,
     progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
+    stamps: Annotated[
+        StampChoice,
+        typer.Option(
+            help="Out-of-order or duplicate log timestamps: sort the scans (warning with "
+            "file:line) or refuse the log. Recorded in metrics.json."
+        ),
+    ] = StampChoice.sort,
 ) -> None:
     """Optimize a laser log end to end: trajectory, pose graph, map and metrics.
 
@@ -172,7 +187,9 @@ def run(
     saved: list[str] = []
     try:
         result = _interruptible(
-            lambda: _run_and_save(log, relations, cfg, progress, out_dir, saved.append),
+            lambda: _run_and_save(
+                log, relations, cfg, progress, stamps.value, out_dir, saved.append
+            ),
             lambda: _on_interrupt(out_dir, saved, remove_empty=out is None),
         )
     except BaseException:
@@ -190,6 +207,7 @@ def _run_and_save(
     relations: Path | None,
     cfg: Any,
     progress: bool,
+    stamps: Any,
     out_dir: Path,
     on_saved: Callable[[str], None],
 ) -> SlamResult:
@@ -198,7 +216,7 @@ def _run_and_save(
     if log is None:
         result = run_simulated_demo(cfg, progress=progress)
     else:
-        result = run_log(log, cfg, relations=relations, progress=progress)
+        result = run_log(log, cfg, relations=relations, progress=progress, stamps=stamps)
     result.save(out_dir, on_saved=on_saved)
     return result
 
