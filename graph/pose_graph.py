@@ -718,7 +718,8 @@ class PoseGraph:
             raise GraphError(f"{ctx}: node id must be an integer, got {node_id!r}") from None
         if n < 0 or n > _MAX_NODE_ID:
             raise GraphError(
-                f"{ctx}: node id must be in 0..2**63-1 (a gtsam key, stored as int64), got {n}"
+                f"{ctx}: node id must be non-negative and below 2**63 (a gtsam key, stored as "
+                f"int64), got {n}"
             )
         return int(n)
 
