@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import re
+from typing import Any
 
 import numpy as np
 import pytest
@@ -13,7 +15,7 @@ from iceg_common.errors import IcegError, LogFormatError, ScanError
 ANGLES = np.linspace(-math.pi / 2, math.pi / 2, 5)
 
 
-def _scan(stamp: float = 0.0, **kw: object) -> LaserScan:
+def _scan(stamp: float = 0.0, **kw: Any) -> LaserScan:
     args: dict[str, object] = {
         "stamp_s": stamp,
         "ranges_m": np.ones(5),
@@ -38,8 +40,9 @@ def _scan(stamp: float = 0.0, **kw: object) -> LaserScan:
     ],
 )
 def test_inconsistent_scan_raises_scan_error(field: str, value: object, message: str) -> None:
-    with pytest.raises(ScanError, match=message.replace("(", r"\(").replace(")", r"\)")) as info:
-        _scan(**{field: value})
+    overrides: dict[str, Any] = {field: value}
+    with pytest.raises(ScanError, match=re.escape(message)) as info:
+        _scan(**overrides)
     assert isinstance(info.value, IcegError)
     assert str(info.value).startswith("log.clf:0: ")
 

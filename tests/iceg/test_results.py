@@ -200,7 +200,8 @@ def _ring_site(
     c = corridor_m / 2
     corners = np.array([[c, c], [size_m - c, c], [size_m - c, size_m - c], [c, size_m - c]])
     angles = np.linspace(-math.pi / 2, math.pi / 2, 181)
-    scans, poses = [], []
+    scans: list[LaserScan] = []
+    poses: list[list[float]] = []
     for k in range(4):
         a, b = corners[k], corners[(k + 1) % 4]
         heading = math.atan2(*(b - a)[::-1])
