@@ -288,8 +288,9 @@ class OccupancyGrid:
         )
 
 
-#: Edge length of a storage tile of :class:`TiledGrid`, cells.
-TILE_SIZE = 64
+#: Edge length of a storage tile of :class:`TiledGrid`, cells (``2**TILE_SHIFT``).
+TILE_SHIFT = 6
+TILE_SIZE = 1 << TILE_SHIFT
 
 #: Largest number of tiles a grid's bounds may span (the tile map costs 9 bytes per tile);
 #: 2**24 tiles of 64x64 cells are 13 km square at 5 cm.
@@ -637,25 +638,11 @@ def _render_flat(
     upper = np.nextafter(np.array([w, h], dtype=np.float64), 0.0)
     origin_g = np.clip((laser[:, :2] - frame.origin) / res, 0.0, upper)
     end_g = np.clip((end - frame.origin) / res, 0.0, upper)
-    tile_mask = np.zeros((-(-h // TILE_SIZE), -(-w // TILE_SIZE)), dtype=np.bool_)
-    _mark_tiles(scan_start, origin_g, end_g, TILE_SIZE, tile_mask)
-    tile_index = np.where(
-        tile_mask, np.cumsum(tile_mask.reshape(-1)).reshape(tile_mask.shape) - 1, -1
-    )
-    grid = _tiled_grid(frame, tile_index, cfg)
-    model = InverseSensorModel(cfg.l_occ, cfg.l_free, cfg.l_min, cfg.l_max)
-    _trace_scans(
-        scan_start,
-        origin_g,
-        end_g,
-        is_hit[keep],
-        grid.tile_index,
-        TILE_SIZE,
-        model,
-        grid.log_odds.reshape(-1),
-        grid.hits.reshape(-1),
-        grid.misses.reshape(-1),
-    )
+    beams = _Beams(scan_start, origin_g, end_g, is_hit[keep])
+    grid = _trace_tiled(frame, beams, cfg, exact=False)
+    if grid is None:  # the tile walk missed a tile a cell walk reaches: walk cell by cell
+        grid = _trace_tiled(frame, beams, cfg, exact=True)
+        assert grid is not None
     if cfg.mode == "binary":
         _binarize(grid, cfg)
     logger.debug(
@@ -667,6 +654,40 @@ def _render_flat(
         h,
         w,
     )
+    return grid
+
+
+class _Beams(NamedTuple):
+    """Beams in continuous cell coordinates (see :func:`_trace_scans`)."""
+
+    scan_start: NDArray[np.int64]
+    origin_g: FloatArray
+    end_g: FloatArray
+    is_hit: NDArray[np.bool_]
+
+
+def _trace_tiled(frame: _Frame, beams: _Beams, cfg: GridConfig, exact: bool) -> TiledGrid | None:
+    """Allocate the tiles the beams cross and trace them. The tile marking walks tile by
+    tile, or cell by cell when ``exact``; None when the tile walk missed a tile the cell walk
+    reaches (a segment through a tile corner within rounding)."""
+    h, w = frame.shape
+    tile_mask = np.zeros((-(-h // TILE_SIZE), -(-w // TILE_SIZE)), dtype=np.bool_)
+    unit = 0 if exact else TILE_SHIFT
+    _mark_tiles(beams.scan_start, beams.origin_g, beams.end_g, unit, TILE_SHIFT, tile_mask)
+    order = np.cumsum(tile_mask.reshape(-1)).reshape(tile_mask.shape) - 1
+    grid = _tiled_grid(frame, np.where(tile_mask, order, -1), cfg)
+    missing = _trace_scans(
+        *beams,
+        grid.tile_index,
+        TILE_SHIFT,
+        InverseSensorModel(cfg.l_occ, cfg.l_free, cfg.l_min, cfg.l_max),
+        grid.log_odds.reshape(-1),
+        grid.hits.reshape(-1),
+        grid.misses.reshape(-1),
+    )
+    if missing:
+        logger.debug("tile walk missed %d cell visits; marking tiles cell by cell", missing)
+        return None
     return grid
 
 
@@ -704,13 +725,14 @@ def _axis_start(p0: float, i0: int, d: float) -> tuple[int, float, float]:
 
 
 @numba.njit(cache=True, inline="always")
-def _cell(tile_index: NDArray[np.int64], tile_size: int, ix: int, iy: int) -> int:
-    """Flat storage index of cell (column ``ix``, row ``iy``) in the tiled arrays."""
-    ty = iy // tile_size
-    tx = ix // tile_size
-    return (tile_index[ty, tx] * tile_size + (iy - ty * tile_size)) * tile_size + (
-        ix - tx * tile_size
-    )
+def _cell(tile_index: NDArray[np.int64], shift: int, ix: int, iy: int) -> int:
+    """Flat storage index of cell (column ``ix``, row ``iy``; both >= 0) in the tiled arrays
+    (tiles of ``2**shift`` cells on a side), or -1 when its tile has no storage."""
+    tile = tile_index[iy >> shift, ix >> shift]
+    if tile < 0:
+        return -1
+    mask = (1 << shift) - 1
+    return ((tile << shift) + (iy & mask) << shift) + (ix & mask)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -718,26 +740,33 @@ def _mark_tiles(
     scan_start: NDArray[np.int64],
     origin_g: FloatArray,
     end_g: FloatArray,
-    tile_size: int,
+    unit_shift: int,
+    tile_shift: int,
     tile_mask: NDArray[np.bool_],
 ) -> None:  # pragma: no cover - compiled
-    """Mark the tiles of every cell a beam crosses, endpoint included: the same Amanatides &
-    Woo (1987) walk as :func:`_trace_scans`, so every cell it updates has storage."""
+    """Mark the tiles (``2**tile_shift`` cells on a side) every beam crosses, endpoint
+    included, by the Amanatides & Woo (1987) walk of :func:`_trace_scans` on a grid of
+    ``2**unit_shift`` cells: ``unit_shift = tile_shift`` walks tile by tile (fast), and
+    ``unit_shift = 0`` cell by cell, exactly the cells the tracer updates."""
+    scale = 1.0 / (1 << unit_shift)  # a power of two: the scaled coordinates are exact
+    up = tile_shift - unit_shift
     for s in range(scan_start.shape[0] - 1):
-        x0 = origin_g[s, 0]
-        y0 = origin_g[s, 1]
+        x0 = origin_g[s, 0] * scale
+        y0 = origin_g[s, 1] * scale
         ix0 = math.floor(x0)
         iy0 = math.floor(y0)
         for b in range(scan_start[s], scan_start[s + 1]):
-            ix_end = math.floor(end_g[b, 0])
-            iy_end = math.floor(end_g[b, 1])
-            step_x, t_delta_x, t_max_x = _axis_start(x0, ix0, end_g[b, 0] - x0)
-            step_y, t_delta_y, t_max_y = _axis_start(y0, iy0, end_g[b, 1] - y0)
+            x1 = end_g[b, 0] * scale
+            y1 = end_g[b, 1] * scale
+            ix_end = math.floor(x1)
+            iy_end = math.floor(y1)
+            step_x, t_delta_x, t_max_x = _axis_start(x0, ix0, x1 - x0)
+            step_y, t_delta_y, t_max_y = _axis_start(y0, iy0, y1 - y0)
             ix = ix0
             iy = iy0
             n_steps = abs(ix_end - ix0) + abs(iy_end - iy0)
             for k in range(n_steps + 1):
-                tile_mask[iy // tile_size, ix // tile_size] = True
+                tile_mask[iy >> up, ix >> up] = True
                 if k == n_steps:
                     break
                 if ix == ix_end or (iy != iy_end and t_max_y <= t_max_x):
@@ -755,24 +784,27 @@ def _trace_scans(
     end_g: FloatArray,
     is_hit: NDArray[np.bool_],
     tile_index: NDArray[np.int64],
-    tile_size: int,
+    tile_shift: int,
     model: InverseSensorModel,
     log_odds: NDArray[np.float32],
     hits: NDArray[np.int32],
     misses: NDArray[np.int32],
-) -> None:  # pragma: no cover - compiled
-    """Trace every beam of every scan through the tiled grid (in place).
+) -> int:  # pragma: no cover - compiled
+    """Trace every beam of every scan through the tiled grid (in place); return the number
+    of cell visits that found no storage (0 unless the tile marking missed a tile).
 
     Coordinates are continuous cell units ``(x - ox) / res`` (column) and ``(y - oy) / res``
     (row). Beams of scan ``s`` are ``scan_start[s]:scan_start[s+1]``. Storage is tiled: cell
-    ``(row, col)`` lives in tile ``tile_index[row // T, col // T]`` (``T = tile_size``; every
-    tile a beam crosses is allocated, see :func:`_mark_tiles`). A per-cell stamp holds
+    ``(row, col)`` lives in tile ``tile_index[row // T, col // T]`` (``T = 2**tile_shift``;
+    every tile a beam crosses is allocated, see :func:`_mark_tiles`). A per-cell stamp holds
     ``2 s + 1`` once scan ``s`` hit the cell and ``2 s`` once it marked it free, so each cell
     is updated at most once per scan, hits first (they take precedence). Cells along a beam
     are enumerated exactly (every cell the segment crosses) by the Amanatides & Woo (1987)
     traversal, stepping exactly ``|dcol| + |drow|`` times so it ends in the endpoint cell.
     """
     l_occ, l_free, l_min, l_max = model
+    mask = (1 << tile_shift) - 1
+    missing = 0
     n_scans = scan_start.shape[0] - 1
     stamp = np.full(log_odds.shape[0], -1, dtype=np.int64)
     for s in range(n_scans):
@@ -782,8 +814,10 @@ def _trace_scans(
         free_mark = 2 * s
         for b in range(b0, b1):
             if is_hit[b]:
-                c = _cell(tile_index, tile_size, math.floor(end_g[b, 0]), math.floor(end_g[b, 1]))
-                if stamp[c] != hit_mark:
+                c = _cell(tile_index, tile_shift, math.floor(end_g[b, 0]), math.floor(end_g[b, 1]))
+                if c < 0:
+                    missing += 1
+                elif stamp[c] != hit_mark:
                     stamp[c] = hit_mark
                     hits[c] += 1
                     v = log_odds[c] + l_occ
@@ -805,9 +839,18 @@ def _trace_scans(
             iy = iy0
             n_steps = abs(ix_end - ix0) + abs(iy_end - iy0)
             last_free = n_steps - 1 if is_hit[b] else n_steps
+            tile_row = -1
+            tile_col = -1
+            base = -1
             for k in range(last_free + 1):
-                c = _cell(tile_index, tile_size, ix, iy)
-                if stamp[c] < free_mark:
+                if iy >> tile_shift != tile_row or ix >> tile_shift != tile_col:
+                    tile_row = iy >> tile_shift
+                    tile_col = ix >> tile_shift
+                    base = tile_index[tile_row, tile_col] << (2 * tile_shift)
+                c = base + ((iy & mask) << tile_shift) + (ix & mask)
+                if base < 0:
+                    missing += 1
+                elif stamp[c] < free_mark:
                     stamp[c] = free_mark
                     misses[c] += 1
                     v = log_odds[c] + l_free
@@ -820,6 +863,7 @@ def _trace_scans(
                 else:
                     ix += step_x
                     t_max_x += t_delta_x
+    return missing
 
 
 # ---------------------------------------------------------------------------------------------
