@@ -231,6 +231,8 @@ def _on_interrupt(out_dir: Path, saved: list[str], remove_empty: bool) -> str:
         if remove_empty:
             _remove_if_empty(out_dir)
         return "interrupted, nothing written"
+    if "map" in saved:
+        return f"interrupted; the results in {out_dir} are complete"
     return f"interrupted; kept trajectory, graph, metrics and config in {out_dir} (no map)"
 
 
