@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 from PIL import Image
@@ -295,3 +296,44 @@ def test_sigint_stops_at_once_and_writes_nothing(tmp_path: Path) -> None:
     assert err.rstrip().endswith("iceg: interrupted, nothing written"), err[-300:]
     assert not out.exists()
     assert list(tmp_path.iterdir()) == []
+
+
+def _jump_log(tmp_path: Path) -> Path:
+    import dataclasses
+
+    from frontends.carmen import write_carmen
+    from frontends.simulate import office_world, simulate
+
+    run = simulate(office_world(), seed=1)
+    scans = list(run.scans[:20])
+    jump = np.array([1e6, 0.0, 0.0])
+    scans[10:] = [
+        dataclasses.replace(s, odom_pose=s.odom_pose + jump)  # type: ignore[operator]
+        for s in scans[10:]
+    ]
+    log = tmp_path / "jump.clf"
+    write_carmen(log, scans)
+    return log
+
+
+@pytest.mark.parametrize("case", ["fine_resolution", "odometry_jump"])
+def test_unrenderable_map_keeps_the_run(tmp_path: Path, case: str) -> None:
+    from iceg.results import CORE_FILES
+
+    args = ["run"]
+    if case == "fine_resolution":
+        cfg = tmp_path / "fine.yaml"
+        cfg.write_text("grid:\n  resolution_m: 0.001\n")
+        args += [str(_short_log(tmp_path)), "--config", str(cfg)]
+    else:
+        args += [str(_jump_log(tmp_path))]
+    out = tmp_path / "o"
+    result = runner.invoke(app, [*args, "--out", str(out), "--no-progress"])
+    assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in out.iterdir()) == sorted(CORE_FILES)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["map"]["rendered"] is False, metrics["map"]
+    assert len((out / "trajectory.tum").read_text().splitlines()) == 20
+    if case == "odometry_jump":
+        assert metrics["stamps"]["odometry_breaks"] == 1
+        assert metrics["stamps"]["first_odometry_breaks"][0].startswith(f"{tmp_path}/jump.clf:")
