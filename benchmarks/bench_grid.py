@@ -6,6 +6,7 @@ steady-state render time (median and best of 5) for ``range_max_m`` 30 m (the de
 the sensor's full range, and, for comparison, a pure-numpy variant (rays sampled every half
 cell, ``np.unique`` per scan, same per-scan once-per-cell rule) on the first 200 scans.
 
+Also prints the storage of the sparse tiled grid (``render_tiled``) against the dense one.
 Odometry poses are used (timing only; the map is not meaningful). Target: <= 1.5 s.
 
 Run: ``/work/venv/bin/python benchmarks/bench_grid.py [path/to/mit-csail.clf]``
@@ -23,7 +24,7 @@ import numpy as np
 
 from frontends import LaserScan, open_log
 from iceg import grid as grid_mod
-from iceg.grid import GridConfig, OccupancyGrid, render
+from iceg.grid import TILE_SIZE, GridConfig, OccupancyGrid, render, render_tiled
 from iceg_common.se2 import compose
 
 DEFAULT_LOG = (
@@ -112,6 +113,14 @@ def main() -> None:
             f" best {min(times):.3f} s; grid {g.shape[0]}x{g.shape[1]}, {updates / 1e6:.1f} M "
             f"cell updates ({updates / min(times) / 1e6:.0f} M/s)"
         )
+
+    tiled = render_tiled(scans, poses, cfg)
+    h, w = tiled.shape
+    print(
+        f"tiled storage (render_tiled, what the pipeline renders): {tiled.n_tiles} tiles of "
+        f"{TILE_SIZE}x{TILE_SIZE} = {tiled.allocated_cells / 1e6:.1f} M cells of the "
+        f"{h * w / 1e6:.1f} M dense ({tiled.allocated_cells / (h * w):.0%})"
+    )
 
     n_cmp = 200
     sub, sub_poses = scans[:n_cmp], poses[:n_cmp]

@@ -22,6 +22,7 @@ reader, ``carmenconfiguration.cpp``). ROBOTLASER1: ``start_angle + i*angular_res
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import gzip
 import logging
 import math
@@ -38,7 +39,7 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from frontends.registry import open_text, register_reader
-from frontends.scan import LaserScan
+from frontends.scan import LaserScan, StampPolicy, StampReport, order_by_stamp
 from iceg_common import se2
 from iceg_common.atomic import atomic_write
 from iceg_common.errors import ConfigError, LogFormatError
@@ -98,6 +99,31 @@ class CarmenReaderConfig(BaseModel):
         description="With odometry='odom', how many scans may wait for the next ODOM record "
         "before the log is declared to lack odometry (bounds memory on a 1 GB log).",
     )
+    stamps: StampPolicy = Field(
+        "sort",
+        description="Out-of-order or duplicate ipc timestamps: 'sort' reorders the scans "
+        "(stable, warning with file:line), 'refuse' raises LogFormatError at the first.",
+    )
+    max_reorder_scans: int = Field(
+        10_000,
+        ge=1,
+        description="With stamps='sort', how far (in scans) a scan may be out of "
+        "order (the reorder buffer; bounds memory).",
+    )
+    odom_jump_m: float = Field(
+        2.0,
+        gt=0.0,
+        allow_inf_nan=False,
+        description="Odometry between consecutive scans longer than odom_jump_m + "
+        "max_speed_mps * dt is a jump: the scan gets odom_break=True.",
+    )
+    max_speed_mps: float = Field(
+        5.0,
+        ge=0.0,
+        allow_inf_nan=False,
+        description="Fastest plausible robot speed for the jump test, m/s (MIT CSAIL's "
+        "odometry peaks at 4.5 m/s between two scans).",
+    )
 
 
 class _Malformed(Exception):
@@ -125,6 +151,7 @@ class _PendingScan:
     range_max_m: float
     record_odom: FloatArray
     laser_offset: FloatArray
+    frame: str  # odometry frame: "FLASER" (FLASER/RLASER), "ROBOTLASER1", or "ODOM"
 
 
 def _sniff(lines: list[str]) -> bool:
@@ -137,7 +164,14 @@ def _sniff(lines: list[str]) -> bool:
 # ---------------------------------------------------------------------------------------------
 
 
+def _ascii_number(tok: str, what: str) -> None:
+    """Python's float()/int() also take '1_3.9' and non-ASCII digits; CARMEN numbers do not."""
+    if "_" in tok or not tok.isascii():
+        raise _Malformed(f"{what} {tok!r} is not a plain ASCII number")
+
+
 def _float(tok: str, what: str) -> float:
+    _ascii_number(tok, what)
     try:
         value = float(tok)
     except ValueError:
@@ -148,6 +182,7 @@ def _float(tok: str, what: str) -> float:
 
 
 def _int(tok: str, what: str) -> int:
+    _ascii_number(tok, what)
     try:
         value = int(tok)
     except ValueError:
@@ -170,6 +205,10 @@ def _pose(tokens: list[str], start: int, what: str) -> FloatArray:
 def _ranges(tokens: list[str], start: int, n: int, record: str) -> FloatArray:
     """``(n,)`` ranges; NaN or +-inf becomes +inf (a no-return beam)."""
     chunk = tokens[start : start + n]
+    joined = "".join(chunk)
+    if "_" in joined or not joined.isascii():
+        for i, tok in enumerate(chunk):
+            _ascii_number(tok, f"{record} range value {i + 1} of {n}")
     try:
         r = np.fromiter(map(float, chunk), np.float64, n)
     except ValueError:
@@ -189,6 +228,7 @@ def _ranges(tokens: list[str], start: int, n: int, record: str) -> FloatArray:
 def _numbers(tokens: list[str], start: int, stop: int, what: str) -> None:
     """Check that ``tokens[start:stop]`` are numbers (values unused, e.g. remissions)."""
     for tok in tokens[start:stop]:
+        _ascii_number(tok, what)
         try:
             float(tok)
         except ValueError:
@@ -276,7 +316,17 @@ class CarmenReader:
     0. A range value ``nan``/``inf`` is read as a no-return beam and stored as ``+inf``; NaN or
     inf in a pose, a timestamp or a header field is malformed.
 
-    A malformed line (wrong beam count, non-numeric token, non-finite pose or stamp, truncated
+    Scans are yielded in ipc-timestamp order: ``stamps="sort"`` (default) reorders
+    out-of-order scans (stable, through a buffer of ``max_reorder_scans``) and warns with the
+    first ``path:line``; ``stamps="refuse"`` raises at the first stamp not after the previous
+    one. :attr:`stamp_report` counts them. A scan whose odometry is discontinuous with the
+    previous scan's gets ``odom_break=True`` (warning with ``path:line``): a step longer than
+    ``odom_jump_m + max_speed_mps * dt``, or a change of odometry frame (FLASER/RLASER
+    records to ROBOTLASER1 records or back, in a mixed log with ``odometry="record"``).
+
+    Numbers are ASCII float syntax only (Python's ``float`` also takes ``1_3.9`` and
+    full-width digits: those lines are malformed). A malformed line (wrong beam count,
+    non-numeric token, non-finite pose or stamp, truncated
     record, missing trailing fields, a first token that is not a record name) raises
     :class:`~iceg_common.errors.LogFormatError` ``"path:line: what is wrong; what to do"`` in
     strict mode. With ``strict=False`` it is skipped, listed in :attr:`malformed` as
@@ -288,6 +338,8 @@ class CarmenReader:
         skipped_records: ``Counter`` of skipped lines by type, filled during iteration.
         malformed: ``(line_number, reason)`` of lines skipped in lenient mode.
         n_odom_records: ODOM records seen during the last iteration.
+        stamp_report: timestamp disorder and odometry breaks of the last iteration
+            (:class:`~frontends.scan.StampReport`).
 
     Raises:
         ConfigError: an option is invalid (e.g. ``odometry="wheel"``).
@@ -300,6 +352,10 @@ class CarmenReader:
         odometry: str = "record",
         default_range_max_m: float = CARMEN_NO_RETURN_M,
         max_pending_scans: int = 100_000,
+        stamps: str = "sort",
+        max_reorder_scans: int = 10_000,
+        odom_jump_m: float = 2.0,
+        max_speed_mps: float = 5.0,
     ) -> None:
         try:
             self.config = CarmenReaderConfig(
@@ -307,6 +363,10 @@ class CarmenReader:
                 odometry=odometry,  # type: ignore[arg-type]
                 default_range_max_m=default_range_max_m,
                 max_pending_scans=max_pending_scans,
+                stamps=stamps,  # type: ignore[arg-type]
+                max_reorder_scans=max_reorder_scans,
+                odom_jump_m=odom_jump_m,
+                max_speed_mps=max_speed_mps,
             )
         except ValidationError as exc:
             raise ConfigError(f"CarmenReader options: {exc}") from exc
@@ -314,6 +374,7 @@ class CarmenReader:
         self.skipped_records: Counter[str] = Counter()
         self.malformed: list[tuple[int, str]] = []
         self.n_odom_records = 0
+        self.stamp_report = StampReport(policy=self.config.stamps)
 
     @property
     def strict(self) -> bool:
@@ -347,12 +408,59 @@ class CarmenReader:
         return count
 
     def __iter__(self) -> Iterator[LaserScan]:
-        """Stream the scans in file order (see the class docstring for the rules).
+        """Stream the scans in timestamp order (see the class docstring for the rules).
 
         Raises:
             LogFormatError: the file cannot be read; in strict mode, a malformed line; with
-                ``odometry="odom"``, a log without usable ODOM records.
+                ``odometry="odom"``, a log without usable ODOM records; with
+                ``stamps="refuse"``, a timestamp not after the previous one.
         """
+        self.stamp_report = StampReport(policy=self.config.stamps)
+        ordered = order_by_stamp(self._records(), self.stamp_report, self.config.max_reorder_scans)
+        previous: tuple[str, LaserScan] | None = None
+        for frame, scan in ordered:
+            reason = None if previous is None else self._odom_break(previous, frame, scan)
+            if reason is not None:
+                scan = dataclasses.replace(scan, odom_break=True)
+                self._note_break(scan, reason)
+            previous = (frame, scan)
+            yield scan
+        breaks = self.stamp_report.odometry_breaks
+        if len(breaks) > _LOGGED_BREAKS:
+            logger.warning(
+                "%s: %d odometry breaks in all (first at %s: %s)",
+                self.path,
+                len(breaks),
+                *breaks[0],
+            )
+
+    def _odom_break(
+        self, previous: tuple[str, LaserScan], frame: str, scan: LaserScan
+    ) -> str | None:
+        """Why the odometry from the previous scan to ``scan`` is not a motion, or None."""
+        prev_frame, prev = previous
+        if frame != prev_frame:
+            return (
+                f"odometry switches from {prev_frame} to {frame} records (two odometry "
+                "frames in one log)"
+            )
+        if prev.odom_pose is None or scan.odom_pose is None:
+            return None
+        step = math.hypot(*(scan.odom_pose[:2] - prev.odom_pose[:2]))
+        dt = max(scan.stamp_s - prev.stamp_s, 0.0)
+        limit = self.config.odom_jump_m + self.config.max_speed_mps * dt
+        if step > limit:
+            return f"odometry jumps {step:.2f} m in {dt:.3f} s (more than {limit:.2f} m)"
+        return None
+
+    def _note_break(self, scan: LaserScan, reason: str) -> None:
+        breaks = self.stamp_report.odometry_breaks
+        breaks.append((scan.source, reason))
+        if len(breaks) <= _LOGGED_BREAKS:
+            logger.warning("%s: %s; no odometry factor across it", scan.source, reason)
+
+    def _records(self) -> Iterator[tuple[str, LaserScan]]:
+        """``(odometry frame, scan)`` in file order."""
         self.skipped_records = Counter()
         self.malformed = []
         self.n_odom_records = 0
@@ -384,7 +492,7 @@ class CarmenReader:
                                 continue
                             _insert_odom(odom_t, odom_p, t, pose)
                             while pending and pending[0].stamp_s <= odom_t[-1]:
-                                yield self._finish(pending.popleft(), odom_t, odom_p)
+                                yield "ODOM", self._finish(pending.popleft(), odom_t, odom_p)
                                 n_scans += 1
                             continue
                         elif kind == "PARAM":
@@ -403,10 +511,10 @@ class CarmenReader:
                         self._malformed(line_no, str(exc))
                         continue
                     if not use_odom:
-                        yield self._finish(scan, None, None)
+                        yield scan.frame, self._finish(scan, None, None)
                         n_scans += 1
                     elif not pending and odom_t and scan.stamp_s <= odom_t[-1]:
-                        yield self._finish(scan, odom_t, odom_p)
+                        yield "ODOM", self._finish(scan, odom_t, odom_p)
                         n_scans += 1
                     else:
                         pending.append(scan)
@@ -427,7 +535,7 @@ class CarmenReader:
                     "inside the laser records"
                 )
             while pending:
-                yield self._finish(pending.popleft(), odom_t, odom_p)
+                yield "ODOM", self._finish(pending.popleft(), odom_t, odom_p)
                 n_scans += 1
         if self.malformed:
             first_line, first_reason = self.malformed[0]
@@ -498,6 +606,7 @@ class CarmenReader:
             range_max_m=self.config.default_range_max_m if max_m is None else max_m,
             record_odom=odom,
             laser_offset=offset,
+            frame="FLASER",
         )
 
     def _parse_robotlaser(self, tokens: list[str], line_no: int) -> _PendingScan:
@@ -544,6 +653,7 @@ class CarmenReader:
             range_max_m=max_range,
             record_odom=robot,
             laser_offset=_between(robot, laser),
+            frame="ROBOTLASER1",
         )
 
     @staticmethod
@@ -592,6 +702,9 @@ def _between(a: FloatArray, b: FloatArray) -> FloatArray:
 
 
 _ODOM_HISTORY = 256
+
+#: Odometry breaks logged one by one; the rest are summarized in one warning.
+_LOGGED_BREAKS = 5
 
 
 def _insert_odom(odom_t: list[float], odom_p: list[FloatArray], t: float, pose: FloatArray) -> None:

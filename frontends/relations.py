@@ -105,7 +105,8 @@ def read_relations(path: str | Path, drop_duplicates: bool = False) -> Relations
         A :class:`Relations` with ``(M, 2)`` stamps and ``(M, 3)`` deltas.
 
     Raises:
-        LogFormatError: the file is missing or unreadable, or a line does not have 8 finite
+        LogFormatError: the file is missing, unreadable or holds no relation, or a line does
+            not have 8 finite
             numbers or has a non-zero ``z``/``roll``/``pitch`` (``path:line`` in the message).
     """
     p = Path(path)
@@ -122,6 +123,11 @@ def read_relations(path: str | Path, drop_duplicates: bool = False) -> Relations
     except OSError as exc:
         raise LogFormatError(f"{p}: cannot read the relations file ({exc})") from exc
     n_lines = len(rows)
+    if n_lines == 0:
+        raise LogFormatError(
+            f"{p}: the file holds no relations (lines 't1 t2 x y z roll pitch yaw'); "
+            "is it the right file?"
+        )
     seen: dict[tuple[float, ...], int] = {}
     kept: list[tuple[float, ...]] = []
     duplicates: list[tuple[int, int]] = []  # (line, the earlier line it repeats)

@@ -2,12 +2,36 @@
 
 from __future__ import annotations
 
+import heapq
+import logging
+import math
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
+from typing import Literal, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
+from iceg_common.errors import LogFormatError, ScanError
+
+logger = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
 FloatArray = NDArray[np.float64]
+
+
+def _pose3(value: object, what: str, scan: LaserScan) -> FloatArray:
+    try:
+        pose = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ScanError(f"{scan.source}: {what} is not numeric: {value!r}") from None
+    if pose.shape != (3,) or not np.isfinite(pose).all():
+        raise ScanError(
+            f"{scan.source}: {what} must be a finite (3,) pose [x_m, y_m, theta_rad], got "
+            f"{pose.tolist()}"
+        )
+    return pose
 
 
 @dataclass(frozen=True, eq=False)
@@ -26,6 +50,13 @@ class LaserScan:
             in the odometry frame, or ``None`` when the log has none.
         laser_offset: ``(3,)`` float64 laser pose in the robot frame ``[x_m, y_m, theta_rad]``.
         source: Where the record came from, ``"path:line"``, for error messages.
+        odom_break: True when the reader found the odometry discontinuous just before this
+            scan (a jump, or a record in a second odometry frame): the odometry delta from
+            the previous scan is meaningless, and no odometry factor may span it.
+
+    Raises:
+        ScanError: ranges and bearings are not 1-D arrays of one length, a bearing is not
+            finite, or ``laser_offset`` / ``odom_pose`` is not a finite ``(3,)`` pose.
     """
 
     stamp_s: float
@@ -36,20 +67,26 @@ class LaserScan:
     odom_pose: FloatArray | None
     laser_offset: FloatArray = field(default_factory=lambda: np.zeros(3))
     source: str = "<memory>"
+    odom_break: bool = False
 
     def __post_init__(self) -> None:
         ranges = np.asarray(self.ranges_m, dtype=np.float64)
         angles = np.asarray(self.angles_rad, dtype=np.float64)
         if ranges.ndim != 1 or ranges.shape != angles.shape:
-            raise ValueError(
+            raise ScanError(
                 f"{self.source}: ranges_m {ranges.shape} and angles_rad {angles.shape} "
                 "must be 1-D arrays of the same length"
             )
+        if not np.isfinite(angles).all():
+            raise ScanError(
+                f"{self.source}: bearing {int(np.argmin(np.isfinite(angles)))} of "
+                f"{angles.shape[0]} is not finite; every beam needs a finite bearing"
+            )
         object.__setattr__(self, "ranges_m", ranges)
         object.__setattr__(self, "angles_rad", angles)
-        object.__setattr__(self, "laser_offset", np.asarray(self.laser_offset, dtype=np.float64))
+        object.__setattr__(self, "laser_offset", _pose3(self.laser_offset, "laser_offset", self))
         if self.odom_pose is not None:
-            object.__setattr__(self, "odom_pose", np.asarray(self.odom_pose, dtype=np.float64))
+            object.__setattr__(self, "odom_pose", _pose3(self.odom_pose, "odom_pose", self))
 
     @property
     def n_beams(self) -> int:
@@ -77,3 +114,97 @@ class LaserScan:
         out[:, 0] = r * np.cos(a) + self.laser_offset[0]
         out[:, 1] = r * np.sin(a) + self.laser_offset[1]
         return out
+
+
+#: Timestamp policies of the readers: reorder out-of-order scans, or refuse the log.
+StampPolicy = Literal["sort", "refuse"]
+
+
+@dataclass
+class StampReport:
+    """What a reader found in a log's timestamps (filled during iteration).
+
+    Attributes:
+        policy: ``"sort"`` or ``"refuse"``.
+        out_of_order: Scans whose stamp is earlier than an earlier scan's (reordered).
+        duplicates: Scans whose stamp equals the latest earlier stamp (kept, file order).
+        first: ``source`` (``path:line``) of the first out-of-order or duplicate scan.
+        odometry_breaks: ``(source, reason)`` of every scan with ``odom_break``.
+    """
+
+    policy: StampPolicy = "sort"
+    out_of_order: int = 0
+    duplicates: int = 0
+    first: str | None = None
+    odometry_breaks: list[tuple[str, str]] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, object]:
+        """JSON-ready summary (``odometry_breaks`` as a count plus the first few)."""
+        return {
+            "policy": self.policy,
+            "out_of_order": self.out_of_order,
+            "duplicates": self.duplicates,
+            "first": self.first,
+            "odometry_breaks": len(self.odometry_breaks),
+            "first_odometry_breaks": [f"{s}: {r}" for s, r in self.odometry_breaks[:5]],
+        }
+
+
+def order_by_stamp(
+    items: Iterable[tuple[T, LaserScan]], report: StampReport, window: int
+) -> Iterator[tuple[T, LaserScan]]:
+    """Yield ``(tag, scan)`` pairs in timestamp order (stable: equal stamps keep file order).
+
+    Out-of-order and duplicate stamps are counted in ``report`` and the first is logged with
+    its ``path:line``. Policy ``"refuse"`` raises at the first out-of-order or duplicate stamp;
+    ``"sort"`` reorders through a buffer of ``window`` scans (streaming, bounded memory).
+
+    Raises:
+        LogFormatError: policy ``"refuse"`` and a stamp not after the previous one, or a scan
+            more than ``window`` scans out of place.
+    """
+    heap: list[tuple[float, int, T, LaserScan]] = []
+    latest = -math.inf
+    emitted = -math.inf
+    for seq, (tag, scan) in enumerate(items):
+        t = scan.stamp_s
+        if t <= latest:
+            _note_disorder(report, scan, latest)
+        latest = max(latest, t)
+        heapq.heappush(heap, (t, seq, tag, scan))
+        if len(heap) > window:
+            t0, _, tag0, scan0 = heapq.heappop(heap)
+            if t0 < emitted:
+                raise LogFormatError(
+                    f"{scan0.source}: timestamp {t0!r} is more than {window} scans out of "
+                    "order; the log cannot be sorted while streaming (sort it first)"
+                )
+            emitted = t0
+            yield tag0, scan0
+    while heap:
+        _, _, tag0, scan0 = heapq.heappop(heap)
+        yield tag0, scan0
+
+
+def _note_disorder(report: StampReport, scan: LaserScan, latest: float) -> None:
+    what = "the same as" if scan.stamp_s == latest else "earlier than"
+    if report.policy == "refuse":
+        raise LogFormatError(
+            f"{scan.source}: timestamp {scan.stamp_s!r} is {what} an earlier scan's "
+            f"({latest!r}); scans must have increasing timestamps (policy 'refuse'; use "
+            "stamps='sort', CLI --stamps sort, to reorder them)"
+        )
+    if scan.stamp_s == latest:
+        report.duplicates += 1
+    else:
+        report.out_of_order += 1
+    if report.first is None:
+        report.first = scan.source
+        logger.warning(
+            "%s: timestamp %r is %s an earlier scan's (%r); scans are reordered by timestamp "
+            "(policy 'sort'; equal stamps keep file order)",
+            scan.source,
+            scan.stamp_s,
+            what,
+            latest,
+        )

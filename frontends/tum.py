@@ -60,26 +60,38 @@ def read_tum(path: str | Path) -> tuple[FloatArray, FloatArray]:
     p = Path(path)
     if not p.is_file():
         raise LogFormatError(f"{p}: no such trajectory file")
-    rows: list[list[float]] = []
-    with open(p, encoding="utf-8") as fh:
-        for line_no, line in enumerate(fh, start=1):
-            text = line.strip()
-            if not text or text.startswith("#"):
-                continue
-            tokens = text.split()
-            try:
-                values = [float(v) for v in tokens]
-            except ValueError:
-                values = []
-            if len(values) != 8 or not all(math.isfinite(v) for v in values):
-                raise LogFormatError(
-                    f"{p}:{line_no}: a TUM line needs 8 finite numbers "
-                    f"'stamp x y z qx qy qz qw', got {len(tokens)} tokens"
-                )
-            rows.append(values)
-    if not rows:
-        raise LogFormatError(f"{p}: the trajectory file holds no poses")
+    try:
+        lines = p.read_text(encoding="utf-8").splitlines()
+    except UnicodeDecodeError as exc:
+        raise LogFormatError(
+            f"{p}: not a text TUM trajectory (byte {exc.start} is not UTF-8; a binary file?)"
+        ) from None
+    except OSError as exc:
+        raise LogFormatError(f"{p}: cannot read the trajectory ({exc})") from exc
+    rows = _parse_rows(p, lines)
     a = np.array(rows)
     qx, qy, qz, qw = a[:, 4], a[:, 5], a[:, 6], a[:, 7]
     yaw = np.arctan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy**2 + qz**2))
     return a[:, 0], np.column_stack([a[:, 1], a[:, 2], yaw])
+
+
+def _parse_rows(p: Path, lines: list[str]) -> list[list[float]]:
+    rows: list[list[float]] = []
+    for line_no, line in enumerate(lines, start=1):
+        text = line.strip()
+        if not text or text.startswith("#"):
+            continue
+        tokens = text.split()
+        try:
+            values = [float(v) for v in tokens]
+        except ValueError:
+            values = []
+        if len(values) != 8 or not all(math.isfinite(v) for v in values):
+            raise LogFormatError(
+                f"{p}:{line_no}: a TUM line needs 8 finite numbers "
+                f"'stamp x y z qx qy qz qw', got {len(tokens)} tokens"
+            )
+        rows.append(values)
+    if not rows:
+        raise LogFormatError(f"{p}: the trajectory file holds no poses")
+    return rows

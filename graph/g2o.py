@@ -116,25 +116,32 @@ def _scan(path: Path) -> tuple[int, int, list[tuple[int, list[str]]]]:
     iceg: list[tuple[int, list[str]]] = []
     last_record = 0
     first_comment = 0
-    with path.open(encoding="utf-8") as stream:
-        for line_no, line in enumerate(stream, start=1):
-            tokens = line.split()
-            if not tokens:
-                continue
-            if tokens[0].startswith("#"):
-                first_comment = first_comment or line_no
-                if len(tokens) > 1 and tokens[1].startswith("ICEG_"):
-                    iceg.append((line_no, tokens[1:]))
-                continue
-            if tokens[0] not in _SUPPORTED:
-                raise GraphError(
-                    f"{path}:{line_no}: record {tokens[0]!r} is not supported: 2D g2o files may "
-                    f"hold only {' and '.join(_SUPPORTED)} records (gtsam.readG2o would silently "
-                    "drop the edges after it)"
-                )
-            n_vertex += tokens[0] == "VERTEX_SE2"
-            n_edge += tokens[0] == "EDGE_SE2"
-            last_record = line_no
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except UnicodeDecodeError as exc:
+        raise GraphError(
+            f"{path}: not a text g2o file (byte {exc.start} is not UTF-8; a binary file?)"
+        ) from None
+    except OSError as exc:
+        raise GraphError(f"{path}: cannot read the g2o file ({exc})") from exc
+    for line_no, line in enumerate(lines, start=1):
+        tokens = line.split()
+        if not tokens:
+            continue
+        if tokens[0].startswith("#"):
+            first_comment = first_comment or line_no
+            if len(tokens) > 1 and tokens[1].startswith("ICEG_"):
+                iceg.append((line_no, tokens[1:]))
+            continue
+        if tokens[0] not in _SUPPORTED:
+            raise GraphError(
+                f"{path}:{line_no}: record {tokens[0]!r} is not supported: 2D g2o files may "
+                f"hold only {' and '.join(_SUPPORTED)} records (gtsam.readG2o would silently "
+                "drop the edges after it)"
+            )
+        n_vertex += tokens[0] == "VERTEX_SE2"
+        n_edge += tokens[0] == "EDGE_SE2"
+        last_record = line_no
     if first_comment and first_comment < last_record:
         raise GraphError(
             f"{path}:{first_comment}: comment line before the last record (line {last_record}): "

@@ -42,6 +42,9 @@ from iceg_common.errors import GraphError
 
 logger = logging.getLogger(__name__)
 
+#: Largest node id: gtsam keys are 64-bit, and ids are returned as int64 arrays.
+_MAX_NODE_ID = 2**63 - 1
+
 FloatArray = NDArray[np.float64]
 
 #: Default kernel widths on the whitened residual norm (standard deviations): 95 % asymptotic
@@ -719,8 +722,11 @@ class PoseGraph:
             n = operator.index(node_id)  # type: ignore[arg-type]
         except TypeError:
             raise GraphError(f"{ctx}: node id must be an integer, got {node_id!r}") from None
-        if n < 0:
-            raise GraphError(f"{ctx}: node id must be non-negative (a gtsam key), got {n}")
+        if n < 0 or n > _MAX_NODE_ID:
+            raise GraphError(
+                f"{ctx}: node id must be non-negative and below 2**63 (a gtsam key, stored as "
+                f"int64), got {n}"
+            )
         return int(n)
 
     def _existing(self, node_id: object, ctx: str) -> int:

@@ -6,18 +6,24 @@ exit code 1.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
+import os
+import shutil
+import signal
 import sys
+import threading
 from collections.abc import Callable
 from datetime import datetime
+from enum import Enum
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, TypeVar
 
 import typer
 
 from iceg import __version__
-from iceg_common.errors import IcegError
+from iceg_common.errors import IcegError, OutputError
 
 if TYPE_CHECKING:
     from iceg.results import SlamResult
@@ -33,6 +39,13 @@ app = typer.Typer(
 F = TypeVar("F", bound=Callable[..., Any])
 
 
+class StampChoice(str, Enum):
+    """``--stamps`` policy (see ``frontends.scan.order_by_stamp``)."""
+
+    sort = "sort"
+    refuse = "refuse"
+
+
 def _one_line_errors(func: F) -> F:
     """Turn an ``IcegError`` into one line on stderr and exit code 1."""
 
@@ -41,7 +54,7 @@ def _one_line_errors(func: F) -> F:
         try:
             return func(*args, **kwargs)
         except IcegError as exc:
-            typer.echo(f"iceg: error: {exc}", err=True)
+            typer.echo(f"iceg: error: {' '.join(str(exc).split())}", err=True)
             raise typer.Exit(code=1) from None
 
     return wrapper  # type: ignore[return-value]
@@ -68,7 +81,23 @@ def main(
 
 
 def _default_out_dir() -> Path:
-    return Path("results") / datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+    """``results/<date_time>``, claimed by creating it; a suffix ``-2``, ``-3``, ... when a run
+    of the same second has it already (never overwrite a run silently)."""
+    base = Path("results") / datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+    try:
+        base.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{base.parent}: cannot create the results folder ({exc})") from exc
+    for k in range(1, 10_000):
+        out = base if k == 1 else base.with_name(f"{base.name}-{k}")
+        try:
+            out.mkdir()
+        except FileExistsError:
+            continue
+        except OSError as exc:
+            raise OutputError(f"{out}: cannot create the output folder ({exc})") from exc
+        return out
+    raise OutputError(f"{base}: 10000 output folders of this second exist already")
 
 
 def _link_latest(out: Path) -> None:
@@ -137,24 +166,120 @@ def run(
         Path | None, typer.Option(help="Output folder (default: results/<date_time>).")
     ] = None,
     progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
+    stamps: Annotated[
+        StampChoice,
+        typer.Option(
+            help="Out-of-order or duplicate log timestamps: sort the scans (warning with "
+            "file:line) or refuse the log. Recorded in metrics.json."
+        ),
+    ] = StampChoice.sort,
 ) -> None:
     """Optimize a laser log end to end: trajectory, pose graph, map and metrics.
 
     With no LOG, runs the built-in simulated office world and scores against its truth.
     """
-    from iceg.pipeline import run_log, run_simulated_demo
+    from iceg.results import check_output_dir
 
     cfg = _load_config(config)
-    if log is None:
-        result = run_simulated_demo(cfg, progress=progress)
-    else:
-        result = run_log(log, cfg, relations=relations, progress=progress)
+    if out is not None:
+        check_output_dir(out)
     out_dir = out if out is not None else _default_out_dir()
-    result.save(out_dir)
+    saved: list[str] = []
+    try:
+        result = _interruptible(
+            lambda: _run_and_save(
+                log, relations, cfg, progress, stamps.value, out_dir, saved.append
+            ),
+            lambda: _on_interrupt(out_dir, saved, remove_empty=out is None),
+        )
+    except BaseException:
+        if out is None and not saved:
+            _remove_if_empty(out_dir)
+        raise
     if out is None:
         _link_latest(out_dir)
     typer.echo(f"iceg run: {log if log is not None else 'built-in simulated office world'}")
     _print_table(_summary_rows(result, out_dir))
+
+
+def _run_and_save(
+    log: Path | None,
+    relations: Path | None,
+    cfg: Any,
+    progress: bool,
+    stamps: Any,
+    out_dir: Path,
+    on_saved: Callable[[str], None],
+) -> SlamResult:
+    from iceg.pipeline import run_log, run_simulated_demo
+
+    if log is None:
+        result = run_simulated_demo(cfg, progress=progress)
+    else:
+        result = run_log(log, cfg, relations=relations, progress=progress, stamps=stamps)
+    result.save(out_dir, on_saved=on_saved)
+    return result
+
+
+def _on_interrupt(out_dir: Path, saved: list[str], remove_empty: bool) -> str:
+    """Clean up after an interrupted run; the one line saying what was kept."""
+    from iceg.results import STAGING_MARKER
+
+    staging = out_dir.parent / f"{out_dir.name}{STAGING_MARKER}{os.getpid()}"
+    shutil.rmtree(staging, ignore_errors=True)
+    if not saved:
+        if remove_empty:
+            _remove_if_empty(out_dir)
+        return "interrupted, nothing written"
+    if "map" in saved:
+        return f"interrupted; the results in {out_dir} are complete"
+    return f"interrupted; kept trajectory, graph, metrics and config in {out_dir} (no map)"
+
+
+def _remove_if_empty(folder: Path) -> None:
+    with contextlib.suppress(OSError):
+        folder.rmdir()
+
+
+R = TypeVar("R")
+
+
+def _interruptible(work: Callable[[], R], on_interrupt: Callable[[], str]) -> R:
+    """Run ``work`` in a worker thread so that Ctrl-C (SIGINT) or SIGTERM stops the command
+    at once, even inside a long compiled call: one line on stderr, exit 130 (143 for SIGTERM).
+    A save in progress is abandoned (the output folder holds a complete set, or the previous
+    one; the staging folder is removed here or by the next save)."""
+    box: dict[str, Any] = {}
+
+    def target() -> None:
+        try:
+            box["result"] = work()
+        except BaseException as exc:  # re-raised in the main thread
+            box["error"] = exc
+
+    def on_term(signum: int, frame: Any) -> None:
+        raise _Terminated
+
+    worker = threading.Thread(target=target, name="iceg-run", daemon=True)
+    previous = signal.signal(signal.SIGTERM, on_term)
+    try:
+        worker.start()
+        while worker.is_alive():
+            worker.join(0.1)
+    except (KeyboardInterrupt, _Terminated) as exc:
+        code = 143 if isinstance(exc, _Terminated) else 130
+        typer.echo(f"iceg: {on_interrupt()}", err=True)
+        sys.stderr.flush()
+        os._exit(code)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    if "error" in box:
+        raise box["error"]
+    return box["result"]  # type: ignore[no-any-return]
+
+
+class _Terminated(Exception):
+    """SIGTERM, raised in the main thread."""
 
 
 @app.command("eval")

@@ -9,6 +9,7 @@ prints the defaults; every result folder holds the effective ``config.yaml``.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -91,10 +92,11 @@ def config_from_dict(data: dict[str, Any], source: str = "<dict>") -> IcegConfig
     """Validate a (partial) configuration dict; missing values take their defaults.
 
     Raises:
-        ConfigError: an unknown key or an invalid value, naming its path and the source.
+        ConfigError: an unknown key or an invalid value (including any non-finite float,
+            e.g. ``.inf``), naming its path and the source.
     """
     try:
-        return IcegConfig.model_validate(data)
+        config = IcegConfig.model_validate(data)
     except ValidationError as exc:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"])
@@ -102,6 +104,25 @@ def config_from_dict(data: dict[str, Any], source: str = "<dict>") -> IcegConfig
             f"{source}: invalid config value at '{where}': {first['msg']}"
             + (f" ({len(exc.errors()) - 1} more)" if len(exc.errors()) > 1 else "")
         ) from exc
+    for where, value in _floats(config.model_dump()):
+        if not math.isfinite(value):
+            raise ConfigError(
+                f"{source}: invalid config value at '{where}': {value} is not a finite number"
+            )
+    return config
+
+
+def _floats(tree: Any, prefix: str = "") -> list[tuple[str, float]]:
+    """Every float of a nested dict/list, with its dotted path."""
+    if isinstance(tree, float):
+        return [(prefix, tree)]
+    if isinstance(tree, dict):
+        items = [(f"{prefix}.{k}" if prefix else str(k), v) for k, v in tree.items()]
+    elif isinstance(tree, list | tuple):
+        items = [(f"{prefix}.{i}", v) for i, v in enumerate(tree)]
+    else:
+        return []
+    return [pair for key, value in items for pair in _floats(value, key)]
 
 
 def config_from_yaml(path: str | Path) -> IcegConfig:
@@ -115,8 +136,15 @@ def config_from_yaml(path: str | Path) -> IcegConfig:
         raise ConfigError(f"{p}: no such config file")
     try:
         data = yaml.safe_load(p.read_text(encoding="utf-8")) or {}
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{p}: not a UTF-8 text file (byte {exc.start})") from None
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read the config ({exc})") from exc
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{p}: not valid YAML ({exc})") from exc
+        mark = getattr(exc, "problem_mark", None)
+        where = f"{p}:{mark.line + 1}" if mark is not None else str(p)
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ConfigError(f"{where}: not valid YAML ({problem})") from exc
     if not isinstance(data, dict):
         raise ConfigError(
             f"{p}: the config must be a mapping of sections, got {type(data).__name__}"

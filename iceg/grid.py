@@ -27,7 +27,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numba
 import numpy as np
@@ -44,8 +44,10 @@ __all__ = [
     "GridConfig",
     "GridError",
     "OccupancyGrid",
+    "TiledGrid",
     "render",
     "render_ranges",
+    "render_tiled",
     "write_map_server",
     "write_npz",
     "write_png",
@@ -141,8 +143,10 @@ class GridConfig(BaseModel):
     max_cells: int = Field(
         default=25_000_000,
         gt=0,
-        description="Refuse to allocate a grid of more cells than this (about 20 bytes per "
-        "cell while rendering); raise resolution_m or lower range_max_m instead.",
+        description="Refuse to store more cells than this (about 20 bytes per cell while "
+        "rendering). Rendering stores only the 64x64-cell tiles the beams cross (render_tiled), "
+        "so this bounds the area the rays touch; a dense grid (render, OccupancyGrid) also "
+        "bounds its full extent by it.",
     )
 
     @model_validator(mode="after")
@@ -284,6 +288,130 @@ class OccupancyGrid:
         )
 
 
+#: Edge length of a storage tile of :class:`TiledGrid`, cells (``2**TILE_SHIFT``).
+TILE_SHIFT = 6
+TILE_SIZE = 1 << TILE_SHIFT
+
+#: Largest number of tiles a grid's bounds may span (the tile map costs 9 bytes per tile);
+#: 2**24 tiles of 64x64 cells are 13 km square at 5 cm.
+MAX_TILE_MAP = 2**24
+
+
+def _ternary_of(log_odds: NDArray[np.float32], occupied: float, free: float) -> NDArray[np.int8]:
+    """int8 -1 unknown / 0 free / 100 occupied of log-odds (any shape), as
+    :meth:`OccupancyGrid.ternary`."""
+    p = (1.0 / (1.0 + np.exp(-log_odds))).astype(np.float32)
+    out = np.full(log_odds.shape, -1, dtype=np.int8)
+    out[p < free] = 0
+    out[p > occupied] = 100
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class TiledGrid:
+    """A sparse occupancy grid: only the tiles of ``T x T`` cells (``T`` = :data:`TILE_SIZE`)
+    that a beam crossed are stored, so memory follows the area the rays touch, not the
+    bounding box (a 400 x 400 m site at 5 cm is 64 M cells dense; its tiles a fraction).
+
+    Cell ``(row, col)`` of the equivalent dense grid (same conventions as
+    :class:`OccupancyGrid`: row 0 the lowest y) is ``log_odds[k, row % T, col % T]`` with
+    ``k = tile_index[row // T, col // T]``; ``k = -1`` is an untouched tile (unknown,
+    log-odds 0, no hits or misses).
+
+    Attributes:
+        resolution_m: Cell edge length, metres.
+        origin_xy: ``(2,)`` float64 world coordinate (metres) of the lower-left corner of
+            cell ``(0, 0)``.
+        shape: ``(H, W)`` of the equivalent dense grid.
+        tile_index: ``(ceil(H/T), ceil(W/T))`` int64 storage index of each tile, or -1.
+        log_odds: ``(K, T, T)`` float32 log-odds of the stored tiles.
+        hits: ``(K, T, T)`` int32 scans with a beam ending in the cell.
+        misses: ``(K, T, T)`` int32 scans with a beam passing through the cell only.
+        occupied_thresh: Probability above which a cell is occupied.
+        free_thresh: Probability below which a cell is free.
+    """
+
+    resolution_m: float
+    origin_xy: FloatArray
+    shape: tuple[int, int]
+    tile_index: NDArray[np.int64]
+    log_odds: NDArray[np.float32]
+    hits: NDArray[np.int32]
+    misses: NDArray[np.int32]
+    occupied_thresh: float = 0.65
+    free_thresh: float = 0.196
+
+    @property
+    def n_tiles(self) -> int:
+        """Number of stored tiles ``K``."""
+        return int(self.log_odds.shape[0])
+
+    @property
+    def allocated_cells(self) -> int:
+        """Cells with storage, ``K * T * T``."""
+        return int(self.log_odds.size)
+
+    @property
+    def extent_xy(self) -> tuple[float, float, float, float]:
+        """``(x_min, x_max, y_min, y_max)`` of the grid's outer edges in metres."""
+        h, w = self.shape
+        ox, oy = self.origin_xy
+        return (ox, ox + w * self.resolution_m, oy, oy + h * self.resolution_m)
+
+    def rows(self, start: int, stop: int, layer: str = "log_odds") -> NDArray[np.generic]:
+        """Dense rows ``start:stop`` (full width) of ``log_odds``, ``hits`` or ``misses``.
+
+        Returns:
+            ``(stop - start, W)`` array of the layer's dtype (zeros in untouched tiles).
+        """
+        t = TILE_SIZE
+        h, w = self.shape
+        start, stop = max(start, 0), min(stop, h)
+        data = getattr(self, layer)
+        out = np.zeros((max(stop - start, 0), w), dtype=data.dtype)
+        for ty in range(start // t, -(-stop // t)):
+            r0, r1 = max(start, ty * t), min(stop, (ty + 1) * t)
+            for tx in np.flatnonzero(self.tile_index[ty] >= 0).tolist():
+                c1 = min(w, (tx + 1) * t)
+                tile = data[self.tile_index[ty, tx]]
+                out[r0 - start : r1 - start, tx * t : c1] = tile[
+                    r0 - ty * t : r1 - ty * t, : c1 - tx * t
+                ]
+        return out
+
+    def to_dense(self, max_cells: int = 25_000_000) -> OccupancyGrid:
+        """The equivalent dense :class:`OccupancyGrid`.
+
+        Raises:
+            GridError: it would have more than ``max_cells`` cells.
+        """
+        h, w = self.shape
+        if h * w > max_cells:
+            x0, x1, y0, y1 = self.extent_xy
+            raise GridError(
+                f"the grid would have {h}x{w} = {h * w} cells (x {x0:.1f}..{x1:.1f} m, "
+                f"y {y0:.1f}..{y1:.1f} m at {self.resolution_m} m), more than "
+                f"max_cells={max_cells}; raise resolution_m, lower range_max_m, or check the "
+                "poses for outliers"
+            )
+        return OccupancyGrid(
+            log_odds=self.rows(0, h).astype(np.float32),
+            resolution_m=self.resolution_m,
+            origin_xy=self.origin_xy,
+            hits=self.rows(0, h, "hits").astype(np.int32),
+            misses=self.rows(0, h, "misses").astype(np.int32),
+            occupied_thresh=self.occupied_thresh,
+            free_thresh=self.free_thresh,
+        )
+
+    def __repr__(self) -> str:
+        h, w = self.shape
+        return (
+            f"TiledGrid({h}x{w} cells at {self.resolution_m:g} m, {self.n_tiles} tiles of "
+            f"{TILE_SIZE}x{TILE_SIZE} stored, {self.allocated_cells / max(h * w, 1):.1%} of dense)"
+        )
+
+
 # ---------------------------------------------------------------------------------------------
 # Rendering
 # ---------------------------------------------------------------------------------------------
@@ -315,6 +443,21 @@ def render(
     Raises:
         GridError: pose count differs from the scan count, poses are not ``(N, 3)`` or not
             finite, or the grid would exceed ``config.max_cells``.
+    """
+    cfg = config or GridConfig()
+    return render_tiled(scans, poses, cfg).to_dense(cfg.max_cells)
+
+
+def render_tiled(
+    scans: Sequence[LaserScan], poses: ArrayLike, config: GridConfig | None = None
+) -> TiledGrid:
+    """:func:`render` into a sparse :class:`TiledGrid`: memory follows the area the beams
+    cross (``config.max_cells`` bounds the stored cells), so any real building renders at
+    the requested resolution. Same model, same cell values as :func:`render`.
+
+    Raises:
+        GridError: as :func:`render`; the stored tiles would exceed ``config.max_cells``, or
+            the bounds span more than :data:`MAX_TILE_MAP` tiles (an absurd extent).
     """
     cfg = config or GridConfig()
     p = _check_poses(poses, len(scans))
@@ -372,7 +515,7 @@ def render_ranges(
     if off.shape != (3,):
         raise GridError(f"laser_offset must be (3,), got shape {off.shape}")
     if n == 0:
-        return _empty_grid(p, cfg)
+        return _empty_grid(p, cfg).to_dense(cfg.max_cells)
     m = n * b
     return _render_flat(
         p,
@@ -383,7 +526,7 @@ def render_ranges(
         np.full(m, range_min_m),
         np.full(m, range_max_m),
         cfg,
-    )
+    ).to_dense(cfg.max_cells)
 
 
 def _check_poses(poses: ArrayLike, n_scans: int) -> FloatArray:
@@ -400,36 +543,62 @@ def _check_poses(poses: ArrayLike, n_scans: int) -> FloatArray:
     return p
 
 
-def _empty_grid(poses: FloatArray, cfg: GridConfig) -> OccupancyGrid:
+def _empty_grid(poses: FloatArray, cfg: GridConfig) -> TiledGrid:
     pts = poses[:, :2] if poses.shape[0] else np.zeros((1, 2))
-    return _allocate(pts, cfg)[0]
+    frame = _frame(pts, cfg)
+    n_ty, n_tx = (-(-frame.shape[0] // TILE_SIZE), -(-frame.shape[1] // TILE_SIZE))
+    return _tiled_grid(frame, np.full((n_ty, n_tx), -1, dtype=np.int64), cfg)
 
 
-def _allocate(points_xy: FloatArray, cfg: GridConfig) -> tuple[OccupancyGrid, FloatArray]:
-    """An all-unknown grid covering ``points_xy`` (K, 2) plus the margin; also returns its
-    origin. The origin is snapped to a multiple of the resolution so grids of one world align.
-    """
+@dataclass(frozen=True)
+class _Frame:
+    """The (dense-equivalent) bounds of a grid: origin and ``(H, W)`` in cells."""
+
+    origin: FloatArray
+    shape: tuple[int, int]
+
+
+def _frame(points_xy: FloatArray, cfg: GridConfig) -> _Frame:
+    """Bounds covering ``points_xy`` (K, 2) plus the margin. The origin is snapped to a
+    multiple of the resolution so grids of one world align."""
     res = cfg.resolution_m
     lo = points_xy.min(axis=0) - cfg.margin_m
     hi = points_xy.max(axis=0) + cfg.margin_m
     origin = np.floor(lo / res) * res
-    w, h = (np.floor((hi - origin) / res).astype(np.int64) + 1).tolist()
-    if h * w > cfg.max_cells:
+    w, h = (np.floor((hi - origin) / res) + 1).tolist()
+    n_tiles = math.ceil(h / TILE_SIZE) * math.ceil(w / TILE_SIZE)
+    if not n_tiles <= MAX_TILE_MAP:
         raise GridError(
-            f"the grid would have {h}x{w} = {h * w} cells (x {lo[0]:.1f}..{hi[0]:.1f} m, "
-            f"y {lo[1]:.1f}..{hi[1]:.1f} m at {res} m), more than max_cells={cfg.max_cells}; "
-            "raise resolution_m, lower range_max_m, or check the poses for outliers"
+            f"the map spans x {lo[0]:.1f}..{hi[0]:.1f} m, y {lo[1]:.1f}..{hi[1]:.1f} m: "
+            f"{h:.0f}x{w:.0f} cells at {res} m, more than {MAX_TILE_MAP} tiles of "
+            f"{TILE_SIZE}x{TILE_SIZE} cells; raise resolution_m, or check the poses for outliers"
         )
-    grid = OccupancyGrid(
-        log_odds=np.zeros((h, w), dtype=np.float32),
-        resolution_m=res,
-        origin_xy=origin,
-        hits=np.zeros((h, w), dtype=np.int32),
-        misses=np.zeros((h, w), dtype=np.int32),
+    return _Frame(origin, (int(h), int(w)))
+
+
+def _tiled_grid(frame: _Frame, tile_index: NDArray[np.int64], cfg: GridConfig) -> TiledGrid:
+    """An all-unknown tiled grid with storage for the tiles ``tile_index >= 0``."""
+    k = int(tile_index.max(initial=-1)) + 1
+    cells = k * TILE_SIZE * TILE_SIZE
+    if cells > cfg.max_cells:
+        h, w = frame.shape
+        raise GridError(
+            f"the rays touch {k} tiles = {cells} cells of a {h}x{w} grid at "
+            f"{cfg.resolution_m} m, more than max_cells={cfg.max_cells}; raise resolution_m, "
+            "lower range_max_m, or check the poses for outliers"
+        )
+    tiles = (k, TILE_SIZE, TILE_SIZE)
+    return TiledGrid(
+        resolution_m=cfg.resolution_m,
+        origin_xy=frame.origin,
+        shape=frame.shape,
+        tile_index=tile_index,
+        log_odds=np.zeros(tiles, dtype=np.float32),
+        hits=np.zeros(tiles, dtype=np.int32),
+        misses=np.zeros(tiles, dtype=np.int32),
         occupied_thresh=cfg.occupied_thresh,
         free_thresh=cfg.free_thresh,
     )
-    return grid, origin
 
 
 def _render_flat(
@@ -441,8 +610,8 @@ def _render_flat(
     range_min: FloatArray,
     range_max: FloatArray,
     cfg: GridConfig,
-) -> OccupancyGrid:
-    """Shared body of :func:`render` and :func:`render_ranges` on flattened beams."""
+) -> TiledGrid:
+    """Shared body of :func:`render_tiled` and :func:`render_ranges` on flattened beams."""
     n = poses.shape[0]
     scan_of_beam = np.repeat(np.arange(n), beam_counts)
     laser = compose(poses, laser_offsets)  # (N, 3) laser pose in the world
@@ -459,42 +628,70 @@ def _render_flat(
     s = scan_of_beam[keep]
     bearing = laser[s, 2] + angles[keep]
     end = laser[s, :2] + length[keep, None] * np.stack([np.cos(bearing), np.sin(bearing)], 1)
-    grid, origin = _allocate(np.concatenate([end, laser[:, :2], poses[:, :2]]), cfg)
-    h, w = grid.shape
+    frame = _frame(np.concatenate([end, laser[:, :2], poses[:, :2]]), cfg)
+    h, w = frame.shape
     scan_start = np.zeros(n + 1, dtype=np.int64)
     np.cumsum(np.bincount(s, minlength=n), out=scan_start[1:])
     res = cfg.resolution_m
     # Continuous cell coordinates (col, row). The clip only absorbs floating-point rounding at
-    # the grid's edges (the bounds contain every point): the compiled loop does not check them.
+    # the grid's edges (the bounds contain every point): the compiled loops do not check them.
     upper = np.nextafter(np.array([w, h], dtype=np.float64), 0.0)
-    _trace_scans(
-        scan_start,
-        np.clip((laser[:, :2] - origin) / res, 0.0, upper),
-        np.clip((end - origin) / res, 0.0, upper),
-        is_hit[keep],
-        w,
-        cfg.l_occ,
-        cfg.l_free,
-        cfg.l_min,
-        cfg.l_max,
-        grid.log_odds.reshape(-1),
-        grid.hits.reshape(-1),
-        grid.misses.reshape(-1),
-    )
+    origin_g = np.clip((laser[:, :2] - frame.origin) / res, 0.0, upper)
+    end_g = np.clip((end - frame.origin) / res, 0.0, upper)
+    beams = _Beams(scan_start, origin_g, end_g, is_hit[keep])
+    grid = _trace_tiled(frame, beams, cfg, exact=False)
+    if grid is None:  # the tile walk missed a tile a cell walk reaches: walk cell by cell
+        grid = _trace_tiled(frame, beams, cfg, exact=True)
+        assert grid is not None
     if cfg.mode == "binary":
         _binarize(grid, cfg)
     logger.debug(
-        "rendered %d scans, %d beams traced (%d hits) into %dx%d cells",
+        "rendered %d scans, %d beams traced (%d hits) into %d tiles of a %dx%d grid",
         n,
         keep.size,
         int(np.count_nonzero(is_hit)),
+        grid.n_tiles,
         h,
         w,
     )
     return grid
 
 
-def _binarize(grid: OccupancyGrid, cfg: GridConfig) -> None:
+class _Beams(NamedTuple):
+    """Beams in continuous cell coordinates (see :func:`_trace_scans`)."""
+
+    scan_start: NDArray[np.int64]
+    origin_g: FloatArray
+    end_g: FloatArray
+    is_hit: NDArray[np.bool_]
+
+
+def _trace_tiled(frame: _Frame, beams: _Beams, cfg: GridConfig, exact: bool) -> TiledGrid | None:
+    """Allocate the tiles the beams cross and trace them. The tile marking walks tile by
+    tile, or cell by cell when ``exact``; None when the tile walk missed a tile the cell walk
+    reaches (a segment through a tile corner within rounding)."""
+    h, w = frame.shape
+    tile_mask = np.zeros((-(-h // TILE_SIZE), -(-w // TILE_SIZE)), dtype=np.bool_)
+    unit = 0 if exact else TILE_SHIFT
+    _mark_tiles(beams.scan_start, beams.origin_g, beams.end_g, unit, TILE_SHIFT, tile_mask)
+    order = np.cumsum(tile_mask.reshape(-1)).reshape(tile_mask.shape) - 1
+    grid = _tiled_grid(frame, np.where(tile_mask, order, -1), cfg)
+    missing = _trace_scans(
+        *beams,
+        grid.tile_index,
+        TILE_SHIFT,
+        InverseSensorModel(cfg.l_occ, cfg.l_free, cfg.l_min, cfg.l_max),
+        grid.log_odds.reshape(-1),
+        grid.hits.reshape(-1),
+        grid.misses.reshape(-1),
+    )
+    if missing:
+        logger.debug("tile walk missed %d cell visits; marking tiles cell by cell", missing)
+        return None
+    return grid
+
+
+def _binarize(grid: OccupancyGrid | TiledGrid, cfg: GridConfig) -> None:
     """The paper's binary map (§IV, Fig. 3-4), from per-scan hit and miss counts: occupied
     (log-odds l_max) if ``hits >= 1 and hits >= misses``, free (l_min) if ``misses > hits``,
     unknown (0) if no ray reached the cell."""
@@ -502,6 +699,16 @@ def _binarize(grid: OccupancyGrid, cfg: GridConfig) -> None:
     occupied = (hits > 0) & (hits >= misses)
     free = misses > hits
     grid.log_odds[...] = np.where(occupied, cfg.l_max, np.where(free, cfg.l_min, 0.0))
+
+
+class InverseSensorModel(NamedTuple):
+    """Log-odds terms of the inverse range sensor model (Thrun et al. 2005, Table 9.2) and
+    the clamping limits (OctoMap, Hornung et al. 2013), grouped for the compiled tracer."""
+
+    l_occ: float
+    l_free: float
+    l_min: float
+    l_max: float
 
 
 @numba.njit(cache=True, inline="always")
@@ -517,30 +724,87 @@ def _axis_start(p0: float, i0: int, d: float) -> tuple[int, float, float]:
     return 0, math.inf, math.inf
 
 
+@numba.njit(cache=True, inline="always")
+def _cell(tile_index: NDArray[np.int64], shift: int, ix: int, iy: int) -> int:
+    """Flat storage index of cell (column ``ix``, row ``iy``; both >= 0) in the tiled arrays
+    (tiles of ``2**shift`` cells on a side), or -1 when its tile has no storage."""
+    tile = tile_index[iy >> shift, ix >> shift]
+    if tile < 0:
+        return -1
+    mask = (1 << shift) - 1
+    return ((tile << shift) + (iy & mask) << shift) + (ix & mask)
+
+
+@numba.njit(cache=True, nogil=True)
+def _mark_tiles(
+    scan_start: NDArray[np.int64],
+    origin_g: FloatArray,
+    end_g: FloatArray,
+    unit_shift: int,
+    tile_shift: int,
+    tile_mask: NDArray[np.bool_],
+) -> None:  # pragma: no cover - compiled
+    """Mark the tiles (``2**tile_shift`` cells on a side) every beam crosses, endpoint
+    included, by the Amanatides & Woo (1987) walk of :func:`_trace_scans` on a grid of
+    ``2**unit_shift`` cells: ``unit_shift = tile_shift`` walks tile by tile (fast), and
+    ``unit_shift = 0`` cell by cell, exactly the cells the tracer updates."""
+    scale = 1.0 / (1 << unit_shift)  # a power of two: the scaled coordinates are exact
+    up = tile_shift - unit_shift
+    for s in range(scan_start.shape[0] - 1):
+        x0 = origin_g[s, 0] * scale
+        y0 = origin_g[s, 1] * scale
+        ix0 = math.floor(x0)
+        iy0 = math.floor(y0)
+        for b in range(scan_start[s], scan_start[s + 1]):
+            x1 = end_g[b, 0] * scale
+            y1 = end_g[b, 1] * scale
+            ix_end = math.floor(x1)
+            iy_end = math.floor(y1)
+            step_x, t_delta_x, t_max_x = _axis_start(x0, ix0, x1 - x0)
+            step_y, t_delta_y, t_max_y = _axis_start(y0, iy0, y1 - y0)
+            ix = ix0
+            iy = iy0
+            n_steps = abs(ix_end - ix0) + abs(iy_end - iy0)
+            for k in range(n_steps + 1):
+                tile_mask[iy >> up, ix >> up] = True
+                if k == n_steps:
+                    break
+                if ix == ix_end or (iy != iy_end and t_max_y <= t_max_x):
+                    iy += step_y
+                    t_max_y += t_delta_y
+                else:
+                    ix += step_x
+                    t_max_x += t_delta_x
+
+
 @numba.njit(cache=True, nogil=True)
 def _trace_scans(
     scan_start: NDArray[np.int64],
     origin_g: FloatArray,
     end_g: FloatArray,
     is_hit: NDArray[np.bool_],
-    width: int,
-    l_occ: float,
-    l_free: float,
-    l_min: float,
-    l_max: float,
+    tile_index: NDArray[np.int64],
+    tile_shift: int,
+    model: InverseSensorModel,
     log_odds: NDArray[np.float32],
     hits: NDArray[np.int32],
     misses: NDArray[np.int32],
-) -> None:  # pragma: no cover - compiled
-    """Trace every beam of every scan through the flattened grid (in place).
+) -> int:  # pragma: no cover - compiled
+    """Trace every beam of every scan through the tiled grid (in place); return the number
+    of cell visits that found no storage (0 unless the tile marking missed a tile).
 
     Coordinates are continuous cell units ``(x - ox) / res`` (column) and ``(y - oy) / res``
-    (row). Beams of scan ``s`` are ``scan_start[s]:scan_start[s+1]``. A per-cell stamp holds
+    (row). Beams of scan ``s`` are ``scan_start[s]:scan_start[s+1]``. Storage is tiled: cell
+    ``(row, col)`` lives in tile ``tile_index[row // T, col // T]`` (``T = 2**tile_shift``;
+    every tile a beam crosses is allocated, see :func:`_mark_tiles`). A per-cell stamp holds
     ``2 s + 1`` once scan ``s`` hit the cell and ``2 s`` once it marked it free, so each cell
     is updated at most once per scan, hits first (they take precedence). Cells along a beam
     are enumerated exactly (every cell the segment crosses) by the Amanatides & Woo (1987)
     traversal, stepping exactly ``|dcol| + |drow|`` times so it ends in the endpoint cell.
     """
+    l_occ, l_free, l_min, l_max = model
+    mask = (1 << tile_shift) - 1
+    missing = 0
     n_scans = scan_start.shape[0] - 1
     stamp = np.full(log_odds.shape[0], -1, dtype=np.int64)
     for s in range(n_scans):
@@ -550,8 +814,10 @@ def _trace_scans(
         free_mark = 2 * s
         for b in range(b0, b1):
             if is_hit[b]:
-                c = math.floor(end_g[b, 1]) * width + math.floor(end_g[b, 0])
-                if stamp[c] != hit_mark:
+                c = _cell(tile_index, tile_shift, math.floor(end_g[b, 0]), math.floor(end_g[b, 1]))
+                if c < 0:
+                    missing += 1
+                elif stamp[c] != hit_mark:
                     stamp[c] = hit_mark
                     hits[c] += 1
                     v = log_odds[c] + l_occ
@@ -573,9 +839,18 @@ def _trace_scans(
             iy = iy0
             n_steps = abs(ix_end - ix0) + abs(iy_end - iy0)
             last_free = n_steps - 1 if is_hit[b] else n_steps
+            tile_row = -1
+            tile_col = -1
+            base = -1
             for k in range(last_free + 1):
-                c = iy * width + ix
-                if stamp[c] < free_mark:
+                if iy >> tile_shift != tile_row or ix >> tile_shift != tile_col:
+                    tile_row = iy >> tile_shift
+                    tile_col = ix >> tile_shift
+                    base = tile_index[tile_row, tile_col] << (2 * tile_shift)
+                c = base + ((iy & mask) << tile_shift) + (ix & mask)
+                if base < 0:
+                    missing += 1
+                elif stamp[c] < free_mark:
                     stamp[c] = free_mark
                     misses[c] += 1
                     v = log_odds[c] + l_free
@@ -588,6 +863,7 @@ def _trace_scans(
                 else:
                     ix += step_x
                     t_max_x += t_delta_x
+    return missing
 
 
 # ---------------------------------------------------------------------------------------------
@@ -595,14 +871,30 @@ def _trace_scans(
 # ---------------------------------------------------------------------------------------------
 
 
-def write_map_server(grid: OccupancyGrid, path_stem: str | Path) -> tuple[Path, Path]:
+def _log_odds_rows(grid: OccupancyGrid | TiledGrid, start: int, stop: int) -> NDArray[np.float32]:
+    if isinstance(grid, TiledGrid):
+        return grid.rows(start, stop).astype(np.float32, copy=False)
+    return grid.log_odds[start:stop]
+
+
+#: Rows per block when an export walks a grid (bounds the memory of a large map's export).
+_EXPORT_ROWS = 512
+
+
+def _top_down_blocks(h: int) -> list[tuple[int, int]]:
+    """Row ranges ``(start, stop)`` of height ``_EXPORT_ROWS`` from the top (highest y) down."""
+    return [(max(0, stop - _EXPORT_ROWS), stop) for stop in range(h, 0, -_EXPORT_ROWS)]
+
+
+def write_map_server(grid: OccupancyGrid | TiledGrid, path_stem: str | Path) -> tuple[Path, Path]:
     """Write the ROS map_server pair ``<path_stem>.pgm`` and ``<path_stem>.yaml`` atomically.
 
     The PGM is binary (P5), one byte per cell, rows top-down (highest y first): 0 occupied,
     254 free, 205 unknown (:meth:`OccupancyGrid.ternary`). The YAML holds ``image`` (the
     PGM's file name, relative to the YAML), ``resolution`` (m/cell), ``origin``
     ``[x_m, y_m, 0.0]`` (world pose of the lower-left pixel's corner), ``negate: 0``,
-    ``occupied_thresh``, ``free_thresh`` and ``mode: trinary``.
+    ``occupied_thresh``, ``free_thresh`` and ``mode: trinary``. A :class:`TiledGrid` is
+    written block by block of rows (its dense image is never held in memory).
 
     Args:
         grid: The map.
@@ -614,15 +906,10 @@ def write_map_server(grid: OccupancyGrid, path_stem: str | Path) -> tuple[Path, 
     Raises:
         GridError: the files cannot be written.
     """
-    from PIL import Image
-
     stem = Path(path_stem)
     pgm_path = stem.parent / f"{stem.name}.pgm"
     yaml_path = stem.parent / f"{stem.name}.yaml"
-    ternary = grid.ternary()
-    img = np.full(grid.shape, PGM_UNKNOWN, dtype=np.uint8)
-    img[ternary == 0] = PGM_FREE
-    img[ternary == 100] = PGM_OCCUPIED
+    h, w = grid.shape
     meta = {
         "image": pgm_path.name,
         "resolution": float(grid.resolution_m),
@@ -634,7 +921,15 @@ def write_map_server(grid: OccupancyGrid, path_stem: str | Path) -> tuple[Path, 
     }
     try:
         with atomic_write(pgm_path, "wb") as fh:
-            Image.fromarray(np.ascontiguousarray(img[::-1]), mode="L").save(fh, format="PPM")
+            fh.write(b"P5\n%d %d\n255\n" % (w, h))
+            for start, stop in _top_down_blocks(h):
+                t = _ternary_of(
+                    _log_odds_rows(grid, start, stop), grid.occupied_thresh, grid.free_thresh
+                )
+                img = np.full(t.shape, PGM_UNKNOWN, dtype=np.uint8)
+                img[t == 0] = PGM_FREE
+                img[t == 100] = PGM_OCCUPIED
+                fh.write(np.ascontiguousarray(img[::-1]).tobytes())
         with atomic_write(yaml_path, "w") as fh:
             yaml.safe_dump(meta, fh, sort_keys=False, default_flow_style=None)
     except OSError as exc:
@@ -642,12 +937,41 @@ def write_map_server(grid: OccupancyGrid, path_stem: str | Path) -> tuple[Path, 
     return pgm_path, yaml_path
 
 
-def write_png(grid: OccupancyGrid, path: str | Path, trajectory: ArrayLike | None = None) -> Path:
+def _preview_grey(
+    grid: OccupancyGrid | TiledGrid, max_pixels: int
+) -> tuple[NDArray[np.uint8], int]:
+    """Grey image ``255 * (1 - p)`` top-down, reduced by an integer factor ``f`` (darkest cell
+    of each ``f x f`` block, so walls survive) until it has at most ``max_pixels``."""
+    h, w = grid.shape
+    f = max(1, math.ceil(math.sqrt(h * w / max_pixels)))
+    hf, wf = -(-h // f), -(-w // f)
+    out = np.empty((hf, wf), dtype=np.uint8)
+    step = max(1, _EXPORT_ROWS // f) * f
+    for start in range(0, h, step):
+        lo = _log_odds_rows(grid, start, min(h, start + step))
+        p = (1.0 / (1.0 + np.exp(-lo))).astype(np.float32)
+        grey = np.round(255.0 * (1.0 - p)).astype(np.uint8)
+        rb, cb = -(-grey.shape[0] // f), wf
+        padded = np.full((rb * f, cb * f), 255, dtype=np.uint8)
+        padded[: grey.shape[0], :w] = grey
+        out[start // f : start // f + rb] = padded.reshape(rb, f, cb, f).min(axis=(1, 3))
+    return out[::-1], f
+
+
+#: Largest PNG preview, pixels; a larger grid is reduced by an integer factor.
+PNG_MAX_PIXELS = 25_000_000
+
+
+def write_png(
+    grid: OccupancyGrid | TiledGrid, path: str | Path, trajectory: ArrayLike | None = None
+) -> Path:
     """Write the probability map as a PNG, one pixel per cell, with the trajectory over it.
 
     Grey level ``255 * (1 - p)`` (white free, black occupied, mid-grey unknown), rows
     top-down (highest y first); the trajectory is drawn in red and its first pose as a green
-    dot.
+    dot. A grid of more than :data:`PNG_MAX_PIXELS` cells is reduced by the smallest integer
+    factor ``f`` that fits (each pixel the darkest of ``f x f`` cells); the map_server PGM
+    always keeps the full resolution.
 
     Args:
         grid: The map.
@@ -663,7 +987,7 @@ def write_png(grid: OccupancyGrid, path: str | Path, trajectory: ArrayLike | Non
     from PIL import Image, ImageDraw
 
     out = Path(path)
-    grey = np.round(255.0 * (1.0 - grid.probabilities())).astype(np.uint8)[::-1]
+    grey, f = _preview_grey(grid, PNG_MAX_PIXELS)
     img = Image.fromarray(np.ascontiguousarray(grey), mode="L").convert("RGB")
     if trajectory is not None:
         t = np.asarray(trajectory, dtype=np.float64)
@@ -671,8 +995,9 @@ def write_png(grid: OccupancyGrid, path: str | Path, trajectory: ArrayLike | Non
             raise GridError(f"trajectory must be (N, 2) or (N, 3), got shape {t.shape}")
         if t.shape[0] > 0:
             h = grid.shape[0]
-            px = (t[:, 0] - grid.origin_xy[0]) / grid.resolution_m
-            py = h - (t[:, 1] - grid.origin_xy[1]) / grid.resolution_m
+            res = grid.resolution_m * f
+            px = (t[:, 0] - grid.origin_xy[0]) / res
+            py = h / f - (t[:, 1] - grid.origin_xy[1]) / res
             draw = ImageDraw.Draw(img)
             pts = list(zip(px.tolist(), py.tolist(), strict=True))
             if len(pts) > 1:

@@ -5,6 +5,8 @@ to an evaluated :class:`iceg.results.SlamResult`. Used by the CLI and by noteboo
 from __future__ import annotations
 
 import logging
+import os
+import stat
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
@@ -13,6 +15,7 @@ from tqdm.auto import tqdm
 
 from frontends import LaserScan, open_log
 from frontends.relations import Relations, match_stamps, read_relations
+from frontends.scan import StampPolicy, StampReport
 from iceg.config import IcegConfig
 from iceg.evaluation import position_errors, relation_errors
 from iceg.results import SlamResult
@@ -66,14 +69,22 @@ def run_log(
     config: IcegConfig | None = None,
     relations: str | Path | None = None,
     progress: bool = False,
+    stamps: StampPolicy = "sort",
 ) -> SlamResult:
     """Run SLAM over a log file and, if given, score it with a ``.relations`` file.
 
+    The log is checked before anything runs; its timestamps are ordered by ``stamps``
+    (``"sort"``: reorder out-of-order scans, ``"refuse"``: fail at the first one, naming
+    ``file:line``); the policy and what the reader found (out-of-order and duplicate stamps,
+    odometry breaks) are in ``result.metrics["stamps"]``.
+
     Raises:
-        LogFormatError: unreadable or empty log, malformed relations.
+        LogFormatError: missing, unreadable or empty log, disordered timestamps under
+            ``"refuse"``, malformed relations.
         EvaluationError: the relations match no scan of the log.
     """
-    reader = open_log(path)
+    check_log_file(Path(path))
+    reader = open_log(path, stamps=stamps)
     rel = read_relations(relations) if relations is not None else None
     scans: Sequence[LaserScan] = list(reader)
     if not scans:
@@ -81,12 +92,33 @@ def run_log(
     if rel is not None:
         check_relations_match(rel, np.array([s.stamp_s for s in scans]))
     result = run_scans(scans, config, progress=progress, total=len(scans))
+    report = getattr(reader, "stamp_report", None)
+    result.metrics["stamps"] = (
+        report.as_dict() if isinstance(report, StampReport) else {"policy": stamps}
+    )
     if rel is not None:
         summary, _ = relation_errors(
             result.stamps_s, result.poses, rel.stamps_s, rel.deltas, RELATION_TOLERANCE_S
         )
         result.metrics["relations"] = summary.as_dict()
     return result
+
+
+def check_log_file(path: Path) -> None:
+    """Fail early, with one clear line, when ``path`` cannot be a readable log file.
+
+    Raises:
+        LogFormatError: ``path`` is missing, a folder, not a regular file (a FIFO, a
+            device), or not readable.
+    """
+    if not path.exists():
+        raise LogFormatError(f"{path}: no such log file")
+    if path.is_dir():
+        raise LogFormatError(f"{path}: is a folder, not a log file")
+    if not stat.S_ISREG(path.stat().st_mode):
+        raise LogFormatError(f"{path}: not a regular file (a FIFO or a device?); pass a log file")
+    if not os.access(path, os.R_OK):
+        raise LogFormatError(f"{path}: the log cannot be read (permission denied)")
 
 
 def run_simulated_demo(

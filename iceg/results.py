@@ -1,11 +1,25 @@
-"""The result of a SLAM run: an object to inspect in a notebook and to save to a folder."""
+"""The result of a SLAM run: an object to inspect in a notebook and to save to a folder.
+
+Saving never loses a run and never leaves a mix of two runs (README "Outputs"): the result
+set is written into a visible staging folder ``<out>.iceg-saving-<pid>`` beside ``out`` and
+swapped in with one rename, in two steps: first trajectory, graph, metrics and config (as soon
+as the optimization has ended), then the same set plus the map files, rendered from the
+optimized poses. A map that cannot be rendered is a warning in ``metrics.json``, never a lost
+run. Staging folders left by a killed save are removed by the next save into the same place.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
+import errno
 import json
+import logging
+import os
 import shutil
-import tempfile
+import time
 from collections import Counter
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -14,16 +28,26 @@ import numpy as np
 from numpy.typing import NDArray
 
 from frontends.tum import write_tum
-from iceg.grid import OccupancyGrid, write_map_server, write_png
+from iceg.grid import OccupancyGrid, TiledGrid, render_tiled, write_map_server, write_png
 from iceg_common.atomic import atomic_write
+from iceg_common.errors import GridError, OutputError
 
 if TYPE_CHECKING:
+    from frontends import LaserScan
     from graph import FactorRecord, PoseGraph
     from iceg.config import IcegConfig
     from iceg.feature_map import FeatureMap
     from iceg.slam import LoopClosureStats
 
+logger = logging.getLogger(__name__)
+
 FloatArray = NDArray[np.float64]
+
+#: Files of the first save step (written as soon as the optimization has ended).
+CORE_FILES = ("trajectory.tum", "graph.g2o", "metrics.json", "config.yaml")
+
+#: Map files added by the second step (absent when the map cannot be rendered).
+MAP_FILES = ("map.pgm", "map.yaml", "map.png")
 
 #: Files :meth:`SlamResult.save` writes.
 OUTPUT_FILES = (
@@ -35,6 +59,9 @@ OUTPUT_FILES = (
     "metrics.json",
     "config.yaml",
 )
+
+#: Marker in the name of a staging folder beside the output folder.
+STAGING_MARKER = ".iceg-saving-"
 
 
 @dataclass
@@ -55,10 +82,11 @@ class SlamResult:
         match_failures: count of failed local matches per reason.
         stage_seconds: wall time per pipeline stage, seconds.
         feature_map: the final feature map (landmarks anchored to nodes).
-        grid: the occupancy grid rendered along ``poses`` (None for an empty run).
         graph: the pose graph (marginals, g2o export).
         config: the effective configuration.
-        metrics: evaluation figures added by the caller (relations, ground truth).
+        scans: the input scans, for rendering the map along ``poses``.
+        metrics: evaluation figures added by the caller (relations, ground truth), and
+            ``map`` once the map was rendered (or could not be).
     """
 
     stamps_s: FloatArray
@@ -72,10 +100,12 @@ class SlamResult:
     match_failures: dict[str, int]
     stage_seconds: dict[str, float]
     feature_map: FeatureMap
-    grid: OccupancyGrid | None
     graph: PoseGraph
     config: IcegConfig
+    scans: tuple[LaserScan, ...] = ()
     metrics: dict[str, Any] = field(default_factory=dict)
+    _map: TiledGrid | None = field(default=None, init=False, repr=False)
+    _map_tried: bool = field(default=False, init=False, repr=False)
 
     @property
     def n_scans(self) -> int:
@@ -121,31 +151,228 @@ class SlamResult:
             parts.append(f"position_error={gt['mean_m']:.3f} m")
         return "SlamResult(" + ", ".join(parts) + ")"
 
-    def save(self, out_dir: str | Path) -> Path:
-        """Write the result files (:data:`OUTPUT_FILES`) into ``out_dir``.
+    def render_map(self) -> TiledGrid | None:
+        """Render (once) the occupancy grid of ``scans`` along ``poses`` (sparse, tiled).
 
-        Files are written in a staging folder beside ``out_dir`` and moved in only when all
-        are complete, so an interrupted save leaves no partial file.
+        A map that cannot be rendered (an absurd extent, too many cells) is logged as a
+        warning and recorded in ``metrics["map"]``; the result stays usable.
+
+        Returns:
+            The :class:`~iceg.grid.TiledGrid`, or None (no scans, or not renderable).
+        """
+        if self._map_tried:
+            return self._map
+        self._map_tried = True
+        if not self.scans:
+            self.metrics["map"] = {"rendered": False, "reason": "no scans"}
+            return None
+        t0 = time.perf_counter()
+        try:
+            self._map = render_tiled(self.scans, self.poses, self.config.grid)
+        except GridError as exc:
+            logger.warning("no map written: %s", exc)
+            self.metrics["map"] = {"rendered": False, "reason": str(exc)}
+            return None
+        self.stage_seconds["grid"] = time.perf_counter() - t0
+        g = self._map
+        self.metrics["map"] = {
+            "rendered": True,
+            "shape": list(g.shape),
+            "resolution_m": g.resolution_m,
+            "allocated_cells": g.allocated_cells,
+        }
+        return g
+
+    @property
+    def grid(self) -> OccupancyGrid | None:
+        """The map as a dense :class:`~iceg.grid.OccupancyGrid` (rendered on first use);
+        None when there is no map.
+
+        Raises:
+            GridError: the dense grid would exceed ``config.grid.max_cells`` (use
+                :meth:`render_map` for the sparse grid).
+        """
+        tiled = self.render_map()
+        return None if tiled is None else tiled.to_dense(self.config.grid.max_cells)
+
+    def save(self, out_dir: str | Path, on_saved: Callable[[str], None] | None = None) -> Path:
+        """Write the result files (:data:`OUTPUT_FILES`) into ``out_dir``, replacing the whole
+        previous set there, never part of it.
+
+        Step 1 swaps in :data:`CORE_FILES`; step 2 renders the map and swaps in the same set
+        plus :data:`MAP_FILES` (and ``metrics.json`` with the map's figures). Each step is
+        written in a staging folder ``<out_dir>.iceg-saving-<pid>`` beside ``out_dir`` and
+        exchanged with ``out_dir`` by one rename, so ``out_dir`` always holds a complete set.
+
+        Args:
+            out_dir: The output folder (created with its parents if missing).
+            on_saved: Called with ``"core"`` after step 1 and ``"map"`` after step 2.
 
         Returns:
             ``out_dir`` as a Path.
+
+        Raises:
+            OutputError: ``out_dir`` is a file or a folder that is not a result folder, or it
+                cannot be written.
         """
         out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+        check_output_dir(out)
+        clean_stale_staging(out)
+        self.metrics.setdefault(
+            "map", {"rendered": False, "reason": "pending: rendered after the first save step"}
+        )
         try:
-            write_tum(staging / "trajectory.tum", self.stamps_s, self.poses)
-            self.graph.write_g2o(staging / "graph.g2o")
-            if self.grid is not None:
-                write_map_server(self.grid, staging / "map")
-                write_png(self.grid, staging / "map.png", trajectory=self.poses)
-            with atomic_write(staging / "metrics.json") as fh:
-                json.dump(self.summary(), fh, indent=2, sort_keys=False)
-                fh.write("\n")
-            with atomic_write(staging / "config.yaml") as fh:
-                fh.write(self.config.to_yaml())
-            for f in sorted(staging.iterdir()):
-                f.replace(out / f.name)
-        finally:
-            shutil.rmtree(staging, ignore_errors=True)
+            with _staging(out) as staging:
+                self._write_core(staging)
+                _swap_in(staging, out)
+            if on_saved is not None:
+                on_saved("core")
+            grid = self.render_map()
+            with _staging(out) as staging:
+                _link_files(out, staging, CORE_FILES)
+                if grid is not None:
+                    write_map_server(grid, staging / "map")
+                    write_png(grid, staging / "map.png", trajectory=self.poses)
+                self._write_metrics(staging)
+                _swap_in(staging, out)
+            if on_saved is not None:
+                on_saved("map")
+        except OSError as exc:
+            raise OutputError(f"{out}: cannot write the results ({exc})") from exc
         return out
+
+    def _write_core(self, folder: Path) -> None:
+        write_tum(folder / "trajectory.tum", self.stamps_s, self.poses)
+        self.graph.write_g2o(folder / "graph.g2o")
+        self._write_metrics(folder)
+        with atomic_write(folder / "config.yaml") as fh:
+            fh.write(self.config.to_yaml())
+
+    def _write_metrics(self, folder: Path) -> None:
+        target = folder / "metrics.json"
+        with contextlib.suppress(FileNotFoundError):
+            target.unlink()  # a hard link to the previous step's file: do not write through it
+        with atomic_write(target) as fh:
+            json.dump(self.summary(), fh, indent=2, sort_keys=False)
+            fh.write("\n")
+
+
+# ---------------------------------------------------------------------------------------------
+# Output folders
+# ---------------------------------------------------------------------------------------------
+
+
+def check_output_dir(out: Path) -> None:
+    """Fail early (before a run) when results cannot be written to ``out``.
+
+    ``out`` may be missing (it is created, with its parents) or a folder that is empty or
+    holds a previous result set (it is replaced as a whole).
+
+    Raises:
+        OutputError: ``out`` (or a parent) is a file, ``out`` is a folder holding other
+            files, or the nearest existing parent is not writable.
+    """
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"{out}: exists and is not a folder; choose another --out")
+    if out.is_dir():
+        foreign = sorted(p.name for p in out.iterdir() if p.name not in OUTPUT_FILES)
+        if foreign:
+            raise OutputError(
+                f"{out}: the folder holds files that are not iceg results ({foreign[0]}"
+                f"{' ...' if len(foreign) > 1 else ''}); choose an empty or new --out"
+            )
+    parent = out.parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise OutputError(f"{out}: {parent} is not a folder; choose another --out")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise OutputError(f"{out}: {parent} is not writable; choose another --out")
+
+
+def clean_stale_staging(out: Path) -> list[Path]:
+    """Remove staging folders ``<out>.iceg-saving-<pid>`` left by killed saves into ``out``
+    (those of a process still running are kept).
+
+    Returns:
+        The folders removed.
+    """
+    removed: list[Path] = []
+    if not out.parent.is_dir():
+        return removed
+    for p in out.parent.glob(f"{out.name}{STAGING_MARKER}*"):
+        pid = p.name.rsplit("-", 1)[-1]
+        if pid.isdigit() and int(pid) != os.getpid() and _alive(int(pid)):
+            continue
+        shutil.rmtree(p, ignore_errors=True)
+        removed.append(p)
+        logger.info("removed %s, left by an interrupted save", p)
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+@contextlib.contextmanager
+def _staging(out: Path) -> Iterator[Path]:
+    """A fresh staging folder beside ``out``; removed on exit (it holds the old set after a
+    swap, or a partial set after an error)."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = out.parent / f"{out.name}{STAGING_MARKER}{os.getpid()}"
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir()
+    try:
+        yield staging
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def _link_files(src: Path, dst: Path, names: tuple[str, ...]) -> None:
+    """Hard-link (or copy) ``names`` from ``src`` into ``dst``."""
+    for name in names:
+        try:
+            os.link(src / name, dst / name)
+        except OSError:
+            shutil.copy2(src / name, dst / name)
+
+
+_RENAME_EXCHANGE = 2
+_AT_FDCWD = -100
+
+
+def _swap_in(staging: Path, out: Path) -> None:
+    """Make ``staging`` the folder ``out`` with one rename; the previous ``out`` (if any) ends
+    up at ``staging`` (removed by the caller). Uses ``renameat2(RENAME_EXCHANGE)`` (Linux);
+    where it is unavailable, ``out`` is moved aside and ``staging`` renamed in its place."""
+    if not out.exists():
+        os.rename(staging, out)
+        return
+    if _exchange(staging, out):
+        return
+    aside = staging.with_name(staging.name + "-old")
+    os.rename(out, aside)
+    os.rename(staging, out)
+    os.rename(aside, staging)
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Atomically exchange two paths; False when the platform or filesystem cannot."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    rc = renameat2(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE)
+    if rc == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.EINVAL, errno.ENOSYS, errno.ENOTSUP):
+        return False
+    raise OSError(err, os.strerror(err), str(b))

@@ -25,13 +25,12 @@ from graph import FactorKind, PoseGraph, odometry_covariance
 from iceg.config import IcegConfig
 from iceg.feature_map import FeatureMap, MapReference
 from iceg.features import extract
-from iceg.grid import render
 from iceg.loop_closure import LoopCloser, LoopClosureStats
 from iceg.matching import IceMatcher, MatchBounds
 from iceg.results import SlamResult
 from iceg.types import MatchResult, ScanFeatures
 from iceg_common import se2
-from iceg_common.errors import ScanError
+from iceg_common.errors import GraphError, ScanError
 
 logger = logging.getLogger(__name__)
 
@@ -116,6 +115,7 @@ class Slam:
         self.loop_closer = LoopCloser(self.config.loop_closure, self.matcher, self.feature_map)
         self.timer = StageTimer()
         self._s = SlamState()
+        self._result: SlamResult | None = None
 
     @property
     def loop_stats(self) -> LoopClosureStats:
@@ -136,6 +136,8 @@ class Slam:
         Raises:
             ScanError: the scan's stamp is earlier than the previous scan's.
         """
+        if self._result is not None:
+            raise GraphError("Slam.process() after finish(): start a new Slam for a new run")
         self._check_order(scan)
         t0 = time.perf_counter()
         odom = self._odometry_of(scan)
@@ -322,16 +324,22 @@ class Slam:
         return stamps, se2.compose(poses[node], delta)
 
     def finish(self) -> SlamResult:
-        """Optionally batch-refine, render the grid, and return the :class:`SlamResult`."""
+        """Optionally batch-refine and return the :class:`SlamResult` (idempotent: a second
+        call returns the same result; :meth:`process` is refused afterwards).
+
+        The occupancy grid is not rendered here: the result carries the scans, and
+        :meth:`SlamResult.render_map` (called by :meth:`SlamResult.save` after the trajectory,
+        graph and metrics are written) renders it along the optimized poses.
+        """
+        if self._result is not None:
+            return self._result
         t0 = time.perf_counter()
         if self.config.slam.batch_refinement and self._s.node_odom:
             self.graph.optimize_batch()
             t0 = self.timer.add("batch_refinement", t0)
         stamps, poses = self.trajectory()
-        grid = render(self._s.scans, poses, self.config.grid) if self._s.scans else None
-        self.timer.add("grid", t0)
         ids, node_poses = self.graph.estimates()
-        return SlamResult(
+        self._result = SlamResult(
             stamps_s=stamps,
             poses=poses,
             node_ids=ids,
@@ -343,7 +351,8 @@ class Slam:
             match_failures=dict(self._s.match_failures),
             stage_seconds=dict(self.timer.seconds),
             feature_map=self.feature_map,
-            grid=grid,
             graph=self.graph,
             config=self.config,
+            scans=tuple(self._s.scans),
         )
+        return self._result

@@ -206,7 +206,10 @@ def test_lenient_reader_skips_lists_and_warns(
     assert [s.source for s in scans] == [f"{path}:1", f"{path}:3"]
     assert [line for line, _ in reader.malformed] == [2, 4]
     assert "declares 3 beams but the line has 2 range values" in reader.malformed[0][1]
-    warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
+    # (the two _GOOD lines share stamp 5.0: frontends.scan also warns about the duplicate)
+    warnings = [
+        r for r in caplog.records if r.levelno == logging.WARNING and r.name == "frontends.carmen"
+    ]
     assert len(warnings) == 1 and "skipped 2 malformed line(s)" in warnings[0].getMessage()
 
 
@@ -442,3 +445,81 @@ def test_write_is_atomic_on_failure(tmp_path: Path) -> None:
         write_carmen(path, [*good, no_odom])
     assert path.read_text() == "old content\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.clf"]
+
+
+# ---------------------------------------------------------------------------------------------
+# Issue 12: strict numbers, odometry breaks, timestamp policy
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("bad", "message"),
+    [
+        ("FLASER 3 1.0 2.0 3.0 0.1 0.2 0.3 0.1 0.2 0.3 1_3.9 h 13.9", "ipc timestamp '1_3.9'"),
+        ("FLASER 3 1.0 2_0 3.0 0.1 0.2 0.3 0.1 0.2 0.3 6.0 h 6.0", "range value 2 of 3 '2_0'"),
+        ("FLASER 3 1.0 2.0 3.0 0.1 0.2 0.3 \uff11.5 0.2 0.3 6.0 h 6.0", "odometry pose x"),
+        ("FLASER \uff13 1.0 2.0 3.0 0.1 0.2 0.3 0.1 0.2 0.3 6.0 h 6.0", "beam count"),
+    ],
+)
+def test_numbers_are_ascii_float_syntax_only(tmp_path: Path, bad: str, message: str) -> None:
+    path = tmp_path / "bad.clf"
+    path.write_text(f"{_GOOD}\n# comment\n{bad}\n", encoding="utf-8")
+    with pytest.raises(LogFormatError, match="not a plain ASCII number") as info:
+        list(CarmenReader(path))
+    assert str(info.value).startswith(f"{path}:3: ")
+    assert message in str(info.value)
+
+
+def _flaser(x: float, stamp: float) -> str:
+    pose = f"{x} 0.0 0.0"
+    return f"FLASER 3 1.0 2.0 3.0 {pose} {pose} {stamp} h {stamp}"
+
+
+def _robotlaser(x: float, stamp: float) -> str:
+    pose = f"{x} 0.0 0.0"
+    return (
+        f"ROBOTLASER1 0 -1.5 3.0 1.5 20.0 0.01 0 3 1.0 2.0 3.0 0 {pose} {pose} "
+        f"0 0 0 0 0 {stamp} h {stamp}"
+    )
+
+
+def test_odometry_jump_is_a_break_with_file_line(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path = tmp_path / "jump.clf"
+    # 0.1 s apart: 0.3 m steps are motion; a 50 m step is a jump (limit 2 m + 5 m/s * dt).
+    xs = [0.0, 0.3, 0.6, 50.6, 50.9]
+    path.write_text("".join(_flaser(x, 10.0 + 0.1 * k) + "\n" for k, x in enumerate(xs)))
+    reader = CarmenReader(path)
+    with caplog.at_level(logging.WARNING):
+        scans = list(reader)
+    assert [s.odom_break for s in scans] == [False, False, False, True, False]
+    assert f"{path}:4: odometry jumps 50.00 m" in caplog.text
+    assert reader.stamp_report.odometry_breaks[0][0] == f"{path}:4"
+
+
+def test_second_odometry_frame_is_a_break(tmp_path: Path) -> None:
+    path = tmp_path / "mixed.clf"
+    lines = [_flaser(0.0, 1.0), _flaser(0.1, 1.1), _robotlaser(0.2, 1.2), _robotlaser(0.3, 1.3)]
+    lines.append(_flaser(0.4, 1.4))
+    path.write_text("\n".join(lines) + "\n")
+    reader = CarmenReader(path)
+    assert [s.odom_break for s in reader] == [False, False, True, False, True]
+    assert "two odometry frames" in reader.stamp_report.odometry_breaks[0][1]
+
+
+def test_real_logs_have_no_false_breaks(mit_csail_scans: list[LaserScan]) -> None:
+    assert not any(s.odom_break for s in mit_csail_scans)
+
+
+def test_timestamp_policy_sort_or_refuse(tmp_path: Path) -> None:
+    path = tmp_path / "order.clf"
+    path.write_text("\n".join(_flaser(0.1 * k, t) for k, t in enumerate([1.0, 3.0, 2.0])) + "\n")
+    reader = CarmenReader(path)
+    assert [s.stamp_s for s in reader] == [1.0, 2.0, 3.0]
+    assert [s.source for s in reader] == [f"{path}:1", f"{path}:3", f"{path}:2"]
+    assert reader.stamp_report.out_of_order == 1
+    with pytest.raises(LogFormatError, match=f"{path}:3: timestamp 2.0 is earlier"):
+        list(CarmenReader(path, stamps="refuse"))
+    with pytest.raises(ConfigError, match="stamps"):
+        CarmenReader(path, stamps="shuffle")

@@ -154,3 +154,10 @@ def test_mit_csail_relations_match_scans() -> None:
     assert np.median(np.hypot(err[:, 0], err[:, 1])) < 0.01
     assert np.median(np.hypot(err_inv[:, 0], err_inv[:, 1])) > 0.3
     assert np.median(np.abs(err[:, 2])) < math.radians(3.0)
+
+
+def test_empty_relations_file_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "empty.relations"
+    path.write_text("# only a comment\n\n")
+    with pytest.raises(LogFormatError, match="holds no relations"):
+        read_relations(path)

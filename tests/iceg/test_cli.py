@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 from PIL import Image
@@ -121,3 +122,218 @@ def test_mit_csail_benchmark(tmp_path: Path) -> None:
     ev = runner.invoke(app, ["eval", str(out / "trajectory.tum"), str(rel)])
     assert ev.exit_code == 0
     assert f"{r['trans_mean_m']:.6g}" in ev.stdout
+
+
+# ---------------------------------------------------------------------------------------------
+# Issue 12: one line and exit 1, no partial result, never a lost run
+# ---------------------------------------------------------------------------------------------
+
+
+def _short_log(tmp_path: Path, n: int = 20, name: str = "short.clf") -> Path:
+    from frontends.carmen import write_carmen
+    from frontends.simulate import office_world, simulate
+
+    run = simulate(office_world(), seed=1)
+    log = tmp_path / name
+    write_carmen(log, run.scans[:n])
+    return log
+
+
+def test_out_is_an_existing_file(tmp_path: Path) -> None:
+    target = tmp_path / "taken"
+    target.write_text("keep")
+    result = runner.invoke(app, ["run", "--out", str(target), "--no-progress"])
+    assert result.exit_code == 1
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "not a folder" in lines[0], result.stderr
+    assert target.read_text() == "keep"
+
+
+def test_out_under_a_file_is_refused_before_the_run(tmp_path: Path) -> None:
+    target = tmp_path / "taken"
+    target.write_text("keep")
+    _assert_one_line_error(["run", str(_short_log(tmp_path))], target / "sub", "not a folder")
+
+
+def test_out_in_a_read_only_folder_is_refused_before_the_run(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import os
+
+    parent = tmp_path / "ro"
+    parent.mkdir()
+    parent.chmod(0o555)
+    if os.access(parent, os.W_OK):  # root ignores permissions: emulate the read-only mount
+        real = os.access
+        monkeypatch.setattr(
+            os, "access", lambda p, mode: False if Path(p) == parent else real(p, mode)
+        )
+    try:
+        _assert_one_line_error(["run", "nope.clf"], parent / "a" / "b", "is not writable")
+    finally:
+        parent.chmod(0o755)
+
+
+@pytest.mark.parametrize(
+    ("text", "needle"),
+    [
+        (b"grid:\n  resolution_m: .inf\n", "grid.resolution_m"),
+        (b"grid:\n  l_occ: .nan\n", "grid.l_occ"),
+        (b"grid: [unclosed\n", "not valid YAML"),
+        (b"grid:\n  resolution_m: 0.05 \xff\xfe\n", "not a UTF-8 text file"),
+    ],
+)
+def test_bad_config_is_one_line(tmp_path: Path, text: bytes, needle: str) -> None:
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_bytes(text)
+    _assert_one_line_error(["run", "--config", str(cfg)], tmp_path / "o", needle)
+
+
+def test_eval_input_not_utf8(tmp_path: Path) -> None:
+    tum = tmp_path / "t.tum"
+    tum.write_bytes(b"\x80\x81 binary\n")
+    rel = tmp_path / "r.relations"
+    rel.write_text("1.0 2.0 0.1 0 0 0 0 0\n")
+    result = runner.invoke(app, ["eval", str(tum), str(rel)])
+    assert result.exit_code == 1
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "not a text TUM trajectory" in lines[0], result.stderr
+
+
+def test_log_that_is_a_folder_or_fifo(tmp_path: Path) -> None:
+    import os
+
+    folder = tmp_path / "dir.clf"
+    folder.mkdir()
+    _assert_one_line_error(["run", str(folder)], tmp_path / "o", "is a folder, not a log file")
+    fifo = tmp_path / "fifo.clf"
+    os.mkfifo(fifo)
+    _assert_one_line_error(["run", str(fifo)], tmp_path / "o", "not a regular file")
+
+
+def test_empty_relations(tmp_path: Path) -> None:
+    rel = tmp_path / "empty.relations"
+    rel.write_text("# nothing\n\n")
+    _assert_one_line_error(
+        ["run", str(_short_log(tmp_path)), "--relations", str(rel)],
+        tmp_path / "o",
+        "holds no relations",
+    )
+
+
+def _shuffled_log(tmp_path: Path) -> Path:
+    log = _short_log(tmp_path, n=30)
+    lines = log.read_text().splitlines(keepends=True)
+    scan_rows = [i for i, line in enumerate(lines) if line.startswith("FLASER")]
+    a, b = scan_rows[10], scan_rows[11]
+    lines[a], lines[b] = lines[b], lines[a]
+    log.write_text("".join(lines))
+    return log
+
+
+def test_stamps_refuse_names_file_and_line(tmp_path: Path) -> None:
+    log = _shuffled_log(tmp_path)
+    _assert_one_line_error(["run", str(log), "--stamps", "refuse"], tmp_path / "o", f"{log}:")
+
+
+def test_stamps_sort_runs_and_records_the_policy(tmp_path: Path) -> None:
+    log = _shuffled_log(tmp_path)
+    rel = tmp_path / "r.relations"
+    from frontends import open_log
+
+    stamps = [s.stamp_s for s in open_log(log)]
+    rel.write_text(f"{stamps[2]:.6f} {stamps[25]:.6f} 0.1 0 0 0 0 0\n")
+    out = tmp_path / "o"
+    result = runner.invoke(
+        app, ["run", str(log), "--relations", str(rel), "--out", str(out), "--no-progress"]
+    )
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["stamps"]["policy"] == "sort"
+    assert metrics["stamps"]["out_of_order"] == 1
+    assert metrics["relations"]["n_matched"] == 1
+    written = [float(line.split()[0]) for line in (out / "trajectory.tum").read_text().splitlines()]
+    assert written == sorted(written) == stamps
+
+
+def test_default_out_folders_are_unique(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from iceg import cli
+
+    monkeypatch.chdir(tmp_path)
+    first, second, third = (cli._default_out_dir() for _ in range(3))
+    assert len({first, second, third}) == 3
+    assert second.name == f"{first.name}-2" and third.name == f"{first.name}-3"
+    assert all(p.is_dir() for p in (first, second, third))
+
+
+def test_sigint_stops_at_once_and_writes_nothing(tmp_path: Path) -> None:
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "o"
+    repo = Path(__file__).resolve().parents[2]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "iceg.cli", "run", "--out", str(out)],
+        cwd=repo,
+        env={"PYTHONPATH": str(repo), "PATH": "/usr/bin:/bin"},
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stderr is not None
+    seen = ""
+    while "%|" not in seen:  # the progress bar: the run is under way
+        char = proc.stderr.read(1)
+        assert char, f"the run ended before it started: {seen}"
+        seen += char
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGINT)
+    t0 = time.monotonic()
+    _, err = proc.communicate(timeout=30)
+    assert time.monotonic() - t0 < 1.5
+    assert proc.returncode == 130
+    assert err.rstrip().endswith("iceg: interrupted, nothing written"), err[-300:]
+    assert not out.exists()
+    assert list(tmp_path.iterdir()) == []
+
+
+def _jump_log(tmp_path: Path) -> Path:
+    import dataclasses
+
+    from frontends.carmen import write_carmen
+    from frontends.simulate import office_world, simulate
+
+    run = simulate(office_world(), seed=1)
+    scans = list(run.scans[:20])
+    jump = np.array([1e6, 0.0, 0.0])
+    scans[10:] = [
+        dataclasses.replace(s, odom_pose=s.odom_pose + jump)  # type: ignore[operator]
+        for s in scans[10:]
+    ]
+    log = tmp_path / "jump.clf"
+    write_carmen(log, scans)
+    return log
+
+
+@pytest.mark.parametrize("case", ["fine_resolution", "odometry_jump"])
+def test_unrenderable_map_keeps_the_run(tmp_path: Path, case: str) -> None:
+    from iceg.results import CORE_FILES
+
+    args = ["run"]
+    if case == "fine_resolution":
+        cfg = tmp_path / "fine.yaml"
+        cfg.write_text("grid:\n  resolution_m: 0.001\n")
+        args += [str(_short_log(tmp_path)), "--config", str(cfg)]
+    else:
+        args += [str(_jump_log(tmp_path))]
+    out = tmp_path / "o"
+    result = runner.invoke(app, [*args, "--out", str(out), "--no-progress"])
+    assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in out.iterdir()) == sorted(CORE_FILES)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["map"]["rendered"] is False, metrics["map"]
+    assert len((out / "trajectory.tum").read_text().splitlines()) == 20
+    if case == "odometry_jump":
+        assert metrics["stamps"]["odometry_breaks"] == 1
+        assert metrics["stamps"]["first_odometry_breaks"][0].startswith(f"{tmp_path}/jump.clf:")
