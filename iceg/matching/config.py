@@ -218,7 +218,8 @@ class CorrelationConfig(BaseModel):
 
 
 class RefinementConfig(BaseModel):
-    """Gauss-Newton refinement (paper §III-C3 "an optimization problem"; DESIGN step 8; PL-ICP, Censi 2008)."""
+    """Gauss-Newton refinement (paper §III-C3 "an optimization problem"; DESIGN step 8;
+    off-segment points: PL-ICP, Censi 2008)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -301,7 +302,8 @@ class RefinementConfig(BaseModel):
 
 
 class CovarianceConfig(BaseModel):
-    """Covariance from the correlation landscape (Olson 2009; DESIGN step 9) and its degeneracy limits."""
+    """Covariance from the correlation landscape (Olson 2009; DESIGN step 9) and its
+    degeneracy limits (DESIGN step 10)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
