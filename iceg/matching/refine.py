@@ -284,25 +284,25 @@ def _feature_rows(
     ``use_positions`` (same model as :func:`~iceg.matching._kernels.feature_system`)."""
     if pairs.shape[0] == 0:
         return _EMPTY_ROWS
-    gn, gr = problem.new_geom, problem.ref_geom
+    new, ref = problem.new_geom, problem.ref_geom
     c, s = math.cos(pose[2]), math.sin(pose[2])
     i, j = pairs[:, 0], pairs[:, 1]
-    nx, ny = gn.xy[i, 0], gn.xy[i, 1]
+    nx, ny = new.xy[i, 0], new.xy[i, 1]
     rnx = c * nx - s * ny
     rny = s * nx + c * ny
-    ex = rnx + pose[0] - gr.xy[j, 0]
-    ey = rny + pose[1] - gr.xy[j, 1]
-    cn = gn.cov[i]
+    ex = rnx + pose[0] - ref.xy[j, 0]
+    ey = rny + pose[1] - ref.xy[j, 1]
+    cn = new.cov[i]
     a, b, d = cn[:, 0, 0], cn[:, 0, 1], cn[:, 1, 1]
-    cr = gr.cov[j]
+    cr = ref.cov[j]
     ca = c * c * a - 2 * c * s * b + s * s * d + cr[:, 0, 0]
     cb = c * s * (a - d) + (c * c - s * s) * b + cr[:, 0, 1]
     cd = s * s * a + 2 * c * s * b + c * c * d + cr[:, 1, 1]
-    is_eow_r = gr.kind[j] == EOW
-    along = is_eow_r | (gn.kind[i] == EOW)
+    is_eow_r = ref.kind[j] == EOW
+    along = is_eow_r | (new.kind[i] == EOW)
     rows = _EMPTY_ROWS
     if np.any(along):
-        ang = np.where(is_eow_r, gr.edge[j, 0], gn.edge[i, 0] + pose[2])[along]
+        ang = np.where(is_eow_r, ref.edge[j, 0], new.edge[i, 0] + pose[2])[along]
         dx, dy = np.cos(ang), np.sin(ang)
         rr = dx * ex[along] + dy * ey[along]
         jac = np.column_stack([dx, dy, dy * rnx[along] - dx * rny[along]])
