@@ -30,7 +30,13 @@ from frontends.simulate import (
 )
 from iceg.features import extract
 from iceg.matching import IceMatcher, MatchBounds, MatchingConfig, transform_lines
-from iceg.matching._kernels import GnSettings, LineSegments, SegmentPoints, point_line_system
+from iceg.matching._kernels import (
+    GnSettings,
+    LineSegments,
+    SegmentPoints,
+    cloud_nearest,
+    point_line_system,
+)
 from iceg.matching.config import CovarianceConfig
 from iceg.matching.correlation import CorrelationSettings, correlate, fimp
 from iceg.matching.geometry import (
@@ -48,7 +54,7 @@ from iceg.matching.hypotheses import (
     pair_codes,
     vote,
 )
-from iceg.matching.refine import effective_line_cov
+from iceg.matching.refine import build_cloud, effective_line_cov
 from iceg.types import FeatureKind, ScanFeatures
 from iceg_common.errors import ConfigError, MatchingError
 from iceg_common.se2 import between, compose, inverse, transform_points
@@ -401,6 +407,24 @@ def test_compiled_kernel_equals_the_numpy_reference() -> None:
     assert sig_k == pytest.approx(sig)
     np.testing.assert_allclose(h, h_np, rtol=1e-5)
     np.testing.assert_allclose(g, g_np, rtol=1e-4, atol=1e-6 * np.abs(g_np).max())
+
+
+def test_cloud_nearest_equals_brute_force() -> None:
+    # The grid search of the off-segment points (PL-ICP association) finds the same nearest
+    # reference point within the gate as an exhaustive search, including at cell borders
+    # and for points outside the grid.
+    rng = np.random.default_rng(8)
+    ref = rng.uniform(-3.0, 3.0, (400, 2))
+    pts = rng.uniform(-4.0, 4.0, (300, 2))
+    nan2 = np.full_like(ref, np.nan)
+    cloud = build_cloud(pts, ref, np.ones(400), nan2, 0.3)
+    pose = np.array([0.2, -0.1, 0.3])
+    q = transform_points(pose, pts)
+    d = np.linalg.norm(q[:, None, :] - ref[None], axis=2)
+    for gate in (0.3, 0.1):
+        want = np.where(d.min(axis=1) < gate, d.argmin(axis=1), -1)
+        np.testing.assert_array_equal(cloud_nearest(pose, cloud, gate), want)
+    assert np.count_nonzero(want >= 0) > 50
 
 
 def test_hand_made_scenes_accuracy_and_calibration() -> None:
