@@ -9,14 +9,29 @@ Example::
         result.pose, result.cov  # new scan in the reference frame; Pose2 tangent covariance
 """
 
-from iceg.matching.config import MatchBounds, MatchingConfig
+from iceg.matching.config import (
+    CorrelationConfig,
+    CovarianceConfig,
+    FilterConfig,
+    MatchBounds,
+    MatchingConfig,
+    RefinementConfig,
+    ValidationConfig,
+    VotingConfig,
+)
 from iceg.matching.geometry import transform_features, transform_lines
 from iceg.matching.matcher import IceMatcher
 
 __all__ = [
+    "CorrelationConfig",
+    "CovarianceConfig",
+    "FilterConfig",
     "IceMatcher",
     "MatchBounds",
     "MatchingConfig",
+    "RefinementConfig",
+    "ValidationConfig",
+    "VotingConfig",
     "transform_features",
     "transform_lines",
 ]

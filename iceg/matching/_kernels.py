@@ -1,97 +1,221 @@
-"""Compiled inner loop of the refinement (numba): point-to-segment association and the
-generalised-least-squares normal equations of the point-to-line residuals, in one pass.
+"""Compiled kernels of the matcher (numba): the Gauss-Newton loop of the refinement with its
+normal equations (point-to-line GLS rows, feature-pair rows, off-segment PL-ICP rows), the
+correlation's feature pairing, the covariance lattice cost and the free-space ray check.
 
 numpy builds (points x segments) temporaries and spends most of its time in call overhead
-for scans of a few hundred points; this loop does the same arithmetic as
-:func:`iceg.matching.geometry.associate_points` and ``refine._gls_system`` (see there for the
-model) without temporaries. ``benchmarks/bench_matching.py`` prints both timings.
+for scans of a few hundred points; these loops do the arithmetic without temporaries.
+Kernels take grouped inputs (the named tuples below) rather than long positional lists.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
+#: Fewest associated points for a noise estimate from the residuals (else the previous one).
+MIN_POINTS_FOR_SIGMA = 6
+#: Median absolute deviation to standard deviation of a normal distribution.
+MAD_TO_SIGMA = 1.4826
+#: Damping added to the Gauss-Newton system's diagonal (keeps it invertible).
+GN_DAMPING = 1e-9
+
+
+class LineSegments(NamedTuple):
+    """Reference segments for the kernels (reference frame, metres/radians).
+
+    Attributes:
+        a: ``(M, 2)`` float64 first endpoint.
+        u: ``(M, 2)`` float64 unit direction.
+        length: ``(M,)`` float64 length.
+        normal: ``(M, 2)`` float64 unit line normal ``(cos alpha, sin alpha)``.
+        rho: ``(M,)`` float64 line distance from the origin.
+        line_info: ``(M, 2, 2)`` float64 inverse covariance of each line's ``(alpha, rho)``.
+    """
+
+    a: np.ndarray
+    u: np.ndarray
+    length: np.ndarray
+    normal: np.ndarray
+    rho: np.ndarray
+    line_info: np.ndarray
+
+
+class SegmentPoints(NamedTuple):
+    """New-scan points that lie on new segments (new frame).
+
+    Attributes:
+        xy: ``(P, 2)`` float64 points, metres.
+        alpha: ``(P,)`` float64 normal angle of each point's own segment, radians.
+    """
+
+    xy: np.ndarray
+    alpha: np.ndarray
+
+
+class PairGeometry(NamedTuple):
+    """Feature geometry of both scans for the feature-pair rows (``new_*``: new frame,
+    ``ref_*``: reference frame): ``xy`` ``(K, 2)`` position (m), ``cov`` ``(K, 2, 2)`` its
+    covariance (m^2), ``kind`` ``(K,)`` int64 feature kind, ``edge0`` ``(K,)`` direction of
+    the first edge (rad)."""
+
+    new_xy: np.ndarray
+    new_cov: np.ndarray
+    new_kind: np.ndarray
+    new_edge0: np.ndarray
+    ref_xy: np.ndarray
+    ref_cov: np.ndarray
+    ref_kind: np.ndarray
+    ref_edge0: np.ndarray
+
+
+class PointCloud(NamedTuple):
+    """Off-segment new points against the reference's points (PL-ICP, Censi 2008), with a
+    uniform grid over the reference points for the nearest-neighbour search.
+
+    Attributes:
+        points: ``(C, 2)`` float64 new points on no segment (new frame), metres.
+        ref_points: ``(R, 2)`` float64 reference points (reference frame).
+        ref_spacing: ``(R,)`` float64 distance to the nearest beam neighbour, metres.
+        ref_normal: ``(R, 2)`` float64 unit normal of the local line (NaN: isolated point).
+        cell_m: Grid cell, metres (at least the largest association gate).
+        origin: ``(2,)`` float64 corner of cell ``(0, 0)``.
+        n_cells: ``(2,)`` int64 cells along x and y.
+        cell_key: ``(R,)`` int64 sorted cell keys ``ix * n_cells[1] + iy``.
+        cell_order: ``(R,)`` int64 reference point of each sorted key.
+    """
+
+    points: np.ndarray
+    ref_points: np.ndarray
+    ref_spacing: np.ndarray
+    ref_normal: np.ndarray
+    cell_m: float
+    origin: np.ndarray
+    n_cells: np.ndarray
+    cell_key: np.ndarray
+    cell_order: np.ndarray
+
+
+class GnSettings(NamedTuple):
+    """Fixed numbers of the refinement (metres, radians): association gates, noise floor,
+    Cauchy scale (in each row's standard deviations), the fine gate rule
+    ``min(gate_m, max(gate_min_m, gate_sigmas sigma))`` and the EOW kind code."""
+
+    end_tol_m: float
+    sin_normal_gate: float
+    sigma_min_m: float
+    cauchy_sigmas: float
+    gate_m: float
+    gate_sigmas: float
+    gate_min_m: float
+    eow_kind: int
+
+
+class GnPhase(NamedTuple):
+    """One phase of the Gauss-Newton loop: ``coarse`` (full feature positions, fixed gate)
+    or fine; the starting gate and noise (m), the iteration cap and the step tolerances
+    (m, rad) below which it stops."""
+
+    coarse: bool
+    gate_m: float
+    sigma_m: float
+    max_iterations: int
+    tol_xy_m: float
+    tol_theta_rad: float
+
+
+class PosePrior(NamedTuple):
+    """The bounds' prior: ``mean`` ``(3,)`` (the prediction) and ``info`` ``(3, 3)``."""
+
+    mean: np.ndarray
+    info: np.ndarray
+
 
 @njit(cache=True, nogil=True)
-def point_line_system(
+def associate(
     pose: np.ndarray,
-    points: np.ndarray,
-    point_alpha: np.ndarray,
-    seg_a: np.ndarray,
-    seg_u: np.ndarray,
-    seg_len: np.ndarray,
-    seg_n: np.ndarray,
-    seg_rho: np.ndarray,
-    line_info: np.ndarray,
+    pts: SegmentPoints,
+    segs: LineSegments,
     gate_m: float,
     end_tol_m: float,
     sin_normal_gate: float,
-    sigma_prev: float,
-    sigma_min: float,
-    cauchy_sigmas: float,
-) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]:
-    """Associate each point with its nearest compatible reference segment and build the
-    GLS normal equations (reference frame perturbation ``(x, y, theta)``).
-
-    Args:
-        pose: ``(3,)`` pose of the new scan in the reference frame.
-        points: ``(P, 2)`` new points (new frame); ``point_alpha`` ``(P,)`` their own
-            segment's normal angle (new frame).
-        seg_a, seg_u, seg_len, seg_n, seg_rho: reference segments (first endpoint, unit
-            direction, length, unit line normal ``(cos alpha, sin alpha)``, line distance).
-        line_info: ``(M, 2, 2)`` inverse covariance of each line's ``(alpha, rho)``.
-        gate_m, end_tol_m, sin_normal_gate: association gates.
-        sigma_prev: Point noise to use if too few points associate.
-        sigma_min, cauchy_sigmas: noise floor and Cauchy scale (in sigmas).
+) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest compatible reference segment of each point within the gate (same rule as
+    :func:`iceg.matching.geometry.associate_points`).
 
     Returns:
-        ``H`` (3, 3), ``g`` (3,), the estimated sigma, ``idx`` (P,) segment of each point
-        (-1: none) and ``res`` (P,) signed residuals (NaN where none).
+        ``idx`` (P,) int64 segment (-1: none) and ``res`` (P,) float64 signed point-to-line
+        residual, metres (NaN where none).
     """
-    n_p = points.shape[0]
-    n_m = seg_a.shape[0]
+    n_p = pts.xy.shape[0]
     c = math.cos(pose[2])
     s = math.sin(pose[2])
     idx = np.full(n_p, -1, dtype=np.int64)
     res = np.full(n_p, np.nan)
     gate2 = gate_m * gate_m
-    n_assoc = 0
     for i in range(n_p):
-        px = c * points[i, 0] - s * points[i, 1] + pose[0]
-        py = s * points[i, 0] + c * points[i, 1] + pose[1]
-        qa = point_alpha[i] + pose[2]
+        px = c * pts.xy[i, 0] - s * pts.xy[i, 1] + pose[0]
+        py = s * pts.xy[i, 0] + c * pts.xy[i, 1] + pose[1]
+        qa = pts.alpha[i] + pose[2]
         sq = math.sin(qa)
         cq = math.cos(qa)
         best = gate2
         bj = -1
-        for j in range(n_m):
-            if abs(sq * seg_n[j, 0] - cq * seg_n[j, 1]) > sin_normal_gate:
+        for j in range(segs.a.shape[0]):
+            if abs(sq * segs.normal[j, 0] - cq * segs.normal[j, 1]) > sin_normal_gate:
                 continue
-            rx = px - seg_a[j, 0]
-            ry = py - seg_a[j, 1]
-            along = rx * seg_u[j, 0] + ry * seg_u[j, 1]
-            perp = rx * seg_u[j, 1] - ry * seg_u[j, 0]
-            over = max(-end_tol_m - along, along - seg_len[j] - end_tol_m, 0.0)
+            rx = px - segs.a[j, 0]
+            ry = py - segs.a[j, 1]
+            along = rx * segs.u[j, 0] + ry * segs.u[j, 1]
+            perp = rx * segs.u[j, 1] - ry * segs.u[j, 0]
+            over = max(-end_tol_m - along, along - segs.length[j] - end_tol_m, 0.0)
             d2 = perp * perp + over * over
             if d2 <= best:
                 best = d2
                 bj = j
         if bj >= 0:
             idx[i] = bj
-            res[i] = px * seg_n[bj, 0] + py * seg_n[bj, 1] - seg_rho[bj]
+            res[i] = px * segs.normal[bj, 0] + py * segs.normal[bj, 1] - segs.rho[bj]
+    return idx, res
+
+
+@njit(cache=True, nogil=True)
+def _robust_sigma(idx: np.ndarray, res: np.ndarray, sigma_prev: float, sigma_min: float) -> float:
+    """Point noise from the residuals' median absolute deviation (floored), or
+    ``sigma_prev`` when fewer than ``MIN_POINTS_FOR_SIGMA`` points associate."""
+    n_assoc = 0
+    for i in range(idx.shape[0]):
+        if idx[i] >= 0:
             n_assoc += 1
-    sigma = sigma_prev
-    if n_assoc >= 6:
-        absr = np.empty(n_assoc)
-        k = 0
-        for i in range(n_p):
-            if idx[i] >= 0:
-                absr[k] = abs(res[i])
-                k += 1
-        sigma = max(sigma_min, 1.4826 * np.median(absr))
+    if n_assoc < MIN_POINTS_FOR_SIGMA:
+        return sigma_prev
+    absr = np.empty(n_assoc)
+    k = 0
+    for i in range(idx.shape[0]):
+        if idx[i] >= 0:
+            absr[k] = abs(res[i])
+            k += 1
+    return max(sigma_min, MAD_TO_SIGMA * np.median(absr))
+
+
+@njit(cache=True, nogil=True)
+def _gls_normal_equations(
+    pose: np.ndarray,
+    pts: SegmentPoints,
+    segs: LineSegments,
+    idx: np.ndarray,
+    res: np.ndarray,
+    sigma: float,
+    cauchy_sigmas: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """GLS normal equations of the associated point-to-line residuals: per segment
+    ``C = W^-1 + B S B^T`` (``B``: derivative w.r.t. the line's ``(alpha, rho)``, ``S`` its
+    covariance), inverted by the Woodbury identity (a 2x2 inverse per segment)."""
+    n_m = segs.a.shape[0]
+    c = math.cos(pose[2])
+    s = math.sin(pose[2])
     cc = cauchy_sigmas * sigma
     jj = np.zeros((n_m, 3, 3))
     jb = np.zeros((n_m, 3, 2))
@@ -101,15 +225,15 @@ def point_line_system(
     used = np.zeros(n_m, dtype=np.bool_)
     jv = np.empty(3)
     bv = np.empty(2)
-    for i in range(n_p):
+    for i in range(pts.xy.shape[0]):
         j = idx[i]
         if j < 0:
             continue
         used[j] = True
-        ca = seg_n[j, 0]
-        sa = seg_n[j, 1]
-        rpx = c * points[i, 0] - s * points[i, 1]
-        rpy = s * points[i, 0] + c * points[i, 1]
+        ca = segs.normal[j, 0]
+        sa = segs.normal[j, 1]
+        rpx = c * pts.xy[i, 0] - s * pts.xy[i, 1]
+        rpy = s * pts.xy[i, 0] + c * pts.xy[i, 1]
         qx = rpx + pose[0]
         qy = rpy + pose[1]
         r = res[i]
@@ -134,10 +258,10 @@ def point_line_system(
     for j in range(n_m):
         if not used[j]:
             continue
-        m00 = line_info[j, 0, 0] + bb[j, 0, 0]
-        m01 = line_info[j, 0, 1] + bb[j, 0, 1]
-        m10 = line_info[j, 1, 0] + bb[j, 1, 0]
-        m11 = line_info[j, 1, 1] + bb[j, 1, 1]
+        m00 = segs.line_info[j, 0, 0] + bb[j, 0, 0]
+        m01 = segs.line_info[j, 0, 1] + bb[j, 0, 1]
+        m10 = segs.line_info[j, 1, 0] + bb[j, 1, 0]
+        m11 = segs.line_info[j, 1, 1] + bb[j, 1, 1]
         det = m00 * m11 - m01 * m10
         k00 = m11 / det
         k01 = -m01 / det
@@ -150,50 +274,95 @@ def point_line_system(
             grad[a] += jr[j, a] - (t0 * br[j, 0] + t1 * br[j, 1])
             for b in range(3):
                 hess[a, b] += jj[j, a, b] - (t0 * jb[j, b, 0] + t1 * jb[j, b, 1])
+    return hess, grad
+
+
+@njit(cache=True, nogil=True)
+def point_line_system(
+    pose: np.ndarray,
+    pts: SegmentPoints,
+    segs: LineSegments,
+    gate_m: float,
+    sigma_prev: float,
+    settings: GnSettings,
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]:
+    """Associate each point with its nearest compatible reference segment and build the
+    GLS normal equations (perturbation ``(x, y, theta)`` in the reference frame; DESIGN
+    step 8, paper §III-C3).
+
+    Args:
+        pose: ``(3,)`` pose of the new scan in the reference frame.
+        pts: The new scan's points on segments (new frame).
+        segs: Reference segments.
+        gate_m: Association gate, metres.
+        sigma_prev: Point noise to use if too few points associate, metres.
+        settings: Gates, noise floor and Cauchy scale.
+
+    Returns:
+        ``H`` (3, 3), ``g`` (3,), the estimated sigma (m), ``idx`` (P,) segment of each point
+        (-1: none) and ``res`` (P,) signed residuals (NaN where none).
+    """
+    idx, res = associate(pose, pts, segs, gate_m, settings.end_tol_m, settings.sin_normal_gate)
+    sigma = _robust_sigma(idx, res, sigma_prev, settings.sigma_min_m)
+    hess, grad = _gls_normal_equations(pose, pts, segs, idx, res, sigma, settings.cauchy_sigmas)
     return hess, grad, sigma, idx, res
+
+
+@njit(cache=True, nogil=True)
+def _pair_covariance(
+    pose: np.ndarray, geom: PairGeometry, i: int, j: int
+) -> tuple[float, float, float, float, float, float, float]:
+    """Rotated new position ``(rnx, rny)``, position error ``(ex, ey)`` and the entries
+    ``(ca, cb, cd)`` of ``R C_new R^T + C_ref`` of pair ``(i, j)``."""
+    c = math.cos(pose[2])
+    s = math.sin(pose[2])
+    rnx = c * geom.new_xy[i, 0] - s * geom.new_xy[i, 1]
+    rny = s * geom.new_xy[i, 0] + c * geom.new_xy[i, 1]
+    ex = rnx + pose[0] - geom.ref_xy[j, 0]
+    ey = rny + pose[1] - geom.ref_xy[j, 1]
+    a = geom.new_cov[i, 0, 0]
+    b = geom.new_cov[i, 0, 1]
+    d = geom.new_cov[i, 1, 1]
+    ca = c * c * a - 2 * c * s * b + s * s * d + geom.ref_cov[j, 0, 0]
+    cb = c * s * (a - d) + (c * c - s * s) * b + geom.ref_cov[j, 0, 1]
+    cd = s * s * a + 2 * c * s * b + c * c * d + geom.ref_cov[j, 1, 1]
+    return rnx, rny, ex, ey, ca, cb, cd
+
+
+@njit(cache=True, nogil=True)
+def _add_row(hess: np.ndarray, grad: np.ndarray, jv: np.ndarray, r: float, w: float) -> None:
+    """``H += w j j^T``, ``g += w j r`` for one scalar row."""
+    for p in range(3):
+        grad[p] += w * jv[p] * r
+        for q in range(3):
+            hess[p, q] += w * jv[p] * jv[q]
 
 
 @njit(cache=True, nogil=True)
 def feature_system(
     pose: np.ndarray,
-    pair_new: np.ndarray,
-    pair_ref: np.ndarray,
-    new_xy: np.ndarray,
-    new_cov: np.ndarray,
-    new_kind: np.ndarray,
-    new_edge0: np.ndarray,
-    ref_xy: np.ndarray,
-    ref_cov: np.ndarray,
-    ref_kind: np.ndarray,
-    ref_edge0: np.ndarray,
-    eow_kind: int,
+    pairs: np.ndarray,
+    geom: PairGeometry,
     use_positions: bool,
-    cauchy_c: float,
+    settings: GnSettings,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Normal equations of the feature pairs (see ``refine._feature_rows``): a pair that
-    involves an EOW constrains the position along its wall (the reference EOW's wall, else
-    the new one's rotated); other pairs, with ``use_positions``, their full 2D position
-    with covariance ``R C_new R^T + C_ref``. Cauchy weights on the whitened residuals."""
-    c = math.cos(pose[2])
-    s = math.sin(pose[2])
+    """Normal equations of the feature pairs ``(Q, 2)`` ``[new, ref]`` (DESIGN step 8): a
+    pair that involves an EOW constrains the position along its wall (the reference EOW's
+    wall, else the new one's rotated); other pairs, with ``use_positions``, their full 2D
+    position with covariance ``R C_new R^T + C_ref``. Cauchy weights on the whitened
+    residuals, scale ``settings.cauchy_sigmas``."""
+    cauchy_c = settings.cauchy_sigmas
+    eow = settings.eow_kind
     hess = np.zeros((3, 3))
     grad = np.zeros(3)
     jv = np.empty(3)
-    for k in range(pair_new.shape[0]):
-        i = pair_new[k]
-        j = pair_ref[k]
-        rnx = c * new_xy[i, 0] - s * new_xy[i, 1]
-        rny = s * new_xy[i, 0] + c * new_xy[i, 1]
-        ex = rnx + pose[0] - ref_xy[j, 0]
-        ey = rny + pose[1] - ref_xy[j, 1]
-        a = new_cov[i, 0, 0]
-        b = new_cov[i, 0, 1]
-        d = new_cov[i, 1, 1]
-        ca = c * c * a - 2 * c * s * b + s * s * d + ref_cov[j, 0, 0]
-        cb = c * s * (a - d) + (c * c - s * s) * b + ref_cov[j, 0, 1]
-        cd = s * s * a + 2 * c * s * b + c * c * d + ref_cov[j, 1, 1]
-        if ref_kind[j] == eow_kind or new_kind[i] == eow_kind:
-            ang = ref_edge0[j] if ref_kind[j] == eow_kind else new_edge0[i] + pose[2]
+    ju = np.empty(3)
+    for k in range(pairs.shape[0]):
+        i = pairs[k, 0]
+        j = pairs[k, 1]
+        rnx, rny, ex, ey, ca, cb, cd = _pair_covariance(pose, geom, i, j)
+        if geom.ref_kind[j] == eow or geom.new_kind[i] == eow:
+            ang = geom.ref_edge0[j] if geom.ref_kind[j] == eow else geom.new_edge0[i] + pose[2]
             dx = math.cos(ang)
             dy = math.sin(ang)
             r = dx * ex + dy * ey
@@ -204,10 +373,7 @@ def feature_system(
             jv[0] = dx
             jv[1] = dy
             jv[2] = dy * rnx - dx * rny
-            for p in range(3):
-                grad[p] += w * jv[p] * r
-                for q in range(3):
-                    hess[p, q] += w * jv[p] * jv[q]
+            _add_row(hess, grad, jv, r, w)
         elif use_positions:
             det = ca * cd - cb * cb
             if not (det > 0.0):
@@ -218,21 +384,101 @@ def feature_system(
             m2 = ex * (i00 * ex + i01 * ey) + ey * (i01 * ex + i11 * ey)
             w = 1.0 / (1.0 + m2 / (cauchy_c * cauchy_c))
             # J = [[1, 0, -rny], [0, 1, rnx]]; H += w J^T I J; g += w J^T I e
-            jx0, jx1, jx2 = 1.0, 0.0, -rny
-            jy0, jy1, jy2 = 0.0, 1.0, rnx
-            jv[0] = jx0
-            jv[1] = jx1
-            jv[2] = jx2
-            ju = np.empty(3)
-            ju[0] = jy0
-            ju[1] = jy1
-            ju[2] = jy2
+            jv[0] = 1.0
+            jv[1] = 0.0
+            jv[2] = -rny
+            ju[0] = 0.0
+            ju[1] = 1.0
+            ju[2] = rnx
             for p in range(3):
                 grad[p] += w * (jv[p] * (i00 * ex + i01 * ey) + ju[p] * (i01 * ex + i11 * ey))
                 for q in range(3):
                     hess[p, q] += w * (
                         jv[p] * (i00 * jv[q] + i01 * ju[q]) + ju[p] * (i01 * jv[q] + i11 * ju[q])
                     )
+    return hess, grad
+
+
+@njit(cache=True, nogil=True)
+def cloud_nearest(pose: np.ndarray, cloud: PointCloud, gate_m: float) -> np.ndarray:
+    """Nearest reference point (closer than ``gate_m <= cloud.cell_m``) of each off-segment
+    point moved into the reference frame by ``pose``; -1 where none. Searches the 3x3 grid
+    cells around the point."""
+    n_c = cloud.points.shape[0]
+    out = np.full(n_c, -1, dtype=np.int64)
+    c = math.cos(pose[2])
+    s = math.sin(pose[2])
+    for i in range(n_c):
+        qx = c * cloud.points[i, 0] - s * cloud.points[i, 1] + pose[0]
+        qy = s * cloud.points[i, 0] + c * cloud.points[i, 1] + pose[1]
+        fx = (qx - cloud.origin[0]) / cloud.cell_m
+        fy = (qy - cloud.origin[1]) / cloud.cell_m
+        if not (
+            fx > -2.0 and fy > -2.0 and fx < cloud.n_cells[0] + 1 and fy < cloud.n_cells[1] + 1
+        ):
+            continue
+        ix = math.floor(fx)
+        iy = math.floor(fy)
+        best = gate_m * gate_m
+        for cx in range(max(ix - 1, 0), min(ix + 2, cloud.n_cells[0])):
+            for cy in range(max(iy - 1, 0), min(iy + 2, cloud.n_cells[1])):
+                key = cx * cloud.n_cells[1] + cy
+                lo = np.searchsorted(cloud.cell_key, key)
+                hi = np.searchsorted(cloud.cell_key, key, side="right")
+                for k in range(lo, hi):
+                    j = cloud.cell_order[k]
+                    dx = qx - cloud.ref_points[j, 0]
+                    dy = qy - cloud.ref_points[j, 1]
+                    d2 = dx * dx + dy * dy
+                    if d2 < best:
+                        best = d2
+                        out[i] = j
+    return out
+
+
+@njit(cache=True, nogil=True)
+def cloud_system(
+    pose: np.ndarray, cloud: PointCloud, gate_m: float, sigma: float, cauchy_sigmas: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Normal equations of the off-segment points (PL-ICP, Censi 2008): one point-to-line
+    row (variance ``2 sigma^2``) on the nearest reference point's local line, or two
+    point-to-point rows (variance ``2 sigma^2 + (spacing / 2)^2``) for an isolated
+    reference point; Cauchy weights with scale ``cauchy_sigmas`` on the whitened residual."""
+    hess = np.zeros((3, 3))
+    grad = np.zeros(3)
+    near = cloud_nearest(pose, cloud, gate_m)
+    c = math.cos(pose[2])
+    s = math.sin(pose[2])
+    jv = np.empty(3)
+    for i in range(near.shape[0]):
+        j = near[i]
+        if j < 0:
+            continue
+        rpx = c * cloud.points[i, 0] - s * cloud.points[i, 1]
+        rpy = s * cloud.points[i, 0] + c * cloud.points[i, 1]
+        ex = rpx + pose[0] - cloud.ref_points[j, 0]
+        ey = rpy + pose[1] - cloud.ref_points[j, 1]
+        nx = cloud.ref_normal[j, 0]
+        ny = cloud.ref_normal[j, 1]
+        if math.isfinite(nx):
+            var = 2.0 * sigma * sigma
+            r = nx * ex + ny * ey
+            w = 1.0 / (1.0 + (r / math.sqrt(var) / cauchy_sigmas) ** 2) / var
+            jv[0] = nx
+            jv[1] = ny
+            jv[2] = ny * rpx - nx * rpy
+            _add_row(hess, grad, jv, r, w)
+            continue
+        var = 2.0 * sigma * sigma + (0.5 * min(cloud.ref_spacing[j], 1e3)) ** 2
+        w = 1.0 / (1.0 + (math.hypot(ex, ey) / math.sqrt(var) / cauchy_sigmas) ** 2) / var
+        jv[0] = 1.0
+        jv[1] = 0.0
+        jv[2] = -rpy
+        _add_row(hess, grad, jv, ex, w)
+        jv[0] = 0.0
+        jv[1] = 1.0
+        jv[2] = rpx
+        _add_row(hess, grad, jv, ey, w)
     return hess, grad
 
 
@@ -400,100 +646,59 @@ def _solve3(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, bool]:
 
 
 @njit(cache=True, nogil=True)
-def gn_phase(
+def _add_prior(hess: np.ndarray, grad: np.ndarray, pose: np.ndarray, prior: PosePrior) -> None:
+    """Add the bounds' prior pulling toward ``prior.mean`` (MAP) and the damping."""
+    dp = pose - prior.mean
+    dp[2] = (dp[2] + math.pi) % (2.0 * math.pi) - math.pi
+    for i in range(3):
+        for k in range(3):
+            grad[i] += prior.info[i, k] * dp[k]
+            hess[i, k] += prior.info[i, k]
+        hess[i, i] += GN_DAMPING
+
+
+@njit(cache=True, nogil=True)
+def gauss_newton_phase(
     pose0: np.ndarray,
-    prior_mean: np.ndarray,
-    prior_info: np.ndarray,
-    points: np.ndarray,
-    point_alpha: np.ndarray,
-    seg_a: np.ndarray,
-    seg_u: np.ndarray,
-    seg_len: np.ndarray,
-    seg_n: np.ndarray,
-    seg_rho: np.ndarray,
-    line_info: np.ndarray,
-    end_tol_m: float,
-    sin_normal_gate: float,
-    sigma_min: float,
-    cauchy_sigmas: float,
-    pair_new: np.ndarray,
-    pair_ref: np.ndarray,
-    new_xy: np.ndarray,
-    new_cov: np.ndarray,
-    new_kind: np.ndarray,
-    new_edge0: np.ndarray,
-    ref_xy: np.ndarray,
-    ref_cov: np.ndarray,
-    ref_kind: np.ndarray,
-    ref_edge0: np.ndarray,
-    eow_kind: int,
-    coarse: bool,
-    gate: float,
-    sigma: float,
-    max_it: int,
-    gate_m: float,
-    gate_sigmas: float,
-    gate_min_m: float,
-    tol_xy: float,
-    tol_th: float,
+    prior: PosePrior,
+    pts: SegmentPoints,
+    segs: LineSegments,
+    pairs: np.ndarray,
+    geom: PairGeometry,
+    cloud: PointCloud,
+    settings: GnSettings,
+    phase: GnPhase,
 ) -> tuple[np.ndarray, float, float, int]:
-    """One phase of the Gauss-Newton refinement (``refine.refine``, without off-segment
-    points): point-to-line GLS rows, feature-pair rows (``pair_new``/``pair_ref``; full
-    positions in the coarse phase), the bounds' prior pulling toward ``prior_mean``; the
-    coarse phase keeps ``gate``, the fine phase sets it to ``gate_sigmas`` sigmas after each
-    step. Stops when a step is below ``tol_xy`` / ``tol_th`` or after ``max_it`` steps.
+    """One phase of the Gauss-Newton refinement (paper §III-C3 "an optimization problem";
+    DESIGN step 8). Each step sums the normal equations of the point-to-line GLS rows
+    (:func:`point_line_system`), the feature pairs ``(Q, 2)`` ``[new, ref]`` (full positions
+    in the coarse phase; :func:`feature_system`), the off-segment PL-ICP rows (Censi 2008;
+    :func:`cloud_system`, none when ``cloud`` has no points) and the bounds' prior, solves
+    for the step (perturbation ``(x, y, theta)`` in the reference frame, m and rad) and
+    applies it. The coarse phase keeps its gate; the fine phase sets it to
+    ``gate_sigmas`` sigmas after each step. Stops when a step is below the phase's
+    tolerances or after its iteration cap.
 
     Returns:
-        The pose, the point noise estimate, the gate for the next phase and the number of
-        iterations run.
+        The pose ``(3,)``, the point noise estimate (m), the gate for the next phase (m) and
+        the number of iterations run.
     """
     pose = pose0.copy()
+    gate = phase.gate_m
+    sigma = phase.sigma_m
     it = 0
-    while it < max_it:
+    while it < phase.max_iterations:
         it += 1
-        hess, grad, sigma, _, _ = point_line_system(
-            pose,
-            points,
-            point_alpha,
-            seg_a,
-            seg_u,
-            seg_len,
-            seg_n,
-            seg_rho,
-            line_info,
-            gate,
-            end_tol_m,
-            sin_normal_gate,
-            sigma,
-            sigma_min,
-            cauchy_sigmas,
-        )
-        if pair_new.shape[0] > 0:
-            fh, fg = feature_system(
-                pose,
-                pair_new,
-                pair_ref,
-                new_xy,
-                new_cov,
-                new_kind,
-                new_edge0,
-                ref_xy,
-                ref_cov,
-                ref_kind,
-                ref_edge0,
-                eow_kind,
-                coarse,
-                2.5,
-            )
+        hess, grad, sigma, _, _ = point_line_system(pose, pts, segs, gate, sigma, settings)
+        if pairs.shape[0] > 0:
+            fh, fg = feature_system(pose, pairs, geom, phase.coarse, settings)
             hess += fh
             grad += fg
-        dp = pose - prior_mean
-        dp[2] = (dp[2] + math.pi) % (2.0 * math.pi) - math.pi
-        for i in range(3):
-            for k in range(3):
-                grad[i] += prior_info[i, k] * dp[k]
-                hess[i, k] += prior_info[i, k]
-            hess[i, i] += 1e-9
+        if cloud.points.shape[0] > 0:
+            ch, cg = cloud_system(pose, cloud, gate, sigma, settings.cauchy_sigmas)
+            hess += ch
+            grad += cg
+        _add_prior(hess, grad, pose, prior)
         for i in range(3):
             grad[i] = -grad[i]
         delta, ok = _solve3(hess, grad)
@@ -502,9 +707,9 @@ def gn_phase(
         pose[0] += delta[0]
         pose[1] += delta[1]
         pose[2] = (pose[2] + delta[2] + math.pi) % (2.0 * math.pi) - math.pi
-        if not coarse:
-            gate = min(gate_m, max(gate_min_m, gate_sigmas * sigma))
-        if math.hypot(delta[0], delta[1]) < tol_xy and abs(delta[2]) < tol_th:
+        if not phase.coarse:
+            gate = min(settings.gate_m, max(settings.gate_min_m, settings.gate_sigmas * sigma))
+        if math.hypot(delta[0], delta[1]) < phase.tol_xy_m and abs(delta[2]) < phase.tol_theta_rad:
             break
     return pose, sigma, gate, it
 

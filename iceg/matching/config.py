@@ -57,17 +57,11 @@ class MatchBounds:
         return self.max_rotation_rad >= math.pi
 
 
-class MatchingConfig(BaseModel):
-    """Thresholds and weights of the ICE matcher.
-
-    Distances are metres, angles degrees (converted once to radians by the matcher). Each
-    field's description cites the paper section or equation (or the reference paper) it
-    comes from; "DESIGN" refers to ``DESIGN.md``, "ICE matching, step by step".
-    """
+class FilterConfig(BaseModel):
+    """Hierarchical candidate filter and hypotheses (paper §III-C2; DESIGN step 5-6)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    # --- step 5: hierarchical candidate filter -----------------------------------------------
     corner_eow_matching: bool = Field(
         default=True,
         description="Allow a Corner to match an EOW through one of its edges (paper §III-C2: "
@@ -113,7 +107,13 @@ class MatchingConfig(BaseModel):
         description="Cap on candidate Intersection pairs combined two by two (quadratic cost); "
         "beyond it the nearest-to-prediction pairs are kept (DESIGN step 6).",
     )
-    # --- step 6: voting ---------------------------------------------------------------------
+
+
+class VotingConfig(BaseModel):
+    """Voting and choice of the hypotheses to refine (paper §III-C3; DESIGN step 6)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
     vote_cell_m: float = Field(
         default=0.15,
         gt=0.0,
@@ -151,42 +151,19 @@ class MatchingConfig(BaseModel):
         le=1.0,
         description="Only clusters whose correlation is within this of the best are refined.",
     )
-    ambiguity_margin: float = Field(
-        default=0.1,
-        ge=0.0,
-        description="A match fails as ambiguous when a distinct refined hypothesis that passes "
-        "every check scores (correlation + point overlap) within this of the best (DESIGN step "
-        "10: never a confident wrong pose in a self-similar scene).",
-    )
-    ambiguity_distance_m: float = Field(
-        default=0.3,
-        gt=0.0,
-        description="Two refined hypotheses farther apart than this (or ambiguity_angle_deg) "
-        "are distinct.",
-    )
-    ambiguity_angle_deg: float = Field(
-        default=5.0, gt=0.0, description="Angular distinctness threshold of two refined hypotheses."
-    )
-    tracking_max_translation_m: float = Field(
-        default=1.0,
-        gt=0.0,
-        description="Bounds up to this translation (and tracking_max_rotation_deg) are "
-        "tracking: one feature pair, the bounded correlation threshold and the first passing "
-        "hypothesis suffice. Wider bounds (loop closure) use the global thresholds and "
-        "compare all refined hypotheses (DESIGN step 10).",
-    )
-    tracking_max_rotation_deg: float = Field(
-        default=30.0,
-        gt=0.0,
-        description="Rotation limit of tracking bounds (see tracking_max_translation_m).",
-    )
     use_prediction_hypothesis: bool = Field(
         default=True,
         description="For a bounded (local) match, also refine from the prediction itself, so a "
         "scene with few features (a corridor) still yields a point-to-line match whose "
         "covariance shows the degeneracy (DESIGN step 9).",
     )
-    # --- step 7: correlation (paper eq. 1-3) ------------------------------------------------
+
+
+class CorrelationConfig(BaseModel):
+    """The correlation of paper eq. 1-3 (DESIGN step 7)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
     gate_distance_m: float = Field(
         default=0.4,
         gt=0.0,
@@ -222,34 +199,6 @@ class MatchingConfig(BaseModel):
     weight_ang: float = Field(default=0.2, ge=0.0, description="Weight of ang in paper eq. 1.")
     weight_count: float = Field(default=0.2, ge=0.0, description="Weight of count in paper eq. 1.")
     weight_acc: float = Field(default=0.6, ge=0.0, description="Weight of acc in paper eq. 1-2.")
-    min_correlation: float = Field(
-        default=0.25,
-        ge=0.0,
-        le=1.0,
-        description="A bounded match whose correlation (paper eq. 1) is below this fails "
-        "(DESIGN step 10). Real scans of cluttered rooms reach 0.25-0.45 at the true pose "
-        "(many new features lower acc), simulated ones 0.6-1.",
-    )
-    min_correlation_global: float = Field(
-        default=0.45,
-        ge=0.0,
-        le=1.0,
-        description="The same for a global match (a far larger hypothesis space needs stronger "
-        "evidence).",
-    )
-    min_matched_features: int = Field(
-        default=1,
-        ge=1,
-        description="Fewest feature pairs a feature-supported bounded match needs (DESIGN step "
-        "10); one directed pair fixes a full pose, and the bounds exclude far look-alikes.",
-    )
-    min_matched_features_global: int = Field(
-        default=2,
-        ge=1,
-        description="Fewest feature pairs a global (or wide-bounds) match needs: over the "
-        "whole map a single Corner or EOW has many look-alikes, a configuration of two is "
-        "distinctive.",
-    )
     occlusion_tolerance_m: float = Field(
         default=0.25,
         gt=0.0,
@@ -257,7 +206,23 @@ class MatchingConfig(BaseModel):
         "1) unless the new scan's range at its bearing is shorter than its distance minus "
         "this (DESIGN 'Feature map and time-validity').",
     )
-    # --- step 8: refinement -----------------------------------------------------------------
+
+    @model_validator(mode="after")
+    def _check_fimp(self) -> CorrelationConfig:
+        if self.fimp_far >= self.fimp_near:
+            raise ConfigError(
+                f"matching.correlation: fimp_far ({self.fimp_far}) must be below fimp_near "
+                f"({self.fimp_near})"
+            )
+        return self
+
+
+class RefinementConfig(BaseModel):
+    """Gauss-Newton refinement (paper §III-C3 "an optimization problem"; DESIGN step 8;
+    off-segment points: PL-ICP, Censi 2008)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
     max_iterations: int = Field(
         default=16,
         ge=2,
@@ -294,12 +259,6 @@ class MatchingConfig(BaseModel):
         lt=90.0,
         description="A point associates only with a reference segment whose line is within "
         "this angle of the point's own segment's line (after the hypothesis' rotation).",
-    )
-    cauchy_scale_sigmas: float = Field(
-        default=2.5,
-        gt=0.0,
-        description="Cauchy robust kernel scale in units of the estimated point noise "
-        "(robust weights so that outlying points do not pull; DESIGN step 8).",
     )
     point_sigma_min_m: float = Field(
         default=0.005,
@@ -340,7 +299,14 @@ class MatchingConfig(BaseModel):
         ge=20,
         description="Most scan points used by the refinement (evenly subsampled beyond this).",
     )
-    # --- step 9: covariance -----------------------------------------------------------------
+
+
+class CovarianceConfig(BaseModel):
+    """Covariance from the correlation landscape (Olson 2009; DESIGN step 9) and its
+    degeneracy limits (DESIGN step 10)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
     lattice_steps: int = Field(
         default=5,
         ge=3,
@@ -381,7 +347,63 @@ class MatchingConfig(BaseModel):
         gt=0.0,
         description="A result whose rotation standard deviation exceeds this is degenerate.",
     )
-    # --- step 10: validation ----------------------------------------------------------------
+
+    @model_validator(mode="after")
+    def _check_lattice(self) -> CovarianceConfig:
+        if self.lattice_steps % 2 == 0:
+            raise ConfigError(
+                f"matching.covariance: lattice_steps must be odd (the lattice must contain "
+                f"the estimate), got {self.lattice_steps}"
+            )
+        return self
+
+
+class ValidationConfig(BaseModel):
+    """Acceptance checks and the choice among refined hypotheses (DESIGN step 10)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    tracking_max_translation_m: float = Field(
+        default=1.0,
+        gt=0.0,
+        description="Bounds up to this translation (and tracking_max_rotation_deg) are "
+        "tracking: one feature pair, the bounded correlation threshold and the first passing "
+        "hypothesis suffice. Wider bounds (loop closure) use the global thresholds and "
+        "compare all refined hypotheses (DESIGN step 10).",
+    )
+    tracking_max_rotation_deg: float = Field(
+        default=30.0,
+        gt=0.0,
+        description="Rotation limit of tracking bounds (see tracking_max_translation_m).",
+    )
+    min_correlation: float = Field(
+        default=0.25,
+        ge=0.0,
+        le=1.0,
+        description="A bounded match whose correlation (paper eq. 1) is below this fails "
+        "(DESIGN step 10). Real scans of cluttered rooms reach 0.25-0.45 at the true pose "
+        "(many new features lower acc), simulated ones 0.6-1.",
+    )
+    min_correlation_global: float = Field(
+        default=0.45,
+        ge=0.0,
+        le=1.0,
+        description="The same for a global match (a far larger hypothesis space needs stronger "
+        "evidence).",
+    )
+    min_matched_features: int = Field(
+        default=1,
+        ge=1,
+        description="Fewest feature pairs a feature-supported bounded match needs (DESIGN step "
+        "10); one directed pair fixes a full pose, and the bounds exclude far look-alikes.",
+    )
+    min_matched_features_global: int = Field(
+        default=2,
+        ge=1,
+        description="Fewest feature pairs a global (or wide-bounds) match needs: over the "
+        "whole map a single Corner or EOW has many look-alikes, a configuration of two is "
+        "distinctive.",
+    )
     min_point_overlap: float = Field(
         default=0.3,
         ge=0.0,
@@ -403,6 +425,22 @@ class MatchingConfig(BaseModel):
         le=1.0,
         description="The same for a bounded match from the prediction without any feature pair "
         "(a corridor, or features too unstable to pair): the points alone must agree.",
+    )
+    ambiguity_margin: float = Field(
+        default=0.1,
+        ge=0.0,
+        description="A match fails as ambiguous when a distinct refined hypothesis that passes "
+        "every check scores (correlation + point overlap) within this of the best (DESIGN step "
+        "10: never a confident wrong pose in a self-similar scene).",
+    )
+    ambiguity_distance_m: float = Field(
+        default=0.3,
+        gt=0.0,
+        description="Two refined hypotheses farther apart than this (or ambiguity_angle_deg) "
+        "are distinct.",
+    )
+    ambiguity_angle_deg: float = Field(
+        default=5.0, gt=0.0, description="Angular distinctness threshold of two refined hypotheses."
     )
     see_through_tolerance_m: float = Field(
         default=0.3,
@@ -438,12 +476,32 @@ class MatchingConfig(BaseModel):
         "their neighbours' walls).",
     )
 
-    @model_validator(mode="after")
-    def _check(self) -> MatchingConfig:
-        if self.lattice_steps % 2 == 0:
-            raise ValueError(f"lattice_steps must be odd, got {self.lattice_steps}")
-        if self.fimp_far >= self.fimp_near:
-            raise ValueError(
-                f"fimp_far ({self.fimp_far}) must be below fimp_near ({self.fimp_near})"
-            )
-        return self
+
+class MatchingConfig(BaseModel):
+    """Thresholds and weights of the ICE matcher, one sub-model per step of the matcher.
+
+    Distances are metres, angles degrees (converted once to radians by the matcher). Each
+    field's description cites the paper section or equation (or the reference paper) it
+    comes from; "DESIGN" refers to ``DESIGN.md``, "ICE matching, step by step".
+
+    Raises:
+        ConfigError: from a sub-model's cross-field check (``lattice_steps`` even,
+            ``fimp_far >= fimp_near``); single out-of-range values raise pydantic's
+            ``ValidationError`` (``iceg.config`` turns both into one ``ConfigError``).
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    filter: FilterConfig = Field(default_factory=FilterConfig)
+    voting: VotingConfig = Field(default_factory=VotingConfig)
+    correlation: CorrelationConfig = Field(default_factory=CorrelationConfig)
+    refinement: RefinementConfig = Field(default_factory=RefinementConfig)
+    covariance: CovarianceConfig = Field(default_factory=CovarianceConfig)
+    validation: ValidationConfig = Field(default_factory=ValidationConfig)
+    cauchy_scale_sigmas: float = Field(
+        default=2.5,
+        gt=0.0,
+        description="Cauchy robust kernel scale in units of each row's standard deviation, "
+        "for every robust row of the refinement (point-to-line, feature pairs, off-segment "
+        "points; DESIGN step 8) and of the covariance lattice (DESIGN step 9).",
+    )

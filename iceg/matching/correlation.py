@@ -3,12 +3,14 @@ hypotheses."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from iceg.matching._kernels import pair_nearest
+from iceg.matching.config import CorrelationConfig
 from iceg.matching.geometry import FeatureGeometry, PolarProfile, rot
 
 FloatArray = NDArray[np.float64]
@@ -75,29 +77,95 @@ def visible_reference(
     return (bearing >= lo) & (bearing <= hi) & (dist < range_max_m) & ~occluded
 
 
+@dataclass(frozen=True)
+class CorrelationSettings:
+    """Numbers of the correlation in internal units (metres, radians).
+
+    Attributes:
+        gate_distance_m: ``g_d`` of eq. 1.
+        gate_angle_rad: ``g_a`` of eq. 1.
+        fimp_near, fimp_far, fimp_range_m: ``fImp`` of eq. 3 (see :func:`fimp`).
+        range_max_m: The new scan's reliable range (visibility for ``count``).
+        occlusion_tolerance_m: Occlusion allowance of the visibility test.
+        weights: ``(w_dis, w_ang, w_count, w_acc)`` of eq. 1.
+    """
+
+    gate_distance_m: float
+    gate_angle_rad: float
+    fimp_near: float
+    fimp_far: float
+    fimp_range_m: float
+    range_max_m: float
+    occlusion_tolerance_m: float
+    weights: tuple[float, float, float, float]
+
+    @classmethod
+    def from_config(cls, c: CorrelationConfig, range_max_m: float) -> CorrelationSettings:
+        """Settings from the config section and the new scan's range (``fimp_range_m``
+        defaults to it)."""
+        return cls(
+            gate_distance_m=c.gate_distance_m,
+            gate_angle_rad=math.radians(c.gate_angle_deg),
+            fimp_near=c.fimp_near,
+            fimp_far=c.fimp_far,
+            fimp_range_m=c.fimp_range_m or range_max_m,
+            range_max_m=range_max_m,
+            occlusion_tolerance_m=c.occlusion_tolerance_m,
+            weights=(c.weight_dis, c.weight_ang, c.weight_count, c.weight_acc),
+        )
+
+
+def _empty(h: int, kn: int, n_visible: IntArray) -> Correlation:
+    zeros = np.zeros(h)
+    none = np.full((h, kn), -1, dtype=np.int64)
+    return Correlation(zeros, zeros, zeros, zeros, zeros, none, np.zeros(h, np.int64), n_visible)
+
+
+def pair_features(
+    poses: FloatArray,
+    gn: FeatureGeometry,
+    gr: FeatureGeometry,
+    codes: IntArray,
+    settings: CorrelationSettings,
+) -> tuple[IntArray, FloatArray, FloatArray]:
+    """The correlation's feature pairing (DESIGN step 7) under ``H`` hypotheses: each new
+    feature pairs with the nearest compatible reference feature inside ``g_d`` and ``g_a``
+    (one new feature per reference feature, the nearest wins).
+
+    Returns:
+        ``match`` ``(H, K_new)`` int64 reference index (-1: none), ``dist`` (m) and ``angle``
+        (rad) ``(H, K_new)`` float64 of each pair (NaN where unpaired).
+    """
+    return pair_nearest(  # type: ignore[no-any-return]
+        poses,
+        gn.xy,
+        gn.heading,
+        gn.edge,
+        gn.opening,
+        gr.xy,
+        gr.heading,
+        gr.edge,
+        gr.opening,
+        codes,
+        settings.gate_distance_m,
+        settings.gate_angle_rad,
+    )
+
+
 def correlate(
     poses: FloatArray,
     gn: FeatureGeometry,
     gr: FeatureGeometry,
     codes: IntArray,
     profile: PolarProfile,
-    *,
-    gate_distance_m: float,
-    gate_angle_rad: float,
-    fimp_near: float,
-    fimp_far: float,
-    fimp_range_m: float,
-    range_max_m: float,
-    occlusion_tolerance_m: float,
-    weights: tuple[float, float, float, float],
+    settings: CorrelationSettings,
     pairing_only: bool = False,
 ) -> Correlation:
     """Correlation of paper eq. 1-3 (DESIGN step 7) for ``H`` hypotheses at once.
 
-    Under each hypothesis the new features move into the reference frame and each pairs
-    with the nearest compatible reference feature inside the distance gate ``g_d`` and the
-    angle gate ``g_a`` (one new feature per reference feature, the nearest wins). With
-    ``w_i = fImp(d(nf_i)) fImp(d(of_i))`` (``d`` measured from each frame's origin):
+    Under each hypothesis the new features move into the reference frame and pair as in
+    :func:`pair_features`. With ``w_i = fImp(d(nf_i)) fImp(d(of_i))`` (``d`` measured from
+    each frame's origin):
 
     - ``dis = sum w_i (1 - dis_i / g_d) / sum w_i``
     - ``ang = sum w_i (1 - Angle_i / g_a) / sum w_i``
@@ -110,7 +178,7 @@ def correlate(
         gn, gr: New and reference feature geometry.
         codes: ``(K_new, K_ref)`` pair codes from :func:`~iceg.matching.hypotheses.pair_codes`.
         profile: Polar profile of the new scan (visibility for ``count``).
-        weights: ``(w_dis, w_ang, w_count, w_acc)`` of eq. 1.
+        settings: Gates, ``fImp`` and the weights of eq. 1.
         pairing_only: Only pair the features (``match``, ``n_matched``); the scores and
             ``n_visible`` are left at zero.
 
@@ -118,65 +186,85 @@ def correlate(
         A :class:`Correlation`.
     """
     h = poses.shape[0]
-    kn, kr = gn.n, gr.n
     if pairing_only:
         n_visible = np.zeros(h, dtype=np.int64)
     else:
-        visible = visible_reference(poses, gr, profile, range_max_m, occlusion_tolerance_m)
-        n_visible = visible.sum(axis=1).astype(np.int64)
-    zeros = np.zeros(h)
-    if kn == 0 or kr == 0:
-        return Correlation(
-            zeros,
-            zeros,
-            zeros,
-            zeros,
-            zeros,
-            np.full((h, kn), -1, dtype=np.int64),
-            np.zeros(h, dtype=np.int64),
-            n_visible,
+        visible = visible_reference(
+            poses, gr, profile, settings.range_max_m, settings.occlusion_tolerance_m
         )
-    match, dbest, a_best = pair_nearest(
-        poses,
-        gn.xy,
-        gn.heading,
-        gn.edge,
-        gn.opening,
-        gr.xy,
-        gr.heading,
-        gr.edge,
-        gr.opening,
-        codes,
-        gate_distance_m,
-        gate_angle_rad,
-    )
+        n_visible = visible.sum(axis=1).astype(np.int64)
+    if gn.n == 0 or gr.n == 0:
+        return _empty(h, gn.n, n_visible)
+    match, dbest, a_best = pair_features(poses, gn, gr, codes, settings)
+    if pairing_only:
+        out = _empty(h, gn.n, n_visible)
+        n_matched = (match >= 0).sum(axis=1).astype(np.int64)
+        return Correlation(
+            out.score, out.dis, out.ang, out.count, out.acc, match, n_matched, n_visible
+        )
+    return _eq1(gn, gr, match, dbest, a_best, n_visible, settings)
+
+
+def _eq1(
+    gn: FeatureGeometry,
+    gr: FeatureGeometry,
+    match: IntArray,
+    dbest: FloatArray,
+    a_best: FloatArray,
+    n_visible: IntArray,
+    settings: CorrelationSettings,
+) -> Correlation:
+    """The four terms of eq. 1 and their weighted mean from the pairing (see
+    :func:`correlate`)."""
+    st = settings
     matched = match >= 0
     j = np.where(matched, match, 0)
-    if pairing_only:
-        zeros = np.zeros(h)
-        return Correlation(
-            zeros,
-            zeros,
-            zeros,
-            zeros,
-            zeros,
-            match,
-            matched.sum(axis=1).astype(np.int64),
-            n_visible,
-        )
-    fn = fimp(gn.dist, fimp_near, fimp_far, fimp_range_m)  # (Kn,)
-    fr = fimp(gr.dist, fimp_near, fimp_far, fimp_range_m)  # (Kr,)
+    fn = fimp(gn.dist, st.fimp_near, st.fimp_far, st.fimp_range_m)  # (Kn,)
+    fr = fimp(gr.dist, st.fimp_near, st.fimp_far, st.fimp_range_m)  # (Kr,)
     w = np.where(matched, fn[None, :] * fr[j], 0.0)
     sw = w.sum(axis=1)
     safe = np.where(sw > 0, sw, 1.0)
-    d_term = np.where(matched, 1.0 - np.where(matched, dbest, 0.0) / gate_distance_m, 0.0)
-    a_term = np.where(matched, 1.0 - np.where(matched, a_best, 0.0) / gate_angle_rad, 0.0)
+    d_term = np.where(matched, 1.0 - np.where(matched, dbest, 0.0) / st.gate_distance_m, 0.0)
+    a_term = np.where(matched, 1.0 - np.where(matched, a_best, 0.0) / st.gate_angle_rad, 0.0)
     dis = np.where(sw > 0, (w * d_term).sum(axis=1) / safe, 0.0)
     ang = np.where(sw > 0, (w * a_term).sum(axis=1) / safe, 0.0)
     n_matched = matched.sum(axis=1).astype(np.int64)
-    denom = np.maximum(1, np.minimum(kn, n_visible))
+    denom = np.maximum(1, np.minimum(gn.n, n_visible))
     count = np.clip(n_matched / denom, 0.0, 1.0)
     acc = np.clip(sw / np.sum(fn * fn), 0.0, 1.0)
-    wd, wa, wc, wacc = weights
+    wd, wa, wc, wacc = st.weights
     score = (wd * dis + wa * ang + wc * count + wacc * acc) / (wd + wa + wc + wacc)
     return Correlation(score, dis, ang, count, acc, match, n_matched, n_visible)
+
+
+@dataclass(frozen=True, eq=False)
+class CorrelationModel:
+    """The correlation of one match: both scans' feature geometry, their pair codes, the
+    new scan's polar profile and the settings (paper eq. 1-3, DESIGN step 7).
+
+    Attributes:
+        new_geom, ref_geom: New (robot frame) and reference feature geometry.
+        codes: ``(K_new, K_ref)`` int64 pair codes.
+        profile: Polar profile of the new scan.
+        settings: Correlation settings.
+    """
+
+    new_geom: FeatureGeometry
+    ref_geom: FeatureGeometry
+    codes: IntArray
+    profile: PolarProfile
+    settings: CorrelationSettings
+
+    def score(self, poses: FloatArray) -> Correlation:
+        """:func:`correlate` at ``(H, 3)`` poses of the new scan in the reference frame."""
+        return correlate(
+            poses, self.new_geom, self.ref_geom, self.codes, self.profile, self.settings
+        )
+
+    def pairs(self, pose: FloatArray) -> IntArray:
+        """``(Q, 2)`` int64 feature pairs ``[new, ref]`` at one ``(3,)`` pose."""
+        if self.new_geom.n == 0 or self.ref_geom.n == 0:
+            return np.zeros((0, 2), dtype=np.int64)
+        m = pair_features(pose[None], self.new_geom, self.ref_geom, self.codes, self.settings)
+        i = np.flatnonzero(m[0][0] >= 0)
+        return np.column_stack([i, m[0][0][i]]).astype(np.int64)

@@ -24,6 +24,11 @@ EOW = int(FeatureKind.EOW)
 INTERSECTION = int(FeatureKind.INTERSECTION)
 
 
+#: A beam bracket or nearest-return lookup spanning more than this many beam spacings
+#: crosses a gap of invalid beams (no return there).
+MAX_GAP_BEAMS = 1.6
+
+
 def rot(theta: float | FloatArray) -> FloatArray:
     """Rotation matrices ``(..., 2, 2)`` of angles ``(...)`` radians."""
     t = np.asarray(theta, dtype=np.float64)
@@ -201,7 +206,7 @@ class PolarProfile:
             spacing = math.radians(1.0)
         return cls(b, r, spacing, float(range_max_m))
 
-    def lookup(self, bearing: FloatArray, max_gap_beams: float = 1.6) -> FloatArray:
+    def lookup(self, bearing: FloatArray, max_gap_beams: float = MAX_GAP_BEAMS) -> FloatArray:
         """Range of the return nearest in bearing, NaN where no return lies within
         ``max_gap_beams`` beam spacings (outside the field of view or a gap of invalid
         beams). Any shape."""

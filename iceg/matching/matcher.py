@@ -1,20 +1,26 @@
-"""The ICE matcher: DESIGN.md steps 5-10 (paper §III-C2, §III-C3)."""
+"""The ICE matcher: DESIGN.md steps 5-10 (paper §III-C2, §III-C3).
+
+One call of :meth:`IceMatcher.match` builds a :class:`MatchContext` (the scans' features,
+the reference, the prediction, the bounds, the config and what the steps share) and runs
+the named steps on it: hypotheses (§III-C2), correlation (§III-C3, eq. 1-3), refinement
+(Gauss-Newton with point-to-line rows and PL-ICP rows after Censi 2008), validation and
+decision (DESIGN step 10), covariance (Olson 2009, moved to the new scan's frame).
+"""
 
 from __future__ import annotations
 
-import functools
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial import cKDTree
 
-from iceg.matching._kernels import ray_wall_check
+from iceg.matching._kernels import PointCloud, PosePrior, SegmentPoints, ray_wall_check
 from iceg.matching.config import MatchBounds, MatchingConfig
-from iceg.matching.correlation import Correlation, correlate
+from iceg.matching.correlation import Correlation, CorrelationModel, CorrelationSettings
 from iceg.matching.geometry import (
+    MAX_GAP_BEAMS,
     FeatureGeometry,
     PolarProfile,
     SegmentSet,
@@ -24,10 +30,13 @@ from iceg.matching.geometry import (
 )
 from iceg.matching.hypotheses import generate_hypotheses, pair_codes, segment_rotation, vote
 from iceg.matching.refine import (
-    Cloud,
     Refined,
+    RefineProblem,
     RefineSettings,
     bounds_prior_information,
+    build_cloud,
+    effective_line_cov,
+    empty_cloud,
     refine,
 )
 from iceg.types import MatchResult, ScanFeatures
@@ -48,6 +57,25 @@ REASON_INCONSISTENT = "inconsistent with free space"
 REASON_AMBIGUOUS = "ambiguous"
 REASON_OUT_OF_BOUNDS = "outside the bounds"
 
+#: Ranking (fitness) of a refined hypothesis: correlation + point overlap, plus this per
+#: feature pair up to ``FITNESS_MAX_PAIRS``, minus this times the see-through fraction.
+FITNESS_PAIR_BONUS = 0.1
+FITNESS_MAX_PAIRS = 5
+FITNESS_SEE_THROUGH_PENALTY = 2.0
+#: A refined pose this close (metres, radians) to an earlier one is the same solution.
+DUPLICATE_DISTANCE_M = 0.05
+DUPLICATE_ANGLE_RAD = math.radians(1.0)
+#: Rotation start from the prediction (:func:`~iceg.matching.hypotheses.segment_rotation`):
+#: kernel width (rad), least agreeing segment length (m), largest deviation (rad).
+START_KERNEL_RAD = math.radians(1.0)
+START_MIN_SUPPORT_M = 1.0
+START_MAX_DEVIATION_RAD = math.pi / 2
+#: Walls met at more than this incidence (degrees) are not judged by the ray check.
+MAX_INCIDENCE_DEG = 70.0
+#: A bearing decrease larger than this (radians) between consecutive points breaks beam
+#: order (the points are not one scan).
+_BEARING_BACKSTEP_RAD = 0.05
+
 
 @dataclass(eq=False)
 class _Candidate:
@@ -63,13 +91,92 @@ class _Candidate:
     @property
     def fitness(self) -> float:
         """Ranking score: correlation (eq. 1) plus the point overlap of the refinement, plus
-        0.1 per feature pair (up to 5), minus twice the fraction of walls that the other
-        scan sees through."""
+        ``FITNESS_PAIR_BONUS`` per feature pair (up to ``FITNESS_MAX_PAIRS``), minus
+        ``FITNESS_SEE_THROUGH_PENALTY`` times the fraction of walls that the other scan sees
+        through."""
         return (
             float(self.corr.score[0])
             + self.refined.overlap
-            + 0.1 * min(int(self.corr.n_matched[0]), 5)
-            - 2.0 * self.see_through
+            + FITNESS_PAIR_BONUS * min(int(self.corr.n_matched[0]), FITNESS_MAX_PAIRS)
+            - FITNESS_SEE_THROUGH_PENALTY * self.see_through
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class _Starts:
+    """Starting poses ``(S, 3)`` of the refinement (vote clusters, then the prediction),
+    which of them is the prediction, the hypothesis count and the candidate pair count."""
+
+    poses: FloatArray
+    from_prediction: NDArray[np.bool_]
+    n_hypotheses: int
+    n_pairs: int
+
+
+@dataclass(eq=False)
+class MatchContext:
+    """One call of :meth:`IceMatcher.match`: its inputs and what the steps share.
+
+    Attributes:
+        features: The new scan's features (robot frame).
+        reference: The reference's features, segments and points (reference frame).
+        prediction: ``(3,)`` float64 predicted pose of the new scan in the reference frame.
+        bounds: Admissible motion around the prediction.
+        config: The matcher's configuration.
+        new_geom, ref_geom: Feature geometry of the new scan and of the reference.
+        profile: Polar profile of the new scan's points (range ``range_max_m``).
+        ref_profile: The reference's, when its points are one scan seen from its origin.
+        correlation: The correlation (eq. 1-3) and feature pairing of this match.
+        strict: Global-match thresholds apply (see :meth:`IceMatcher.is_strict`).
+    """
+
+    features: ScanFeatures
+    reference: ScanFeatures
+    prediction: FloatArray
+    bounds: MatchBounds
+    config: MatchingConfig
+    new_geom: FeatureGeometry = field(init=False)
+    ref_geom: FeatureGeometry = field(init=False)
+    profile: PolarProfile = field(init=False)
+    ref_profile: PolarProfile | None = field(init=False)
+    correlation: CorrelationModel = field(init=False)
+    strict: bool = field(init=False)
+
+    def __post_init__(self) -> None:
+        c, f, r = self.config, self.features, self.reference
+        self.new_geom = feature_geometry(f)
+        self.ref_geom = feature_geometry(r)
+        range_max = float(f.range_max_m)
+        self.profile = PolarProfile.from_points(f.points_xy, range_max)
+        # The reference's beams can be checked only if its points are one scan seen from
+        # the reference origin (a feature-map reference gathers several nodes' points).
+        self.ref_profile = (
+            PolarProfile.from_points(r.points_xy, float(r.range_max_m))
+            if _is_one_scan(r.points_xy)
+            else None
+        )
+        codes = pair_codes(
+            self.new_geom,
+            self.ref_geom,
+            c.filter.corner_eow_matching,
+            math.radians(c.filter.max_opening_diff_deg),
+        )
+        settings = CorrelationSettings.from_config(c.correlation, range_max)
+        self.correlation = CorrelationModel(
+            self.new_geom, self.ref_geom, codes, self.profile, settings
+        )
+        self.strict = IceMatcher.is_strict(c, self.bounds)
+
+    def fail(self, reason: str, n_hypotheses: int) -> MatchResult:
+        """A failed :class:`~iceg.types.MatchResult` at the prediction with ``reason``."""
+        log.debug("ICE match failed: %s", reason)
+        return MatchResult(
+            success=False,
+            pose=self.prediction.copy(),
+            cov=np.full((3, 3), np.nan),
+            correlation=0.0,
+            n_hypotheses=n_hypotheses,
+            reason=reason,
         )
 
 
@@ -79,7 +186,7 @@ def _is_one_scan(points_xy: FloatArray) -> bool:
     if points_xy.shape[0] < 3:
         return False
     d = np.diff(np.arctan2(points_xy[:, 1], points_xy[:, 0]))
-    back = d < -0.05
+    back = d < -_BEARING_BACKSTEP_RAD
     return int(back.sum()) == 0 or (int(back.sum()) == 1 and float(d[back][0]) < -math.pi)
 
 
@@ -134,6 +241,44 @@ def _check_features(f: ScanFeatures, what: str) -> None:
         raise MatchingError(f"{what}.points_xy must have shape (P, 2), got {f.points_xy.shape}")
 
 
+def _refine_settings(c: MatchingConfig) -> RefineSettings:
+    """The refinement's settings in metres and radians."""
+    r, cov = c.refinement, c.covariance
+    return RefineSettings(
+        max_iterations=r.max_iterations,
+        gate_m=r.association_gate_m,
+        gate_sigmas=r.association_gate_sigmas,
+        gate_min_m=r.association_gate_min_m,
+        end_tol_m=r.segment_end_tolerance_m,
+        normal_gate_rad=math.radians(r.normal_gate_deg),
+        cauchy_sigmas=c.cauchy_scale_sigmas,
+        sigma_min_m=r.point_sigma_min_m,
+        line_angle_sigma_min_rad=math.radians(r.line_angle_sigma_min_deg),
+        line_offset_sigma_min_m=r.line_offset_sigma_min_m,
+        lattice_steps=cov.lattice_steps,
+        lattice_sigmas=cov.lattice_sigmas,
+        lattice_kappa=cov.lattice_kappa,
+        lattice_cap_m=cov.lattice_max_half_width_m,
+        lattice_cap_rad=math.radians(cov.lattice_max_half_width_deg),
+    )
+
+
+def _checked_prediction(
+    features: ScanFeatures, reference: ScanFeatures, prediction: ArrayLike
+) -> FloatArray:
+    """The prediction as a ``(3,)`` float64 pose, after checking all inputs.
+
+    Raises:
+        MatchingError: a non-finite or mis-shaped prediction, or inconsistent features.
+    """
+    pred = np.asarray(prediction, dtype=np.float64).reshape(-1)
+    if pred.shape != (3,) or not np.all(np.isfinite(pred)):
+        raise MatchingError(f"prediction must be a finite (3,) pose, got {prediction!r}")
+    _check_features(features, "features")
+    _check_features(reference, "reference")
+    return pred
+
+
 class IceMatcher:
     """ICE scan matching (paper §III-C2/C3; DESIGN.md "ICE matching, step by step", 5-10).
 
@@ -151,27 +296,22 @@ class IceMatcher:
 
     def __init__(self, config: MatchingConfig | None = None) -> None:
         self.config = config or MatchingConfig()
-        c = self.config
-        self._settings = RefineSettings(
-            max_iterations=c.max_iterations,
-            gate_m=c.association_gate_m,
-            gate_sigmas=c.association_gate_sigmas,
-            gate_min_m=c.association_gate_min_m,
-            end_tol_m=c.segment_end_tolerance_m,
-            normal_gate_rad=math.radians(c.normal_gate_deg),
-            cauchy_sigmas=c.cauchy_scale_sigmas,
-            sigma_min_m=c.point_sigma_min_m,
-            line_angle_sigma_min_rad=math.radians(c.line_angle_sigma_min_deg),
-            line_offset_sigma_min_m=c.line_offset_sigma_min_m,
-            lattice_steps=c.lattice_steps,
-            lattice_sigmas=c.lattice_sigmas,
-            lattice_kappa=c.lattice_kappa,
-            lattice_cap_m=c.lattice_max_half_width_m,
-            lattice_cap_rad=math.radians(c.lattice_max_half_width_deg),
-        )
+        self._settings = _refine_settings(self.config)
 
     def __repr__(self) -> str:
         return f"IceMatcher({self.config!r})"
+
+    @staticmethod
+    def is_strict(config: MatchingConfig, bounds: MatchBounds) -> bool:
+        """A global match, or one whose bounds are wider than tracking's (loop closure,
+        relocalisation): the hypothesis space is large, so the global evidence thresholds
+        apply and every chosen hypothesis is refined and compared (ambiguity)."""
+        v = config.validation
+        return (
+            bounds.is_global
+            or bounds.max_translation_m > v.tracking_max_translation_m
+            or bounds.max_rotation_rad > math.radians(v.tracking_max_rotation_deg)
+        )
 
     # ------------------------------------------------------------------------------------
     def match(
@@ -202,334 +342,290 @@ class IceMatcher:
         Raises:
             MatchingError: inconsistent inputs (array shapes, a non-finite prediction).
         """
-        c = self.config
-        bounds = bounds or MatchBounds.global_()
-        pred = np.asarray(prediction, dtype=np.float64).reshape(-1)
-        if pred.shape != (3,) or not np.all(np.isfinite(pred)):
-            raise MatchingError(f"prediction must be a finite (3,) pose, got {prediction!r}")
-        _check_features(features, "features")
-        _check_features(reference, "reference")
+        pred = _checked_prediction(features, reference, prediction)
+        ctx = MatchContext(features, reference, pred, bounds or MatchBounds.global_(), self.config)
+        starts = self._hypotheses(ctx)
+        if starts.poses.shape[0] == 0:
+            return ctx.fail(
+                f"{REASON_NO_CANDIDATES}: no transform hypothesis "
+                f"({ctx.new_geom.n} new, {ctx.ref_geom.n} reference features, "
+                f"{starts.n_pairs} candidate pairs)",
+                starts.n_hypotheses,
+            )
+        corr0, chosen = self._correlation(ctx, starts)
+        cands = self._refinement(ctx, starts, corr0, chosen)
+        return self._decision(ctx, cands, starts.n_hypotheses)
 
-        gn = feature_geometry(features)
-        gr = feature_geometry(reference)
-        codes = pair_codes(gn, gr, c.corner_eow_matching, math.radians(c.max_opening_diff_deg))
+    # --- step 5-6: hypotheses -----------------------------------------------------------
+    def _hypotheses(self, ctx: MatchContext) -> _Starts:
+        """Candidate filter, SE(2) hypotheses and voting (paper §III-C2, §III-C3 "the
+        conversion with the most count"; DESIGN steps 5-6), plus the prediction itself for
+        a bounded match. Poses ``(S, 3)`` of the new scan in the reference frame."""
+        f, v = ctx.config.filter, ctx.config.voting
         hyps = generate_hypotheses(
-            gn,
-            gr,
-            codes,
-            pred,
-            bounds,
-            margin_m=c.feasible_margin_m,
-            direction_tolerance_rad=math.radians(c.direction_tolerance_deg),
-            intersection_tolerance_m=c.intersection_pair_tolerance_m,
-            intersection_min_baseline_m=c.intersection_min_baseline_m,
-            max_intersection_pairs=c.max_intersection_pairs,
+            ctx.new_geom,
+            ctx.ref_geom,
+            ctx.correlation.codes,
+            ctx.prediction,
+            ctx.bounds,
+            margin_m=f.feasible_margin_m,
+            direction_tolerance_rad=math.radians(f.direction_tolerance_deg),
+            intersection_tolerance_m=f.intersection_pair_tolerance_m,
+            intersection_min_baseline_m=f.intersection_min_baseline_m,
+            max_intersection_pairs=f.max_intersection_pairs,
         )
-        clusters = vote(hyps.poses, c.vote_cell_m, math.radians(c.vote_cell_deg), c.max_clusters)
+        clusters = vote(hyps.poses, v.vote_cell_m, math.radians(v.vote_cell_deg), v.max_clusters)
         starts = clusters.poses
         from_prediction = np.zeros(starts.shape[0], dtype=bool)
-        if c.use_prediction_hypothesis and not bounds.is_global:
-            start = pred.copy()
-            th = segment_rotation(
-                features.seg_lines,
-                _lengths(features.seg_endpoints),
-                reference.seg_lines,
-                _lengths(reference.seg_endpoints),
-                float(pred[2]),
-                min(bounds.max_rotation_rad, math.pi / 2),
-                math.radians(1.0),
-                1.0,
-            )
-            if th is not None:
-                start[2] = th
-            starts = np.concatenate([starts, start[None]], axis=0)
+        if v.use_prediction_hypothesis and not ctx.bounds.is_global:
+            starts = np.concatenate([starts, _prediction_start(ctx)[None]], axis=0)
             from_prediction = np.append(from_prediction, True)
-        n_hyp = int(hyps.poses.shape[0])
-        if starts.shape[0] == 0:
-            return self._fail(
-                pred,
-                f"{REASON_NO_CANDIDATES}: no transform hypothesis "
-                f"({gn.n} new, {gr.n} reference features, {hyps.n_pairs} "
-                "candidate pairs)",
-                n_hyp,
-            )
+        return _Starts(starts, from_prediction, int(hyps.poses.shape[0]), hyps.n_pairs)
 
-        range_max = float(features.range_max_m)
-        profile = PolarProfile.from_points(features.points_xy, range_max)
-        # The reference's beams can be checked only if its points are one scan seen from
-        # the reference origin (a feature-map reference gathers several nodes' points).
-        ref_profile = (
-            PolarProfile.from_points(reference.points_xy, float(reference.range_max_m))
-            if _is_one_scan(reference.points_xy)
-            else None
-        )
-        fimp_range = c.fimp_range_m or range_max
-        corr_fn = functools.partial(
-            correlate,
-            gate_distance_m=c.gate_distance_m,
-            gate_angle_rad=math.radians(c.gate_angle_deg),
-            fimp_near=c.fimp_near,
-            fimp_far=c.fimp_far,
-            fimp_range_m=fimp_range,
-            range_max_m=range_max,
-            occlusion_tolerance_m=c.occlusion_tolerance_m,
-            weights=(c.weight_dis, c.weight_ang, c.weight_count, c.weight_acc),
-        )
-
-        def correlation_at(poses: FloatArray) -> Correlation:
-            return corr_fn(poses, gn, gr, codes, profile)
-
-        corr0 = correlation_at(starts)
-        # Order: correlation first (paper §III-C3: most count first, then correlation);
-        # the prediction competes like any cluster.
+    # --- step 7: correlation --------------------------------------------------------------
+    def _correlation(self, ctx: MatchContext, starts: _Starts) -> tuple[Correlation, list[int]]:
+        """Correlation (paper eq. 1-3) of every start and the ones to refine: the best
+        correlated first (paper §III-C3: most count first, then correlation), those within
+        ``refine_correlation_margin`` of the best, at most ``max_refined`` (global:
+        ``max_refined_global``); the prediction competes like any cluster and is always
+        refined."""
+        v = ctx.config.voting
+        corr0 = ctx.correlation.score(starts.poses)
         order = np.argsort(-corr0.score, kind="stable")
         best0 = float(corr0.score[order[0]])
-        strict = self._strict(bounds)
-        n_refine = c.max_refined_global if strict else c.max_refined
-        chosen = [int(k) for k in order if corr0.score[k] >= best0 - c.refine_correlation_margin][
-            :n_refine
-        ]
-        if from_prediction.any():
-            kp = int(np.flatnonzero(from_prediction)[0])
+        n_refine = v.max_refined_global if ctx.strict else v.max_refined
+        chosen = [int(k) for k in order if corr0.score[k] >= best0 - v.refine_correlation_margin]
+        chosen = chosen[:n_refine]
+        if starts.from_prediction.any():
+            kp = int(np.flatnonzero(starts.from_prediction)[0])
             if kp not in chosen:
                 chosen.append(kp)
+        return corr0, chosen
 
-        # Points for the refinement: those on the new scan's segments.
+    # --- step 8-9: refinement -------------------------------------------------------------
+    def _refinement(
+        self, ctx: MatchContext, starts: _Starts, corr0: Correlation, chosen: list[int]
+    ) -> list[_Candidate]:
+        """Refine the chosen starts (DESIGN step 8) and check each result (step 10). A start
+        next to an already refined pose is skipped (it would converge to it again), a
+        result equal to an earlier one dropped; a bounded match stops at the first
+        hypothesis that passes (rivals come from the bounds' small neighbourhood only)."""
+        problem = self._refine_problem(ctx)
+        va = ctx.config.validation
+        near_d, near_a = va.ambiguity_distance_m, math.radians(va.ambiguity_angle_deg)
+        cands: list[_Candidate] = []
+        for k in chosen:
+            if any(_same_pose(starts.poses[k], o.refined.pose, near_d, near_a) for o in cands):
+                continue
+            i0 = np.flatnonzero(corr0.match[k] >= 0)
+            pairs0 = np.column_stack([i0, corr0.match[k][i0]]).astype(np.int64)
+            ref = refine(problem, starts.poses[k], pairs0)
+            if any(
+                _same_pose(ref.pose, o.refined.pose, DUPLICATE_DISTANCE_M, DUPLICATE_ANGLE_RAD)
+                for o in cands
+            ):
+                continue
+            cand = _Candidate(
+                bool(starts.from_prediction[k]), ref, ctx.correlation.score(ref.pose[None])
+            )
+            cand.failure = self._validation(ctx, cand)
+            cands.append(cand)
+            if not ctx.strict and not cand.failure:
+                break
+        return cands
+
+    def _refine_problem(self, ctx: MatchContext) -> RefineProblem:
+        """What the refinements of this match share: the new scan's points on its segments
+        (at most ``max_points``, evenly subsampled), the reference segments, the bounds'
+        prior centred on the prediction and the off-segment point cloud."""
+        c = ctx.config.refinement
+        features = ctx.features
         pseg = point_segment_index(features)
         on_seg = np.flatnonzero(pseg >= 0)
         if on_seg.shape[0] > c.max_points:
             on_seg = on_seg[np.linspace(0, on_seg.shape[0] - 1, c.max_points).astype(np.int64)]
         points = features.points_xy[on_seg]
         point_alpha = features.seg_lines[pseg[on_seg], 0] if on_seg.shape[0] else np.zeros(0)
-        segs = SegmentSet.from_features(reference)
-        cloud = self._cloud(features, reference, pseg)
-        prior = bounds_prior_information(bounds.max_translation_m, bounds.max_rotation_rad)
+        segs = SegmentSet.from_features(ctx.reference)
+        s = self._settings
+        line_cov = effective_line_cov(segs, s.line_angle_sigma_min_rad, s.line_offset_sigma_min_m)
+        b = ctx.bounds
+        prior = PosePrior(
+            ctx.prediction, bounds_prior_information(b.max_translation_m, b.max_rotation_rad)
+        )
+        return RefineProblem(
+            SegmentPoints(points, point_alpha),
+            segs,
+            line_cov,
+            ctx.new_geom,
+            ctx.ref_geom,
+            ctx.correlation,
+            prior,
+            self._cloud(ctx, pseg),
+            s,
+        )
 
-        def pairs_at(pose: FloatArray) -> IntArray:
-            m = corr_fn(pose[None], gn, gr, codes, profile, pairing_only=True).match[0]
-            i = np.flatnonzero(m >= 0)
-            return np.column_stack([i, m[i]]).astype(np.int64)
-
-        cands: list[_Candidate] = []
-        near_d, near_a = c.ambiguity_distance_m, math.radians(c.ambiguity_angle_deg)
-        for k in chosen:
-            # A start next to an already refined pose would converge to it again.
-            if any(_same_pose(starts[k], o.refined.pose, near_d, near_a) for o in cands):
-                continue
-            m0 = corr0.match[k]
-            i0 = np.flatnonzero(m0 >= 0)
-            ref = refine(
-                starts[k],
-                points,
-                point_alpha,
-                segs,
-                gn,
-                gr,
-                pairs_at,
-                prior,
-                self._settings,
-                pred,
-                cloud,
-                np.column_stack([i0, m0[i0]]).astype(np.int64),
-            )
-            if any(_same_pose(ref.pose, o.refined.pose, 0.05, math.radians(1.0)) for o in cands):
-                continue
-            corr = correlation_at(ref.pose[None])
-            cand = _Candidate(bool(from_prediction[k]), ref, corr)
-            cand.failure = self._check(
-                cand, features, reference, gn, pred, bounds, profile, ref_profile
-            )
-            cands.append(cand)
-            if not strict and not cand.failure:
-                # Bounded match: the best-correlated hypothesis that passes is the answer
-                # (rivals come from the bounds' small neighbourhood only).
-                break
-        return self._decide(cands, pred, n_hyp)
-
-    def _cloud(
-        self, features: ScanFeatures, reference: ScanFeatures, pseg: IntArray
-    ) -> Cloud | None:
+    def _cloud(self, ctx: MatchContext, pseg: IntArray) -> PointCloud:
         """Off-segment points of the new scan (clutter, short structures) against all the
         reference's points, point-to-line on the local line through a reference point and
         its beam neighbours (Censi 2008, PL-ICP), so that points on walls add nothing along
         the walls; an isolated reference point gives a point-to-point residual whose noise
-        includes half the distance to its nearest neighbour."""
-        c = self.config
-        if not c.use_off_segment_points or reference.points_xy.shape[0] < 3:
-            return None
+        includes half the distance to its nearest neighbour. Empty when the reference has
+        fewer than 3 points or ``use_off_segment_points`` is off."""
+        c = ctx.config.refinement
+        rp = ctx.reference.points_xy
         new_off = np.flatnonzero(pseg < 0)
-        if new_off.shape[0] == 0:
-            return None
+        if not c.use_off_segment_points or rp.shape[0] < 3 or new_off.shape[0] == 0:
+            return empty_cloud()
         if new_off.shape[0] > c.max_points // 2:
             pick = np.linspace(0, new_off.shape[0] - 1, c.max_points // 2).astype(np.int64)
             new_off = new_off[pick]
-        rp = reference.points_xy
-        d = np.diff(rp, axis=0)
-        gaps = np.hypot(d[:, 0], d[:, 1])
-        g_prev = np.insert(gaps, 0, np.inf)
-        g_next = np.append(gaps, np.inf)
-        nn = np.minimum(g_prev, g_next)
-        # Local line: through the previous and next points when both are near, else the
-        # nearer one.
-        prev_pt = np.vstack([rp[:1], rp[:-1]])
-        next_pt = np.vstack([rp[1:], rp[-1:]])
-        lim = c.local_line_max_gap_m
-        a = np.where((g_prev <= lim)[:, None], prev_pt, rp)
-        b = np.where((g_next <= lim)[:, None], next_pt, rp)
-        t = b - a
-        tl = np.hypot(t[:, 0], t[:, 1])
-        has = tl > 1e-6
-        normal = np.full(rp.shape, np.nan)
-        normal[has] = np.stack([-t[has, 1], t[has, 0]], axis=1) / tl[has, None]
-        return Cloud(features.points_xy[new_off], cKDTree(rp), rp, nn, normal)
+        spacing, normal = _local_lines(rp, c.local_line_max_gap_m)
+        points = ctx.features.points_xy[new_off]
+        return build_cloud(points, rp, spacing, normal, c.association_gate_m)
 
-    def _strict(self, bounds: MatchBounds) -> bool:
-        """A global match, or one whose bounds are wider than tracking's (loop closure,
-        relocalisation): the hypothesis space is large, so the global evidence thresholds
-        apply and every chosen hypothesis is refined and compared (ambiguity)."""
-        c = self.config
-        return (
-            bounds.is_global
-            or bounds.max_translation_m > c.tracking_max_translation_m
-            or bounds.max_rotation_rad > math.radians(c.tracking_max_rotation_deg)
-        )
-
-    # ------------------------------------------------------------------------------------
-    def _fail(self, pred: FloatArray, reason: str, n_hyp: int) -> MatchResult:
-        log.debug("ICE match failed: %s", reason)
-        return MatchResult(
-            success=False,
-            pose=pred.copy(),
-            cov=np.full((3, 3), np.nan),
-            correlation=0.0,
-            n_hypotheses=n_hyp,
-            reason=reason,
-        )
-
-    def _check(
-        self,
-        cand: _Candidate,
-        features: ScanFeatures,
-        reference: ScanFeatures,
-        gn: FeatureGeometry,
-        pred: FloatArray,
-        bounds: MatchBounds,
-        profile: PolarProfile,
-        ref_profile: PolarProfile | None,
-    ) -> str:
-        """DESIGN step 10 checks of one refined hypothesis; returns the failure reason or
-        an empty string."""
-        c = self.config
-        ref = cand.refined
-        score = float(cand.corr.score[0])
-        n_matched = int(cand.corr.n_matched[0])
-        n_visible = int(cand.corr.n_visible[0])
-        if not np.all(np.isfinite(ref.pose)):
+    # --- step 10: validation --------------------------------------------------------------
+    def _validation(self, ctx: MatchContext, cand: _Candidate) -> str:
+        """DESIGN step 10 checks of one refined hypothesis: inside the bounds, consistent
+        with free space, enough evidence. Returns the failure reason or an empty string."""
+        if not np.all(np.isfinite(cand.refined.pose)):
             return f"{REASON_DEGENERATE}: refinement diverged"
-        d = ref.pose - pred
+        return (
+            self._check_bounds(ctx, cand.refined.pose)
+            or self._check_free_space(ctx, cand)
+            or self._check_evidence(ctx, cand)
+        )
+
+    def _check_bounds(self, ctx: MatchContext, pose: FloatArray) -> str:
+        """The refined pose lies within the bounds (plus the filter's noise allowances)."""
+        f = ctx.config.filter
+        d = pose - ctx.prediction
         dist, dth = math.hypot(d[0], d[1]), abs(float(wrap_angle(d[2])))
-        if dist > bounds.max_translation_m + c.feasible_margin_m or dth > (
-            bounds.max_rotation_rad + math.radians(c.direction_tolerance_deg)
+        if dist > ctx.bounds.max_translation_m + f.feasible_margin_m or dth > (
+            ctx.bounds.max_rotation_rad + math.radians(f.direction_tolerance_deg)
         ):
             return (
                 f"{REASON_OUT_OF_BOUNDS}: refined pose {dist:.2f} m / {math.degrees(dth):.1f} deg "
                 "from the prediction"
             )
-        # Free space first: a hypothesis that contradicts what a scan sees is no answer and
-        # no rival either.
-        frac, length = self._see_through(ref.pose, features, reference, profile, ref_profile)
+        return ""
+
+    def _check_free_space(self, ctx: MatchContext, cand: _Candidate) -> str:
+        """Free-space consistency (a hypothesis that contradicts what a scan sees is no
+        answer and no rival either): little wall seen through, no wall through a robot,
+        neither origin behind a wall. Sets ``cand.see_through``."""
+        v = ctx.config.validation
+        pose = cand.refined.pose
+        frac, length = self._see_through(ctx, pose)
         cand.see_through = frac
         if (
-            frac > c.max_see_through_fraction and length >= c.see_through_min_length_m
-        ) or length >= c.see_through_max_length_m:
+            frac > v.max_see_through_fraction and length >= v.see_through_min_length_m
+        ) or length >= v.see_through_max_length_m:
             return (
                 f"{REASON_INCONSISTENT}: {frac:.0%} ({length:.1f} m) of the walls lie where "
                 "the other scan sees free space"
             )
         clear = min(
-            _segment_distance(ref.pose[:2], reference.seg_endpoints),
-            _segment_distance(inverse(ref.pose)[:2], features.seg_endpoints),
+            _segment_distance(pose[:2], ctx.reference.seg_endpoints),
+            _segment_distance(inverse(pose)[:2], ctx.features.seg_endpoints),
         )
-        if clear < c.robot_clearance_m:
+        if clear < v.robot_clearance_m:
             return (
                 f"{REASON_INCONSISTENT}: a wall of one scan passes {clear:.2f} m from the other "
-                f"scan's sensor (< {c.robot_clearance_m} m)"
+                f"scan's sensor (< {v.robot_clearance_m} m)"
             )
-        if not self._origins_visible(ref.pose, profile, ref_profile):
+        if not self._origins_visible(ctx, pose):
             return (
                 f"{REASON_INCONSISTENT}: one scan's origin lies behind a wall the other scan sees"
             )
-        # A consistent hypothesis with feature support is a rival of the best even if it
-        # is too weak to be accepted itself (one pair in a global match, few points).
+        return ""
+
+    def _check_evidence(self, ctx: MatchContext, cand: _Candidate) -> str:
+        """Enough feature pairs and correlation (paper §III-C3, eq. 1), or a featureless
+        bounded match from the prediction; then enough point overlap. Sets ``cand.rival``:
+        a consistent hypothesis with feature support is a rival of the best even if too
+        weak to be accepted itself."""
+        v = ctx.config.validation
+        score = float(cand.corr.score[0])
+        n_matched = int(cand.corr.n_matched[0])
         cand.rival = n_matched >= 1
-        strict = self._strict(bounds)
-        min_pairs = c.min_matched_features_global if strict else c.min_matched_features
-        min_corr = c.min_correlation_global if strict else c.min_correlation
+        min_pairs = v.min_matched_features_global if ctx.strict else v.min_matched_features
+        min_corr = v.min_correlation_global if ctx.strict else v.min_correlation
         if n_matched >= min_pairs:
-            # Feature-supported: eq. 1 decides (paper §III-C3).
             if score < min_corr:
                 return f"{REASON_LOW_CORRELATION}: {score:.3f} < {min_corr}"
-            min_overlap = c.min_point_overlap_global if strict else c.min_point_overlap
-        elif not strict and cand.from_prediction and n_matched == 0:
+            min_overlap = v.min_point_overlap_global if ctx.strict else v.min_point_overlap
+        elif not ctx.strict and cand.from_prediction and n_matched == 0:
             # No feature pairs (a corridor, or features too unstable to pair), tracked from
             # the prediction: the points decide, and the covariance shows what the walls
             # leave unconstrained.
-            min_overlap = c.min_point_overlap_featureless
+            min_overlap = v.min_point_overlap_featureless
         else:
             return (
                 f"{REASON_FEW_INLIERS}: {n_matched} feature pairs (< {min_pairs}; "
-                f"{gn.n} new, {n_visible} visible reference features)"
+                f"{ctx.new_geom.n} new, {int(cand.corr.n_visible[0])} visible reference "
+                "features)"
             )
-        if ref.overlap < min_overlap:
+        if cand.refined.overlap < min_overlap:
             return (
-                f"{REASON_FEW_INLIERS}: {ref.overlap:.0%} of the scan's points on reference "
-                f"segments (< {min_overlap:.0%})"
+                f"{REASON_FEW_INLIERS}: {cand.refined.overlap:.0%} of the scan's points on "
+                f"reference segments (< {min_overlap:.0%})"
             )
         return ""
 
-    def _decide(self, cands: list[_Candidate], pred: FloatArray, n_hyp: int) -> MatchResult:
-        """Pick the best refined hypothesis that passes the checks; fail when none does, when
-        a distinct rival scores nearly as well (ambiguous), or when the covariance is
-        degenerate (DESIGN step 10)."""
-        c = self.config
-        ok = [k for k in cands if not k.failure]
+    # --- step 10: decision ----------------------------------------------------------------
+    def _decision(self, ctx: MatchContext, cands: list[_Candidate], n_hyp: int) -> MatchResult:
+        """Pick the best refined hypothesis (by fitness) that passes the checks; fail when
+        none does, when a distinct rival scores nearly as well (ambiguous), or when the
+        covariance is degenerate (DESIGN step 10)."""
+        ok = sorted((k for k in cands if not k.failure), key=lambda k: -k.fitness)
         if not ok:
             worst_first = sorted(cands, key=lambda k: -k.fitness)
-            return self._fail(pred, worst_first[0].failure, n_hyp)
-        ok.sort(key=lambda k: -k.fitness)
+            return ctx.fail(worst_first[0].failure, n_hyp)
         best = ok[0]
+        reason = self._ambiguity(ctx, cands, best)
+        if reason:
+            return ctx.fail(reason, n_hyp)
+        return self._covariance(ctx, best, n_hyp)
+
+    def _ambiguity(self, ctx: MatchContext, cands: list[_Candidate], best: _Candidate) -> str:
+        """The failure reason when a rival distinct from ``best`` scores within
+        ``ambiguity_margin`` of it (never a confident wrong pose in a self-similar scene)."""
+        v = ctx.config.validation
         rivals = sorted((k for k in cands if k.rival and k is not best), key=lambda k: -k.fitness)
+        near_a = math.radians(v.ambiguity_angle_deg)
         for other in rivals:
-            distinct = not _same_pose(
-                best.refined.pose,
-                other.refined.pose,
-                c.ambiguity_distance_m,
-                math.radians(c.ambiguity_angle_deg),
-            )
-            if distinct and other.fitness >= best.fitness - c.ambiguity_margin:
-                d = other.refined.pose - best.refined.pose
-                return self._fail(
-                    pred,
+            a, b = best.refined.pose, other.refined.pose
+            distinct = not _same_pose(a, b, v.ambiguity_distance_m, near_a)
+            if distinct and other.fitness >= best.fitness - v.ambiguity_margin:
+                d = b - a
+                return (
                     f"{REASON_AMBIGUOUS}: two distinct hypotheses score {best.fitness:.2f} and "
                     f"{other.fitness:.2f} (apart {math.hypot(d[0], d[1]):.2f} m, "
-                    f"{math.degrees(abs(float(wrap_angle(d[2])))):.1f} deg)",
-                    n_hyp,
+                    f"{math.degrees(abs(float(wrap_angle(d[2])))):.1f} deg)"
                 )
+        return ""
+
+    # --- step 9: covariance -----------------------------------------------------------------
+    def _covariance(self, ctx: MatchContext, best: _Candidate, n_hyp: int) -> MatchResult:
+        """The result of ``best``: fail as degenerate when its covariance (Olson 2009 lattice
+        floored by least squares, reference frame) exceeds ``max_std_m`` / ``max_std_deg``,
+        else move it into the tangent space at the pose in the new scan's frame (gtsam
+        ``Pose2`` local coordinates: ``M C M^T`` with ``M = diag(R^T, 1)``)."""
+        cv = ctx.config.covariance
         ref = best.refined
         cov_param = ref.cov
         evals = np.linalg.eigvalsh(cov_param[:2, :2]) if np.all(np.isfinite(cov_param)) else None
         if (
             evals is None
-            or math.sqrt(max(evals[-1], 0.0)) > c.max_std_m
-            or math.sqrt(max(cov_param[2, 2], 0.0)) > math.radians(c.max_std_deg)
+            or math.sqrt(max(evals[-1], 0.0)) > cv.max_std_m
+            or math.sqrt(max(cov_param[2, 2], 0.0)) > math.radians(cv.max_std_deg)
         ):
-            return self._fail(
-                pred,
+            return ctx.fail(
                 f"{REASON_DEGENERATE}: the scene does not constrain the pose (std beyond "
-                f"{c.max_std_m} m / {c.max_std_deg} deg)",
+                f"{cv.max_std_m} m / {cv.max_std_deg} deg)",
                 n_hyp,
             )
-        # Covariance into the tangent space at the pose, new scan frame (Pose2 local coords).
         m = np.eye(3)
         m[:2, :2] = rot(ref.pose[2]).T
         cov_body = m @ cov_param @ m.T
@@ -548,16 +644,15 @@ class IceMatcher:
             reason="",
         )
 
-    def _origins_visible(
-        self, pose: FloatArray, profile: PolarProfile, ref_profile: PolarProfile | None
-    ) -> bool:
+    # --- free-space helpers ---------------------------------------------------------------
+    def _origins_visible(self, ctx: MatchContext, pose: FloatArray) -> bool:
         """Neither scan's origin lies behind a wall the other scan sees (a robot stands in
         free space): the other scan's beams around its bearing must not be shorter than its
         distance minus the see-through tolerance. Untestable cases pass."""
-        tol = self.config.see_through_tolerance_m
-        checks = [(inverse(pose)[:2], profile)]
-        if ref_profile is not None:
-            checks.append((pose[:2], ref_profile))
+        tol = ctx.config.validation.see_through_tolerance_m
+        checks = [(inverse(pose)[:2], ctx.profile)]
+        if ctx.ref_profile is not None:
+            checks.append((pose[:2], ctx.ref_profile))
         for xy, prof in checks:
             if prof.bearing.shape[0] == 0:
                 continue
@@ -567,29 +662,22 @@ class IceMatcher:
                 return False
         return True
 
-    def _see_through(
-        self,
-        pose: FloatArray,
-        features: ScanFeatures,
-        reference: ScanFeatures,
-        profile: PolarProfile,
-        ref_profile: PolarProfile | None,
-    ) -> tuple[float, float]:
+    def _see_through(self, ctx: MatchContext, pose: FloatArray) -> tuple[float, float]:
         """Free-space consistency: the fraction (and length, metres) of checked wall that
         one scan places where the other scan's beams pass through. The reference segments
         are cast along the new scan's beams; when the reference has points (a scan), the new
         segments along the reference's beams too."""
-        c = self.config
+        tol = ctx.config.validation.see_through_tolerance_m
         len_see = 0.0
         len_cons = 0.0
         inv_r = rot(pose[2]).T
-        ep_ref_new = (reference.seg_endpoints - pose[:2]) @ inv_r.T
-        checks = [(ep_ref_new, profile)]
-        if ref_profile is not None:
-            ep_new_ref = features.seg_endpoints @ rot(pose[2]).T + pose[:2]
-            checks.append((ep_new_ref, ref_profile))
+        ep_ref_new = (ctx.reference.seg_endpoints - pose[:2]) @ inv_r.T
+        checks = [(ep_ref_new, ctx.profile)]
+        if ctx.ref_profile is not None:
+            ep_new_ref = ctx.features.seg_endpoints @ rot(pose[2]).T + pose[:2]
+            checks.append((ep_new_ref, ctx.ref_profile))
         for ep, prof in checks:
-            see, cons = _ray_check(ep, prof, c.see_through_tolerance_m)
+            see, cons = _ray_check(ep, prof, tol)
             len_see += see
             len_cons += cons
         total = len_see + len_cons
@@ -598,13 +686,56 @@ class IceMatcher:
         return len_see / total, len_see
 
 
+def _prediction_start(ctx: MatchContext) -> FloatArray:
+    """The prediction as a start, its rotation replaced by the best alignment of the
+    segment directions near it when one has enough support (DESIGN step 9: a scene with
+    few features still yields a point-to-line match)."""
+    f, r = ctx.features, ctx.reference
+    start = ctx.prediction.copy()
+    th = segment_rotation(
+        f.seg_lines,
+        _lengths(f.seg_endpoints),
+        r.seg_lines,
+        _lengths(r.seg_endpoints),
+        float(start[2]),
+        min(ctx.bounds.max_rotation_rad, START_MAX_DEVIATION_RAD),
+        START_KERNEL_RAD,
+        START_MIN_SUPPORT_M,
+    )
+    if th is not None:
+        start[2] = th
+    return start
+
+
+def _local_lines(rp: FloatArray, max_gap_m: float) -> tuple[FloatArray, FloatArray]:
+    """For reference points ``(R, 2)`` in beam order: the distance to the nearer beam
+    neighbour ``(R,)`` and the unit normal ``(R, 2)`` of the local line through the previous
+    and next points when both are within ``max_gap_m``, else through the nearer one (NaN:
+    no neighbour within the gap)."""
+    d = np.diff(rp, axis=0)
+    gaps = np.hypot(d[:, 0], d[:, 1])
+    g_prev = np.insert(gaps, 0, np.inf)
+    g_next = np.append(gaps, np.inf)
+    nn = np.minimum(g_prev, g_next)
+    prev_pt = np.vstack([rp[:1], rp[:-1]])
+    next_pt = np.vstack([rp[1:], rp[-1:]])
+    a = np.where((g_prev <= max_gap_m)[:, None], prev_pt, rp)
+    b = np.where((g_next <= max_gap_m)[:, None], next_pt, rp)
+    t = b - a
+    tl = np.hypot(t[:, 0], t[:, 1])
+    has = tl > 1e-6
+    normal = np.full(rp.shape, np.nan)
+    normal[has] = np.stack([-t[has, 1], t[has, 0]], axis=1) / tl[has, None]
+    return nn, normal
+
+
 def _ray_check(ep: FloatArray, prof: PolarProfile, tol_m: float) -> tuple[float, float]:
     """Cast the segments ``ep`` (M, 2, 2) (the checking scan's frame) along its beams (its
     profile): a beam that reaches more than ``tol_m`` beyond the nearest segment it crosses
     sees through that wall; one that ends within ``tol_m`` of it confirms it. Returns the
     wall length (metres) seen through and confirmed; each beam counts the wall it covers
     (``distance * spacing / cos(incidence)``) once, however many copies of the wall a map
-    reference holds. Walls met at more than 70 degrees incidence are not judged."""
+    reference holds. Walls met at more than ``MAX_INCIDENCE_DEG`` incidence are not judged."""
     if ep.shape[0] == 0 or prof.bearing.shape[0] == 0:
         return 0.0, 0.0
     see, cons = ray_wall_check(
@@ -614,20 +745,20 @@ def _ray_check(ep: FloatArray, prof: PolarProfile, tol_m: float) -> tuple[float,
         prof.spacing,
         prof.range_max_m,
         tol_m,
-        math.cos(math.radians(70.0)),
+        math.cos(math.radians(MAX_INCIDENCE_DEG)),
     )
     return float(see), float(cons)
 
 
 def _bracket(prof: PolarProfile, bearing: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Ranges of the two returns bracketing each bearing (their min and max) and of the
-    nearest; NaN where the bracket spans a gap of more than 1.6 beam spacings."""
+    nearest; NaN where the bracket spans a gap of more than ``MAX_GAP_BEAMS`` beam spacings."""
     n = prof.bearing.shape[0]
     k = np.searchsorted(prof.bearing, bearing)
     k0 = np.clip(k - 1, 0, n - 1)
     k1 = np.clip(k, 0, n - 1)
     b0, b1 = prof.bearing[k0], prof.bearing[k1]
-    ok = (k > 0) & (k < n) & (b1 - b0 <= 1.6 * prof.spacing)
+    ok = (k > 0) & (k < n) & (b1 - b0 <= MAX_GAP_BEAMS * prof.spacing)
     r0, r1 = prof.range[k0], prof.range[k1]
     near = np.where(np.abs(bearing - b0) <= np.abs(b1 - bearing), r0, r1)
     lo = np.where(ok, np.minimum(r0, r1), np.nan)

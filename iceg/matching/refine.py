@@ -17,6 +17,10 @@ Gauss-Newton over
 - the bounds' prior (uniform variance of the admissible motion) pulling toward the
   prediction, which only matters along directions the scene leaves unconstrained.
 
+All of it runs in one compiled Gauss-Newton loop
+(:func:`~iceg.matching._kernels.gauss_newton_phase`), in two phases: a coarse one with the
+wide gate and full feature positions, then a fine one with a gate of a few estimated sigmas.
+
 The least-squares covariance is the inverse of that information (point noise ``sigma``
 estimated from the residuals, floored). It is the floor of the correlation-landscape
 covariance of Olson 2009 ("Real-time correlative scan matching"): the robust
@@ -30,26 +34,48 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from iceg.matching._kernels import (
-    feature_system,
-    gn_phase,
+    GnPhase,
+    GnSettings,
+    LineSegments,
+    PairGeometry,
+    PointCloud,
+    PosePrior,
+    SegmentPoints,
+    cloud_nearest,
+    gauss_newton_phase,
     lattice_point_cost,
     point_line_system,
 )
-from iceg.matching.geometry import EOW, FeatureGeometry, SegmentSet, associate_points, rot
+from iceg.matching.geometry import EOW, FeatureGeometry, SegmentSet, rot
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+
+#: Step below which the coarse phase ends (metres, radians).
+COARSE_TOL_XY_M = 1e-2
+COARSE_TOL_THETA_RAD = 5e-3
+#: Step below which the fine phase has converged (metres, radians).
+FINE_TOL_XY_M = 5e-4
+FINE_TOL_THETA_RAD = 1e-4
+#: The starting point noise is the coarse gate divided by this (floored).
+GATE_TO_SIGMA0 = 3.0
+#: Points evaluated on the lattice (evenly subsampled beyond; the cost is scaled up).
+LATTICE_POINTS = 100
+#: Variance floor of a feature pair's second whitened direction.
+_MIN_VARIANCE = 1e-18
 
 
 @dataclass(frozen=True, eq=False)
 class RefineSettings:
     """Numbers of the refinement in internal units (metres, radians); built from
-    :class:`~iceg.matching.config.MatchingConfig` by the matcher."""
+    :class:`~iceg.matching.config.MatchingConfig` (``refinement``, ``covariance`` and
+    ``cauchy_scale_sigmas``) by the matcher."""
 
     max_iterations: int
     gate_m: float
@@ -66,6 +92,28 @@ class RefineSettings:
     lattice_kappa: float
     lattice_cap_m: float
     lattice_cap_rad: float
+
+    def kernel(self) -> GnSettings:
+        """The settings the compiled Gauss-Newton loop needs."""
+        return GnSettings(
+            float(self.end_tol_m),
+            math.sin(self.normal_gate_rad),
+            float(self.sigma_min_m),
+            float(self.cauchy_sigmas),
+            float(self.gate_m),
+            float(self.gate_sigmas),
+            float(self.gate_min_m),
+            int(EOW),
+        )
+
+
+class FeaturePairing(Protocol):
+    """The correlation's feature pairing at a pose (see
+    :class:`~iceg.matching.correlation.CorrelationModel`)."""
+
+    def pairs(self, pose: FloatArray) -> IntArray:
+        """``(Q, 2)`` int64 feature pairs ``[new index, reference index]`` at ``pose``."""
+        ...
 
 
 @dataclass(frozen=True, eq=False)
@@ -117,126 +165,219 @@ class _Rows:
 _EMPTY_ROWS = _Rows(np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
 
 
-def _feature_rows(
-    pose: FloatArray,
-    gn: FeatureGeometry,
-    gr: FeatureGeometry,
-    pairs: IntArray,
-    use_positions: bool,
-) -> _Rows:
-    """Rows of the feature pairs ``(P, 2)`` ``[new, ref]``: a scalar along-wall row for each
-    pair that involves an EOW, two whitened position rows for the others when
-    ``use_positions`` (plain arithmetic on the 2x2 blocks: this runs every iteration)."""
-    if pairs.shape[0] == 0:
-        return _EMPTY_ROWS
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    i, j = pairs[:, 0], pairs[:, 1]
-    nx, ny = gn.xy[i, 0], gn.xy[i, 1]
-    rnx = c * nx - s * ny
-    rny = s * nx + c * ny
-    ex = rnx + pose[0] - gr.xy[j, 0]
-    ey = rny + pose[1] - gr.xy[j, 1]
-    cn = gn.cov[i]
-    a, b, d = cn[:, 0, 0], cn[:, 0, 1], cn[:, 1, 1]
-    cr = gr.cov[j]
-    ca = c * c * a - 2 * c * s * b + s * s * d + cr[:, 0, 0]
-    cb = c * s * (a - d) + (c * c - s * s) * b + cr[:, 0, 1]
-    cd = s * s * a + 2 * c * s * b + c * c * d + cr[:, 1, 1]
-    is_eow_r = gr.kind[j] == EOW
-    along = is_eow_r | (gn.kind[i] == EOW)
-    rr_l, jj_l, vv_l = [], [], []
-    if np.any(along):
-        ang = np.where(is_eow_r, gr.edge[j, 0], gn.edge[i, 0] + pose[2])[along]
-        dx, dy = np.cos(ang), np.sin(ang)
-        rr_l.append(dx * ex[along] + dy * ey[along])
-        jj_l.append(np.column_stack([dx, dy, dy * rnx[along] - dx * rny[along]]))
-        vv_l.append(dx * dx * ca[along] + 2 * dx * dy * cb[along] + dy * dy * cd[along])
-    if use_positions and not np.all(along):
-        p = ~along
-        l11 = np.sqrt(ca[p])
-        l21 = cb[p] / l11
-        l22 = np.sqrt(np.maximum(cd[p] - l21 * l21, 1e-18))
-        u1 = ex[p] / l11
-        u2 = (ey[p] - l21 * u1) / l22
-        n = u1.shape[0]
-        j1 = np.zeros((n, 3))
-        j1[:, 0] = 1.0 / l11
-        j1[:, 2] = -rny[p] / l11
-        j2 = np.zeros((n, 3))
-        j2[:, 0] = -l21 / l11 / l22
-        j2[:, 1] = 1.0 / l22
-        j2[:, 2] = (rnx[p] - l21 * (-rny[p]) / l11) / l22
-        rr_l.append(np.concatenate([u1, u2]))
-        jj_l.append(np.concatenate([j1, j2]))
-        vv_l.append(np.ones(2 * n))
-    if not rr_l:
-        return _EMPTY_ROWS
-    rr = np.concatenate(rr_l)
-    vv = np.concatenate(vv_l)
-    return _Rows(rr, np.concatenate(jj_l), _cauchy_weight(rr / np.sqrt(vv), 2.5), vv)
+@dataclass(frozen=True, eq=False)
+class _PointRows:
+    """Point-to-line rows at the refined pose: segment of each used point (-1: none), the
+    associated mask, residuals (m), Jacobians ``(N, 3)`` and the points in the reference
+    frame ``(N, 2)``."""
+
+    idx: IntArray
+    sel: NDArray[np.bool_]
+    r: FloatArray
+    jac: FloatArray
+    q: FloatArray
 
 
 @dataclass(frozen=True, eq=False)
-class Cloud:
-    """New-scan points that lie on no segment (clutter, short structures) and the
-    reference's points, for point-to-line rows on local lines (PL-ICP, Censi 2008) or
-    point-to-point rows where a reference point has no near neighbour.
+class RefineProblem:
+    """What every refinement of one match shares (DESIGN step 8).
 
     Attributes:
-        points: ``(C, 2)`` float64 new points, new frame, metres.
-        tree: ``scipy.spatial.cKDTree`` of ``ref_points``.
-        ref_points: ``(R, 2)`` float64 reference points, reference frame.
-        ref_spacing: ``(R,)`` float64 distance from each reference point to its nearest
-            neighbour in beam order, metres (noise of a point-to-point residual).
-        ref_normal: ``(R, 2)`` float64 unit normal of the local line through each
-            reference point's beam neighbours (NaN: isolated point).
+        points: The new scan's points on new segments (new frame) and their segments'
+            normal angles.
+        segs: Reference segments (reference frame).
+        line_cov: ``(M, 2, 2)`` float64 covariance of each reference line ``(alpha, rho)``
+            (see :func:`effective_line_cov`).
+        new_geom, ref_geom: New and reference feature geometry.
+        pairing: The correlation's feature pairing (pairs at a pose).
+        prior: The bounds' prior (mean: the prediction; information: uniform variance of
+            the admissible motion, zeros when unbounded).
+        cloud: Off-segment new points against the reference's points (may hold none).
+        settings: Refinement settings.
     """
 
-    points: FloatArray
-    tree: object
-    ref_points: FloatArray
-    ref_spacing: FloatArray
-    ref_normal: FloatArray
+    points: SegmentPoints
+    segs: SegmentSet
+    line_cov: FloatArray
+    new_geom: FeatureGeometry
+    ref_geom: FeatureGeometry
+    pairing: FeaturePairing
+    prior: PosePrior
+    cloud: PointCloud
+    settings: RefineSettings
+
+    @functools.cached_property
+    def lines(self) -> LineSegments:
+        """Reference segments with their line information, for the kernels."""
+        s = self.segs
+        info = np.linalg.inv(self.line_cov + 1e-12 * np.eye(2))
+        return LineSegments(s.a, s.u, s.length, s.normal, s.rho, info)
+
+    @functools.cached_property
+    def pair_geometry(self) -> PairGeometry:
+        """Feature geometry of both scans, for the kernels."""
+        n, r = self.new_geom, self.ref_geom
+        return PairGeometry(
+            n.xy,
+            n.cov,
+            n.kind,
+            np.ascontiguousarray(n.edge[:, 0]),
+            r.xy,
+            r.cov,
+            r.kind,
+            np.ascontiguousarray(r.edge[:, 0]),
+        )
+
+    @functools.cached_property
+    def kernel_settings(self) -> GnSettings:
+        """:meth:`RefineSettings.kernel` of ``settings``."""
+        return self.settings.kernel()
 
 
-def _cloud_rows(pose: FloatArray, cloud: Cloud | None, gate_m: float, sigma: float) -> _Rows:
-    """Rows of the cloud points whose nearest reference point is within the gate: one
-    point-to-line row (variance ``2 sigma^2``) on the reference point's local line, or two
-    point-to-point rows (variance ``2 sigma^2 + (spacing / 2)^2`` each) for an isolated
-    reference point."""
-    empty = _Rows(np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
-    if cloud is None or cloud.points.shape[0] == 0:
-        return empty
-    r = rot(pose[2])
-    rp = cloud.points @ r.T
-    q = rp + pose[:2]
-    dist, idx = cloud.tree.query(q, distance_upper_bound=gate_m)  # type: ignore[attr-defined]
-    ok = np.isfinite(dist)
+def empty_cloud() -> PointCloud:
+    """A :class:`~iceg.matching._kernels.PointCloud` without points (no PL-ICP rows)."""
+    z2 = np.zeros((0, 2))
+    zi = np.zeros(0, dtype=np.int64)
+    return PointCloud(z2, z2, np.zeros(0), z2, 1.0, np.zeros(2), np.ones(2, np.int64), zi, zi)
+
+
+def build_cloud(
+    points: FloatArray,
+    ref_points: FloatArray,
+    ref_spacing: FloatArray,
+    ref_normal: FloatArray,
+    cell_m: float,
+) -> PointCloud:
+    """Grid the reference points (cells of ``cell_m`` metres, at least the largest gate) for
+    :func:`~iceg.matching._kernels.cloud_nearest`.
+
+    Args:
+        points: ``(C, 2)`` float64 off-segment new points (new frame), metres.
+        ref_points: ``(R, 2)`` float64 reference points (reference frame), ``R >= 1``.
+        ref_spacing: ``(R,)`` float64 distance to the nearest beam neighbour, metres.
+        ref_normal: ``(R, 2)`` float64 unit normal of each point's local line (NaN: none).
+        cell_m: Grid cell, metres.
+    """
+    origin = ref_points.min(axis=0) - cell_m
+    cells = np.floor((ref_points - origin) / cell_m).astype(np.int64)
+    n_cells = cells.max(axis=0) + 2
+    key = cells[:, 0] * n_cells[1] + cells[:, 1]
+    order = np.argsort(key, kind="stable").astype(np.int64)
+    return PointCloud(
+        np.ascontiguousarray(points, dtype=np.float64),
+        np.ascontiguousarray(ref_points, dtype=np.float64),
+        np.ascontiguousarray(ref_spacing, dtype=np.float64),
+        np.ascontiguousarray(ref_normal, dtype=np.float64),
+        float(cell_m),
+        origin,
+        n_cells,
+        np.ascontiguousarray(key[order]),
+        order,
+    )
+
+
+def _feature_rows(
+    problem: RefineProblem, pose: FloatArray, pairs: IntArray, use_positions: bool
+) -> _Rows:
+    """Rows of the feature pairs ``(P, 2)`` ``[new, ref]``: a scalar along-wall row for each
+    pair that involves an EOW, two whitened position rows for the others when
+    ``use_positions`` (same model as :func:`~iceg.matching._kernels.feature_system`)."""
+    if pairs.shape[0] == 0:
+        return _EMPTY_ROWS
+    new, ref = problem.new_geom, problem.ref_geom
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    i, j = pairs[:, 0], pairs[:, 1]
+    nx, ny = new.xy[i, 0], new.xy[i, 1]
+    rnx = c * nx - s * ny
+    rny = s * nx + c * ny
+    ex = rnx + pose[0] - ref.xy[j, 0]
+    ey = rny + pose[1] - ref.xy[j, 1]
+    cn = new.cov[i]
+    a, b, d = cn[:, 0, 0], cn[:, 0, 1], cn[:, 1, 1]
+    cr = ref.cov[j]
+    ca = c * c * a - 2 * c * s * b + s * s * d + cr[:, 0, 0]
+    cb = c * s * (a - d) + (c * c - s * s) * b + cr[:, 0, 1]
+    cd = s * s * a + 2 * c * s * b + c * c * d + cr[:, 1, 1]
+    is_eow_r = ref.kind[j] == EOW
+    along = is_eow_r | (new.kind[i] == EOW)
+    rows = _EMPTY_ROWS
+    if np.any(along):
+        ang = np.where(is_eow_r, ref.edge[j, 0], new.edge[i, 0] + pose[2])[along]
+        dx, dy = np.cos(ang), np.sin(ang)
+        rr = dx * ex[along] + dy * ey[along]
+        jac = np.column_stack([dx, dy, dy * rnx[along] - dx * rny[along]])
+        var = dx * dx * ca[along] + 2 * dx * dy * cb[along] + dy * dy * cd[along]
+        rows = _Rows(rr, jac, np.zeros(0), var)
+    if use_positions and not np.all(along):
+        p = ~along
+        cov = (ca[p], cb[p], cd[p])
+        rows = _cat_rows(rows, _position_rows(ex[p], ey[p], rnx[p], rny[p], cov))
+    if rows.r.shape[0] == 0:
+        return _EMPTY_ROWS
+    w = _cauchy_weight(rows.r / np.sqrt(rows.var), problem.settings.cauchy_sigmas)
+    return _Rows(rows.r, rows.jac, w, rows.var)
+
+
+def _position_rows(
+    ex: FloatArray,
+    ey: FloatArray,
+    rnx: FloatArray,
+    rny: FloatArray,
+    cov: tuple[FloatArray, FloatArray, FloatArray],
+) -> _Rows:
+    """Two rows per pair, the position error ``(ex, ey)`` whitened by the Cholesky factor of
+    its covariance ``[[ca, cb], [cb, cd]]`` (weights left empty)."""
+    ca, cb, cd = cov
+    l11 = np.sqrt(ca)
+    l21 = cb / l11
+    l22 = np.sqrt(np.maximum(cd - l21 * l21, _MIN_VARIANCE))
+    u1 = ex / l11
+    u2 = (ey - l21 * u1) / l22
+    n = u1.shape[0]
+    j1 = np.zeros((n, 3))
+    j1[:, 0] = 1.0 / l11
+    j1[:, 2] = -rny / l11
+    j2 = np.zeros((n, 3))
+    j2[:, 0] = -l21 / l11 / l22
+    j2[:, 1] = 1.0 / l22
+    j2[:, 2] = (rnx - l21 * (-rny) / l11) / l22
+    return _Rows(np.concatenate([u1, u2]), np.concatenate([j1, j2]), np.zeros(0), np.ones(2 * n))
+
+
+def _cloud_rows(problem: RefineProblem, pose: FloatArray, gate_m: float, sigma: float) -> _Rows:
+    """Rows of the off-segment points whose nearest reference point is within the gate (the
+    model of :func:`~iceg.matching._kernels.cloud_system`): one point-to-line row
+    (variance ``2 sigma^2``) on the reference point's local line, or two point-to-point
+    rows (variance ``2 sigma^2 + (spacing / 2)^2`` each) for an isolated reference point."""
+    cloud = problem.cloud
+    if cloud.points.shape[0] == 0:
+        return _EMPTY_ROWS
+    near = cloud_nearest(pose, cloud, gate_m)
+    ok = near >= 0
     if not np.any(ok):
-        return empty
-    idx = idx[ok]
-    e = q[ok] - cloud.ref_points[idx]
-    rps = rp[ok]
-    n = e.shape[0]
-    jac = np.zeros((n, 2, 3))
+        return _EMPTY_ROWS
+    idx = near[ok]
+    rps = cloud.points[ok] @ rot(pose[2]).T
+    e = rps + pose[:2] - cloud.ref_points[idx]
+    jac = np.zeros((e.shape[0], 2, 3))
     jac[:, 0, 0] = 1.0
     jac[:, 1, 1] = 1.0
     jac[:, 0, 2] = -rps[:, 1]
     jac[:, 1, 2] = rps[:, 0]
     nrm = cloud.ref_normal[idx]
     line = np.isfinite(nrm[:, 0])
-    rows = empty
+    cs = problem.settings.cauchy_sigmas
+    rows = _EMPTY_ROWS
     if np.any(line):
-        nl = nrm[line]
-        rr = np.einsum("na,na->n", nl, e[line])
-        jj = np.einsum("na,nak->nk", nl, jac[line])
+        rr = np.einsum("na,na->n", nrm[line], e[line])
+        jj = np.einsum("na,nak->nk", nrm[line], jac[line])
         vv = np.full(rr.shape[0], 2.0 * sigma**2)
-        rows = _Rows(rr, jj, _cauchy_weight(rr / np.sqrt(vv), 2.5), vv)
+        rows = _Rows(rr, jj, _cauchy_weight(rr / np.sqrt(vv), cs), vv)
     pt = ~line
     if np.any(pt):
         var = 2.0 * sigma**2 + (0.5 * np.minimum(cloud.ref_spacing[idx[pt]], 1e3)) ** 2
         ep = e[pt]
-        w = np.repeat(_cauchy_weight(np.hypot(ep[:, 0], ep[:, 1]) / np.sqrt(var), 2.5), 2)
+        w = np.repeat(_cauchy_weight(np.hypot(ep[:, 0], ep[:, 1]) / np.sqrt(var), cs), 2)
         rows = _cat_rows(rows, _Rows(ep.reshape(-1), jac[pt].reshape(-1, 3), w, np.repeat(var, 2)))
     return rows
 
@@ -252,36 +393,6 @@ def _cat_rows(a: _Rows, b: _Rows) -> _Rows:
         np.concatenate([a.w, b.w]),
         np.concatenate([a.var, b.var]),
     )
-
-
-@dataclass(frozen=True, eq=False)
-class _PointRows:
-    idx: IntArray  # used point -> segment (-1)
-    sel: NDArray[np.bool_]
-    r: FloatArray
-    jac: FloatArray
-    q: FloatArray  # associated points in the reference frame
-
-
-def _point_rows(
-    pose: FloatArray,
-    points: FloatArray,
-    point_alpha: FloatArray,
-    segs: SegmentSet,
-    gate_m: float,
-    s: RefineSettings,
-) -> _PointRows:
-    r = rot(pose[2])
-    rp = points @ r.T
-    q = rp + pose[:2]
-    idx, res = associate_points(
-        q, point_alpha + pose[2], segs, gate_m, s.end_tol_m, s.normal_gate_rad
-    )
-    sel = idx >= 0
-    n = segs.normal[idx[sel]]
-    rps = rp[sel]
-    jac = np.column_stack([n[:, 0], n[:, 1], n[:, 1] * rps[:, 0] - n[:, 0] * rps[:, 1]])
-    return _PointRows(idx, sel, res[sel], jac, q[sel])
 
 
 def effective_line_cov(
@@ -302,257 +413,108 @@ def effective_line_cov(
     return segs.cov + jac @ floor @ np.swapaxes(jac, 1, 2)
 
 
-def _gls_system(
-    pr: _PointRows, w: FloatArray, sigma: float, segs: SegmentSet, line_cov: FloatArray
-) -> tuple[FloatArray, FloatArray]:
-    """Normal equations ``(H, g)`` of the point-to-line residuals with the reference lines'
-    own uncertainty as a shared error of all points on a line (generalised least squares):
-    per segment, ``C = W^-1 + B S B^T`` with ``B`` the residuals' derivative w.r.t. the line's
-    ``(alpha, rho)`` and ``S`` its covariance; ``C^-1`` by the Woodbury identity, so each
-    segment costs a 2x2 inverse. A small angle error of a long line then no longer
-    masquerades as information along it (a corridor's axis)."""
-    seg = pr.idx[pr.sel]
-    if seg.shape[0] == 0:
-        return np.zeros((3, 3)), np.zeros(3)
-    al = segs.alpha[seg]
-    b = np.column_stack(
-        [-np.sin(al) * pr.q[:, 0] + np.cos(al) * pr.q[:, 1], -np.ones(seg.shape[0])]
-    )
-    jac, r = pr.jac, pr.r
-    wt = (w / sigma**2)[:, None]
-    feats = (
-        np.concatenate(
-            [
-                (jac[:, :, None] * jac[:, None, :]).reshape(-1, 9),
-                (jac[:, :, None] * b[:, None, :]).reshape(-1, 6),
-                (b[:, :, None] * b[:, None, :]).reshape(-1, 4),
-                jac * r[:, None],
-                b * r[:, None],
-            ],
-            axis=1,
-        )
-        * wt
-    )
-    order = np.argsort(seg, kind="stable")
-    ss = seg[order]
-    starts = np.flatnonzero(np.concatenate([[True], ss[1:] != ss[:-1]]))
-    sums = np.add.reduceat(feats[order], starts, axis=0)
-    u = ss[starts]
-    jj = sums[:, :9].reshape(-1, 3, 3)
-    jb = sums[:, 9:15].reshape(-1, 3, 2)
-    bb = sums[:, 15:19].reshape(-1, 2, 2)
-    jr = sums[:, 19:22]
-    br = sums[:, 22:24]
-    k = np.linalg.inv(np.linalg.inv(line_cov[u]) + bb)
-    hess = jj.sum(axis=0) - np.einsum("uab,ubc,udc->ad", jb, k, jb)
-    grad = jr.sum(axis=0) - np.einsum("uab,ubc,uc->a", jb, k, br)
-    return hess, grad
-
-
 def refine(
-    pose0: FloatArray,
-    points: FloatArray,
-    point_alpha: FloatArray,
-    segs: SegmentSet,
-    gn: FeatureGeometry,
-    gr: FeatureGeometry,
-    pair_fn,
-    prior_info: FloatArray,
-    settings: RefineSettings,
-    prior_mean: FloatArray | None = None,
-    cloud: Cloud | None = None,
-    initial_pairs: IntArray | None = None,
+    problem: RefineProblem, pose0: FloatArray, initial_pairs: IntArray | None = None
 ) -> Refined:
-    """Gauss-Newton refinement and covariance of one hypothesis (DESIGN steps 8-9).
+    """Gauss-Newton refinement and covariance of one hypothesis (DESIGN steps 8-9; paper
+    §III-C3 "an optimization problem"; covariance after Olson 2009).
 
     Args:
-        pose0: ``(3,)`` float64 starting pose of the new scan in the reference frame.
-        points: ``(P, 2)`` float64 new scan points (new frame) that lie on new segments.
-        point_alpha: ``(P,)`` float64 normal angle of each point's own segment (new frame).
-        segs: Reference segments (reference frame).
-        gn, gr: New and reference feature geometry.
-        pair_fn: ``pair_fn(pose) -> (Q, 2) int64`` feature pairs ``[new, ref]`` at ``pose``
-            (the correlation's pairing).
-        prior_info: ``(3, 3)`` information of the bounds' prior (uniform variance of the
-            admissible motion; zeros for a global match). It regularises unobservable
-            directions and enters the covariance.
-        settings: Refinement settings.
-        prior_mean: ``(3,)`` centre of the prior (the prediction); default ``pose0``.
-        cloud: Off-segment points of the new scan and the reference's points for
-            point-to-point rows (gated like the point-to-line rows); ``None``: none.
-        initial_pairs: Feature pairs at ``pose0`` if already known (else ``pair_fn``).
+        problem: What the match's refinements share (points, segments, features, prior).
+        pose0: ``(3,)`` float64 starting pose of the new scan in the reference frame
+            ``[x_m, y_m, theta_rad]``.
+        initial_pairs: ``(Q, 2)`` int64 feature pairs ``[new, ref]`` at ``pose0`` if already
+            known (else from ``problem.pairing``).
 
     Returns:
-        A :class:`Refined`.
+        A :class:`Refined`; its covariances are perturbations of ``(x, y, theta)`` in the
+        reference frame.
     """
-    s = settings
+    pose, sigma, gate, iterations, pairs = _gauss_newton(problem, pose0, initial_pairs)
+    hess, pr, rows, sigma = _final_system(problem, pose, gate, sigma, pairs)
+    cov_ls, cov = _covariance(problem, pose, hess, pr, rows, sigma, gate)
+    overlap = float(pr.sel.sum()) / max(1, problem.points.xy.shape[0])
+    return Refined(pose, cov_ls, cov, sigma, overlap, int(pr.sel.sum()), pr.idx, iterations)
+
+
+def _gauss_newton(
+    problem: RefineProblem, pose0: FloatArray, initial_pairs: IntArray | None
+) -> tuple[FloatArray, float, float, int, IntArray]:
+    """The two phases of the Gauss-Newton loop: the wide gate with full feature positions
+    until the steps are small (a coarse hypothesis is pulled in), then a gate of a few
+    estimated sigmas with the pairing fixed at the coarse result until convergence (points
+    off the matched segments stop pulling).
+
+    Returns:
+        The pose ``(3,)``, the point noise (m), the gate (m), the iterations run and the
+        fine phase's feature pairs ``(Q, 2)``.
+    """
+    s = problem.settings
     pose = np.asarray(pose0, dtype=np.float64).copy()
-    prior_mean = pose.copy() if prior_mean is None else np.asarray(prior_mean, dtype=np.float64)
-    line_cov = effective_line_cov(segs, s.line_angle_sigma_min_rad, s.line_offset_sigma_min_m)
-    gate = s.gate_m
-    sigma = max(s.sigma_min_m, s.gate_m / 3.0)
-    n_pts = points.shape[0]
-    it = 0
-    # Two phases: the wide gate until the steps are small (a coarse hypothesis is pulled
-    # in, Corner/Intersection positions help), then a gate of a few estimated sigmas until
-    # convergence (points off the matched segments stop pulling).
-    coarse = True
-    coarse_pairs: IntArray | None = initial_pairs
-    fine_pairs: IntArray | None = None
-    line_info = np.linalg.inv(line_cov + 1e-12 * np.eye(2))
-    new_edge0 = np.ascontiguousarray(gn.edge[:, 0])
-    ref_edge0 = np.ascontiguousarray(gr.edge[:, 0])
-    sin_gate = math.sin(s.normal_gate_rad)
+    sigma = max(s.sigma_min_m, s.gate_m / GATE_TO_SIGMA0)
+    pairs = problem.pairing.pairs(pose) if initial_pairs is None else initial_pairs
+    n_coarse = max(1, s.max_iterations // 2)
+    coarse = GnPhase(True, s.gate_m, sigma, n_coarse, COARSE_TOL_XY_M, COARSE_TOL_THETA_RAD)
+    pose, sigma, gate, it = _phase(problem, pose, pairs, coarse)
+    gate = min(s.gate_m, max(s.gate_min_m, s.gate_sigmas * sigma))
+    pairs = problem.pairing.pairs(pose)
+    n_fine = max(1, s.max_iterations - it)
+    fine = GnPhase(False, gate, sigma, n_fine, FINE_TOL_XY_M, FINE_TOL_THETA_RAD)
+    pose, sigma, gate, it2 = _phase(problem, pose, pairs, fine)
+    return pose, sigma, gate, it + it2, pairs
 
-    def system(pose: FloatArray, gate: float, sigma: float) -> tuple:  # type: ignore[type-arg]
-        """Point-to-line normal equations at ``pose`` (see :func:`point_line_system`)."""
-        return point_line_system(  # type: ignore[no-any-return]
-            pose,
-            points,
-            point_alpha,
-            segs.a,
-            segs.u,
-            segs.length,
-            segs.normal,
-            segs.rho,
-            line_info,
-            gate,
-            s.end_tol_m,
-            sin_gate,
-            sigma,
-            s.sigma_min_m,
-            s.cauchy_sigmas,
-        )
 
-    if cloud is None:
-        # Both phases compiled (the usual case: a map reference has no points).
-        if coarse_pairs is None:
-            coarse_pairs = pair_fn(pose)
-        phase_args = (
-            prior_mean,
-            prior_info,
-            points,
-            point_alpha,
-            segs.a,
-            segs.u,
-            segs.length,
-            segs.normal,
-            segs.rho,
-            line_info,
-            s.end_tol_m,
-            sin_gate,
-            s.sigma_min_m,
-            s.cauchy_sigmas,
-        )
-        feat_args = (gn.xy, gn.cov, gn.kind, new_edge0, gr.xy, gr.cov, gr.kind, ref_edge0, EOW)
-        pose, sigma, gate, it = gn_phase(
-            pose,
-            *phase_args,
-            np.ascontiguousarray(coarse_pairs[:, 0]),
-            np.ascontiguousarray(coarse_pairs[:, 1]),
-            *feat_args,
-            True,
-            gate,
-            sigma,
-            max(1, s.max_iterations // 2),
-            s.gate_m,
-            s.gate_sigmas,
-            s.gate_min_m,
-            1e-2,
-            5e-3,
-        )
-        gate = min(s.gate_m, max(s.gate_min_m, s.gate_sigmas * sigma))
-        fine_pairs = pair_fn(pose)
-        pose, sigma, gate, it2 = gn_phase(
-            pose,
-            *phase_args,
-            np.ascontiguousarray(fine_pairs[:, 0]),
-            np.ascontiguousarray(fine_pairs[:, 1]),
-            *feat_args,
-            False,
-            gate,
-            sigma,
-            max(1, s.max_iterations - it),
-            s.gate_m,
-            s.gate_sigmas,
-            s.gate_min_m,
-            5e-4,
-            1e-4,
-        )
-        it += it2
-    else:
-        for it in range(1, s.max_iterations + 1):
-            hess, grad, sigma, _, _ = system(pose, gate, sigma)
-            if coarse:
-                if coarse_pairs is None:
-                    coarse_pairs = pair_fn(pose)
-                pairs = coarse_pairs
-            else:
-                # The pairing is fixed once the coarse phase has converged.
-                if fine_pairs is None:
-                    fine_pairs = pair_fn(pose)
-                pairs = fine_pairs
-            if pairs.shape[0]:
-                fh, fg = feature_system(
-                    pose,
-                    pairs[:, 0],
-                    pairs[:, 1],
-                    gn.xy,
-                    gn.cov,
-                    gn.kind,
-                    new_edge0,
-                    gr.xy,
-                    gr.cov,
-                    gr.kind,
-                    ref_edge0,
-                    EOW,
-                    coarse,
-                    2.5,
-                )
-                hess += fh
-                grad += fg
-            fr = _cloud_rows(pose, cloud, gate, sigma)
-            if fr.r.shape[0] > 0:
-                hess += (fr.jac.T * (fr.w / fr.var)) @ fr.jac
-                grad += (fr.jac.T * (fr.w / fr.var)) @ fr.r
-            # The bounds' prior pulls toward the prediction (MAP): it only matters along
-            # directions the scene leaves unconstrained (a corridor's axis).
-            dp = pose - prior_mean
-            dp[2] = (dp[2] + math.pi) % (2.0 * math.pi) - math.pi
-            grad += prior_info @ dp
-            a = hess + prior_info + 1e-9 * np.eye(3)
-            try:
-                delta = -np.linalg.solve(a, grad)
-            except np.linalg.LinAlgError:
-                break
-            pose[:2] += delta[:2]
-            pose[2] = (pose[2] + delta[2] + math.pi) % (2.0 * math.pi) - math.pi
-            step_xy, step_th = math.hypot(delta[0], delta[1]), abs(delta[2])
-            if coarse:
-                if (step_xy < 1e-2 and step_th < 5e-3) or it >= s.max_iterations // 2:
-                    coarse = False
-            elif step_xy < 5e-4 and step_th < 1e-4:
-                break
-            if not coarse:
-                gate = min(s.gate_m, max(s.gate_min_m, s.gate_sigmas * sigma))
-    # Final linearisation at the refined pose.
-    hess, _, sigma, idx, res = system(pose, gate, sigma)
-    c = s.cauchy_sigmas * sigma
-    sel = idx >= 0
-    rp = points[sel] @ rot(pose[2]).T
-    nrm = segs.normal[idx[sel]]
-    pr = _PointRows(
-        idx,
-        sel,
-        res[sel],
-        np.column_stack([nrm[:, 0], nrm[:, 1], nrm[:, 1] * rp[:, 0] - nrm[:, 0] * rp[:, 1]]),
-        rp + pose[:2],
+def _phase(
+    problem: RefineProblem, pose: FloatArray, pairs: IntArray, phase: GnPhase
+) -> tuple[FloatArray, float, float, int]:
+    """One call of the compiled loop :func:`~iceg.matching._kernels.gauss_newton_phase`."""
+    return gauss_newton_phase(  # type: ignore[no-any-return]
+        pose,
+        problem.prior,
+        problem.points,
+        problem.lines,
+        np.ascontiguousarray(pairs, dtype=np.int64),
+        problem.pair_geometry,
+        problem.cloud,
+        problem.kernel_settings,
+        phase,
     )
-    pairs = fine_pairs if fine_pairs is not None else pair_fn(pose)
-    fr = _cat_rows(_feature_rows(pose, gn, gr, pairs, False), _cloud_rows(pose, cloud, gate, sigma))
-    if fr.r.shape[0] > 0:
-        hess += (fr.jac.T * (fr.w / fr.var)) @ fr.jac
-    a = hess + prior_info
+
+
+def _final_system(
+    problem: RefineProblem, pose: FloatArray, gate: float, sigma: float, pairs: IntArray
+) -> tuple[FloatArray, _PointRows, _Rows, float]:
+    """Linearisation at the refined pose: the information ``(3, 3)`` of the point-to-line,
+    EOW-pair and off-segment rows (prior excluded), the point-to-line rows and the other
+    rows (for the lattice), and the point noise (m)."""
+    hess, _, sigma, idx, res = point_line_system(
+        pose, problem.points, problem.lines, gate, sigma, problem.kernel_settings
+    )
+    sel = idx >= 0
+    rp = problem.points.xy[sel] @ rot(pose[2]).T
+    nrm = problem.segs.normal[idx[sel]]
+    jac = np.column_stack([nrm[:, 0], nrm[:, 1], nrm[:, 1] * rp[:, 0] - nrm[:, 0] * rp[:, 1]])
+    pr = _PointRows(idx, sel, res[sel], jac, rp + pose[:2])
+    rows = _cat_rows(
+        _feature_rows(problem, pose, pairs, False), _cloud_rows(problem, pose, gate, sigma)
+    )
+    if rows.r.shape[0] > 0:
+        hess += (rows.jac.T * (rows.w / rows.var)) @ rows.jac
+    return hess, pr, rows, sigma
+
+
+def _covariance(
+    problem: RefineProblem,
+    pose: FloatArray,
+    hess: FloatArray,
+    pr: _PointRows,
+    rows: _Rows,
+    sigma: float,
+    gate: float,
+) -> tuple[FloatArray, FloatArray]:
+    """Least-squares covariance ``(hess + prior)^-1`` (infinite when singular) and the final
+    covariance: the lattice second moment (Olson 2009) floored by it (:func:`psd_max`)."""
+    a = hess + problem.prior.info
     try:
         a_inv = np.asarray(np.linalg.inv(a), dtype=np.float64)
     except np.linalg.LinAlgError:
@@ -560,15 +522,10 @@ def refine(
     cov_ls = 0.5 * (a_inv + a_inv.T) if np.all(np.isfinite(a_inv)) else np.full((3, 3), np.inf)
     cov = cov_ls
     if np.all(np.isfinite(cov_ls)):
-        lat = _lattice_covariance(pose, pr, segs, fr, sigma, c, gate, a_inv, s)
+        lat = _lattice_covariance(problem, pose, pr, rows, sigma, gate, a_inv)
         if lat is not None:
             cov = psd_max(cov_ls, lat)
-    overlap = float(pr.sel.sum()) / max(1, n_pts)
-    return Refined(pose, cov_ls, cov, sigma, overlap, int(pr.sel.sum()), pr.idx, it)
-
-
-#: Points evaluated on the lattice (evenly subsampled beyond; the cost is scaled up).
-_LATTICE_POINTS = 100
+    return cov_ls, cov
 
 
 @functools.lru_cache(maxsize=4)
@@ -578,25 +535,10 @@ def _unit_lattice(steps: int) -> FloatArray:
     return np.stack(np.meshgrid(k, k, k, indexing="ij"), axis=-1).reshape(-1, 3)
 
 
-def _lattice_covariance(
-    pose: FloatArray,
-    pr: _PointRows,
-    segs: SegmentSet,
-    fr: _Rows,
-    sigma: float,
-    c: float,
-    gate: float,
-    lik_cov: FloatArray,
-    s: RefineSettings,
-) -> FloatArray | None:
-    """Second moment of ``exp(kappa (score - score_max))`` on a lattice of perturbations
-    (Olson 2009). The score is the robust log-likelihood of the refinement with the final
-    associations: a point that slides beyond its segment's extent (plus tolerance) counts as
-    an outlier at the gate, so the landscape is flat where the walls give no constraint.
-
-    The lattice spans ``lattice_sigmas`` standard deviations of the likelihood covariance
-    along its principal axes (capped), ``lattice_steps`` points per axis.
-    """
+def _lattice_deltas(lik_cov: FloatArray, s: RefineSettings) -> FloatArray | None:
+    """``(L, 3)`` lattice perturbations ``(x, y, theta)``: ``lattice_sigmas`` standard
+    deviations of the likelihood covariance along its principal axes (capped),
+    ``lattice_steps`` points per axis; None when the covariance is not positive definite."""
     evals, evecs = np.linalg.eigh(0.5 * (lik_cov + lik_cov.T))
     if not np.all(np.isfinite(evals)) or np.any(evals <= 0):
         return None
@@ -605,38 +547,77 @@ def _lattice_covariance(
     )
     half = np.minimum(s.lattice_sigmas * np.sqrt(evals), cap)
     g = _unit_lattice(s.lattice_steps) * half
-    deltas = g @ evecs.T  # (L, 3) in (x, y, theta)
+    return np.asarray(g @ evecs.T, dtype=np.float64)
+
+
+def _lattice_point_cost(
+    problem: RefineProblem,
+    pose: FloatArray,
+    pr: _PointRows,
+    deltas: FloatArray,
+    gate: float,
+    sigma: float,
+) -> FloatArray:
+    """Robust cost ``(L,)`` of the point-to-line rows on the lattice: at most
+    ``LATTICE_POINTS`` points, evenly spread, their cost scaled up to all."""
+    segs, s = problem.segs, problem.settings
+    n_all = pr.r.shape[0]
+    pick = np.linspace(0, n_all - 1, min(n_all, LATTICE_POINTS)).astype(np.int64)
+    q = pr.q[pick]
+    seg = pr.idx[pr.sel][pick]
+    u = segs.u[seg]
+    # Along-segment coordinate and its derivative.
+    along = np.einsum("na,na->n", q - segs.a[seg], u)
+    rq = q - pose[:2]
+    j_along = np.column_stack([u[:, 0], u[:, 1], u[:, 1] * rq[:, 0] - u[:, 0] * rq[:, 1]])
+    cost = lattice_point_cost(
+        deltas,
+        np.ascontiguousarray(pr.r[pick]),
+        np.ascontiguousarray(pr.jac[pick]),
+        along,
+        j_along,
+        np.ascontiguousarray(segs.length[seg]),
+        s.end_tol_m,
+        gate,
+        s.cauchy_sigmas * sigma,
+        sigma,
+    )
+    return np.asarray((n_all / pick.shape[0]) * cost, dtype=np.float64)
+
+
+def _lattice_covariance(
+    problem: RefineProblem,
+    pose: FloatArray,
+    pr: _PointRows,
+    rows: _Rows,
+    sigma: float,
+    gate: float,
+    lik_cov: FloatArray,
+) -> FloatArray | None:
+    """Second moment of ``exp(kappa (score - score_max))`` on a lattice of perturbations
+    (Olson 2009, "Real-time correlative scan matching"). The score is the robust
+    log-likelihood of the refinement with the final associations: a point that slides
+    beyond its segment's extent (plus tolerance) counts as an outlier at the gate, so the
+    landscape is flat where the walls give no constraint.
+
+    Returns:
+        ``(3, 3)`` covariance of ``(x, y, theta)`` in the reference frame, or None when
+        ``lik_cov`` is not positive definite.
+    """
+    s = problem.settings
+    deltas = _lattice_deltas(lik_cov, s)
+    if deltas is None:
+        return None
     cost = np.zeros(deltas.shape[0])
     if pr.r.shape[0] > 0:
-        # At most _LATTICE_POINTS points, evenly spread, their cost scaled up to all.
-        n_all = pr.r.shape[0]
-        pick = np.linspace(0, n_all - 1, min(n_all, _LATTICE_POINTS)).astype(np.int64)
-        pr = _PointRows(pr.idx, pr.sel, pr.r[pick], pr.jac[pick], pr.q[pick])
-        seg = pr.idx[pr.sel][pick]
-        u = segs.u[seg]
-        # Along-segment coordinate and its derivative.
-        along = np.einsum("na,na->n", pr.q - segs.a[seg], u)
-        rq = pr.q - pose[:2]
-        j_along = np.column_stack([u[:, 0], u[:, 1], u[:, 1] * rq[:, 0] - u[:, 0] * rq[:, 1]])
-        cost += (n_all / pick.shape[0]) * lattice_point_cost(
-            deltas,
-            np.ascontiguousarray(pr.r),
-            np.ascontiguousarray(pr.jac),
-            along,
-            j_along,
-            np.ascontiguousarray(segs.length[seg]),
-            s.end_tol_m,
-            gate,
-            c,
-            sigma,
-        )
-    if fr.r.shape[0] > 0:
-        rf = (fr.r[:, None] + fr.jac @ deltas.T) / np.sqrt(fr.var)[:, None]
-        cost += _cauchy_cost(rf, 2.5).sum(axis=0)
+        cost += _lattice_point_cost(problem, pose, pr, deltas, gate, sigma)
+    if rows.r.shape[0] > 0:
+        rf = (rows.r[:, None] + rows.jac @ deltas.T) / np.sqrt(rows.var)[:, None]
+        cost += _cauchy_cost(rf, s.cauchy_sigmas).sum(axis=0)
     score = -cost
     w = np.exp(s.lattice_kappa * (score - score.max()))
     w /= w.sum()
-    return (deltas.T * w) @ deltas
+    return np.asarray((deltas.T * w) @ deltas, dtype=np.float64)
 
 
 def psd_max(a: FloatArray, b: FloatArray) -> FloatArray:
