@@ -9,6 +9,7 @@ walls at once; the range of a beam is its smallest valid ``t``.
 from __future__ import annotations
 
 import math
+from enum import IntEnum
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -179,8 +180,28 @@ def visible_mask(
     return in_fov & in_range & clear
 
 
-#: Junction classes returned by :func:`classify_junctions`.
-HIDDEN, CORNER, WALL_END, APPARENT_END, NOTHING = 0, 1, 2, 3, 4
+class JunctionClass(IntEnum):
+    """What the laser sees at a wall endpoint (returned by :func:`classify_junctions`).
+
+    ``CORNER`` and ``WALL_END`` have the values of ``iceg.types.FeatureKind.CORNER`` (0) and
+    ``FeatureKind.EOW`` (1), so a ground-truth class compares directly with an extracted
+    feature's kind (``frontends`` may not import ``iceg``; ``tests/frontends/test_simulate.py``
+    checks that the values agree). The other classes have no feature kind and use values
+    no feature kind uses.
+    """
+
+    CORNER = 0
+    WALL_END = 1
+    HIDDEN = 3
+    APPARENT_END = 4
+    NOTHING = 5
+
+
+HIDDEN = JunctionClass.HIDDEN
+CORNER = JunctionClass.CORNER
+WALL_END = JunctionClass.WALL_END
+APPARENT_END = JunctionClass.APPARENT_END
+NOTHING = JunctionClass.NOTHING
 
 
 def classify_junctions(
@@ -211,7 +232,8 @@ def classify_junctions(
         stamp_s: Time for dynamic walls; ``None``: static walls only.
 
     Returns:
-        ``(P,)`` int64 classes aligned with ``world.junctions(stamp_s).points``, and those
+        ``(P,)`` int64 :class:`JunctionClass` values aligned with
+        ``world.junctions(stamp_s).points``, and those
         points ``(P, 2)`` float64 in metres, world frame.
     """
     model = LaserModel() if model is None else model
