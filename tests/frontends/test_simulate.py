@@ -25,6 +25,7 @@ from frontends.simulate import (
     default_trajectory,
     office_world,
     pillar_world,
+    ray_ranges,
     simulate,
     simulate_pair,
     trajectory_from_waypoints,
@@ -491,3 +492,16 @@ def test_carmen_round_trip(tmp_path: Path, record: str, world_name: str) -> None
         assert abs(r.stamp_s - s.stamp_s) <= tol_stamp
         assert r.range_max_m == s.range_max_m
         np.testing.assert_array_equal(r.valid_mask(), s.valid_mask())
+
+
+@pytest.mark.parametrize("world_name", ["office", "outdoor", "long_corridor"])
+def test_wall_culling_leaves_ranges_unchanged(world_name: str) -> None:
+    # Truth: ray_ranges against every wall, clamped as cast_rays documents. cast_rays only
+    # casts against walls within range and in front of the laser; the ranges must agree
+    # exactly, also for beams at exactly +-90 deg along a wall.
+    w = world_by_name(world_name)
+    poses = default_trajectory(w)[::37]
+    for pose in [*poses, np.array([3.0, 5.0, 0.0])]:
+        full = ray_ranges(pose[:2], pose[2] + EXACT.angles_rad(), w.walls)
+        expect = np.where(full < EXACT.range_max_m, full, EXACT.range_max_m)
+        np.testing.assert_array_equal(cast_rays(w, pose, EXACT), expect)
