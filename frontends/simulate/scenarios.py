@@ -4,8 +4,9 @@ A scenario fixes everything but the seed, so a benchmark row (``benchmarks/bench
 or a test names a run by a short name. The issue-11 scenarios reproduce the four ways the
 pipeline failed on unseen logs: ``long_corridor`` (a 200 m corridor with door recesses,
 accurate odometry), ``office_biased`` (the office loop with 1.5 % scale error and
-0.4 deg/m heading drift), ``two_loop`` (odometry drift > 20 m at the return to the start)
-and ``outdoor`` (trees and posts, few walls).
+0.4 deg/m heading drift), ``two_loop`` (odometry drift > 20 m at the return to the start,
+in a building), ``open_loops`` (the same over open ground, where the laser cannot correct
+the drift) and ``outdoor`` (trees and posts, few walls).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from frontends.simulate.worlds import (
     corridor_world,
     long_corridor_world,
     office_world,
+    open_loops_world,
     outdoor_world,
     two_loop_world,
 )
@@ -75,6 +77,13 @@ SCENARIOS: dict[str, Scenario] = {
             two_loop_world,
             OdometryModel.biased(scale_error=0.01, heading_drift_deg_per_m=0.3),
             description="two loops (256 m), 1 % scale error, 0.3 deg/m: drift > 20 m at return",
+        ),
+        Scenario(
+            "open_loops",
+            open_loops_world,
+            OdometryModel.biased(scale_error=0.01, heading_drift_deg_per_m=0.3),
+            speed_mps=1.0,
+            description="two 160 m loops over open ground, 1 %, 0.3 deg/m: odometry > 20 m off",
         ),
         Scenario(
             "outdoor",

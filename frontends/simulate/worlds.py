@@ -544,6 +544,32 @@ def two_loop_world() -> World:
     )
 
 
+def open_loops_world() -> World:
+    """Two loops round a 40 m x 40 m square of open ground that leave and return to a small
+    feature-rich start area: a 30 m wall along ``y`` = 0 (``x`` -10 to 20) with two 0.9 m
+    doors and end stubs, and two 1 m boxes 2.5 m from the route. Away from the start the
+    20 m laser sees nothing (about 80 % of the scans have no return), so the estimate can only
+    follow the odometry there.
+
+    The default route (320 m) starts at ``(5, 5)`` facing east and drives twice round the
+    square ``x`` 5–45, ``y`` 5–45 (back at the start after 160 m and 320 m). With 1 % scale
+    error and 0.3 deg/m heading drift the odometry is about 20 m off at the first return
+    and about 40 m at the second, beyond a 10 m loop-closure search (issue 11, failure 3),
+    while the start area offers a closure to a search wide enough.
+    """
+    walls = wall_with_doors([-10.0, 0.0], [20.0, 0.0], [(6.0, 0.9), (21.0, 0.9)])
+    walls += [[[-10.0, 0.0], [-10.0, 3.0]], [[20.0, 0.0], [20.0, 3.0]]]
+    walls += rectangle(12.0, 1.5, 13.0, 2.5) + rectangle(-3.0, 1.5, -2.0, 2.5)
+    lap = [[45.0, 5.0], [45.0, 45.0], [5.0, 45.0], [5.0, 5.0]]
+    return World(
+        "open_loops",
+        np.array(walls),
+        route_xy=np.array([[5.0, 5.0], *lap, *lap]),
+        start_heading_rad=0.0,
+        description=open_loops_world.__doc__ or "",
+    )
+
+
 #: Outdoor layout of :func:`outdoor_world` (metres).
 TREE_RADIUS_RANGE_M = (0.1, 0.4)
 POST_HALF_SIDE_M = 0.075
@@ -645,13 +671,14 @@ WORLDS: dict[str, Callable[[], World]] = {
     "box": box_world,
     "long_corridor": long_corridor_world,
     "two_loop": two_loop_world,
+    "open_loops": open_loops_world,
     "outdoor": outdoor_world,
 }
 
 
 def world_by_name(name: str) -> World:
     """A built-in world by name (``office``, ``corridor``, ``pillar``, ``box``,
-    ``long_corridor``, ``two_loop``, ``outdoor``).
+    ``long_corridor``, ``two_loop``, ``open_loops``, ``outdoor``).
 
     Raises:
         ConfigError: unknown name.

@@ -181,6 +181,27 @@ def test_two_loop_drift_without_noise_matches_bias() -> None:
     assert wrap_angle(odom[-1, 2] - t[-1, 2]) == pytest.approx(wrap_angle(total_turn), abs=1e-9)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_open_loops_drift_beyond_search_and_laser_blind_between(seed: int) -> None:
+    # Truth: the route passes the start (5, 5) after 160 m and ends there after 320 m. The
+    # odometry (1 %, 0.3 deg/m) is > 15 m off at the first return and > 30 m at the second
+    # (36-40 m for seeds 0-2). Only scans within ~20 m of the start area see anything: the
+    # others have no valid beam, so scan matching cannot correct the drift.
+    run = simulate_scenario("open_loops", seed=seed)
+    t, o = run.true_poses, run.odom_poses
+    at_start = np.flatnonzero(np.hypot(t[:, 0] - 5.0, t[:, 1] - 5.0) < 1e-9)
+    first_return = at_start[np.flatnonzero(np.diff(at_start) > 1)[0] + 1]
+    assert _path_length(t[: first_return + 1]) == pytest.approx(160.0, abs=1e-9)
+    assert _path_length(t) == pytest.approx(320.0, abs=1e-9)
+    assert np.hypot(*(o[first_return, :2] - t[first_return, :2])) > 15.0
+    assert np.hypot(*(o[-1, :2] - t[-1, :2])) > 30.0
+    n_valid = np.array([s.valid_mask().sum() for s in run.scans])
+    blind = n_valid == 0
+    assert blind.mean() > 0.75
+    near_start = np.hypot(t[:, 0] - 5.0, t[:, 1] - 5.0) < 10.0
+    assert np.all(n_valid[near_start] > 50)  # the start area is seen on every return
+
+
 # ------------------------------------------------------------------------ outdoor
 
 
@@ -235,9 +256,8 @@ def test_outdoor_beam_hits_mostly_on_trees_and_posts() -> None:
 
 
 def test_scenarios_registered_and_deterministic() -> None:
-    assert {"office", "corridor", "office_biased", "long_corridor", "two_loop", "outdoor"} <= set(
-        SCENARIOS
-    )
+    names = {"office", "corridor", "office_biased", "long_corridor", "two_loop", "open_loops"}
+    assert names | {"outdoor"} <= set(SCENARIOS)
     a = simulate_scenario("outdoor", seed=4)
     b = simulate_scenario("outdoor", seed=4)
     np.testing.assert_array_equal(a.odom_poses, b.odom_poses)
