@@ -52,7 +52,7 @@ from numpy.typing import NDArray
 from frontends import LaserScan, open_log
 from frontends.relations import Relations, read_relations
 from frontends.simulate import SCENARIOS, OdometryModel, simulate_scenario, synthetic_odometry
-from graph.pose_graph import FactorKind
+from graph import FactorKind
 from iceg.config import IcegConfig
 from iceg.evaluation import position_errors, relation_errors
 from iceg.results import SlamResult

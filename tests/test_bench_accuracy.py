@@ -12,7 +12,7 @@ from types import ModuleType, SimpleNamespace
 import numpy as np
 import pytest
 
-from graph.pose_graph import FactorKind, FactorRecord
+from graph import FactorKind, FactorRecord
 from iceg_common.se2 import between, compose
 
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_accuracy.py"
