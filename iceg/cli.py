@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 import sys
 from collections.abc import Callable
 from datetime import datetime
@@ -137,18 +138,38 @@ def run(
         Path | None, typer.Option(help="Output folder (default: results/<date_time>).")
     ] = None,
     progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
+    scan_topic: Annotated[
+        str | None, typer.Option(help="ROS bag: the LaserScan topic (if several).")
+    ] = None,
+    odom_topic: Annotated[
+        str | None, typer.Option(help="ROS bag: the nav_msgs/Odometry topic (if several).")
+    ] = None,
+    odom_frame: Annotated[
+        str | None, typer.Option(help="ROS bag: odometry from /tf, this frame to the base.")
+    ] = None,
+    base_frame: Annotated[
+        str | None, typer.Option(help="ROS bag: the robot base frame (tf to the laser).")
+    ] = None,
+    laser_frame_offset: Annotated[
+        str | None,
+        typer.Option(help="ROS bag: laser pose in the base frame 'X_M,Y_M,YAW_DEG' (not tf)."),
+    ] = None,
 ) -> None:
     """Optimize a laser log end to end: trajectory, pose graph, map and metrics.
 
     With no LOG, runs the built-in simulated office world and scores against its truth.
+    LOG may be a CARMEN log or a ROS 1 / ROS 2 bag (.bag, .db3, .mcap or a bag folder).
     """
     from iceg.pipeline import run_log, run_simulated_demo
 
     cfg = _load_config(config)
+    bag_options = _bag_options(scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset)
     if log is None:
         result = run_simulated_demo(cfg, progress=progress)
     else:
-        result = run_log(log, cfg, relations=relations, progress=progress)
+        result = run_log(
+            log, cfg, relations=relations, progress=progress, reader_options=bag_options
+        )
     out_dir = out if out is not None else _default_out_dir()
     result.save(out_dir)
     if out is None:
@@ -187,6 +208,60 @@ def dump_config(
 ) -> None:
     """Print the effective configuration as YAML."""
     typer.echo(_load_config(config).to_yaml(), nl=False)
+
+
+@app.command()
+@_one_line_errors
+def info(
+    log: Annotated[Path, typer.Argument(help="CARMEN log or ROS bag (.bag/.db3/.mcap/folder).")],
+    scan_topic: Annotated[str | None, typer.Option(help="ROS bag: the LaserScan topic.")] = None,
+    odom_topic: Annotated[str | None, typer.Option(help="ROS bag: the Odometry topic.")] = None,
+    odom_frame: Annotated[str | None, typer.Option(help="ROS bag: odom frame in /tf.")] = None,
+    base_frame: Annotated[str | None, typer.Option(help="ROS bag: the base frame.")] = None,
+    laser_frame_offset: Annotated[
+        str | None, typer.Option(help="ROS bag: laser pose 'X_M,Y_M,YAW_DEG'.")
+    ] = None,
+) -> None:
+    """Print what a log holds: topics or record types, counts, duration, beams, range
+    limits, odometry source."""
+    from frontends.registry import describe_log, open_log
+
+    options = _bag_options(scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset)
+    reader = open_log(log, **options)
+    typer.echo(f"iceg info: {log}")
+    _print_table(describe_log(reader))
+
+
+def _bag_options(
+    scan_topic: str | None,
+    odom_topic: str | None,
+    odom_frame: str | None,
+    base_frame: str | None,
+    laser_frame_offset: str | None,
+) -> dict[str, object]:
+    """The ROS bag reader options that were given (degrees -> radians for the yaw)."""
+    from iceg_common.errors import ConfigError
+
+    options: dict[str, object] = {
+        k: v
+        for k, v in (
+            ("scan_topic", scan_topic),
+            ("odom_topic", odom_topic),
+            ("odom_frame", odom_frame),
+            ("base_frame", base_frame),
+        )
+        if v is not None
+    }
+    if laser_frame_offset is not None:
+        try:
+            x, y, yaw_deg = (float(v) for v in laser_frame_offset.split(","))
+        except ValueError:
+            raise ConfigError(
+                f"--laser-frame-offset {laser_frame_offset!r}: give 'X_M,Y_M,YAW_DEG', "
+                "e.g. -0.12,0,0"
+            ) from None
+        options["laser_frame_offset"] = (x, y, math.radians(yaw_deg))
+    return options
 
 
 def _load_config(path: Path | None) -> Any:

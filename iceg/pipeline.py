@@ -5,7 +5,7 @@ to an evaluated :class:`iceg.results.SlamResult`. Used by the CLI and by noteboo
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -66,14 +66,17 @@ def run_log(
     config: IcegConfig | None = None,
     relations: str | Path | None = None,
     progress: bool = False,
+    reader_options: Mapping[str, object] | None = None,
 ) -> SlamResult:
     """Run SLAM over a log file and, if given, score it with a ``.relations`` file.
+
+    ``reader_options`` go to :func:`frontends.open_log` (e.g. ``scan_topic`` for ROS bags).
 
     Raises:
         LogFormatError: unreadable or empty log, malformed relations.
         EvaluationError: the relations match no scan of the log.
     """
-    reader = open_log(path)
+    reader = open_log(path, **(reader_options or {}))
     rel = read_relations(relations) if relations is not None else None
     scans: Sequence[LaserScan] = list(reader)
     if not scans:
