@@ -14,7 +14,7 @@ import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 from frontends.scan import LaserScan
 from iceg_common.errors import ConfigError, LogFormatError
@@ -90,7 +90,7 @@ def _first_lines(path: Path, n: int = 50) -> list[str]:
     return lines
 
 
-def open_log(path: str | Path, format: str | None = None, **options: object) -> LogReader:
+def open_log(path: str | Path, format: str | None = None, **options: Any) -> LogReader:
     """Open a laser log for streaming.
 
     Args:

@@ -510,6 +510,9 @@ class RosbagReader:
             overriding tf.
         max_laser_tilt_rad: Largest laser tilt projected to 2D (see :func:`project_mounting`).
         max_pending_scans: Scans that may wait for a later odometry message (bounds memory).
+        outside_odometry: A scan outside the odometry's time span gets ``odom_pose=None``
+            (``"none"``) or is left out (``"drop"``: the SLAM front end cannot mix scans with
+            and without odometry, so ``iceg run`` drops them).
 
     Attributes:
         path: The bag.
@@ -530,6 +533,7 @@ class RosbagReader:
         laser_frame_offset: Sequence[float] | None = None,
         max_laser_tilt_rad: float = MAX_LASER_TILT_RAD,
         max_pending_scans: int = 10_000,
+        outside_odometry: Literal["none", "drop"] = "none",
     ) -> None:
         self.path = Path(path)
         self.scan_topic = scan_topic
@@ -542,6 +546,9 @@ class RosbagReader:
                 f"RosbagReader: max_laser_tilt_rad {max_laser_tilt_rad} must be in [0, pi/2) "
                 f"and max_pending_scans {max_pending_scans} >= 1"
             )
+        if outside_odometry not in ("none", "drop"):
+            raise ConfigError(f"outside_odometry {outside_odometry!r}: use 'none' or 'drop'")
+        self.outside_odometry = outside_odometry
         self.max_laser_tilt_rad = max_laser_tilt_rad
         self.max_pending_scans = max_pending_scans
         self.scans_without_odometry = 0
@@ -592,15 +599,17 @@ class RosbagReader:
             plan = self._plan(bag, survey(bag))
             for scan in self._scans(bag, plan):
                 n += 1
-                yield scan
+                drop = self.outside_odometry == "drop" and plan.odom.kind != "none"
+                if scan.odom_pose is not None or not drop:
+                    yield scan
         if self.scans_without_odometry:
             logger.warning(
-                "%s: %d of %d scans lie outside the odometry's time span (%s) and have no "
-                "odometry pose",
+                "%s: %d of %d scans lie outside the odometry's time span (%s): %s",
                 self.path,
                 self.scans_without_odometry,
                 n,
                 plan.odom.describe(),
+                "left out" if self.outside_odometry == "drop" else "they have no odometry pose",
             )
 
     # -- planning --------------------------------------------------------------------------
@@ -774,9 +783,8 @@ class RosbagReader:
         ranges = widen_decimal(ranges32)
         with np.errstate(invalid="ignore"):
             ranges[~(np.isfinite(ranges) & (ranges >= rmin)) & ~(ranges >= rmax)] = np.inf
-        angles = widen_angle(msg.angle_min) + np.arange(ranges.size) * widen_angle(
-            msg.angle_increment
-        )
+        step = widen_angle(msg.angle_increment)
+        angles: FloatArray = widen_angle(msg.angle_min) + np.arange(ranges.size) * step
         if plan.mounting.flipped:
             angles = -angles
         if angles.size > 1 and angles[1] < angles[0]:
@@ -926,10 +934,11 @@ def write_rosbag(
     if ros1:
         tfdef = get_types_from_msg("geometry_msgs/TransformStamped[] transforms", TF_TYPE)
         store.register(tfdef)
+    errors = (*_writer_errors(), OSError)
     try:
         with _writer(Path(path), bag_format) as w:
             return _write_all(w, store, scans, (scan_topic, odom_topic), frames)
-    except (*_writer_errors(), OSError) as exc:
+    except errors as exc:
         raise LogFormatError(f"{path}: cannot write the bag ({_why(exc)})") from exc
 
 

@@ -167,6 +167,10 @@ def run(
     if log is None:
         result = run_simulated_demo(cfg, progress=progress)
     else:
+        from frontends.rosbag import is_bag
+
+        if is_bag(log):  # the SLAM cannot mix scans with and without odometry
+            bag_options.setdefault("outside_odometry", "drop")
         result = run_log(
             log, cfg, relations=relations, progress=progress, reader_options=bag_options
         )
