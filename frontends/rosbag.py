@@ -784,7 +784,7 @@ class RosbagReader:
         with np.errstate(invalid="ignore"):
             ranges[~(np.isfinite(ranges) & (ranges >= rmin)) & ~(ranges >= rmax)] = np.inf
         step = widen_angle(msg.angle_increment)
-        angles: FloatArray = widen_angle(msg.angle_min) + np.arange(ranges.size) * step
+        angles = np.asarray(widen_angle(msg.angle_min) + np.arange(ranges.size) * step, np.float64)
         if plan.mounting.flipped:
             angles = -angles
         if angles.size > 1 and angles[1] < angles[0]:
@@ -934,7 +934,7 @@ def write_rosbag(
     if ros1:
         tfdef = get_types_from_msg("geometry_msgs/TransformStamped[] transforms", TF_TYPE)
         store.register(tfdef)
-    errors = (*_writer_errors(), OSError)
+    errors: tuple[type[BaseException], ...] = (*_writer_errors(), OSError)
     try:
         with _writer(Path(path), bag_format) as w:
             return _write_all(w, store, scans, (scan_topic, odom_topic), frames)

@@ -242,11 +242,11 @@ def _bag_options(
     odom_frame: str | None,
     base_frame: str | None,
     laser_frame_offset: str | None,
-) -> dict[str, object]:
+) -> dict[str, Any]:
     """The ROS bag reader options that were given (degrees -> radians for the yaw)."""
     from iceg_common.errors import ConfigError
 
-    options: dict[str, object] = {
+    options: dict[str, Any] = {
         k: v
         for k, v in (
             ("scan_topic", scan_topic),

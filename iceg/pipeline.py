@@ -7,6 +7,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -66,7 +67,7 @@ def run_log(
     config: IcegConfig | None = None,
     relations: str | Path | None = None,
     progress: bool = False,
-    reader_options: Mapping[str, object] | None = None,
+    reader_options: Mapping[str, Any] | None = None,
 ) -> SlamResult:
     """Run SLAM over a log file and, if given, score it with a ``.relations`` file.
 
