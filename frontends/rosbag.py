@@ -658,6 +658,8 @@ class RosbagReader:
     def _tf_odom_source(self, s: Survey) -> OdomSource:
         frame = self.odom_frame or "odom"
         children = sorted(c for (p, c) in s.dynamic_counts if p == frame)
+        if self.base_frame in children:
+            children = [self.base_frame]
         if len(children) == 1:
             return OdomSource("tf", odom_frame=frame, child_frame=children[0])
         if self.odom_frame is None and not children:
