@@ -48,7 +48,7 @@ from scipy.spatial.transform import Rotation
 from frontends.registry import register_reader
 from frontends.scan import LaserScan
 from iceg_common import se2
-from iceg_common.errors import ConfigError, LogFormatError
+from iceg_common.errors import ConfigError, LogFormatError, ScanError
 
 logger = logging.getLogger(__name__)
 
@@ -906,6 +906,8 @@ def write_rosbag(
     scan_topic: str = "/scan",
     odom_topic: str = "/odom",
     frames: tuple[str, str, str] = ("odom", "base_link", "laser"),
+    odometry: Iterable[tuple[float, FloatArray]] | None = None,
+    laser_mount: Transform3 | None = None,
 ) -> int:
     """Write scans as a bag that :class:`RosbagReader` reads back unchanged.
 
@@ -920,6 +922,10 @@ def write_rosbag(
         bag_format: ``"ros1"``, ``"sqlite3"`` or ``"mcap"``.
         scan_topic, odom_topic: Topic names.
         frames: ``(odom, base, laser)`` frame ids.
+        odometry: ``(stamp_s, (3,) pose)`` pairs written as the Odometry messages instead of
+            the scans' ``odom_pose`` (e.g. at other stamps than the scans).
+        laser_mount: The 3D base -> laser transform written to ``/tf_static`` instead of the
+            first scan's ``laser_offset`` (e.g. an upside-down or tilted laser).
 
     Returns:
         Number of scans written.
@@ -939,7 +945,8 @@ def write_rosbag(
     errors: tuple[type[BaseException], ...] = (*_writer_errors(), OSError)
     try:
         with _writer(Path(path), bag_format) as w:
-            return _write_all(w, store, scans, (scan_topic, odom_topic), frames)
+            extra = _Extras(odometry, laser_mount)
+            return _write_all(w, store, scans, (scan_topic, odom_topic), frames, extra)
     except errors as exc:
         raise LogFormatError(f"{path}: cannot write the bag ({_why(exc)})") from exc
 
@@ -965,36 +972,51 @@ def _writer(path: Path, bag_format: BagFormat) -> Any:
     return Writer2(path, version=9, storage_plugin=plugin)
 
 
+@dataclass(frozen=True)
+class _Extras:
+    odometry: Iterable[tuple[float, FloatArray]] | None
+    laser_mount: Transform3 | None
+
+
 def _write_all(
     w: Any,
     store: Any,
     scans: Iterable[LaserScan],
     topics: tuple[str, str],
     frames: tuple[str, str, str],
+    extra: _Extras,
 ) -> int:
     ser = store.serialize_ros1 if hasattr(w, "chunk_threshold") else store.serialize_cdr
     scan_c = w.add_connection(topics[0], SCAN_TYPES[0], typestore=store)
     odom_c = w.add_connection(topics[1], ODOM_TYPE, typestore=store)
-    tf_c = None
     offset: FloatArray | None = None
     n = 0
     for scan in scans:
         ns = stamp_ns(scan.stamp_s)
         if offset is None:
             offset = scan.laser_offset
+            mount = extra.laser_mount or _planar(offset)
             tf_c = w.add_connection("/tf_static", TF_TYPE, typestore=store)
-            tf = _tf_message(store, ns, frames[1], frames[2], offset)
+            tf = _tf_message(store, ns, frames[1], frames[2], mount)
             w.write(tf_c, ns, ser(tf, TF_TYPE))
         elif not np.array_equal(offset, scan.laser_offset):
-            from iceg_common.errors import ScanError
-
             raise ScanError(f"{scan.source}: laser offset differs from the first scan's")
         w.write(scan_c, ns, ser(_scan_message(store, ns, frames[2], scan), SCAN_TYPES[0]))
-        if scan.odom_pose is not None:
+        if scan.odom_pose is not None and extra.odometry is None:
             msg = _odom_message(store, ns, frames[0], frames[1], scan.odom_pose)
             w.write(odom_c, ns, ser(msg, ODOM_TYPE))
         n += 1
+    for stamp, pose in extra.odometry or ():
+        ns = stamp_ns(stamp)
+        msg = _odom_message(store, ns, frames[0], frames[1], np.asarray(pose, np.float64))
+        w.write(odom_c, ns, ser(msg, ODOM_TYPE))
     return n
+
+
+def _planar(offset: FloatArray) -> Transform3:
+    """An SE(2) laser offset ``[x, y, yaw]`` as a 3D transform."""
+    quat = yaw_quaternion(float(offset[2]))
+    return Transform3(np.array([offset[0], offset[1], 0.0]), Rotation.from_quat(quat))
 
 
 def _header(store: Any, ns: int, frame: str) -> Any:
@@ -1053,10 +1075,12 @@ def _odom_message(store: Any, ns: int, parent: str, child: str, pose: FloatArray
     )
 
 
-def _tf_message(store: Any, ns: int, parent: str, child: str, offset: FloatArray) -> Any:
+def _tf_message(store: Any, ns: int, parent: str, child: str, mount: Transform3) -> Any:
     t = store.types
-    point, quat = _pose_msgs(store, offset)
-    vec = t["geometry_msgs/msg/Vector3"](x=point.x, y=point.y, z=0.0)
+    x, y, z = (float(v) for v in mount.t)
+    qx, qy, qz, qw = (float(v) for v in mount.r.as_quat())
+    vec = t["geometry_msgs/msg/Vector3"](x=x, y=y, z=z)
+    quat = t["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)
     stamped = t["geometry_msgs/msg/TransformStamped"](
         header=_header(store, ns, parent),
         child_frame_id=child,
