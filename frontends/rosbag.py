@@ -76,9 +76,9 @@ _ROS2_SUFFIXES = (".db3", ".mcap")
 def stamp_ns(stamp_s: float) -> int:
     """Nanoseconds nearest to the exact value of the float ``stamp_s`` (no float rounding).
 
-    ``stamp_ns(t) / 10**9 == t`` for every float ``t`` with ``|t| < 2**53 / 10**9 * 2**20``
-    (any epoch stamp): the integer quotient is correctly rounded and a float's ulp near 1e9 s
-    is ~240 ns.
+    ``stamp_ns(t) / 10**9 == t`` (a correctly rounded integer quotient) for every ``t`` with
+    ``2**23 <= |t| < 2**62 / 10**9`` (any epoch stamp: the float's ulp is at least 2 ns) and
+    for every ``t`` written with at most 9 decimals (e.g. simulation time ``0.565``).
     """
     return round(Fraction(stamp_s) * 10**9)
 

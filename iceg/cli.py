@@ -231,9 +231,9 @@ def info(
     from frontends.registry import describe_log, open_log
 
     options = _bag_options(scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset)
-    reader = open_log(log, **options)
+    rows = describe_log(open_log(log, **options))
     typer.echo(f"iceg info: {log}")
-    _print_table(describe_log(reader))
+    _print_table(rows)
 
 
 def _bag_options(
