@@ -33,7 +33,7 @@ BLOCK = 1000
 def synthetic_scans(n: int, seed: int = 0) -> Iterator[LaserScan]:
     """``n`` scans of 720 beams (0.5 deg, +-180 deg) at 10 Hz along a slow arc."""
     rng = np.random.default_rng(seed)
-    angles = -math.pi + np.arange(BEAMS) * (2 * math.pi / BEAMS)
+    angles = np.asarray(-math.pi + np.arange(BEAMS) * (2 * math.pi / BEAMS), dtype=np.float64)
     for i in range(n):
         t = 1.7e9 + 0.1 * i
         yield LaserScan(

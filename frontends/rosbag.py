@@ -288,7 +288,7 @@ def _rosbags() -> Any:
     try:
         import rosbags.highlevel
         import rosbags.typesys
-    except ImportError as exc:  # pragma: no cover  (the test extra installs rosbags)
+    except ImportError as exc:
         raise LogFormatError(_INSTALL_HINT) from exc
     return rosbags
 

@@ -6,6 +6,7 @@ import json
 import logging
 import math
 import shutil
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -124,7 +125,7 @@ def test_mounting_projection_rotated_flipped_and_tilted() -> None:
 # Hand-made bags: every format, interpolation, invalid ranges, a flipped laser
 # ---------------------------------------------------------------------------------------------
 
-ANGLES = -math.pi / 4 + np.arange(5) * (math.pi / 8)
+ANGLES = np.asarray(-math.pi / 4 + np.arange(5) * (math.pi / 8), dtype=np.float64)
 
 
 def _scans(n: int = 4, odom: bool = True) -> list[LaserScan]:
@@ -179,6 +180,7 @@ def test_odometry_is_interpolated_on_se2_and_scans_outside_get_none(
     with caplog.at_level(logging.WARNING, logger="frontends.rosbag"):
         got = list(reader)
     assert got[0].odom_pose is None and got[3].odom_pose is None
+    assert got[1].odom_pose is not None and got[2].odom_pose is not None
     np.testing.assert_allclose(got[1].odom_pose, arc(0.5), atol=1e-12)  # t = 101.0
     np.testing.assert_allclose(got[2].odom_pose, arc(1.5), atol=1e-12)  # t = 102.0
     assert reader.scans_without_odometry == 2
@@ -290,8 +292,13 @@ def test_turtlebot4_ros2_rotated_laser() -> None:
     assert path == pytest.approx(8.4, abs=0.1) and turn == pytest.approx(6.7, abs=0.15)
     # Odometry from /tf (odom -> base_link) agrees with /odom at the same scans.
     by_tf = list(open_log(_bag_dir("turtlebot4-ros2"), odom_frame="odom", base_frame="base_link"))
-    pairs = [(a, b) for a, b in zip(scans, by_tf, strict=True) if a.odom_pose is not None]
-    diff = np.array([se2.between(a.odom_pose, b.odom_pose) for a, b in pairs])
+    pairs = [
+        (a.odom_pose, b.odom_pose)
+        for a, b in zip(scans, by_tf, strict=True)
+        if a.odom_pose is not None and b.odom_pose is not None
+    ]
+    diff = np.array([se2.between(a, b) for a, b in pairs])
+    assert len(pairs) == 354
     assert np.abs(diff[:, :2]).max() < 0.01 and np.abs(diff[:, 2]).max() < 0.01
 
 
@@ -420,3 +427,14 @@ def test_ros2_bag_folder_copy_is_found_by_its_metadata(tmp_path: Path) -> None:
     shutil.copytree(src, dst)
     assert isinstance(open_log(dst), RosbagReader)
     assert open_log(dst).count_scans() == 100
+
+
+def test_without_rosbags_opening_a_bag_names_the_extra(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = tmp_path / "x.bag"
+    write_rosbag(path, _scans(), "ros1")
+    for name in ("rosbags", "rosbags.highlevel", "rosbags.typesys"):
+        monkeypatch.setitem(sys.modules, name, None)
+    with pytest.raises(LogFormatError, match=r"the 'ros' extra: pip install 'iceg\[ros\]'"):
+        list(open_log(path))
