@@ -32,6 +32,7 @@ Conventions (REP 103 / REP 105 / REP 117):
 from __future__ import annotations
 
 import bisect
+import functools
 import logging
 import math
 from collections import Counter, deque
@@ -780,17 +781,13 @@ class RosbagReader:
             )
         else:
             ranges32 = np.asarray(msg.ranges, dtype=np.float32)
-        rmin = float(widen_decimal(np.array([msg.range_min], dtype=np.float32))[0])
-        rmax = float(widen_decimal(np.array([msg.range_max], dtype=np.float32))[0])
+        key = (msg.angle_min, msg.angle_increment, ranges32.size, msg.range_min, msg.range_max)
+        angles, rmin, rmax, reverse = _scan_geometry(*key, plan.mounting.flipped)
         ranges = widen_decimal(ranges32)
         with np.errstate(invalid="ignore"):
             ranges[~(np.isfinite(ranges) & (ranges >= rmin)) & ~(ranges >= rmax)] = np.inf
-        step = widen_angle(msg.angle_increment)
-        angles = np.asarray(widen_angle(msg.angle_min) + np.arange(ranges.size) * step, np.float64)
-        if plan.mounting.flipped:
-            angles = -angles
-        if angles.size > 1 and angles[1] < angles[0]:
-            angles, ranges = angles[::-1].copy(), ranges[::-1].copy()
+        if reverse:
+            ranges = ranges[::-1].copy()
         return LaserScan(
             stamp_s=_stamp_s(msg.header.stamp.sec, msg.header.stamp.nanosec),
             ranges_m=ranges,
@@ -801,6 +798,25 @@ class RosbagReader:
             laser_offset=plan.mounting.offset,
             source=source,
         )
+
+
+@functools.lru_cache(maxsize=64)
+def _scan_geometry(
+    angle_min: float, increment: float, n: int, range_min: float, range_max: float, flip: bool
+) -> tuple[FloatArray, float, float, bool]:
+    """Bearings (read-only, shared by the scans of a laser), range limits, and whether the
+    beams are reversed so that bearings increase (a clockwise or upside-down laser)."""
+    rmin = float(widen_decimal(np.array([range_min], dtype=np.float32))[0])
+    rmax = float(widen_decimal(np.array([range_max], dtype=np.float32))[0])
+    step = widen_angle(increment)
+    angles = np.asarray(widen_angle(angle_min) + np.arange(n) * step, np.float64)
+    if flip:
+        angles = -angles
+    reverse = bool(angles.size > 1 and angles[1] < angles[0])
+    if reverse:
+        angles = angles[::-1].copy()
+    angles.flags.writeable = False
+    return angles, rmin, rmax, reverse
 
 
 def _odom_topics(source: OdomSource) -> tuple[str, ...]:
