@@ -349,11 +349,13 @@ class _Bag:
 
     def __init__(self, path: Path) -> None:
         self.path = path
-        self.reader = _open_any(path)
+        self.reader: Any = None
+        _rosbags()  # says which extra to install when rosbags is missing
         self.errors = _bag_errors()
 
     def __enter__(self) -> _Bag:
         try:
+            self.reader = _open_any(self.path)
             self.reader.open()
             self._complete_types()
         except self.errors as exc:
@@ -361,7 +363,7 @@ class _Bag:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        if self.reader.stack is not None:
+        if self.reader is not None and self.reader.stack is not None:
             self.reader.close()
 
     def _complete_types(self) -> None:

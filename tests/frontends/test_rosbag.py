@@ -417,6 +417,17 @@ def test_truncated_bag(tmp_path: Path, fmt: str) -> None:
         list(open_log(full))
 
 
+def test_broken_ros2_metadata(tmp_path: Path) -> None:
+    bag = tmp_path / "x_sqlite3"
+    write_rosbag(bag, _scans(), "sqlite3")
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: [not, a, mapping\n")
+    with pytest.raises(LogFormatError, match=r"x_sqlite3: cannot read the bag"):
+        list(open_log(bag))
+    missing = tmp_path / "gone.bag"
+    with pytest.raises(LogFormatError, match=r"gone\.bag: no such log file"):
+        open_log(missing)
+
+
 def test_wrong_type_on_the_chosen_topic_lists_candidates(tmp_path: Path) -> None:
     path = tmp_path / "x.bag"
     write_rosbag(path, _scans(), "ros1")
