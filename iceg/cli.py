@@ -128,7 +128,10 @@ def _summary_rows(result: SlamResult, out: Path) -> list[tuple[str, str]]:
 def run(
     log: Annotated[
         Path | None,
-        typer.Argument(help="Laser log (CARMEN .clf/.log[.gz]). Omit to run the built-in demo."),
+        typer.Argument(
+            help="Laser log: CARMEN .clf/.log[.gz], or a ROS bag (.bag, .db3, .mcap, bag folder). "
+            "Omit to run the built-in demo."
+        ),
     ] = None,
     relations: Annotated[
         Path | None, typer.Option(help="Kümmerle et al. 2009 .relations file to score against.")
