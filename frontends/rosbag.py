@@ -568,26 +568,25 @@ class RosbagReader:
             return sum(c.msgcount for c in bag.connections if c.topic == topic)
 
     def describe(self) -> list[tuple[str, str]]:
-        """``(key, value)`` rows for ``iceg info``: storage, topics, the plan, first scan."""
+        """``(key, value)`` rows for ``iceg info``: storage, topics, tf frame pairs, then the
+        reading plan (topics, frames, mounting) and the first scan; where the plan needs an
+        option, the last row says which instead.
+
+        Raises:
+            LogFormatError: the bag cannot be read.
+        """
         with _Bag(self.path) as bag:
             s = survey(bag)
             rows = [("format", s.storage), ("duration", f"{s.duration_s:.1f} s")]
             rows += [(t, f"{typ} × {n}") for t, (typ, n) in sorted(s.topics.items())]
-            plan = self._plan(bag, s)
-            first = next(self._scans(bag, plan, limit=1), None)
-        rows += [("scan topic", plan.scan_topic), ("odometry", plan.odom.describe())]
-        rows.append(("base frame", plan.base_frame or "-"))
-        off = plan.mounting.offset
-        flip = ", upside down (bearings mirrored)" if plan.mounting.flipped else ""
-        rows.append(
-            (
-                f"laser {plan.laser_frame}",
-                f"x {off[0]:.3f} m, y {off[1]:.3f} m, yaw {math.degrees(off[2]):.1f} deg{flip}",
-            )
-        )
-        if first is not None:
-            rows += _scan_rows(first)
-        return rows
+            dynamic = _listing(f"{p} -> {c}" for p, c in sorted(s.dynamic_counts))
+            rows.append(("tf", f"{len(s.static_edges)} frame pairs; changing on /tf: {dynamic}"))
+            try:
+                plan = self._plan(bag, s)
+                first = next(self._scans(bag, plan, limit=1), None)
+            except LogFormatError as exc:
+                return [*rows, ("reading needs an option", str(exc).split(": ", 1)[-1])]
+        return rows + _plan_rows(plan) + (_scan_rows(first) if first is not None else [])
 
     def __iter__(self) -> Iterator[LaserScan]:
         """Stream the scans in bag order, with odometry interpolated at their stamps.
@@ -898,6 +897,18 @@ def _offset_option(value: Sequence[float] | None) -> FloatArray | None:
 def _listing(items: Iterable[str]) -> str:
     items = list(items)
     return ", ".join(items) if items else "none"
+
+
+def _plan_rows(plan: _Plan) -> list[tuple[str, str]]:
+    off = plan.mounting.offset
+    flip = ", upside down (bearings mirrored)" if plan.mounting.flipped else ""
+    mount = f"x {off[0]:.3f} m, y {off[1]:.3f} m, yaw {math.degrees(off[2]):.1f} deg{flip}"
+    return [
+        ("scan topic", f"{plan.scan_topic} ({plan.scan_type})"),
+        ("odometry", plan.odom.describe()),
+        ("base frame", plan.base_frame or "-"),
+        ("laser frame", f"{plan.laser_frame}: {mount}"),
+    ]
 
 
 def _scan_rows(scan: LaserScan) -> list[tuple[str, str]]:
