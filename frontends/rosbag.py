@@ -488,7 +488,7 @@ class _Plan:
     odom: OdomSource
     base_frame: str | None
     laser_frame: str
-    base_from_child: Transform3 | None  # tf odometry: child_frame -> base_frame
+    child_to_base: Transform3 | None  # tf odometry: the base pose in the odom child frame
     mounting: Mounting
 
 
@@ -681,16 +681,16 @@ class RosbagReader:
             base = self._first_frame(bag, odom.topic or "", "child_frame_id")
         if base is None and odom.kind == "tf":
             base = odom.child_frame
-        base_from_child = None
+        child_to_base = None
         if odom.kind == "tf" and base is not None:
-            base_from_child = _chain(s.static_edges, base, odom.child_frame or "")
-            if base_from_child is None:
+            child_to_base = _chain(s.static_edges, odom.child_frame or "", base)
+            if child_to_base is None:
                 raise LogFormatError(
                     f"{self.path}: tf links odometry frame {odom.child_frame} to no base frame "
                     f"{base!r}; pass --base-frame"
                 )
         mount = self._mounting(s, base, laser_frame, topic)
-        return _Plan(topic, typ, odom, base, laser_frame, base_from_child, mount)
+        return _Plan(topic, typ, odom, base, laser_frame, child_to_base, mount)
 
     def _mounting(self, s: Survey, base: str | None, laser: str, topic: str) -> Mounting:
         if self.laser_frame_offset is not None:
@@ -769,8 +769,8 @@ class RosbagReader:
             ):
                 continue
             tf = _transform_of(tr)
-            if plan.base_from_child is not None:
-                tf = tf.compose(plan.base_from_child)
+            if plan.child_to_base is not None:
+                tf = tf.compose(plan.child_to_base)
             yaw = float(tf.r.as_euler("ZYX")[0])
             stamp = _stamp_s(tr.header.stamp.sec, tr.header.stamp.nanosec)
             odom.add(stamp, np.array([tf.t[0], tf.t[1], yaw]))

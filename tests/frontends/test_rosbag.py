@@ -387,6 +387,15 @@ def test_turtlebot3_sim_time_and_chained_static_tf() -> None:
     np.testing.assert_allclose(scans[0].laser_offset, [-0.064, 0.0, 0.0], atol=1e-9)
     assert scans[0].angles_rad[0] == 0.0
     assert _path_and_turn(scans)[0] == pytest.approx(1.7, abs=0.05)
+    # Odometry from /tf odom -> base_footprint, composed with the static base_footprint ->
+    # base_link (a vertical offset only), equals /odom (base_footprint) at every scan.
+    by_tf = list(
+        open_log(_bag_dir("turtlebot3-gazebo-ros2"), odom_frame="odom", base_frame="base_link")
+    )
+    for a, b in zip(scans, by_tf, strict=True):
+        assert a.odom_pose is not None and b.odom_pose is not None
+        np.testing.assert_allclose(a.odom_pose, b.odom_pose, atol=1e-3)
+        np.testing.assert_allclose(b.laser_offset, [-0.064, 0.0, 0.0], atol=1e-9)
 
 
 def test_iceg_info_on_a_bag_and_on_a_carmen_log() -> None:
