@@ -470,13 +470,19 @@ def test_no_tf_for_the_laser_frame(tmp_path: Path) -> None:
 
 def test_cli_prints_one_line_and_exits_1_on_a_bad_bag(tmp_path: Path) -> None:
     path = tmp_path / "x.bag"
-    write_rosbag(path, _scans(), "ros1")
+    write_rosbag(path, _scans(40), "ros1")
+    result = runner.invoke(app, ["run", str(path), "--scan-topic", "/odom", "--no-progress"])
+    assert result.exit_code == 1
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("iceg: error: ")
+    assert "x.bag: topic /odom carries nav_msgs/msg/Odometry" in lines[0]
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
     for command in ("info", "run"):
-        args = [command, str(path), "--scan-topic", "/odom"]
-        result = runner.invoke(app, args)
+        result = runner.invoke(app, [command, str(path)])
         assert result.exit_code == 1
         lines = result.output.strip().splitlines()
-        assert len(lines) == 1 and lines[0].startswith("iceg: error: ") and "/odom" in lines[0]
+        assert len(lines) == 1 and lines[0].startswith(f"iceg: error: {path}: cannot read")
 
 
 def test_bad_options(tmp_path: Path) -> None:
