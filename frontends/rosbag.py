@@ -695,7 +695,10 @@ class RosbagReader:
     def _mounting(self, s: Survey, base: str | None, laser: str, topic: str) -> Mounting:
         if self.laser_frame_offset is not None:
             return Mounting(self.laser_frame_offset)
-        hint = "pass --base-frame (the frame tf links the laser to) or --laser-frame-offset X,Y,YAW"
+        hint = (
+            "pass --base-frame (the frame tf links the laser to) or "
+            "--laser-frame-offset X_M,Y_M,YAW_DEG"
+        )
         if base is None:
             raise LogFormatError(
                 f"{self.path}: topic {topic}: no odometry gives a base frame for laser frame "
