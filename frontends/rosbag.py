@@ -514,8 +514,9 @@ class RosbagReader:
         max_laser_tilt_rad: Largest laser tilt projected to 2D (see :func:`project_mounting`).
         max_pending_scans: Scans that may wait for a later odometry message (bounds memory).
         outside_odometry: A scan outside the odometry's time span gets ``odom_pose=None``
-            (``"none"``) or is left out (``"drop"``: the SLAM front end cannot mix scans with
-            and without odometry, so ``iceg run`` drops them).
+            (``"none"``, the default: the SLAM predicts it by constant velocity and starts
+            the odometry frame anew at the first scan that has one) or is left out
+            (``"drop"``).
         stamps: Header stamps out of order: ``"sort"`` reorders the scans through a buffer of
             ``max_reorder_scans`` (counted in :attr:`stamp_report`), ``"refuse"`` raises at the
             first stamp not after the previous one (as the CARMEN reader does).

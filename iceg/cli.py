@@ -207,11 +207,6 @@ def run(
     reader_options = _bag_options(
         scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset
     )
-    if log is not None:
-        from frontends.rosbag import is_bag
-
-        if is_bag(log):  # the SLAM cannot mix scans with and without odometry
-            reader_options.setdefault("outside_odometry", "drop")
     out_dir = out if out is not None else _default_out_dir()
     saved: list[str] = []
     try:

@@ -70,6 +70,8 @@ class _Motion:
     delta: FloatArray  # (3,) last node -> scan, odometry
     cov: FloatArray  # (3, 3) covariance of delta, tangent space
     is_keyframe: bool
+    measured: bool = True  # odom is the scan's own odometry (not a prediction)
+    odometry_break: bool = False  # odom starts a new odometry frame (no delta across)
 
 
 @dataclass(frozen=True, eq=False)
@@ -89,6 +91,7 @@ class SlamState:
     records: list[_ScanRecord] = field(default_factory=list)
     node_scan_index: list[int] = field(default_factory=list)
     node_odom: list[FloatArray] = field(default_factory=list)
+    node_odom_measured: list[bool] = field(default_factory=list)  # False: predicted odom
     node_path_m: list[float] = field(default_factory=list)  # odometry path length at node
     correlations: dict[int, float] = field(default_factory=dict)  # factor index -> eq. 1
     match_failures: dict[str, int] = field(default_factory=lambda: defaultdict(int))
@@ -183,7 +186,7 @@ class Slam:
         """The first scan: node 0, fixed at its odometry pose, and its landmarks."""
         feats = extract(scan, self.config.features)
         t0 = self.timer.add("features", t0)
-        self._add_node(scan, odom, initial=odom)
+        self._add_node(scan, odom, initial=odom, odom_measured=scan.odom_pose is not None)
         self.graph.update()
         self.feature_map.update(0, feats, scan.stamp_s, scan=scan)
         self.timer.add("feature_map", t0)
@@ -193,14 +196,17 @@ class Slam:
         """Odometry delta from the last node and the keyframe decision."""
         cfg = self.config.slam
         s = self._s
-        if scan.odom_pose is None:
-            # No wheel odometry: every scan is a node, predicted by constant velocity, and a
-            # weak motion prior keeps the graph connected where matching fails.
+        if scan.odom_pose is None or scan.odom_break or not s.node_odom_measured[last]:
+            # No usable odometry delta (no odometry, a jump or a new odometry frame flagged by
+            # the reader, or the last node had none): the scan is a node, predicted by constant
+            # velocity, and a weak motion prior keeps the graph connected where matching fails.
             delta = self._constant_velocity_delta(last)
             cov = np.diag(
                 [cfg.no_odometry_sigma_m**2] * 2 + [np.radians(cfg.no_odometry_sigma_deg) ** 2]
             )
-            return _Motion(se2.compose(s.node_odom[last], delta), delta, cov, True)
+            if scan.odom_pose is None:
+                return _Motion(se2.compose(s.node_odom[last], delta), delta, cov, True, False)
+            return _Motion(odom, delta, cov, True, odometry_break=True)  # new odometry frame
         delta = se2.between(s.node_odom[last], odom)
         cov = odometry_covariance(delta, self.config.odometry_noise)
         dt = scan.stamp_s - s.scans[s.node_scan_index[last]].stamp_s
@@ -228,7 +234,13 @@ class Slam:
         """The keyframe's node (initialised by the match, else odometry) and its factors."""
         result = local.result
         step = result.pose if result.success else motion.delta
-        new_id = self._add_node(scan, motion.odom, initial=se2.compose(local.last_pose, step))
+        new_id = self._add_node(
+            scan,
+            motion.odom,
+            initial=se2.compose(local.last_pose, step),
+            odom_measured=motion.measured,
+            step_m=self._step_m(motion, last),
+        )
         self._add_factor(FactorKind.ODOMETRY, last, new_id, motion.delta, motion.cov)
         if result.success:
             self._add_factor(
@@ -280,11 +292,25 @@ class Slam:
             return np.zeros(3)
         return se2.between(self.graph.estimate(last - 1), self.graph.estimate(last))
 
-    def _add_node(self, scan: LaserScan, odom: FloatArray, initial: FloatArray) -> int:
+    def _step_m(self, motion: _Motion, last: int) -> float:
+        """Path travelled from node ``last`` to the scan of ``motion`` (m): the odometry's, or
+        the predicted motion's across an odometry break."""
+        d = motion.delta if motion.odometry_break else motion.odom - self._s.node_odom[last]
+        return float(np.hypot(d[0], d[1]))
+
+    def _add_node(
+        self,
+        scan: LaserScan,
+        odom: FloatArray,
+        initial: FloatArray,
+        odom_measured: bool,
+        step_m: float = 0.0,
+    ) -> int:
+        """Node of ``scan``; ``step_m`` is the path travelled since the last node (m)."""
         s = self._s
+        s.node_odom_measured.append(odom_measured)
         node_id = len(s.node_odom)
-        step = float(np.hypot(*(odom[:2] - s.node_odom[-1][:2]))) if s.node_odom else 0.0
-        s.node_path_m.append((s.node_path_m[-1] if s.node_path_m else 0.0) + step)
+        s.node_path_m.append((s.node_path_m[-1] if s.node_path_m else 0.0) + step_m)
         s.node_odom.append(odom)
         s.node_scan_index.append(len(s.scans) - 1)
         s.records.append(_ScanRecord(scan.stamp_s, node_id, np.zeros(3)))
