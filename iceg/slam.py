@@ -11,6 +11,7 @@ The pipeline never reads files: it takes :class:`frontends.LaserScan` records.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections import defaultdict
@@ -28,6 +29,7 @@ from iceg.features import extract
 from iceg.grid import render
 from iceg.loop_closure import LoopCloser, LoopClosureStats
 from iceg.matching import IceMatcher, MatchBounds
+from iceg.odometry_calibration import OdometryCalibrator
 from iceg.results import SlamResult
 from iceg.types import MatchResult, ScanFeatures
 from iceg_common import se2
@@ -68,9 +70,10 @@ class _Motion:
     """Motion of a scan relative to the last node, and whether the scan becomes a node."""
 
     odom: FloatArray  # (3,) odometry pose of the scan (predicted when the log has none)
-    delta: FloatArray  # (3,) last node -> scan, odometry
+    delta: FloatArray  # (3,) last node -> scan, odometry (calibrated)
     cov: FloatArray  # (3, 3) covariance of delta, tangent space
     is_keyframe: bool
+    raw: tuple[FloatArray, FloatArray] | None = None  # raw odometry delta and its noise cov
 
 
 @dataclass(frozen=True, eq=False)
@@ -114,6 +117,7 @@ class Slam:
         self.matcher = IceMatcher(self.config.matching)
         self.feature_map = FeatureMap(self.config.feature_map)
         self.loop_closer = LoopCloser(self.config.loop_closure, self.matcher, self.feature_map)
+        self.odometry_calibrator = OdometryCalibrator(self.config.odometry_calibration)
         self.timer = StageTimer()
         self._s = SlamState()
 
@@ -157,7 +161,7 @@ class Slam:
         """A keyframe: features, local match, node and factors, iSAM2, loop closure, map."""
         feats = extract(scan, self.config.features)
         t0 = self.timer.add("features", t0)
-        local = self._match_local(feats, motion.delta, last)
+        local = self._check_with_odometry(self._match_local(feats, motion.delta, last), motion)
         t0 = self.timer.add("matching", t0)
         new_id = self._add_keyframe(scan, motion, local, last)
         t0 = self.timer.add("graph_build", t0)
@@ -199,15 +203,18 @@ class Slam:
                 [cfg.no_odometry_sigma_m**2] * 2 + [np.radians(cfg.no_odometry_sigma_deg) ** 2]
             )
             return _Motion(se2.compose(s.node_odom[last], delta), delta, cov, True)
-        delta = se2.between(s.node_odom[last], odom)
-        cov = odometry_covariance(delta, self.config.odometry_noise)
+        raw = se2.between(s.node_odom[last], odom)
+        raw_cov = odometry_covariance(raw, self.config.odometry_noise)
+        delta, cov = raw, raw_cov
+        if self.config.odometry_calibration.enabled:
+            delta, cov = self.odometry_calibrator.correct(raw, raw_cov)
         dt = scan.stamp_s - s.scans[s.node_scan_index[last]].stamp_s
         is_keyframe = bool(
             np.hypot(delta[0], delta[1]) >= cfg.keyframe_distance_m
             or abs(delta[2]) >= np.radians(cfg.keyframe_rotation_deg)
             or dt >= cfg.keyframe_max_interval_s
         )
-        return _Motion(odom, delta, cov, is_keyframe)
+        return _Motion(odom, delta, cov, is_keyframe, (raw, raw_cov))
 
     def _match_local(self, feats: ScanFeatures, delta: FloatArray, last: int) -> _LocalMatch:
         """ICE match against the landmarks of the ``local_map_nodes`` most recent nodes."""
@@ -221,6 +228,24 @@ class Slam:
             # Count by the reason's category (the text before the first colon).
             self._s.match_failures[(result.reason or _UNKNOWN_REASON).split(":")[0]] += 1
         return _LocalMatch(reference, result, poses[last])
+
+    def _check_with_odometry(self, local: _LocalMatch, motion: _Motion) -> _LocalMatch:
+        """Calibrate the odometry with a successful match, then refuse the match if it
+        contradicts the calibrated odometry (:class:`OdometryCalibrator`)."""
+        result = local.result
+        if not result.success or motion.raw is None:
+            return local
+        calibrator = self.odometry_calibrator
+        if not self.config.odometry_calibration.enabled:
+            return local
+        consistent = calibrator.is_consistent(motion.delta, motion.cov, result.pose, result.cov)
+        calibrator.observe(*motion.raw, result.pose, result.cov)
+        if consistent:
+            return local
+        reason = "inconsistent with odometry"
+        self._s.match_failures[reason] += 1
+        failed = dataclasses.replace(result, success=False, reason=reason)
+        return dataclasses.replace(local, result=failed)
 
     def _add_keyframe(self, scan: LaserScan, motion: _Motion, local: _LocalMatch, last: int) -> int:
         """The keyframe's node (initialised by the match, else odometry) and its factors."""
