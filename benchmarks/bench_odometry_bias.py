@@ -31,13 +31,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import bench_accuracy as ba  # noqa: E402
+import bench_accuracy as ba
 
-from frontends.simulate import OdometryModel, synthetic_odometry  # noqa: E402
-from iceg.config import IcegConfig  # noqa: E402
-from iceg.evaluation import position_errors, relation_errors  # noqa: E402
-from iceg.odometry_calibration import OdometryCalibrationConfig  # noqa: E402
-from iceg.slam import Slam  # noqa: E402
+from frontends.simulate import OdometryModel, synthetic_odometry
+from iceg.config import IcegConfig
+from iceg.evaluation import position_errors, relation_errors
+from iceg.odometry_calibration import OdometryCalibrationConfig
+from iceg.slam import Slam
 
 BIAS_ONLY = OdometryModel.biased(scale_error=0.01, heading_drift_deg_per_m=0.4, noise=False)
 

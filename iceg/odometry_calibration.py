@@ -130,12 +130,12 @@ class _Rls:
 
     @property
     def params(self) -> FloatArray:
-        return np.linalg.solve(self.info, self.vec)
+        return np.asarray(np.linalg.solve(self.info, self.vec), dtype=np.float64)
 
     @property
     def cov(self) -> FloatArray:
         """Covariance of the parameters for unit residual variance factor."""
-        return np.linalg.inv(self.info)
+        return np.asarray(np.linalg.inv(self.info), dtype=np.float64)
 
     def add(self, h: FloatArray, y: float | FloatArray, w: FloatArray | float) -> None:
         """One observation: regressor ``h`` ``(m, n)`` (or ``(n,)``), ``y`` ``(m,)``,
@@ -302,7 +302,7 @@ class OdometryCalibrator:
         chi2 = float(r @ info @ r)
         w = _huber_weight(math.sqrt(chi2 / (2.0 * s2)), self.config.huber_k)
         self._s2_t.add(chi2, 2.0, w)
-        self._scale.add(h, z[:2], w * info)
+        self._scale.add(h, z[:2], np.asarray(w * info, dtype=np.float64))
 
     def _observe_heading(self, d: FloatArray, z: FloatArray, var: float) -> None:
         dtheta = float(np.arctan2(np.sin(z[2] - d[2]), np.cos(z[2] - d[2]))) + d[2]
