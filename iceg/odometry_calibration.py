@@ -40,9 +40,6 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field
-from scipy.stats import chi2
-
-from iceg_common import se2
 
 FloatArray = NDArray[np.float64]
 
@@ -81,14 +78,6 @@ class OdometryCalibrationConfig(BaseModel):
         gt=0.0,
         description="Weight, in observations, of the prior residual variance factor 1 (the "
         "configured odometry noise is right) in the estimated variance factor.",
-    )
-    consistency_probability: float = Field(
-        default=0.999,
-        gt=0.0,
-        lt=1.0,
-        description="A local scan match whose difference from the calibrated odometry "
-        "exceeds this chi-square quantile (3 dof, summed covariances) is not used as a "
-        "factor: one of the two is wrong, and the odometry's covariance is the honest one.",
     )
     huber_k: float = Field(
         default=1.345,
@@ -255,27 +244,6 @@ class OdometryCalibrator:
         out_cov[:2, :2] += var_k * np.outer(jp_t, jp_t)
         out_cov[2, 2] += float(jp_r @ cov_gb @ jp_r)
         return out, out_cov
-
-    def is_consistent(
-        self, delta: ArrayLike, cov: ArrayLike, measured: ArrayLike, match_cov: ArrayLike
-    ) -> bool:
-        """Whether a scan match agrees with the calibrated odometry of the same step.
-
-        Chi-square test of ``measured ⊖ delta`` (SE(2) difference in the frame of the
-        matched pose, heading wrapped) against ``cov + match_cov`` at
-        ``config.consistency_probability`` (3 dof).
-
-        Args:
-            delta: ``(3,)`` calibrated odometry increment, ``cov`` ``(3, 3)`` its covariance
-                (from :meth:`correct`).
-            measured: ``(3,)`` the scan-match relative pose, ``match_cov`` ``(3, 3)`` its
-                covariance.
-        """
-        diff = se2.between(np.asarray(delta, dtype=np.float64), measured)
-        diff[2] = se2.wrap_angle(diff[2])
-        total = np.asarray(cov, dtype=np.float64) + np.asarray(match_cov, dtype=np.float64)
-        d2 = float(diff @ np.linalg.solve(total, diff))
-        return d2 <= float(chi2.ppf(self.config.consistency_probability, 3))
 
     def observe(
         self, delta: ArrayLike, odom_cov: ArrayLike, measured: ArrayLike, match_cov: ArrayLike

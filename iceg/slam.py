@@ -11,7 +11,6 @@ The pipeline never reads files: it takes :class:`frontends.LaserScan` records.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 from collections import defaultdict
@@ -161,7 +160,8 @@ class Slam:
         """A keyframe: features, local match, node and factors, iSAM2, loop closure, map."""
         feats = extract(scan, self.config.features)
         t0 = self.timer.add("features", t0)
-        local = self._check_with_odometry(self._match_local(feats, motion.delta, last), motion)
+        local = self._match_local(feats, motion.delta, last)
+        self._calibrate_odometry(local, motion)
         t0 = self.timer.add("matching", t0)
         new_id = self._add_keyframe(scan, motion, local, last)
         t0 = self.timer.add("graph_build", t0)
@@ -229,23 +229,11 @@ class Slam:
             self._s.match_failures[(result.reason or _UNKNOWN_REASON).split(":")[0]] += 1
         return _LocalMatch(reference, result, poses[last])
 
-    def _check_with_odometry(self, local: _LocalMatch, motion: _Motion) -> _LocalMatch:
-        """Calibrate the odometry with a successful match, then refuse the match if it
-        contradicts the calibrated odometry (:class:`OdometryCalibrator`)."""
-        result = local.result
-        if not result.success or motion.raw is None:
-            return local
-        calibrator = self.odometry_calibrator
-        if not self.config.odometry_calibration.enabled:
-            return local
-        consistent = calibrator.is_consistent(motion.delta, motion.cov, result.pose, result.cov)
-        calibrator.observe(*motion.raw, result.pose, result.cov)
-        if consistent:
-            return local
-        reason = "inconsistent with odometry"
-        self._s.match_failures[reason] += 1
-        failed = dataclasses.replace(result, success=False, reason=reason)
-        return dataclasses.replace(local, result=failed)
+    def _calibrate_odometry(self, local: _LocalMatch, motion: _Motion) -> None:
+        """Feed a successful local match to the odometry calibration (same step's raw
+        odometry increment; :class:`OdometryCalibrator`)."""
+        if local.result.success and motion.raw is not None:
+            self.odometry_calibrator.observe(*motion.raw, local.result.pose, local.result.cov)
 
     def _add_keyframe(self, scan: LaserScan, motion: _Motion, local: _LocalMatch, last: int) -> int:
         """The keyframe's node (initialised by the match, else odometry) and its factors."""

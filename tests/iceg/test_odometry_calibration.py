@@ -60,7 +60,7 @@ def test_recovers_known_scale_turn_scale_and_drift_from_noisy_matches() -> None:
     assert err @ np.linalg.solve(cov, err) < 11.3  # chi-square 3 dof, 99 %
 
 
-def test_identity_odometry_stays_identity_and_a_contradicting_match_is_refused() -> None:
+def test_identity_odometry_stays_identity() -> None:
     rng = np.random.default_rng(0)
     cal = OdometryCalibrator()
     for u in _steps(rng, 200):
@@ -69,10 +69,6 @@ def test_identity_odometry_stays_identity_and_a_contradicting_match_is_refused()
     assert cal.scale == pytest.approx(1.0, abs=0.002)
     assert cal.turn_scale == pytest.approx(1.0, abs=0.005)
     assert abs(math.degrees(cal.heading_drift_rad_per_m)) < 0.05
-    u = np.array([0.5, 0.0, 0.1])
-    delta, cov = cal.correct(u, odometry_covariance(u))
-    assert cal.is_consistent(delta, cov, u + np.array([0.005, -0.005, 0.002]), MATCH_COV)
-    assert not cal.is_consistent(delta, cov, u + np.array([0.4, 0.0, 0.0]), MATCH_COV)
     assert signed_distance([-0.3, 0.4, 0.0]) == pytest.approx(-0.5)
 
 
