@@ -1,7 +1,8 @@
 """The SLAM pipeline: ICE matching factors and wheel odometry in a GTSAM iSAM2 pose graph.
 
-Per scan (DESIGN "Data flow of one scan"): ICE features; prediction from odometry; keyframe
-decision; ICE match against the feature map of the recent nodes; odometry and scan-match
+Per scan (DESIGN "Data flow of one scan"): ICE features; prediction from odometry (corrected
+by the online calibration of :mod:`iceg.odometry_calibration`, which every accepted local
+match updates); keyframe decision; ICE match against the feature map of the recent nodes; odometry and scan-match
 factors (covariance from the match); iSAM2 update; feature-map update with time-validity
 pruning; and, every few nodes, a loop-closure search among older nodes near the current
 estimate. After the run an optional batch Levenberg–Marquardt refinement.
