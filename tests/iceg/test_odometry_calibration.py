@@ -9,8 +9,13 @@ import pytest
 
 from frontends.simulate import OdometryModel, simulate_scenario
 from graph import FactorKind, odometry_covariance
+from iceg.config import IcegConfig
 from iceg.evaluation import position_errors
-from iceg.odometry_calibration import OdometryCalibrator, signed_distance
+from iceg.odometry_calibration import (
+    OdometryCalibrationConfig,
+    OdometryCalibrator,
+    signed_distance,
+)
 from iceg.slam import Slam
 from iceg_common import se2
 
@@ -75,7 +80,7 @@ def test_identity_odometry_stays_identity() -> None:
 @pytest.fixture(scope="module")
 def biased_office():  # type: ignore[no-untyped-def]
     run = simulate_scenario("office_biased", seed=2)
-    slam = Slam()
+    slam = Slam(IcegConfig(odometry_calibration=OdometryCalibrationConfig(enabled=True)))
     for scan in run.scans:
         slam.process(scan)
     return run, slam, slam.finish()
