@@ -3,9 +3,10 @@
 Per scan (DESIGN "Data flow of one scan"): ICE features; prediction from odometry (corrected
 by the online calibration of :mod:`iceg.odometry_calibration`, which every accepted local
 match updates, when enabled); keyframe decision; ICE match against the feature map of the
-recent nodes; odometry and scan-match factors (covariance from the match); iSAM2 update; feature-map update with time-validity
-pruning; and, every few nodes, a loop-closure search among older nodes near the current
-estimate. After the run an optional batch Levenberg–Marquardt refinement.
+recent nodes; odometry and scan-match factors (covariance from the match); iSAM2 update;
+feature-map update with time-validity pruning; and, every few nodes, a loop-closure search
+among older nodes near the current estimate. After the run an optional batch
+Levenberg–Marquardt refinement.
 
 The pipeline never reads files: it takes :class:`frontends.LaserScan` records.
 """
