@@ -1,10 +1,12 @@
 """The SLAM pipeline: ICE matching factors and wheel odometry in a GTSAM iSAM2 pose graph.
 
-Per scan (DESIGN "Data flow of one scan"): ICE features; prediction from odometry; keyframe
-decision; ICE match against the feature map of the recent nodes; odometry and scan-match
-factors (covariance from the match); iSAM2 update; feature-map update with time-validity
-pruning; and, every few nodes, a loop-closure search among older nodes near the current
-estimate. After the run an optional batch Levenberg–Marquardt refinement.
+Per scan (DESIGN "Data flow of one scan"): ICE features; prediction from odometry (corrected
+by the online calibration of :mod:`iceg.odometry_calibration`, which every accepted local
+match updates, when enabled); keyframe decision; ICE match against the feature map of the
+recent nodes; odometry and scan-match factors (covariance from the match); iSAM2 update;
+feature-map update with time-validity pruning; and, every few nodes, a loop-closure search
+among older nodes near the current estimate. After the run an optional batch
+Levenberg–Marquardt refinement.
 
 The pipeline never reads files: it takes :class:`frontends.LaserScan` records.
 """
@@ -27,6 +29,7 @@ from iceg.feature_map import FeatureMap, MapReference
 from iceg.features import extract
 from iceg.loop_closure import LoopCloser, LoopClosureStats
 from iceg.matching import IceMatcher, MatchBounds
+from iceg.odometry_calibration import OdometryCalibrator
 from iceg.results import SlamResult
 from iceg.types import MatchResult, ScanFeatures
 from iceg_common import se2
@@ -67,11 +70,12 @@ class _Motion:
     """Motion of a scan relative to the last node, and whether the scan becomes a node."""
 
     odom: FloatArray  # (3,) odometry pose of the scan (predicted when the log has none)
-    delta: FloatArray  # (3,) last node -> scan, odometry
+    delta: FloatArray  # (3,) last node -> scan, odometry (calibrated)
     cov: FloatArray  # (3, 3) covariance of delta, tangent space
     is_keyframe: bool
     measured: bool = True  # odom is the scan's own odometry (not a prediction)
     odometry_break: bool = False  # odom starts a new odometry frame (no delta across)
+    raw: tuple[FloatArray, FloatArray] | None = None  # raw odometry delta and its noise cov
 
 
 @dataclass(frozen=True, eq=False)
@@ -116,6 +120,7 @@ class Slam:
         self.matcher = IceMatcher(self.config.matching)
         self.feature_map = FeatureMap(self.config.feature_map)
         self.loop_closer = LoopCloser(self.config.loop_closure, self.matcher, self.feature_map)
+        self.odometry_calibrator = OdometryCalibrator(self.config.odometry_calibration)
         self.timer = StageTimer()
         self._s = SlamState()
         self._result: SlamResult | None = None
@@ -163,6 +168,7 @@ class Slam:
         feats = extract(scan, self.config.features)
         t0 = self.timer.add("features", t0)
         local = self._match_local(feats, motion.delta, last)
+        self._calibrate_odometry(local, motion)
         t0 = self.timer.add("matching", t0)
         new_id = self._add_keyframe(scan, motion, local, last)
         t0 = self.timer.add("graph_build", t0)
@@ -207,15 +213,18 @@ class Slam:
             if scan.odom_pose is None:
                 return _Motion(se2.compose(s.node_odom[last], delta), delta, cov, True, False)
             return _Motion(odom, delta, cov, True, odometry_break=True)  # new odometry frame
-        delta = se2.between(s.node_odom[last], odom)
-        cov = odometry_covariance(delta, self.config.odometry_noise)
+        raw = se2.between(s.node_odom[last], odom)
+        raw_cov = odometry_covariance(raw, self.config.odometry_noise)
+        delta, cov = raw, raw_cov
+        if self.config.odometry_calibration.enabled:
+            delta, cov = self.odometry_calibrator.correct(raw, raw_cov)
         dt = scan.stamp_s - s.scans[s.node_scan_index[last]].stamp_s
         is_keyframe = bool(
             np.hypot(delta[0], delta[1]) >= cfg.keyframe_distance_m
             or abs(delta[2]) >= np.radians(cfg.keyframe_rotation_deg)
             or dt >= cfg.keyframe_max_interval_s
         )
-        return _Motion(odom, delta, cov, is_keyframe)
+        return _Motion(odom, delta, cov, is_keyframe, raw=(raw, raw_cov))
 
     def _match_local(self, feats: ScanFeatures, delta: FloatArray, last: int) -> _LocalMatch:
         """ICE match against the landmarks of the ``local_map_nodes`` most recent nodes."""
@@ -229,6 +238,12 @@ class Slam:
             # Count by the reason's category (the text before the first colon).
             self._s.match_failures[(result.reason or _UNKNOWN_REASON).split(":")[0]] += 1
         return _LocalMatch(reference, result, poses[last])
+
+    def _calibrate_odometry(self, local: _LocalMatch, motion: _Motion) -> None:
+        """Feed a successful local match to the odometry calibration (same step's raw
+        odometry increment; :class:`OdometryCalibrator`)."""
+        if local.result.success and motion.raw is not None:
+            self.odometry_calibrator.observe(*motion.raw, local.result.pose, local.result.cov)
 
     def _add_keyframe(self, scan: LaserScan, motion: _Motion, local: _LocalMatch, last: int) -> int:
         """The keyframe's node (initialised by the match, else odometry) and its factors."""
