@@ -16,6 +16,17 @@ from numpy.typing import NDArray
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
+# Breakpoint threshold: this many range standard deviations (Borges & Aldon 2004, eq. 8).
+BREAKPOINT_SIGMAS = 3.0
+# A total-least-squares line needs at least this many points to have a residual.
+MIN_LINE_POINTS = 3
+# Boundary refinement moves a boundary between two pieces by at most this many points.
+BOUNDARY_SHIFT_POINTS = 2
+# At most this many refine-then-merge passes (each joins every mergeable neighbour once).
+MAX_MERGE_PASSES = 4
+# A chord shorter than this (metres) has no direction: the split uses point distances.
+DEGENERATE_CHORD_M = 1e-12
+
 
 def breakpoints(
     points_xy: FloatArray,
@@ -52,7 +63,10 @@ def breakpoints(
     jump = np.hypot(step[:, 0], step[:, 1])
     dphi = np.diff(bearings_rad)
     with np.errstate(divide="ignore", invalid="ignore"):
-        d_max = ranges_m[:-1] * np.sin(dphi) / np.sin(lambda_rad - dphi) + 3.0 * sigma_range_m
+        d_max = (
+            ranges_m[:-1] * np.sin(dphi) / np.sin(lambda_rad - dphi)
+            + BREAKPOINT_SIGMAS * sigma_range_m
+        )
     brk = (np.diff(beam_index) != 1) | (dphi >= lambda_rad) | (jump > d_max)
     inner = np.flatnonzero(brk) + 1
     out = np.empty(inner.shape[0] + 2, dtype=np.int64)
@@ -108,9 +122,10 @@ def _tls(x: FloatArray, y: FloatArray, s: int, e: int) -> tuple[float, float, fl
 
 @njit(cache=True)
 def _sse(x: FloatArray, y: FloatArray, s: int, e: int) -> float:
-    """Sum of squared total-least-squares residuals of points ``[s, e)`` (0 below 2 points)."""
+    """Sum of squared total-least-squares residuals of points ``[s, e)``: the smallest
+    eigenvalue of their scatter matrix, m²; 0 for fewer than ``MIN_LINE_POINTS`` (3) points."""
     m = e - s
-    if m < 3:
+    if m < MIN_LINE_POINTS:
         return 0.0
     _, _, sxx, syy, sxy = _scatter(x, y, s, e)
     # Smallest eigenvalue of the scatter matrix.
@@ -128,8 +143,9 @@ def _refine_boundaries(
     same: NDArray[np.bool_],
     n_pieces: int,
 ) -> None:
-    """Move each boundary between adjacent pieces of one cluster by up to two points to
-    where the two lines' summed squared residuals are smallest (in place)."""
+    """Move each boundary between adjacent pieces of one cluster by up to
+    ``BOUNDARY_SHIFT_POINTS`` points to where the two lines' summed squared residuals are
+    smallest (in place)."""
     for i in range(n_pieces - 1):
         if not same[i] or stops[i] != starts[i + 1]:
             continue
@@ -138,9 +154,9 @@ def _refine_boundaries(
         b0 = stops[i]
         best_b = b0
         best = _sse(x, y, s, b0) + _sse(x, y, b0, e)
-        for db in range(-2, 3):
+        for db in range(-BOUNDARY_SHIFT_POINTS, BOUNDARY_SHIFT_POINTS + 1):
             b = b0 + db
-            if db == 0 or b - s < 3 or e - b < 3:
+            if db == 0 or b - s < MIN_LINE_POINTS or e - b < MIN_LINE_POINTS:
                 continue
             cost = _sse(x, y, s, b) + _sse(x, y, b, e)
             if cost < best:
@@ -148,6 +164,44 @@ def _refine_boundaries(
                 best_b = b
         stops[i] = best_b
         starts[i + 1] = best_b
+
+
+@njit(cache=True)
+def _merge_pass(
+    x: FloatArray,
+    y: FloatArray,
+    starts: IntArray,
+    stops: IntArray,
+    link: NDArray[np.bool_],
+    same: NDArray[np.bool_],
+    n_pieces: int,
+    merge_distance_m: float,
+) -> tuple[int, bool]:
+    """One merge pass over the pieces in order, compacting them in place in ``O(pieces)``.
+
+    A piece absorbs its successor while ``link`` allows it and every point of the union lies
+    within ``merge_distance_m`` of the union's total-least-squares line; it then tries its
+    new successor. Returns the new number of pieces and whether anything merged.
+    """
+    if n_pieces == 0:
+        return 0, False
+    w = 0
+    merged = False
+    for r in range(1, n_pieces):
+        if (
+            link[w]
+            and stops[r] - starts[w] >= MIN_LINE_POINTS
+            and _tls(x, y, starts[w], stops[r])[3] < merge_distance_m
+        ):
+            stops[w] = stops[r]
+            merged = True
+        else:
+            w += 1
+            starts[w] = starts[r]
+            stops[w] = stops[r]
+        link[w] = link[r]
+        same[w] = same[r]
+    return w + 1, merged
 
 
 @njit(cache=True)
@@ -168,10 +222,12 @@ def split_and_merge(
     points while that distance exceeds ``split_distance_m`` (recursive end-point fit, run
     with an explicit stack). Merge: adjacent pieces of one cluster (or of two clusters
     separated only by a dropout, ``joinable``) are joined while every point of the union lies
-    within ``merge_distance_m`` of the union's total-least-squares line. Before each merge
+    within ``merge_distance_m`` of the union's total-least-squares line, in at most
+    ``MAX_MERGE_PASSES`` passes (fewer when a pass merges nothing). Before each merge
     pass and at the end, boundaries between adjacent pieces of a cluster are moved by up to
-    two points to the position that minimises the two lines' summed squared residuals (so
-    the point at a corner goes to the wall it lies on and cannot block a merge).
+    ``BOUNDARY_SHIFT_POINTS`` points to the position that minimises the two lines' summed
+    squared residuals (so the point at a corner goes to the wall it lies on and cannot block
+    a merge).
 
     Args:
         x, y: ``(P,)`` float64 point coordinates, metres.
@@ -206,14 +262,14 @@ def split_and_merge(
             s = stack_s[top]
             e = stack_e[top]
             k_best = -1
-            if e - s >= 3:
+            if e - s >= MIN_LINE_POINTS:
                 x0 = x[s]
                 y0 = y[s]
                 dx = x[e - 1] - x0
                 dy = y[e - 1] - y0
                 norm = math.sqrt(dx * dx + dy * dy)
                 d_best = split_distance_m
-                if norm > 1e-12:
+                if norm > DEGENERATE_CHORD_M:
                     for i in range(s + 1, e - 1):
                         d = abs((x[i] - x0) * dy - (y[i] - y0) * dx) / norm
                         if d > d_best:
@@ -247,27 +303,12 @@ def split_and_merge(
         link[i] = same[i] or (
             owner[i + 1] == owner[i] + 1 and joinable[owner[i]] and stops[i] == starts[i + 1]
         )
-    # Alternate boundary refinement and merging until nothing merges.
-    for _ in range(4):
+    # Alternate boundary refinement and a merge pass, at most MAX_MERGE_PASSES times; stop
+    # early after a pass that merges nothing (so a merge possible only after the last pass's
+    # boundary refinement may be left undone).
+    for _ in range(MAX_MERGE_PASSES):
         _refine_boundaries(x, y, starts, stops, same, n_pieces)
-        merged = False
-        i = 0
-        while i < n_pieces - 1:
-            if link[i] and stops[i + 1] - starts[i] >= 3:
-                worst = _tls(x, y, starts[i], stops[i + 1])[3]
-                if worst < merge_distance_m:
-                    stops[i] = stops[i + 1]
-                    link[i] = link[i + 1]
-                    same[i] = same[i + 1]
-                    for j in range(i + 1, n_pieces - 1):
-                        starts[j] = starts[j + 1]
-                        stops[j] = stops[j + 1]
-                        link[j] = link[j + 1]
-                        same[j] = same[j + 1]
-                    n_pieces -= 1
-                    merged = True
-                    continue
-            i += 1
+        n_pieces, merged = _merge_pass(x, y, starts, stops, link, same, n_pieces, merge_distance_m)
         if not merged:
             break
     _refine_boundaries(x, y, starts, stops, same, n_pieces)
