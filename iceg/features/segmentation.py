@@ -167,6 +167,74 @@ def _refine_boundaries(
 
 
 @njit(cache=True)
+def farthest_from_chord(x: FloatArray, y: FloatArray, s: int, e: int, threshold_m: float) -> int:
+    """Index of the point of ``[s, e)`` farthest from the chord of its first and last points
+    (from the first point when the chord is degenerate) if that distance exceeds
+    ``threshold_m``, else -1 (the end-point fit of Nguyen et al. 2005, Alg. 1)."""
+    k_best = -1
+    if e - s < MIN_LINE_POINTS:
+        return k_best
+    x0 = x[s]
+    y0 = y[s]
+    dx = x[e - 1] - x0
+    dy = y[e - 1] - y0
+    norm = math.sqrt(dx * dx + dy * dy)
+    d_best = threshold_m
+    for i in range(s + 1, e - 1):
+        if norm > DEGENERATE_CHORD_M:
+            d = abs((x[i] - x0) * dy - (y[i] - y0) * dx) / norm
+        else:
+            d = math.sqrt((x[i] - x0) ** 2 + (y[i] - y0) ** 2)
+        if d > d_best:
+            d_best = d
+            k_best = i
+    return k_best
+
+
+@njit(cache=True)
+def _split_clusters(
+    x: FloatArray,
+    y: FloatArray,
+    bounds: IntArray,
+    split_distance_m: float,
+    starts: IntArray,
+    stops: IntArray,
+    owner: IntArray,
+) -> int:
+    """Recursive end-point fit of every cluster, run with an explicit stack: fills
+    ``starts``, ``stops`` and ``owner`` (cluster) of the pieces in point order and returns
+    their number."""
+    stack_s = np.empty(x.shape[0] + 1, dtype=np.int64)
+    stack_e = np.empty(x.shape[0] + 1, dtype=np.int64)
+    n_pieces = 0
+    for c in range(bounds.shape[0] - 1):
+        if bounds[c + 1] <= bounds[c]:
+            continue
+        # Depth-first with the right half pushed first, so pieces come out in point order.
+        stack_s[0] = bounds[c]
+        stack_e[0] = bounds[c + 1]
+        top = 1
+        while top > 0:
+            top -= 1
+            s = stack_s[top]
+            e = stack_e[top]
+            k_best = farthest_from_chord(x, y, s, e, split_distance_m)
+            if k_best < 0:
+                starts[n_pieces] = s
+                stops[n_pieces] = e
+                owner[n_pieces] = c
+                n_pieces += 1
+            else:
+                # The farthest point ends the left piece; boundary refinement may move it.
+                stack_s[top] = k_best + 1
+                stack_e[top] = e
+                stack_s[top + 1] = s
+                stack_e[top + 1] = k_best + 1
+                top += 2
+    return n_pieces
+
+
+@njit(cache=True)
 def _merge_pass(
     x: FloatArray,
     y: FloatArray,
@@ -240,60 +308,11 @@ def split_and_merge(
     Returns:
         ``(M, 2)`` int64 ``[start, stop)`` point ranges of the segments, in point order.
     """
-    n_clusters = bounds.shape[0] - 1
     cap = x.shape[0] + 1
     starts = np.empty(cap, dtype=np.int64)
     stops = np.empty(cap, dtype=np.int64)
     owner = np.empty(cap, dtype=np.int64)
-    n_pieces = 0
-    stack_s = np.empty(cap, dtype=np.int64)
-    stack_e = np.empty(cap, dtype=np.int64)
-    for c in range(n_clusters):
-        cs = bounds[c]
-        ce = bounds[c + 1]
-        if ce <= cs:
-            continue
-        # Depth-first with the right half pushed first, so pieces come out in point order.
-        stack_s[0] = cs
-        stack_e[0] = ce
-        top = 1
-        while top > 0:
-            top -= 1
-            s = stack_s[top]
-            e = stack_e[top]
-            k_best = -1
-            if e - s >= MIN_LINE_POINTS:
-                x0 = x[s]
-                y0 = y[s]
-                dx = x[e - 1] - x0
-                dy = y[e - 1] - y0
-                norm = math.sqrt(dx * dx + dy * dy)
-                d_best = split_distance_m
-                if norm > DEGENERATE_CHORD_M:
-                    for i in range(s + 1, e - 1):
-                        d = abs((x[i] - x0) * dy - (y[i] - y0) * dx) / norm
-                        if d > d_best:
-                            d_best = d
-                            k_best = i
-                else:
-                    for i in range(s + 1, e - 1):
-                        d = math.sqrt((x[i] - x0) ** 2 + (y[i] - y0) ** 2)
-                        if d > d_best:
-                            d_best = d
-                            k_best = i
-            if k_best < 0:
-                starts[n_pieces] = s
-                stops[n_pieces] = e
-                owner[n_pieces] = c
-                n_pieces += 1
-            else:
-                # The farthest point ends the left piece; boundary refinement may move it.
-                stack_s[top] = k_best + 1
-                stack_e[top] = e
-                top += 1
-                stack_s[top] = s
-                stack_e[top] = k_best + 1
-                top += 1
+    n_pieces = _split_clusters(x, y, bounds, split_distance_m, starts, stops, owner)
     # link[i]: pieces i and i + 1 may merge (same cluster, or clusters split by a dropout);
     # same[i]: they are in one cluster (their boundary may move).
     link = np.zeros(cap, dtype=np.bool_)
@@ -312,15 +331,8 @@ def split_and_merge(
         if not merged:
             break
     _refine_boundaries(x, y, starts, stops, same, n_pieces)
-    n_out = 0
-    for i in range(n_pieces):
-        if stops[i] - starts[i] >= min_points:
-            n_out += 1
-    out = np.empty((n_out, 2), dtype=np.int64)
-    k = 0
-    for i in range(n_pieces):
-        if stops[i] - starts[i] >= min_points:
-            out[k, 0] = starts[i]
-            out[k, 1] = stops[i]
-            k += 1
+    keep = (stops[:n_pieces] - starts[:n_pieces]) >= min_points
+    out = np.empty((int(keep.sum()), 2), dtype=np.int64)
+    out[:, 0] = starts[:n_pieces][keep]
+    out[:, 1] = stops[:n_pieces][keep]
     return out
