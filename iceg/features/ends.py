@@ -92,14 +92,14 @@ def junctions(segs: Segments, cfg: FeatureConfig) -> BoolArray:
     beam = segs.end_beam.reshape(-1)
     n = ends.shape[0]
     window = cfg.eow_check_beams + 1
+    a = np.repeat(np.arange(n), window)
+    b = a + np.tile(np.arange(1, window + 1), n)
+    a, b = a[b < n], b[b < n]
+    close = (np.abs(beam[a] - beam[b]) <= window) & (a // 2 != b // 2)
+    d = norm(ends[a] - ends[b])
     hit = np.zeros(n, dtype=bool)
-    for shift in range(1, min(window, n - 1) + 1):
-        a = np.arange(n - shift)
-        b = a + shift
-        close = (np.abs(beam[a] - beam[b]) <= window) & (a // 2 != b // 2)
-        d = norm(ends[a] - ends[b])
-        hit[a] |= close & (d <= cfg.corner_gap_m + sp[a] + sp[b])
-        hit[b] |= close & (d <= cfg.corner_gap_m + sp[b] + sp[a])
+    hit[a[close & (d <= cfg.corner_gap_m + sp[a] + sp[b])]] = True
+    hit[b[close & (d <= cfg.corner_gap_m + sp[b] + sp[a])]] = True
     return hit.reshape(-1, 2)
 
 

@@ -56,16 +56,26 @@ def acceptable(
     """
     ii, jj, xy = pairs.first, pairs.second, pairs.xy
     m = segs.lines.shape[0]
-    corner_pair_code = corners.pairs[:, 0] * m + corners.pairs[:, 1]
     d_max = cfg.intersection_max_distance_m
     ok = (
-        ~np.isin(ii * m + jj, corner_pair_code)
+        ~_is_corner_pair(ii * m + jj, corners.pairs[:, 0] * m + corners.pairs[:, 1])
         & (point_segment_distance(xy, segs.endpoints[ii, 0], segs.endpoints[ii, 1]) <= d_max)
         & (point_segment_distance(xy, segs.endpoints[jj, 0], segs.endpoints[jj, 1]) <= d_max)
         & (norm(xy - beams.origin) < beams.range_max)
         & (max_eigenvalue(pairs.cov) <= cfg.intersection_max_std_m**2)
     )
     return ok & ~close_to_any(xy, corners.xy, cfg.intersection_duplicate_m)
+
+
+def _is_corner_pair(pair_code: IntArray, corner_code: IntArray) -> BoolArray:
+    """``(Q,)`` bool: which pair codes ``first * M + second`` are among the corners' codes
+    (a sorted look-up, ``O(Q log C)``)."""
+    if corner_code.size == 0:
+        return np.zeros(pair_code.shape[0], dtype=bool)
+    codes = np.sort(corner_code)
+    pos = np.minimum(np.searchsorted(codes, pair_code), codes.size - 1)
+    hit: BoolArray = codes[pos] == pair_code
+    return hit
 
 
 def best_determined(xy: FloatArray, cov: FloatArray, duplicate_m: float) -> IntArray:

@@ -76,12 +76,12 @@ def close_to_any(xy: FloatArray, ref: FloatArray, radius_m: float) -> BoolArray:
     if xy.shape[0] == 0 or ref.shape[0] == 0:
         return out
     if xy.shape[0] * ref.shape[0] <= DENSE_MAX_ROWS**2:
-        q, r = (g.ravel() for g in np.meshgrid(np.arange(xy.shape[0]), np.arange(ref.shape[0])))
-    else:
-        lists = cKDTree(ref).query_ball_point(xy, _tree_radius(radius_m))
-        counts = np.array([len(li) for li in lists], dtype=np.int64)
-        q = np.repeat(np.arange(xy.shape[0]), counts)
-        r = np.fromiter((k for li in lists for k in li), dtype=np.int64, count=int(counts.sum()))
+        out[(norm(xy[:, None, :] - ref[None, :, :]) <= radius_m).any(axis=1)] = True
+        return out
+    lists = cKDTree(ref).query_ball_point(xy, _tree_radius(radius_m))
+    counts = np.array([len(li) for li in lists], dtype=np.int64)
+    q = np.repeat(np.arange(xy.shape[0]), counts)
+    r = np.fromiter((k for li in lists for k in li), dtype=np.int64, count=int(counts.sum()))
     out[q[norm(xy[q] - ref[r]) <= radius_m]] = True
     return out
 
