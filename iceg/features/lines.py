@@ -81,7 +81,7 @@ def fit_lines(
     # Pass 1: unweighted total least squares for the normal direction.
     _, _, _, sxx, syy, sxy = _moments(x, y, np.ones_like(x), offsets, seg_of)
     alpha0 = 0.5 * np.arctan2(-2.0 * sxy, syy - sxx)
-    w = _weights(beam_dirs[idx], ranges_m[idx], alpha0[seg_of], sigma_range_m, sigma_bearing_rad)
+    w = _weights(beam_dirs[idx], ranges_m[idx], alpha0, seg_of, (sigma_range_m, sigma_bearing_rad))
     # Pass 2: weighted total least squares (maximum likelihood).
     sw, mx, my, sxx, syy, sxy = _moments(x, y, w, offsets, seg_of)
     alpha, rho, ca, sa = _hessian_line(0.5 * np.arctan2(-2.0 * sxy, syy - sxx), mx, my)
@@ -111,11 +111,17 @@ def _segment_points(seg_point_range: IntArray) -> tuple[IntArray, IntArray, IntA
 
 
 def _weights(
-    dirs: FloatArray, ranges_m: FloatArray, alpha: FloatArray, sigma_r: float, sigma_phi: float
+    dirs: FloatArray,
+    ranges_m: FloatArray,
+    alpha: FloatArray,
+    seg_of: IntArray,
+    sigmas: tuple[float, float],
 ) -> FloatArray:
-    """Inverse variances ``1 / s_i²`` of the points' distances to a line of normal angle
-    ``alpha`` (Pfister et al. 2003, eq. 4-6); all ``(S,)`` float64, ``dirs`` ``(S, 2)``."""
-    cos_b = dirs[:, 0] * np.cos(alpha) + dirs[:, 1] * np.sin(alpha)
+    """Inverse variances ``1 / s_i²`` of the points' distances to their segment's line of
+    normal angle ``alpha`` ``(M,)`` (Pfister et al. 2003, eq. 4-6): ``dirs`` ``(S, 2)``,
+    ``ranges_m`` and ``seg_of`` ``(S,)``, ``sigmas`` (range m, bearing rad); ``(S,)``."""
+    sigma_r, sigma_phi = sigmas
+    cos_b = dirs[:, 0] * np.cos(alpha)[seg_of] + dirs[:, 1] * np.sin(alpha)[seg_of]
     cos2 = cos_b * cos_b
     var = sigma_r**2 * cos2 + (ranges_m * sigma_phi) ** 2 * (1.0 - cos2)
     w: FloatArray = 1.0 / np.maximum(var, VARIANCE_FLOOR_FRACTION * sigma_r**2)

@@ -58,7 +58,7 @@ def close_pairs(xy: FloatArray, radius_m: float) -> IntArray:
         cand = cKDTree(xy).query_pairs(_tree_radius(radius_m), output_type="ndarray")
         a, b = _lexicographic(cand[:, 0], cand[:, 1], q).T
     near = norm(xy[a] - xy[b]) <= radius_m
-    return np.stack([a[near], b[near]], axis=1).astype(np.int64)
+    return np.stack([a[near], b[near]], axis=1).astype(np.int64, copy=False)
 
 
 def close_to_any(xy: FloatArray, ref: FloatArray, radius_m: float) -> BoolArray:
@@ -104,7 +104,7 @@ def segment_pairs_within(endpoints: FloatArray, radius_m: float) -> tuple[IntArr
     m = endpoints.shape[0]
     if m <= DENSE_MAX_ROWS:
         ii, jj = np.triu_indices(m, k=1)
-        return ii.astype(np.int64), jj.astype(np.int64)
+        return ii.astype(np.int64, copy=False), jj.astype(np.int64, copy=False)
     length = norm(endpoints[:, 1] - endpoints[:, 0])
     n_samples = np.ceil(length / SEGMENT_SAMPLE_STEP_M).astype(np.int64) + 1
     seg_of = np.repeat(np.arange(m), n_samples)
