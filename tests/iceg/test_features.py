@@ -786,14 +786,14 @@ def test_beam_points_hand_computed() -> None:
 
 def test_split_and_merge_hand_computed() -> None:
     # One cluster on an L: 10 points on y = 0 (x = 0..0.9), then 10 on x = 1 (y = 0.1..1.0).
-    # The split is at the point farthest from the chord; boundary refinement puts the corner
-    # point (0.9, 0)... on y = 0: two segments [0, 10) and [10, 20).
-    xs = np.r_[np.arange(10) * 0.1, np.ones(10)]
-    ys = np.r_[np.zeros(10), 0.1 + np.arange(10) * 0.1]
+    # The split is at the point farthest from the chord; boundary refinement keeps the last
+    # point (0.9, 0) on y = 0: two segments [0, 10) and [10, 20).
+    xs: np.ndarray = np.r_[np.arange(10) * 0.1, np.ones(10)]
+    ys: np.ndarray = np.r_[np.zeros(10), 0.1 + np.arange(10) * 0.1]
     seg = split_and_merge(xs, ys, np.array([0, 20]), np.zeros(0, bool), 0.05, 0.05, 5)
     assert seg.tolist() == [[0, 10], [10, 20]]
     # A straight wall cut in two clusters by a dropout: merged when joinable, else two.
-    xs = np.arange(20) * 0.1
+    xs = np.arange(20, dtype=np.float64) * 0.1
     ys = np.zeros(20)
     bounds = np.array([0, 8, 20])
     joined = split_and_merge(xs, ys, bounds, np.array([True]), 0.05, 0.05, 5)
