@@ -9,13 +9,14 @@ Example::
     run.scans[0].points_xy(), run.true_poses[0], run.world.corners()
 """
 
-from frontends.simulate.odometry import OdometryModel
+from frontends.simulate.odometry import ACCURATE_ODOMETRY, OdometryModel
 from frontends.simulate.raycast import (
     APPARENT_END,
     CORNER,
     HIDDEN,
     NOTHING,
     WALL_END,
+    JunctionClass,
     LaserModel,
     cast_rays,
     classify_junctions,
@@ -25,6 +26,12 @@ from frontends.simulate.raycast import (
     visible_wall_ends,
 )
 from frontends.simulate.run import SimulatedRun, simulate, simulate_pair
+from frontends.simulate.scenarios import SCENARIOS, Scenario, simulate_scenario
+from frontends.simulate.synthetic_odometry import (
+    SyntheticOdometry,
+    synthetic_odometry,
+    write_synthetic_log,
+)
 from frontends.simulate.trajectory import (
     default_trajectory,
     default_trajectory_duration_s,
@@ -36,43 +43,63 @@ from frontends.simulate.worlds import (
     Junctions,
     World,
     box_world,
+    corridor_recesses,
     corridor_world,
+    long_corridor_world,
     office_world,
+    outdoor_layout,
+    outdoor_world,
     pillar_world,
     rectangle,
+    tree_walls,
+    two_loop_world,
     wall_with_doors,
     world_by_name,
 )
 
 __all__ = [
+    "ACCURATE_ODOMETRY",
     "APPARENT_END",
     "CORNER",
     "HIDDEN",
     "NOTHING",
+    "SCENARIOS",
     "WALL_END",
     "WORLDS",
     "DynamicWalls",
+    "JunctionClass",
     "Junctions",
     "LaserModel",
     "OdometryModel",
+    "Scenario",
     "SimulatedRun",
+    "SyntheticOdometry",
     "World",
     "box_world",
     "cast_rays",
     "classify_junctions",
+    "corridor_recesses",
     "corridor_world",
     "default_trajectory",
     "default_trajectory_duration_s",
+    "long_corridor_world",
     "office_world",
+    "outdoor_layout",
+    "outdoor_world",
     "pillar_world",
     "ray_ranges",
     "rectangle",
     "simulate",
     "simulate_pair",
+    "simulate_scenario",
+    "synthetic_odometry",
     "trajectory_from_waypoints",
+    "tree_walls",
+    "two_loop_world",
     "visible_corners",
     "visible_mask",
     "visible_wall_ends",
     "wall_with_doors",
     "world_by_name",
+    "write_synthetic_log",
 ]

@@ -9,6 +9,7 @@ walls at once; the range of a beam is its smallest valid ``t``.
 from __future__ import annotations
 
 import math
+from enum import IntEnum
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -105,6 +106,36 @@ def ray_ranges(origin_xy: ArrayLike, directions_rad: ArrayLike, walls: FloatArra
     return np.where(ok, t, np.inf).min(axis=1)
 
 
+#: Walls farther than ``range_max_m`` plus this margin (metres) are not cast against: a
+#: hit there reads ``range_max_m`` whatever the range noise (the margin is 100 sigma of it).
+_CULL_MARGIN_M = 1.0
+#: A wall counts as behind the laser only if it is this far (metres) behind: the beams at
+#: exactly +-90 deg point a rounding error (1e-16 rad) into ``x < 0``.
+_BEHIND_TOL_M = 1e-6
+
+
+def _reachable_walls(walls: FloatArray, laser_pose: FloatArray, model: LaserModel) -> FloatArray:
+    """The walls a beam of ``model`` at ``laser_pose`` can hit within range: a speed-up only,
+    the ranges of :func:`cast_rays` are unchanged.
+
+    A wall is dropped if its closest point is more than ``range_max_m + _CULL_MARGIN_M``
+    away, or, for a field of view of at most 180°, if it lies entirely behind the laser
+    (every beam then points into ``x >= 0`` of the laser frame).
+    """
+    if walls.shape[0] == 0:
+        return walls
+    a = walls[:, 0] - laser_pose[:2]
+    e = walls[:, 1] - walls[:, 0]
+    s = np.clip(-np.einsum("ij,ij->i", a, e) / np.einsum("ij,ij->i", e, e), 0.0, 1.0)
+    near = np.hypot(*(a + s[:, None] * e).T) <= model.range_max_m + _CULL_MARGIN_M
+    if model.fov_deg <= 180.0:
+        c, sn = math.cos(laser_pose[2]), math.sin(laser_pose[2])
+        fwd0 = a[:, 0] * c + a[:, 1] * sn
+        fwd1 = (a[:, 0] + e[:, 0]) * c + (a[:, 1] + e[:, 1]) * sn
+        near &= (fwd0 >= -_BEHIND_TOL_M) | (fwd1 >= -_BEHIND_TOL_M)
+    return walls[near]
+
+
 def cast_rays(
     world: World,
     pose: ArrayLike,
@@ -129,7 +160,8 @@ def cast_rays(
     """
     model = LaserModel() if model is None else model
     laser_pose = compose(np.asarray(pose, dtype=np.float64), model.offset())
-    ranges = ray_ranges(laser_pose[:2], laser_pose[2] + model.angles_rad(), world.walls_at(stamp_s))
+    walls = _reachable_walls(world.walls_at(stamp_s), laser_pose, model)
+    ranges = ray_ranges(laser_pose[:2], laser_pose[2] + model.angles_rad(), walls)
     if rng is not None and model.range_sigma_m > 0.0:
         noise = rng.normal(0.0, model.range_sigma_m, size=ranges.shape)
         ranges = np.maximum(ranges + noise, 0.0)  # inf stays inf
@@ -179,8 +211,28 @@ def visible_mask(
     return in_fov & in_range & clear
 
 
-#: Junction classes returned by :func:`classify_junctions`.
-HIDDEN, CORNER, WALL_END, APPARENT_END, NOTHING = 0, 1, 2, 3, 4
+class JunctionClass(IntEnum):
+    """What the laser sees at a wall endpoint (returned by :func:`classify_junctions`).
+
+    ``CORNER`` and ``WALL_END`` have the values of ``iceg.types.FeatureKind.CORNER`` (0) and
+    ``FeatureKind.EOW`` (1), so a ground-truth class compares directly with an extracted
+    feature's kind (``frontends`` may not import ``iceg``; ``tests/frontends/test_simulate.py``
+    checks that the values agree). The other classes have no feature kind and use values
+    no feature kind uses.
+    """
+
+    CORNER = 0
+    WALL_END = 1
+    HIDDEN = 3
+    APPARENT_END = 4
+    NOTHING = 5
+
+
+HIDDEN = JunctionClass.HIDDEN
+CORNER = JunctionClass.CORNER
+WALL_END = JunctionClass.WALL_END
+APPARENT_END = JunctionClass.APPARENT_END
+NOTHING = JunctionClass.NOTHING
 
 
 def classify_junctions(
@@ -211,7 +263,8 @@ def classify_junctions(
         stamp_s: Time for dynamic walls; ``None``: static walls only.
 
     Returns:
-        ``(P,)`` int64 classes aligned with ``world.junctions(stamp_s).points``, and those
+        ``(P,)`` int64 :class:`JunctionClass` values aligned with
+        ``world.junctions(stamp_s).points``, and those
         points ``(P, 2)`` float64 in metres, world frame.
     """
     model = LaserModel() if model is None else model

@@ -10,8 +10,11 @@ import numpy as np
 import pytest
 
 from frontends.simulate import (
+    CORNER,
     NOTHING,
+    WALL_END,
     DynamicWalls,
+    JunctionClass,
     LaserModel,
     OdometryModel,
     World,
@@ -22,6 +25,7 @@ from frontends.simulate import (
     default_trajectory,
     office_world,
     pillar_world,
+    ray_ranges,
     simulate,
     simulate_pair,
     trajectory_from_waypoints,
@@ -239,6 +243,24 @@ def test_visible_wall_ends_respect_fov_and_range() -> None:
     assert visible_wall_ends(w, [7.5, 5.0, -math.pi / 2], short).shape[0] == 0
 
 
+def test_junction_classes_share_feature_kind_values() -> None:
+    # Truth: iceg.types.FeatureKind (paper §III-B): CORNER = 0, EOW = 1, INTERSECTION = 2.
+    # The simulator's CORNER and WALL_END carry the same values; the other classes are
+    # distinct from every feature kind and from each other.
+    from iceg.types import FeatureKind
+
+    assert int(JunctionClass.CORNER) == int(FeatureKind.CORNER) == 0
+    assert int(JunctionClass.WALL_END) == int(FeatureKind.EOW) == 1
+    others = {JunctionClass.HIDDEN, JunctionClass.APPARENT_END, JunctionClass.NOTHING}
+    assert not {int(c) for c in others} & {int(k) for k in FeatureKind}
+    assert len({int(c) for c in JunctionClass}) == len(JunctionClass) == 5
+    assert (CORNER, WALL_END, NOTHING) == (
+        JunctionClass.CORNER,
+        JunctionClass.WALL_END,
+        JunctionClass.NOTHING,
+    )
+
+
 def test_t_junction_is_a_corner_from_one_side_only() -> None:
     # Truth: office_world's partition x = 5 (y 0-4) ends on the corridor wall y = 4. From the
     # corridor at (5, 5) facing south the wall is straight there: no corner at (5, 4). From
@@ -447,9 +469,8 @@ def test_carmen_round_trip(tmp_path: Path, record: str, world_name: str) -> None
     # (frontends.carmen.write_carmen: ranges %.3f, poses and stamps %.6f, ROBOTLASER1 angle
     # start/step at full precision) and the same beam validity (the corridor run has
     # no-return beams along its axis).
-    carmen = pytest.importorskip("frontends.carmen")
-    if not hasattr(carmen, "write_carmen"):
-        pytest.skip("frontends.carmen.write_carmen is not written yet")
+    # No skip: frontends.carmen.write_carmen exists, and a missing writer must fail here.
+    import frontends.carmen as carmen
     from frontends import open_log
 
     laser = LaserModel(laser_offset=(0.2, 0.0, 0.0))
@@ -471,3 +492,16 @@ def test_carmen_round_trip(tmp_path: Path, record: str, world_name: str) -> None
         assert abs(r.stamp_s - s.stamp_s) <= tol_stamp
         assert r.range_max_m == s.range_max_m
         np.testing.assert_array_equal(r.valid_mask(), s.valid_mask())
+
+
+@pytest.mark.parametrize("world_name", ["office", "outdoor", "long_corridor"])
+def test_wall_culling_leaves_ranges_unchanged(world_name: str) -> None:
+    # Truth: ray_ranges against every wall, clamped as cast_rays documents. cast_rays only
+    # casts against walls within range and in front of the laser; the ranges must agree
+    # exactly, also for beams at exactly +-90 deg along a wall.
+    w = world_by_name(world_name)
+    poses = default_trajectory(w)[::37]
+    for pose in [*poses, np.array([3.0, 5.0, 0.0])]:
+        full = ray_ranges(pose[:2], pose[2] + EXACT.angles_rad(), w.walls)
+        expect = np.where(full < EXACT.range_max_m, full, EXACT.range_max_m)
+        np.testing.assert_array_equal(cast_rays(w, pose, EXACT), expect)

@@ -1,0 +1,328 @@
+"""Benchmark: accuracy on logs and worlds the pipeline was not tuned on (issue 11).
+
+Every case runs the default pipeline (:class:`iceg.slam.Slam` with ``IcegConfig()``) and
+reports, in one table:
+
+- ``rel m/deg``: mean Kümmerle et al. 2009 relation error (MIT CSAIL cases);
+- ``ATE m``: RMSE of the position error against the truth / reference after a rigid SE(2)
+  alignment (``iceg.evaluation.position_errors``), and ``end m``: the unaligned distance of
+  the last pose from the truth (the estimate starts at the true first pose);
+- ``odo ATE`` / ``odo end``: the same for the odometry alone (what the pipeline starts from);
+- ``len ratio``: path length of the estimated keyframe poses over that of the reference at
+  the same scans (1.0 = right length; issue 11 failure 1 is a ratio of about 0.988);
+- ``sm/kf``: fraction of keyframes (after the first) that got a scan-match factor;
+- ``LC acc`` / ``LC false``: loop closures accepted, and those whose measured relative pose
+  differs from the true one by more than 0.3 m or 3 deg (only where a reference exists);
+- ``time s``: SLAM wall time (all scans plus ``finish``).
+
+Cases: the simulated scenarios of ``frontends.simulate.SCENARIOS`` (office, corridor,
+office_biased, long_corridor, two_loop, outdoor; exact truth), MIT CSAIL with its raw
+odometry and with a synthetic 0.4 deg/m heading drift added on top of it (relations), and
+the corrected ACES / csail.log / csail-corrected logs with synthetic biased odometry (1 %
+scale error, 0.4 deg/m heading drift, default white noise; reference = corrected poses;
+``frontends.simulate.synthetic_odometry``). Real logs come from ``../shared/data`` (or
+``$ICEG_SHARED_DATA``); a case whose file is absent is reported as skipped.
+
+Each row is one call of :func:`run_case`, reusable by a batch runner.
+
+Run: ``python benchmarks/bench_accuracy.py [--only NAME ...] [--quick] [--json PATH]
+[--maps DIR] [--seed N]``. ``--quick`` stops every case after its first 300 scans (a smoke
+test: loops are not closed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from frontends import LaserScan, open_log
+from frontends.relations import Relations, read_relations
+from frontends.simulate import SCENARIOS, OdometryModel, simulate_scenario, synthetic_odometry
+from graph.pose_graph import FactorKind
+from iceg.config import IcegConfig
+from iceg.evaluation import position_errors, relation_errors
+from iceg.results import SlamResult
+from iceg.slam import Slam
+from iceg_common import se2
+
+FloatArray = NDArray[np.float64]
+
+DATA = Path(
+    os.environ.get("ICEG_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data")
+)
+#: Scans per case with ``--quick``.
+QUICK_SCANS = 300
+#: A loop closure is false if its measurement is off the truth by more than this.
+FALSE_LC_TRANS_M = 0.3
+FALSE_LC_ROT_DEG = 3.0
+RELATION_TOLERANCE_S = 1e-3
+#: Synthetic odometry for the corrected logs, and the drift added to CSAIL's raw odometry.
+SYNTH_BIASED = OdometryModel.biased(scale_error=0.01, heading_drift_deg_per_m=0.4)
+SYNTH_DRIFT_ONLY = OdometryModel.biased(scale_error=0.0, heading_drift_deg_per_m=0.4, noise=False)
+
+
+class CaseSkipped(Exception):
+    """A case's input is absent (real logs outside the repository)."""
+
+
+@dataclass(frozen=True)
+class CaseInput:
+    """What a case feeds the pipeline and scores against.
+
+    Attributes:
+        scans: Laser scans in time order (their ``odom_pose`` is the odometry used).
+        reference: ``(N, 3)`` true / reference robot pose per scan, or ``None``.
+        relations: Benchmark relations, or ``None``.
+        description: One line about the case.
+    """
+
+    scans: list[LaserScan]
+    reference: FloatArray | None
+    relations: Relations | None
+    description: str
+
+
+def _shared(relative: str) -> Path:
+    path = DATA / relative
+    if not path.is_file():
+        raise CaseSkipped(f"{path} is absent")
+    return path
+
+
+def _sim_case(scenario: str) -> Callable[[int], CaseInput]:
+    def build(seed: int) -> CaseInput:
+        run = simulate_scenario(scenario, seed)
+        return CaseInput(run.scans, run.true_poses, None, SCENARIOS[scenario].description)
+
+    return build
+
+
+def _csail_raw(drift: bool) -> Callable[[int], CaseInput]:
+    def build(seed: int) -> CaseInput:
+        scans = list(open_log(_shared("mit-csail/mit-csail.clf")))
+        rel = read_relations(_shared("mit-csail/mit-csail.relations"))
+        if drift:
+            scans = synthetic_odometry(scans, SYNTH_DRIFT_ONLY, seed).scans
+            return CaseInput(scans, None, rel, "MIT CSAIL raw odometry + 0.4 deg/m heading drift")
+        return CaseInput(scans, None, rel, "MIT CSAIL, raw odometry")
+
+    return build
+
+
+def _corrected(relative: str, restamp_hz: float | None) -> Callable[[int], CaseInput]:
+    def build(seed: int) -> CaseInput:
+        scans = list(open_log(_shared(relative)))
+        synth = synthetic_odometry(scans, SYNTH_BIASED, seed, restamp_hz)
+        desc = f"{Path(relative).name} + synthetic odometry (1 %, 0.4 deg/m, noise)"
+        return CaseInput(synth.scans, np.array(synth.reference_poses), None, desc)
+
+    return build
+
+
+#: Benchmark cases by name.
+CASES: dict[str, Callable[[int], CaseInput]] = {
+    **{name: _sim_case(name) for name in SCENARIOS},
+    "csail_raw": _csail_raw(drift=False),
+    "csail_raw_drift": _csail_raw(drift=True),
+    "aces_synth": _corrected("aces/aces-corrected.log.gz", None),
+    "csail_log_synth": _corrected("mit-csail/csail.log", None),
+    # csail-corrected prints its stamps as 1.13486e+09 (2 distinct values): re-stamp at 1 Hz.
+    "csail_corrected_synth": _corrected("mit-csail/csail-corrected.log.gz", 1.0),
+}
+
+
+# ---------------------------------------------------------------------------- metrics
+
+
+def _path_length(poses: FloatArray) -> float:
+    return float(np.hypot(*np.diff(poses[:, :2], axis=0).T).sum())
+
+
+def _scan_match_fraction(result: SlamResult) -> float:
+    """Fraction of the nodes after the first that end a scan-match factor."""
+    n_nodes = int(result.node_ids.shape[0])
+    matched = {f.j for f in result.factors if f.kind == FactorKind.SCAN_MATCH}
+    return len(matched) / (n_nodes - 1) if n_nodes > 1 else math.nan
+
+
+def _false_loop_closures(result: SlamResult, reference: FloatArray) -> int:
+    """Accepted loop closures whose measurement differs from the reference relative pose by
+    more than ``FALSE_LC_TRANS_M`` or ``FALSE_LC_ROT_DEG``."""
+    scan_of = dict(zip(result.node_ids.tolist(), result.node_scan_index.tolist(), strict=True))
+    n_false = 0
+    for f in result.factors:
+        if f.kind != FactorKind.LOOP_CLOSURE or f.j is None:
+            continue
+        truth = se2.between(reference[scan_of[f.i]], reference[scan_of[f.j]])
+        err = se2.compose(se2.inverse(truth), f.measured)
+        if (
+            math.hypot(err[0], err[1]) > FALSE_LC_TRANS_M
+            or abs(math.degrees(err[2])) > FALSE_LC_ROT_DEG
+        ):
+            n_false += 1
+    return n_false
+
+
+def _reference_metrics(result: SlamResult, odom: FloatArray, ref: FloatArray) -> dict[str, Any]:
+    nodes = result.node_scan_index
+    ref_len = _path_length(ref[nodes])
+    return {
+        "ate_m": position_errors(result.poses, ref).rmse_m,
+        "end_m": float(np.hypot(*(result.poses[-1, :2] - ref[-1, :2]))),
+        "odom_ate_m": position_errors(odom, ref).rmse_m,
+        "odom_end_m": float(np.hypot(*(odom[-1, :2] - ref[-1, :2]))),
+        "length_ratio": _path_length(result.node_poses) / ref_len if ref_len > 0 else math.nan,
+        "lc_false": _false_loop_closures(result, ref),
+    }
+
+
+def _relation_metrics(result: SlamResult, odom: FloatArray, rel: Relations) -> dict[str, Any]:
+    est, _ = relation_errors(
+        result.stamps_s, result.poses, rel.stamps_s, rel.deltas, RELATION_TOLERANCE_S
+    )
+    raw, _ = relation_errors(result.stamps_s, odom, rel.stamps_s, rel.deltas, RELATION_TOLERANCE_S)
+    return {
+        "rel_trans_m": est.trans_mean_m,
+        "rel_rot_deg": est.rot_mean_deg,
+        "rel_matched": est.n_matched,
+        "odom_rel_trans_m": raw.trans_mean_m,
+        "odom_rel_rot_deg": raw.rot_mean_deg,
+    }
+
+
+# ---------------------------------------------------------------------------- one case
+
+
+def run_case(
+    name: str, quick: bool = False, seed: int = 0, maps_dir: Path | None = None
+) -> dict[str, Any]:
+    """Run one benchmark case with the default pipeline and return its row.
+
+    Args:
+        name: A key of :data:`CASES`.
+        quick: Only the first :data:`QUICK_SCANS` scans.
+        seed: Seed of the simulation / synthetic odometry noise.
+        maps_dir: If given, the run's output files (``map.png``, ``trajectory.tum``, ...)
+            are saved in ``maps_dir / name``.
+
+    Returns:
+        A JSON-ready dict: ``name``, ``description``, ``scans``, ``nodes``, ``seconds``,
+        ``lc_accepted``, ``sm_per_kf`` and, where a reference exists, ``ate_m``, ``end_m``,
+        ``odom_ate_m``, ``odom_end_m``, ``length_ratio``, ``lc_false``; with relations
+        ``rel_trans_m``, ``rel_rot_deg``, ``odom_rel_trans_m``, ``odom_rel_rot_deg``. A case
+        whose input is absent returns ``{"name", "skipped": reason}``.
+
+    Raises:
+        KeyError: unknown case name.
+    """
+    try:
+        case = CASES[name](seed)
+    except CaseSkipped as exc:
+        return {"name": name, "skipped": str(exc)}
+    n = min(len(case.scans), QUICK_SCANS) if quick else len(case.scans)
+    scans = case.scans[:n]
+    t0 = time.perf_counter()
+    slam = Slam(IcegConfig())
+    for scan in scans:
+        slam.process(scan)
+    result = slam.finish()
+    seconds = time.perf_counter() - t0
+    odom = np.array([s.odom_pose for s in scans], dtype=np.float64)
+    row: dict[str, Any] = {
+        "name": name,
+        "description": case.description,
+        "scans": n,
+        "nodes": int(result.node_ids.shape[0]),
+        "seconds": seconds,
+        "lc_accepted": int(result.loop_closures.accepted),
+        "sm_per_kf": _scan_match_fraction(result),
+    }
+    if case.reference is not None:
+        row |= _reference_metrics(result, odom, case.reference[:n])
+    if case.relations is not None:
+        row |= _relation_metrics(result, odom, case.relations)
+    if maps_dir is not None:
+        result.save(maps_dir / name)
+    return row
+
+
+# ---------------------------------------------------------------------------- table
+
+_COLUMNS: tuple[tuple[str, str, str], ...] = (
+    ("scans", "scans", "{:d}"),
+    ("nodes", "nodes", "{:d}"),
+    ("rel_trans_m", "rel m", "{:.4f}"),
+    ("rel_rot_deg", "rel deg", "{:.3f}"),
+    ("odom_rel_trans_m", "odo rel m", "{:.3f}"),
+    ("ate_m", "ATE m", "{:.3f}"),
+    ("end_m", "end m", "{:.3f}"),
+    ("odom_ate_m", "odo ATE", "{:.3f}"),
+    ("odom_end_m", "odo end", "{:.3f}"),
+    ("length_ratio", "len ratio", "{:.4f}"),
+    ("sm_per_kf", "sm/kf", "{:.3f}"),
+    ("lc_accepted", "LC acc", "{:d}"),
+    ("lc_false", "LC false", "{:d}"),
+    ("seconds", "time s", "{:.1f}"),
+)
+
+
+def format_table(rows: Sequence[dict[str, Any]]) -> str:
+    """The rows as a fixed-width text table ("-": not applicable)."""
+    header = ["case", *(c[1] for c in _COLUMNS)]
+    lines = [header]
+    for row in rows:
+        if "skipped" in row:
+            lines.append([row["name"], f"skipped: {row['skipped']}"])
+            continue
+        cells = [row["name"]]
+        for key, _, fmt in _COLUMNS:
+            v = row.get(key)
+            cells.append("-" if v is None else fmt.format(v))
+        lines.append(cells)
+    widths = [max(len(r[i]) for r in lines if len(r) > i) for i in range(len(header))]
+    out = []
+    for r in lines:
+        if len(r) == 2 and r[1].startswith("skipped"):
+            out.append(f"{r[0]:<{widths[0]}}  {r[1]}")
+        else:
+            out.append(
+                "  ".join(
+                    c.rjust(w) if i else c.ljust(w)
+                    for i, (c, w) in enumerate(zip(r, widths, strict=True))
+                )
+            )
+    return "\n".join(out)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
+    ap.add_argument("--only", action="append", choices=sorted(CASES), help="case (repeatable)")
+    ap.add_argument("--quick", action="store_true", help=f"first {QUICK_SCANS} scans per case")
+    ap.add_argument("--json", type=Path, help="also write the rows as JSON here")
+    ap.add_argument("--maps", type=Path, help="save each run's output files in MAPS/<case>")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args(argv)
+    rows = []
+    for name in args.only or list(CASES):
+        rows.append(run_case(name, quick=args.quick, seed=args.seed, maps_dir=args.maps))
+        sys.stderr.write(f"done {name}\n")
+    table = format_table(rows)
+    sys.stdout.write(table + "\n")
+    if args.json is not None:
+        args.json.write_text(json.dumps(rows, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,246 @@
+"""Tests of the issue-11 worlds and scenarios: each world's defining property against exact
+truth (corridor length and recesses, two-loop drift at the return, outdoor beam hits on
+trees), and the biased odometry model against its closed form."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from frontends.simulate import (
+    ACCURATE_ODOMETRY,
+    SCENARIOS,
+    LaserModel,
+    OdometryModel,
+    cast_rays,
+    corridor_recesses,
+    default_trajectory,
+    long_corridor_world,
+    outdoor_layout,
+    outdoor_world,
+    ray_ranges,
+    rectangle,
+    simulate_scenario,
+    tree_walls,
+    two_loop_world,
+    world_by_name,
+)
+from frontends.simulate.worlds import (
+    POST_HALF_SIDE_M,
+    RECESS_DEPTH_RANGE_M,
+    RECESS_SPACING_RANGE_M,
+    TREE_RADIUS_RANGE_M,
+)
+from iceg_common.errors import ConfigError
+from iceg_common.se2 import between, wrap_angle
+
+EXACT = LaserModel(range_sigma_m=0.0)
+
+
+def _path_length(poses: np.ndarray) -> float:
+    return float(np.hypot(*np.diff(poses[:, :2], axis=0).T).sum())
+
+
+# ------------------------------------------------------------------------ long corridor
+
+
+def test_long_corridor_is_200_m_with_recesses_on_both_sides() -> None:
+    # Truth: the layout drawn from corridor_recesses (0.9 m wide, 0.2-0.3 m deep, every
+    # 3-8 m per side, irregular). Each recess adds 4 right-angle corners; the corridor's two
+    # ends add 4 more; nothing else is a corner.
+    w = world_by_name("long_corridor")
+    rec = corridor_recesses()
+    np.testing.assert_allclose(w.bounds()[:, 0], [0.0, 200.0])
+    lo, hi = RECESS_DEPTH_RANGE_M
+    np.testing.assert_allclose(
+        w.bounds()[:, 1], [-rec[rec[:, 0] == 0, 2].max(), 2.0 + rec[rec[:, 0] == 1, 2].max()]
+    )
+    for side in (0, 1):
+        centres = rec[rec[:, 0] == side, 1]
+        assert centres.size >= 200.0 / RECESS_SPACING_RANGE_M[1]
+        gaps = np.diff(centres)
+        assert np.all((gaps >= RECESS_SPACING_RANGE_M[0]) & (gaps <= RECESS_SPACING_RANGE_M[1]))
+        assert gaps.std() > 0.5  # irregular spacing
+    assert np.all((rec[:, 2] >= lo) & (rec[:, 2] <= hi))
+    assert w.corners().shape[0] == 4 * rec.shape[0] + 4
+    assert w.wall_ends().shape[0] == 0
+
+
+def test_long_corridor_ranges_into_recesses() -> None:
+    # Truth: from the centre line (y = 1) a beam straight down reads 1 m to the wall, or
+    # 1 m + depth at a recess centre; straight up likewise on the north side.
+    w = long_corridor_world()
+    rec = corridor_recesses()
+    for side, centre, depth in rec[:10]:
+        down = ray_ranges([centre, 1.0], np.array([-math.pi / 2, math.pi / 2]), w.walls)
+        assert down[0 if side == 0 else 1] == pytest.approx(1.0 + depth, abs=1e-12)
+    clear = [x for x in np.arange(5.0, 195.0, 0.37) if np.all(np.abs(rec[:, 1] - x) > 0.5)]
+    r = np.array(
+        [ray_ranges([x, 1.0], np.array([-math.pi / 2, math.pi / 2]), w.walls) for x in clear]
+    )
+    np.testing.assert_allclose(r, 1.0, atol=1e-12)
+
+
+def test_long_corridor_route_end_to_end_with_accurate_odometry() -> None:
+    # Truth: the route runs x 1 -> 199 on y = 1 (198 m); ACCURATE_ODOMETRY has no bias, so
+    # the odometry path length is within its 0.5 % per-step noise of the true one.
+    run = simulate_scenario("long_corridor", seed=0)
+    t = run.true_poses
+    np.testing.assert_allclose(t[[0, -1], :2], [[1.0, 1.0], [199.0, 1.0]], atol=1e-9)
+    assert _path_length(t) == pytest.approx(198.0, abs=1e-9)
+    assert run.odometry == ACCURATE_ODOMETRY
+    assert _path_length(run.odom_poses) / 198.0 == pytest.approx(1.0, abs=2e-3)
+    assert np.hypot(*(run.odom_poses[-1, :2] - t[-1, :2])) < 1.0
+
+
+def test_long_corridor_rejects_bad_size() -> None:
+    with pytest.raises(ConfigError):
+        long_corridor_world(length_m=5.0)
+
+
+# ------------------------------------------------------------------------ biased odometry
+
+
+def test_biased_odometry_closed_form_on_straight_line() -> None:
+    # Truth: n steps of length d along +x with scale error s and heading drift k (rad/m):
+    # each odometry increment is (d (1+s), 0, k d); composing gives heading n k d and the
+    # position d (1+s) sin(n k d / 2) / sin(k d / 2) (cos, sin)((n - 1) k d / 2).
+    s, k_deg, d, n = 0.015, 0.4, 0.1, 500
+    k = math.radians(k_deg)
+    model = OdometryModel.biased(scale_error=s, heading_drift_deg_per_m=k_deg, noise=False)
+    truth = np.column_stack([np.arange(n + 1) * d, np.zeros(n + 1), np.zeros(n + 1)])
+    odom = model.simulate(truth, np.random.default_rng(0))
+    a = k * d
+    chord = d * (1 + s) * math.sin(n * a / 2) / math.sin(a / 2)
+    expect = [chord * math.cos((n - 1) * a / 2), chord * math.sin((n - 1) * a / 2)]
+    np.testing.assert_allclose(odom[-1, :2], expect, atol=1e-9)
+    assert wrap_angle(odom[-1, 2] - n * a) == pytest.approx(0.0, abs=1e-12)
+    assert model.rotation_bias_rad_per_m == pytest.approx(k, rel=1e-15)
+    assert model.translation_sigma_per_m == 0.0
+
+
+def test_office_biased_scenario_scale_and_heading_drift() -> None:
+    # Truth: OdometryModel.biased(0.015, 0.4): each odometry increment is the true one with
+    # its (dx, dy) scaled by 1.015 and 0.4 deg per metre added to dtheta, plus zero-mean
+    # noise of known std (model.increment_sigmas). The along-track sum and the heading-error
+    # sum must match the bias within 4 standard deviations of that noise.
+    run = simulate_scenario("office_biased", seed=0)
+    model = run.odometry
+    assert model.translation_scale_bias == 0.015
+    assert model.rotation_bias_rad_per_m == pytest.approx(math.radians(0.4), rel=1e-15)
+    true_u = between(run.true_poses[:-1], run.true_poses[1:])
+    odom_u = between(run.odom_poses[:-1], run.odom_poses[1:])
+    sig = model.increment_sigmas(true_u)
+    d = np.hypot(true_u[:, 0], true_u[:, 1])
+    along = (odom_u[:, 0] * true_u[:, 0] + odom_u[:, 1] * true_u[:, 1]).sum() / (d**2).sum()
+    sd_along = np.sqrt((sig[:, 0] ** 2 * d**2).sum()) / (d**2).sum()
+    assert abs(along - 1.015) < 4 * sd_along
+    heading_err = wrap_angle(odom_u[:, 2] - true_u[:, 2]).sum()
+    sd_heading = np.sqrt((sig[:, 2] ** 2).sum())
+    assert abs(heading_err - math.radians(0.4) * d.sum()) < 4 * sd_heading
+    assert math.radians(0.4) * d.sum() > 4 * sd_heading  # the bias stands out of the noise
+    assert np.linalg.norm(run.odom_poses[-1, :2] - run.true_poses[-1, :2]) > 1.0
+
+
+# ------------------------------------------------------------------------ two loops
+
+
+def test_two_loop_route_has_two_loops_back_at_start() -> None:
+    # Truth: the route (1,1) -> round the west block (104 m) -> round the building (152 m).
+    w = two_loop_world()
+    t = default_trajectory(w)
+    assert _path_length(t) == pytest.approx(256.0, abs=1e-9)
+    at_start = np.hypot(t[:, 0] - 1.0, t[:, 1] - 1.0) < 1e-9
+    visits = np.flatnonzero(np.diff(at_start.astype(int)) == 1) + 1
+    assert visits.size == 2  # the return after loop 1 and after loop 2
+    assert _path_length(t[: visits[0] + 1]) == pytest.approx(104.0, abs=1e-9)
+    assert w.wall_ends().shape[0] > 20  # door frames break up the long walls
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_two_loop_odometry_drift_at_return_exceeds_20_m(seed: int) -> None:
+    # Truth: the true final pose is the start; with 1 % scale error and 0.3 deg/m heading
+    # drift over 256 m the odometry ends 26-32 m away (seeds 0-2): beyond any 10 m search.
+    run = simulate_scenario("two_loop", seed=seed)
+    np.testing.assert_allclose(run.true_poses[-1, :2], run.true_poses[0, :2], atol=1e-9)
+    drift = float(np.hypot(*(run.odom_poses[-1, :2] - run.true_poses[-1, :2])))
+    assert drift > 20.0
+
+
+def test_two_loop_drift_without_noise_matches_bias() -> None:
+    # Truth: with the bias only, the drift is deterministic; it also exceeds 20 m, so the
+    # noise does not create the property.
+    w = two_loop_world()
+    t = default_trajectory(w)
+    model = OdometryModel.biased(scale_error=0.01, heading_drift_deg_per_m=0.3, noise=False)
+    odom = model.simulate(t, np.random.default_rng(0))
+    assert np.hypot(*(odom[-1, :2] - t[-1, :2])) > 20.0
+    total_turn = math.radians(0.3) * 256.0  # heading error at the end, rad
+    assert wrap_angle(odom[-1, 2] - t[-1, 2]) == pytest.approx(wrap_angle(total_turn), abs=1e-9)
+
+
+# ------------------------------------------------------------------------ outdoor
+
+
+def test_outdoor_layout_trees_posts_and_clearance() -> None:
+    lay = outdoor_layout()
+    r = lay.trees[:, 2]
+    assert lay.trees.shape == (70, 3) and lay.posts.shape == (20, 2)
+    assert np.all((r >= TREE_RADIUS_RANGE_M[0]) & (r <= TREE_RADIUS_RANGE_M[1]))
+    w = outdoor_world()
+    t = default_trajectory(w)
+    # Every object is at least 1.2 m from every true pose (clearance minus its radius).
+    d_tree = np.hypot(*(t[:, None, :2] - lay.trees[None, :, :2]).transpose(2, 0, 1))
+    assert np.all(d_tree - lay.trees[None, :, 2] > 1.2 - TREE_RADIUS_RANGE_M[1])
+    lengths = np.linalg.norm(w.walls[:, 1] - w.walls[:, 0], axis=1)
+    assert int((lengths > 5.0).sum()) == 2  # the few long walls
+    # Tree polygons are inscribed: vertices exactly on the circle.
+    v = tree_walls(lay.trees[:1])[:, 0]
+    np.testing.assert_allclose(np.hypot(*(v - lay.trees[0, :2]).T), lay.trees[0, 2], atol=1e-12)
+
+
+def test_outdoor_beam_hits_mostly_on_trees_and_posts() -> None:
+    # Truth: a beam's hit is on a tree or post iff the range against trees and posts alone
+    # equals the range against the whole world. Over the route most hits are on them.
+    lay = outdoor_layout()
+    w = outdoor_world()
+    posts = np.array(
+        [
+            rectangle(
+                x - POST_HALF_SIDE_M,
+                y - POST_HALF_SIDE_M,
+                x + POST_HALF_SIDE_M,
+                y + POST_HALF_SIDE_M,
+            )
+            for x, y in lay.posts
+        ]
+    ).reshape(-1, 2, 2)
+    objects = np.concatenate([tree_walls(lay.trees), posts])
+    t = default_trajectory(w)[::10]
+    angles = EXACT.angles_rad()
+    n_hits = n_obj = 0
+    for pose in t:
+        r_all = cast_rays(w, pose, EXACT)
+        r_obj = ray_ranges(pose[:2], pose[2] + angles, objects)
+        hit = r_all < EXACT.range_max_m
+        n_hits += int(hit.sum())
+        n_obj += int((hit & (np.abs(r_obj - r_all) < 1e-9)).sum())
+    assert n_hits > 0
+    assert n_obj / n_hits > 0.6
+
+
+# ------------------------------------------------------------------------ scenarios
+
+
+def test_scenarios_registered_and_deterministic() -> None:
+    assert {"office", "corridor", "office_biased", "long_corridor", "two_loop", "outdoor"} <= set(
+        SCENARIOS
+    )
+    a = simulate_scenario("outdoor", seed=4)
+    b = simulate_scenario("outdoor", seed=4)
+    np.testing.assert_array_equal(a.odom_poses, b.odom_poses)
+    np.testing.assert_array_equal(a.scans[7].ranges_m, b.scans[7].ranges_m)
+    with pytest.raises(ConfigError, match="unknown scenario"):
+        simulate_scenario("moon")
