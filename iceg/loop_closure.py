@@ -134,6 +134,12 @@ class LoopClosureConfig(BaseModel):
         description="A held global closure waits this many nodes for a consistent second one "
         "(the cycle covariance grows with the nodes between them).",
     )
+    global_min_group: int = Field(
+        default=3,
+        ge=2,
+        description="A global closure beyond the gate needs this many mutually consistent "
+        "closures (itself included; a clique of the pairwise consistency graph).",
+    )
     place_index: PlaceIndexConfig = Field(default_factory=PlaceIndexConfig)
     robust_kernel: Literal["huber", "cauchy"] = Field(
         default="cauchy", description="M-estimator wrapped around loop-closure factors."
@@ -553,10 +559,10 @@ class LoopCloser:
         verified by a global ICE match against their reference. When two verified places
         contradict each other (:meth:`_unique`) the scene is aliased and all are dropped.
         The best-correlated survivor is accepted (robust kernel) if it passes the chi-square
-        gate against the estimate; otherwise it needs a held closure consistent with it under
-        :func:`pcm_chi2` from old nodes ``agreement_min_separation_m`` apart along the path;
-        the pair enters without kernel as a large correction. Else it is held for
-        ``global_window_nodes`` nodes.
+        gate against the estimate; otherwise it needs ``global_min_group - 1`` held closures
+        consistent with it and with each other under :func:`pcm_chi2` (old nodes
+        ``agreement_min_separation_m`` apart along the path); the group enters without kernel
+        as a large correction. Else it is held for ``global_window_nodes`` nodes.
         """
         lc = self.config
         self.stats.global_searches += 1
@@ -580,8 +586,8 @@ class LoopCloser:
         if d2 <= lc.consistency_chi2:
             logger.debug("global loop closure %d->%d accepted: chi2 %.1f", *_ends(closure), d2)
             return self._accept([closure], lc.robust_kernel)
-        agreeing = [c for c in self.pending if self._agree(c, closure, s.poses, path_m)]
-        if agreeing:
+        agreeing = self._clique(closure, s.poses, path_m)
+        if len(agreeing) + 1 >= lc.global_min_group:
             logger.debug(
                 "global loop closures %s->%d accepted by pairwise consistency (chi2 %.1f)",
                 *([c.node_from for c in agreeing], s.node_id, d2),
@@ -591,6 +597,20 @@ class LoopCloser:
         self._hold(closure)
         logger.debug("global loop closure %d->%d held: chi2 %.1f", *_ends(closure), d2)
         return None
+
+    def _clique(
+        self, closure: LoopClosure, poses: FloatArray, path_m: Sequence[float]
+    ) -> list[LoopClosure]:
+        """Held closures consistent with ``closure`` and with each other (greedy clique of
+        the pairwise consistency graph, newest first, as PCM's maximum clique)."""
+        clique: list[LoopClosure] = []
+        for c in reversed(self.pending):
+            if self._agree(c, closure, poses, path_m) and all(
+                self._agree(c, m, poses, path_m)
+                for m in clique  # c is the older
+            ):
+                clique.append(c)
+        return clique[::-1]
 
     def _verify_global(
         self, s: _Search, features: ScanFeatures, candidate: int
@@ -664,7 +684,7 @@ class LoopCloser:
         lo, hi = min(u, v), max(u, v)
         if any(k not in self._step_info for k in range(lo, hi)):
             return None
-        steps: list[FloatArray] = [np.linalg.inv(self._step_info[k]) for k in range(lo, hi)]
+        steps = [np.asarray(np.linalg.inv(self._step_info[k]), np.float64) for k in range(lo, hi)]
         cov = chain_covariance(poses[lo : hi + 1], steps)
         t = se2.between(poses[lo], poses[hi])
         if u <= v:
