@@ -120,7 +120,7 @@ class LoopClosureConfig(BaseModel):
         description="Also search places by appearance, independent of the estimate.",
     )
     global_every_n_searches: int = Field(
-        default=3,
+        default=5,
         ge=1,
         description="A global search runs every this many searches, and at every search "
         "whose radius is capped at max_search_radius_m.",
@@ -431,20 +431,6 @@ class LoopCloser:
         if accepted is None and self._global_due(capped):
             accepted = self._global(search, features, path_m)
         return accepted
-
-    def absorbed(self, accepted: AcceptedClosures, graph: PoseGraph) -> bool:
-        """Whether the estimate now satisfies every accepted closure: the closure's residual
-        (``estimate(from)⁻¹ ∘ estimate(to)`` against ``measured``) passes the chi-square gate
-        under the match covariance alone. A correction of tens of metres can leave iSAM2's
-        incremental relinearisation far from the optimum; the pipeline then re-solves in
-        batch (:meth:`graph.PoseGraph.optimize_batch`).
-        """
-        zero = np.zeros((3, 3))
-        for c in accepted.closures:
-            now = se2.between(graph.estimate(c.node_from), graph.estimate(c.node_to))
-            if innovation_chi2(now, c.measured, zero, c.cov)[1] > self.config.consistency_chi2:
-                return False
-        return True
 
     # ------------------------------------------------------------------ steps
 

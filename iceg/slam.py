@@ -252,13 +252,13 @@ class Slam:
                 c.correlation,
                 robust=accepted.robust_kernel,
             )
-        if not accepted.large_correction:
-            self.graph.update()
-        if accepted.large_correction or not self.loop_closer.absorbed(accepted, self.graph):
-            # A drift of tens of metres and degrees: a batch Levenberg-Marquardt from the
-            # current estimate converges where iSAM2's incremental relinearisation would take
-            # many updates (iSAM2 is rebuilt from the batch result).
+        if accepted.large_correction:
+            # A global closure can move the estimate by tens of metres and degrees: a batch
+            # Levenberg-Marquardt from the current estimate converges where iSAM2's
+            # incremental relinearisation would take many updates (it is rebuilt after).
             self.graph.optimize_batch()
+        else:
+            self.graph.update()
 
     def _update_map(
         self, node_id: int, feats: ScanFeatures, scan: LaserScan, local: _LocalMatch

@@ -14,6 +14,7 @@ from frontends.simulate import (
     World,
     office_world,
     simulate,
+    simulate_scenario,
     trajectory_from_waypoints,
 )
 from graph import FactorKind
@@ -220,3 +221,20 @@ def test_identical_rooms_give_no_false_closure() -> None:
     stats = slam.loop_stats
     assert stats.global_searches > 0 and stats.global_attempts > 0
     _assert_true_closures(slam, run.true_poses)
+
+
+def test_two_loop_world_with_large_odometry_drift_closes_with_true_closures() -> None:
+    # two_loop: 256 m, 1 % scale error and 0.3 deg/m heading drift, odometry end error > 20 m.
+    # With the global search on, the return is closed: ATE <= 0.10 m (measured 0.034 m) and
+    # every accepted closure is true.
+    run = simulate_scenario("two_loop", seed=0)
+    odometry = np.array([s.odom_pose for s in run.scans])
+    assert math.hypot(*(odometry[-1, :2] - run.true_poses[-1, :2])) > 20.0
+    slam = Slam(IcegConfig())
+    for scan in run.scans:
+        slam.process(scan)
+    poses = slam.finish().poses
+    ate = float(np.sqrt(np.mean(np.sum((poses[:, :2] - run.true_poses[:, :2]) ** 2, axis=1))))
+    assert ate <= 0.10
+    assert slam.loop_stats.global_searches > 0
+    assert _assert_true_closures(slam, run.true_poses) >= 10
