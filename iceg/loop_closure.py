@@ -151,7 +151,12 @@ class LoopClosureConfig(BaseModel):
 
 @dataclass
 class LoopClosureStats:
-    """Loop-closure bookkeeping: searches run, matches tried, accepted and rejected."""
+    """Loop-closure bookkeeping: searches run, matches tried, accepted and rejected.
+
+    ``attempts`` counts local matches only; ``global_searches`` / ``global_attempts`` the
+    appearance searches and their global matches, ``global_accepted`` the accepted closures
+    they found and ``rejected_ambiguous`` verified global matches dropped as aliased.
+    """
 
     searches: int = 0
     attempts: int = 0
