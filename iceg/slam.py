@@ -5,8 +5,8 @@ by the online calibration of :mod:`iceg.odometry_calibration`, which every accep
 match updates, when enabled); keyframe decision; ICE match against the feature map of the
 recent nodes; odometry and scan-match factors (covariance from the match); iSAM2 update;
 feature-map update with time-validity pruning; and, every few nodes, a loop-closure search
-among older nodes near the current estimate. After the run an optional batch
-Levenberg–Marquardt refinement.
+among older nodes near the current estimate and, by appearance, among all older places
+(global loop closure). After the run an optional batch Levenberg–Marquardt refinement.
 
 The pipeline never reads files: it takes :class:`frontends.LaserScan` records.
 """
@@ -171,6 +171,7 @@ class Slam:
         self._calibrate_odometry(local, motion)
         t0 = self.timer.add("matching", t0)
         new_id = self._add_keyframe(scan, motion, local, last)
+        self.loop_closer.observe(new_id, feats)
         t0 = self.timer.add("graph_build", t0)
         self.graph.update()
         t0 = self.timer.add("isam2", t0)
@@ -193,6 +194,7 @@ class Slam:
         feats = extract(scan, self.config.features)
         t0 = self.timer.add("features", t0)
         self._add_node(scan, odom, initial=odom, odom_measured=scan.odom_pose is not None)
+        self.loop_closer.observe(0, feats)
         self.graph.update()
         self.feature_map.update(0, feats, scan.stamp_s, scan=scan)
         self.timer.add("feature_map", t0)
@@ -278,7 +280,13 @@ class Slam:
                 c.correlation,
                 robust=accepted.robust_kernel,
             )
-        self.graph.update()
+        if accepted.large_correction:
+            # A global closure can move the estimate by tens of metres and degrees: a batch
+            # Levenberg-Marquardt from the current estimate converges where iSAM2's
+            # incremental relinearisation would take many updates (it is rebuilt after).
+            self.graph.optimize_batch()
+        else:
+            self.graph.update()
 
     def _update_map(
         self, node_id: int, feats: ScanFeatures, scan: LaserScan, local: _LocalMatch
