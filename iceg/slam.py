@@ -227,12 +227,14 @@ class Slam:
     def _add_keyframe(self, scan: LaserScan, motion: _Motion, local: _LocalMatch, last: int) -> int:
         """The keyframe's node (initialised by the match, else odometry) and its factors."""
         result = local.result
-        step = result.pose if result.success else motion.delta
+        step = motion.delta
+        if result.success:
+            step = remap_weak_directions(result.pose, result.cov, motion.delta, motion.cov)
         new_id = self._add_node(scan, motion.odom, initial=se2.compose(local.last_pose, step))
         self._add_factor(FactorKind.ODOMETRY, last, new_id, motion.delta, motion.cov)
         if result.success:
             self._add_factor(
-                FactorKind.SCAN_MATCH, last, new_id, result.pose, result.cov, result.correlation
+                FactorKind.SCAN_MATCH, last, new_id, step, result.cov, result.correlation
             )
         return new_id
 
@@ -356,3 +358,42 @@ class Slam:
             scans=tuple(self._s.scans),
         )
         return self._result
+
+
+def remap_weak_directions(
+    measured: FloatArray, cov: FloatArray, prediction: FloatArray, prediction_cov: FloatArray
+) -> FloatArray:
+    """Solution remapping of a scan match along its degenerate directions (Zhang, Kaess &
+    Singh, ICRA 2016, "On degeneracy of optimization-based state estimation problems").
+
+    In the coordinates whitened by the prediction's covariance, the match's information
+    ``W^T cov^-1 W`` (``W`` a square root of ``prediction_cov``) has eigenvalues
+    ``lambda``: along an eigenvector with ``lambda < 1`` the scene tells less than the
+    prediction, and the optimum found there is whatever the nonlinear search slid to (a
+    long wall's gate, a far end of wall), not a measurement. Along those directions the
+    measurement is set to the prediction; its covariance (the match's own, honest) is kept,
+    so the factor stays as weak there as the scene makes it.
+
+    Args:
+        measured: ``(3,)`` float64 matched motion ``[dx_m, dy_m, dtheta_rad]`` (frame of
+            the first pose).
+        cov: ``(3, 3)`` float64 its covariance, tangent space at ``measured`` (m, rad).
+        prediction: ``(3,)`` float64 the predicted (odometry) motion, same frame.
+        prediction_cov: ``(3, 3)`` float64 its covariance, positive definite.
+
+    Returns:
+        ``(3,)`` float64 the remapped motion (``measured`` when no direction is weak or a
+        covariance is not positive definite).
+    """
+    try:
+        w = np.linalg.cholesky(prediction_cov)
+        info = np.linalg.inv(cov)
+    except np.linalg.LinAlgError:
+        return measured
+    evals, evecs = np.linalg.eigh(w.T @ info @ w)
+    weak = evecs[:, evals < 1.0]
+    if weak.shape[1] == 0:
+        return measured
+    d = se2.between(measured, prediction)  # prediction in the tangent at measured
+    y = np.linalg.solve(w, d)
+    return se2.compose(measured, w @ (weak @ (weak.T @ y)))
