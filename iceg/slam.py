@@ -36,6 +36,10 @@ logger = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
 
+#: A weak match direction agrees with the prediction when their difference is within this
+#: many standard deviations of the joint noise (a 3-sigma consistency test).
+AGREE_SIGMAS = 3.0
+
 #: Failure category of a match whose reason is empty.
 _UNKNOWN_REASON = "unknown"
 
@@ -227,14 +231,13 @@ class Slam:
     def _add_keyframe(self, scan: LaserScan, motion: _Motion, local: _LocalMatch, last: int) -> int:
         """The keyframe's node (initialised by the match, else odometry) and its factors."""
         result = local.result
-        step = motion.delta
-        if result.success:
-            step = remap_weak_directions(result.pose, result.cov, motion.delta, motion.cov)
+        step = result.pose if result.success else motion.delta
         new_id = self._add_node(scan, motion.odom, initial=se2.compose(local.last_pose, step))
         self._add_factor(FactorKind.ODOMETRY, last, new_id, motion.delta, motion.cov)
         if result.success:
+            measured = remap_weak_directions(result.pose, result.cov, motion.delta, motion.cov)
             self._add_factor(
-                FactorKind.SCAN_MATCH, last, new_id, step, result.cov, result.correlation
+                FactorKind.SCAN_MATCH, last, new_id, measured, result.cov, result.correlation
             )
         return new_id
 
@@ -363,16 +366,23 @@ class Slam:
 def remap_weak_directions(
     measured: FloatArray, cov: FloatArray, prediction: FloatArray, prediction_cov: FloatArray
 ) -> FloatArray:
-    """Solution remapping of a scan match along its degenerate directions (Zhang, Kaess &
-    Singh, ICRA 2016, "On degeneracy of optimization-based state estimation problems").
+    """Solution remapping of a scan match along its degenerate translation directions (Zhang,
+    Kaess & Singh, ICRA 2016, "On degeneracy of optimization-based state estimation
+    problems"), where the match agrees with the prediction within their joint noise.
 
-    In the coordinates whitened by the prediction's covariance, the match's information
-    ``W^T cov^-1 W`` (``W`` a square root of ``prediction_cov``) has eigenvalues
-    ``lambda``: along an eigenvector with ``lambda < 1`` the scene tells less than the
-    prediction, and the optimum found there is whatever the nonlinear search slid to (a
-    long wall's gate, a far end of wall), not a measurement. Along those directions the
-    measurement is set to the prediction; its covariance (the match's own, honest) is kept,
-    so the factor stays as weak there as the scene makes it.
+    In the coordinates ``y = W^-1 d`` whitened by the prediction's translation covariance
+    (``W W^T``, ``d`` the translation from the match to the prediction), the match's
+    translation information ``W^T cov_xy^-1 W`` has eigenvalues ``lambda_i`` and unit
+    eigenvectors ``e_i``. Along an ``e_i`` with ``lambda_i < 1`` the scene tells less than
+    the prediction: the optimum the match found there is where the nonlinear search slid to
+    (biased by ends of wall whose detection depends on where the end falls between two
+    beams), not a measurement. If moreover the match does not contradict the prediction
+    there - the difference ``y_i = e_i . y`` is within :data:`AGREE_SIGMAS` standard
+    deviations of the joint noise (variance ``1 + 1 / lambda_i``) - the translation along
+    ``e_i`` is set to the prediction's and the heading follows by its regression on the
+    translation under ``cov``. A weak match that contradicts the prediction significantly
+    (wheel slip, a bad odometry model) keeps its value. The covariance is never changed:
+    the factor stays exactly as weak along ``e_i`` as the scene makes it.
 
     Args:
         measured: ``(3,)`` float64 matched motion ``[dx_m, dy_m, dtheta_rad]`` (frame of
@@ -382,18 +392,23 @@ def remap_weak_directions(
         prediction_cov: ``(3, 3)`` float64 its covariance, positive definite.
 
     Returns:
-        ``(3,)`` float64 the remapped motion (``measured`` when no direction is weak or a
-        covariance is not positive definite).
+        ``(3,)`` float64 the remapped motion (``measured`` when no direction is weak and
+        consistent, or a covariance is not positive definite).
     """
     try:
-        w = np.linalg.cholesky(prediction_cov)
-        info = np.linalg.inv(cov)
+        w = np.linalg.cholesky(prediction_cov[:2, :2])
+        info_xy = np.linalg.inv(cov[:2, :2])
     except np.linalg.LinAlgError:
         return measured
-    evals, evecs = np.linalg.eigh(w.T @ info @ w)
-    weak = evecs[:, evals < 1.0]
-    if weak.shape[1] == 0:
-        return measured
+    evals, evecs = np.linalg.eigh(w.T @ info_xy @ w)
     d = se2.between(measured, prediction)  # prediction in the tangent at measured
-    y = np.linalg.solve(w, d)
-    return se2.compose(measured, w @ (weak @ (weak.T @ y)))
+    y = evecs.T @ np.linalg.solve(w, d[:2])
+    with np.errstate(divide="ignore"):
+        joint_var = 1.0 + 1.0 / np.maximum(evals, 0.0)
+    remap = (evals < 1.0) & (y**2 <= AGREE_SIGMAS**2 * joint_var)
+    if not np.any(remap):
+        return measured
+    shift = np.zeros(3)
+    shift[:2] = w @ (evecs[:, remap] @ y[remap])
+    shift[2] = cov[2, :2] @ info_xy @ shift[:2]
+    return se2.compose(measured, shift)
