@@ -229,7 +229,9 @@ class Slam:
         return _LocalMatch(reference, result, poses[last])
 
     def _add_keyframe(self, scan: LaserScan, motion: _Motion, local: _LocalMatch, last: int) -> int:
-        """The keyframe's node (initialised by the match, else odometry) and its factors."""
+        """The keyframe's node (initialised by the match, else odometry) and its factors; the
+        scan-match measurement is remapped to the odometry along directions where it is
+        weaker than odometry and agrees with it (:func:`remap_weak_directions`)."""
         result = local.result
         step = result.pose if result.success else motion.delta
         new_id = self._add_node(scan, motion.odom, initial=se2.compose(local.last_pose, step))
