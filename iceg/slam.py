@@ -39,6 +39,10 @@ logger = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
 
+#: A weak match direction agrees with the prediction when their difference is within this
+#: many standard deviations of the joint noise (a 3-sigma consistency test).
+AGREE_SIGMAS = 3.0
+
 #: Failure category of a match whose reason is empty.
 _UNKNOWN_REASON = "unknown"
 
@@ -248,7 +252,9 @@ class Slam:
             self.odometry_calibrator.observe(*motion.raw, local.result.pose, local.result.cov)
 
     def _add_keyframe(self, scan: LaserScan, motion: _Motion, local: _LocalMatch, last: int) -> int:
-        """The keyframe's node (initialised by the match, else odometry) and its factors."""
+        """The keyframe's node (initialised by the match, else odometry) and its factors; the
+        scan-match measurement is remapped to the odometry along directions where it is
+        weaker than odometry and agrees with it (:func:`remap_weak_directions`)."""
         result = local.result
         step = result.pose if result.success else motion.delta
         new_id = self._add_node(
@@ -260,8 +266,9 @@ class Slam:
         )
         self._add_factor(FactorKind.ODOMETRY, last, new_id, motion.delta, motion.cov)
         if result.success:
+            measured = remap_weak_directions(result.pose, result.cov, motion.delta, motion.cov)
             self._add_factor(
-                FactorKind.SCAN_MATCH, last, new_id, result.pose, result.cov, result.correlation
+                FactorKind.SCAN_MATCH, last, new_id, measured, result.cov, result.correlation
             )
         return new_id
 
@@ -405,3 +412,54 @@ class Slam:
             scans=tuple(self._s.scans),
         )
         return self._result
+
+
+def remap_weak_directions(
+    measured: FloatArray, cov: FloatArray, prediction: FloatArray, prediction_cov: FloatArray
+) -> FloatArray:
+    """Solution remapping of a scan match along its degenerate translation directions (Zhang,
+    Kaess & Singh, ICRA 2016, "On degeneracy of optimization-based state estimation
+    problems"), where the match agrees with the prediction within their joint noise.
+
+    In the coordinates ``y = W^-1 d`` whitened by the prediction's translation covariance
+    (``W W^T``, ``d`` the translation from the match to the prediction), the match's
+    translation information ``W^T cov_xy^-1 W`` has eigenvalues ``lambda_i`` and unit
+    eigenvectors ``e_i``. Along an ``e_i`` with ``lambda_i < 1`` the scene tells less than
+    the prediction: the optimum the match found there is where the nonlinear search slid to
+    (biased by ends of wall whose detection depends on where the end falls between two
+    beams), not a measurement. If moreover the match does not contradict the prediction
+    there - the difference ``y_i = e_i . y`` is within :data:`AGREE_SIGMAS` standard
+    deviations of the joint noise (variance ``1 + 1 / lambda_i``) - the translation along
+    ``e_i`` is set to the prediction's and the heading follows by its regression on the
+    translation under ``cov``. A weak match that contradicts the prediction significantly
+    (wheel slip, a bad odometry model) keeps its value. The covariance is never changed:
+    the factor stays exactly as weak along ``e_i`` as the scene makes it.
+
+    Args:
+        measured: ``(3,)`` float64 matched motion ``[dx_m, dy_m, dtheta_rad]`` (frame of
+            the first pose).
+        cov: ``(3, 3)`` float64 its covariance, tangent space at ``measured`` (m, rad).
+        prediction: ``(3,)`` float64 the predicted (odometry) motion, same frame.
+        prediction_cov: ``(3, 3)`` float64 its covariance, positive definite.
+
+    Returns:
+        ``(3,)`` float64 the remapped motion (``measured`` when no direction is weak and
+        consistent, or a covariance is not positive definite).
+    """
+    try:
+        w = np.linalg.cholesky(prediction_cov[:2, :2])
+        info_xy = np.linalg.inv(cov[:2, :2])
+    except np.linalg.LinAlgError:
+        return measured
+    evals, evecs = np.linalg.eigh(w.T @ info_xy @ w)
+    d = se2.between(measured, prediction)  # prediction in the tangent at measured
+    y = evecs.T @ np.linalg.solve(w, d[:2])
+    with np.errstate(divide="ignore"):
+        joint_var = 1.0 + 1.0 / np.maximum(evals, 0.0)
+    remap = (evals < 1.0) & (y**2 <= AGREE_SIGMAS**2 * joint_var)
+    if not np.any(remap):
+        return measured
+    shift = np.zeros(3)
+    shift[:2] = w @ (evecs[:, remap] @ y[remap])
+    shift[2] = cov[2, :2] @ info_xy @ shift[:2]
+    return se2.compose(measured, shift)
