@@ -33,8 +33,8 @@ from __future__ import annotations
 
 import hashlib
 import itertools
-import logging
 import json
+import logging
 import re
 from collections.abc import Callable, Iterable
 from concurrent.futures import ProcessPoolExecutor, as_completed
