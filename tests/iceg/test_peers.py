@@ -93,7 +93,9 @@ def test_point_matcher_fails_far_from_the_truth(
 ) -> None:
     """Bounds hold: a prediction 2 m off with 0.3 m bounds cannot give a trusted match."""
     fa, fb, truth = pair
-    res = PlIcpMatcher().match(fb, fa, truth + np.array([2.0, 0.0, 0.0]), MatchBounds.local(0.3, 5.0))
+    res = PlIcpMatcher().match(
+        fb, fa, truth + np.array([2.0, 0.0, 0.0]), MatchBounds.local(0.3, 5.0)
+    )
     assert not res.success
     assert np.all(np.isnan(res.cov))
     assert res.reason
