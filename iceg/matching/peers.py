@@ -6,7 +6,11 @@ reference's points (its segments sampled when it keeps none, see
 library, and give the same :class:`~iceg.types.MatchResult` as the ICE matcher:
 
 - ``small_gicp`` (GICP, Koide et al. 2024): covariance from the library's Hessian ``H``
-  (planar block ``(tx, ty, rz)``, scaled by the reduced chi-square of the final error);
+  (planar block ``(tx, ty, rz)``, scaled by the reduced chi-square of the final error).
+  With all points at ``z = 0`` GICP's local covariances are degenerate and it behaves as
+  point-to-point ICP (5.6 cm mean error on office pairs); each point is therefore also put
+  at ``z = +-GICP_EXTRUDE_M`` (the wall it lies on), which makes the local covariances
+  planar (0.6 cm);
 - ``kiss_icp`` (KISS-ICP's point-to-point registration against its voxel map, Vizzo et al.
   2023) and ``open3d_point`` / ``open3d_plane`` (Open3D point-to-point / point-to-plane ICP;
   the plane normals are the reference's in-plane local-line normals): no Hessian, so the
@@ -51,6 +55,8 @@ FloatArray = NDArray[np.float64]
 MAX_CORRESPONDENCE_M = 0.5
 #: Iteration cap of the peer registrations.
 MAX_ITERATIONS = 50
+#: Height (metres) of the copies of each point above and below z = 0 given to GICP.
+GICP_EXTRUDE_M = 0.2
 #: KISS-ICP voxel size (metres) and points kept per voxel.
 KISS_VOXEL_M = 0.25
 KISS_POINTS_PER_VOXEL = 20
@@ -70,6 +76,15 @@ METHODS = ("ice", "plicp", *PEER_MODULES)
 def to_3d(points: FloatArray) -> FloatArray:
     """``(P, 2)`` points as ``(P, 3)`` with ``z = 0``."""
     return np.column_stack([points, np.zeros(points.shape[0])]).astype(np.float64)
+
+
+def extruded(points: FloatArray) -> FloatArray:
+    """``(3P, 3)``: the points at ``z = 0`` and at ``z = +-GICP_EXTRUDE_M``."""
+    p3 = to_3d(points)
+    up, down = p3.copy(), p3.copy()
+    up[:, 2] = GICP_EXTRUDE_M
+    down[:, 2] = -GICP_EXTRUDE_M
+    return np.vstack([down, p3, up])
 
 
 def pose_to_matrix(pose: FloatArray) -> FloatArray:
@@ -169,8 +184,8 @@ class SmallGicpMatcher(_PointPeer):
         self, new: FloatArray, ref: FloatArray, pred: FloatArray
     ) -> tuple[FloatArray, FloatArray | None]:
         res = self.lib.align(
-            to_3d(ref),
-            to_3d(new),
+            extruded(ref),
+            extruded(new),
             init_T_target_source=pose_to_matrix(pred),
             registration_type="GICP",
             downsampling_resolution=0.02,
