@@ -385,10 +385,19 @@ def _run_local(
                 on_row(row, False)
 
 
+def _project_packages() -> list[Any]:
+    """The project's top-level packages (for a Ray cluster's ``py_modules``)."""
+    import importlib
+
+    return [importlib.import_module(n) for n in ("iceg", "graph", "frontends", "iceg_common")]
+
+
 def _run_ray(
     tasks: list[RunTask], workers: int | None, address: str | None, on_row: OnRow | None
 ) -> None:
-    """Ray tasks of one CPU each, on a local Ray (``num_cpus=workers``) or a cluster."""
+    """Ray tasks of one CPU each, on a local Ray (``num_cpus=workers``) or a cluster (the
+    project's packages are shipped with the tasks; the logs and the batch folder must be on
+    a file system every node sees, each run writes its own folder there)."""
     try:
         import ray
     except ImportError:
@@ -404,6 +413,8 @@ def _run_ray(
         }
         if address is None:
             kwargs["num_cpus"] = workers
+        else:  # ship the project's packages; the nodes need its dependencies installed
+            kwargs["runtime_env"] = {"py_modules": _project_packages()}
         ray.init(address=address, **kwargs)
     try:
         remote = ray.remote(num_cpus=1, max_retries=0)(execute_run)
