@@ -1,11 +1,20 @@
-"""Sensor data in: laser scans, log readers (CARMEN), benchmark relations, and a simulator.
+"""Sensor data in: laser scans, log readers (CARMEN, ROS bags), benchmark relations, and a
+simulator.
 
-A leaf package: it never imports ``iceg`` or ``graph``.
+A leaf package: it never imports ``iceg`` or ``graph``. ``frontends.rosbag`` imports
+``rosbags`` (the ``ros`` extra) only when a bag is opened or written.
 """
 
 from frontends.carmen import CarmenReader, write_carmen
-from frontends.registry import LogReader, available_formats, open_log, register_reader
+from frontends.registry import (
+    LogReader,
+    available_formats,
+    describe_log,
+    open_log,
+    register_reader,
+)
 from frontends.relations import Relations, match_stamps, read_relations, write_relations
+from frontends.rosbag import RosbagReader, write_rosbag
 from frontends.scan import LaserScan
 
 __all__ = ["LaserScan", "LogReader", "available_formats", "open_log", "register_reader"]
@@ -14,5 +23,6 @@ __all__ = ["LaserScan", "LogReader", "available_formats", "open_log", "register_
 from frontends.simulate import LaserModel, OdometryModel, SimulatedRun, World
 
 __all__ += ["LaserModel", "OdometryModel", "SimulatedRun", "World"]
-__all__ += ["CarmenReader", "write_carmen"]
+__all__ += ["CarmenReader", "describe_log", "write_carmen"]
+__all__ += ["RosbagReader", "write_rosbag"]
 __all__ += ["Relations", "match_stamps", "read_relations", "write_relations"]

@@ -1,19 +1,23 @@
 """A registry of log readers, and ``open_log`` which picks one by suffix or first lines.
 
-A reader registers itself with :func:`register_reader`; nothing here knows any format.
+A reader registers itself with :func:`register_reader` (suffixes, a sniffer for a file's first
+lines, optionally one for folders such as ROS 2 bags). This module knows no format itself;
+:func:`open_log` imports the built-in readers (CARMEN, ROS bags) so that they register.
 """
 
 from __future__ import annotations
 
 import gzip
+import inspect
 import io
+import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 from frontends.scan import LaserScan
-from iceg_common.errors import LogFormatError
+from iceg_common.errors import ConfigError, LogFormatError
 
 
 class LogReader(Protocol):
@@ -32,12 +36,14 @@ class LogReader(Protocol):
 
 @dataclass(frozen=True)
 class ReaderSpec:
-    """A registered reader: its name, the suffixes it claims, and a sniffer for first lines."""
+    """A registered reader: its name, the suffixes it claims, a sniffer for first lines, and
+    optionally a sniffer for folders (a log that is a directory, e.g. a ROS 2 bag)."""
 
     name: str
     suffixes: tuple[str, ...]
     sniff: Callable[[list[str]], bool]
     factory: Callable[..., LogReader]
+    sniff_dir: Callable[[Path], bool] | None = None
 
 
 _READERS: dict[str, ReaderSpec] = {}
@@ -47,11 +53,13 @@ def register_reader(
     name: str,
     suffixes: tuple[str, ...],
     sniff: Callable[[list[str]], bool],
+    sniff_dir: Callable[[Path], bool] | None = None,
 ) -> Callable[[Callable[..., LogReader]], Callable[..., LogReader]]:
-    """Class decorator registering a reader under ``name`` for ``suffixes`` (e.g. ``".clf"``)."""
+    """Class decorator registering a reader under ``name`` for ``suffixes`` (e.g. ``".clf"``);
+    ``sniff_dir`` claims folders (e.g. a ROS 2 bag folder holding ``metadata.yaml``)."""
 
     def deco(factory: Callable[..., LogReader]) -> Callable[..., LogReader]:
-        _READERS[name] = ReaderSpec(name, suffixes, sniff, factory)
+        _READERS[name] = ReaderSpec(name, suffixes, sniff, factory, sniff_dir)
         return factory
 
     return deco
@@ -82,42 +90,115 @@ def _first_lines(path: Path, n: int = 50) -> list[str]:
     return lines
 
 
-def open_log(path: str | Path, format: str | None = None, **options: object) -> LogReader:
+def open_log(path: str | Path, format: str | None = None, **options: Any) -> LogReader:
     """Open a laser log for streaming.
 
     Args:
-        path: Log file; a ``.gz`` suffix is decompressed on the fly.
+        path: Log file (a ``.gz`` suffix is decompressed on the fly), or a folder a reader
+            claims (a ROS 2 bag folder with ``metadata.yaml``).
         format: A registered reader name (see :func:`available_formats`); by default the
             reader is chosen from the suffix (ignoring ``.gz``), else from the first lines.
-        **options: Passed to the reader (e.g. ``strict=False`` for the CARMEN reader).
+        **options: Passed to the reader (e.g. ``strict=False`` for the CARMEN reader,
+            ``scan_topic="/scan"`` for ROS bags).
 
     Returns:
         A :class:`LogReader`: iterate it for :class:`~frontends.scan.LaserScan` records.
 
     Raises:
         LogFormatError: the file does not exist, or no reader recognises it.
+        ConfigError: the chosen reader takes none of ``options``' names.
     """
-    import frontends.carmen  # noqa: F401  (registers the built-in readers)
+    # Importing the built-in readers registers them.
+    import frontends.carmen
+    import frontends.rosbag  # noqa: F401
 
     p = Path(path)
-    if not p.is_file():
-        raise LogFormatError(f"{p}: no such log file")
+    spec = _choose(p, format)
+    try:
+        inspect.signature(spec.factory).bind(p, **options)
+    except TypeError as exc:
+        raise ConfigError(
+            f"{p}: the {spec.name} reader does not take these options ({exc})"
+        ) from None
+    return spec.factory(p, **options)
+
+
+def _choose(p: Path, format: str | None) -> ReaderSpec:
     if format is not None:
         if format not in _READERS:
             raise LogFormatError(
                 f"unknown log format {format!r}; available: {', '.join(available_formats())}"
             )
-        return _READERS[format].factory(p, **options)
+        if not p.exists():
+            raise LogFormatError(f"{p}: no such log file")
+        return _READERS[format]
+    if p.is_dir():
+        for spec in _READERS.values():
+            if spec.sniff_dir is not None and spec.sniff_dir(p):
+                return spec
+        raise LogFormatError(
+            f"{p}: a folder no reader recognises (a ROS 2 bag folder holds metadata.yaml)"
+        )
+    if not p.is_file():
+        raise LogFormatError(f"{p}: no such log file")
     suffixes = [s.lower() for s in p.suffixes if s.lower() != ".gz"]
     suffix = suffixes[-1] if suffixes else ""
     for spec in _READERS.values():
         if suffix in spec.suffixes:
-            return spec.factory(p, **options)
+            return spec
     head = _first_lines(p)
     for spec in _READERS.values():
         if spec.sniff(head):
-            return spec.factory(p, **options)
+            return spec
     raise LogFormatError(
         f"{p}: not a recognised laser log (suffix {suffix!r}, and no reader recognised the "
         f"first lines); pass format= one of {', '.join(available_formats())}"
     )
+
+
+def describe_log(reader: LogReader) -> list[tuple[str, str]]:
+    """``(key, value)`` rows saying what a log holds, for ``iceg info``.
+
+    A reader with a ``describe()`` method (ROS bags: topics, types, counts, frames) answers
+    itself; otherwise the scans are streamed once and summarized: count, duration, beams,
+    range limits, odometry, and the reader's skipped record types if it keeps them.
+
+    Raises:
+        LogFormatError: the log cannot be read or holds no scans.
+    """
+    describe = getattr(reader, "describe", None)
+    if callable(describe):
+        rows: list[tuple[str, str]] = describe()
+        return rows
+    n, with_odom, first, last_stamp = 0, 0, None, math.nan
+    beams: set[int] = set()
+    limits: set[tuple[float, float]] = set()
+    for scan in reader:
+        first = scan if first is None else first
+        n += 1
+        with_odom += scan.odom_pose is not None
+        beams.add(scan.n_beams)
+        limits.add((scan.range_min_m, scan.range_max_m))
+        last_stamp = scan.stamp_s
+    if first is None:
+        raise LogFormatError(f"{reader.path}: the log holds no laser scans")
+    return [
+        ("reader", type(reader).__name__),
+        ("scans", str(n)),
+        ("duration", f"{last_stamp - first.stamp_s:.1f} s"),
+        ("beams", ", ".join(str(b) for b in sorted(beams))),
+        ("range limits", ", ".join(f"{a:g} to {b:g} m" for a, b in sorted(limits))),
+        ("odometry", f"{with_odom} of {n} scans have an odometry pose"),
+        *_record_rows(reader),
+    ]
+
+
+def _record_rows(reader: object) -> list[tuple[str, str]]:
+    rows = []
+    n_odom = getattr(reader, "n_odom_records", None)
+    if isinstance(n_odom, int):
+        rows.append(("ODOM records", str(n_odom)))
+    skipped = getattr(reader, "skipped_records", None)
+    if skipped:
+        rows.append(("other records", ", ".join(f"{k} {v}" for k, v in sorted(skipped.items()))))
+    return rows

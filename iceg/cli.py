@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import logging
+import math
 import os
 import shutil
 import signal
@@ -156,7 +157,10 @@ def _summary_rows(result: SlamResult, out: Path) -> list[tuple[str, str]]:
 def run(
     log: Annotated[
         Path | None,
-        typer.Argument(help="Laser log (CARMEN .clf/.log[.gz]). Omit to run the built-in demo."),
+        typer.Argument(
+            help="Laser log: CARMEN .clf/.log[.gz], or a ROS bag (.bag, .db3, .mcap, bag folder). "
+            "Omit to run the built-in demo."
+        ),
     ] = None,
     relations: Annotated[
         Path | None, typer.Option(help="Kümmerle et al. 2009 .relations file to score against.")
@@ -173,22 +177,42 @@ def run(
             "file:line) or refuse the log. Recorded in metrics.json."
         ),
     ] = StampChoice.sort,
+    scan_topic: Annotated[
+        str | None, typer.Option(help="ROS bag: the LaserScan topic (if several).")
+    ] = None,
+    odom_topic: Annotated[
+        str | None, typer.Option(help="ROS bag: the nav_msgs/Odometry topic (if several).")
+    ] = None,
+    odom_frame: Annotated[
+        str | None, typer.Option(help="ROS bag: odometry from /tf, this frame to the base.")
+    ] = None,
+    base_frame: Annotated[
+        str | None, typer.Option(help="ROS bag: the robot base frame (tf to the laser).")
+    ] = None,
+    laser_frame_offset: Annotated[
+        str | None,
+        typer.Option(help="ROS bag: laser pose in the base frame 'X_M,Y_M,YAW_DEG' (not tf)."),
+    ] = None,
 ) -> None:
     """Optimize a laser log end to end: trajectory, pose graph, map and metrics.
 
     With no LOG, runs the built-in simulated office world and scores against its truth.
+    LOG may be a CARMEN log or a ROS 1 / ROS 2 bag (.bag, .db3, .mcap or a bag folder).
     """
     from iceg.results import check_output_dir
 
     cfg = _load_config(config)
     if out is not None:
         check_output_dir(out)
+    reader_options = _bag_options(
+        scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset
+    )
     out_dir = out if out is not None else _default_out_dir()
     saved: list[str] = []
     try:
         result = _interruptible(
             lambda: _run_and_save(
-                log, relations, cfg, progress, stamps.value, out_dir, saved.append
+                log, relations, cfg, progress, stamps.value, reader_options, out_dir, saved.append
             ),
             lambda: _on_interrupt(out_dir, saved, remove_empty=out is None),
         )
@@ -208,6 +232,7 @@ def _run_and_save(
     cfg: Any,
     progress: bool,
     stamps: Any,
+    reader_options: dict[str, Any],
     out_dir: Path,
     on_saved: Callable[[str], None],
 ) -> SlamResult:
@@ -216,7 +241,14 @@ def _run_and_save(
     if log is None:
         result = run_simulated_demo(cfg, progress=progress)
     else:
-        result = run_log(log, cfg, relations=relations, progress=progress, stamps=stamps)
+        result = run_log(
+            log,
+            cfg,
+            relations=relations,
+            progress=progress,
+            stamps=stamps,
+            reader_options=reader_options,
+        )
     result.save(out_dir, on_saved=on_saved)
     return result
 
@@ -312,6 +344,60 @@ def dump_config(
 ) -> None:
     """Print the effective configuration as YAML."""
     typer.echo(_load_config(config).to_yaml(), nl=False)
+
+
+@app.command()
+@_one_line_errors
+def info(
+    log: Annotated[Path, typer.Argument(help="CARMEN log or ROS bag (.bag/.db3/.mcap/folder).")],
+    scan_topic: Annotated[str | None, typer.Option(help="ROS bag: the LaserScan topic.")] = None,
+    odom_topic: Annotated[str | None, typer.Option(help="ROS bag: the Odometry topic.")] = None,
+    odom_frame: Annotated[str | None, typer.Option(help="ROS bag: odom frame in /tf.")] = None,
+    base_frame: Annotated[str | None, typer.Option(help="ROS bag: the base frame.")] = None,
+    laser_frame_offset: Annotated[
+        str | None, typer.Option(help="ROS bag: laser pose 'X_M,Y_M,YAW_DEG'.")
+    ] = None,
+) -> None:
+    """Print what a log holds: topics or record types, counts, duration, beams, range
+    limits, odometry source."""
+    from frontends.registry import describe_log, open_log
+
+    options = _bag_options(scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset)
+    rows = describe_log(open_log(log, **options))
+    typer.echo(f"iceg info: {log}")
+    _print_table(rows)
+
+
+def _bag_options(
+    scan_topic: str | None,
+    odom_topic: str | None,
+    odom_frame: str | None,
+    base_frame: str | None,
+    laser_frame_offset: str | None,
+) -> dict[str, Any]:
+    """The ROS bag reader options that were given (degrees -> radians for the yaw)."""
+    from iceg_common.errors import ConfigError
+
+    options: dict[str, Any] = {
+        k: v
+        for k, v in (
+            ("scan_topic", scan_topic),
+            ("odom_topic", odom_topic),
+            ("odom_frame", odom_frame),
+            ("base_frame", base_frame),
+        )
+        if v is not None
+    }
+    if laser_frame_offset is not None:
+        try:
+            x, y, yaw_deg = (float(v) for v in laser_frame_offset.split(","))
+        except ValueError:
+            raise ConfigError(
+                f"--laser-frame-offset {laser_frame_offset!r}: give 'X_M,Y_M,YAW_DEG', "
+                "e.g. -0.12,0,0"
+            ) from None
+        options["laser_frame_offset"] = (x, y, math.radians(yaw_deg))
+    return options
 
 
 def _load_config(path: Path | None) -> Any:

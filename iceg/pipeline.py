@@ -7,8 +7,9 @@ from __future__ import annotations
 import logging
 import os
 import stat
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -70,13 +71,15 @@ def run_log(
     relations: str | Path | None = None,
     progress: bool = False,
     stamps: StampPolicy = "sort",
+    reader_options: Mapping[str, Any] | None = None,
 ) -> SlamResult:
     """Run SLAM over a log file and, if given, score it with a ``.relations`` file.
 
     The log is checked before anything runs; its timestamps are ordered by ``stamps``
     (``"sort"``: reorder out-of-order scans, ``"refuse"``: fail at the first one, naming
     ``file:line``); the policy and what the reader found (out-of-order and duplicate stamps,
-    odometry breaks) are in ``result.metrics["stamps"]``.
+    odometry breaks) are in ``result.metrics["stamps"]``. ``reader_options`` go to
+    :func:`frontends.open_log` (e.g. ``scan_topic`` for ROS bags).
 
     Raises:
         LogFormatError: missing, unreadable or empty log, disordered timestamps under
@@ -84,7 +87,7 @@ def run_log(
         EvaluationError: the relations match no scan of the log.
     """
     check_log_file(Path(path))
-    reader = open_log(path, stamps=stamps)
+    reader = open_log(path, stamps=stamps, **(reader_options or {}))
     rel = read_relations(relations) if relations is not None else None
     scans: Sequence[LaserScan] = list(reader)
     if not scans:
@@ -107,14 +110,18 @@ def run_log(
 def check_log_file(path: Path) -> None:
     """Fail early, with one clear line, when ``path`` cannot be a readable log file.
 
+    A folder is accepted only when it is a ROS 2 bag (it holds ``metadata.yaml``).
+
     Raises:
-        LogFormatError: ``path`` is missing, a folder, not a regular file (a FIFO, a
-            device), or not readable.
+        LogFormatError: ``path`` is missing, a folder that is not a bag, not a regular file
+            (a FIFO, a device), or not readable.
     """
     if not path.exists():
         raise LogFormatError(f"{path}: no such log file")
     if path.is_dir():
-        raise LogFormatError(f"{path}: is a folder, not a log file")
+        if (path / "metadata.yaml").is_file():
+            return
+        raise LogFormatError(f"{path}: is a folder, not a log file (nor a ROS 2 bag folder)")
     if not stat.S_ISREG(path.stat().st_mode):
         raise LogFormatError(f"{path}: not a regular file (a FIFO or a device?); pass a log file")
     if not os.access(path, os.R_OK):

@@ -1,10 +1,12 @@
 """The SLAM pipeline: ICE matching factors and wheel odometry in a GTSAM iSAM2 pose graph.
 
-Per scan (DESIGN "Data flow of one scan"): ICE features; prediction from odometry; keyframe
-decision; ICE match against the feature map of the recent nodes; odometry and scan-match
-factors (covariance from the match); iSAM2 update; feature-map update with time-validity
-pruning; and, every few nodes, a loop-closure search among older nodes near the current
-estimate. After the run an optional batch Levenberg–Marquardt refinement.
+Per scan (DESIGN "Data flow of one scan"): ICE features; prediction from odometry (corrected
+by the online calibration of :mod:`iceg.odometry_calibration`, which every accepted local
+match updates, when enabled); keyframe decision; ICE match against the feature map of the
+recent nodes; odometry and scan-match factors (covariance from the match); iSAM2 update;
+feature-map update with time-validity pruning; and, every few nodes, a loop-closure search
+among older nodes near the current estimate and, by appearance, among all older places
+(global loop closure). After the run an optional batch Levenberg–Marquardt refinement.
 
 The pipeline never reads files: it takes :class:`frontends.LaserScan` records.
 """
@@ -28,6 +30,7 @@ from iceg.features import extract
 from iceg.loop_closure import LoopCloser, LoopClosureStats
 from iceg.matching import MatchBounds
 from iceg.matching.peers import make_matcher
+from iceg.odometry_calibration import OdometryCalibrator
 from iceg.results import SlamResult
 from iceg.types import MatchResult, ScanFeatures
 from iceg_common import se2
@@ -68,9 +71,12 @@ class _Motion:
     """Motion of a scan relative to the last node, and whether the scan becomes a node."""
 
     odom: FloatArray  # (3,) odometry pose of the scan (predicted when the log has none)
-    delta: FloatArray  # (3,) last node -> scan, odometry
+    delta: FloatArray  # (3,) last node -> scan, odometry (calibrated)
     cov: FloatArray  # (3, 3) covariance of delta, tangent space
     is_keyframe: bool
+    measured: bool = True  # odom is the scan's own odometry (not a prediction)
+    odometry_break: bool = False  # odom starts a new odometry frame (no delta across)
+    raw: tuple[FloatArray, FloatArray] | None = None  # raw odometry delta and its noise cov
 
 
 @dataclass(frozen=True, eq=False)
@@ -90,6 +96,7 @@ class SlamState:
     records: list[_ScanRecord] = field(default_factory=list)
     node_scan_index: list[int] = field(default_factory=list)
     node_odom: list[FloatArray] = field(default_factory=list)
+    node_odom_measured: list[bool] = field(default_factory=list)  # False: predicted odom
     node_path_m: list[float] = field(default_factory=list)  # odometry path length at node
     correlations: dict[int, float] = field(default_factory=dict)  # factor index -> eq. 1
     match_failures: dict[str, int] = field(default_factory=lambda: defaultdict(int))
@@ -114,6 +121,7 @@ class Slam:
         self.matcher = make_matcher(self.config.matching)
         self.feature_map = FeatureMap(self.config.feature_map)
         self.loop_closer = LoopCloser(self.config.loop_closure, self.matcher, self.feature_map)
+        self.odometry_calibrator = OdometryCalibrator(self.config.odometry_calibration)
         self.timer = StageTimer()
         self._s = SlamState()
         self._result: SlamResult | None = None
@@ -161,8 +169,10 @@ class Slam:
         feats = extract(scan, self.config.features)
         t0 = self.timer.add("features", t0)
         local = self._match_local(feats, motion.delta, last)
+        self._calibrate_odometry(local, motion)
         t0 = self.timer.add("matching", t0)
         new_id = self._add_keyframe(scan, motion, local, last)
+        self.loop_closer.observe(new_id, feats)
         t0 = self.timer.add("graph_build", t0)
         self.graph.update()
         t0 = self.timer.add("isam2", t0)
@@ -184,7 +194,8 @@ class Slam:
         """The first scan: node 0, fixed at its odometry pose, and its landmarks."""
         feats = extract(scan, self.config.features)
         t0 = self.timer.add("features", t0)
-        self._add_node(scan, odom, initial=odom)
+        self._add_node(scan, odom, initial=odom, odom_measured=scan.odom_pose is not None)
+        self.loop_closer.observe(0, feats)
         self.graph.update()
         self.feature_map.update(0, feats, scan.stamp_s, scan=scan)
         self.timer.add("feature_map", t0)
@@ -194,23 +205,29 @@ class Slam:
         """Odometry delta from the last node and the keyframe decision."""
         cfg = self.config.slam
         s = self._s
-        if scan.odom_pose is None:
-            # No wheel odometry: every scan is a node, predicted by constant velocity, and a
-            # weak motion prior keeps the graph connected where matching fails.
+        if scan.odom_pose is None or scan.odom_break or not s.node_odom_measured[last]:
+            # No usable odometry delta (no odometry, a jump or a new odometry frame flagged by
+            # the reader, or the last node had none): the scan is a node, predicted by constant
+            # velocity, and a weak motion prior keeps the graph connected where matching fails.
             delta = self._constant_velocity_delta(last)
             cov = np.diag(
                 [cfg.no_odometry_sigma_m**2] * 2 + [np.radians(cfg.no_odometry_sigma_deg) ** 2]
             )
-            return _Motion(se2.compose(s.node_odom[last], delta), delta, cov, True)
-        delta = se2.between(s.node_odom[last], odom)
-        cov = odometry_covariance(delta, self.config.odometry_noise)
+            if scan.odom_pose is None:
+                return _Motion(se2.compose(s.node_odom[last], delta), delta, cov, True, False)
+            return _Motion(odom, delta, cov, True, odometry_break=True)  # new odometry frame
+        raw = se2.between(s.node_odom[last], odom)
+        raw_cov = odometry_covariance(raw, self.config.odometry_noise)
+        delta, cov = raw, raw_cov
+        if self.config.odometry_calibration.enabled:
+            delta, cov = self.odometry_calibrator.correct(raw, raw_cov)
         dt = scan.stamp_s - s.scans[s.node_scan_index[last]].stamp_s
         is_keyframe = bool(
             np.hypot(delta[0], delta[1]) >= cfg.keyframe_distance_m
             or abs(delta[2]) >= np.radians(cfg.keyframe_rotation_deg)
             or dt >= cfg.keyframe_max_interval_s
         )
-        return _Motion(odom, delta, cov, is_keyframe)
+        return _Motion(odom, delta, cov, is_keyframe, raw=(raw, raw_cov))
 
     def _match_local(self, feats: ScanFeatures, delta: FloatArray, last: int) -> _LocalMatch:
         """ICE match against the landmarks of the ``local_map_nodes`` most recent nodes."""
@@ -225,11 +242,23 @@ class Slam:
             self._s.match_failures[(result.reason or _UNKNOWN_REASON).split(":")[0]] += 1
         return _LocalMatch(reference, result, poses[last])
 
+    def _calibrate_odometry(self, local: _LocalMatch, motion: _Motion) -> None:
+        """Feed a successful local match to the odometry calibration (same step's raw
+        odometry increment; :class:`OdometryCalibrator`)."""
+        if local.result.success and motion.raw is not None:
+            self.odometry_calibrator.observe(*motion.raw, local.result.pose, local.result.cov)
+
     def _add_keyframe(self, scan: LaserScan, motion: _Motion, local: _LocalMatch, last: int) -> int:
         """The keyframe's node (initialised by the match, else odometry) and its factors."""
         result = local.result
         step = result.pose if result.success else motion.delta
-        new_id = self._add_node(scan, motion.odom, initial=se2.compose(local.last_pose, step))
+        new_id = self._add_node(
+            scan,
+            motion.odom,
+            initial=se2.compose(local.last_pose, step),
+            odom_measured=motion.measured,
+            step_m=self._step_m(motion, last),
+        )
         self._add_factor(FactorKind.ODOMETRY, last, new_id, motion.delta, motion.cov)
         if result.success:
             self._add_factor(
@@ -252,7 +281,13 @@ class Slam:
                 c.correlation,
                 robust=accepted.robust_kernel,
             )
-        self.graph.update()
+        if accepted.large_correction:
+            # A global closure can move the estimate by tens of metres and degrees: a batch
+            # Levenberg-Marquardt from the current estimate converges where iSAM2's
+            # incremental relinearisation would take many updates (it is rebuilt after).
+            self.graph.optimize_batch()
+        else:
+            self.graph.update()
 
     def _update_map(
         self, node_id: int, feats: ScanFeatures, scan: LaserScan, local: _LocalMatch
@@ -281,11 +316,25 @@ class Slam:
             return np.zeros(3)
         return se2.between(self.graph.estimate(last - 1), self.graph.estimate(last))
 
-    def _add_node(self, scan: LaserScan, odom: FloatArray, initial: FloatArray) -> int:
+    def _step_m(self, motion: _Motion, last: int) -> float:
+        """Path travelled from node ``last`` to the scan of ``motion`` (m): the odometry's, or
+        the predicted motion's across an odometry break."""
+        d = motion.delta if motion.odometry_break else motion.odom - self._s.node_odom[last]
+        return float(np.hypot(d[0], d[1]))
+
+    def _add_node(
+        self,
+        scan: LaserScan,
+        odom: FloatArray,
+        initial: FloatArray,
+        odom_measured: bool,
+        step_m: float = 0.0,
+    ) -> int:
+        """Node of ``scan``; ``step_m`` is the path travelled since the last node (m)."""
         s = self._s
+        s.node_odom_measured.append(odom_measured)
         node_id = len(s.node_odom)
-        step = float(np.hypot(*(odom[:2] - s.node_odom[-1][:2]))) if s.node_odom else 0.0
-        s.node_path_m.append((s.node_path_m[-1] if s.node_path_m else 0.0) + step)
+        s.node_path_m.append((s.node_path_m[-1] if s.node_path_m else 0.0) + step_m)
         s.node_odom.append(odom)
         s.node_scan_index.append(len(s.scans) - 1)
         s.records.append(_ScanRecord(scan.stamp_s, node_id, np.zeros(3)))

@@ -8,9 +8,10 @@ from pydantic import BaseModel, ConfigDict, Field
 class FeatureConfig(BaseModel):
     """Thresholds of scan segmentation and Intersection / Corner / End-of-wall extraction.
 
-    Every distance is in metres and every angle in degrees (converted to radians once, at
-    the start of :func:`iceg.features.extract`). The defaults suit a SICK LMS200-class
-    scanner (1 cm range noise, 0.5°-1° beam spacing) indoors.
+    Every distance is in metres and every angle in degrees (converted to radians by the
+    stage of :func:`iceg.features.extract` that reads it; degrees never reach the
+    arithmetic). Every field is read by one of the stages. The defaults suit a SICK
+    LMS200-class scanner (1 cm range noise, 0.5°-1° beam spacing) indoors.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)

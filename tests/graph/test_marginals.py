@@ -42,8 +42,7 @@ def test_chain_marginal_matches_analytic_propagation() -> None:
     )
     # odometry covariances from the model, every third step a full correlated covariance
     covs = [
-        _random_spd(rng) if k % 3 == 2 else odometry_covariance(d)
-        for k, d in enumerate(deltas)
+        _random_spd(rng) if k % 3 == 2 else odometry_covariance(d) for k, d in enumerate(deltas)
     ]
 
     g = PoseGraph(config)

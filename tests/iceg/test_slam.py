@@ -112,3 +112,33 @@ def test_out_of_order_scan_is_refused_naming_both_stamps(office_run) -> None:  #
     # The refused scan left no trace: the next in-order scan is processed as usual.
     slam.process(office_run.scans[2])
     np.testing.assert_array_equal(slam.trajectory()[0], office_run.stamps_s[:3])
+
+
+def test_odometry_break_gets_no_odometry_factor_and_the_jump_stays_out(office_run) -> None:  # type: ignore[no-untyped-def]
+    """A reader-flagged odometry jump (5 m, 60 deg) at scan 150: the run stays on the truth, and
+    no odometry factor spans the break (its residual would be the jump)."""
+    jump = np.array([5.0, -3.0, np.radians(60.0)])
+    scans = list(office_run.scans[:300])
+    for k in range(150, 300):
+        moved = se2.compose(jump, np.asarray(scans[k].odom_pose))
+        scans[k] = dataclasses.replace(scans[k], odom_pose=moved, odom_break=(k == 150))
+    result = run_scans(scans)
+    err = position_errors(result.poses, office_run.true_poses[:300], align=False)
+    assert err.max_m < 0.1, err
+    clean = run_scans(office_run.scans[:300])
+    assert err.mean_m < position_errors(clean.poses, office_run.true_poses[:300]).mean_m + 0.02
+    odometry = [f for f in result.factors if f.kind.value == "odometry"]
+    assert max(np.hypot(f.measured[0], f.measured[1]) for f in odometry) < 1.0
+
+
+def test_scans_without_odometry_before_odometry_starts(office_run) -> None:  # type: ignore[no-untyped-def]
+    """The first 20 scans have no odometry (a bag whose odometry starts late): the odometry of
+    the later scans is a new frame, not a jump from the predicted poses."""
+    scans = [
+        dataclasses.replace(s, odom_pose=None) if k < 20 else s
+        for k, s in enumerate(office_run.scans[:250])
+    ]
+    result = run_scans(scans)
+    truth = se2.between(office_run.true_poses[0], office_run.true_poses[:250])
+    err = position_errors(result.poses, truth, align=False)
+    assert err.max_m < 0.1, err
