@@ -34,7 +34,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from graph import FactorKind, PoseGraph
 from iceg.feature_map import FeatureMap
-from iceg.matching import IceMatcher, MatchBounds
+from iceg.matching import MatchBounds, Matcher
 from iceg.place_index import PlaceIndex, PlaceIndexConfig, place_descriptor
 from iceg.types import MatchResult, ScanFeatures
 from iceg_common import se2
@@ -366,7 +366,7 @@ class LoopCloser:
     """
 
     def __init__(
-        self, config: LoopClosureConfig, matcher: IceMatcher, feature_map: FeatureMap
+        self, config: LoopClosureConfig, matcher: Matcher, feature_map: FeatureMap
     ) -> None:
         self.config = config
         self.matcher = matcher

@@ -28,7 +28,8 @@ from iceg.config import IcegConfig
 from iceg.feature_map import FeatureMap, MapReference
 from iceg.features import extract
 from iceg.loop_closure import LoopCloser, LoopClosureStats
-from iceg.matching import IceMatcher, MatchBounds
+from iceg.matching import MatchBounds
+from iceg.matching.peers import make_matcher
 from iceg.odometry_calibration import OdometryCalibrator
 from iceg.results import SlamResult
 from iceg.types import MatchResult, ScanFeatures
@@ -121,7 +122,7 @@ class Slam:
     def __init__(self, config: IcegConfig | None = None) -> None:
         self.config = config or IcegConfig()
         self.graph = PoseGraph(self.config.graph)
-        self.matcher = IceMatcher(self.config.matching)
+        self.matcher = make_matcher(self.config.matching)
         self.feature_map = FeatureMap(self.config.feature_map)
         self.loop_closer = LoopCloser(self.config.loop_closure, self.matcher, self.feature_map)
         self.odometry_calibrator = OdometryCalibrator(self.config.odometry_calibration)

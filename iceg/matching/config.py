@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -498,6 +499,16 @@ class MatchingConfig(BaseModel):
     refinement: RefinementConfig = Field(default_factory=RefinementConfig)
     covariance: CovarianceConfig = Field(default_factory=CovarianceConfig)
     validation: ValidationConfig = Field(default_factory=ValidationConfig)
+    method: Literal["ice", "plicp", "small_gicp", "kiss_icp", "open3d_point", "open3d_plane"] = (
+        Field(
+            default="ice",
+            description="Scan matcher behind the same graph back-end: 'ice' (this matcher), "
+            "'plicp' (point-to-line ICP, Censi 2008, on the project's refinement), or an "
+            "adapter of an installed peer library (extra 'peers'): 'small_gicp' (GICP), "
+            "'kiss_icp' (KISS-ICP registration), 'open3d_point' / 'open3d_plane' (Open3D "
+            "point-to-point / point-to-plane ICP). See iceg.matching.peers.",
+        )
+    )
     cauchy_scale_sigmas: float = Field(
         default=2.5,
         gt=0.0,
