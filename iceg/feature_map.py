@@ -1,5 +1,5 @@
 """The ICE feature map: landmarks anchored to graph nodes, references for matching, and
-time-validity pruning (paper §III-C3, last paragraph; DESIGN.md "Feature map and
+time-validity pruning (paper §III-C3, last paragraph; docs/design.md "Feature map and
 time-validity").
 
 Each landmark (an ICE feature) is anchored to the node that first observed it and stored in
@@ -74,7 +74,7 @@ _RANK[CORNER], _RANK[EOW], _RANK[INTERSECTION] = 2, 1, 0
 class FeatureMapConfig(BaseModel):
     """Association, visibility and time-validity settings of the feature map (paper §III-C3:
     "each feature has a time-validity property ... features placed in visible area but
-    observed rarely will be omitted from the map"; DESIGN "Feature map and time-validity").
+    observed rarely will be omitted from the map"; docs/design.md "Feature map and time-validity").
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -96,14 +96,14 @@ class FeatureMapConfig(BaseModel):
         default=2.0,
         ge=0.0,
         description="Margin inside the scan's angular limits for a support point to count as "
-        "in the field of view (DESIGN: expected = inside the current field of view).",
+        "in the field of view (docs/design.md: expected = inside the current field of view).",
     )
     occlusion_tolerance_m: float = Field(
         default=0.2,
         gt=0.0,
         description="A support point is occluded when a beam around its bearing is shorter "
-        "than its distance minus this (DESIGN: the scan's range at its bearing is not shorter "
-        "than its distance).",
+        "than its distance minus this (docs/design.md: the scan's range at its bearing is not "
+        "shorter than its distance).",
     )
     support_offset_m: float = Field(
         default=0.3,
@@ -685,7 +685,7 @@ class FeatureMap:
         frame_pose: ArrayLike,
     ) -> MapReference:
         """Build a matching reference from chosen nodes (recent ones for tracking, older
-        ones near the current estimate for loop closure; DESIGN "Feature map").
+        ones near the current estimate for loop closure; docs/design.md "Feature map").
 
         It holds the landmarks anchored to ``node_ids`` or last matched from one of them,
         and the segments of those nodes, all in the frame of ``frame_pose``.
@@ -1087,7 +1087,7 @@ class FeatureMap:
         scan: LaserScan | None,
     ) -> BoolArray:
         """Which landmarks (``rows``, anchors at ``anchor_in_new`` in the new frame) the scan
-        should see (DESIGN: inside the field of view and range, not occluded; and its walls
+        should see (docs/design.md: inside the field of view and range, not occluded; and its walls
         (one for a Corner or EOW, both for an Intersection) seen from the side they were seen
         from before, not at grazing incidence)."""
         lm = self._lm

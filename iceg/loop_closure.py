@@ -1,8 +1,8 @@
 """Loop closure: local and global candidate search, chi-square gate, pairwise consistency.
 
 Every ``every_n_nodes`` nodes the current node's scan is matched (ICE, paper §III-C2) against
-the landmarks of older places near its estimate (DESIGN "Loop closure"). A closure is accepted
-when its innovation passes a chi-square gate under the node's marginal covariance plus the
+the landmarks of older places near its estimate (docs/design.md "Loop closure"). A closure is
+accepted when its innovation passes a chi-square gate under the node's marginal covariance plus the
 match covariance, or when two closures that failed the gate imply the same correction
 (pairwise consistency after Olson 2009, "Recognizing places using spectrally clustered local
 matches", reduced to pairs). :class:`LoopCloser` only decides; the pipeline

@@ -1,6 +1,6 @@
 """The SLAM pipeline: ICE matching factors and wheel odometry in a GTSAM iSAM2 pose graph.
 
-Per scan (DESIGN "Data flow of one scan"): ICE features; prediction from odometry (corrected
+Per scan (docs/design.md "Data flow of one scan"): ICE features; prediction from odometry (corrected
 by the online calibration of :mod:`iceg.odometry_calibration`, which every accepted local
 match updates, when enabled); keyframe decision; ICE match against the feature map of the
 recent nodes; odometry and scan-match factors (covariance from the match); iSAM2 update;
@@ -142,7 +142,7 @@ class Slam:
 
         The map frame is the odometry frame of the first scan (the first node is fixed at
         the first odometry pose, or at the origin when the log has no odometry). Steps
-        (DESIGN "Data flow of one scan"): motion from odometry and keyframe decision; for a
+        (docs/design.md "Data flow of one scan"): motion from odometry and keyframe decision; for a
         keyframe ICE features, local match, node and factors, iSAM2 update, loop-closure
         search and feature-map update.
 
@@ -371,7 +371,7 @@ class Slam:
         """Current estimate of every processed scan: ``(stamps_s (N,), poses (N, 3))``.
 
         A scan that is not a graph node takes its node's estimate composed with the
-        odometry delta from the node's scan (DESIGN "Data flow of one scan").
+        odometry delta from the node's scan (docs/design.md "Data flow of one scan").
         """
         _, poses = self.graph.estimates()
         recs = self._s.records

@@ -1,5 +1,5 @@
 """End-of-wall features: a segment endpoint beyond which the beams see past the wall's
-extension (paper §III-B, Fig. 1; DESIGN.md step 4)."""
+extension (paper §III-B, Fig. 1; docs/design.md step 4)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """ICE feature extraction: one laser scan in, segments and Corner / EOW / Intersection out.
 
-DESIGN.md "ICE matching, step by step", steps 1-4; paper §III-B (the features) and §III-C1
+docs/design.md "ICE matching, step by step", steps 1-4; paper §III-B (the features) and §III-C1
 (split-and-merge with maximum-likelihood line fitting). :func:`extract` composes the stages:
 points (:mod:`~iceg.features.points`), segments (:mod:`~iceg.features.segments`), steep
 segment pairs (:mod:`~iceg.features.pairs`), corners (:mod:`~iceg.features.corners`), ends of
@@ -29,7 +29,7 @@ log = logging.getLogger(__name__)
 def extract(scan: LaserScan, config: FeatureConfig | None = None) -> ScanFeatures:
     """Segments and ICE features (Corner, End of wall, Intersection) of one scan.
 
-    Steps (DESIGN.md "ICE matching, step by step", 1-4):
+    Steps (docs/design.md "ICE matching, step by step", 1-4):
 
     1. Valid beams (``range_min < r < min(range_max, config.range_max_m)``) to robot-frame
        points, laser offset applied; beams at or beyond the usable range are "no return"

@@ -1,5 +1,5 @@
 """Intersection features: two segments' infinite lines meeting near both (paper §III-B,
-Fig. 1-2; DESIGN.md step 4)."""
+Fig. 1-2; docs/design.md step 4)."""
 
 from __future__ import annotations
 

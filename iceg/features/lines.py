@@ -1,6 +1,6 @@
 """Maximum-likelihood line fitting in Hessian form with covariances, vectorized over segments.
 
-DESIGN.md "ICE matching, step by step", step 3. Each segment's points are fitted by weighted
+docs/design.md "ICE matching, step by step", step 3. Each segment's points are fitted by weighted
 total least squares, the weights being the inverse variances of the points' distances to
 the line under a range/bearing noise model (Pfister, Roumeliotis & Burdick 2003, "Weighted
 line fitting algorithms for mobile robot map building and efficient data representation";

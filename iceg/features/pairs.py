@@ -1,6 +1,6 @@
 """Segment pairs whose lines meet steeply: the candidates of Corners and Intersections.
 
-Paper §III-B, Fig. 1-2; DESIGN.md step 4 (lines meeting at 30°-150°).
+Paper §III-B, Fig. 1-2; docs/design.md step 4 (lines meeting at 30°-150°).
 """
 
 from __future__ import annotations

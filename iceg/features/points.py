@@ -1,4 +1,4 @@
-"""Step 1 of feature extraction: a scan's beams to robot-frame points (DESIGN.md step 1)."""
+"""Step 1 of feature extraction: a scan's beams to robot-frame points (docs/design.md step 1)."""
 
 from __future__ import annotations
 
@@ -47,7 +47,7 @@ def check_bearings(scan: LaserScan) -> None:
 
 
 def beam_points(scan: LaserScan, range_max_m: float) -> BeamPoints:
-    """Valid beams to robot-frame points, and every beam's direction (DESIGN.md step 1).
+    """Valid beams to robot-frame points, and every beam's direction (docs/design.md step 1).
 
     A beam is valid when ``range_min < r < range_max_m`` and is a "no return" when its range is
     ``+inf`` or at least ``range_max_m`` (NaN is neither). Points are

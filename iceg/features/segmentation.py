@@ -1,6 +1,6 @@
 """Scan segmentation: adaptive breakpoints, then split-and-merge inside each cluster.
 
-DESIGN.md "ICE matching, step by step", steps 2-3; paper §III-C1. The breakpoint test is
+docs/design.md "ICE matching, step by step", steps 2-3; paper §III-C1. The breakpoint test is
 vectorized over the scan; the recursive end-point fit and the merge run in a numba-compiled
 loop (a few dozen segments per scan, each needing a pass over its points).
 """

@@ -1,6 +1,6 @@
 """Steps 2-3 of feature extraction: breakpoints, split-and-merge, maximum-likelihood lines.
 
-DESIGN.md "ICE matching, step by step", steps 2-3; paper §III-C1.
+docs/design.md "ICE matching, step by step", steps 2-3; paper §III-C1.
 """
 
 from __future__ import annotations
@@ -98,7 +98,7 @@ def endpoint_spacing(
 
 
 def line_segments(beams: BeamPoints, cfg: FeatureConfig) -> Segments:
-    """Line segments of a scan with their maximum-likelihood lines (DESIGN.md steps 2-3).
+    """Line segments of a scan with their maximum-likelihood lines (docs/design.md steps 2-3).
 
     Segments from :func:`segment_point_ranges`, lines by weighted total least squares
     (:func:`iceg.features.lines.fit_lines`, Pfister et al. 2003); segments shorter than

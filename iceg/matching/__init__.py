@@ -1,4 +1,4 @@
-"""ICE scan matching (paper §III-C2/C3; DESIGN.md "ICE matching, step by step", steps 5-10).
+"""ICE scan matching (paper §III-C2/C3; docs/design.md "ICE matching, step by step", steps 5-10).
 
 Example::
 

@@ -285,7 +285,7 @@ def associate_points(
     end_tol_m: float,
     normal_gate_rad: float,
 ) -> tuple[IntArray, FloatArray]:
-    """Nearest reference segment of each point, with gates (DESIGN step 8).
+    """Nearest reference segment of each point, with gates (docs/design.md step 8).
 
     A point associates with the segment of least point-to-segment distance (the segment
     extended by ``end_tol_m`` at both ends) among those whose line normal is within

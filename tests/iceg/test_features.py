@@ -1,4 +1,4 @@
-"""Tests of ICE feature extraction (paper §III-B, §III-C1; DESIGN.md steps 1-4).
+"""Tests of ICE feature extraction (paper §III-B, §III-C1; docs/design.md steps 1-4).
 
 Ground truth comes from the simulator's exact wall geometry (``frontends.simulate``), from
 hand-computed geometry, or, for the real MIT CSAIL scans, from hand-inspected plots (see
@@ -19,7 +19,7 @@ in the noise-free ray cast at the true pose:
   Borges & Aldon 2004's breakpoint detector (lambda = 10°) by design separates points of a
   surface seen at less than 10° from the beam;
 * for a wall end, the ``EOW_BEYOND`` beams just beyond the last hit exist (not the scan's
-  angular limit) and reach farther than the wall's extension, or return nothing (DESIGN
+  angular limit) and reach farther than the wall's extension, or return nothing (docs/design.md
   step 4: "the beams just beyond it reach farther").
 
 The position of a wall end is only known to within the gap between the last beam that hits
@@ -353,7 +353,7 @@ def test_max_range_gap_is_not_an_end_of_wall() -> None:
     # x = sqrt(10² - 2²) = 9.80 m, where the beams beyond read no return. The wall continues,
     # so that endpoint is no EOW. A wall y = -2 from x = 0 to 5 with nothing behind: its end
     # (5, -2) is a true end although the beams beyond also read no return: had the wall
-    # continued they would have returned at < 10 m (DESIGN step 4; see FeatureConfig).
+    # continued they would have returned at < 10 m (docs/design.md step 4; see FeatureConfig).
     laser = LaserModel(range_sigma_m=0.0)
     world = World("two", np.array([[[0.5, 2.0], [30.0, 2.0]], [[0.5, -2.0], [5.0, -2.0]]]))
     f = extract(_scan(cast_rays(world, np.zeros(3), laser), laser), FeatureConfig(range_max_m=10))
@@ -566,7 +566,7 @@ def test_intersection_of_non_touching_walls(walls: list, meet: tuple) -> None:
 
 def test_parallel_and_shallow_walls_give_no_intersection() -> None:
     parallel = [[[1.0, 1.0], [8.0, 1.0]], [[1.0, -1.2], [8.0, -1.2]]]
-    # 20° apart (below the 30° minimum of DESIGN step 4), lines meet at (6, 0).
+    # 20° apart (below the 30° minimum of docs/design.md step 4), lines meet at (6, 0).
     shallow = [
         [[1.0, -5.0 * math.tan(math.radians(10.0))], [4.0, -2.0 * math.tan(math.radians(10.0))]],
         [[1.0, 5.0 * math.tan(math.radians(10.0))], [4.0, 2.0 * math.tan(math.radians(10.0))]],

@@ -34,7 +34,7 @@ def test_every_scan_gets_a_pose_and_non_nodes_follow_odometry(office_run) -> Non
     result = slam.finish()
     assert result.poses.shape == (len(office_run.scans), 3)
     np.testing.assert_array_equal(result.stamps_s, office_run.stamps_s)
-    # DESIGN: a non-node scan takes its node's estimate composed with the odometry delta.
+    # docs/design.md: a non-node scan takes its node's estimate composed with the odometry delta.
     is_node = np.zeros(len(office_run.scans), dtype=bool)
     is_node[result.node_scan_index] = True
     assert 0 < is_node.sum() < len(is_node)
