@@ -22,7 +22,8 @@ class FeatureConfig(BaseModel):
         gt=0.0,
         description="Usable maximum range (docs/design.md step 1; paper §IV: SICK LMS200, "
         "20 m). Beams at or beyond min(this, scan.range_max_m) are dropped as points and "
-        "remembered as 'no return' for the end-of-wall test; it is also ScanFeatures.range_max_m (paper eq. 3).",
+        "remembered as 'no return' for the end-of-wall test; it is also "
+        "ScanFeatures.range_max_m (paper eq. 3).",
     )
     sigma_range_m: float = Field(
         default=0.01,
