@@ -125,6 +125,33 @@ class Slam:
         """Loop-closure statistics of the run so far."""
         return self.loop_closer.stats
 
+    # ------------------------------------------------------------------ state (sessions)
+
+    def export_state(self) -> SlamState:
+        """The per-run bookkeeping (shared, not a copy), for :mod:`iceg.session`."""
+        return self._s
+
+    @classmethod
+    def from_state(
+        cls,
+        config: IcegConfig,
+        graph: PoseGraph,
+        feature_map: FeatureMap,
+        state: SlamState,
+        loop_stats: LoopClosureStats | None = None,
+    ) -> Slam:
+        """A Slam that continues from saved parts (:func:`iceg.session.load` builds them):
+        the graph rebuilt by replay, the feature map, the bookkeeping and loop statistics.
+        Held-back closures go to ``slam.loop_closer.pending`` afterwards."""
+        slam = cls(config)
+        slam.graph = graph
+        slam.feature_map = feature_map
+        slam.loop_closer = LoopCloser(config.loop_closure, slam.matcher, feature_map)
+        if loop_stats is not None:
+            slam.loop_closer.stats = loop_stats
+        slam._s = state
+        return slam
+
     # ------------------------------------------------------------------ per scan
 
     def process(self, scan: LaserScan) -> FloatArray:
@@ -380,5 +407,6 @@ class Slam:
             graph=self.graph,
             config=self.config,
             scans=tuple(self._s.scans),
+            slam=self,
         )
         return self._result
