@@ -455,7 +455,7 @@ class Session:
         """Path of log ``li``: relative to the session folder if it exists there, else the
         absolute path saved."""
         entry = self.manifest["logs"][li]
-        rel = self.path / entry["relative"]
+        rel = (self.path / entry["relative"]).resolve()
         return rel if rel.exists() else Path(entry["path"])
 
     def trajectory(self, node_poses: FloatArray | None = None) -> tuple[FloatArray, FloatArray]:
