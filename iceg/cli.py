@@ -406,5 +406,81 @@ def _load_config(path: Path | None) -> Any:
     return IcegConfig() if path is None else config_from_yaml(path)
 
 
+# --------------------------------------------------------------------------- map life cycle
+# (issue 15: sessions; see iceg.session, iceg.edit, iceg.localize, iceg.merge)
+
+
+@app.command()
+@_one_line_errors
+def optimize(
+    session_dir: Annotated[
+        Path, typer.Argument(metavar="SESSION", help="Session folder (or the run folder).")
+    ],
+    remove_factor: Annotated[
+        list[int] | None,
+        typer.Option(help="Remove this factor (index in loop_closures.csv / graph.g2o)."),
+    ] = None,
+    add_closure: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="Add a loop closure 'NODE_I NODE_J' (matched by ICE between the two scans) or "
+            "'NODE_I NODE_J X_M Y_M THETA_DEG' (pose of NODE_J in NODE_I's frame)."
+        ),
+    ] = None,
+    closure_sigma_m: Annotated[float, typer.Option(help="Sigma of a given closure, m.")] = 0.05,
+    closure_sigma_deg: Annotated[
+        float, typer.Option(help="Heading sigma of a given closure, deg.")
+    ] = 1.0,
+    relations: Annotated[
+        Path | None, typer.Option(help="Score the re-optimized trajectory with a .relations file.")
+    ] = None,
+    out: Annotated[
+        Path | None, typer.Option(help="Write the edited session here (default: in place).")
+    ] = None,
+) -> None:
+    """Re-optimize a saved session's pose graph after edits (remove / add loop closures)."""
+    from iceg import session as sess
+    from iceg.edit import edit_and_optimize, parse_closure, write_edited
+
+    s = sess.read(session_dir)
+    edits = [parse_closure(t, closure_sigma_m, closure_sigma_deg) for t in add_closure or []]
+    arrays = edit_and_optimize(s, remove_factor or [], edits)
+    try:
+        folder = write_edited(s, arrays, out if out is not None else s.path)
+    except OSError as exc:
+        raise OutputError(f"{out or s.path}: cannot write the session ({exc})") from exc
+    edited = sess.read(folder)
+    rows = [
+        ("nodes", str(arrays["g_node_ids"].shape[0])),
+        ("factors", str(arrays["g_kind"].shape[0])),
+        ("loop closures", str(len(sess.closure_rows(arrays)))),
+    ]
+    rows += _relation_rows(edited, relations)
+    rows.append(("session", str(folder)))
+    typer.echo(f"iceg optimize: {session_dir}")
+    _print_table(rows)
+
+
+def _relation_rows(s: Any, relations: Path | None) -> list[tuple[str, str]]:
+    """The relation-error row of a session's trajectory (none without relations)."""
+    if relations is None:
+        return []
+    from frontends.relations import read_relations
+    from iceg.evaluation import relation_errors
+    from iceg.pipeline import RELATION_TOLERANCE_S
+
+    stamps, poses = s.trajectory()
+    rel = read_relations(relations)
+    r, _ = relation_errors(stamps, poses, rel.stamps_s, rel.deltas, RELATION_TOLERANCE_S)
+    d = r.as_dict()
+    return [
+        (
+            "relation error",
+            f"{d['trans_mean_m']:.4f} ± {d['trans_std_m']:.4f} m, {d['rot_mean_deg']:.3f} ± "
+            f"{d['rot_std_deg']:.3f} deg ({d['n_matched']}/{d['n_relations']} relations)",
+        )
+    ]
+
+
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(app())

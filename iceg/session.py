@@ -172,8 +172,8 @@ def _add_factor(graph: PoseGraph, r: FactorRecord) -> None:
             r.measured,
             r.cov,
             kind=r.kind,
-            robust=r.robust,
-            robust_k=r.robust_k,  # type: ignore[arg-type]
+            robust=r.robust,  # type: ignore[arg-type]
+            robust_k=r.robust_k,
         )
 
 
@@ -220,23 +220,18 @@ def replay_graph(
     return graph
 
 
-def rebuild_graph(
-    a: Mapping[str, np.ndarray], config: GraphConfig, active: NDArray[np.bool_] | None = None
-) -> PoseGraph:
-    """A graph of the saved factors (``active`` rows only), every node at its saved estimate,
-    through one iSAM2 update (for edited graphs, whose call log no longer applies).
+def rebuild_graph(a: Mapping[str, np.ndarray], config: GraphConfig) -> PoseGraph:
+    """A new graph of the factors of ``g_*`` arrays, every node starting at its saved
+    estimate, through one iSAM2 update (its own call log then replays it exactly).
 
     Raises:
         GraphError: a node is left without factor, or gtsam failed.
     """
-    recs = factor_records(a)
-    keep = np.ones(len(recs), dtype=bool) if active is None else active
     graph = PoseGraph(config, auto_prior=False)
     for n, pose in zip(a["g_node_ids"].tolist(), a["g_node_final"], strict=True):
         graph.add_node(n, pose)
-    for r, k in zip(recs, keep.tolist(), strict=True):
-        if k:
-            _add_factor(graph, r)
+    for r in factor_records(a):
+        _add_factor(graph, r)
     graph.update()
     return graph
 
@@ -270,7 +265,9 @@ def scan_arrays(
     """Scan references (``s_log``, ``s_key``, ``s_hash``) and inline scans, and the logs table
     of the manifest (``{"path": absolute, "relative": from the session folder}``)."""
     logs: dict[str, int] = {}
-    log_idx, keys, inline = [], [], []
+    log_idx: list[int] = []
+    keys: list[str] = []
+    inline: list[LaserScan] = []
     for scan in scans:
         split = _split_source(scan.source)
         if split is None:
@@ -327,9 +324,9 @@ def _inline_scans(a: Mapping[str, np.ndarray]) -> list[LaserScan]:
     return out
 
 
-def read_scans(session: Session) -> list[LaserScan]:
-    """Every scan of a session, re-read from its log by reference (or from the inline
-    arrays), in processing order.
+def read_scans(session: Session, rows: Sequence[int] | None = None) -> list[LaserScan]:
+    """Scans of a session (every one, in processing order, or the scan ``rows``), re-read
+    from their logs by reference (or from the inline arrays).
 
     Raises:
         SessionError: a log is missing, a scan is not in it, or its content hash differs.
@@ -338,9 +335,9 @@ def read_scans(session: Session) -> list[LaserScan]:
     inline = _inline_scans(a)
     by_log: dict[int, dict[str, LaserScan]] = {}
     out = []
-    for k, (li, key, digest) in enumerate(
-        zip(a["s_log"].tolist(), a["s_key"].tolist(), a["s_hash"].tolist(), strict=True)
-    ):
+    wanted = range(a["s_log"].shape[0]) if rows is None else rows
+    for k in wanted:
+        li, key, digest = int(a["s_log"][k]), str(a["s_key"][k]), str(a["s_hash"][k])
         if li < 0:
             scan = inline[int(key)]
         else:
@@ -442,9 +439,10 @@ class Session:
     arrays: dict[str, np.ndarray]
 
     @property
-    def replayable(self) -> bool:
-        """Whether the solver log still describes the graph (false after an edit)."""
-        return bool(self.manifest.get("replayable", True))
+    def edited(self) -> bool:
+        """Whether the graph was edited and re-optimized (``iceg optimize``): its solver log
+        ends with a batch refinement that belongs to the state (kept on load)."""
+        return bool(self.manifest.get("edited", False))
 
     @property
     def node_poses(self) -> tuple[IntArray, FloatArray]:
@@ -510,8 +508,8 @@ def load(path: str | os.PathLike[str], *, scans: Sequence[LaserScan] | None = No
     """A :class:`~iceg.slam.Slam` that continues exactly where the saved run ended.
 
     Processing more scans and calling ``finish()`` gives the same result, bit for bit, as
-    one uninterrupted run over all the scans (for a session that was not edited; an edited
-    one is rebuilt from its saved estimates instead).
+    one uninterrupted run over all the scans (a session edited by ``iceg optimize``
+    continues from its re-optimized graph).
 
     Args:
         path: the session folder (or the run folder holding it).
@@ -533,11 +531,7 @@ def load(path: str | os.PathLike[str], *, scans: Sequence[LaserScan] | None = No
         ):
             raise SessionError(f"{session.path}: the scans given are not the session's scans")
     a = session.arrays
-    graph = (
-        replay_graph(a, session.config.graph)
-        if session.replayable
-        else rebuild_graph(a, session.config.graph)
-    )
+    graph = replay_graph(a, session.config.graph, skip_final_batch=not session.edited)
     stats = LoopClosureStats(**session.manifest.get("loop_closures", {}))
     slam = Slam.from_state(
         session.config,
@@ -584,14 +578,14 @@ def write_folder(
     config: IcegConfig,
     logs: list[dict[str, str]],
     extra: Mapping[str, Any],
-    replayable: bool = True,
+    edited: bool = False,
 ) -> None:
     """Write the session files from their arrays (see :func:`save`)."""
     from iceg import __version__
 
     out.mkdir(parents=True, exist_ok=True)
     with atomic_write(out / STATE, "wb") as fb:
-        np.savez(fb, **arrays)
+        np.savez(fb, **dict(arrays))  # type: ignore[arg-type]
     write_g2o_file(
         out / GRAPH, arrays["g_node_ids"], arrays["g_node_final"], factor_records(arrays)
     )
@@ -602,7 +596,7 @@ def write_folder(
         "format": FORMAT,
         "version": FORMAT_VERSION,
         "iceg_version": __version__,
-        "replayable": replayable,
+        "edited": edited,
         "nodes": int(arrays["g_node_ids"].shape[0]),
         "factors": int(arrays["g_kind"].shape[0]),
         "scans": int(arrays["s_stamp"].shape[0]),
