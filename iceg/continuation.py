@@ -1,0 +1,176 @@
+"""Continue a saved session with another log (``iceg run LOG --continue SESSION``, issue 15).
+
+The session is loaded exactly (:func:`iceg.session.load`); the new log's first scan is placed
+in the old map by ICE matching, around ``initial_pose`` when given, else globally
+(:meth:`iceg.localize.FixedMap.place`), and the placement must be confirmed by tracking the
+next scans in the fixed map (:class:`iceg.localize.Localizer`). The first scan then becomes a
+node linked to the map by the placement match (:meth:`iceg.slam.Slam.start_segment`) and the
+run goes on in the same graph and feature map. A log that cannot be placed is refused
+(:class:`~iceg_common.errors.SessionError`), never guessed.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from tqdm.auto import tqdm
+
+from frontends import LaserScan
+from iceg import session as sess
+from iceg.features import extract
+from iceg.localize import FixedMap, Localizer, LocalizeSettings, Placement, Status
+from iceg.matching import MatchBounds
+from iceg.results import SlamResult
+from iceg.slam import Slam
+from iceg_common.errors import SessionError
+
+logger = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+
+#: Scans of the new log tracked to confirm the first scan's placement (at most).
+CONFIRM_SCANS = 150
+
+
+def fixed_map_of(slam: Slam) -> FixedMap:
+    """The Slam's current map as a :class:`FixedMap` (its own feature map: references built
+    from it can be given back to the Slam)."""
+    ids, poses = slam.graph.estimates()
+    return FixedMap(ids, poses, slam.feature_map, slam.config)
+
+
+def place_first_scan(
+    fixed: FixedMap,
+    scans: Sequence[LaserScan],
+    initial_pose: ArrayLike | None = None,
+    settings: LocalizeSettings | None = None,
+) -> Placement:
+    """Place ``scans[0]`` in the map and confirm it by tracking the next scans.
+
+    Args:
+        fixed: the map.
+        scans: the new log's scans (the first :data:`CONFIRM_SCANS` are used).
+        initial_pose: ``(3,)`` map-frame guess ``[x_m, y_m, theta_rad]``; tried first.
+        settings: localization tuning.
+
+    Raises:
+        SessionError: no placement, an ambiguous one, or one the next scans contradict.
+    """
+    st = settings or LocalizeSettings()
+    feats = extract(scans[0], fixed.config.features)
+    placement = None
+    if initial_pose is not None:
+        pose = np.asarray(initial_pose, dtype=np.float64)
+        bounds = MatchBounds.local(st.initial_translation_m, st.initial_rotation_deg)
+        placement = fixed.match_at(feats, pose, bounds, st.reference_nodes)
+        if placement is not None and placement.match.correlation < st.min_correlation:
+            placement = None
+    if placement is None:
+        placement = fixed.place(feats, st)
+    if placement is None:
+        raise SessionError(
+            f"{scans[0].source}: the first scan of the log cannot be placed in the map (no "
+            "unambiguous ICE match of enough correlation and fit); is the log from this "
+            "building? Give --initial-pose X Y THETA_DEG if it is"
+        )
+    _confirm(fixed, scans, placement, st)
+    return placement
+
+
+def _confirm(
+    fixed: FixedMap, scans: Sequence[LaserScan], p: Placement, st: LocalizeSettings
+) -> None:
+    loc = Localizer(fixed, st, initial_pose=p.pose)
+    tracked = 0
+    for scan in scans[:CONFIRM_SCANS]:
+        _, _, status, _ = loc.process(scan)
+        if loc.relocalizations or status == Status.LOST:
+            raise SessionError(
+                f"{scans[0].source}: the first scan matched the map at "
+                f"{np.round(p.pose, 2).tolist()} (correlation {p.match.correlation:.2f}) but "
+                "the next scans do not follow it there; refusing to guess"
+            )
+        tracked += status == Status.TRACKED
+        if tracked >= st.confirm_keyframes:
+            return
+    if len(scans) > 1:
+        raise SessionError(
+            f"{scans[0].source}: the placement of the first scan could not be confirmed by "
+            f"the next {min(len(scans), CONFIRM_SCANS)} scans"
+        )
+
+
+def continue_scans(
+    session_path: str | os.PathLike[str],
+    scans: Sequence[LaserScan],
+    initial_pose: ArrayLike | None = None,
+    progress: bool = False,
+) -> SlamResult:
+    """Continue a session with new scans; the finished result of the extended run.
+
+    Raises:
+        SessionError: unreadable session or a log that cannot be placed.
+        ScanError: the new scans are earlier than the session's last scan.
+    """
+    if not scans:
+        raise SessionError("the new log holds no laser scans")
+    slam = sess.load(session_path)
+    placement = place_first_scan(fixed_map_of(slam), scans, initial_pose)
+    logger.info(
+        "first scan placed at %s near node %d (correlation %.2f)",
+        np.round(placement.pose, 3).tolist(),
+        placement.anchor,
+        placement.match.correlation,
+    )
+    slam.start_segment(scans[0], placement.anchor, placement.reference, placement.match)
+    for scan in tqdm(scans[1:], unit="scan", disable=not progress, desc="iceg"):
+        slam.process(scan)
+    return slam.finish()
+
+
+def session_path_of(path: Path) -> Path:
+    """The session folder given a session or a run folder."""
+    return path / sess.SESSION_DIR if (path / sess.SESSION_DIR).is_dir() else path
+
+
+def continue_log(
+    path: str | Path,
+    session_path: str | Path,
+    relations: str | Path | None = None,
+    initial_pose: ArrayLike | None = None,
+    progress: bool = False,
+    stamps: str = "sort",
+    reader_options: dict[str, Any] | None = None,
+) -> SlamResult:
+    """:func:`continue_scans` over a log file, scored with ``relations`` like
+    :func:`iceg.pipeline.run_log` (the relations that fall on either log's scans count).
+
+    Raises:
+        LogFormatError: missing, unreadable or empty log.
+        SessionError: unreadable session, or a log that cannot be placed.
+        EvaluationError: the relations match no scan.
+    """
+    from frontends import open_log
+    from frontends.relations import read_relations
+    from iceg.evaluation import relation_errors
+    from iceg.pipeline import RELATION_TOLERANCE_S, check_log_file, check_relations_match
+
+    check_log_file(Path(path))
+    scans = list(open_log(path, stamps=stamps, **(reader_options or {})))
+    rel = read_relations(relations) if relations is not None else None
+    if rel is not None:
+        check_relations_match(rel, np.array([s.stamp_s for s in scans]))
+    result = continue_scans(session_path, scans, initial_pose, progress)
+    result.metrics["continued_from"] = str(Path(session_path).resolve())
+    if rel is not None:
+        summary, _ = relation_errors(
+            result.stamps_s, result.poses, rel.stamps_s, rel.deltas, RELATION_TOLERANCE_S
+        )
+        result.metrics["relations"] = summary.as_dict()
+    return result
