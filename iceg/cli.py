@@ -537,6 +537,39 @@ def localize(
     _print_table(rows)
 
 
+@app.command()
+@_one_line_errors
+def merge(
+    session_a: Annotated[Path, typer.Argument(metavar="A", help="First session (kept fixed).")],
+    session_b: Annotated[Path, typer.Argument(metavar="B", help="Session merged into A.")],
+    out: Annotated[Path, typer.Option(help="Output folder (session/ and trajectory.tum).")],
+    relations: Annotated[
+        Path | None, typer.Option(help="Score the merged trajectory with a .relations file.")
+    ] = None,
+) -> None:
+    """Merge two sessions of one building into one graph and one map, linked by
+    inter-session loop closures found by global ICE matching and checked for consistency."""
+    from iceg import session as sess
+    from iceg.merge import merge_sessions
+
+    a, b = sess.read(session_a), sess.read(session_b)
+    if out.exists() and any(out.iterdir()):
+        raise OutputError(f"{out}: exists and is not empty; choose a new --out")
+    try:
+        folder, closures = merge_sessions(a, b, out)
+    except OSError as exc:
+        raise OutputError(f"{out}: cannot write the merged session ({exc})") from exc
+    merged = sess.read(folder)
+    rows = [
+        ("nodes", f"{merged.manifest['nodes']} ({a.manifest['nodes']} + {b.manifest['nodes']})"),
+        ("inter-session closures", str(len(closures))),
+        *_relation_rows(merged, relations),
+        ("output", str(folder)),
+    ]
+    typer.echo(f"iceg merge: {session_a} + {session_b}")
+    _print_table(rows)
+
+
 def _continue(
     log: Path | None,
     session_dir: Path,
