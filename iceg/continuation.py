@@ -121,6 +121,13 @@ def continue_scans(
     if not scans:
         raise SessionError("the new log holds no laser scans")
     slam = sess.load(session_path)
+    last = slam.export_state().scans[-1].stamp_s
+    if scans[0].stamp_s < last:
+        raise SessionError(
+            f"{scans[0].source}: the log starts at {scans[0].stamp_s:.6f} s, before the "
+            f"session's last scan ({last:.6f} s); the map's time-validity needs the new log "
+            "to come later"
+        )
     placement = place_first_scan(fixed_map_of(slam), scans, initial_pose)
     logger.info(
         "first scan placed at %s near node %d (correlation %.2f)",
