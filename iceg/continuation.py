@@ -22,12 +22,15 @@ from numpy.typing import ArrayLike, NDArray
 from tqdm.auto import tqdm
 
 from frontends import LaserScan
+from graph import odometry_covariance
 from iceg import session as sess
 from iceg.features import extract
 from iceg.localize import FixedMap, Localizer, LocalizeSettings, Placement, Status
 from iceg.matching import MatchBounds
 from iceg.results import SlamResult
 from iceg.slam import Slam
+from iceg.types import MatchResult, ScanFeatures
+from iceg_common import se2
 from iceg_common.errors import SessionError
 
 logger = logging.getLogger(__name__)
@@ -45,42 +48,88 @@ def fixed_map_of(slam: Slam) -> FixedMap:
     return FixedMap(ids, poses, slam.feature_map, slam.config)
 
 
+#: Scans tried, in order, for a placement when the first ones cannot be placed (a scan with
+#: too few features, e.g. facing a bare wall); the placement is carried back to the first scan
+#: by odometry.
+START_SCANS = 60
+
+
 def place_first_scan(
     fixed: FixedMap,
     scans: Sequence[LaserScan],
     initial_pose: ArrayLike | None = None,
     settings: LocalizeSettings | None = None,
 ) -> Placement:
-    """Place ``scans[0]`` in the map and confirm it by tracking the next scans.
+    """Place ``scans[0]`` in the map, confirmed by tracking the next scans.
+
+    The first scan that can be placed among the first :data:`START_SCANS` (around
+    ``initial_pose``, carried along by odometry, when given; else globally) is placed and
+    confirmed (:func:`_confirm`); when it is not the first scan, its placement is carried back
+    to the first scan by odometry (the covariance grows by the odometry noise).
 
     Args:
         fixed: the map.
-        scans: the new log's scans (the first :data:`CONFIRM_SCANS` are used).
-        initial_pose: ``(3,)`` map-frame guess ``[x_m, y_m, theta_rad]``; tried first.
+        scans: the new log's scans.
+        initial_pose: ``(3,)`` map-frame guess of the first scan ``[x_m, y_m, theta_rad]``.
         settings: localization tuning.
+
+    Returns:
+        The first scan's placement (``match.pose`` in the frame of node ``anchor``).
 
     Raises:
         SessionError: no placement, an ambiguous one, or one the next scans contradict.
     """
     st = settings or LocalizeSettings()
-    feats = extract(scans[0], fixed.config.features)
-    placement = None
-    if initial_pose is not None:
-        pose = np.asarray(initial_pose, dtype=np.float64)
+    guess = None if initial_pose is None else np.asarray(initial_pose, dtype=np.float64)
+    for k, scan in enumerate(scans[:START_SCANS]):
+        if k and (scan.odom_pose is None or scan.odom_break):
+            break  # no odometry back to the first scan
+        feats = extract(scan, fixed.config.features)
+        if feats.n_features < 2:
+            continue
+        here = None if guess is None else se2.compose(guess, _odometry(scans, 0, k))
+        placement = _place_one(fixed, feats, here, st)
+        if placement is None:
+            continue
+        _confirm(fixed, scans[k:], placement, st)
+        return placement if k == 0 else _carry_back(fixed, scans, k, placement)
+    raise SessionError(
+        f"{scans[0].source}: the log cannot be placed in the map (no unambiguous ICE match of "
+        f"enough correlation and fit in its first {min(len(scans), START_SCANS)} scans); is "
+        "it from this building? Give --initial-pose X Y THETA_DEG if it is"
+    )
+
+
+def _odometry(scans: Sequence[LaserScan], i: int, j: int) -> FloatArray:
+    """Odometry motion from scan ``i`` to scan ``j`` (``(3,)``, frame of scan ``i``)."""
+    return se2.between(scans[i].odom_pose, scans[j].odom_pose)  # type: ignore[arg-type]
+
+
+def _place_one(
+    fixed: FixedMap, feats: ScanFeatures, guess: FloatArray | None, st: LocalizeSettings
+) -> Placement | None:
+    if guess is not None:
         bounds = MatchBounds.local(st.initial_translation_m, st.initial_rotation_deg)
-        placement = fixed.match_at(feats, pose, bounds, st.reference_nodes)
-        if placement is not None and placement.match.correlation < st.min_correlation:
-            placement = None
-    if placement is None:
-        placement = fixed.place(feats, st)
-    if placement is None:
-        raise SessionError(
-            f"{scans[0].source}: the first scan of the log cannot be placed in the map (no "
-            "unambiguous ICE match of enough correlation and fit); is the log from this "
-            "building? Give --initial-pose X Y THETA_DEG if it is"
-        )
-    _confirm(fixed, scans, placement, st)
-    return placement
+        p = fixed.match_at(feats, guess, bounds, st.reference_nodes)
+        if p is not None and p.match.correlation >= st.min_correlation:
+            return p
+    return fixed.place(feats, st)
+
+
+def _carry_back(fixed: FixedMap, scans: Sequence[LaserScan], k: int, p: Placement) -> Placement:
+    """Scan ``k``'s placement moved to scan 0 by the odometry between them."""
+    back = _odometry(scans, k, 0)
+    pose0 = se2.compose(p.pose, back)
+    ad = se2.adjoint(se2.inverse(back))
+    cov = ad @ p.match.cov @ ad.T + odometry_covariance(back, fixed.config.odometry_noise)
+    anchor_pose = fixed.poses[int(np.searchsorted(fixed.ids, p.anchor))]
+    match = MatchResult(
+        success=True,
+        pose=se2.between(anchor_pose, pose0),
+        cov=0.5 * (cov + cov.T),
+        correlation=p.match.correlation,
+    )
+    return Placement(p.anchor, p.reference, match, pose0)
 
 
 def _confirm(
