@@ -26,10 +26,14 @@ scale error, 0.4 deg/m heading drift, default white noise; reference = corrected
 ``frontends.simulate.synthetic_odometry``). Real logs come from ``../shared/data`` (or
 ``$ICEG_SHARED_DATA``); a case whose file is absent is reported as skipped.
 
-Each row is one call of :func:`run_case`, reusable by a batch runner.
+Each row is one call of :func:`run_case`, reusable by a batch runner; and the whole benchmark
+is one ``iceg batch`` spec (:func:`batch_spec`): ``--batch DIR`` runs it through
+``iceg.batch.run_batch`` (Ray, or ``--local``; resumable, one table in ``DIR/summary.md``) and
+``--write-spec PATH`` writes it as YAML for ``iceg batch PATH``.
 
 Run: ``python benchmarks/bench_accuracy.py [--only NAME ...] [--quick] [--json PATH]
-[--maps DIR] [--seed N]``. ``--quick`` stops every case after its first 300 scans (a smoke
+[--maps DIR] [--seed N] [--batch DIR [--local] [--workers N]] [--write-spec PATH]``.
+``--quick`` stops every case after its first 300 scans (a smoke
 test: loops are not closed).
 """
 
@@ -312,6 +316,70 @@ def format_table(rows: Sequence[dict[str, Any]]) -> str:
     return "\n".join(out)
 
 
+# ---------------------------------------------------------------------------- batch spec
+
+#: Synthetic odometry of the corrected logs and of CSAIL's added drift, as spec entries.
+_SPEC_BIASED = {"scale_error": 0.01, "heading_drift_deg_per_m": 0.4, "noise": True}
+_SPEC_DRIFT_ONLY = {"scale_error": 0.0, "heading_drift_deg_per_m": 0.4, "noise": False}
+
+
+def _spec_log(name: str) -> dict[str, Any]:
+    """The batch-spec log entry of case ``name`` (same input as :data:`CASES`)."""
+    if name in SCENARIOS:
+        return {"name": name, "path": f"sim:{name}"}
+    csail = {"path": str(DATA / "mit-csail/mit-csail.clf")}
+    rel = {"relations": str(DATA / "mit-csail/mit-csail.relations")}
+    corrected = {
+        "aces_synth": ("aces/aces-corrected.log.gz", None),
+        "csail_log_synth": ("mit-csail/csail.log", None),
+        "csail_corrected_synth": ("mit-csail/csail-corrected.log.gz", 1.0),
+    }
+    if name == "csail_raw":
+        return {"name": name, **csail, **rel}
+    if name == "csail_raw_drift":
+        return {"name": name, **csail, **rel, "synthetic_odometry": _SPEC_DRIFT_ONLY}
+    relative, restamp = corrected[name]
+    return {
+        "name": name,
+        "path": str(DATA / relative),
+        "reference": "log_odometry",
+        "synthetic_odometry": {**_SPEC_BIASED, "restamp_hz": restamp},
+    }
+
+
+def batch_spec(
+    names: Sequence[str] | None = None, quick: bool = False, seeds: Sequence[int] = (0,)
+) -> dict[str, Any]:
+    """The benchmark as one ``iceg batch`` spec (a dict; :func:`iceg.batch.spec_from_dict`):
+    every case of :data:`CASES` (or ``names``) with the default configuration, ``quick``:
+    the first :data:`QUICK_SCANS` scans. An absent real log is a failed run in the table."""
+    logs = [_spec_log(n) for n in (names or list(CASES))]
+    if quick:
+        logs = [{**entry, "max_scans": QUICK_SCANS} for entry in logs]
+    return {"name": "accuracy", "logs": logs, "seeds": list(seeds), "outputs": "metrics"}
+
+
+def _run_as_batch(args: argparse.Namespace) -> int:
+    """``--batch`` / ``--write-spec``: the benchmark through ``iceg.batch``."""
+    import yaml
+
+    from iceg.batch import run_batch, spec_from_dict
+
+    data = batch_spec(args.only, quick=args.quick, seeds=[args.seed])
+    if args.write_spec is not None:
+        args.write_spec.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
+    if args.batch is None:
+        return 0
+    report = run_batch(
+        spec_from_dict(data, "bench_accuracy"),
+        args.batch,
+        executor="local" if args.local else "ray",
+        workers=args.workers,
+    )
+    sys.stdout.write(report.markdown.read_text(encoding="utf-8"))
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
     ap.add_argument("--only", action="append", choices=sorted(CASES), help="case (repeatable)")
@@ -319,7 +387,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, help="also write the rows as JSON here")
     ap.add_argument("--maps", type=Path, help="save each run's output files in MAPS/<case>")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--batch", type=Path, help="run the cases as one iceg batch in BATCH")
+    ap.add_argument("--local", action="store_true", help="--batch on a process pool, not Ray")
+    ap.add_argument("--workers", type=int, help="--batch: parallel runs")
+    ap.add_argument("--write-spec", type=Path, help="write the batch spec (YAML) here")
     args = ap.parse_args(argv)
+    if args.batch is not None or args.write_spec is not None:
+        return _run_as_batch(args)
     rows = []
     for name in args.only or list(CASES):
         rows.append(run_case(name, quick=args.quick, seed=args.seed, maps_dir=args.maps))

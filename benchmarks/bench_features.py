@@ -4,12 +4,17 @@ Prints the median and 95th-percentile wall time of ``iceg.features.extract`` per
 the whole log (target from issue 3: median <= 1.0 ms), and the mean number of segments,
 Corners, ends of wall and Intersections per scan. Reads ``../shared/data/mit-csail``.
 
-Usage: ``python benchmarks/bench_features.py [path/to/mit-csail.clf] [--repeat N]``
+With ``--large-beams N`` it also times one noise-free synthetic 360° scan of N beams in a
+star-shaped room of 500 faces (issue 12: feature extraction is linear in beams and segments).
+
+Usage: ``python benchmarks/bench_features.py [path/to/mit-csail.clf] [--repeat N]
+[--large-beams N]``
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import time
 from pathlib import Path
@@ -24,6 +29,31 @@ DEFAULT_LOG = (
 )
 
 
+def time_large_scan(n_beams: int, n_teeth: int = 250, radius_m: float = 15.0) -> None:
+    """Time ``extract`` on a noise-free scan from the centre of a star-shaped room whose
+    vertices alternate between ``radius_m`` and ``radius_m`` plus half a tooth's arc (faces
+    at about 45° to the beams, ``2 n_teeth`` segments) and print the figures."""
+    from frontends.scan import LaserScan
+    from frontends.simulate import ray_ranges
+    from iceg.features import extract
+
+    step = 2.0 * math.pi / n_teeth
+    k = np.arange(2 * n_teeth)
+    radius = np.where(k % 2 == 0, radius_m, radius_m * (1.0 + step / 2.0))
+    verts = np.c_[radius * np.cos(k * step / 2.0), radius * np.sin(k * step / 2.0)]
+    walls = np.stack([verts, np.roll(verts, -1, axis=0)], axis=1)
+    angles = np.linspace(-math.pi, math.pi, n_beams, endpoint=False)
+    chunks = np.array_split(angles, max(1, n_beams // 20_000))
+    ranges = np.concatenate([ray_ranges(np.zeros(2), c, walls) for c in chunks])
+    scan = LaserScan(0.0, ranges, angles, 0.0, 20.0, None, source="sawtooth")
+    t0 = time.perf_counter()
+    f = extract(scan)
+    dt = time.perf_counter() - t0
+    print(
+        f"large scan: {n_beams} beams, {f.n_segments} segments, {f.n_features} features, {dt:.2f} s"
+    )
+
+
 def main() -> None:
     """Time ``extract`` on every scan of the log and print the figures."""
     from frontends import open_log
@@ -33,7 +63,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("log", nargs="?", type=Path, default=DEFAULT_LOG)
     parser.add_argument("--repeat", type=int, default=3, help="timed passes over the log")
+    parser.add_argument("--large-beams", type=int, default=0, help="also time a synthetic scan")
     args = parser.parse_args()
+    if args.large_beams:
+        time_large_scan(args.large_beams)
     if not args.log.is_file():
         print(f"skipped: {args.log} is absent (it lives in ../shared/data beside the repo)")
         return

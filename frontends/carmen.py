@@ -466,77 +466,112 @@ class CarmenReader:
         self.n_odom_records = 0
         params = _Params()
         use_odom = self.config.odometry == "odom"
-        odom_t: list[float] = []  # recent ODOM stamps (sorted) and poses, for interpolation
-        odom_p: list[FloatArray] = []
-        pending: deque[_PendingScan] = deque()
+        odom = _OdomTrack()
         n_scans = 0
         try:
             with open_text(self.path) as fh:
-                for line_no, line in enumerate(fh, start=1):
-                    tokens = line.split()
-                    if not tokens:
-                        self.skipped_records["blank"] += 1
-                        continue
-                    kind = tokens[0]
-                    if kind.startswith("#"):
-                        self.skipped_records["comment"] += 1
-                        continue
+                for line_no, kind, tokens in self._record_lines(fh):
                     try:
-                        if kind in _LASER_RECORDS:
-                            scan = self._parse_laser(kind, tokens, params, line_no)
-                        elif kind == "ODOM":
-                            t, pose = self._parse_odom(tokens)
-                            self.n_odom_records += 1
-                            if not use_odom:
-                                self.skipped_records["ODOM"] += 1
-                                continue
-                            _insert_odom(odom_t, odom_p, t, pose)
-                            while pending and pending[0].stamp_s <= odom_t[-1]:
-                                yield "ODOM", self._finish(pending.popleft(), odom_t, odom_p)
-                                n_scans += 1
-                            continue
-                        elif kind == "PARAM":
-                            if not self._parse_param(tokens, params):
-                                self.skipped_records["PARAM"] += 1
-                            continue
-                        elif _RECORD_NAME.match(kind):
-                            self.skipped_records[kind] += 1
-                            continue
-                        else:
-                            raise _Malformed(
-                                f"the line starts with {kind[:40]!r}, which is not a CARMEN "
-                                "record name (a broken or wrapped line?)"
-                            )
+                        item = self._parse_record(kind, tokens, params, line_no, use_odom)
                     except _Malformed as exc:
                         self._malformed(line_no, str(exc))
                         continue
-                    if not use_odom:
-                        yield scan.frame, self._finish(scan, None, None)
-                        n_scans += 1
-                    elif not pending and odom_t and scan.stamp_s <= odom_t[-1]:
-                        yield "ODOM", self._finish(scan, odom_t, odom_p)
-                        n_scans += 1
+                    if item is None:
+                        continue
+                    if isinstance(item, _PendingScan):
+                        ready = self._place_scan(item, odom, use_odom, line_no)
                     else:
-                        pending.append(scan)
-                        if len(pending) > self.config.max_pending_scans:
-                            raise LogFormatError(
-                                f"{self.path}:{line_no}: {len(pending)} scans since line "
-                                f"{pending[0].line_no} have no ODOM record at or after their "
-                                "timestamp; open the log with odometry='record' to use the "
-                                "poses inside the laser records"
-                            )
+                        ready = [
+                            ("ODOM", self._finish(sc, odom.t, odom.p)) for sc in odom.add(*item)
+                        ]
+                    n_scans += len(ready)
+                    yield from ready
         except (OSError, EOFError, zlib.error) as exc:
             raise LogFormatError(f"{self.path}: cannot read the log ({exc})") from exc
-        if pending:
-            if not odom_t:
-                raise LogFormatError(
-                    f"{self.path}: odometry='odom' but the log has no valid ODOM record for its "
-                    f"{len(pending)} scans; open it with odometry='record' to use the poses "
-                    "inside the laser records"
-                )
-            while pending:
-                yield "ODOM", self._finish(pending.popleft(), odom_t, odom_p)
-                n_scans += 1
+        for scan in self._flush_pending(odom):
+            n_scans += 1
+            yield "ODOM", scan
+        self._warn_malformed(n_scans)
+
+    def _record_lines(self, fh: Iterable[str]) -> Iterator[tuple[int, str, list[str]]]:
+        """``(line number, record name, tokens)`` of every line that is not blank or a comment
+        (those are counted in :attr:`skipped_records`)."""
+        for line_no, line in enumerate(fh, start=1):
+            tokens = line.split()
+            if not tokens:
+                self.skipped_records["blank"] += 1
+            elif tokens[0].startswith("#"):
+                self.skipped_records["comment"] += 1
+            else:
+                yield line_no, tokens[0], tokens
+
+    def _parse_record(
+        self, kind: str, tokens: list[str], params: _Params, line_no: int, use_odom: bool
+    ) -> _PendingScan | tuple[float, FloatArray] | None:
+        """A laser record's scan, an ODOM record's ``(stamp, pose)`` (when odometry comes from
+        ODOM records), or ``None`` for a record that is skipped (counted) or a PARAM.
+
+        Raises:
+            _Malformed: the line is not a valid record.
+        """
+        if kind in _LASER_RECORDS:
+            return self._parse_laser(kind, tokens, params, line_no)
+        if kind == "ODOM":
+            t, pose = self._parse_odom(tokens)
+            self.n_odom_records += 1
+            if use_odom:
+                return t, pose
+            self.skipped_records["ODOM"] += 1
+        elif kind == "PARAM":
+            if not self._parse_param(tokens, params):
+                self.skipped_records["PARAM"] += 1
+        elif _RECORD_NAME.match(kind):
+            self.skipped_records[kind] += 1
+        else:
+            raise _Malformed(
+                f"the line starts with {kind[:40]!r}, which is not a CARMEN record name (a "
+                "broken or wrapped line?)"
+            )
+        return None
+
+    def _place_scan(
+        self, scan: _PendingScan, odom: _OdomTrack, use_odom: bool, line_no: int
+    ) -> list[tuple[str, LaserScan]]:
+        """The scans ready to yield once ``scan`` is read: itself when its odometry is known
+        (in the record, or ODOM records at or after its stamp), else none (it waits).
+
+        Raises:
+            LogFormatError: more than ``max_pending_scans`` scans wait for an ODOM record.
+        """
+        if not use_odom:
+            return [(scan.frame, self._finish(scan, None, None))]
+        if not odom.pending and odom.t and scan.stamp_s <= odom.t[-1]:
+            return [("ODOM", self._finish(scan, odom.t, odom.p))]
+        odom.pending.append(scan)
+        if len(odom.pending) > self.config.max_pending_scans:
+            raise LogFormatError(
+                f"{self.path}:{line_no}: {len(odom.pending)} scans since line "
+                f"{odom.pending[0].line_no} have no ODOM record at or after their timestamp; "
+                "open the log with odometry='record' to use the poses inside the laser records"
+            )
+        return []
+
+    def _flush_pending(self, odom: _OdomTrack) -> Iterator[LaserScan]:
+        """Scans still waiting at the end of the file, interpolated with the last ODOM poses.
+
+        Raises:
+            LogFormatError: scans wait but the log has no valid ODOM record at all.
+        """
+        if odom.pending and not odom.t:
+            raise LogFormatError(
+                f"{self.path}: odometry='odom' but the log has no valid ODOM record for its "
+                f"{len(odom.pending)} scans; open it with odometry='record' to use the poses "
+                "inside the laser records"
+            )
+        while odom.pending:
+            yield self._finish(odom.pending.popleft(), odom.t, odom.p)
+
+    def _warn_malformed(self, n_scans: int) -> None:
         if self.malformed:
             first_line, first_reason = self.malformed[0]
             logger.warning(
@@ -705,6 +740,24 @@ _ODOM_HISTORY = 256
 
 #: Odometry breaks logged one by one; the rest are summarized in one warning.
 _LOGGED_BREAKS = 5
+
+
+class _OdomTrack:
+    """ODOM records seen so far (sorted stamps and poses, for interpolation) and the scans that
+    wait for an ODOM record at or after their stamp."""
+
+    def __init__(self) -> None:
+        self.t: list[float] = []
+        self.p: list[FloatArray] = []
+        self.pending: deque[_PendingScan] = deque()
+
+    def add(self, t: float, pose: FloatArray) -> list[_PendingScan]:
+        """Insert an ODOM pose; return the waiting scans it now brackets (oldest first)."""
+        _insert_odom(self.t, self.p, t, pose)
+        ready = []
+        while self.pending and self.pending[0].stamp_s <= self.t[-1]:
+            ready.append(self.pending.popleft())
+        return ready
 
 
 def _insert_odom(odom_t: list[float], odom_p: list[FloatArray], t: float, pose: FloatArray) -> None:

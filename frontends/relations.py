@@ -110,52 +110,11 @@ def read_relations(path: str | Path, drop_duplicates: bool = False) -> Relations
             numbers or has a non-zero ``z``/``roll``/``pitch`` (``path:line`` in the message).
     """
     p = Path(path)
-    rows: list[tuple[float, ...]] = []
-    line_nos: list[int] = []
-    try:
-        with open(p, encoding="utf-8", errors="replace") as fh:
-            for line_no, line in enumerate(fh, start=1):
-                tokens = line.split()
-                if not tokens or tokens[0].startswith("#"):
-                    continue
-                rows.append(_parse_line(p, line_no, tokens))
-                line_nos.append(line_no)
-    except OSError as exc:
-        raise LogFormatError(f"{p}: cannot read the relations file ({exc})") from exc
+    rows, line_nos = _read_rows(p)
     n_lines = len(rows)
-    if n_lines == 0:
-        raise LogFormatError(
-            f"{p}: the file holds no relations (lines 't1 t2 x y z roll pitch yaw'); "
-            "is it the right file?"
-        )
-    seen: dict[tuple[float, ...], int] = {}
-    kept: list[tuple[float, ...]] = []
-    duplicates: list[tuple[int, int]] = []  # (line, the earlier line it repeats)
-    for row, line_no in zip(rows, line_nos, strict=True):
-        if row in seen:
-            duplicates.append((line_no, seen[row]))
-            if drop_duplicates:
-                continue
-        else:
-            seen[row] = line_no
-        kept.append(row)
-    rows = kept
+    rows, duplicates = _deduplicate(rows, line_nos, drop_duplicates)
     if duplicates:
-        listed = ", ".join(f"line {a} repeats line {b}" for a, b in duplicates[:5])
-        more = f" and {len(duplicates) - 5} more" if len(duplicates) > 5 else ""
-        action = (
-            "dropped"
-            if drop_duplicates
-            else "kept (scores average over every line); pass drop_duplicates=True to drop them"
-        )
-        logger.warning(
-            "%s: %d exact duplicate relation line(s) (%s%s): %s",
-            p,
-            len(duplicates),
-            listed,
-            more,
-            action,
-        )
+        _warn_duplicates(p, duplicates, drop_duplicates)
     table = np.array(rows, dtype=np.float64).reshape(-1, _N_FIELDS)
     stamps = table[:, 0:2].copy()
     deltas = table[:, [2, 3, 7]].copy()
@@ -176,6 +135,70 @@ def read_relations(path: str | Path, drop_duplicates: bool = False) -> Relations
         n_duplicates=len(duplicates),
         n_duplicates_dropped=len(duplicates) if drop_duplicates else 0,
         n_swapped=n_swapped,
+    )
+
+
+def _read_rows(p: Path) -> tuple[list[tuple[float, ...]], list[int]]:
+    """The numeric rows of a relations file and their line numbers (blank lines and ``#``
+    comments skipped).
+
+    Raises:
+        LogFormatError: the file is unreadable, a line is malformed, or no line holds a relation.
+    """
+    rows: list[tuple[float, ...]] = []
+    line_nos: list[int] = []
+    try:
+        with open(p, encoding="utf-8", errors="replace") as fh:
+            for line_no, line in enumerate(fh, start=1):
+                tokens = line.split()
+                if not tokens or tokens[0].startswith("#"):
+                    continue
+                rows.append(_parse_line(p, line_no, tokens))
+                line_nos.append(line_no)
+    except OSError as exc:
+        raise LogFormatError(f"{p}: cannot read the relations file ({exc})") from exc
+    if not rows:
+        raise LogFormatError(
+            f"{p}: the file holds no relations (lines 't1 t2 x y z roll pitch yaw'); "
+            "is it the right file?"
+        )
+    return rows, line_nos
+
+
+def _deduplicate(
+    rows: list[tuple[float, ...]], line_nos: list[int], drop: bool
+) -> tuple[list[tuple[float, ...]], list[tuple[int, int]]]:
+    """Rows kept (exact repeats dropped when ``drop``) and ``(line, earlier line it repeats)``
+    for every exact repeat."""
+    seen: dict[tuple[float, ...], int] = {}
+    kept: list[tuple[float, ...]] = []
+    duplicates: list[tuple[int, int]] = []
+    for row, line_no in zip(rows, line_nos, strict=True):
+        if row in seen:
+            duplicates.append((line_no, seen[row]))
+            if drop:
+                continue
+        else:
+            seen[row] = line_no
+        kept.append(row)
+    return kept, duplicates
+
+
+def _warn_duplicates(p: Path, duplicates: list[tuple[int, int]], dropped: bool) -> None:
+    listed = ", ".join(f"line {a} repeats line {b}" for a, b in duplicates[:5])
+    more = f" and {len(duplicates) - 5} more" if len(duplicates) > 5 else ""
+    action = (
+        "dropped"
+        if dropped
+        else "kept (scores average over every line); pass drop_duplicates=True to drop them"
+    )
+    logger.warning(
+        "%s: %d exact duplicate relation line(s) (%s%s): %s",
+        p,
+        len(duplicates),
+        listed,
+        more,
+        action,
     )
 
 

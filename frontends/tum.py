@@ -15,6 +15,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from iceg_common.atomic import atomic_write
 from iceg_common.errors import LogFormatError
+from iceg_common.text import read_text_lines
 
 FloatArray = NDArray[np.float64]
 
@@ -60,14 +61,7 @@ def read_tum(path: str | Path) -> tuple[FloatArray, FloatArray]:
     p = Path(path)
     if not p.is_file():
         raise LogFormatError(f"{p}: no such trajectory file")
-    try:
-        lines = p.read_text(encoding="utf-8").splitlines()
-    except UnicodeDecodeError as exc:
-        raise LogFormatError(
-            f"{p}: not a text TUM trajectory (byte {exc.start} is not UTF-8; a binary file?)"
-        ) from None
-    except OSError as exc:
-        raise LogFormatError(f"{p}: cannot read the trajectory ({exc})") from exc
+    lines = read_text_lines(p, "TUM trajectory", LogFormatError)
     rows = _parse_rows(p, lines)
     a = np.array(rows)
     qx, qy, qz, qw = a[:, 4], a[:, 5], a[:, 6], a[:, 7]

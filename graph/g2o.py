@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 
 from iceg_common.atomic import atomic_write
 from iceg_common.errors import GraphError
+from iceg_common.text import read_text_lines
 
 FloatArray = NDArray[np.float64]
 
@@ -116,14 +117,7 @@ def _scan(path: Path) -> tuple[int, int, list[tuple[int, list[str]]]]:
     iceg: list[tuple[int, list[str]]] = []
     last_record = 0
     first_comment = 0
-    try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except UnicodeDecodeError as exc:
-        raise GraphError(
-            f"{path}: not a text g2o file (byte {exc.start} is not UTF-8; a binary file?)"
-        ) from None
-    except OSError as exc:
-        raise GraphError(f"{path}: cannot read the g2o file ({exc})") from exc
+    lines = read_text_lines(path, "g2o file", GraphError)
     for line_no, line in enumerate(lines, start=1):
         tokens = line.split()
         if not tokens:

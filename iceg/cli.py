@@ -430,6 +430,55 @@ def _load_config(path: Path | None) -> Any:
     return IcegConfig() if path is None else config_from_yaml(path)
 
 
+@app.command("batch")
+@_one_line_errors
+def batch(
+    spec: Annotated[Path, typer.Argument(help="Batch spec (YAML): logs, config grid, seeds.")],
+    out: Annotated[
+        Path | None, typer.Option(help="Batch folder (default: results/batch-<spec name>).")
+    ] = None,
+    local: Annotated[
+        bool, typer.Option("--local", help="Run on a local process pool instead of Ray.")
+    ] = False,
+    workers: Annotated[
+        int | None, typer.Option(help="Parallel runs (default: this machine's cores).")
+    ] = None,
+    address: Annotated[
+        str | None, typer.Option(help="Join this Ray cluster ('auto', 'ray://host:10001').")
+    ] = None,
+    retry_failed: Annotated[
+        bool, typer.Option(help="Run failed and timed-out runs again.")
+    ] = False,
+) -> None:
+    """Run many logs x configs x seeds (Ray, or --local) into one table: summary.csv,
+    timings.csv, summary.md and variants.png. Finished runs are kept (resumable)."""
+    from iceg.batch import load_spec, run_batch
+
+    s = load_spec(spec)
+    out_dir = out if out is not None else Path("results") / f"batch-{s.name}"
+
+    def on_row(row: dict[str, Any], reused: bool) -> None:
+        what = "kept" if reused else f"{row['seconds']:.1f} s"
+        err = f": {row['error']}" if row["error"] else ""
+        typer.echo(f"  {row['status']:<7} {row['run_id']} ({what}){err}")
+
+    typer.echo(f"iceg batch: {spec} -> {out_dir}")
+    report = run_batch(
+        s,
+        out_dir,
+        spec_dir=spec.parent,
+        executor="local" if local else "ray",
+        workers=workers,
+        address=address,
+        retry_failed=retry_failed,
+        on_row=on_row,
+    )
+    typer.echo(
+        f"{len(report.rows)} runs, {report.n_failed} failed; table: {report.markdown}, "
+        f"{report.summary_csv}"
+    )
+
+
 # --------------------------------------------------------------------------- map life cycle
 # (issue 15: sessions; see iceg.session, iceg.edit, iceg.localize, iceg.merge)
 

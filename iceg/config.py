@@ -22,6 +22,7 @@ from iceg.features import FeatureConfig
 from iceg.grid import GridConfig
 from iceg.loop_closure import LoopClosureConfig
 from iceg.matching import MatchingConfig
+from iceg.odometry_calibration import OdometryCalibrationConfig
 from iceg_common.errors import ConfigError
 
 
@@ -79,6 +80,9 @@ class IcegConfig(BaseModel):
     feature_map: FeatureMapConfig = Field(default_factory=FeatureMapConfig)
     graph: GraphConfig = Field(default_factory=GraphConfig)
     odometry_noise: OdometryNoiseConfig = Field(default_factory=OdometryNoiseConfig)
+    odometry_calibration: OdometryCalibrationConfig = Field(
+        default_factory=OdometryCalibrationConfig
+    )
     slam: SlamConfig = Field(default_factory=SlamConfig)
     loop_closure: LoopClosureConfig = Field(default_factory=LoopClosureConfig)
     grid: GridConfig = Field(default_factory=GridConfig)

@@ -1,5 +1,5 @@
 """The ICE feature map: landmarks anchored to graph nodes, references for matching, and
-time-validity pruning (paper §III-C3, last paragraph; DESIGN.md "Feature map and
+time-validity pruning (paper §III-C3, last paragraph; docs/design.md "Feature map and
 time-validity").
 
 Each landmark (an ICE feature) is anchored to the node that first observed it and stored in
@@ -31,7 +31,7 @@ from frontends.scan import LaserScan
 from iceg.matching import transform_lines
 from iceg.types import FeatureKind, MatchResult, ScanFeatures
 from iceg_common.errors import FeatureMapError
-from iceg_common.se2 import between, compose, inverse
+from iceg_common.se2 import between, compose, inverse, rotation_matrix
 
 log = logging.getLogger(__name__)
 
@@ -74,7 +74,7 @@ _RANK[CORNER], _RANK[EOW], _RANK[INTERSECTION] = 2, 1, 0
 class FeatureMapConfig(BaseModel):
     """Association, visibility and time-validity settings of the feature map (paper §III-C3:
     "each feature has a time-validity property ... features placed in visible area but
-    observed rarely will be omitted from the map"; DESIGN "Feature map and time-validity").
+    observed rarely will be omitted from the map"; docs/design.md "Feature map and time-validity").
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -96,14 +96,14 @@ class FeatureMapConfig(BaseModel):
         default=2.0,
         ge=0.0,
         description="Margin inside the scan's angular limits for a support point to count as "
-        "in the field of view (DESIGN: expected = inside the current field of view).",
+        "in the field of view (docs/design.md: expected = inside the current field of view).",
     )
     occlusion_tolerance_m: float = Field(
         default=0.2,
         gt=0.0,
         description="A support point is occluded when a beam around its bearing is shorter "
-        "than its distance minus this (DESIGN: the scan's range at its bearing is not shorter "
-        "than its distance).",
+        "than its distance minus this (docs/design.md: the scan's range at its bearing is not "
+        "shorter than its distance).",
     )
     support_offset_m: float = Field(
         default=0.3,
@@ -279,18 +279,6 @@ class MapReference:
         return self.features.ids
 
 
-def _rot(theta: FloatArray) -> FloatArray:
-    """Rotation matrices ``(..., 2, 2)`` of angles ``(...)`` radians."""
-    t = np.asarray(theta, dtype=np.float64)
-    c, s = np.cos(t), np.sin(t)
-    out = np.empty((*t.shape, 2, 2))
-    out[..., 0, 0] = c
-    out[..., 0, 1] = -s
-    out[..., 1, 0] = s
-    out[..., 1, 1] = c
-    return out
-
-
 def _move_points(r: FloatArray, t: FloatArray, pts: FloatArray) -> FloatArray:
     """``(n, k, 2)`` points moved by rotations ``r`` ``(n, 2, 2)`` and translations ``t``
     ``(n, 2)``."""
@@ -372,7 +360,7 @@ class _Landmarks(_Columns):
 
     def in_frame(self, frame_from_anchor: FloatArray) -> LandmarkView:
         """These landmarks in another frame, given each anchor's pose ``(L, 3)`` there."""
-        r = _rot(frame_from_anchor[:, 2])
+        r = rotation_matrix(frame_from_anchor[:, 2])
         return LandmarkView(
             ids=self.id,
             anchor=self.anchor,
@@ -408,7 +396,7 @@ class _Segments(_Columns):
     def in_frame(self, frame_from_node: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Endpoints ``(M, 2, 2)``, lines ``(M, 2)`` and their covariances ``(M, 2, 2)`` in
         another frame, given each node's pose ``(M, 3)`` there."""
-        ep = _move_points(_rot(frame_from_node[:, 2]), frame_from_node[:, :2], self.ep)
+        ep = _move_points(rotation_matrix(frame_from_node[:, 2]), frame_from_node[:, :2], self.ep)
         lines, cov = transform_lines(self.lines, self.cov, frame_from_node)
         return ep, lines, cov
 
@@ -503,7 +491,7 @@ class _BeamProfile:
         if self.sensor_pose is None:
             return pts
         off = self.sensor_pose
-        return np.einsum("ba,nkb->nka", _rot(off[2]), pts - off[:2])
+        return np.einsum("ba,nkb->nka", rotation_matrix(off[2]), pts - off[:2])
 
     def clear(self, bearing: FloatArray, dist: FloatArray, tolerance_m: float) -> BoolArray:
         """Whether both beams around each ``bearing`` reach at least ``dist - tolerance_m``
@@ -769,7 +757,7 @@ class FeatureMap:
         frame_pose: ArrayLike,
     ) -> MapReference:
         """Build a matching reference from chosen nodes (recent ones for tracking, older
-        ones near the current estimate for loop closure; DESIGN "Feature map").
+        ones near the current estimate for loop closure; docs/design.md "Feature map").
 
         It holds the landmarks anchored to ``node_ids`` or last matched from one of them,
         and the segments of those nodes, all in the frame of ``frame_pose``.
@@ -841,7 +829,7 @@ class FeatureMap:
         ppos, pfound = _lookup(ids, pt.node)
         psel = np.flatnonzero(np.isin(pt.node, want) & pfound)
         prel = between(frame, poses[ppos[psel]])
-        points = np.einsum("nab,nb->na", _rot(prel[:, 2]), pt.xy[psel]) + prel[:, :2]
+        points = np.einsum("nab,nb->na", rotation_matrix(prel[:, 2]), pt.xy[psel]) + prel[:, :2]
         # Each node's points are contiguous: shift its segments' ranges to its block.
         nodes_sel, first = np.unique(pt.node[psel], return_index=True)
         k = np.searchsorted(nodes_sel, sg.node[ssel])
@@ -1051,7 +1039,8 @@ class FeatureMap:
             between(new_pose, tab_poses[apos[rows]]) if rows.shape[0] else np.zeros((0, 3))
         )
         xy_new = (
-            np.einsum("nab,nb->na", _rot(anchor_in_new[:, 2]), lm.xy[rows]) + anchor_in_new[:, :2]
+            np.einsum("nab,nb->na", rotation_matrix(anchor_in_new[:, 2]), lm.xy[rows])
+            + anchor_in_new[:, :2]
         )
         slot = np.full(len(self), -1, dtype=np.int64)
         slot[rows] = np.arange(rows.shape[0])
@@ -1122,7 +1111,7 @@ class FeatureMap:
         """Landmark rows ``rr`` take new features ``fi``, whose node sits at ``na`` ``(n, 3)``
         in each anchor's frame."""
         lm = self._lm
-        r = _rot(na[:, 2])
+        r = rotation_matrix(na[:, 2])
         lm.xy[rr] = np.einsum("nab,nb->na", r, features.xy[fi]) + na[:, :2]
         lm.cov[rr] = r @ features.cov[fi] @ np.swapaxes(r, 1, 2)
         lm.dirs[rr] = np.einsum("nab,nkb->nka", r, features.directions[fi])
@@ -1170,7 +1159,7 @@ class FeatureMap:
         scan: LaserScan | None,
     ) -> BoolArray:
         """Which landmarks (``rows``, anchors at ``anchor_in_new`` in the new frame) the scan
-        should see (DESIGN: inside the field of view and range, not occluded; and its walls
+        should see (docs/design.md: inside the field of view and range, not occluded; and its walls
         (one for a Corner or EOW, both for an Intersection) seen from the side they were seen
         from before, not at grazing incidence)."""
         lm = self._lm
@@ -1184,7 +1173,7 @@ class FeatureMap:
         )
         if profile.bearing.shape[0] == 0:
             return np.zeros(n, dtype=bool)
-        r = _rot(anchor_in_new[:, 2])
+        r = rotation_matrix(anchor_in_new[:, 2])
         t = anchor_in_new[:, :2]
         visible = self._in_view(_move_points(r, t, lm.support[rows]), profile)
         wp = _move_points(r, t, lm.wall_p[rows])

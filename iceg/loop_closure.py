@@ -1,18 +1,30 @@
-"""Loop closure: candidate search among older nodes, chi-square gate, pairwise agreement.
+"""Loop closure: local and global candidate search, chi-square gate, pairwise consistency.
 
 Every ``every_n_nodes`` nodes the current node's scan is matched (ICE, paper §III-C2) against
-the landmarks of older places near its estimate (DESIGN "Loop closure"). A closure is accepted
-when its innovation passes a chi-square gate under the node's marginal covariance plus the
+the landmarks of older places near its estimate (docs/design.md "Loop closure"). A closure is
+accepted when its innovation passes a chi-square gate under the node's marginal covariance plus the
 match covariance, or when two closures that failed the gate imply the same correction
 (pairwise consistency after Olson 2009, "Recognizing places using spectrally clustered local
 matches", reduced to pairs). :class:`LoopCloser` only decides; the pipeline
 (:mod:`iceg.slam`) adds the accepted closures to the pose graph as factors.
+
+Global search (issue 11): the local search cannot reach a place farther than
+``max_search_radius_m`` from the estimate. Since the ICE matcher needs no prediction, every
+``global_every_n_searches``-th search (and every search whose radius is capped) also takes
+the places most similar in appearance (:mod:`iceg.place_index`, over all older keyframes,
+independent of the estimate) and verifies each with a global ICE match
+(:meth:`MatchBounds.global_`, the matcher's strict evidence thresholds). A global closure
+far from the estimate is accepted only with a second one it is consistent with under the
+covariances of the cycle the two form (:func:`pcm_chi2`, pairwise consistency maximisation
+after Mangelson et al. 2018, "Pairwise Consistent Measurement Set Maximization for Robust
+Multi-robot Map Merging", with groups of two), and a query whose verified places contradict
+each other (perceptual aliasing) is dropped (the uniqueness test of Olson 2009).
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -20,9 +32,10 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from graph import PoseGraph
+from graph import FactorKind, PoseGraph
 from iceg.feature_map import FeatureMap
-from iceg.matching import IceMatcher, MatchBounds
+from iceg.matching import MatchBounds, Matcher
+from iceg.place_index import PlaceIndex, PlaceIndexConfig, place_descriptor
 from iceg.types import MatchResult, ScanFeatures
 from iceg_common import se2
 
@@ -102,6 +115,32 @@ class LoopClosureConfig(BaseModel):
     agreement_rotation_deg: float = Field(
         default=2.0, gt=0, description="Largest rotation between two agreeing corrections."
     )
+    global_search: bool = Field(
+        default=True,
+        description="Also search places by appearance, independent of the estimate.",
+    )
+    global_every_n_searches: int = Field(
+        default=5,
+        ge=1,
+        description="A global search runs every this many searches, and at every search "
+        "whose radius is capped at max_search_radius_m.",
+    )
+    global_candidates: int = Field(
+        default=3, ge=1, description="Most similar places verified by a global ICE match."
+    )
+    global_window_nodes: int = Field(
+        default=90,
+        ge=1,
+        description="A held global closure waits this many nodes for a consistent second one "
+        "(the cycle covariance grows with the nodes between them).",
+    )
+    global_min_group: int = Field(
+        default=3,
+        ge=2,
+        description="A global closure beyond the gate needs this many mutually consistent "
+        "closures (itself included; a clique of the pairwise consistency graph).",
+    )
+    place_index: PlaceIndexConfig = Field(default_factory=PlaceIndexConfig)
     robust_kernel: Literal["huber", "cauchy"] = Field(
         default="cauchy", description="M-estimator wrapped around loop-closure factors."
     )
@@ -112,13 +151,22 @@ class LoopClosureConfig(BaseModel):
 
 @dataclass
 class LoopClosureStats:
-    """Loop-closure bookkeeping: searches run, matches tried, accepted and rejected."""
+    """Loop-closure bookkeeping: searches run, matches tried, accepted and rejected.
+
+    ``attempts`` counts local matches only; ``global_searches`` / ``global_attempts`` the
+    appearance searches and their global matches, ``global_accepted`` the accepted closures
+    they found and ``rejected_ambiguous`` verified global matches dropped as aliased.
+    """
 
     searches: int = 0
     attempts: int = 0
     accepted: int = 0
     rejected_match: int = 0
     rejected_consistency: int = 0
+    global_searches: int = 0
+    global_attempts: int = 0
+    global_accepted: int = 0
+    rejected_ambiguous: int = 0
 
     def as_dict(self) -> dict[str, int]:
         """Plain dict for JSON output."""
@@ -138,6 +186,7 @@ class LoopClosure:
         correlation: ICE correlation of the match (paper eq. 1), in ``[0, 1]``.
         implied: ``(3,)`` float64 map-frame pose of ``node_to`` the closure implies
             (``estimate(node_from) ∘ measured``).
+        is_global: Found by the appearance (global) search, verified by a global match.
     """
 
     node_from: int
@@ -146,6 +195,7 @@ class LoopClosure:
     cov: FloatArray
     correlation: float
     implied: FloatArray
+    is_global: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -156,10 +206,14 @@ class AcceptedClosures:
         closures: The accepted closures, oldest first.
         robust_kernel: M-estimator of their factors (``None``: Gaussian; closures accepted by
             pairwise agreement are their own outlier test).
+        large_correction: The closures move the estimate far beyond its covariance (a group
+            of global closures): the pipeline re-solves in batch rather than leaving the
+            correction to iSAM2's incremental relinearisation.
     """
 
     closures: tuple[LoopClosure, ...]
     robust_kernel: Literal["huber", "cauchy"] | None
+    large_correction: bool = False
 
 
 def innovation_chi2(
@@ -212,6 +266,70 @@ def closures_agree(
     )
 
 
+def pcm_chi2(
+    a: LoopClosure,
+    b: LoopClosure,
+    old_chain: tuple[FloatArray, FloatArray],
+    new_chain: tuple[FloatArray, FloatArray],
+) -> float:
+    """Squared Mahalanobis error of the cycle formed by two loop closures (PCM consistency).
+
+    The pose of ``b.node_to`` in the frame of ``a.node_from`` is computed two ways: along the
+    old path then ``b`` (``T_old ∘ z_b``), and by ``a`` then along the new path
+    (``z_a ∘ T_new``). Their difference is zero when both closures are right. Covariances
+    are moved to the tangent space at ``b.node_to`` to first order
+    (``Ad(B⁻¹) Σ_A Ad(B⁻¹)ᵀ`` for ``A ∘ B``, :func:`iceg_common.se2.adjoint`) and summed
+    (the four measurements are taken as independent). Pairwise consistency as in Mangelson
+    et al. 2018, "Pairwise Consistent Measurement Set Maximization for Robust Multi-robot Map
+    Merging" (ICRA), and Olson 2009.
+
+    Args:
+        a: One closure (``z_a``: pose of ``a.node_to`` in the frame of ``a.node_from``, with
+            its ``cov``).
+        b: The other closure.
+        old_chain: ``(T (3,), C (3, 3))``: pose of ``b.node_from`` in the frame of
+            ``a.node_from`` and its covariance (tangent space at ``b.node_from``; m², rad²).
+        new_chain: ``(T, C)``: pose of ``b.node_to`` in the frame of ``a.node_to`` and its
+            covariance (tangent space at ``b.node_to``).
+
+    Returns:
+        ``d2``, chi-square with 3 degrees of freedom when both closures are right.
+
+    Raises:
+        numpy.linalg.LinAlgError: the summed covariance is singular.
+    """
+    t_old, c_old = old_chain
+    t_new, c_new = new_chain
+    ad_b = se2.adjoint(se2.inverse(b.measured))
+    ad_new = se2.adjoint(se2.inverse(t_new))
+    cov = ad_b @ c_old @ ad_b.T + b.cov + ad_new @ a.cov @ ad_new.T + c_new
+    error = se2.between(se2.compose(a.measured, t_new), se2.compose(t_old, b.measured))
+    return float(error @ np.linalg.solve(cov, error))
+
+
+def chain_covariance(poses: FloatArray, step_covs: Sequence[FloatArray]) -> FloatArray:
+    """Covariance of the pose of the last of a chain of nodes in the frame of the first.
+
+    Dead reckoning along the sequential factors: ``C_{k+1} = Ad(Δ⁻¹) C_k Ad(Δ⁻¹)ᵀ + Σ_k``
+    with ``Δ`` the estimated step ``k -> k+1`` (tangent space at the later node). It ignores
+    the loop closures between the nodes, so it over-estimates the relative uncertainty: the
+    consistency test that uses it errs towards accepting a pair, which the chi-square gate,
+    the uniqueness test and the separation of the old nodes keep in check.
+
+    Args:
+        poses: ``(n, 3)`` estimates of the chain's nodes, in order, map frame.
+        step_covs: ``n - 1`` covariances ``(3, 3)`` of the steps (tangent at the later node).
+
+    Returns:
+        ``(3, 3)`` covariance, m² and rad² (zeros for a single node).
+    """
+    cov = np.zeros((3, 3))
+    for k, step_cov in enumerate(step_covs):
+        ad = se2.adjoint(se2.inverse(se2.between(poses[k], poses[k + 1])))
+        cov = ad @ cov @ ad.T + step_cov
+    return cov
+
+
 @dataclass(frozen=True, eq=False)
 class _Search:
     """Inputs shared by the steps of one search (estimates at the search's start)."""
@@ -237,6 +355,7 @@ class LoopCloser:
     Example::
 
         closer = LoopCloser(config.loop_closure, matcher, feature_map)
+        closer.observe(node_id, features)  # every node: its place descriptor
         if closer.due(node_id):
             accepted = closer.search(node_id, features, graph, path_m)
 
@@ -247,17 +366,26 @@ class LoopCloser:
     """
 
     def __init__(
-        self, config: LoopClosureConfig, matcher: IceMatcher, feature_map: FeatureMap
+        self, config: LoopClosureConfig, matcher: Matcher, feature_map: FeatureMap
     ) -> None:
         self.config = config
         self.matcher = matcher
         self.feature_map = feature_map
         self.stats = LoopClosureStats()
         self.pending: list[LoopClosure] = []
+        self.places = PlaceIndex(config.place_index)
+        self._step_info: dict[int, FloatArray] = {}  # node i -> information of i -> i+1
+        self._factors_seen = 0
 
     def due(self, node_id: int) -> bool:
         """Whether a search runs for this new node (enabled, every ``every_n_nodes``)."""
         return self.config.enabled and node_id % self.config.every_n_nodes == 0
+
+    def observe(self, node_id: int, features: ScanFeatures) -> None:
+        """Add a new node's place descriptor (:func:`iceg.place_index.place_descriptor` of its
+        robot-frame ICE features) to the place index; call it for every node, in order."""
+        if self.config.enabled and self.config.global_search:
+            self.places.add(node_id, place_descriptor(features, self.config.place_index))
 
     def search(
         self,
@@ -266,21 +394,26 @@ class LoopCloser:
         graph: PoseGraph,
         path_m: Sequence[float],
     ) -> AcceptedClosures | None:
-        """Search older nodes near the current estimate for a loop closure of ``node_id``.
+        """Search older nodes for a loop closure of ``node_id``, near its estimate and, when
+        due, by appearance.
 
-        Candidates are nodes at least ``min_node_gap`` nodes and ``min_path_m`` metres of path
-        back, within ``radius = base + n_sigma * sqrt(lambda_max(cov_xy))`` of the current
-        estimate (``cov_xy`` from the current node's marginal, capped at
+        Local search: candidates are nodes at least ``min_node_gap`` nodes and ``min_path_m``
+        metres of path back, within ``radius = base + n_sigma * sqrt(lambda_max(cov_xy))`` of
+        the current estimate (``cov_xy`` from the current node's marginal, capped at
         ``max_search_radius_m``); up to ``max_candidates`` of the nearest, from distinct
         places, are matched against the landmarks of the ``reference_nodes`` old nodes
         nearest each candidate, and the best-correlated match is kept. It is accepted (robust
         kernel) when it passes the chi-square gate (:func:`innovation_chi2`), or together with
         held closures it agrees with (:func:`closures_agree`, no kernel); otherwise it is held.
 
+        Global search (when nothing was accepted, every ``global_every_n_searches``-th search
+        and whenever the radius is capped): see :meth:`_global`.
+
         Args:
-            node_id: The current node (already through ``graph.update()``).
+            node_id: The current node (already through ``graph.update()``, and observed).
             features: Its scan's ICE features, robot frame.
-            graph: The pose graph (estimates and marginals are read, nothing is added).
+            graph: The pose graph (estimates, marginals and the sequential factors' covariances
+                are read, nothing is added).
             path_m: Odometry path length at each node, metres, indexed by node id.
 
         Returns:
@@ -294,12 +427,15 @@ class LoopCloser:
         if older.size == 0:
             return None
         self.stats.searches += 1
+        self._sync_steps(graph)
         marginal = graph.marginal_covariance(node_id)
-        search = _Search(node_id, ids, poses, older, marginal, self._radius(marginal))
+        radius, capped = self._radius(marginal)
+        search = _Search(node_id, ids, poses, older, marginal, radius)
         best = self._best_match(search, features)
-        if best is None:
-            return None
-        return self._decide(search, best, graph, path_m)
+        accepted = self._decide(search, best, graph, path_m) if best is not None else None
+        if accepted is None and self._global_due(capped):
+            accepted = self._global(search, features, path_m)
+        return accepted
 
     # ------------------------------------------------------------------ steps
 
@@ -311,10 +447,18 @@ class LoopCloser:
             (ids <= node_id - lc.min_node_gap) & (path[node_id] - path[ids] >= lc.min_path_m)
         ]
 
-    def _radius(self, marginal: FloatArray) -> float:
+    def _radius(self, marginal: FloatArray) -> tuple[float, bool]:
+        """The local search radius and whether the cap cut it."""
         lc = self.config
         sigma_xy = float(np.sqrt(max(np.linalg.eigvalsh(marginal[:2, :2]).max(), 0.0)))
-        return min(lc.search_radius_m + lc.search_n_sigma * sigma_xy, lc.max_search_radius_m)
+        radius = lc.search_radius_m + lc.search_n_sigma * sigma_xy
+        return min(radius, lc.max_search_radius_m), radius > lc.max_search_radius_m
+
+    def _global_due(self, capped: bool) -> bool:
+        lc = self.config
+        return lc.global_search and (
+            capped or self.stats.searches % lc.global_every_n_searches == 0
+        )
 
     def _candidates(self, s: _Search) -> list[int]:
         """Up to ``max_candidates`` nearest old nodes within the radius, from distinct places
@@ -338,19 +482,22 @@ class LoopCloser:
             + self.config.search_n_sigma * rotation_sigma,
         )
 
+    def _reference(self, s: _Search, candidate: int) -> ScanFeatures:
+        """The landmarks of the old nodes nearest the candidate (any pass through the place),
+        in the candidate's frame."""
+        near_cand = np.hypot(*(s.poses[s.older, :2] - s.poses[candidate, :2]).T)
+        window = s.older[np.argsort(near_cand, kind="stable")[: self.config.reference_nodes]]
+        return self.feature_map.reference((s.ids, s.poses), window, s.poses[candidate]).features
+
     def _best_match(self, s: _Search, features: ScanFeatures) -> _Best | None:
         """Match each candidate place; keep the best-correlated acceptable match."""
         lc = self.config
         bounds = self._bounds(s)
         best: _Best | None = None
         for candidate in self._candidates(s):
-            # The place's reference: the old nodes nearest the candidate (any pass through it).
-            near_cand = np.hypot(*(s.poses[s.older, :2] - s.poses[candidate, :2]).T)
-            window = s.older[np.argsort(near_cand, kind="stable")[: lc.reference_nodes]]
-            reference = self.feature_map.reference((s.ids, s.poses), window, s.poses[candidate])
             prediction = se2.between(s.poses[candidate], s.poses[s.node_id])
             self.stats.attempts += 1
-            result = self.matcher.match(features, reference.features, prediction, bounds)
+            result = self.matcher.match(features, self._reference(s, candidate), prediction, bounds)
             if not result.success or result.correlation < lc.min_correlation:
                 self.stats.rejected_match += 1
                 logger.debug(
@@ -387,43 +534,201 @@ class LoopCloser:
                 *(best.candidate, s.node_id, rounded, d2, result.correlation),
             )
             return self._accept([closure], lc.robust_kernel)
-        agreeing = [c for c in self.pending if self._agree(c, closure, graph.estimate, path_m)]
+        agreeing = [c for c in self.pending if self._agree(c, closure, s.poses, path_m)]
         if agreeing:
             # Two independent places agree: the pair is its own outlier test, and a robust
             # kernel would all but ignore the large residual the drift gives it.
-            self.pending = [c for c in self.pending if c not in agreeing]
             logger.debug(
                 "loop closures %s->%d accepted by pairwise agreement (chi2 %.1f vs estimate)",
                 *([c.node_from for c in agreeing], s.node_id, d2),
             )
-            return self._accept([*agreeing, closure], None)
+            return self._accept_group(agreeing, closure)
         self.stats.rejected_consistency += 1
-        self.pending = [
-            c for c in self.pending if s.node_id - c.node_to <= lc.agreement_window_nodes
-        ] + [closure]
+        self._hold(closure)
         logger.debug(
             "loop closure %d->%d held back: innovation %s, chi2 %.1f",
             *(best.candidate, s.node_id, rounded, d2),
         )
         return None
 
+    # ------------------------------------------------------------------ global search
+
+    def _global(
+        self, s: _Search, features: ScanFeatures, path_m: Sequence[float]
+    ) -> AcceptedClosures | None:
+        """Appearance-based search, independent of the estimate.
+
+        The ``global_candidates`` older places beyond the local radius (the local search
+        covers the rest) most similar to the current scan
+        (:class:`~iceg.place_index.PlaceIndex`, one per ``reference_nodes`` stretch) are each
+        verified by a global ICE match against their reference. When two verified places
+        contradict each other (:meth:`_unique`) the scene is aliased and all are dropped.
+        The best-correlated survivor is accepted (robust kernel) if it passes the chi-square
+        gate against the estimate; otherwise it needs ``global_min_group - 1`` held closures
+        consistent with it and with each other under :func:`pcm_chi2` (old nodes
+        ``agreement_min_separation_m`` apart along the path); the group enters without kernel
+        as a large correction. Else it is held for ``global_window_nodes`` nodes.
+        """
+        lc = self.config
+        self.stats.global_searches += 1
+        # Places within the radius are the local search's: the global one adds the rest.
+        far = s.older[np.hypot(*(s.poses[s.older, :2] - s.poses[s.node_id, :2]).T) > s.radius_m]
+        query = place_descriptor(features, lc.place_index)
+        places = self.places.query(query, far, lc.global_candidates, lc.reference_nodes)
+        verified = [c for c in (self._verify_global(s, features, p) for p in places) if c]
+        if not verified:
+            return None
+        if not self._unique(verified, s.poses):
+            self.stats.rejected_ambiguous += len(verified)
+            logger.debug(
+                "global loop closures %s->%d dropped: the places contradict each other",
+                *([c.node_from for c in verified], s.node_id),
+            )
+            return None
+        closure = max(verified, key=lambda c: c.correlation)
+        prediction = se2.between(s.poses[closure.node_from], s.poses[s.node_id])
+        _, d2 = innovation_chi2(prediction, closure.measured, s.marginal, closure.cov)
+        if d2 <= lc.consistency_chi2:
+            logger.debug("global loop closure %d->%d accepted: chi2 %.1f", *_ends(closure), d2)
+            return self._accept([closure], lc.robust_kernel)
+        agreeing = self._clique(closure, s.poses, path_m)
+        if len(agreeing) + 1 >= lc.global_min_group:
+            logger.debug(
+                "global loop closures %s->%d accepted by pairwise consistency (chi2 %.1f)",
+                *([c.node_from for c in agreeing], s.node_id, d2),
+            )
+            return self._accept_group(agreeing, closure)
+        self.stats.rejected_consistency += 1
+        self._hold(closure)
+        logger.debug("global loop closure %d->%d held: chi2 %.1f", *_ends(closure), d2)
+        return None
+
+    def _clique(
+        self, closure: LoopClosure, poses: FloatArray, path_m: Sequence[float]
+    ) -> list[LoopClosure]:
+        """Held closures consistent with ``closure`` and with each other (greedy clique of
+        the pairwise consistency graph, newest first, as PCM's maximum clique)."""
+        clique: list[LoopClosure] = []
+        for c in reversed(self.pending):
+            if self._agree(c, closure, poses, path_m) and all(
+                self._agree(c, m, poses, path_m)
+                for m in clique  # c is the older
+            ):
+                clique.append(c)
+        return clique[::-1]
+
+    def _verify_global(
+        self, s: _Search, features: ScanFeatures, candidate: int
+    ) -> LoopClosure | None:
+        """Global ICE match (no prediction used) of the scan against a candidate place."""
+        self.stats.global_attempts += 1
+        prediction = se2.between(s.poses[candidate], s.poses[s.node_id])
+        result = self.matcher.match(
+            features, self._reference(s, candidate), prediction, MatchBounds.global_()
+        )
+        if not result.success or result.correlation < self.config.min_correlation:
+            self.stats.rejected_match += 1
+            return None
+        implied = se2.compose(s.poses[candidate], result.pose)
+        return LoopClosure(
+            candidate, s.node_id, result.pose, result.cov, result.correlation, implied, True
+        )
+
+    def _unique(self, verified: list[LoopClosure], poses: FloatArray) -> bool:
+        """Whether every two verified places put the current node at the same pose (the
+        :func:`pcm_chi2` cycle through the old path between them, same new node)."""
+        zero = (np.zeros(3), np.zeros((3, 3)))
+        for k, a in enumerate(verified):
+            for b in verified[k + 1 :]:
+                old = self._relative(a.node_from, b.node_from, poses)
+                if old is None or pcm_chi2(a, b, old, zero) > self.config.consistency_chi2:
+                    return False
+        return True
+
+    # ------------------------------------------------------------------ consistency
+
     def _agree(
-        self,
-        a: LoopClosure,
-        b: LoopClosure,
-        estimate: Callable[[int], FloatArray],
-        path_m: Sequence[float],
+        self, a: LoopClosure, b: LoopClosure, poses: FloatArray, path_m: Sequence[float]
     ) -> bool:
-        if b.node_to - a.node_to > self.config.agreement_window_nodes:
+        """Local pairs: :func:`closures_agree`; a pair with a global closure: :func:`pcm_chi2`,
+        both the new and the old nodes within ``global_window_nodes`` of each other (the
+        dead-reckoning chain covariances of :func:`chain_covariance` stay tight only over
+        short chains), old nodes ``agreement_min_separation_m`` apart along the path."""
+        lc = self.config
+        if not (a.is_global or b.is_global):
+            if b.node_to - a.node_to > lc.agreement_window_nodes:
+                return False
+            carry = se2.between(poses[a.node_to], poses[b.node_to])
+            return closures_agree(a, b, carry, path_m, lc)
+        if (
+            abs(b.node_to - a.node_to) > lc.global_window_nodes
+            or abs(b.node_from - a.node_from) > lc.global_window_nodes  # short chains only
+            or abs(path_m[b.node_from] - path_m[a.node_from]) < lc.agreement_min_separation_m
+        ):
             return False
-        carry = se2.between(estimate(a.node_to), estimate(b.node_to))
-        return closures_agree(a, b, carry, path_m, self.config)
+        old = self._relative(a.node_from, b.node_from, poses)
+        new = self._relative(a.node_to, b.node_to, poses)
+        return (
+            old is not None and new is not None and pcm_chi2(a, b, old, new) <= lc.consistency_chi2
+        )
+
+    def _sync_steps(self, graph: PoseGraph) -> None:
+        """Fuse the information of new sequential factors (``i -> i+1``: odometry, scan
+        match) into the per-step information used by :func:`chain_covariance`."""
+        factors = graph.factors
+        for f in factors[self._factors_seen :]:
+            if f.j == f.i + 1 and f.kind is not FactorKind.LOOP_CLOSURE:
+                info = np.linalg.inv(f.cov)
+                self._step_info[f.i] = self._step_info.get(f.i, np.zeros((3, 3))) + info
+        self._factors_seen = len(factors)
+
+    def _relative(self, u: int, v: int, poses: FloatArray) -> tuple[FloatArray, FloatArray] | None:
+        """Pose of node ``v`` in the frame of node ``u`` (estimates) and its dead-reckoning
+        covariance along the sequential factors, tangent at ``v``; ``None`` if a step has no
+        sequential factor."""
+        lo, hi = min(u, v), max(u, v)
+        if any(k not in self._step_info for k in range(lo, hi)):
+            return None
+        steps = [np.asarray(np.linalg.inv(self._step_info[k]), np.float64) for k in range(lo, hi)]
+        cov = chain_covariance(poses[lo : hi + 1], steps)
+        t = se2.between(poses[lo], poses[hi])
+        if u <= v:
+            return t, cov
+        ad = se2.adjoint(t)  # inverse: X^-1 with tangent Exp(-Ad(X) xi)
+        return se2.inverse(t), ad @ cov @ ad.T
+
+    # ------------------------------------------------------------------ bookkeeping
+
+    def _hold(self, closure: LoopClosure) -> None:
+        lc = self.config
+        self.pending = [
+            c
+            for c in self.pending
+            if closure.node_to - c.node_to
+            <= (lc.global_window_nodes if c.is_global else lc.agreement_window_nodes)
+        ] + [closure]
+
+    def _accept_group(self, agreeing: list[LoopClosure], closure: LoopClosure) -> AcceptedClosures:
+        # Independent places agree: the group is its own outlier test, and a robust kernel
+        # would all but ignore the large residual the drift gives it.
+        self.pending = [c for c in self.pending if c not in agreeing]
+        group = [*agreeing, closure]
+        large = any(c.is_global for c in group)
+        return self._accept(group, None, large)
 
     def _accept(
-        self, closures: list[LoopClosure], kernel: Literal["huber", "cauchy"] | None
+        self,
+        closures: list[LoopClosure],
+        kernel: Literal["huber", "cauchy"] | None,
+        large_correction: bool = False,
     ) -> AcceptedClosures:
         self.stats.accepted += len(closures)
-        return AcceptedClosures(tuple(closures), kernel)
+        self.stats.global_accepted += sum(c.is_global for c in closures)
+        return AcceptedClosures(tuple(closures), kernel, large_correction)
+
+
+def _ends(c: LoopClosure) -> tuple[int, int]:
+    return c.node_from, c.node_to
 
 
 __all__ = [
@@ -432,6 +737,8 @@ __all__ = [
     "LoopClosure",
     "LoopClosureConfig",
     "LoopClosureStats",
+    "chain_covariance",
     "closures_agree",
     "innovation_chi2",
+    "pcm_chi2",
 ]

@@ -1,10 +1,12 @@
 """The SLAM pipeline: ICE matching factors and wheel odometry in a GTSAM iSAM2 pose graph.
 
-Per scan (DESIGN "Data flow of one scan"): ICE features; prediction from odometry; keyframe
-decision; ICE match against the feature map of the recent nodes; odometry and scan-match
-factors (covariance from the match); iSAM2 update; feature-map update with time-validity
-pruning; and, every few nodes, a loop-closure search among older nodes near the current
-estimate. After the run an optional batch Levenberg–Marquardt refinement.
+Per scan (docs/design.md "Data flow of one scan"): ICE features; prediction from odometry (corrected
+by the online calibration of :mod:`iceg.odometry_calibration`, which every accepted local
+match updates, when enabled); keyframe decision; ICE match against the feature map of the
+recent nodes; odometry and scan-match factors (covariance from the match); iSAM2 update;
+feature-map update with time-validity pruning; and, every few nodes, a loop-closure search
+among older nodes near the current estimate and, by appearance, among all older places
+(global loop closure). After the run an optional batch Levenberg–Marquardt refinement.
 
 The pipeline never reads files: it takes :class:`frontends.LaserScan` records.
 """
@@ -26,7 +28,9 @@ from iceg.config import IcegConfig
 from iceg.feature_map import FeatureMap, MapReference
 from iceg.features import extract
 from iceg.loop_closure import LoopCloser, LoopClosureStats
-from iceg.matching import IceMatcher, MatchBounds
+from iceg.matching import MatchBounds
+from iceg.matching.peers import make_matcher
+from iceg.odometry_calibration import OdometryCalibrator
 from iceg.results import SlamResult
 from iceg.types import MatchResult, ScanFeatures
 from iceg_common import se2
@@ -35,6 +39,10 @@ from iceg_common.errors import GraphError, ScanError
 logger = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
+
+#: A weak match direction agrees with the prediction when their difference is within this
+#: many standard deviations of the joint noise (a 3-sigma consistency test).
+AGREE_SIGMAS = 3.0
 
 #: Failure category of a match whose reason is empty.
 _UNKNOWN_REASON = "unknown"
@@ -67,11 +75,12 @@ class _Motion:
     """Motion of a scan relative to the last node, and whether the scan becomes a node."""
 
     odom: FloatArray  # (3,) odometry pose of the scan (predicted when the log has none)
-    delta: FloatArray  # (3,) last node -> scan, odometry
+    delta: FloatArray  # (3,) last node -> scan, odometry (calibrated)
     cov: FloatArray  # (3, 3) covariance of delta, tangent space
     is_keyframe: bool
     measured: bool = True  # odom is the scan's own odometry (not a prediction)
     odometry_break: bool = False  # odom starts a new odometry frame (no delta across)
+    raw: tuple[FloatArray, FloatArray] | None = None  # raw odometry delta and its noise cov
 
 
 @dataclass(frozen=True, eq=False)
@@ -113,9 +122,10 @@ class Slam:
     def __init__(self, config: IcegConfig | None = None) -> None:
         self.config = config or IcegConfig()
         self.graph = PoseGraph(self.config.graph)
-        self.matcher = IceMatcher(self.config.matching)
+        self.matcher = make_matcher(self.config.matching)
         self.feature_map = FeatureMap(self.config.feature_map)
         self.loop_closer = LoopCloser(self.config.loop_closure, self.matcher, self.feature_map)
+        self.odometry_calibrator = OdometryCalibrator(self.config.odometry_calibration)
         self.timer = StageTimer()
         self._s = SlamState()
         self._result: SlamResult | None = None
@@ -194,7 +204,7 @@ class Slam:
 
         The map frame is the odometry frame of the first scan (the first node is fixed at
         the first odometry pose, or at the origin when the log has no odometry). Steps
-        (DESIGN "Data flow of one scan"): motion from odometry and keyframe decision; for a
+        (docs/design.md "Data flow of one scan"): motion from odometry and keyframe decision; for a
         keyframe ICE features, local match, node and factors, iSAM2 update, loop-closure
         search and feature-map update.
 
@@ -225,8 +235,10 @@ class Slam:
         feats = extract(scan, self.config.features)
         t0 = self.timer.add("features", t0)
         local = self._match_local(feats, motion.delta, last)
+        self._calibrate_odometry(local, motion)
         t0 = self.timer.add("matching", t0)
         new_id = self._add_keyframe(scan, motion, local, last)
+        self.loop_closer.observe(new_id, feats)
         t0 = self.timer.add("graph_build", t0)
         self.graph.update()
         t0 = self.timer.add("isam2", t0)
@@ -249,6 +261,7 @@ class Slam:
         feats = extract(scan, self.config.features)
         t0 = self.timer.add("features", t0)
         self._add_node(scan, odom, initial=odom, odom_measured=scan.odom_pose is not None)
+        self.loop_closer.observe(0, feats)
         self.graph.update()
         self.feature_map.update(0, feats, scan.stamp_s, scan=scan)
         self.timer.add("feature_map", t0)
@@ -269,15 +282,18 @@ class Slam:
             if scan.odom_pose is None:
                 return _Motion(se2.compose(s.node_odom[last], delta), delta, cov, True, False)
             return _Motion(odom, delta, cov, True, odometry_break=True)  # new odometry frame
-        delta = se2.between(s.node_odom[last], odom)
-        cov = odometry_covariance(delta, self.config.odometry_noise)
+        raw = se2.between(s.node_odom[last], odom)
+        raw_cov = odometry_covariance(raw, self.config.odometry_noise)
+        delta, cov = raw, raw_cov
+        if self.config.odometry_calibration.enabled:
+            delta, cov = self.odometry_calibrator.correct(raw, raw_cov)
         dt = scan.stamp_s - s.scans[s.node_scan_index[last]].stamp_s
         is_keyframe = bool(
             np.hypot(delta[0], delta[1]) >= cfg.keyframe_distance_m
             or abs(delta[2]) >= np.radians(cfg.keyframe_rotation_deg)
             or dt >= cfg.keyframe_max_interval_s
         )
-        return _Motion(odom, delta, cov, is_keyframe)
+        return _Motion(odom, delta, cov, is_keyframe, raw=(raw, raw_cov))
 
     def _match_local(self, feats: ScanFeatures, delta: FloatArray, last: int) -> _LocalMatch:
         """ICE match against the landmarks of the ``local_map_nodes`` most recent nodes."""
@@ -292,8 +308,16 @@ class Slam:
             self._s.match_failures[(result.reason or _UNKNOWN_REASON).split(":")[0]] += 1
         return _LocalMatch(reference, result, poses[last])
 
+    def _calibrate_odometry(self, local: _LocalMatch, motion: _Motion) -> None:
+        """Feed a successful local match to the odometry calibration (same step's raw
+        odometry increment; :class:`OdometryCalibrator`)."""
+        if local.result.success and motion.raw is not None:
+            self.odometry_calibrator.observe(*motion.raw, local.result.pose, local.result.cov)
+
     def _add_keyframe(self, scan: LaserScan, motion: _Motion, local: _LocalMatch, last: int) -> int:
-        """The keyframe's node (initialised by the match, else odometry) and its factors."""
+        """The keyframe's node (initialised by the match, else odometry) and its factors; the
+        scan-match measurement is remapped to the odometry along directions where it is
+        weaker than odometry and agrees with it (:func:`remap_weak_directions`)."""
         result = local.result
         step = result.pose if result.success else motion.delta
         new_id = self._add_node(
@@ -305,8 +329,9 @@ class Slam:
         )
         self._add_factor(FactorKind.ODOMETRY, last, new_id, motion.delta, motion.cov)
         if result.success:
+            measured = remap_weak_directions(result.pose, result.cov, motion.delta, motion.cov)
             self._add_factor(
-                FactorKind.SCAN_MATCH, last, new_id, result.pose, result.cov, result.correlation
+                FactorKind.SCAN_MATCH, last, new_id, measured, result.cov, result.correlation
             )
         return new_id
 
@@ -325,7 +350,13 @@ class Slam:
                 c.correlation,
                 robust=accepted.robust_kernel,
             )
-        self.graph.update()
+        if accepted.large_correction:
+            # A global closure can move the estimate by tens of metres and degrees: a batch
+            # Levenberg-Marquardt from the current estimate converges where iSAM2's
+            # incremental relinearisation would take many updates (it is rebuilt after).
+            self.graph.optimize_batch()
+        else:
+            self.graph.update()
 
     def _update_map(
         self, node_id: int, feats: ScanFeatures, scan: LaserScan, local: _LocalMatch
@@ -402,7 +433,7 @@ class Slam:
         """Current estimate of every processed scan: ``(stamps_s (N,), poses (N, 3))``.
 
         A scan that is not a graph node takes its node's estimate composed with the
-        odometry delta from the node's scan (DESIGN "Data flow of one scan").
+        odometry delta from the node's scan (docs/design.md "Data flow of one scan").
         """
         _, poses = self.graph.estimates()
         recs = self._s.records
@@ -445,3 +476,54 @@ class Slam:
             slam=self,
         )
         return self._result
+
+
+def remap_weak_directions(
+    measured: FloatArray, cov: FloatArray, prediction: FloatArray, prediction_cov: FloatArray
+) -> FloatArray:
+    """Solution remapping of a scan match along its degenerate translation directions (Zhang,
+    Kaess & Singh, ICRA 2016, "On degeneracy of optimization-based state estimation
+    problems"), where the match agrees with the prediction within their joint noise.
+
+    In the coordinates ``y = W^-1 d`` whitened by the prediction's translation covariance
+    (``W W^T``, ``d`` the translation from the match to the prediction), the match's
+    translation information ``W^T cov_xy^-1 W`` has eigenvalues ``lambda_i`` and unit
+    eigenvectors ``e_i``. Along an ``e_i`` with ``lambda_i < 1`` the scene tells less than
+    the prediction: the optimum the match found there is where the nonlinear search slid to
+    (biased by ends of wall whose detection depends on where the end falls between two
+    beams), not a measurement. If moreover the match does not contradict the prediction
+    there - the difference ``y_i = e_i . y`` is within :data:`AGREE_SIGMAS` standard
+    deviations of the joint noise (variance ``1 + 1 / lambda_i``) - the translation along
+    ``e_i`` is set to the prediction's and the heading follows by its regression on the
+    translation under ``cov``. A weak match that contradicts the prediction significantly
+    (wheel slip, a bad odometry model) keeps its value. The covariance is never changed:
+    the factor stays exactly as weak along ``e_i`` as the scene makes it.
+
+    Args:
+        measured: ``(3,)`` float64 matched motion ``[dx_m, dy_m, dtheta_rad]`` (frame of
+            the first pose).
+        cov: ``(3, 3)`` float64 its covariance, tangent space at ``measured`` (m, rad).
+        prediction: ``(3,)`` float64 the predicted (odometry) motion, same frame.
+        prediction_cov: ``(3, 3)`` float64 its covariance, positive definite.
+
+    Returns:
+        ``(3,)`` float64 the remapped motion (``measured`` when no direction is weak and
+        consistent, or a covariance is not positive definite).
+    """
+    try:
+        w = np.linalg.cholesky(prediction_cov[:2, :2])
+        info_xy = np.linalg.inv(cov[:2, :2])
+    except np.linalg.LinAlgError:
+        return measured
+    evals, evecs = np.linalg.eigh(w.T @ info_xy @ w)
+    d = se2.between(measured, prediction)  # prediction in the tangent at measured
+    y = evecs.T @ np.linalg.solve(w, d[:2])
+    with np.errstate(divide="ignore"):
+        joint_var = 1.0 + 1.0 / np.maximum(evals, 0.0)
+    remap = (evals < 1.0) & (y**2 <= AGREE_SIGMAS**2 * joint_var)
+    if not np.any(remap):
+        return measured
+    shift = np.zeros(3)
+    shift[:2] = w @ (evecs[:, remap] @ y[remap])
+    shift[2] = cov[2, :2] @ info_xy @ shift[:2]
+    return se2.compose(measured, shift)

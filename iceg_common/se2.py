@@ -52,10 +52,16 @@ def transform_points(pose: ArrayLike, points_xy: ArrayLike) -> FloatArray:
     return pts @ rot.T + p[:2]
 
 
-def rotation_matrix(theta_rad: float) -> FloatArray:
-    """2x2 rotation matrix of ``theta_rad``."""
-    c, s = np.cos(theta_rad), np.sin(theta_rad)
-    return np.array([[c, -s], [s, c]])
+def rotation_matrix(theta_rad: ArrayLike) -> FloatArray:
+    """Rotation matrices ``(..., 2, 2)`` of angles ``(...)`` radians (``(2, 2)`` for a scalar)."""
+    t = np.asarray(theta_rad, dtype=np.float64)
+    c, s = np.cos(t), np.sin(t)
+    out = np.empty((*t.shape, 2, 2))
+    out[..., 0, 0] = c
+    out[..., 0, 1] = -s
+    out[..., 1, 0] = s
+    out[..., 1, 1] = c
+    return out
 
 
 def adjoint(pose: ArrayLike) -> FloatArray:

@@ -69,3 +69,43 @@ def test_quick_row_against_truth(bench: ModuleType) -> None:
     assert 0.0 <= row["online_max_m"] < 1.0
     assert "rel_trans_m" not in row
     assert "corridor" in bench.format_table([row, {"name": "x", "skipped": "absent"}])
+
+
+def test_the_benchmark_is_one_batch_spec(bench: ModuleType, tmp_path: Path) -> None:
+    """Every case is a log of the spec, with the same input: scenarios by name, CSAIL with
+    its relations, the corrected logs with synthetic odometry scored against their poses."""
+    from iceg.batch import expand, spec_from_dict
+
+    data = bench.batch_spec(quick=True, seeds=[3])
+    spec = spec_from_dict(data)
+    tasks = {t.log_name: t for t in expand(spec, tmp_path, tmp_path)}
+    assert set(tasks) == set(bench.CASES)
+    assert tasks["office"].source == "sim:office" and tasks["office"].seed == 3
+    assert tasks["csail_raw"].relations is not None and tasks["csail_raw"].seed is None
+    drift = tasks["csail_raw_drift"].odometry
+    assert drift is not None and drift.scale_error == 0.0 and not drift.noise
+    synth = tasks["csail_corrected_synth"]
+    assert synth.reference == "log_odometry" and synth.odometry is not None
+    assert synth.odometry.restamp_hz == 1.0 and synth.odometry.scale_error == 0.01
+    assert all(t.max_scans == bench.QUICK_SCANS for t in tasks.values())
+    assert all(t.config == {} for t in tasks.values())  # the default configuration
+
+
+def test_a_batch_row_matches_run_case(bench: ModuleType, tmp_path: Path) -> None:
+    """The batch run of a case gives the figures of :func:`run_case` (same input, same
+    pipeline)."""
+    from iceg.batch import expand, spec_from_dict
+    from iceg.batch_run import execute_run
+
+    data = bench.batch_spec(["corridor"], seeds=[0])
+    data["logs"][0]["max_scans"] = 80
+    (task,) = expand(spec_from_dict(data), tmp_path, tmp_path)
+    row = execute_run(task)
+    assert row["status"] == "ok", row["error"]
+    bench.QUICK_SCANS, quick = 80, bench.QUICK_SCANS
+    try:
+        ref = bench.run_case("corridor", quick=True, seed=0)
+    finally:
+        bench.QUICK_SCANS = quick
+    for key in ("scans", "nodes", "lc_accepted", "ate_m", "end_m", "online_max_m", "odom_ate_m"):
+        assert row["metrics"][key] == pytest.approx(ref[key], rel=1e-9), key

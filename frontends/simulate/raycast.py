@@ -251,7 +251,7 @@ def classify_junctions(
     - ``CORNER``: both bounding walls are seen and meet at 30°–150° (paper §III-B);
     - ``WALL_END``: a free wall end (one wall);
     - ``APPARENT_END``: a convex corner seen from a side where only one of its walls shows:
-      to the laser it is the end of that wall (the beams beyond it reach farther; DESIGN.md
+      to the laser it is the end of that wall (the beams beyond it reach farther; docs/design.md
       EOW definition);
     - ``NOTHING``: e.g. a T-junction seen from its straight side;
     - ``HIDDEN``: out of the field of view, out of range, or occluded.

@@ -353,7 +353,7 @@ def corridor_world(length_m: float = 40.0, width_m: float = 2.0) -> World:
 
     Its only corners are at the far ends; the default route runs along the middle half, so
     from the middle of the route the ends are beyond the 20 m sensor range. Scan matching
-    is degenerate along the corridor axis (DESIGN.md: a large variance along the corridor).
+    is degenerate along the corridor axis (docs/design.md: a large variance along the corridor).
     """
     if length_m <= 0 or width_m <= 0:
         raise ConfigError(

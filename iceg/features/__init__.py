@@ -1,6 +1,6 @@
 """ICE features of a laser scan: segmentation, line fitting, Corner / EOW / Intersection.
 
-Paper §III-B and §III-C1; DESIGN.md "ICE matching, step by step", steps 1-4.
+Paper §III-B and §III-C1; docs/design.md "ICE matching, step by step", steps 1-4.
 ``extract(scan, config) -> ScanFeatures`` is the entry point.
 """
 

@@ -1,4 +1,4 @@
-"""Configuration of ICE feature extraction (DESIGN.md "ICE matching, step by step", 1-4)."""
+"""Configuration of ICE feature extraction (docs/design.md "ICE matching, step by step", 1-4)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,10 @@ from pydantic import BaseModel, ConfigDict, Field
 class FeatureConfig(BaseModel):
     """Thresholds of scan segmentation and Intersection / Corner / End-of-wall extraction.
 
-    Every distance is in metres and every angle in degrees (converted to radians once, at
-    the start of :func:`iceg.features.extract`). The defaults suit a SICK LMS200-class
-    scanner (1 cm range noise, 0.5°-1° beam spacing) indoors.
+    Every distance is in metres and every angle in degrees (converted to radians by the
+    stage of :func:`iceg.features.extract` that reads it; degrees never reach the
+    arithmetic). Every field is read by one of the stages. The defaults suit a SICK
+    LMS200-class scanner (1 cm range noise, 0.5°-1° beam spacing) indoors.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -19,9 +20,10 @@ class FeatureConfig(BaseModel):
     range_max_m: float = Field(
         default=20.0,
         gt=0.0,
-        description="Usable maximum range (DESIGN step 1; paper §IV: SICK LMS200, 20 m). Beams "
-        "at or beyond min(this, scan.range_max_m) are dropped as points and remembered as 'no "
-        "return' for the end-of-wall test; it is also ScanFeatures.range_max_m (paper eq. 3).",
+        description="Usable maximum range (docs/design.md step 1; paper §IV: SICK LMS200, "
+        "20 m). Beams at or beyond min(this, scan.range_max_m) are dropped as points and "
+        "remembered as 'no return' for the end-of-wall test; it is also "
+        "ScanFeatures.range_max_m (paper eq. 3).",
     )
     sigma_range_m: float = Field(
         default=0.01,
@@ -85,7 +87,7 @@ class FeatureConfig(BaseModel):
         gt=0.0,
         lt=90.0,
         description="Corner and Intersection: the two lines meet at an angle in [this, 180 - "
-        "this] degrees (DESIGN step 4: 30°-150°; paper §III-B, Fig. 1-2).",
+        "this] degrees (docs/design.md step 4: 30°-150°; paper §III-B, Fig. 1-2).",
     )
     corner_gap_m: float = Field(
         default=0.3,
@@ -120,14 +122,14 @@ class FeatureConfig(BaseModel):
     intersection_max_distance_m: float = Field(
         default=3.0,
         gt=0.0,
-        description="Intersection (paper §III-B, Fig. 1-2; DESIGN step 4): the meeting point of "
-        "the two infinite lines must lie within this of both segments.",
+        description="Intersection (paper §III-B, Fig. 1-2; docs/design.md step 4): the meeting "
+        "point of the two infinite lines must lie within this of both segments.",
     )
     intersection_duplicate_m: float = Field(
         default=0.3,
         gt=0.0,
         description="Intersection: a meeting point within this of a Corner, or of a better "
-        "determined Intersection, is the same feature and is dropped (DESIGN step 4).",
+        "determined Intersection, is the same feature and is dropped (docs/design.md step 4).",
     )
     intersection_max_std_m: float = Field(
         default=0.25,

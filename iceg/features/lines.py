@@ -1,6 +1,6 @@
 """Maximum-likelihood line fitting in Hessian form with covariances, vectorized over segments.
 
-DESIGN.md "ICE matching, step by step", step 3. Each segment's points are fitted by weighted
+docs/design.md "ICE matching, step by step", step 3. Each segment's points are fitted by weighted
 total least squares, the weights being the inverse variances of the points' distances to
 the line under a range/bearing noise model (Pfister, Roumeliotis & Burdick 2003, "Weighted
 line fitting algorithms for mobile robot map building and efficient data representation";
@@ -15,6 +15,10 @@ from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+
+# A point's distance variance is floored at this fraction of sigma_range² (a beam exactly
+# along the line with no bearing noise would otherwise get an infinite weight).
+VARIANCE_FLOOR_FRACTION = 1e-6
 
 
 def _moments(
@@ -71,28 +75,64 @@ def fit_lines(
     m = seg_point_range.shape[0]
     if m == 0:
         return np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros((0, 2, 2))
+    idx, offsets, seg_of = _segment_points(seg_point_range)
+    x = points_xy[idx, 0]
+    y = points_xy[idx, 1]
+    # Pass 1: unweighted total least squares for the normal direction.
+    _, _, _, sxx, syy, sxy = _moments(x, y, np.ones_like(x), offsets, seg_of)
+    alpha0 = 0.5 * np.arctan2(-2.0 * sxy, syy - sxx)
+    w = _weights(beam_dirs[idx], ranges_m[idx], alpha0, seg_of, (sigma_range_m, sigma_bearing_rad))
+    # Pass 2: weighted total least squares (maximum likelihood).
+    sw, mx, my, sxx, syy, sxy = _moments(x, y, w, offsets, seg_of)
+    alpha, rho, ca, sa = _hessian_line(0.5 * np.arctan2(-2.0 * sxy, syy - sxx), mx, my)
+    # Covariance: along-line second moment about the weighted centroid.
+    t_along = -(x - mx[seg_of]) * sa[seg_of] + (y - my[seg_of]) * ca[seg_of]
+    stt = np.add.reduceat(w * t_along * t_along, offsets)
+    cov = _line_covariance(1.0 / stt, 1.0 / sw, -sa * mx + ca * my)
+    # Endpoints: first and last points projected onto the line.
+    ends = points_xy[np.stack([seg_point_range[:, 0], seg_point_range[:, 1] - 1], axis=1)]
+    normal = np.stack([ca, sa], axis=1)
+    dist = np.einsum("mkj,mj->mk", ends, normal) - rho[:, None]
+    endpoints = ends - dist[..., None] * normal[:, None, :]
+    return np.stack([alpha, rho], axis=1), cov, endpoints
+
+
+def _segment_points(seg_point_range: IntArray) -> tuple[IntArray, IntArray, IntArray]:
+    """Point indices of all segments concatenated ``(S,)``, each segment's offset in them
+    ``(M,)`` and each concatenated point's segment ``(S,)`` (int64)."""
+    m = seg_point_range.shape[0]
     starts = seg_point_range[:, 0]
     lengths = seg_point_range[:, 1] - starts
     offsets = np.zeros(m, dtype=np.int64)
     np.cumsum(lengths[:-1], out=offsets[1:])
     seg_of = np.repeat(np.arange(m), lengths)
     idx = np.arange(int(lengths.sum())) - offsets[seg_of] + starts[seg_of]
-    x = points_xy[idx, 0]
-    y = points_xy[idx, 1]
-    ux = beam_dirs[idx, 0]
-    uy = beam_dirs[idx, 1]
+    return idx, offsets, seg_of
 
-    # Pass 1: unweighted total least squares for the normal direction.
-    _, _, _, sxx, syy, sxy = _moments(x, y, np.ones_like(x), offsets, seg_of)
-    alpha0 = 0.5 * np.arctan2(-2.0 * sxy, syy - sxx)
-    cos_b = ux * np.cos(alpha0)[seg_of] + uy * np.sin(alpha0)[seg_of]
+
+def _weights(
+    dirs: FloatArray,
+    ranges_m: FloatArray,
+    alpha: FloatArray,
+    seg_of: IntArray,
+    sigmas: tuple[float, float],
+) -> FloatArray:
+    """Inverse variances ``1 / s_i²`` of the points' distances to their segment's line of
+    normal angle ``alpha`` ``(M,)`` (Pfister et al. 2003, eq. 4-6): ``dirs`` ``(S, 2)``,
+    ``ranges_m`` and ``seg_of`` ``(S,)``, ``sigmas`` (range m, bearing rad); ``(S,)``."""
+    sigma_r, sigma_phi = sigmas
+    cos_b = dirs[:, 0] * np.cos(alpha)[seg_of] + dirs[:, 1] * np.sin(alpha)[seg_of]
     cos2 = cos_b * cos_b
-    var = sigma_range_m**2 * cos2 + (ranges_m[idx] * sigma_bearing_rad) ** 2 * (1.0 - cos2)
-    w = 1.0 / np.maximum(var, 1e-6 * sigma_range_m**2)
+    var = sigma_r**2 * cos2 + (ranges_m * sigma_phi) ** 2 * (1.0 - cos2)
+    w: FloatArray = 1.0 / np.maximum(var, VARIANCE_FLOOR_FRACTION * sigma_r**2)
+    return w
 
-    # Pass 2: weighted total least squares (maximum likelihood).
-    sw, mx, my, sxx, syy, sxy = _moments(x, y, w, offsets, seg_of)
-    alpha = 0.5 * np.arctan2(-2.0 * sxy, syy - sxx)
+
+def _hessian_line(
+    alpha: FloatArray, mx: FloatArray, my: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The line of normal angle ``alpha`` through centroids ``(mx, my)`` in Hessian form with
+    ``rho >= 0`` and ``alpha`` in ``(-pi, pi]``: ``alpha, rho, cos alpha, sin alpha`` ``(M,)``."""
     ca, sa = np.cos(alpha), np.sin(alpha)
     rho = ca * mx + sa * my
     flip = rho < 0.0
@@ -100,23 +140,15 @@ def fit_lines(
     alpha = np.where(alpha > np.pi, alpha - 2.0 * np.pi, alpha)
     ca = np.where(flip, -ca, ca)
     sa = np.where(flip, -sa, sa)
-    rho = np.abs(rho)
+    return alpha, np.abs(rho), ca, sa
 
-    # Covariance: along-line second moment about the weighted centroid.
-    t_along = -(x - mx[seg_of]) * sa[seg_of] + (y - my[seg_of]) * ca[seg_of]
-    stt = np.add.reduceat(w * t_along * t_along, offsets)
-    var_alpha = 1.0 / stt
-    var_off = 1.0 / sw
-    drho = -sa * mx + ca * my
-    cov = np.empty((m, 2, 2))
+
+def _line_covariance(var_alpha: FloatArray, var_off: FloatArray, drho: FloatArray) -> FloatArray:
+    """``(M, 2, 2)`` covariance of ``(alpha, rho)`` from the angle variance, the offset
+    variance at the centroid and ``d rho / d alpha`` (all ``(M,)``; Arras & Siegwart 1997)."""
+    cov = np.empty((var_alpha.shape[0], 2, 2))
     cov[:, 0, 0] = var_alpha
     cov[:, 0, 1] = var_alpha * drho
     cov[:, 1, 0] = cov[:, 0, 1]
     cov[:, 1, 1] = var_alpha * drho * drho + var_off
-
-    # Endpoints: first and last points projected onto the line.
-    ends = points_xy[np.stack([starts, seg_point_range[:, 1] - 1], axis=1)]  # (M, 2, 2)
-    normal = np.stack([ca, sa], axis=1)
-    dist = np.einsum("mkj,mj->mk", ends, normal) - rho[:, None]
-    endpoints = ends - dist[..., None] * normal[:, None, :]
-    return np.stack([alpha, rho], axis=1), cov, endpoints
+    return cov

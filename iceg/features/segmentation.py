@@ -1,6 +1,6 @@
 """Scan segmentation: adaptive breakpoints, then split-and-merge inside each cluster.
 
-DESIGN.md "ICE matching, step by step", steps 2-3; paper §III-C1. The breakpoint test is
+docs/design.md "ICE matching, step by step", steps 2-3; paper §III-C1. The breakpoint test is
 vectorized over the scan; the recursive end-point fit and the merge run in a numba-compiled
 loop (a few dozen segments per scan, each needing a pass over its points).
 """
@@ -15,6 +15,17 @@ from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+
+# Breakpoint threshold: this many range standard deviations (Borges & Aldon 2004, eq. 8).
+BREAKPOINT_SIGMAS = 3.0
+# A total-least-squares line needs at least this many points to have a residual.
+MIN_LINE_POINTS = 3
+# Boundary refinement moves a boundary between two pieces by at most this many points.
+BOUNDARY_SHIFT_POINTS = 2
+# At most this many refine-then-merge passes (each joins every mergeable neighbour once).
+MAX_MERGE_PASSES = 4
+# A chord shorter than this (metres) has no direction: the split uses point distances.
+DEGENERATE_CHORD_M = 1e-12
 
 
 def breakpoints(
@@ -52,7 +63,10 @@ def breakpoints(
     jump = np.hypot(step[:, 0], step[:, 1])
     dphi = np.diff(bearings_rad)
     with np.errstate(divide="ignore", invalid="ignore"):
-        d_max = ranges_m[:-1] * np.sin(dphi) / np.sin(lambda_rad - dphi) + 3.0 * sigma_range_m
+        d_max = (
+            ranges_m[:-1] * np.sin(dphi) / np.sin(lambda_rad - dphi)
+            + BREAKPOINT_SIGMAS * sigma_range_m
+        )
     brk = (np.diff(beam_index) != 1) | (dphi >= lambda_rad) | (jump > d_max)
     inner = np.flatnonzero(brk) + 1
     out = np.empty(inner.shape[0] + 2, dtype=np.int64)
@@ -108,9 +122,10 @@ def _tls(x: FloatArray, y: FloatArray, s: int, e: int) -> tuple[float, float, fl
 
 @njit(cache=True)
 def _sse(x: FloatArray, y: FloatArray, s: int, e: int) -> float:
-    """Sum of squared total-least-squares residuals of points ``[s, e)`` (0 below 2 points)."""
+    """Sum of squared total-least-squares residuals of points ``[s, e)``: the smallest
+    eigenvalue of their scatter matrix, m²; 0 for fewer than ``MIN_LINE_POINTS`` (3) points."""
     m = e - s
-    if m < 3:
+    if m < MIN_LINE_POINTS:
         return 0.0
     _, _, sxx, syy, sxy = _scatter(x, y, s, e)
     # Smallest eigenvalue of the scatter matrix.
@@ -128,8 +143,9 @@ def _refine_boundaries(
     same: NDArray[np.bool_],
     n_pieces: int,
 ) -> None:
-    """Move each boundary between adjacent pieces of one cluster by up to two points to
-    where the two lines' summed squared residuals are smallest (in place)."""
+    """Move each boundary between adjacent pieces of one cluster by up to
+    ``BOUNDARY_SHIFT_POINTS`` points to where the two lines' summed squared residuals are
+    smallest (in place)."""
     for i in range(n_pieces - 1):
         if not same[i] or stops[i] != starts[i + 1]:
             continue
@@ -138,9 +154,9 @@ def _refine_boundaries(
         b0 = stops[i]
         best_b = b0
         best = _sse(x, y, s, b0) + _sse(x, y, b0, e)
-        for db in range(-2, 3):
+        for db in range(-BOUNDARY_SHIFT_POINTS, BOUNDARY_SHIFT_POINTS + 1):
             b = b0 + db
-            if db == 0 or b - s < 3 or e - b < 3:
+            if db == 0 or b - s < MIN_LINE_POINTS or e - b < MIN_LINE_POINTS:
                 continue
             cost = _sse(x, y, s, b) + _sse(x, y, b, e)
             if cost < best:
@@ -148,6 +164,112 @@ def _refine_boundaries(
                 best_b = b
         stops[i] = best_b
         starts[i + 1] = best_b
+
+
+@njit(cache=True)
+def farthest_from_chord(x: FloatArray, y: FloatArray, s: int, e: int, threshold_m: float) -> int:
+    """Index of the point of ``[s, e)`` farthest from the chord of its first and last points
+    (from the first point when the chord is degenerate) if that distance exceeds
+    ``threshold_m``, else -1 (the end-point fit of Nguyen et al. 2005, Alg. 1)."""
+    k_best = -1
+    if e - s < MIN_LINE_POINTS:
+        return k_best
+    x0 = x[s]
+    y0 = y[s]
+    dx = x[e - 1] - x0
+    dy = y[e - 1] - y0
+    norm = math.sqrt(dx * dx + dy * dy)
+    d_best = threshold_m
+    for i in range(s + 1, e - 1):
+        if norm > DEGENERATE_CHORD_M:
+            d = abs((x[i] - x0) * dy - (y[i] - y0) * dx) / norm
+        else:
+            d = math.sqrt((x[i] - x0) ** 2 + (y[i] - y0) ** 2)
+        if d > d_best:
+            d_best = d
+            k_best = i
+    return k_best
+
+
+@njit(cache=True)
+def _split_clusters(
+    x: FloatArray,
+    y: FloatArray,
+    bounds: IntArray,
+    split_distance_m: float,
+    starts: IntArray,
+    stops: IntArray,
+    owner: IntArray,
+) -> int:
+    """Recursive end-point fit of every cluster, run with an explicit stack: fills
+    ``starts``, ``stops`` and ``owner`` (cluster) of the pieces in point order and returns
+    their number."""
+    stack_s = np.empty(x.shape[0] + 1, dtype=np.int64)
+    stack_e = np.empty(x.shape[0] + 1, dtype=np.int64)
+    n_pieces = 0
+    for c in range(bounds.shape[0] - 1):
+        if bounds[c + 1] <= bounds[c]:
+            continue
+        # Depth-first with the right half pushed first, so pieces come out in point order.
+        stack_s[0] = bounds[c]
+        stack_e[0] = bounds[c + 1]
+        top = 1
+        while top > 0:
+            top -= 1
+            s = stack_s[top]
+            e = stack_e[top]
+            k_best = farthest_from_chord(x, y, s, e, split_distance_m)
+            if k_best < 0:
+                starts[n_pieces] = s
+                stops[n_pieces] = e
+                owner[n_pieces] = c
+                n_pieces += 1
+            else:
+                # The farthest point ends the left piece; boundary refinement may move it.
+                stack_s[top] = k_best + 1
+                stack_e[top] = e
+                stack_s[top + 1] = s
+                stack_e[top + 1] = k_best + 1
+                top += 2
+    return n_pieces
+
+
+@njit(cache=True)
+def _merge_pass(
+    x: FloatArray,
+    y: FloatArray,
+    starts: IntArray,
+    stops: IntArray,
+    link: NDArray[np.bool_],
+    same: NDArray[np.bool_],
+    n_pieces: int,
+    merge_distance_m: float,
+) -> tuple[int, bool]:
+    """One merge pass over the pieces in order, compacting them in place in ``O(pieces)``.
+
+    A piece absorbs its successor while ``link`` allows it and every point of the union lies
+    within ``merge_distance_m`` of the union's total-least-squares line; it then tries its
+    new successor. Returns the new number of pieces and whether anything merged.
+    """
+    if n_pieces == 0:
+        return 0, False
+    w = 0
+    merged = False
+    for r in range(1, n_pieces):
+        if (
+            link[w]
+            and stops[r] - starts[w] >= MIN_LINE_POINTS
+            and _tls(x, y, starts[w], stops[r])[3] < merge_distance_m
+        ):
+            stops[w] = stops[r]
+            merged = True
+        else:
+            w += 1
+            starts[w] = starts[r]
+            stops[w] = stops[r]
+        link[w] = link[r]
+        same[w] = same[r]
+    return w + 1, merged
 
 
 @njit(cache=True)
@@ -168,10 +290,12 @@ def split_and_merge(
     points while that distance exceeds ``split_distance_m`` (recursive end-point fit, run
     with an explicit stack). Merge: adjacent pieces of one cluster (or of two clusters
     separated only by a dropout, ``joinable``) are joined while every point of the union lies
-    within ``merge_distance_m`` of the union's total-least-squares line. Before each merge
+    within ``merge_distance_m`` of the union's total-least-squares line, in at most
+    ``MAX_MERGE_PASSES`` passes (fewer when a pass merges nothing). Before each merge
     pass and at the end, boundaries between adjacent pieces of a cluster are moved by up to
-    two points to the position that minimises the two lines' summed squared residuals (so
-    the point at a corner goes to the wall it lies on and cannot block a merge).
+    ``BOUNDARY_SHIFT_POINTS`` points to the position that minimises the two lines' summed
+    squared residuals (so the point at a corner goes to the wall it lies on and cannot block
+    a merge).
 
     Args:
         x, y: ``(P,)`` float64 point coordinates, metres.
@@ -184,60 +308,11 @@ def split_and_merge(
     Returns:
         ``(M, 2)`` int64 ``[start, stop)`` point ranges of the segments, in point order.
     """
-    n_clusters = bounds.shape[0] - 1
     cap = x.shape[0] + 1
     starts = np.empty(cap, dtype=np.int64)
     stops = np.empty(cap, dtype=np.int64)
     owner = np.empty(cap, dtype=np.int64)
-    n_pieces = 0
-    stack_s = np.empty(cap, dtype=np.int64)
-    stack_e = np.empty(cap, dtype=np.int64)
-    for c in range(n_clusters):
-        cs = bounds[c]
-        ce = bounds[c + 1]
-        if ce <= cs:
-            continue
-        # Depth-first with the right half pushed first, so pieces come out in point order.
-        stack_s[0] = cs
-        stack_e[0] = ce
-        top = 1
-        while top > 0:
-            top -= 1
-            s = stack_s[top]
-            e = stack_e[top]
-            k_best = -1
-            if e - s >= 3:
-                x0 = x[s]
-                y0 = y[s]
-                dx = x[e - 1] - x0
-                dy = y[e - 1] - y0
-                norm = math.sqrt(dx * dx + dy * dy)
-                d_best = split_distance_m
-                if norm > 1e-12:
-                    for i in range(s + 1, e - 1):
-                        d = abs((x[i] - x0) * dy - (y[i] - y0) * dx) / norm
-                        if d > d_best:
-                            d_best = d
-                            k_best = i
-                else:
-                    for i in range(s + 1, e - 1):
-                        d = math.sqrt((x[i] - x0) ** 2 + (y[i] - y0) ** 2)
-                        if d > d_best:
-                            d_best = d
-                            k_best = i
-            if k_best < 0:
-                starts[n_pieces] = s
-                stops[n_pieces] = e
-                owner[n_pieces] = c
-                n_pieces += 1
-            else:
-                # The farthest point ends the left piece; boundary refinement may move it.
-                stack_s[top] = k_best + 1
-                stack_e[top] = e
-                top += 1
-                stack_s[top] = s
-                stack_e[top] = k_best + 1
-                top += 1
+    n_pieces = _split_clusters(x, y, bounds, split_distance_m, starts, stops, owner)
     # link[i]: pieces i and i + 1 may merge (same cluster, or clusters split by a dropout);
     # same[i]: they are in one cluster (their boundary may move).
     link = np.zeros(cap, dtype=np.bool_)
@@ -247,39 +322,17 @@ def split_and_merge(
         link[i] = same[i] or (
             owner[i + 1] == owner[i] + 1 and joinable[owner[i]] and stops[i] == starts[i + 1]
         )
-    # Alternate boundary refinement and merging until nothing merges.
-    for _ in range(4):
+    # Alternate boundary refinement and a merge pass, at most MAX_MERGE_PASSES times; stop
+    # early after a pass that merges nothing (so a merge possible only after the last pass's
+    # boundary refinement may be left undone).
+    for _ in range(MAX_MERGE_PASSES):
         _refine_boundaries(x, y, starts, stops, same, n_pieces)
-        merged = False
-        i = 0
-        while i < n_pieces - 1:
-            if link[i] and stops[i + 1] - starts[i] >= 3:
-                worst = _tls(x, y, starts[i], stops[i + 1])[3]
-                if worst < merge_distance_m:
-                    stops[i] = stops[i + 1]
-                    link[i] = link[i + 1]
-                    same[i] = same[i + 1]
-                    for j in range(i + 1, n_pieces - 1):
-                        starts[j] = starts[j + 1]
-                        stops[j] = stops[j + 1]
-                        link[j] = link[j + 1]
-                        same[j] = same[j + 1]
-                    n_pieces -= 1
-                    merged = True
-                    continue
-            i += 1
+        n_pieces, merged = _merge_pass(x, y, starts, stops, link, same, n_pieces, merge_distance_m)
         if not merged:
             break
     _refine_boundaries(x, y, starts, stops, same, n_pieces)
-    n_out = 0
-    for i in range(n_pieces):
-        if stops[i] - starts[i] >= min_points:
-            n_out += 1
-    out = np.empty((n_out, 2), dtype=np.int64)
-    k = 0
-    for i in range(n_pieces):
-        if stops[i] - starts[i] >= min_points:
-            out[k, 0] = starts[i]
-            out[k, 1] = stops[i]
-            k += 1
+    keep = (stops[:n_pieces] - starts[:n_pieces]) >= min_points
+    out = np.empty((int(keep.sum()), 2), dtype=np.int64)
+    out[:, 0] = starts[:n_pieces][keep]
+    out[:, 1] = stops[:n_pieces][keep]
     return out

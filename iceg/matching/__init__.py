@@ -1,4 +1,4 @@
-"""ICE scan matching (paper §III-C2/C3; DESIGN.md "ICE matching, step by step", steps 5-10).
+"""ICE scan matching (paper §III-C2/C3; docs/design.md "ICE matching, step by step", steps 5-10).
 
 Example::
 
@@ -7,6 +7,9 @@ Example::
     result = matcher.match(new_features, reference, prediction, MatchBounds.local(0.5, 15.0))
     if result.success:
         result.pose, result.cov  # new scan in the reference frame; Pose2 tangent covariance
+
+Other matchers behind the same :class:`Matcher` protocol (``matching.method``):
+:func:`iceg.matching.peers.make_matcher`.
 """
 
 from iceg.matching.config import (
@@ -21,6 +24,7 @@ from iceg.matching.config import (
 )
 from iceg.matching.geometry import transform_features, transform_lines
 from iceg.matching.matcher import IceMatcher
+from iceg.matching.protocol import Matcher
 
 __all__ = [
     "CorrelationConfig",
@@ -28,6 +32,7 @@ __all__ = [
     "FilterConfig",
     "IceMatcher",
     "MatchBounds",
+    "Matcher",
     "MatchingConfig",
     "RefinementConfig",
     "ValidationConfig",

@@ -287,7 +287,7 @@ def point_line_system(
     settings: GnSettings,
 ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]:
     """Associate each point with its nearest compatible reference segment and build the
-    GLS normal equations (perturbation ``(x, y, theta)`` in the reference frame; DESIGN
+    GLS normal equations (perturbation ``(x, y, theta)`` in the reference frame; docs/design.md
     step 8, paper §III-C3).
 
     Args:
@@ -346,7 +346,7 @@ def feature_system(
     use_positions: bool,
     settings: GnSettings,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Normal equations of the feature pairs ``(Q, 2)`` ``[new, ref]`` (DESIGN step 8): a
+    """Normal equations of the feature pairs ``(Q, 2)`` ``[new, ref]`` (docs/design.md step 8): a
     pair that involves an EOW constrains the position along its wall (the reference EOW's
     wall, else the new one's rotated); other pairs, with ``use_positions``, their full 2D
     position with covariance ``R C_new R^T + C_ref``. Cauchy weights on the whitened
@@ -670,7 +670,7 @@ def gauss_newton_phase(
     phase: GnPhase,
 ) -> tuple[np.ndarray, float, float, int]:
     """One phase of the Gauss-Newton refinement (paper §III-C3 "an optimization problem";
-    DESIGN step 8). Each step sums the normal equations of the point-to-line GLS rows
+    docs/design.md step 8). Each step sums the normal equations of the point-to-line GLS rows
     (:func:`point_line_system`), the feature pairs ``(Q, 2)`` ``[new, ref]`` (full positions
     in the coarse phase; :func:`feature_system`), the off-segment PL-ICP rows (Censi 2008;
     :func:`cloud_system`, none when ``cloud`` has no points) and the bounds' prior, solves

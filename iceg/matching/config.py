@@ -1,10 +1,11 @@
-"""Configuration of ICE matching (DESIGN.md "ICE matching, step by step", steps 5-10) and the
+"""Configuration of ICE matching (docs/design.md "ICE matching, step by step", steps 5-10) and the
 motion bounds of one match."""
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -58,7 +59,7 @@ class MatchBounds:
 
 
 class FilterConfig(BaseModel):
-    """Hierarchical candidate filter and hypotheses (paper §III-C2; DESIGN step 5-6)."""
+    """Hierarchical candidate filter and hypotheses (paper §III-C2; docs/design.md step 5-6)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -93,24 +94,24 @@ class FilterConfig(BaseModel):
         gt=0.0,
         description="Two Intersection pairs form a hypothesis only if the distance between "
         "the two new Intersections equals that between the two reference ones within this "
-        "(DESIGN step 6: two Intersection pairs fix a transform).",
+        "(docs/design.md step 6: two Intersection pairs fix a transform).",
     )
     intersection_min_baseline_m: float = Field(
         default=0.8,
         gt=0.0,
         description="Smallest distance between the two Intersections of a two-pair hypothesis "
-        "(a short baseline gives a poorly determined rotation; DESIGN step 6).",
+        "(a short baseline gives a poorly determined rotation; docs/design.md step 6).",
     )
     max_intersection_pairs: int = Field(
         default=600,
         ge=2,
         description="Cap on candidate Intersection pairs combined two by two (quadratic cost); "
-        "beyond it the nearest-to-prediction pairs are kept (DESIGN step 6).",
+        "beyond it the nearest-to-prediction pairs are kept (docs/design.md step 6).",
     )
 
 
 class VotingConfig(BaseModel):
-    """Voting and choice of the hypotheses to refine (paper §III-C3; DESIGN step 6)."""
+    """Voting and choice of the hypotheses to refine (paper §III-C3; docs/design.md step 6)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -137,7 +138,7 @@ class VotingConfig(BaseModel):
         default=3,
         ge=1,
         description="Best-correlated clusters refined by Gauss-Newton in a bounded match "
-        "(DESIGN step 8).",
+        "(docs/design.md step 8).",
     )
     max_refined_global: int = Field(
         default=8,
@@ -155,26 +156,26 @@ class VotingConfig(BaseModel):
         default=True,
         description="For a bounded (local) match, also refine from the prediction itself, so a "
         "scene with few features (a corridor) still yields a point-to-line match whose "
-        "covariance shows the degeneracy (DESIGN step 9).",
+        "covariance shows the degeneracy (docs/design.md step 9).",
     )
 
 
 class CorrelationConfig(BaseModel):
-    """The correlation of paper eq. 1-3 (DESIGN step 7)."""
+    """The correlation of paper eq. 1-3 (docs/design.md step 7)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     gate_distance_m: float = Field(
         default=0.4,
         gt=0.0,
-        description="g_d of the correlation's dis term (DESIGN step 7, paper eq. 1): a new "
+        description="g_d of the correlation's dis term (docs/design.md step 7, paper eq. 1): a new "
         "feature pairs with the nearest compatible reference feature within this distance.",
     )
     gate_angle_deg: float = Field(
         default=15.0,
         gt=0.0,
         le=90.0,
-        description="g_a of the correlation's Angle term (DESIGN step 7, paper eq. 1).",
+        description="g_a of the correlation's Angle term (docs/design.md step 7, paper eq. 1).",
     )
     fimp_near: float = Field(
         default=0.65,
@@ -204,7 +205,7 @@ class CorrelationConfig(BaseModel):
         gt=0.0,
         description="A reference feature counts as visible in the new scan (count term of eq. "
         "1) unless the new scan's range at its bearing is shorter than its distance minus "
-        "this (DESIGN 'Feature map and time-validity').",
+        "this (docs/design.md 'Feature map and time-validity').",
     )
 
     @model_validator(mode="after")
@@ -218,7 +219,7 @@ class CorrelationConfig(BaseModel):
 
 
 class RefinementConfig(BaseModel):
-    """Gauss-Newton refinement (paper §III-C3 "an optimization problem"; DESIGN step 8;
+    """Gauss-Newton refinement (paper §III-C3 "an optimization problem"; docs/design.md step 8;
     off-segment points: PL-ICP, Censi 2008)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -232,14 +233,14 @@ class RefinementConfig(BaseModel):
         default=0.3,
         gt=0.0,
         description="Point-to-segment association gate of the refinement's coarse phase "
-        "(DESIGN step 8; Corner/Intersection position pairs also pull then); once the steps "
-        "are small it shrinks to association_gate_sigmas times the estimated point noise and "
+        "(docs/design.md step 8; Corner/Intersection position pairs also pull then); once the "
+        "steps are small it shrinks to association_gate_sigmas times the estimated point noise and "
         "only EOW pairs (along their wall) stay, since a Corner's position is its lines'.",
     )
     association_gate_sigmas: float = Field(
         default=4.0,
         gt=1.0,
-        description="Final association gate in units of the estimated point noise (DESIGN "
+        description="Final association gate in units of the estimated point noise (docs/design.md "
         "step 8: points not on a matched segment must not pull).",
     )
     association_gate_min_m: float = Field(
@@ -251,7 +252,7 @@ class RefinementConfig(BaseModel):
         default=0.15,
         ge=0.0,
         description="A point may associate with a reference segment up to this beyond its "
-        "endpoints (endpoints of extracted segments are noisy; DESIGN step 3).",
+        "endpoints (endpoints of extracted segments are noisy; docs/design.md step 3).",
     )
     normal_gate_deg: float = Field(
         default=20.0,
@@ -264,7 +265,7 @@ class RefinementConfig(BaseModel):
         default=0.005,
         gt=0.0,
         description="Floor of the point-to-line noise estimated from the residuals (an honest "
-        "point noise for sigma^2 (J^T J)^-1, DESIGN step 9).",
+        "point noise for sigma^2 (J^T J)^-1, docs/design.md step 9).",
     )
     line_angle_sigma_min_deg: float = Field(
         default=0.0,
@@ -272,7 +273,7 @@ class RefinementConfig(BaseModel):
         description="Floor of a reference line's angle standard deviation (about its "
         "midpoint), added to the fit covariance: model error of walls that are not straight "
         "lines. 0 keeps the fit covariance alone, which is calibrated on simulated straight "
-        "walls (DESIGN step 9: mean NEES near 3).",
+        "walls (docs/design.md step 9: mean NEES near 3).",
     )
     line_offset_sigma_min_m: float = Field(
         default=0.0,
@@ -284,7 +285,7 @@ class RefinementConfig(BaseModel):
         default=True,
         description="Also use the scan's points that lie on no segment (clutter, short "
         "structures such as door frames) with point-to-point residuals against the "
-        "reference's points, when the reference has points (DESIGN step 8 extension: they "
+        "reference's points, when the reference has points (docs/design.md step 8 extension: they "
         "constrain what long parallel walls leave open).",
     )
     local_line_max_gap_m: float = Field(
@@ -302,8 +303,8 @@ class RefinementConfig(BaseModel):
 
 
 class CovarianceConfig(BaseModel):
-    """Covariance from the correlation landscape (Olson 2009; DESIGN step 9) and its
-    degeneracy limits (DESIGN step 10)."""
+    """Covariance from the correlation landscape (Olson 2009; docs/design.md step 9) and its
+    degeneracy limits (docs/design.md step 10)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -339,7 +340,7 @@ class CovarianceConfig(BaseModel):
         default=0.5,
         gt=0.0,
         description="A result whose translation standard deviation along any direction exceeds "
-        "this is degenerate and fails (DESIGN step 10). Bounded matches cap unobserved "
+        "this is degenerate and fails (docs/design.md step 10). Bounded matches cap unobserved "
         "directions at the uniform variance of the bounds first.",
     )
     max_std_deg: float = Field(
@@ -359,7 +360,7 @@ class CovarianceConfig(BaseModel):
 
 
 class ValidationConfig(BaseModel):
-    """Acceptance checks and the choice among refined hypotheses (DESIGN step 10)."""
+    """Acceptance checks and the choice among refined hypotheses (docs/design.md step 10)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -369,7 +370,7 @@ class ValidationConfig(BaseModel):
         description="Bounds up to this translation (and tracking_max_rotation_deg) are "
         "tracking: one feature pair, the bounded correlation threshold and the first passing "
         "hypothesis suffice. Wider bounds (loop closure) use the global thresholds and "
-        "compare all refined hypotheses (DESIGN step 10).",
+        "compare all refined hypotheses (docs/design.md step 10).",
     )
     tracking_max_rotation_deg: float = Field(
         default=30.0,
@@ -381,7 +382,7 @@ class ValidationConfig(BaseModel):
         ge=0.0,
         le=1.0,
         description="A bounded match whose correlation (paper eq. 1) is below this fails "
-        "(DESIGN step 10). Real scans of cluttered rooms reach 0.25-0.45 at the true pose "
+        "(docs/design.md step 10). Real scans of cluttered rooms reach 0.25-0.45 at the true pose "
         "(many new features lower acc), simulated ones 0.6-1.",
     )
     min_correlation_global: float = Field(
@@ -394,8 +395,9 @@ class ValidationConfig(BaseModel):
     min_matched_features: int = Field(
         default=1,
         ge=1,
-        description="Fewest feature pairs a feature-supported bounded match needs (DESIGN step "
-        "10); one directed pair fixes a full pose, and the bounds exclude far look-alikes.",
+        description="Fewest feature pairs a feature-supported bounded match needs "
+        "(docs/design.md step 10); one directed pair fixes a full pose, and the bounds exclude "
+        "far look-alikes.",
     )
     min_matched_features_global: int = Field(
         default=2,
@@ -409,7 +411,7 @@ class ValidationConfig(BaseModel):
         ge=0.0,
         le=1.0,
         description="Fewest fraction of the scan's segment points that must lie on reference "
-        "segments after refinement (DESIGN step 10: too few inliers fails).",
+        "segments after refinement (docs/design.md step 10: too few inliers fails).",
     )
     min_point_overlap_global: float = Field(
         default=0.5,
@@ -430,8 +432,8 @@ class ValidationConfig(BaseModel):
         default=0.1,
         ge=0.0,
         description="A match fails as ambiguous when a distinct refined hypothesis that passes "
-        "every check scores (correlation + point overlap) within this of the best (DESIGN step "
-        "10: never a confident wrong pose in a self-similar scene).",
+        "every check scores (correlation + point overlap) within this of the best "
+        "(docs/design.md step 10: never a confident wrong pose in a self-similar scene).",
     )
     ambiguity_distance_m: float = Field(
         default=0.3,
@@ -482,7 +484,7 @@ class MatchingConfig(BaseModel):
 
     Distances are metres, angles degrees (converted once to radians by the matcher). Each
     field's description cites the paper section or equation (or the reference paper) it
-    comes from; "DESIGN" refers to ``DESIGN.md``, "ICE matching, step by step".
+    comes from; "docs/design.md" refers to ``docs/design.md``, "ICE matching, step by step".
 
     Raises:
         ConfigError: from a sub-model's cross-field check (``lattice_steps`` even,
@@ -498,10 +500,20 @@ class MatchingConfig(BaseModel):
     refinement: RefinementConfig = Field(default_factory=RefinementConfig)
     covariance: CovarianceConfig = Field(default_factory=CovarianceConfig)
     validation: ValidationConfig = Field(default_factory=ValidationConfig)
+    method: Literal["ice", "plicp", "small_gicp", "kiss_icp", "open3d_point", "open3d_plane"] = (
+        Field(
+            default="ice",
+            description="Scan matcher behind the same graph back-end: 'ice' (this matcher), "
+            "'plicp' (point-to-line ICP, Censi 2008, on the project's refinement), or an "
+            "adapter of an installed peer library (extra 'peers'): 'small_gicp' (GICP), "
+            "'kiss_icp' (KISS-ICP registration), 'open3d_point' / 'open3d_plane' (Open3D "
+            "point-to-point / point-to-plane ICP). See iceg.matching.peers.",
+        )
+    )
     cauchy_scale_sigmas: float = Field(
         default=2.5,
         gt=0.0,
         description="Cauchy robust kernel scale in units of each row's standard deviation, "
         "for every robust row of the refinement (point-to-line, feature pairs, off-segment "
-        "points; DESIGN step 8) and of the covariance lattice (DESIGN step 9).",
+        "points; docs/design.md step 8) and of the covariance lattice (docs/design.md step 9).",
     )

@@ -1,4 +1,4 @@
-"""The correlation fitness of paper eq. 1-3 as fixed in DESIGN.md step 7, vectorized over
+"""The correlation fitness of paper eq. 1-3 as fixed in docs/design.md step 7, vectorized over
 hypotheses."""
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ IntArray = NDArray[np.int64]
 
 
 def fimp(d_m: FloatArray, near: float, far: float, range_m: float) -> FloatArray:
-    """Feature importance of paper eq. 3 as fixed in DESIGN step 7:
+    """Feature importance of paper eq. 3 as fixed in docs/design.md step 7:
     ``fImp(d) = near / (1 + k d)`` with ``k`` such that ``fImp(range_m) = far``
     (defaults 0.65 and 0.1 at 20 m)."""
     k = (near / far - 1.0) / range_m
@@ -56,7 +56,7 @@ def visible_reference(
 ) -> NDArray[np.bool_]:
     """Which reference features the new scan could see from each hypothesised pose: inside
     the new scan's field of view and range, and not occluded (no pair of new beams around
-    its bearing is shorter than its distance minus the tolerance). DESIGN "Feature map and
+    its bearing is shorter than its distance minus the tolerance). docs/design.md "Feature map and
     time-validity"; used by the count term of eq. 1.
 
     Returns:
@@ -128,7 +128,7 @@ def pair_features(
     codes: IntArray,
     settings: CorrelationSettings,
 ) -> tuple[IntArray, FloatArray, FloatArray]:
-    """The correlation's feature pairing (DESIGN step 7) under ``H`` hypotheses: each new
+    """The correlation's feature pairing (docs/design.md step 7) under ``H`` hypotheses: each new
     feature pairs with the nearest compatible reference feature inside ``g_d`` and ``g_a``
     (one new feature per reference feature, the nearest wins).
 
@@ -161,7 +161,7 @@ def correlate(
     settings: CorrelationSettings,
     pairing_only: bool = False,
 ) -> Correlation:
-    """Correlation of paper eq. 1-3 (DESIGN step 7) for ``H`` hypotheses at once.
+    """Correlation of paper eq. 1-3 (docs/design.md step 7) for ``H`` hypotheses at once.
 
     Under each hypothesis the new features move into the reference frame and pair as in
     :func:`pair_features`. With ``w_i = fImp(d(nf_i)) fImp(d(of_i))`` (``d`` measured from
@@ -240,7 +240,7 @@ def _eq1(
 @dataclass(frozen=True, eq=False)
 class CorrelationModel:
     """The correlation of one match: both scans' feature geometry, their pair codes, the
-    new scan's polar profile and the settings (paper eq. 1-3, DESIGN step 7).
+    new scan's polar profile and the settings (paper eq. 1-3, docs/design.md step 7).
 
     Attributes:
         new_geom, ref_geom: New (robot frame) and reference feature geometry.

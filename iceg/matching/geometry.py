@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from iceg.types import FeatureKind, ScanFeatures
+from iceg_common.se2 import rotation_matrix as rot
 from iceg_common.se2 import wrap_angle
 
 FloatArray = NDArray[np.float64]
@@ -27,18 +28,6 @@ INTERSECTION = int(FeatureKind.INTERSECTION)
 #: A beam bracket or nearest-return lookup spanning more than this many beam spacings
 #: crosses a gap of invalid beams (no return there).
 MAX_GAP_BEAMS = 1.6
-
-
-def rot(theta: float | FloatArray) -> FloatArray:
-    """Rotation matrices ``(..., 2, 2)`` of angles ``(...)`` radians."""
-    t = np.asarray(theta, dtype=np.float64)
-    c, s = np.cos(t), np.sin(t)
-    out = np.empty((*t.shape, 2, 2))
-    out[..., 0, 0] = c
-    out[..., 0, 1] = -s
-    out[..., 1, 0] = s
-    out[..., 1, 1] = c
-    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -296,7 +285,7 @@ def associate_points(
     end_tol_m: float,
     normal_gate_rad: float,
 ) -> tuple[IntArray, FloatArray]:
-    """Nearest reference segment of each point, with gates (DESIGN step 8).
+    """Nearest reference segment of each point, with gates (docs/design.md step 8).
 
     A point associates with the segment of least point-to-segment distance (the segment
     extended by ``end_tol_m`` at both ends) among those whose line normal is within

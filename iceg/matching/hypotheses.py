@@ -1,5 +1,5 @@
 """Hierarchical candidate filter, transform hypotheses from feature pairs, and voting
-(paper §III-C2 "Match process", §III-C3; DESIGN.md steps 5-6)."""
+(paper §III-C2 "Match process", §III-C3; docs/design.md steps 5-6)."""
 
 from __future__ import annotations
 
@@ -126,7 +126,7 @@ def directed_hypotheses(
     j: IntArray,
     codes: IntArray,
 ) -> FloatArray:
-    """One SE(2) hypothesis per directed pair (DESIGN step 6; paper §III-C3: "vector and the
+    """One SE(2) hypothesis per directed pair (docs/design.md step 6; paper §III-C3: "vector and the
     angle difference between them show the translation (dx, dy) and rotation (dtheta)").
 
     Corner<->Corner and EOW<->EOW pairs align the headings (bisector / wall direction); a
@@ -170,7 +170,7 @@ def intersection_hypotheses(
     min_baseline_m: float,
     max_pairs: int,
 ) -> FloatArray:
-    """Hypotheses from two Intersection pairs each (DESIGN step 6: Intersections have no
+    """Hypotheses from two Intersection pairs each (docs/design.md step 6: Intersections have no
     direction, two pairs fix a transform).
 
     Pairs ``(i1 -> j1)`` and ``(i2 -> j2)`` combine when ``|n_i1 n_i2|`` equals
@@ -222,7 +222,7 @@ def generate_hypotheses(
     intersection_min_baseline_m: float,
     max_intersection_pairs: int,
 ) -> Hypotheses:
-    """Steps 5-6 of DESIGN.md up to voting: filter candidates hierarchically (type, feasible
+    """Steps 5-6 of docs/design.md up to voting: filter candidates hierarchically (type, feasible
     area, opening angle; direction against the predicted rotation) and build SE(2)
     hypotheses from the survivors.
 

@@ -1,10 +1,10 @@
-"""The ICE matcher: DESIGN.md steps 5-10 (paper §III-C2, §III-C3).
+"""The ICE matcher: docs/design.md steps 5-10 (paper §III-C2, §III-C3).
 
 One call of :meth:`IceMatcher.match` builds a :class:`MatchContext` (the scans' features,
 the reference, the prediction, the bounds, the config and what the steps share) and runs
 the named steps on it: hypotheses (§III-C2), correlation (§III-C3, eq. 1-3), refinement
 (Gauss-Newton with point-to-line rows and PL-ICP rows after Censi 2008), validation and
-decision (DESIGN step 10), covariance (Olson 2009, moved to the new scan's frame).
+decision (docs/design.md step 10), covariance (Olson 2009, moved to the new scan's frame).
 """
 
 from __future__ import annotations
@@ -280,7 +280,7 @@ def _checked_prediction(
 
 
 class IceMatcher:
-    """ICE scan matching (paper §III-C2/C3; DESIGN.md "ICE matching, step by step", 5-10).
+    """ICE scan matching (paper §III-C2/C3; docs/design.md "ICE matching, step by step", 5-10).
 
     Steps: hierarchical candidate filter (type, Corner<->EOW exception, feasible area via a
     KD-tree, opening angle, direction against the predicted rotation); SE(2) hypotheses from
@@ -359,7 +359,7 @@ class IceMatcher:
     # --- step 5-6: hypotheses -----------------------------------------------------------
     def _hypotheses(self, ctx: MatchContext) -> _Starts:
         """Candidate filter, SE(2) hypotheses and voting (paper §III-C2, §III-C3 "the
-        conversion with the most count"; DESIGN steps 5-6), plus the prediction itself for
+        conversion with the most count"; docs/design.md steps 5-6), plus the prediction itself for
         a bounded match. Poses ``(S, 3)`` of the new scan in the reference frame."""
         f, v = ctx.config.filter, ctx.config.voting
         hyps = generate_hypotheses(
@@ -406,7 +406,7 @@ class IceMatcher:
     def _refinement(
         self, ctx: MatchContext, starts: _Starts, corr0: Correlation, chosen: list[int]
     ) -> list[_Candidate]:
-        """Refine the chosen starts (DESIGN step 8) and check each result (step 10). A start
+        """Refine the chosen starts (docs/design.md step 8) and check each result (step 10). A start
         next to an already refined pose is skipped (it would converge to it again), a
         result equal to an earlier one dropped; a bounded match stops at the first
         hypothesis that passes (rivals come from the bounds' small neighbourhood only)."""
@@ -486,7 +486,7 @@ class IceMatcher:
 
     # --- step 10: validation --------------------------------------------------------------
     def _validation(self, ctx: MatchContext, cand: _Candidate) -> str:
-        """DESIGN step 10 checks of one refined hypothesis: inside the bounds, consistent
+        """docs/design.md step 10 checks of one refined hypothesis: inside the bounds, consistent
         with free space, enough evidence. Returns the failure reason or an empty string."""
         if not np.all(np.isfinite(cand.refined.pose)):
             return f"{REASON_DEGENERATE}: refinement diverged"
@@ -577,7 +577,7 @@ class IceMatcher:
     def _decision(self, ctx: MatchContext, cands: list[_Candidate], n_hyp: int) -> MatchResult:
         """Pick the best refined hypothesis (by fitness) that passes the checks; fail when
         none does, when a distinct rival scores nearly as well (ambiguous), or when the
-        covariance is degenerate (DESIGN step 10)."""
+        covariance is degenerate (docs/design.md step 10)."""
         ok = sorted((k for k in cands if not k.failure), key=lambda k: -k.fitness)
         if not ok:
             worst_first = sorted(cands, key=lambda k: -k.fitness)
@@ -688,7 +688,7 @@ class IceMatcher:
 
 def _prediction_start(ctx: MatchContext) -> FloatArray:
     """The prediction as a start, its rotation replaced by the best alignment of the
-    segment directions near it when one has enough support (DESIGN step 9: a scene with
+    segment directions near it when one has enough support (docs/design.md step 9: a scene with
     few features still yields a point-to-line match)."""
     f, r = ctx.features, ctx.reference
     start = ctx.prediction.copy()

@@ -1,5 +1,5 @@
-"""Refinement of a hypothesis (paper §III-C3 "an optimization problem"; DESIGN step 8) and
-its covariance (DESIGN step 9).
+"""Refinement of a hypothesis (paper §III-C3 "an optimization problem"; docs/design.md step 8) and
+its covariance (docs/design.md step 9).
 
 Gauss-Newton over
 
@@ -180,7 +180,7 @@ class _PointRows:
 
 @dataclass(frozen=True, eq=False)
 class RefineProblem:
-    """What every refinement of one match shares (DESIGN step 8).
+    """What every refinement of one match shares (docs/design.md step 8).
 
     Attributes:
         points: The new scan's points on new segments (new frame) and their segments'
@@ -416,7 +416,7 @@ def effective_line_cov(
 def refine(
     problem: RefineProblem, pose0: FloatArray, initial_pairs: IntArray | None = None
 ) -> Refined:
-    """Gauss-Newton refinement and covariance of one hypothesis (DESIGN steps 8-9; paper
+    """Gauss-Newton refinement and covariance of one hypothesis (docs/design.md steps 8-9; paper
     §III-C3 "an optimization problem"; covariance after Olson 2009).
 
     Args:

@@ -1,5 +1,5 @@
 """Tests of the feature map: anchored landmarks, references, association and time-validity
-(paper §III-C3, DESIGN.md "Feature map and time-validity").
+(paper §III-C3, docs/design.md "Feature map and time-validity").
 
 Truth: exact SE(2) algebra for frames; the simulator's ground truth (true poses, the box's
 geometry and removal time) for time-validity.

@@ -1,4 +1,4 @@
-"""Tests of ICE feature extraction (paper §III-B, §III-C1; DESIGN.md steps 1-4).
+"""Tests of ICE feature extraction (paper §III-B, §III-C1; docs/design.md steps 1-4).
 
 Ground truth comes from the simulator's exact wall geometry (``frontends.simulate``), from
 hand-computed geometry, or, for the real MIT CSAIL scans, from hand-inspected plots (see
@@ -19,7 +19,7 @@ in the noise-free ray cast at the true pose:
   Borges & Aldon 2004's breakpoint detector (lambda = 10°) by design separates points of a
   surface seen at less than 10° from the beam;
 * for a wall end, the ``EOW_BEYOND`` beams just beyond the last hit exist (not the scan's
-  angular limit) and reach farther than the wall's extension, or return nothing (DESIGN
+  angular limit) and reach farther than the wall's extension, or return nothing (docs/design.md
   step 4: "the beams just beyond it reach farther").
 
 The position of a wall end is only known to within the gap between the last beam that hits
@@ -49,11 +49,19 @@ from frontends.simulate import (
     simulate,
     visible_mask,
 )
-from iceg.features import FeatureConfig, extract
+from iceg.features import FeatureConfig, extract, neighbours
+from iceg.features.corners import find_corners, greedy_by_gap
+from iceg.features.ends import find_ends_of_wall, junctions
+from iceg.features.geometry import line_intersections, meet
+from iceg.features.intersections import best_determined, find_intersections
 from iceg.features.lines import fit_lines
-from iceg.features.segmentation import breakpoints
+from iceg.features.neighbours import close_pairs, close_to_any, segment_pairs_within
+from iceg.features.pairs import meeting_pairs
+from iceg.features.points import beam_points, check_bearings
+from iceg.features.segmentation import breakpoints, split_and_merge
+from iceg.features.segments import Segments, line_segments
 from iceg.types import FeatureKind, ScanFeatures
-from iceg_common.errors import ConfigError
+from iceg_common.errors import IcegError, ScanError
 from iceg_common.se2 import compose, inverse, transform_points
 from tests.conftest import shared_file
 
@@ -345,7 +353,7 @@ def test_max_range_gap_is_not_an_end_of_wall() -> None:
     # x = sqrt(10² - 2²) = 9.80 m, where the beams beyond read no return. The wall continues,
     # so that endpoint is no EOW. A wall y = -2 from x = 0 to 5 with nothing behind: its end
     # (5, -2) is a true end although the beams beyond also read no return: had the wall
-    # continued they would have returned at < 10 m (DESIGN step 4; see FeatureConfig).
+    # continued they would have returned at < 10 m (docs/design.md step 4; see FeatureConfig).
     laser = LaserModel(range_sigma_m=0.0)
     world = World("two", np.array([[[0.5, 2.0], [30.0, 2.0]], [[0.5, -2.0], [5.0, -2.0]]]))
     f = extract(_scan(cast_rays(world, np.zeros(3), laser), laser), FeatureConfig(range_max_m=10))
@@ -371,8 +379,10 @@ def test_empty_and_tiny_scans() -> None:
 
 def test_bearings_must_increase() -> None:
     scan = LaserScan(0.0, np.ones(5), np.array([0.0, 0.1, 0.1, 0.2, 0.3]), 0.0, 20.0, None)
-    with pytest.raises(ConfigError, match="increase"):
+    with pytest.raises(ScanError, match="increase"):
         extract(scan)
+    with pytest.raises(IcegError):  # one hierarchy: the CLI catches the root
+        check_bearings(scan)
 
 
 def test_config_validates() -> None:
@@ -556,7 +566,7 @@ def test_intersection_of_non_touching_walls(walls: list, meet: tuple) -> None:
 
 def test_parallel_and_shallow_walls_give_no_intersection() -> None:
     parallel = [[[1.0, 1.0], [8.0, 1.0]], [[1.0, -1.2], [8.0, -1.2]]]
-    # 20° apart (below the 30° minimum of DESIGN step 4), lines meet at (6, 0).
+    # 20° apart (below the 30° minimum of docs/design.md step 4), lines meet at (6, 0).
     shallow = [
         [[1.0, -5.0 * math.tan(math.radians(10.0))], [4.0, -2.0 * math.tan(math.radians(10.0))]],
         [[1.0, 5.0 * math.tan(math.radians(10.0))], [4.0, 2.0 * math.tan(math.radians(10.0))]],
@@ -735,3 +745,310 @@ def test_plot_scan_features_draws_the_features() -> None:
         assert ax.get_aspect() == 1.0
     finally:
         plt.close(fig)
+
+
+# --------------------------------------------------------------------------------------
+# Stages of extract, one by one (hand-computed geometry)
+# --------------------------------------------------------------------------------------
+
+
+def _l_scene() -> tuple[LaserScan, LaserModel]:
+    """Noise-free L: walls x = 4 (y in [-3, 3]) and y = 3 (x in [-1, 4]), 181 beams 1° apart
+    from bearing -90°. Beam i has bearing (i - 90)°: the x = 4 wall is hit by beams 54-126
+    (4 tan(-36°) = -2.906 > -3 > 4 tan(-37°)), the y = 3 wall by beams 127-180
+    (atan2(3, 4) = 36.87°)."""
+    laser = LaserModel(range_sigma_m=0.0)
+    world = World("L", np.array([[[4.0, -3.0], [4.0, 3.0]], [[4.0, 3.0], [-1.0, 3.0]]]))
+    return _scan(cast_rays(world, np.zeros(3), laser), laser), laser
+
+
+def test_beam_points_hand_computed() -> None:
+    # Laser 0.3 m ahead, 0.1 m left, yawed 90°: a beam at laser bearing 0 points along +y.
+    angles = np.radians([-10.0, 0.0, 10.0, 20.0, 30.0, 40.0])
+    ranges = np.array([1.0, np.inf, 0.05, 25.0, np.nan, 2.0])
+    scan = LaserScan(0.0, ranges, angles, 0.1, 30.0, None, np.array([0.3, 0.1, math.pi / 2]))
+    b = beam_points(scan, 20.0)
+    assert b.valid.tolist() == [True, False, False, False, False, True]
+    assert b.no_return.tolist() == [False, True, False, True, False, False]
+    assert b.beam_index.tolist() == [0, 5]
+    a0, a5 = math.radians(80.0), math.radians(130.0)
+    np.testing.assert_allclose(
+        b.points,
+        [
+            [0.3 + math.cos(a0), 0.1 + math.sin(a0)],
+            [0.3 + 2 * math.cos(a5), 0.1 + 2 * math.sin(a5)],
+        ],
+        atol=1e-12,
+    )
+    np.testing.assert_allclose(b.dirs[1], [0.0, 1.0], atol=1e-12)
+    assert b.origin.tolist() == [0.3, 0.1] and b.range_max == 20.0
+
+
+def test_split_and_merge_hand_computed() -> None:
+    # One cluster on an L: 10 points on y = 0 (x = 0..0.9), then 10 on x = 1 (y = 0.1..1.0).
+    # The split is at the point farthest from the chord; boundary refinement keeps the last
+    # point (0.9, 0) on y = 0: two segments [0, 10) and [10, 20).
+    xs: np.ndarray = np.r_[np.arange(10) * 0.1, np.ones(10)]
+    ys: np.ndarray = np.r_[np.zeros(10), 0.1 + np.arange(10) * 0.1]
+    seg = split_and_merge(xs, ys, np.array([0, 20]), np.zeros(0, bool), 0.05, 0.05, 5)
+    assert seg.tolist() == [[0, 10], [10, 20]]
+    # A straight wall cut in two clusters by a dropout: merged when joinable, else two.
+    xs = np.arange(20, dtype=np.float64) * 0.1
+    ys = np.zeros(20)
+    bounds = np.array([0, 8, 20])
+    joined = split_and_merge(xs, ys, bounds, np.array([True]), 0.05, 0.05, 5)
+    assert joined.tolist() == [[0, 20]]
+    apart = split_and_merge(xs, ys, bounds, np.array([False]), 0.05, 0.05, 5)
+    assert apart.tolist() == [[0, 8], [8, 20]]
+    # Pieces of fewer than min_points are dropped.
+    short = split_and_merge(xs, ys, bounds, np.array([False]), 0.05, 0.05, 10)
+    assert short.tolist() == [[8, 20]]
+
+
+def test_line_segments_of_the_l_scene() -> None:
+    scan, _ = _l_scene()
+    segs = line_segments(beam_points(scan, 20.0), FeatureConfig())
+    assert segs.end_beam.tolist() == [[54, 126], [127, 180]]
+    np.testing.assert_allclose(segs.lines, [[0.0, 4.0], [math.pi / 2, 3.0]], atol=1e-9)
+    np.testing.assert_allclose(segs.normals, [[1.0, 0.0], [0.0, 1.0]], atol=1e-9)
+    # Endpoints: beam 54 meets x = 4 at y = 4 tan(-36°); beam 180 meets y = 3 at x = 0.
+    np.testing.assert_allclose(segs.endpoints[0, 0], [4.0, 4.0 * math.tan(math.radians(-36))])
+    np.testing.assert_allclose(segs.endpoints[1, 1], [0.0, 3.0], atol=1e-9)
+    # Beam spacing along the wall at beam 54: r dphi / cos(incidence) with r = 4 / cos 36°,
+    # incidence 36° -> 4 * (pi / 180) / cos²(36°) = 0.10667 m.
+    assert segs.spacing[0, 0] == pytest.approx(4 * math.pi / 180 / math.cos(math.radians(36)) ** 2)
+
+
+def test_line_intersection_covariance_matches_finite_differences() -> None:
+    # Lines x cos a + y sin a = rho: (0.3, 2) and (1.6, 1.5). Jacobians of the meeting point
+    # by central differences against the closed form of geometry.meet.
+    la = np.array([[0.3, 2.0]])
+    lb = np.array([[1.6, 1.5]])
+    xy, ja, jb = meet(la, lb)
+    ref = np.linalg.solve(
+        [[math.cos(0.3), math.sin(0.3)], [math.cos(1.6), math.sin(1.6)]], [2, 1.5]
+    )
+    np.testing.assert_allclose(xy[0], ref, atol=1e-12)
+    h = 1e-6
+    for k in range(2):
+        d = np.zeros((1, 2))
+        d[0, k] = h
+        num_a = (meet(la + d, lb)[0] - meet(la - d, lb)[0])[0] / (2 * h)
+        num_b = (meet(la, lb + d)[0] - meet(la, lb - d)[0])[0] / (2 * h)
+        np.testing.assert_allclose(ja[0, :, k], num_a, atol=1e-7)
+        np.testing.assert_allclose(jb[0, :, k], num_b, atol=1e-7)
+    ca = np.array([[[1e-4, 2e-5], [2e-5, 4e-4]]])
+    cb = np.array([[[3e-4, 0.0], [0.0, 1e-4]]])
+    _, cov = line_intersections(la, ca, lb, cb)
+    np.testing.assert_allclose(cov[0], ja[0] @ ca[0] @ ja[0].T + jb[0] @ cb[0] @ jb[0].T)
+
+
+def test_meeting_pairs_and_corner_of_the_l_scene() -> None:
+    scan, _ = _l_scene()
+    cfg = FeatureConfig()
+    segs = line_segments(beam_points(scan, 20.0), cfg)
+    pairs = meeting_pairs(segs, cfg)
+    assert pairs.first.tolist() == [0] and pairs.second.tolist() == [1]
+    np.testing.assert_allclose(pairs.xy, [[4.0, 3.0]], atol=1e-9)
+    corners = find_corners(segs, pairs, cfg)
+    assert corners.pairs.tolist() == [[0, 1]]
+    assert corners.ends.tolist() == [[1, 0]]  # last point of x = 4, first of y = 3
+    np.testing.assert_allclose(corners.dirs[0], [[0.0, -1.0], [-1.0, 0.0]], atol=1e-9)
+    assert corners.opening[0] == pytest.approx(math.pi / 2, abs=1e-9)
+    assert corners.endpoint_mask(2).tolist() == [[False, True], [True, False]]
+
+
+def test_greedy_by_gap_uses_each_endpoint_once() -> None:
+    # Pairs (0,1), (1,2), (0,2) sharing endpoints: gaps 0.2, 0.1, 0.05. (0,2) is taken first
+    # (end 1 of 0, end 0 of 2); (1,2) needs end 0 of 2: taken; (0,1) needs end 1 of 0: taken.
+    first = np.array([0, 1, 0])
+    second = np.array([1, 2, 2])
+    end_i = np.array([1, 1, 1])
+    end_j = np.array([0, 0, 0])
+    gap = np.array([0.2, 0.1, 0.05])
+    chosen = greedy_by_gap(np.arange(3), gap, (first, second, end_i, end_j), 3)
+    assert chosen.tolist() == [2]
+    # With (1,2) using end 1 of 2 instead, it is free too: chosen in increasing gap.
+    chosen = greedy_by_gap(np.arange(3), gap, (first, second, end_i, np.array([0, 1, 0])), 3)
+    assert chosen.tolist() == [2, 1]
+
+
+def test_end_of_wall_of_the_l_scene() -> None:
+    scan, _ = _l_scene()
+    cfg = FeatureConfig()
+    beams = beam_points(scan, 20.0)
+    segs = line_segments(beams, cfg)
+    corners = find_corners(segs, meeting_pairs(segs, cfg), cfg)
+    eows = find_ends_of_wall(beams, segs, corners.endpoint_mask(2), cfg)
+    # Only the first end of the x = 4 wall: beams 53 and 52 return nothing. The wall ends
+    # between the rays of beams 54 (-36°) and 53 (-37°): EOW at their hits' midpoint.
+    assert eows.seg.tolist() == [0] and eows.end.tolist() == [0] and eows.beyond.tolist() == [53]
+    t36, t37 = math.tan(math.radians(-36.0)), math.tan(math.radians(-37.0))
+    np.testing.assert_allclose(eows.xy[0], [4.0, 2.0 * (t36 + t37)], atol=1e-9)
+    np.testing.assert_allclose(eows.dirs[0, 0], [0.0, 1.0], atol=1e-12)
+    assert np.all(np.isnan(eows.dirs[0, 1]))
+    # Along the wall: at least the uniform variance of the 4 (tan 36° - tan 37°) gap.
+    gap = 4.0 * (t36 - t37)
+    assert eows.cov[0, 1, 1] >= gap**2 / 12.0
+    assert eows.cov[0, 1, 1] == pytest.approx(gap**2 / 12.0, rel=0.05)
+
+
+def _segments(endpoints: np.ndarray, end_beam: np.ndarray) -> Segments:
+    m = endpoints.shape[0]
+    return Segments(
+        point_range=np.zeros((m, 2), dtype=np.int64),
+        lines=np.zeros((m, 2)),
+        cov=np.tile(np.eye(2), (m, 1, 1)),
+        endpoints=endpoints,
+        end_beam=end_beam,
+        spacing=np.full((m, 2), 0.01),
+        normals=np.tile([1.0, 0.0], (m, 1)),
+    )
+
+
+def test_junctions_need_nearby_beams_and_nearby_points() -> None:
+    # Segment 0 ends at beam 10 at (1, 0); segment 1 starts 2 beams later 0.1 m away: a
+    # junction (within eow_check_beams + 1 = 3 beams and 0.3 + 2 * 0.01 m). Segment 2
+    # starts 4 beams after segment 1 ends, 0.05 m away: too many beams apart. Segment 3
+    # starts 1 beam later but 1 m away.
+    endpoints = np.array(
+        [
+            [[0.0, 0.0], [1.0, 0.0]],
+            [[1.1, 0.0], [2.0, 0.0]],
+            [[2.05, 0.0], [3.0, 0.0]],
+            [[3.0, 1.0], [4.0, 1.0]],
+        ]
+    )
+    end_beam = np.array([[0, 10], [12, 20], [24, 30], [31, 40]])
+    got = junctions(_segments(endpoints, end_beam), FeatureConfig())
+    assert got.tolist() == [[False, True], [True, False], [False, False], [False, False]]
+
+
+def test_intersection_stage_hand_computed() -> None:
+    # Walls x = 3 (y in [-3, -0.6]) and y = 1.5 (x in [3.8, 7]), noise-free: their lines meet
+    # at (3, 1.5), 2.1 m and 0.8 m from the walls: an Intersection, no Corner.
+    laser = LaserModel(range_sigma_m=0.0)
+    world = World("pair", np.array([[[3.0, -3.0], [3.0, -0.6]], [[3.8, 1.5], [7.0, 1.5]]]))
+    cfg = FeatureConfig()
+    beams = beam_points(_scan(cast_rays(world, np.zeros(3), laser), laser), 20.0)
+    segs = line_segments(beams, cfg)
+    pairs = meeting_pairs(segs, cfg)
+    corners = find_corners(segs, pairs, cfg)
+    assert corners.xy.shape == (0, 2)
+    inter = find_intersections(beams, segs, pairs, corners, cfg)
+    assert inter.pairs.tolist() == [[0, 1]]
+    np.testing.assert_allclose(inter.xy, [[3.0, 1.5]], atol=1e-9)
+    # Rays toward the far endpoints (3, -3) and (7, 1.5): -y and +x, 90° apart.
+    assert inter.opening[0] == pytest.approx(math.pi / 2, abs=1e-6)
+    # Too far: with intersection_max_distance_m below 2.1 m there is none.
+    near_only = FeatureConfig(intersection_max_distance_m=2.0)
+    assert find_intersections(beams, segs, pairs, corners, near_only).xy.shape == (0, 2)
+
+
+def test_best_determined_keeps_the_smallest_trace_of_each_cluster() -> None:
+    # (0, 0) trace 2 and (0.1, 0) trace 1 are one meeting: keep the latter; (5, 5) alone.
+    xy = np.array([[0.0, 0.0], [0.1, 0.0], [5.0, 5.0]])
+    cov = np.array([np.eye(2), 0.5 * np.eye(2), 1.5 * np.eye(2)])
+    assert best_determined(xy, cov, 0.3).tolist() == [1, 2]
+    # Chains: a (trace 1) drops b (0.25 m away); c, 0.25 m beyond b but 0.5 m from a, stays.
+    xy = np.array([[0.0, 0.0], [0.25, 0.0], [0.5, 0.0]])
+    cov = np.array([0.5 * np.eye(2), np.eye(2), 1.5 * np.eye(2)])
+    assert best_determined(xy, cov, 0.3).tolist() == [0, 2]
+
+
+def test_neighbourhood_searches_match_brute_force() -> None:
+    rng = np.random.default_rng(3)
+    for n in (20, 400):  # below and above DENSE_MAX_ROWS: all pairs, then the KD-tree
+        xy = rng.uniform(0.0, 10.0, size=(n, 2))
+        d = np.linalg.norm(xy[:, None] - xy[None], axis=2)
+        a, b = np.nonzero(np.triu(d <= 0.7, k=1))
+        assert close_pairs(xy, 0.7).tolist() == np.stack([a, b], axis=1).tolist()
+        ref = rng.uniform(0.0, 10.0, size=(n // 4, 2))
+        dr = np.linalg.norm(xy[:, None] - ref[None], axis=2)
+        assert close_to_any(xy, ref, 0.5).tolist() == (dr <= 0.5).any(axis=1).tolist()
+
+
+def _segment_distances(ends: np.ndarray) -> np.ndarray:
+    """``(M, M)`` distances between segments ``(M, 2, 2)``, metres: 0 where they cross, else
+    the smallest distance of an endpoint of one to the other."""
+
+    def point_seg(x: np.ndarray, s: np.ndarray) -> np.ndarray:  # x (M, 2), s (M, 2, 2)
+        e = s[None, :, 1] - s[None, :, 0]
+        rel = x[:, None] - s[None, :, 0]
+        t = np.clip(np.einsum("abk,abk->ab", rel, e) / np.einsum("abk,abk->ab", e, e), 0, 1)
+        return np.linalg.norm(rel - t[..., None] * e, axis=2)  # (M, M): x[a] to s[b]
+
+    def side(p: np.ndarray) -> np.ndarray:  # sign of p[a] relative to segment b: (M, M)
+        e = ends[None, :, 1] - ends[None, :, 0]
+        rel = p[:, None] - ends[None, :, 0]
+        return np.sign(e[..., 0] * rel[..., 1] - e[..., 1] * rel[..., 0])
+
+    d = np.minimum(point_seg(ends[:, 0], ends), point_seg(ends[:, 1], ends))
+    straddles = side(ends[:, 0]) * side(ends[:, 1]) < 0  # a's ends on both sides of b
+    d = np.minimum(d, d.T)
+    d[straddles & straddles.T] = 0.0
+    return d
+
+
+def test_segment_pairs_within_is_a_superset_and_linear() -> None:
+    # Random short segments (0.2-3 m) scattered along a 200 m strip: every pair closer than
+    # 6 m is listed (superset of the truth), and the number listed grows linearly with the
+    # number of segments (a bounded neighbourhood), not as M²/2.
+    rng = np.random.default_rng(8)
+
+    def strip(m: int) -> np.ndarray:
+        start = np.c_[rng.uniform(0.0, m * 0.1, m), rng.uniform(-3.0, 3.0, m)]
+        ang = rng.uniform(0.0, np.pi, m)
+        length = rng.uniform(0.2, 3.0, m)
+        return np.stack([start, start + length[:, None] * np.c_[np.cos(ang), np.sin(ang)]], 1)
+
+    ends = strip(300)
+    ii, jj = segment_pairs_within(ends, 6.0)
+    listed = set(zip(ii.tolist(), jj.tolist(), strict=True))
+    assert np.all(ii < jj) and np.all(np.diff(ii * 300 + jj) > 0)  # triu order
+    ti, tj = np.nonzero(np.triu(_segment_distances(ends) <= 6.0, k=1))
+    assert set(zip(ti.tolist(), tj.tolist(), strict=True)) <= listed
+    counts = [segment_pairs_within(strip(m), 6.0)[0].size for m in (2000, 8000)]
+    # Density is the same (0.1 m of strip per segment), so pairs per segment stay bounded.
+    assert counts[1] <= 4.4 * counts[0]
+    assert counts[1] < 0.02 * 8000 * 7999 / 2
+
+
+def _sawtooth_scan(n_teeth: int, n_beams: int) -> tuple[LaserScan, np.ndarray]:
+    """A noise-free 360° scan from the centre of a star-shaped room: vertices alternate
+    between radius 6 m and 6 m + half a tooth's arc, so every face meets the beams at about
+    45° and every vertex (2 n_teeth of them) is a Corner seen from both faces."""
+    step = 2.0 * math.pi / n_teeth
+    k = np.arange(2 * n_teeth)
+    radius = np.where(k % 2 == 0, 6.0, 6.0 + 6.0 * step / 2.0)
+    verts = np.c_[radius * np.cos(k * step / 2.0), radius * np.sin(k * step / 2.0)]
+    walls = np.stack([verts, np.roll(verts, -1, axis=0)], axis=1)
+    angles = np.linspace(-math.pi, math.pi, n_beams, endpoint=False)
+    ranges = np.concatenate(
+        [ray_ranges(np.zeros(2), chunk, walls) for chunk in np.array_split(angles, 40)]
+    )
+    scan = LaserScan(0.0, ranges, angles, 0.0, 20.0, None, source="sawtooth")
+    return scan, verts
+
+
+def test_large_scan_features_are_bounded_neighbourhood_and_true(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # 100,000 beams, 200 faces. Issue 12: feature tests relate only segments within a
+    # bounded neighbourhood; the features equal those of the all-pairs computation and lie
+    # at the true vertices.
+    scan, verts = _sawtooth_scan(100, 100_000)
+    cfg = FeatureConfig()
+    f = extract(scan, cfg)
+    assert f.n_segments >= 190
+    segs = line_segments(beam_points(scan, 20.0), cfg)
+    listed = segment_pairs_within(segs.endpoints, 6.0)[0].size
+    m = segs.lines.shape[0]
+    assert listed < 0.5 * m * (m - 1) / 2  # not all pairs: a neighbourhood
+    corners = f.xy[f.kind == CORNER]
+    d, _ = _nearest(corners, verts)
+    assert corners.shape[0] >= 180 and np.all(d <= CORNER_TOL_M)
+    monkeypatch.setattr(neighbours, "DENSE_MAX_ROWS", 10**9)  # all pairs, the old way
+    g = extract(scan, cfg)
+    for name in ("kind", "xy", "cov", "segment_ids", "opening_rad"):
+        np.testing.assert_array_equal(getattr(f, name), getattr(g, name))

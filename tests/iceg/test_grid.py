@@ -13,7 +13,7 @@ import math
 import numpy as np
 import pytest
 import yaml
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
@@ -241,6 +241,11 @@ def test_traversal_is_the_exact_cell_path(x0: float, y0: float, bearing: float, 
     # Truth: the cells a densely sampled segment (step 1e-3 cell) passes through. The
     # traversal must contain them all and be a 4-connected path of exactly
     # |d col| + |d row| + 1 cells: the cells a segment crosses (Amanatides & Woo 1987).
+    # A segment that runs along a cell boundary has no defined cell set (which side it is on
+    # is floating-point rounding): leave those out.
+    for start, direction in ((x0, math.cos(bearing)), (y0, math.sin(bearing))):
+        on_line = abs(start / 0.1 - round(start / 0.1)) < 1e-6
+        assume(not (on_line and abs(direction) < 1e-6))
     g = render_ranges([[r]], [bearing], [[x0, y0, 0.0]], GridConfig(resolution_m=0.1, margin_m=0.1))
     path = {tuple(c) for c in np.argwhere((g.misses > 0) | (g.hits > 0)).tolist()}
     end = np.array([x0 + r * math.cos(bearing), y0 + r * math.sin(bearing)])

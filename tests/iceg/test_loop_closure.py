@@ -9,15 +9,24 @@ import math
 import numpy as np
 import pytest
 
-from frontends.simulate import office_world, simulate
+from frontends.simulate import (
+    OdometryModel,
+    World,
+    office_world,
+    simulate,
+    simulate_scenario,
+    trajectory_from_waypoints,
+)
 from graph import FactorKind
 from iceg.config import IcegConfig
 from iceg.loop_closure import (
     LoopCloser,
     LoopClosure,
     LoopClosureConfig,
+    chain_covariance,
     closures_agree,
     innovation_chi2,
+    pcm_chi2,
 )
 from iceg.slam import Slam
 from iceg_common import se2
@@ -116,3 +125,116 @@ def test_simulated_loop_closes_with_closures_that_match_the_truth(office_slam) -
         # Closures link old places to new nodes, at least min_node_gap apart.
         assert f.j - f.i >= LoopClosureConfig().min_node_gap
         assert f.robust in (None, LoopClosureConfig().robust_kernel)
+
+
+# ---------------------------------------------------------------------- global loop closure
+
+
+def _true_closure(node_from: int, node_to: int, measured, cov) -> LoopClosure:  # type: ignore[no-untyped-def]
+    m = np.asarray(measured, dtype=float)
+    return LoopClosure(node_from, node_to, m, np.asarray(cov, float), 0.9, m, is_global=True)
+
+
+def test_pcm_cycle_error_is_zero_for_true_closures_and_exact_for_a_known_offset() -> None:
+    # Truth: old nodes 0 and 2, new nodes 10 and 12, arbitrary poses.
+    x = {0: [0.0, 0.0, 0.1], 2: [2.0, 0.5, 0.4], 10: [1.0, -1.0, 2.0], 12: [3.0, 0.2, -2.5]}
+    x = {k: np.asarray(v) for k, v in x.items()}
+    zero = np.zeros((3, 3))
+    cov_b = np.diag([0.01, 0.04, 0.0025])
+    a = _true_closure(0, 10, se2.between(x[0], x[10]), zero)
+    b = _true_closure(2, 12, se2.between(x[2], x[12]), cov_b)
+    old = (se2.between(x[0], x[2]), zero)
+    new = (se2.between(x[10], x[12]), zero)
+    assert pcm_chi2(a, b, old, new) == pytest.approx(0.0, abs=1e-20)
+    # b off by 0.1 m along its own x: the cycle error is exactly that offset.
+    b_off = _true_closure(2, 12, se2.compose(b.measured, [0.1, 0, 0]), cov_b)
+    assert pcm_chi2(a, b_off, old, new) == pytest.approx(1.0, rel=1e-9)
+    # The new chain's covariance adds to the same tangent space: 0.01 / (0.01 + 0.01).
+    new_uncertain = (new[0], np.diag([0.01, 0.0, 0.0]))
+    assert pcm_chi2(a, b_off, old, new_uncertain) == pytest.approx(0.5, rel=1e-9)
+
+
+def test_pcm_moves_the_first_closure_covariance_through_the_new_chain() -> None:
+    # New chain a pure +90 deg turn: a's x variance becomes y variance at b's node, so only
+    # a's y variance (0.01) weighs a 0.1 m x error: d2 = 1 (0.333 without the transport).
+    zero = np.zeros((3, 3))
+    a = _true_closure(0, 10, [1.0, 0.0, 0.0], np.diag([0.03, 0.01, 0.001]))
+    t_new = np.array([0.0, 0.0, math.pi / 2])
+    z_b = se2.compose(se2.compose(a.measured, t_new), [0.1, 0.0, 0.0])  # old chain identity
+    b = _true_closure(0, 12, z_b, zero)
+    d2 = pcm_chi2(a, b, (np.zeros(3), zero), (t_new, zero))
+    assert d2 == pytest.approx(1.0, rel=1e-9)
+
+
+def test_chain_covariance_of_two_unit_steps_by_hand() -> None:
+    # Two 1 m steps along x: the first step's heading variance moves the end sideways by
+    # 1 m * dtheta: C2 = Sigma + [[sx, 0, 0], [0, sy + st, st], [0, st, st]].
+    sx, sy, st = 1e-4, 4e-4, 9e-6
+    step = np.diag([sx, sy, st])
+    poses = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    expected = step + np.array([[sx, 0, 0], [0, sy + st, st], [0, st, st]])
+    np.testing.assert_allclose(chain_covariance(poses, [step, step]), expected, atol=1e-18)
+    assert not chain_covariance(poses[:1], []).any()
+
+
+def _identical_rooms_world() -> World:
+    """A 2 m corridor (``y`` 0-2) along six identical 6 m x 4 m rooms, each with its door at
+    the same place: every stretch of corridor looks like the one 6 m further on."""
+    walls = [[[0.0, 0.0], [36.0, 0.0]], [[0.0, 0.0], [0.0, 6.0]], [[36.0, 0.0], [36.0, 6.0]]]
+    walls.append([[0.0, 6.0], [36.0, 6.0]])
+    for k in range(6):
+        x0 = 6.0 * k
+        walls += [[[x0, 2.0], [x0 + 1.0, 2.0]], [[x0 + 1.9, 2.0], [x0 + 6.0, 2.0]]]
+        if k:
+            walls.append([[x0, 2.0], [x0, 6.0]])
+    return World("identical_rooms", np.array(walls))
+
+
+def _assert_true_closures(slam: Slam, true_poses: np.ndarray) -> int:
+    """Every loop-closure factor within 0.3 m / 3 deg of the true relative pose; their count."""
+    loops = [f for f in slam.graph.factors if f.kind is FactorKind.LOOP_CLOSURE]
+    scan_of = slam._s.node_scan_index
+    for f in loops:
+        assert f.j is not None
+        err = se2.between(
+            se2.between(true_poses[scan_of[f.i]], true_poses[scan_of[f.j]]), f.measured
+        )
+        assert math.hypot(err[0], err[1]) <= 0.3, (f.i, f.j, err)
+        assert abs(math.degrees(err[2])) <= 3.0, (f.i, f.j, err)
+    return len(loops)
+
+
+def test_identical_rooms_give_no_false_closure() -> None:
+    # Up and down a corridor of identical rooms twice, with biased odometry: appearance and
+    # single-scan matches are aliased every 6 m; no accepted closure may be wrong.
+    world = _identical_rooms_world()
+    route = [[1.0, 1.0], [35.0, 1.0], [1.0, 1.0], [35.0, 1.0], [1.0, 1.0]]
+    run = simulate(
+        world,
+        trajectory_from_waypoints(route),
+        odometry=OdometryModel.biased(scale_error=0.02, heading_drift_deg_per_m=0.3),
+        seed=3,
+    )
+    slam = Slam(IcegConfig())
+    for scan in run.scans:
+        slam.process(scan)
+    stats = slam.loop_stats
+    assert stats.global_searches > 0 and stats.global_attempts > 0
+    _assert_true_closures(slam, run.true_poses)
+
+
+def test_two_loop_world_with_large_odometry_drift_closes_with_true_closures() -> None:
+    # two_loop: 256 m, 1 % scale error and 0.3 deg/m heading drift, odometry end error > 20 m.
+    # With the global search on, the return is closed: ATE <= 0.10 m (measured 0.034 m) and
+    # every accepted closure is true.
+    run = simulate_scenario("two_loop", seed=0)
+    odometry = np.array([s.odom_pose for s in run.scans])
+    assert math.hypot(*(odometry[-1, :2] - run.true_poses[-1, :2])) > 20.0
+    slam = Slam(IcegConfig())
+    for scan in run.scans:
+        slam.process(scan)
+    poses = slam.finish().poses
+    ate = float(np.sqrt(np.mean(np.sum((poses[:, :2] - run.true_poses[:, :2]) ** 2, axis=1))))
+    assert ate <= 0.10
+    assert slam.loop_stats.global_searches > 0
+    assert _assert_true_closures(slam, run.true_poses) >= 10

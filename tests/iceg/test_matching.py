@@ -1,4 +1,4 @@
-"""Tests of the ICE matcher (DESIGN.md steps 5-10, paper §III-C2/C3).
+"""Tests of the ICE matcher (docs/design.md steps 5-10, paper §III-C2/C3).
 
 Truth comes from three places:
 
@@ -229,7 +229,7 @@ def _unit(deg: float) -> list[float]:
 
 
 def test_fimp_is_paper_eq3() -> None:
-    # Paper eq. 3 / DESIGN step 7: 0.65 next to the robot, 0.1 at the 20 m reliable range.
+    # Paper eq. 3 / docs/design.md step 7: 0.65 next to the robot, 0.1 at the 20 m reliable range.
     assert fimp(np.array(0.0), 0.65, 0.1, 20.0) == pytest.approx(0.65)
     assert fimp(np.array(20.0), 0.65, 0.1, 20.0) == pytest.approx(0.1)
     # k = 5.5 / 20: at 2 m fImp = 0.65 / 1.55.

@@ -7,10 +7,18 @@ import dataclasses
 import numpy as np
 import pytest
 
-from frontends.simulate import box_world, corridor_world, office_world, simulate
+from frontends.simulate import (
+    ACCURATE_ODOMETRY,
+    box_world,
+    corridor_world,
+    long_corridor_world,
+    office_world,
+    simulate,
+)
+from graph import FactorKind
 from iceg.evaluation import position_errors
 from iceg.pipeline import run_scans
-from iceg.slam import Slam
+from iceg.slam import Slam, remap_weak_directions
 from iceg_common import se2
 from iceg_common.errors import ScanError
 
@@ -26,7 +34,7 @@ def test_every_scan_gets_a_pose_and_non_nodes_follow_odometry(office_run) -> Non
     result = slam.finish()
     assert result.poses.shape == (len(office_run.scans), 3)
     np.testing.assert_array_equal(result.stamps_s, office_run.stamps_s)
-    # DESIGN: a non-node scan takes its node's estimate composed with the odometry delta.
+    # docs/design.md: a non-node scan takes its node's estimate composed with the odometry delta.
     is_node = np.zeros(len(office_run.scans), dtype=bool)
     is_node[result.node_scan_index] = True
     assert 0 < is_node.sum() < len(is_node)
@@ -142,3 +150,74 @@ def test_scans_without_odometry_before_odometry_starts(office_run) -> None:  # t
     truth = se2.between(office_run.true_poses[0], office_run.true_poses[:250])
     err = position_errors(result.poses, truth, align=False)
     assert err.max_m < 0.1, err
+
+
+def test_weak_match_directions_are_remapped_to_the_prediction() -> None:
+    # Zhang, Kaess & Singh 2016: along a direction where the match tells less than the
+    # prediction the measurement takes the prediction; strong directions keep the match.
+    pred = np.array([0.10, 0.0, 0.0])
+    pred_cov = np.diag([0.01**2, 0.01**2, np.radians(0.5) ** 2])
+    meas = np.array([-0.30, 0.004, np.radians(0.2)])
+    weak_x = np.diag([0.3**2, 0.002**2, np.radians(0.05) ** 2])  # a bare corridor along x
+    # 0.4 m off with a joint sigma of 0.3 m: consistent, so remapped.
+    out = remap_weak_directions(meas, weak_x, pred, pred_cov)
+    # Tangent at the match: moved along its x only, to the prediction's x.
+    moved = se2.between(meas, out)
+    assert abs(moved[1]) < 1e-9 and abs(moved[2]) < 1e-9
+    assert abs(se2.between(out, pred)[0]) < 1e-9
+    strong = np.diag([0.002**2, 0.002**2, np.radians(0.05) ** 2])
+    np.testing.assert_array_equal(remap_weak_directions(meas, strong, pred, pred_cov), meas)
+
+
+def test_weak_match_that_contradicts_the_prediction_keeps_its_value() -> None:
+    # Along x the match (sigma 50 mm) is weaker than odometry (10 mm) but 0.4 m away from
+    # it: beyond 3 sigma of the joint noise, evidence against the prediction (wheel slip).
+    pred = np.array([0.10, 0.0, 0.0])
+    pred_cov = np.diag([0.01**2, 0.01**2, np.radians(0.5) ** 2])
+    weak_x = np.diag([0.05**2, 0.002**2, np.radians(0.05) ** 2])
+    far = np.array([0.50, 0.0, 0.0])
+    np.testing.assert_array_equal(remap_weak_directions(far, weak_x, pred, pred_cov), far)
+    near = np.array([0.02, 0.0, 0.0])  # 80 mm off: 1.6 joint sigmas, remapped
+    assert abs(remap_weak_directions(near, weak_x, pred, pred_cov)[0] - pred[0]) < 1e-9
+
+
+def test_oblique_weak_direction_is_remapped_only_along_itself() -> None:
+    # Weak along the diagonal (a wall at 45 deg): the component across it is kept.
+    c, s = np.cos(np.pi / 4), np.sin(np.pi / 4)
+    r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    cov = r @ np.diag([0.5**2, 0.002**2, 1e-6]) @ r.T
+    pred = np.zeros(3)
+    pred_cov = np.diag([0.01**2, 0.01**2, 1e-4])
+    meas = np.array([0.2, 0.2, 0.0]) + np.array([-0.003, 0.003, 0.0])
+    out = remap_weak_directions(meas, cov, pred, pred_cov)
+    along = np.array([c, s])
+    across = np.array([-s, c])
+    assert abs(out[:2] @ along) < 1e-3
+    assert abs(out[:2] @ across - meas[:2] @ across) < 1e-4
+
+
+def test_recess_corridor_with_accurate_odometry_keeps_its_length() -> None:
+    # Issue 11 item 1: ends of wall seen at the last beam that hits the wall bias weak
+    # along-corridor matches toward the robot; the path must keep its true length
+    # (within 0.2 %) and the along-corridor errors of the scan-match factors must be
+    # covered by their covariances.
+    world = long_corridor_world(length_m=50.0, seed=3)
+    run = simulate(world, odometry=ACCURATE_ODOMETRY, seed=1)
+    slam = Slam()
+    for scan in run.scans:
+        slam.process(scan)
+    res = slam.finish()
+    truth = np.asarray(run.true_poses)[res.node_scan_index]
+    node = {int(k): i for i, k in enumerate(res.node_ids)}
+
+    def length(p: np.ndarray) -> float:
+        return float(np.hypot(*np.diff(p[:, :2], axis=0).T).sum())
+
+    assert abs(length(res.node_poses) / length(truth) - 1.0) < 0.002
+    nees = []
+    for f in res.factors:
+        if f.kind != FactorKind.SCAN_MATCH or f.j is None:
+            continue
+        e = se2.between(se2.between(truth[node[f.i]], truth[node[f.j]]), f.measured)
+        nees.append(e[0] ** 2 / f.cov[0, 0])
+    assert 1.0 <= np.mean(nees) <= 4.0

@@ -1,0 +1,317 @@
+"""One run of a batch (:mod:`iceg.batch`): a pure function of (log, config, seed).
+
+:func:`execute_run` loads the log (a file, or a simulated scenario ``sim:NAME``), optionally
+replaces its odometry with synthetic drifting odometry, runs :class:`iceg.slam.Slam`, scores
+the result (relations, reference trajectory) and writes the run's own folder:
+``run.json`` (the row: status, metrics, error, seconds) and, with ``outputs="full"``, the
+usual result files in ``output/``. Any exception, a bad log or the time budget running out
+is caught and recorded as the run's status: one run never stops a batch.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import time
+import traceback
+import warnings
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from frontends import LaserScan, open_log
+from frontends.relations import Relations, match_stamps, read_relations
+from frontends.simulate import OdometryModel, simulate_scenario, synthetic_odometry
+from frontends.tum import read_tum
+from graph import FactorKind
+from iceg.config import config_from_dict
+from iceg.evaluation import position_errors, relation_errors
+from iceg.results import SlamResult
+from iceg.slam import Slam
+from iceg_common import se2
+from iceg_common.atomic import atomic_write
+from iceg_common.errors import IcegError, LogFormatError
+
+FloatArray = NDArray[np.float64]
+
+#: Prefix of a log entry that names a simulated scenario (``sim:office``).
+SIM_PREFIX = "sim:"
+#: Reference keyword: the log's own odometry poses (before synthetic odometry replaced them).
+LOG_ODOMETRY = "log_odometry"
+#: Timestamp tolerance (s) for relations and reference trajectories.
+STAMP_TOLERANCE_S = 1e-3
+#: A loop closure is false if its measurement is off the reference by more than this.
+FALSE_LC_TRANS_M = 0.3
+FALSE_LC_ROT_DEG = 3.0
+#: Longest error message kept in a row.
+MAX_ERROR_CHARS = 300
+#: The row file of a run folder.
+ROW_FILE = "run.json"
+
+Status = Literal["ok", "failed", "timeout"]
+
+
+class RunTimeout(IcegError):
+    """A run went beyond its time budget."""
+
+
+@dataclass(frozen=True)
+class SyntheticOdometrySpec:
+    """Drifting odometry replacing a log's own (``frontends.simulate.synthetic_odometry``)."""
+
+    scale_error: float = 0.01
+    heading_drift_deg_per_m: float = 0.4
+    noise: bool = True
+    restamp_hz: float | None = None
+
+
+@dataclass(frozen=True)
+class RunTask:
+    """Everything one run needs (picklable; paths absolute).
+
+    Attributes:
+        run_id: Unique, file-name-safe id (``log__variant[__sSEED]``).
+        key: Digest of the inputs; a finished run is reused only when its key matches.
+        log_name, variant, seed: The row's identity (``seed`` None: nothing random).
+        source: ``sim:NAME`` or a log file path.
+        config: Nested configuration overrides (validated by :func:`config_from_dict`).
+        folder: The run's folder.
+        relations: ``.relations`` file, or None.
+        reference: TUM reference trajectory, :data:`LOG_ODOMETRY`, or None.
+        max_scans: Use only the first scans.
+        odometry: Synthetic odometry replacing the log's, or None.
+        timeout_s: Time budget of the run (checked after every scan), or None.
+        outputs: ``"full"`` (result files in ``output/``) or ``"metrics"`` (``run.json`` only).
+    """
+
+    run_id: str
+    key: str
+    log_name: str
+    variant: str
+    seed: int | None
+    source: str
+    config: dict[str, Any]
+    folder: str
+    relations: str | None = None
+    reference: str | None = None
+    max_scans: int | None = None
+    odometry: SyntheticOdometrySpec | None = None
+    timeout_s: float | None = None
+    outputs: Literal["full", "metrics"] = "full"
+
+
+@dataclass
+class _Input:
+    scans: list[LaserScan]
+    reference: FloatArray | None = None  # (N, 3) per scan, NaN rows where unknown
+    relations: Relations | None = None
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+# ---------------------------------------------------------------------------- input
+
+
+def load_input(task: RunTask) -> _Input:
+    """Scans, reference and relations of a task.
+
+    Raises:
+        IcegError: unknown scenario, unreadable log or relations, no scans.
+    """
+    seed = 0 if task.seed is None else task.seed
+    if task.source.startswith(SIM_PREFIX):
+        run = simulate_scenario(task.source[len(SIM_PREFIX) :], seed)
+        data = _Input(list(run.scans), np.asarray(run.true_poses, dtype=np.float64))
+    else:
+        scans = list(open_log(_existing(task.source)))
+        data = _Input(scans)
+    if not data.scans:
+        raise LogFormatError(f"{task.source}: the log holds no laser scans")
+    if task.max_scans is not None:
+        data.scans = data.scans[: task.max_scans]
+        if data.reference is not None:
+            data.reference = data.reference[: task.max_scans]
+    if task.odometry is not None:
+        o = task.odometry
+        model = OdometryModel.biased(o.scale_error, o.heading_drift_deg_per_m, noise=o.noise)
+        synth = synthetic_odometry(data.scans, model, seed, o.restamp_hz)
+        data.scans = list(synth.scans)
+        if task.reference == LOG_ODOMETRY:
+            data.reference = np.asarray(synth.reference_poses, dtype=np.float64)
+    elif task.reference == LOG_ODOMETRY:
+        data.reference = np.array([s.odom_pose for s in data.scans], dtype=np.float64)
+    if task.reference not in (None, LOG_ODOMETRY):
+        data.reference = _tum_reference(task.reference, data.scans)
+    if task.relations is not None:
+        data.relations = read_relations(_existing(task.relations))
+    return data
+
+
+def _existing(path: str) -> Path:
+    p = Path(path)
+    if not p.is_file():
+        raise LogFormatError(f"{p}: no such file")
+    return p
+
+
+def _tum_reference(path: str, scans: list[LaserScan]) -> FloatArray:
+    """``(N, 3)`` reference pose per scan from a TUM file (NaN where no stamp matches)."""
+    stamps, poses = read_tum(_existing(path))
+    idx, ok = match_stamps(np.array([s.stamp_s for s in scans]), stamps, STAMP_TOLERANCE_S)
+    out = np.full((len(scans), 3), np.nan)
+    out[ok] = poses[idx[ok]]
+    return out
+
+
+# ---------------------------------------------------------------------------- running
+
+
+def run_slam(task: RunTask, scans: list[LaserScan], t0: float) -> tuple[SlamResult, FloatArray]:
+    """The SLAM run; the online pose of every scan. Raises :class:`RunTimeout` once the
+    budget is spent (checked after every scan)."""
+    slam = Slam(config_from_dict(task.config, source=f"batch variant {task.variant!r}"))
+    online = []
+    for k, scan in enumerate(scans):
+        online.append(slam.process(scan))
+        if task.timeout_s is not None and time.perf_counter() - t0 > task.timeout_s:
+            raise RunTimeout(f"time budget of {task.timeout_s:g} s spent after {k + 1} scans")
+    return slam.finish(), np.array(online, dtype=np.float64)
+
+
+def execute_run(task: RunTask) -> dict[str, Any]:
+    """Run one task and write its folder; never raises for a failing run.
+
+    Returns:
+        The row (also in ``folder/run.json``): ``run_id``, ``key``, ``log``, ``variant``,
+        ``seed``, ``status`` (``ok``, ``failed``, ``timeout``), ``error`` (one line),
+        ``metrics`` (see :func:`run_metrics`) and ``seconds`` (wall time).
+    """
+    t0 = time.perf_counter()
+    folder = Path(task.folder)
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True, exist_ok=True)
+    status: Status = "ok"
+    error = ""
+    metrics: dict[str, Any] = {}
+    try:
+        data = load_input(task)
+        result, online = run_slam(task, data.scans, t0)
+        metrics = run_metrics(result, data, online)
+        if task.outputs == "full":
+            result.save(folder / "output")
+    except RunTimeout as exc:
+        status, error = "timeout", str(exc)
+    except Exception as exc:  # a failing run is a row, never the end of the batch
+        status, error = "failed", _one_line(exc)
+    row = {
+        "run_id": task.run_id,
+        "key": task.key,
+        "log": task.log_name,
+        "variant": task.variant,
+        "seed": task.seed,
+        "status": status,
+        "error": error,
+        "metrics": metrics,
+        "seconds": time.perf_counter() - t0,
+        "task": asdict(task),
+    }
+    with atomic_write(folder / ROW_FILE) as fh:
+        json.dump(row, fh, indent=2, default=_json_default)
+        fh.write("\n")
+    return row
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or traceback.format_exception_only(type(exc), exc)[-1]
+    msg = f"{type(exc).__name__}: {text}"
+    return msg if len(msg) <= MAX_ERROR_CHARS else msg[: MAX_ERROR_CHARS - 3] + "..."
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.generic):
+        return obj.item()
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def read_row(folder: Path) -> dict[str, Any] | None:
+    """The row of a finished run folder, or None (absent or unreadable)."""
+    try:
+        row = json.loads((folder / ROW_FILE).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return row if isinstance(row, dict) else None
+
+
+# ---------------------------------------------------------------------------- metrics
+
+
+def run_metrics(result: SlamResult, data: _Input, online: FloatArray) -> dict[str, Any]:
+    """Figures of a run: ``scans``, ``nodes``, ``sm_per_kf`` (keyframes with a scan-match
+    factor), ``match_failures`` (failed local matches), ``lc_accepted``; with relations
+    ``rel_trans_m``, ``rel_rot_deg``, ``rel_matched`` (Kümmerle et al. 2009); with a
+    reference ``ate_m`` (RMSE after SE(2) alignment), ``end_m``, ``online_max_m``,
+    ``odom_ate_m`` and ``lc_false``."""
+    n_nodes = int(result.node_ids.shape[0])
+    matched = {f.j for f in result.factors if f.kind == FactorKind.SCAN_MATCH}
+    out: dict[str, Any] = {
+        "scans": result.n_scans,
+        "nodes": n_nodes,
+        "sm_per_kf": len(matched) / (n_nodes - 1) if n_nodes > 1 else math.nan,
+        "match_failures": int(sum(result.match_failures.values())),
+        "lc_accepted": int(result.loop_closures.accepted),
+    }
+    if data.relations is not None:
+        rel = data.relations
+        est, _ = relation_errors(
+            result.stamps_s, result.poses, rel.stamps_s, rel.deltas, STAMP_TOLERANCE_S
+        )
+        out |= {
+            "rel_trans_m": est.trans_mean_m,
+            "rel_rot_deg": est.rot_mean_deg,
+            "rel_matched": est.n_matched,
+        }
+    if data.reference is not None:
+        with warnings.catch_warnings():  # a straight trajectory aligns poorly: not an error
+            warnings.simplefilter("ignore", UserWarning)
+            out |= _reference_metrics(result, data, online)
+    return out
+
+
+def _reference_metrics(result: SlamResult, data: _Input, online: FloatArray) -> dict[str, Any]:
+    ref = data.reference
+    assert ref is not None
+    ok = np.all(np.isfinite(ref), axis=1)
+    odom = np.array([s.odom_pose for s in data.scans], dtype=np.float64)
+    out: dict[str, Any] = {
+        "ate_m": position_errors(result.poses[ok], ref[ok]).rmse_m,
+        "end_m": float(np.hypot(*(result.poses[ok][-1, :2] - ref[ok][-1, :2]))),
+        "online_max_m": float(np.hypot(*(online[ok, :2] - ref[ok, :2]).T).max()),
+        "lc_false": _false_loop_closures(result, ref),
+    }
+    if np.all(np.isfinite(odom)):
+        out["odom_ate_m"] = position_errors(odom[ok], ref[ok]).rmse_m
+    return out
+
+
+def _false_loop_closures(result: SlamResult, reference: FloatArray) -> int:
+    """Accepted loop closures whose measurement is off the reference relative pose by more
+    than :data:`FALSE_LC_TRANS_M` or :data:`FALSE_LC_ROT_DEG` (unknown reference: not
+    counted)."""
+    scan_of = dict(zip(result.node_ids.tolist(), result.node_scan_index.tolist(), strict=True))
+    n_false = 0
+    for f in result.factors:
+        if f.kind != FactorKind.LOOP_CLOSURE or f.j is None:
+            continue
+        a, b = reference[scan_of[f.i]], reference[scan_of[f.j]]
+        if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+            continue
+        err = se2.compose(se2.inverse(se2.between(a, b)), f.measured)
+        if (
+            math.hypot(err[0], err[1]) > FALSE_LC_TRANS_M
+            or abs(math.degrees(err[2])) > FALSE_LC_ROT_DEG
+        ):
+            n_false += 1
+    return n_false

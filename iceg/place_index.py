@@ -1,0 +1,169 @@
+"""Place recognition for global loop closure: a rotation-invariant keyframe descriptor and an
+index over all older keyframes, independent of the pose estimate.
+
+The ICE matcher needs no prediction (paper §III-C2: hypotheses come from feature pairs, not
+from a search window), so a loop candidate can come from *appearance* instead of from the
+current estimate. Each keyframe is summarised by two histograms, both invariant to a rotation
+of the robot frame (and the first also to a translation):
+
+* the distances between every pair of its ICE features (corners, ends of walls,
+  intersections), as in the pairwise-geometry descriptors of geometric place recognition
+  (e.g. the shape-context / "distance histogram" family; Olson 2009 matches pairs of local
+  features in the same spirit): a revisited place from a nearby pose sees the same
+  landmarks, hence the same distances;
+* the ranges of its beam endpoints (the range histogram of Röfer / Bosse & Zlot 2009
+  "Keypoint design and evaluation for place recognition in 2D lidar maps", rotation
+  invariant), which still describes a place whose feature set is sparse.
+
+Entries are spread linearly over the two nearest bins (continuous in the inputs), each
+histogram is scaled to unit L2 norm, and similarity is the cosine (a dot product over all
+older keyframes at once). Retrieval only proposes candidates: each one is verified by the
+global ICE match and a consistency check (:mod:`iceg.loop_closure`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field
+
+from iceg.types import ScanFeatures
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+class PlaceIndexConfig(BaseModel):
+    """Bins of the place descriptor (see :func:`place_descriptor`)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    pair_bins: int = Field(
+        default=32, ge=2, description="Bins of the pairwise feature-distance histogram."
+    )
+    range_bins: int = Field(default=32, ge=2, description="Bins of the beam-range histogram.")
+    range_weight: float = Field(
+        default=1.0,
+        ge=0,
+        description="Weight of the range histogram relative to the feature-distance one.",
+    )
+
+
+def _soft_histogram(values: FloatArray, n_bins: int, max_value: float) -> FloatArray:
+    """Histogram of ``values`` over ``[0, max_value]`` with linear interpolation between the
+    two nearest bin centres (values beyond ``max_value`` are dropped), unit L2 norm (zeros
+    when empty)."""
+    hist = np.zeros(n_bins)
+    v = values[(values >= 0) & (values <= max_value)]
+    if v.size == 0:
+        return hist
+    pos = np.clip(v / max_value * n_bins - 0.5, 0.0, n_bins - 1.0)
+    lo = np.floor(pos).astype(np.int64)
+    hi = np.minimum(lo + 1, n_bins - 1)
+    w_hi = pos - lo
+    np.add.at(hist, lo, 1.0 - w_hi)
+    np.add.at(hist, hi, w_hi)
+    norm = float(np.linalg.norm(hist))
+    return hist / norm if norm > 0 else hist
+
+
+def place_descriptor(features: ScanFeatures, config: PlaceIndexConfig | None = None) -> FloatArray:
+    """Rotation-invariant descriptor of one keyframe.
+
+    Args:
+        features: The keyframe's ICE features, robot frame (``xy`` ``(K, 2)`` and
+            ``points_xy`` ``(P, 2)``, metres); ``range_max_m`` sets the histogram spans
+            (pair distances up to ``2 * range_max_m``, ranges up to ``range_max_m``).
+        config: Bins and weights.
+
+    Returns:
+        ``(pair_bins + range_bins,)`` float64, unit L2 norm (zeros when the scan has neither
+        two features nor a point). Unchanged (up to rounding) when the robot frame is
+        rotated; its first block is also unchanged under a translation.
+    """
+    cfg = config or PlaceIndexConfig()
+    r_max = float(features.range_max_m)
+    xy = np.asarray(features.xy, dtype=np.float64).reshape(-1, 2)
+    i, j = np.triu_indices(xy.shape[0], k=1)
+    pair = _soft_histogram(np.hypot(*(xy[i] - xy[j]).T), cfg.pair_bins, 2.0 * r_max)
+    pts = np.asarray(features.points_xy, dtype=np.float64).reshape(-1, 2)
+    ranges = _soft_histogram(np.hypot(pts[:, 0], pts[:, 1]), cfg.range_bins, r_max)
+    desc = np.concatenate([pair, cfg.range_weight * ranges])
+    norm = float(np.linalg.norm(desc))
+    return desc / norm if norm > 0 else desc
+
+
+class PlaceIndex:
+    """Descriptors of all keyframes, queried by cosine similarity.
+
+    Example::
+
+        index = PlaceIndex()
+        index.add(node_id, place_descriptor(features))
+        best = index.query(place_descriptor(features), eligible, k=3, separation=10)
+
+    Args:
+        config: Descriptor bins (every added descriptor must have their total length).
+    """
+
+    def __init__(self, config: PlaceIndexConfig | None = None) -> None:
+        self.config = config or PlaceIndexConfig()
+        self._dim = self.config.pair_bins + self.config.range_bins
+        self._rows = np.zeros((0, self._dim))
+        self._ids: list[int] = []
+        self._n = 0
+
+    def __len__(self) -> int:
+        return self._n
+
+    def add(self, node_id: int, descriptor: FloatArray) -> None:
+        """Store the descriptor ``(D,)`` of ``node_id`` (amortised O(1)).
+
+        Raises:
+            ValueError: the descriptor has the wrong length.
+        """
+        d = np.asarray(descriptor, dtype=np.float64).reshape(-1)
+        if d.shape[0] != self._dim:
+            raise ValueError(f"descriptor has {d.shape[0]} entries, expected {self._dim}")
+        if self._n == self._rows.shape[0]:
+            self._rows = np.vstack([self._rows, np.zeros((max(64, self._n), self._dim))])
+        self._rows[self._n] = d
+        self._ids.append(int(node_id))
+        self._n += 1
+
+    def similarity(self, descriptor: FloatArray) -> tuple[IntArray, FloatArray]:
+        """Cosine similarity of ``descriptor`` to every stored one: ``(node_ids (N,),
+        similarity (N,))`` in insertion order."""
+        sim = self._rows[: self._n] @ np.asarray(descriptor, dtype=np.float64).reshape(-1)
+        return np.asarray(self._ids, dtype=np.int64), sim
+
+    def query(
+        self, descriptor: FloatArray, eligible: Sequence[int] | IntArray, k: int, separation: int
+    ) -> list[int]:
+        """The ``k`` most similar eligible nodes, from distinct places.
+
+        Args:
+            descriptor: ``(D,)`` query descriptor.
+            eligible: Node ids that may be returned (e.g. old enough along the path).
+            k: Most results.
+            separation: Results are more than this many node ids apart (non-maximum
+                suppression: one result per stretch of path).
+
+        Returns:
+            Node ids, most similar first (fewer than ``k`` when few are eligible).
+        """
+        ids, sim = self.similarity(descriptor)
+        keep = np.isin(ids, np.asarray(eligible, dtype=np.int64))
+        ids, sim = ids[keep], sim[keep]
+        chosen: list[int] = []
+        for n in ids[np.argsort(-sim, kind="stable")]:
+            if all(abs(int(n) - c) > separation for c in chosen):
+                chosen.append(int(n))
+                if len(chosen) == k:
+                    break
+        return chosen
+
+
+__all__ = ["PlaceIndex", "PlaceIndexConfig", "place_descriptor"]

@@ -1,0 +1,257 @@
+"""``iceg batch``: spec expansion, one run as a pure function, the tables, Ray and resuming."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+from typing import Any
+
+import pytest
+from typer.testing import CliRunner
+
+from frontends.carmen import write_carmen
+from frontends.simulate import corridor_world, office_world, simulate
+from frontends.tum import write_tum
+from iceg.batch import apply_overrides, expand, pending, run_batch, spec_from_dict, variants
+from iceg.batch_report import write_report
+from iceg.batch_run import execute_run, read_row
+from iceg.cli import app
+from iceg_common.errors import ConfigError
+
+#: Scans per log of the Ray test (small: 8 runs on 2 workers well under a minute).
+N_SCANS = 40
+
+
+def _write_logs(folder: Path) -> None:
+    """Two short CARMEN logs from the simulator (one with its true trajectory as a TUM
+    reference) and a broken one."""
+    office = simulate(office_world(), seed=3)
+    write_carmen(folder / "office.clf", office.scans[:N_SCANS])
+    write_tum(
+        folder / "office_truth.tum",
+        [s.stamp_s for s in office.scans[:N_SCANS]],
+        office.true_poses[:N_SCANS],
+    )
+    corridor = simulate(corridor_world(), seed=4)
+    write_carmen(folder / "corridor.clf", corridor.scans[:N_SCANS])
+    (folder / "broken.clf").write_text("FLASER 3 1.0 2.0\n", encoding="utf-8")
+
+
+def _spec(**extra: Any) -> dict[str, Any]:
+    return {
+        "name": "t",
+        "logs": [
+            {"path": "office.clf", "reference": "office_truth.tum"},
+            "corridor.clf",
+            {"path": "sim:office", "max_scans": N_SCANS, "name": "sim_office"},
+            "broken.clf",
+        ],
+        "grid": {"matching.method": ["ice", "plicp"]},
+        "outputs": "metrics",
+        **extra,
+    }
+
+
+def _csv(path: Path) -> list[dict[str, str]]:
+    with path.open(encoding="utf-8") as fh:
+        return list(csv.DictReader(fh))
+
+
+# ---------------------------------------------------------------------------- spec
+
+
+def test_grid_times_named_variants() -> None:
+    spec = spec_from_dict(
+        {
+            "logs": ["sim:office"],
+            "grid": {"matching.method": ["ice", "plicp"], "slam.local_map_nodes": [4, 8]},
+            "variants": {"a": {"grid.resolution_m": 0.1}, "b": {}},
+        }
+    )
+    vs = variants(spec)
+    assert len(vs) == 8
+    assert vs[0].name == "a+method=ice,local_map_nodes=4"
+    assert vs[0].overrides == {
+        "grid.resolution_m": 0.1,
+        "matching.method": "ice",
+        "slam.local_map_nodes": 4,
+    }
+    assert vs[-1].name == "b+method=plicp,local_map_nodes=8"
+
+
+def test_no_grid_is_one_default_variant(tmp_path: Path) -> None:
+    spec = spec_from_dict({"logs": ["sim:office", "a.clf"], "seeds": [1, 2]})
+    tasks = expand(spec, tmp_path, tmp_path / "out")
+    # a simulated log repeats per seed; a file log (nothing random) runs once
+    assert [t.run_id for t in tasks] == ["office__default__s1", "office__default__s2", "a__default"]
+    assert tasks[2].seed is None
+    assert tasks[2].source == str(tmp_path / "a.clf")
+    assert len({t.key for t in tasks}) == 3
+
+
+def test_synthetic_odometry_makes_a_file_log_random(tmp_path: Path) -> None:
+    spec = spec_from_dict(
+        {
+            "logs": [{"path": "a.clf", "synthetic_odometry": {}, "reference": "log_odometry"}],
+            "seeds": [0, 1],
+        }
+    )
+    tasks = expand(spec, tmp_path, tmp_path)
+    assert [t.seed for t in tasks] == [0, 1]
+    assert tasks[0].odometry is not None and tasks[0].odometry.scale_error == 0.01
+    assert tasks[0].reference == "log_odometry"
+
+
+def test_overrides_are_nested_and_validated(tmp_path: Path) -> None:
+    assert apply_overrides({"slam": {"a": 1}}, {"slam.b": 2, "grid.c": 3}) == {
+        "slam": {"a": 1, "b": 2},
+        "grid": {"c": 3},
+    }
+    bad = spec_from_dict({"logs": ["sim:office"], "grid": {"matching.methd": ["ice"]}})
+    with pytest.raises(ConfigError, match=r"matching\.methd"):
+        expand(bad, tmp_path, tmp_path)
+    bad_value = spec_from_dict({"logs": ["sim:office"], "grid": {"matching.method": ["nope"]}})
+    with pytest.raises(ConfigError, match=r"matching\.method"):
+        expand(bad_value, tmp_path, tmp_path)
+
+
+def test_spec_errors_are_config_errors() -> None:
+    with pytest.raises(ConfigError, match="two logs are named 'office'"):
+        spec_from_dict({"logs": ["sim:office", "office.clf"]})
+    with pytest.raises(ConfigError, match="logs"):
+        spec_from_dict({"logs": []})
+    with pytest.raises(ConfigError, match="seedz"):
+        spec_from_dict({"logs": ["sim:office"], "seedz": [1]})
+
+
+# ---------------------------------------------------------------------------- one run
+
+
+def test_a_run_that_overruns_its_budget_is_a_timeout_row(tmp_path: Path) -> None:
+    spec = spec_from_dict({"logs": [{"path": "sim:corridor", "max_scans": 10}], "timeout_s": 1e-6})
+    (task,) = expand(spec, tmp_path, tmp_path)
+    row = execute_run(task)
+    assert row["status"] == "timeout"
+    assert "after 1 scans" in row["error"]
+    assert read_row(Path(task.folder))["status"] == "timeout"
+    assert pending([task]) == []  # finished (as a timeout) ...
+    assert pending([task], retry_failed=True) == [task]  # ... unless failures are retried
+
+
+def test_unknown_scenario_is_a_failed_row(tmp_path: Path) -> None:
+    (task,) = expand(spec_from_dict({"logs": ["sim:nowhere"]}), tmp_path, tmp_path)
+    row = execute_run(task)
+    assert row["status"] == "failed"
+    assert row["error"].startswith("ConfigError: unknown scenario 'nowhere'")
+
+
+# ---------------------------------------------------------------------------- tables
+
+
+def _row(run_id: str, variant: str, status: str, ate: float, seconds: float) -> dict[str, Any]:
+    metrics = {"scans": 10, "ate_m": ate} if status == "ok" else {}
+    return {
+        "run_id": run_id,
+        "log": "L",
+        "variant": variant,
+        "seed": 0,
+        "status": status,
+        "error": "" if status == "ok" else "LogFormatError: bad | line",
+        "metrics": metrics,
+        "seconds": seconds,
+    }
+
+
+def test_report_tables_and_plot(tmp_path: Path) -> None:
+    rows = [
+        _row("a", "v1", "ok", 0.1234567891, 2.0),
+        _row("b", "v1", "ok", 0.3, 4.0),
+        _row("c", "v2", "failed", math.nan, 0.5),
+    ]
+    report = write_report("demo", rows, tmp_path)
+    summary = _csv(report.summary_csv)
+    assert [r["ate_m"] for r in summary] == ["0.123457", "0.3", ""]
+    assert "seconds" not in summary[0]  # wall time lives in timings.csv only
+    timings = _csv(report.timings_csv)
+    assert [float(r["ms_per_scan"]) for r in timings[:2]] == [200.0, 400.0]
+    md = report.markdown.read_text(encoding="utf-8")
+    assert "3 runs, 1 failed or timed out." in md
+    assert "LogFormatError: bad / line" in md  # a pipe would break the markdown table
+    assert "| v1 | 2 | 0 | 10 | 0.211728 | 300 |" in md  # mean ATE and ms/scan of v1
+    assert "| v2 | 1 | 1 |" in md
+    assert report.plot is not None and report.plot.stat().st_size > 1000
+    assert report.n_failed == 1
+
+
+# ---------------------------------------------------------------------------- Ray
+
+
+@pytest.fixture(scope="module")
+def logs(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.mktemp("logs")
+    _write_logs(folder)
+    return folder
+
+
+def test_ray_batch_is_deterministic_and_resumable(logs: Path, tmp_path: Path) -> None:
+    pytest.importorskip("ray")
+    spec = spec_from_dict(_spec())
+    rows2: list[tuple[str, bool]] = []
+    two = run_batch(
+        spec,
+        tmp_path / "two",
+        logs,
+        "ray",
+        workers=2,
+        on_row=lambda r, k: rows2.append((r["run_id"], k)),
+    )
+    run_batch(spec, tmp_path / "one", logs, "ray", workers=1)
+    text = (tmp_path / "two" / "summary.csv").read_text(encoding="utf-8")
+    assert text == (tmp_path / "one" / "summary.csv").read_text(encoding="utf-8")
+    assert len(rows2) == 8 and not any(k for _, k in rows2)
+
+    rows = {r["run_id"]: r for r in _csv(two.summary_csv)}
+    assert len(rows) == 8
+    for method in ("ice", "plicp"):
+        broken = rows[f"broken__method={method}"]
+        assert broken["status"] == "failed"
+        assert broken["error"].startswith("LogFormatError")
+        office = rows[f"office__method={method}"]
+        assert office["status"] == "ok" and int(office["scans"]) == N_SCANS
+        assert float(office["ate_m"]) < 0.05  # against the TUM truth
+        sim = rows[f"sim_office__method={method}__s0"]  # seeded: its truth is built in
+        assert sim["status"] == "ok" and float(sim["ate_m"]) < 0.05
+    assert rows["corridor__method=ice"]["status"] == "ok"
+    assert rows["corridor__method=ice"]["ate_m"] == ""  # no reference given
+    assert two.n_failed == 2
+
+    # resuming: nothing runs again (no Ray is started), the same table comes out
+    kept: list[bool] = []
+    again = run_batch(
+        spec, tmp_path / "two", logs, "ray", workers=2, on_row=lambda r, k: kept.append(k)
+    )
+    assert kept == [True] * 8
+    assert again.summary_csv.read_text(encoding="utf-8") == text
+    assert (tmp_path / "two" / "variants.png").is_file()
+
+
+def test_cli_batch_on_a_local_pool(tmp_path: Path) -> None:
+    (tmp_path / "broken.clf").write_text("not a log\n", encoding="utf-8")
+    (tmp_path / "spec.yaml").write_text(
+        "name: cli\nlogs:\n  - {path: 'sim:corridor', max_scans: 15}\n  - broken.clf\n"
+        "outputs: full\n",
+        encoding="utf-8",
+    )
+    out = tmp_path / "out"
+    res = CliRunner().invoke(
+        app, ["batch", str(tmp_path / "spec.yaml"), "--out", str(out), "--local", "--workers", "1"]
+    )
+    assert res.exit_code == 0, res.output
+    assert "ok      corridor__default__s0" in res.output
+    assert "failed  broken__default" in res.output
+    assert "2 runs, 1 failed" in res.output
+    assert (out / "runs" / "corridor__default__s0" / "output" / "trajectory.tum").is_file()
+    rows = _csv(out / "summary.csv")
+    assert [r["status"] for r in rows] == ["ok", "failed"]
+    assert int(rows[0]["scans"]) == 15

@@ -1,0 +1,109 @@
+"""Online odometry calibration (iceg.odometry_calibration) against known biases."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from frontends.simulate import OdometryModel, simulate_scenario
+from graph import FactorKind, odometry_covariance
+from iceg.config import IcegConfig
+from iceg.evaluation import position_errors
+from iceg.odometry_calibration import (
+    OdometryCalibrationConfig,
+    OdometryCalibrator,
+    signed_distance,
+)
+from iceg.slam import Slam
+from iceg_common import se2
+
+#: The office_biased scenario's odometry: 1.5 % scale error, 0.4 deg/m heading drift.
+SCALE_ERROR = 0.015
+DRIFT_RAD_PER_M = math.radians(0.4)
+MATCH_COV = np.diag([0.003**2, 0.003**2, math.radians(0.05) ** 2])
+
+
+def _steps(rng: np.random.Generator, n: int) -> np.ndarray:
+    """True keyframe increments: forward 0.05-0.6 m (10 % reversing), turns up to 20 deg."""
+    dist = rng.uniform(0.05, 0.6, n) * np.where(rng.random(n) < 0.1, -1.0, 1.0)
+    turn = np.radians(rng.uniform(-20.0, 20.0, n))
+    return np.column_stack([dist * np.cos(turn / 2), dist * np.sin(turn / 2), turn])
+
+
+def test_recovers_known_scale_turn_scale_and_drift_from_noisy_matches() -> None:
+    rng = np.random.default_rng(3)
+    # White noise of a well-built base: 1 % of the distance, 1 % of the turn, 0.1 deg/m.
+    model = OdometryModel(
+        translation_sigma_per_m=0.01, rotation_sigma_per_rad=0.01, rotation_sigma_per_m=0.002
+    )
+    true = _steps(rng, 400)
+    # Unequal wheel radii turn the other way when reversing (Borenstein & Feng 1996): the
+    # drift goes with the signed distance (the simulator's model drives forward only).
+    signed = np.array([signed_distance(u) for u in true])
+    odo = true * np.array([1.02, 1.02, 1.03])  # 2 % distance scale, 3 % turn scale
+    odo[:, 2] += 1.03 * math.radians(0.5) * signed
+    odo += rng.standard_normal(odo.shape) * model.increment_sigmas(true)
+    cal = OdometryCalibrator()
+    for u_true, u_odo in zip(true, odo, strict=True):
+        z = u_true + rng.standard_normal(3) * np.sqrt(np.diag(MATCH_COV))
+        if rng.random() < 0.05:  # wrong matches: the Huber weight must hold
+            z[:2] += rng.normal(0.0, 0.5, 2)
+        cal.observe(u_odo, odometry_covariance(u_odo), z, MATCH_COV)
+    # Truth: true = odo / 1.02 in distance; odo turn = 1.03 (turn + 0.5 deg/m * true
+    # distance), so turn = odo turn / 1.03 - 0.5 / 1.02 deg per odometry metre.
+    assert cal.scale == pytest.approx(1 / 1.02, abs=0.002)
+    assert cal.turn_scale == pytest.approx(1 / 1.03, abs=0.01)
+    assert math.degrees(cal.heading_drift_rad_per_m) == pytest.approx(0.5 / 1.02, abs=0.06)
+    # The corrected increment of a 1 m straight step is right within the parameter errors,
+    # and its covariance covers the remaining error.
+    u_odo = np.array([1.02, 0.0, 1.03 * math.radians(0.5)])
+    corrected, cov = cal.correct(u_odo, odometry_covariance(u_odo))
+    err = corrected - np.array([1.0, 0.0, 0.0])
+    assert abs(err[0]) < 0.003 and abs(err[2]) < math.radians(0.06)
+    assert err @ np.linalg.solve(cov, err) < 11.3  # chi-square 3 dof, 99 %
+
+
+def test_identity_odometry_stays_identity() -> None:
+    rng = np.random.default_rng(0)
+    cal = OdometryCalibrator()
+    for u in _steps(rng, 200):
+        z = u + rng.standard_normal(3) * np.sqrt(np.diag(MATCH_COV))
+        cal.observe(u, odometry_covariance(u), z, MATCH_COV)
+    assert cal.scale == pytest.approx(1.0, abs=0.002)
+    assert cal.turn_scale == pytest.approx(1.0, abs=0.005)
+    assert abs(math.degrees(cal.heading_drift_rad_per_m)) < 0.05
+    assert signed_distance([-0.3, 0.4, 0.0]) == pytest.approx(-0.5)
+
+
+@pytest.fixture(scope="module")
+def biased_office():  # type: ignore[no-untyped-def]
+    run = simulate_scenario("office_biased", seed=2)
+    slam = Slam(IcegConfig(odometry_calibration=OdometryCalibrationConfig(enabled=True)))
+    for scan in run.scans:
+        slam.process(scan)
+    return run, slam, slam.finish()
+
+
+def test_simulated_biased_office_calibration_and_ate(biased_office) -> None:  # type: ignore[no-untyped-def]
+    run, slam, result = biased_office
+    cal = slam.odometry_calibrator
+    assert cal.scale == pytest.approx(1 / (1 + SCALE_ERROR), abs=0.003)
+    assert cal.heading_drift_rad_per_m == pytest.approx(
+        DRIFT_RAD_PER_M / (1 + SCALE_ERROR), abs=math.radians(0.05)
+    )
+    assert position_errors(result.poses, run.true_poses).rmse_m <= 0.05
+    # The odometry factors no longer carry the drift: the mean heading error of the
+    # (calibrated) odometry factors against the truth is within 3 standard errors of zero
+    # (the white noise) and below half the raw drift per step.
+    truth = run.true_poses[result.node_scan_index]
+    errs, drift = [], []
+    for f in result.factors:
+        if f.kind == FactorKind.ODOMETRY:
+            u = se2.between(truth[f.i], truth[f.j])
+            errs.append(se2.wrap_angle(f.measured[2] - u[2]))
+            drift.append(DRIFT_RAD_PER_M * math.hypot(u[0], u[1]))
+    e = np.asarray(errs)
+    standard_error = e.std() / math.sqrt(e.size)
+    assert abs(e.mean()) < min(3.0 * standard_error, 0.5 * np.mean(drift)), (e.mean(), drift)
