@@ -54,7 +54,7 @@ class MergeSettings:
     """
 
     query_spacing_m: float = 2.0
-    max_queries: int = 40
+    max_queries: int = 60
     agree_m: float = 1.0
     agree_deg: float = 5.0
     min_closures: int = 2
@@ -102,7 +102,9 @@ def _placements(fixed: FixedMap, b: Session, st: MergeSettings) -> list[InterClo
     rows = rows[::step]
     scans = read_scans(b, b.arrays["n_scan"][rows].tolist())
     out = []
-    loc = LocalizeSettings()
+    # One query may be aliased (no ambiguity test here): the consistency vote over all the
+    # queries is the outlier test of the merge.
+    loc = LocalizeSettings(ambiguity_margin=0.0)
     for row, scan in zip(rows.tolist(), scans, strict=True):
         p = fixed.place(extract(scan, fixed.config.features), loc)
         if p is None:
@@ -205,6 +207,9 @@ def _scan_part(
         "lc_cov": cat([aa["lc_cov"], ba["lc_cov"]]),
         "lc_correlation": cat([aa["lc_correlation"], ba["lc_correlation"]]),
         "lc_implied": cat([aa["lc_implied"], ba["lc_implied"]]),
+        "lc_places_rows": cat([aa["lc_places_rows"], ba["lc_places_rows"]]),
+        "lc_places_ids": cat([aa["lc_places_ids"], ba["lc_places_ids"] + n_a]),
+        "cal_state": aa["cal_state"],
         "inline_meta": cat([aa["inline_meta"], ba["inline_meta"]]),
         "inline_offsets": cat(
             [aa["inline_offsets"], ba["inline_offsets"][1:] + aa["inline_offsets"][-1]]

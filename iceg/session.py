@@ -28,7 +28,10 @@ Layout of a session folder (``<run output>/session/``, format ``iceg-session`` v
 - nodes ``n_*``: ``n_scan (N,)`` scan row of each node, ``n_odom (N, 3)`` odometry pose,
   ``n_odom_measured (N,)``, ``n_path_m (N,)`` odometry path length.
 - held-back loop closures ``lc_*``: ``lc_ij (P, 2)``, ``lc_measured (P, 3)``,
-  ``lc_cov (P, 3, 3)``, ``lc_correlation (P,)``, ``lc_implied (P, 3)``.
+  ``lc_cov (P, 3, 3)``, ``lc_correlation (P,)``, ``lc_implied (P, 3)``; the place index of
+  the global loop-closure search ``lc_places_rows (n, D)`` (descriptors) and
+  ``lc_places_ids (n,)``; the odometry calibration ``cal_state (14,)``
+  (:meth:`iceg.odometry_calibration.OdometryCalibrator.export_state`).
 - the feature map ``fm_*`` (:meth:`iceg.feature_map.FeatureMap.export_state`).
 - inline scans (runs from memory, e.g. the simulator): ``inline_meta (K, 10)``
   ``[stamp, range_min, range_max, odom x y theta (NaN: none), offset x y theta, odom_break]``,
@@ -384,6 +387,8 @@ def _slam_arrays(slam: Slam) -> dict[str, np.ndarray]:
         "lc_cov": np.array([c.cov for c in pend]).reshape(-1, 3, 3),
         "lc_correlation": np.array([c.correlation for c in pend], dtype=np.float64),
         "lc_implied": np.array([c.implied for c in pend]).reshape(-1, 3),
+        **{f"lc_places_{k}": v for k, v in slam.loop_closer.places.export_state().items()},
+        "cal_state": slam.odometry_calibrator.export_state(),
     }
 
 
@@ -541,6 +546,8 @@ def load(path: str | os.PathLike[str], *, scans: Sequence[LaserScan] | None = No
         stats,
     )
     slam.loop_closer.pending = _pending(a)
+    slam.loop_closer.places.restore_state({"rows": a["lc_places_rows"], "ids": a["lc_places_ids"]})
+    slam.odometry_calibrator.restore_state(a["cal_state"])
     return slam
 
 

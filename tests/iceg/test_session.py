@@ -9,6 +9,7 @@ import pytest
 
 from frontends.simulate import office_world, simulate
 from iceg import session
+from iceg.config import config_from_dict
 from iceg.pipeline import run_log
 from iceg.slam import Slam
 from iceg_common.errors import SessionError
@@ -53,6 +54,31 @@ def test_split_run_equals_the_whole_run_bit_for_bit(office_scans, whole, tmp_pat
     assert fa.keys() == fb.keys()
     for key in fa:
         assert np.array_equal(fa[key], fb[key], equal_nan=True), key
+    pa, pb = split.slam.loop_closer.places, whole.slam.loop_closer.places
+    for key, value in pa.export_state().items():
+        assert np.array_equal(value, pb.export_state()[key]), key
+    assert np.array_equal(
+        split.slam.odometry_calibrator.export_state(),
+        whole.slam.odometry_calibrator.export_state(),
+    )
+
+
+def test_split_run_with_odometry_calibration_is_bit_identical(office_scans, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    config = config_from_dict({"odometry_calibration": {"enabled": True}})
+    whole = Slam(config)
+    for scan in office_scans:
+        whole.process(scan)
+    w = whole.finish()
+    first = Slam(config)
+    for scan in office_scans[:120]:
+        first.process(scan)
+    first.finish()
+    session.save(first, tmp_path / "s")
+    second = session.load(tmp_path / "s")
+    assert second.odometry_calibrator.n_observations > 0
+    for scan in office_scans[120:]:
+        second.process(scan)
+    assert np.array_equal(second.finish().poses, w.poses)
 
 
 def test_session_files_are_documented_formats_without_pickle(whole, tmp_path) -> None:  # type: ignore[no-untyped-def]
