@@ -49,14 +49,16 @@ class MergeSettings:
     Attributes:
         query_spacing_m: B's query nodes: one per square of this side (B's map frame).
         max_queries: most B nodes matched against A.
-        agree_m / agree_deg: largest difference between two agreeing transforms.
+        agree_m / agree_deg / drift_per_m: largest difference between the relative poses of
+            two agreeing closures (metres plus a fraction of their distance; degrees).
         min_closures: least number of agreeing closures.
     """
 
     query_spacing_m: float = 2.0
     max_queries: int = 60
-    agree_m: float = 1.0
+    agree_m: float = 0.5
     agree_deg: float = 5.0
+    drift_per_m: float = 0.05
     min_closures: int = 2
 
 
@@ -102,9 +104,9 @@ def _placements(fixed: FixedMap, b: Session, st: MergeSettings) -> list[InterClo
     rows = rows[::step]
     scans = read_scans(b, b.arrays["n_scan"][rows].tolist())
     out = []
-    # One query may be aliased (no ambiguity test here): the consistency vote over all the
-    # queries is the outlier test of the merge.
-    loc = LocalizeSettings(ambiguity_margin=0.0)
+    # Each placement must be unambiguous (corridors repeat): the consistency vote alone lets
+    # a set of equally aliased placements through.
+    loc = LocalizeSettings()
     for row, scan in zip(rows.tolist(), scans, strict=True):
         p = fixed.place(extract(scan, fixed.config.features), loc)
         if p is None:
@@ -116,17 +118,33 @@ def _placements(fixed: FixedMap, b: Session, st: MergeSettings) -> list[InterClo
 
 
 def _consistent(found: list[InterClosure], st: MergeSettings) -> list[InterClosure]:
-    """The largest group of closures whose transforms agree with one of them."""
+    """The largest group of closures that agree pairwise with one of them (and with each
+    other): two closures agree when the relative pose of their B nodes in B's map matches
+    that of their placements in A's map, within ``agree_m`` plus ``drift_per_m`` of the
+    distance between them and ``agree_deg`` (B's own drift between the two places is
+    allowed for; pairwise consistency after Olson 2009)."""
     best: list[InterClosure] = []
     for c in found:
-        group = []
-        for o in found:
-            d = se2.between(c.transform, o.transform)
-            if np.hypot(d[0], d[1]) <= st.agree_m and abs(d[2]) <= np.radians(st.agree_deg):
-                group.append(o)
+        group = [o for o in found if _agree(c, o, st)]
+        group = [o for o in group if all(_agree(o, q, st) for q in group)]
         if len(group) > len(best):
             best = group
     return best
+
+
+def _agree(a: InterClosure, b: InterClosure, st: MergeSettings) -> bool:
+    if a is b:
+        return True
+    in_a = se2.between(a.placement.pose, b.placement.pose)
+    pa_b = se2.compose(se2.inverse(a.transform), a.placement.pose)  # a's B node, B frame
+    pb_b = se2.compose(se2.inverse(b.transform), b.placement.pose)
+    in_b = se2.between(pa_b, pb_b)
+    d = se2.between(in_b, in_a)
+    dist = float(np.hypot(in_b[0], in_b[1]))
+    return bool(
+        np.hypot(d[0], d[1]) <= st.agree_m + st.drift_per_m * dist
+        and abs(d[2]) <= np.radians(st.agree_deg)
+    )
 
 
 # --------------------------------------------------------------------------- arrays
