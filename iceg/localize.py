@@ -69,8 +69,9 @@ class LocalizeSettings:
         confirm_keyframes: tracked keyframes that confirm a global placement.
         candidate_spacing_m: global search: one candidate place per square of this side.
         keyframe_distance_m / keyframe_rotation_deg: odometry motion between matched scans.
-        max_global_tries: keyframes a lost robot tries globally before giving up until the
-            next odometry-based chance (bounds the cost of a log outside the map).
+        max_global_tries: global searches before giving up (bounds the cost of a log
+            outside the map).
+        lost_retry_scans: a lost robot searches globally every this many scans.
     """
 
     reference_nodes: int = 12
@@ -89,6 +90,7 @@ class LocalizeSettings:
     keyframe_distance_m: float = 0.5
     keyframe_rotation_deg: float = 15.0
     max_global_tries: int = 1_000_000
+    lost_retry_scans: int = 5
 
 
 @dataclass(frozen=True, eq=False)
@@ -244,6 +246,7 @@ class _Track:
     fails: int = 0
     tentative: int = 0  # >0: confirmations still needed after a global placement
     global_tries: int = 0
+    lost_scans: int = 0  # scans since the robot was lost
 
 
 class Localizer:
@@ -306,7 +309,10 @@ class Localizer:
         moved = np.hypot(d[0], d[1]) >= st.keyframe_distance_m or abs(d[2]) >= np.radians(
             st.keyframe_rotation_deg
         )
-        return bool(t.pose is None or moved or scan.odom_pose is None or t.tentative > 0)
+        if t.pose is None:  # lost: a global search every ``lost_retry_scans`` scans
+            t.lost_scans += 1
+            return (t.lost_scans - 1) % st.lost_retry_scans == 0
+        return bool(moved or scan.odom_pose is None or t.tentative > 0)
 
     def _try_initial(self, feats: ScanFeatures) -> tuple[FloatArray, FloatArray, Status, float]:
         st = self.settings
@@ -355,6 +361,7 @@ class Localizer:
     ) -> tuple[FloatArray, FloatArray, Status, float]:
         t = self._t
         t.pose, t.cov, t.fails, t.tentative = p.pose, p.match.cov, 0, tentative
+        t.lost_scans = 0
         t.since_match = np.zeros(3)
         return self._out(status, p.match.correlation)
 
