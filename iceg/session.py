@@ -509,6 +509,43 @@ def read(path: str | os.PathLike[str]) -> Session:
     return Session(folder, manifest, config, arrays)
 
 
+#: Arrays :func:`load` needs besides the feature map's.
+_REQUIRED = (
+    "g_node_ids",
+    "g_node_initial",
+    "g_kind",
+    "g_ij",
+    "g_measured",
+    "g_cov",
+    "g_robust",
+    "g_robust_k",
+    "g_correlation",
+    "g_steps",
+    "s_stamp",
+    "s_node",
+    "s_delta",
+    "s_log",
+    "s_key",
+    "s_hash",
+    "n_scan",
+    "n_odom",
+    "n_odom_measured",
+    "n_path_m",
+    "lc_ij",
+    "lc_measured",
+    "lc_cov",
+    "lc_correlation",
+    "lc_implied",
+    "lc_places_rows",
+    "lc_places_ids",
+    "cal_state",
+    "inline_meta",
+    "inline_offsets",
+    "inline_ranges",
+    "inline_angles",
+)
+
+
 def load(path: str | os.PathLike[str], *, scans: Sequence[LaserScan] | None = None) -> Slam:
     """A :class:`~iceg.slam.Slam` that continues exactly where the saved run ended.
 
@@ -526,6 +563,12 @@ def load(path: str | os.PathLike[str], *, scans: Sequence[LaserScan] | None = No
         GraphError: gtsam failed while replaying the graph.
     """
     session = read(path)
+    missing = sorted(set(_REQUIRED) - set(session.arrays))
+    if missing:
+        raise SessionError(
+            f"{session.path}: state.npz lacks {missing[0]}{' ...' if len(missing) > 1 else ''}"
+            " (written by an older ICEG?); run the log again"
+        )
     if scans is None:
         loaded = read_scans(session)
     else:

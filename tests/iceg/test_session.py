@@ -145,3 +145,12 @@ def test_loop_closures_csv_lists_each_closure_with_its_chi2(whole, tmp_path) -> 
         assert float(r["x_m"]) == f.measured[0]
         assert 0.0 <= float(r["chi2"]) < 16.27  # accepted closures agree with the optimum
         assert r["why"]
+
+
+def test_a_state_without_a_needed_array_is_refused(whole, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    folder = session.save(whole.slam, tmp_path / "s")
+    with np.load(folder / "state.npz", allow_pickle=False) as npz:
+        arrays = {k: npz[k] for k in npz.files if k != "cal_state"}
+    np.savez(folder / "state.npz", **arrays)
+    with pytest.raises(SessionError, match="lacks cal_state"):
+        session.load(folder)
