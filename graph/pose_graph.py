@@ -589,7 +589,7 @@ class PoseGraph:
         the first read of an iSAM2 estimate after an update (gtsam solves its delta lazily,
         so when it is read changes later floating point); ``(STEP_BATCH, max_iterations,
         factors)`` an :meth:`optimize_batch`. Replaying the same node and factor additions
-        with these calls (:func:`replay_steps`) gives the same iSAM2 state bit for bit.
+        with these calls (``iceg.session.replay_graph``) gives the same iSAM2 state bit for bit.
         """
         return tuple(self._steps)
 
