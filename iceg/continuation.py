@@ -53,6 +53,9 @@ def fixed_map_of(slam: Slam) -> FixedMap:
 #: by odometry.
 START_SCANS = 60
 
+#: Without an initial pose, every this many of those scans is searched globally.
+START_STEP = 5
+
 
 def place_first_scan(
     fixed: FixedMap,
@@ -84,6 +87,8 @@ def place_first_scan(
     for k, scan in enumerate(scans[:START_SCANS]):
         if k and (scan.odom_pose is None or scan.odom_break):
             break  # no odometry back to the first scan
+        if guess is None and k % START_STEP:
+            continue  # a global search is costly: every START_STEP-th scan
         feats = extract(scan, fixed.config.features)
         if feats.n_features < 2:
             continue
