@@ -60,6 +60,10 @@ _NEAR_VARIABLE = re.compile(r"near variable\s+(\d+)")
 _MISSING_KEY = re.compile(r"key\s+\"?(\d+)\"?.*does not exist")
 
 
+#: Codes of :attr:`PoseGraph.steps`.
+STEP_UPDATE, STEP_DELTA, STEP_BATCH = 0, 1, 2
+
+
 class FactorKind(str, Enum):
     """Label of a factor, kept for statistics and export (not used by the optimizer)."""
 
@@ -178,6 +182,9 @@ class PoseGraph:
         self._isam: gtsam.ISAM2 | None = self._new_isam()
         self._seed: gtsam.Values | None = None  # linearization point kept after a failure
         self._served: gtsam.Values | None = None  # batch values, until the next update()
+        # Solver call log (see :attr:`steps`): what rebuilds iSAM2 bit for bit on replay.
+        self._steps: list[tuple[int, int, int]] = []
+        self._delta_read = True  # iSAM2's lazy delta was read since the last update()
 
     # ------------------------------------------------------------------ building the graph
 
@@ -309,6 +316,8 @@ class PoseGraph:
                 gtsam failure the next ``update()`` rebuilds iSAM2 from every factor.
         """
         self._check_connected(self._pending_nodes)
+        self._steps.append((STEP_UPDATE, len(self._initial), len(self._records)))
+        self._delta_read = False
         if self._isam is None:
             return self._reseed(self._seed_values())
         new_graph = gtsam.NonlinearFactorGraph()
@@ -370,6 +379,7 @@ class PoseGraph:
             raise GraphError("optimize_batch: the graph has no node")
         self._check_connected(self._pending_nodes)
         values = self._current_values()
+        self._steps.append((STEP_BATCH, int(max_iterations), len(self._records)))
         graph = self._full_graph()
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(int(max_iterations))
@@ -417,6 +427,7 @@ class PoseGraph:
         if self._served is not None and self._served.exists(n):
             return _array(self._served.atPose2(n))
         if self._isam is not None and n in self._in_isam:
+            self._note_delta_read()
             return _array(self._isam.calculateEstimatePose2(n))
         if self._isam is None and self._seed is not None and self._seed.exists(n):
             return _array(self._seed.atPose2(n))
@@ -567,6 +578,40 @@ class PoseGraph:
             )
         return graph
 
+    # ------------------------------------------------------------------ replay log
+
+    @property
+    def steps(self) -> tuple[tuple[int, int, int], ...]:
+        """Log of the solver calls, in order, for an exact rebuild (``iceg.session``).
+
+        Each step is ``(code, a, b)``: ``(STEP_UPDATE, nodes, factors)`` an :meth:`update`
+        when the graph held ``nodes`` nodes and ``factors`` factors; ``(STEP_DELTA, 0, 0)``
+        the first read of an iSAM2 estimate after an update (gtsam solves its delta lazily,
+        so when it is read changes later floating point); ``(STEP_BATCH, max_iterations,
+        factors)`` an :meth:`optimize_batch`. Replaying the same node and factor additions
+        with these calls (``iceg.session.replay_graph``) gives the same iSAM2 state bit for bit.
+        """
+        return tuple(self._steps)
+
+    def initial_pose(self, node_id: int) -> FloatArray:
+        """Initial value ``(3,)`` ``[x_m, y_m, theta_rad]`` (world frame) a node was added with.
+
+        Raises:
+            GraphError: unknown node.
+        """
+        return self._initial[self._existing(node_id, f"initial_pose({node_id!r})")].copy()
+
+    def read_delta(self) -> None:
+        """Make iSAM2 solve its pending delta now, as a first estimate read does (replay)."""
+        if self._isam is not None and self._in_isam:
+            self._note_delta_read()
+            self._isam.calculateEstimate()
+
+    def _note_delta_read(self) -> None:
+        if not self._delta_read:
+            self._delta_read = True
+            self._steps.append((STEP_DELTA, 0, 0))
+
     # ------------------------------------------------------------------ internals
 
     def _new_isam(self) -> gtsam.ISAM2:
@@ -610,6 +655,8 @@ class PoseGraph:
         if self._served is not None:
             values = gtsam.Values(self._served)
         elif self._isam is not None:
+            if self._in_isam:
+                self._note_delta_read()
             values = self._isam.calculateEstimate() if self._in_isam else gtsam.Values()
         else:
             values = gtsam.Values(self._seed) if self._seed is not None else gtsam.Values()

@@ -193,6 +193,18 @@ def run(
         str | None,
         typer.Option(help="ROS bag: laser pose in the base frame 'X_M,Y_M,YAW_DEG' (not tf)."),
     ] = None,
+    continue_: Annotated[
+        Path | None,
+        typer.Option(
+            "--continue",
+            help="Extend this saved session (its config is used): the log's first scan is "
+            "placed in its map by global ICE matching.",
+        ),
+    ] = None,
+    initial_pose: Annotated[
+        tuple[float, float, float] | None,
+        typer.Option(help="With --continue: first scan's pose in the map, X_M Y_M THETA_DEG."),
+    ] = None,
 ) -> None:
     """Optimize a laser log end to end: trajectory, pose graph, map and metrics.
 
@@ -209,10 +221,19 @@ def run(
     )
     out_dir = out if out is not None else _default_out_dir()
     saved: list[str] = []
+    cont = None if continue_ is None else (continue_, initial_pose)
     try:
         result = _interruptible(
             lambda: _run_and_save(
-                log, relations, cfg, progress, stamps.value, reader_options, out_dir, saved.append
+                log,
+                relations,
+                cfg,
+                progress,
+                stamps.value,
+                reader_options,
+                out_dir,
+                saved.append,
+                cont,
             ),
             lambda: _on_interrupt(out_dir, saved, remove_empty=out is None),
         )
@@ -235,10 +256,13 @@ def _run_and_save(
     reader_options: dict[str, Any],
     out_dir: Path,
     on_saved: Callable[[str], None],
+    cont: tuple[Path, tuple[float, float, float] | None] | None = None,
 ) -> SlamResult:
     from iceg.pipeline import run_log, run_simulated_demo
 
-    if log is None:
+    if cont is not None:
+        result = _continue(log, cont[0], cont[1], relations, progress, stamps, reader_options)
+    elif log is None:
         result = run_simulated_demo(cfg, progress=progress)
     else:
         result = run_log(
@@ -453,6 +477,194 @@ def batch(
         f"{len(report.rows)} runs, {report.n_failed} failed; table: {report.markdown}, "
         f"{report.summary_csv}"
     )
+
+
+# --------------------------------------------------------------------------- map life cycle
+# (issue 15: sessions; see iceg.session, iceg.edit, iceg.localize, iceg.merge)
+
+
+@app.command()
+@_one_line_errors
+def optimize(
+    session_dir: Annotated[
+        Path, typer.Argument(metavar="SESSION", help="Session folder (or the run folder).")
+    ],
+    remove_factor: Annotated[
+        list[int] | None,
+        typer.Option(help="Remove this factor (index in loop_closures.csv / graph.g2o)."),
+    ] = None,
+    add_closure: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="Add a loop closure 'NODE_I NODE_J' (matched by ICE between the two scans) or "
+            "'NODE_I NODE_J X_M Y_M THETA_DEG' (pose of NODE_J in NODE_I's frame)."
+        ),
+    ] = None,
+    closure_sigma_m: Annotated[float, typer.Option(help="Sigma of a given closure, m.")] = 0.05,
+    closure_sigma_deg: Annotated[
+        float, typer.Option(help="Heading sigma of a given closure, deg.")
+    ] = 1.0,
+    relations: Annotated[
+        Path | None, typer.Option(help="Score the re-optimized trajectory with a .relations file.")
+    ] = None,
+    out: Annotated[
+        Path | None, typer.Option(help="Write the edited session here (default: in place).")
+    ] = None,
+) -> None:
+    """Re-optimize a saved session's pose graph after edits (remove / add loop closures)."""
+    from iceg import session as sess
+    from iceg.edit import edit_and_optimize, parse_closure, write_edited
+
+    s = sess.read(session_dir)
+    edits = [parse_closure(t, closure_sigma_m, closure_sigma_deg) for t in add_closure or []]
+    arrays = edit_and_optimize(s, remove_factor or [], edits)
+    try:
+        folder = write_edited(s, arrays, out if out is not None else s.path)
+    except OSError as exc:
+        raise OutputError(f"{out or s.path}: cannot write the session ({exc})") from exc
+    edited = sess.read(folder)
+    rows = [
+        ("nodes", str(arrays["g_node_ids"].shape[0])),
+        ("factors", str(arrays["g_kind"].shape[0])),
+        ("loop closures", str(len(sess.closure_rows(arrays)))),
+    ]
+    rows += _relation_rows(edited, relations)
+    rows.append(("session", str(folder)))
+    typer.echo(f"iceg optimize: {session_dir}")
+    _print_table(rows)
+
+
+@app.command()
+@_one_line_errors
+def localize(
+    log: Annotated[Path, typer.Argument(help="Laser log to localize (CARMEN or ROS bag).")],
+    map_: Annotated[
+        Path, typer.Option("--map", help="Saved session (or run folder) holding the map.")
+    ],
+    out: Annotated[
+        Path | None, typer.Option(help="Output folder (default: results/<date_time>).")
+    ] = None,
+    initial_pose: Annotated[
+        tuple[float, float, float] | None,
+        typer.Option(help="First scan's pose in the map, X_M Y_M THETA_DEG (may be wrong)."),
+    ] = None,
+    relations: Annotated[
+        Path | None, typer.Option(help="Score the localized trajectory with a .relations file.")
+    ] = None,
+    stamps: Annotated[StampChoice, typer.Option(help="Disordered log stamps.")] = (
+        StampChoice.sort
+    ),
+) -> None:
+    """Localize a log in a saved map (nothing is added to it): trajectory with per-pose
+    covariance (localization.csv), trajectory.tum and a map.png overlay."""
+    import numpy as np
+
+    from frontends import open_log
+    from iceg import session as sess
+    from iceg.localize import fixed_map_of_session, localize_scans, save_localization
+    from iceg.pipeline import check_log_file
+
+    s = sess.read(map_)
+    check_log_file(log)
+    scans = list(open_log(log, stamps=stamps.value))
+    pose = None
+    if initial_pose is not None:
+        pose = np.array([initial_pose[0], initial_pose[1], math.radians(initial_pose[2])])
+    result = localize_scans(fixed_map_of_session(s), scans, initial_pose=pose)
+    out_dir = out if out is not None else _default_out_dir()
+    try:
+        save_localization(result, s, out_dir)
+    except OSError as exc:
+        raise OutputError(f"{out_dir}: cannot write the results ({exc})") from exc
+    rows = [(k, str(v)) for k, v in result.summary.items()]
+    rows.append(("relocalizations", str(result.relocalizations)))
+    if relations is not None:
+        ok = ~np.isnan(result.poses[:, 0])
+        rows += _relation_rows_of(result.stamps_s[ok], result.poses[ok], relations)
+    rows.append(("output", str(out_dir)))
+    typer.echo(f"iceg localize: {log} in {s.path}")
+    _print_table(rows)
+
+
+@app.command()
+@_one_line_errors
+def merge(
+    session_a: Annotated[Path, typer.Argument(metavar="A", help="First session (kept fixed).")],
+    session_b: Annotated[Path, typer.Argument(metavar="B", help="Session merged into A.")],
+    out: Annotated[Path, typer.Option(help="Output folder (session/ and trajectory.tum).")],
+    relations: Annotated[
+        Path | None, typer.Option(help="Score the merged trajectory with a .relations file.")
+    ] = None,
+) -> None:
+    """Merge two sessions of one building into one graph and one map, linked by
+    inter-session loop closures found by global ICE matching and checked for consistency."""
+    from iceg import session as sess
+    from iceg.merge import merge_sessions
+
+    a, b = sess.read(session_a), sess.read(session_b)
+    if out.exists() and any(out.iterdir()):
+        raise OutputError(f"{out}: exists and is not empty; choose a new --out")
+    try:
+        folder, closures = merge_sessions(a, b, out)
+    except OSError as exc:
+        raise OutputError(f"{out}: cannot write the merged session ({exc})") from exc
+    merged = sess.read(folder)
+    rows = [
+        ("nodes", f"{merged.manifest['nodes']} ({a.manifest['nodes']} + {b.manifest['nodes']})"),
+        ("inter-session closures", str(len(closures))),
+        *_relation_rows(merged, relations),
+        ("output", str(folder)),
+    ]
+    typer.echo(f"iceg merge: {session_a} + {session_b}")
+    _print_table(rows)
+
+
+def _continue(
+    log: Path | None,
+    session_dir: Path,
+    initial_pose: tuple[float, float, float] | None,
+    relations: Path | None,
+    progress: bool,
+    stamps: Any,
+    reader_options: dict[str, Any],
+) -> SlamResult:
+    """``iceg run LOG --continue SESSION``."""
+    from iceg.continuation import continue_log
+
+    if log is None:
+        from iceg_common.errors import ConfigError
+
+        raise ConfigError("--continue needs a LOG to extend the session with")
+    pose = None
+    if initial_pose is not None:
+        pose = (initial_pose[0], initial_pose[1], math.radians(initial_pose[2]))
+    return continue_log(log, session_dir, relations, pose, progress, stamps, reader_options)
+
+
+def _relation_rows(s: Any, relations: Path | None) -> list[tuple[str, str]]:
+    """The relation-error row of a session's trajectory (none without relations)."""
+    if relations is None:
+        return []
+    stamps, poses = s.trajectory()
+    return _relation_rows_of(stamps, poses, relations)
+
+
+def _relation_rows_of(stamps: Any, poses: Any, relations: Path) -> list[tuple[str, str]]:
+    """The relation-error row of a trajectory."""
+    from frontends.relations import read_relations
+    from iceg.evaluation import relation_errors
+    from iceg.pipeline import RELATION_TOLERANCE_S
+
+    rel = read_relations(relations)
+    r, _ = relation_errors(stamps, poses, rel.stamps_s, rel.deltas, RELATION_TOLERANCE_S)
+    d = r.as_dict()
+    return [
+        (
+            "relation error",
+            f"{d['trans_mean_m']:.4f} ± {d['trans_std_m']:.4f} m, {d['rot_mean_deg']:.3f} ± "
+            f"{d['rot_std_deg']:.3f} deg ({d['n_matched']}/{d['n_relations']} relations)",
+        )
+    ]
 
 
 if __name__ == "__main__":  # pragma: no cover

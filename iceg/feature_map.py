@@ -427,6 +427,19 @@ _PRUNED_SPEC: dict[str, tuple[type, tuple[int, ...]]] = {
 }
 
 
+def _state_array(
+    state: Mapping[str, np.ndarray], key: str, dtype: type, shape: tuple[int, ...]
+) -> np.ndarray:
+    """``state[key]`` checked against a dtype and trailing shape (``from_state``)."""
+    a = np.asarray(state[key])
+    if a.dtype != np.dtype(dtype) or a.shape[1:] != shape:
+        raise FeatureMapError(
+            f"FeatureMap.from_state: {key} must be {np.dtype(dtype)} (n, *{shape}), got "
+            f"{a.dtype} {a.shape}"
+        )
+    return np.array(a, copy=True)
+
+
 @dataclass(frozen=True, eq=False)
 class _BeamProfile:
     """A scan's ranges sorted by bearing, the one bearing-to-range lookup of visibility.
@@ -661,6 +674,65 @@ class FeatureMap:
         return PrunedLandmarks(
             **{k: np.concatenate([getattr(p, k) for p in self._pruned]) for k in _PRUNED_SPEC}
         )
+
+    # ------------------------------------------------------------------ state (sessions)
+    def export_state(self) -> dict[str, np.ndarray]:
+        """The whole map as named arrays, for a columnar file (``iceg.session``; no pickle).
+
+        Keys: ``lm_<field>`` (landmarks, :class:`_Landmarks` fields, geometry in the anchor
+        node's frame), ``seg_<field>`` (segments), ``pts_<field>`` (kept points),
+        ``pruned_<field>`` (:class:`PrunedLandmarks`), ``nodes`` ``(K,)`` int64 and
+        ``scalars`` ``(4,)`` float64 ``[next_id, n_merged, range_max_m, last_stamp_s]``.
+        Arrays are copies; :meth:`from_state` rebuilds an identical map.
+        """
+        out: dict[str, np.ndarray] = {}
+        for prefix, cols in (("lm", self._lm), ("seg", self._seg), ("pts", self._pts)):
+            for f in fields(cols):
+                out[f"{prefix}_{f.name}"] = np.array(getattr(cols, f.name), copy=True)
+        pruned = self.pruned
+        for k in _PRUNED_SPEC:
+            out[f"pruned_{k}"] = np.array(getattr(pruned, k), copy=True)
+        out["nodes"] = np.array(sorted(self._nodes), dtype=np.int64)
+        out["scalars"] = np.array(
+            [self._next_id, self.n_merged, self._range_max_m, self._last_stamp_s], dtype=np.float64
+        )
+        return out
+
+    @classmethod
+    def from_state(
+        cls, state: Mapping[str, np.ndarray], config: FeatureMapConfig | None = None
+    ) -> FeatureMap:
+        """Rebuild a map written by :meth:`export_state` (same arrays, same later updates).
+
+        Raises:
+            FeatureMapError: a key is missing or an array has the wrong dtype or shape.
+        """
+        fmap = cls(config)
+        containers = (("lm", _Landmarks), ("seg", _Segments), ("pts", _Points))
+        try:
+            for prefix, kind in containers:
+                cols = {
+                    k: _state_array(state, f"{prefix}_{k}", dt, sh)
+                    for k, (dt, sh) in kind.SPEC.items()
+                }
+                setattr(fmap, f"_{prefix}", kind(**cols))
+            pruned = {
+                k: _state_array(state, f"pruned_{k}", dt, sh)
+                for k, (dt, sh) in _PRUNED_SPEC.items()
+            }
+            nodes = _state_array(state, "nodes", np.int64, ())
+            scalars = _state_array(state, "scalars", np.float64, ())
+        except KeyError as exc:
+            raise FeatureMapError(f"FeatureMap.from_state: missing array {exc}") from None
+        if scalars.shape != (4,):
+            raise FeatureMapError(
+                f"FeatureMap.from_state: scalars must be (4,), got {scalars.shape}"
+            )
+        fmap._pruned = [PrunedLandmarks(**pruned)] if pruned["ids"].shape[0] else []
+        fmap._nodes = {int(n) for n in nodes}
+        fmap._next_id, fmap.n_merged = int(scalars[0]), int(scalars[1])
+        fmap._range_max_m, fmap._last_stamp_s = float(scalars[2]), float(scalars[3])
+        return fmap
 
     def world_landmarks(self, node_poses: NodePoses) -> LandmarkView:
         """All landmarks whose anchor has a pose, expressed in the frame of ``node_poses``

@@ -214,6 +214,32 @@ class OdometryCalibrator:
         var_k = float(self._scale.cov[0, 0]) * max(self._s2_t.value, 1.0)
         return var_k, self._heading.cov * max(self._s2_r.value, 1.0)
 
+    # ------------------------------------------------------------------ state (sessions)
+
+    def export_state(self) -> np.ndarray:
+        """The whole estimator state as one ``(14,)`` float64 array (saved sessions):
+        scale information ``(1, 1)`` and vector ``(1,)``, heading information ``(2, 2)`` and
+        vector ``(2,)``, their observation counts, and the two variance factors' chi² / dof."""
+        sc, hd = self._scale, self._heading
+        return np.concatenate(
+            [
+                sc.info.ravel(),
+                sc.vec,
+                hd.info.ravel(),
+                hd.vec,
+                [sc.n_obs, hd.n_obs],
+                [self._s2_t.chi2, self._s2_t.dof, self._s2_r.chi2, self._s2_r.dof],
+            ]
+        ).astype(np.float64)
+
+    def restore_state(self, state: ArrayLike) -> None:
+        """Restore an :meth:`export_state` array (same later corrections, bit for bit)."""
+        v = np.asarray(state, dtype=np.float64).reshape(14)
+        self._scale = _Rls(v[0:1].reshape(1, 1).copy(), v[1:2].copy(), int(v[8]))
+        self._heading = _Rls(v[2:6].reshape(2, 2).copy(), v[6:8].copy(), int(v[9]))
+        self._s2_t.chi2, self._s2_t.dof = float(v[10]), float(v[11])
+        self._s2_r.chi2, self._s2_r.dof = float(v[12]), float(v[13])
+
     # ------------------------------------------------------------------ use
 
     def correct(self, delta: ArrayLike, cov: ArrayLike) -> tuple[FloatArray, FloatArray]:

@@ -133,6 +133,25 @@ class PlaceIndex:
         self._ids.append(int(node_id))
         self._n += 1
 
+    def export_state(self) -> dict[str, np.ndarray]:
+        """``{"rows": (n, D) descriptors, "ids": (n,) node ids}`` (saved sessions)."""
+        return {"rows": self._rows[: self._n].copy(), "ids": np.array(self._ids, np.int64)}
+
+    def restore_state(self, state: dict[str, np.ndarray]) -> None:
+        """Replace the contents by :meth:`export_state` arrays (same later queries).
+
+        Raises:
+            ValueError: the descriptors have the wrong length.
+        """
+        rows = np.asarray(state["rows"], dtype=np.float64).reshape(-1, self._dim)
+        cap = 0
+        while cap < rows.shape[0]:  # the capacity add() would have grown to
+            cap += max(64, cap)
+        self._rows = np.zeros((cap, self._dim))
+        self._rows[: rows.shape[0]] = rows
+        self._ids = [int(v) for v in state["ids"]]
+        self._n = rows.shape[0]
+
     def similarity(self, descriptor: FloatArray) -> tuple[IntArray, FloatArray]:
         """Cosine similarity of ``descriptor`` to every stored one: ``(node_ids (N,),
         similarity (N,))`` in insertion order."""

@@ -37,7 +37,7 @@ if TYPE_CHECKING:
     from graph import FactorRecord, PoseGraph
     from iceg.config import IcegConfig
     from iceg.feature_map import FeatureMap
-    from iceg.slam import LoopClosureStats
+    from iceg.slam import LoopClosureStats, Slam
 
 logger = logging.getLogger(__name__)
 
@@ -59,6 +59,9 @@ OUTPUT_FILES = (
     "metrics.json",
     "config.yaml",
 )
+
+#: The session folder every save writes beside the files (:mod:`iceg.session`).
+SESSION_DIR = "session"
 
 #: Marker in the name of a staging folder beside the output folder.
 STAGING_MARKER = ".iceg-saving-"
@@ -87,6 +90,8 @@ class SlamResult:
         scans: the input scans, for rendering the map along ``poses``.
         metrics: evaluation figures added by the caller (relations, ground truth), and
             ``map`` once the map was rendered (or could not be).
+        slam: the :class:`~iceg.slam.Slam` that produced the result; :meth:`save` writes
+            its session folder (:mod:`iceg.session`) from it.
     """
 
     stamps_s: FloatArray
@@ -104,6 +109,7 @@ class SlamResult:
     config: IcegConfig
     scans: tuple[LaserScan, ...] = ()
     metrics: dict[str, Any] = field(default_factory=dict)
+    slam: Slam | None = field(default=None, repr=False)
     _map: TiledGrid | None = field(default=None, init=False, repr=False)
     _map_tried: bool = field(default=False, init=False, repr=False)
 
@@ -230,6 +236,10 @@ class SlamResult:
             grid = self.render_map()
             with _staging(out) as staging:
                 _link_files(out, staging, CORE_FILES)
+                if (out / SESSION_DIR).is_dir():
+                    from iceg.session import link_session
+
+                    link_session(out / SESSION_DIR, staging / SESSION_DIR)
                 if grid is not None:
                     write_map_server(grid, staging / "map")
                     write_png(grid, staging / "map.png", trajectory=self.poses)
@@ -247,6 +257,10 @@ class SlamResult:
         self._write_metrics(folder)
         with atomic_write(folder / "config.yaml") as fh:
             fh.write(self.config.to_yaml())
+        if self.slam is not None:
+            from iceg.session import save as save_session
+
+            save_session(self.slam, folder / SESSION_DIR)
 
     def _write_metrics(self, folder: Path) -> None:
         target = folder / "metrics.json"
@@ -275,7 +289,8 @@ def check_output_dir(out: Path) -> None:
     if out.exists() and not out.is_dir():
         raise OutputError(f"{out}: exists and is not a folder; choose another --out")
     if out.is_dir():
-        foreign = sorted(p.name for p in out.iterdir() if p.name not in OUTPUT_FILES)
+        known = (*OUTPUT_FILES, SESSION_DIR)
+        foreign = sorted(p.name for p in out.iterdir() if p.name not in known)
         if foreign:
             raise OutputError(
                 f"{out}: the folder holds files that are not iceg results ({foreign[0]}"

@@ -135,6 +135,68 @@ class Slam:
         """Loop-closure statistics of the run so far."""
         return self.loop_closer.stats
 
+    # ------------------------------------------------------------------ state (sessions)
+
+    def export_state(self) -> SlamState:
+        """The per-run bookkeeping (shared, not a copy), for :mod:`iceg.session`."""
+        return self._s
+
+    @classmethod
+    def from_state(
+        cls,
+        config: IcegConfig,
+        graph: PoseGraph,
+        feature_map: FeatureMap,
+        state: SlamState,
+        loop_stats: LoopClosureStats | None = None,
+    ) -> Slam:
+        """A Slam that continues from saved parts (:func:`iceg.session.load` builds them):
+        the graph rebuilt by replay, the feature map, the bookkeeping and loop statistics.
+        Held-back closures go to ``slam.loop_closer.pending`` afterwards."""
+        slam = cls(config)
+        slam.graph = graph
+        slam.feature_map = feature_map
+        slam.loop_closer = LoopCloser(config.loop_closure, slam.matcher, feature_map)
+        if loop_stats is not None:
+            slam.loop_closer.stats = loop_stats
+        slam._s = state
+        return slam
+
+    def start_segment(
+        self, scan: LaserScan, anchor: int, reference: MapReference, match: MatchResult
+    ) -> FloatArray:
+        """Begin another log in this map (``iceg run --continue``): ``scan`` becomes a node
+        placed by ``match`` (its pose in the frame of node ``anchor``, from a match against
+        ``reference``, built by this map's ``feature_map.reference`` in ``anchor``'s frame),
+        linked to ``anchor`` by a loop-closure factor and to nothing by odometry (the new log
+        is a new odometry frame); its features join the map. Later scans go to
+        :meth:`process`. Returns the node's pose estimate ``(3,)``, map frame.
+
+        Raises:
+            ScanError: the scan is earlier than the last one processed.
+            GraphError: ``anchor`` is unknown, the match failed, or gtsam failed.
+        """
+        if self._result is not None or not match.success or not self._s.node_odom:
+            raise GraphError("Slam.start_segment needs a running Slam and a successful match")
+        self._check_order(scan)
+        t0 = time.perf_counter()
+        feats = extract(scan, self.config.features)
+        anchor_pose = self.graph.estimate(anchor)
+        self._s.scans.append(scan)
+        new_id = self._add_node(
+            scan,
+            self._odometry_of(scan),
+            initial=se2.compose(anchor_pose, match.pose),
+            odom_measured=scan.odom_pose is not None,
+        )
+        self._add_factor(
+            FactorKind.LOOP_CLOSURE, anchor, new_id, match.pose, match.cov, match.correlation
+        )
+        self.graph.update()
+        self._update_map(new_id, feats, scan, _LocalMatch(reference, match, anchor_pose))
+        self.timer.add("segment_start", t0)
+        return self.graph.estimate(new_id)
+
     # ------------------------------------------------------------------ per scan
 
     def process(self, scan: LaserScan) -> FloatArray:
@@ -411,6 +473,7 @@ class Slam:
             graph=self.graph,
             config=self.config,
             scans=tuple(self._s.scans),
+            slam=self,
         )
         return self._result
 

@@ -51,3 +51,9 @@ class GridError(IcegError):
 class OutputError(IcegError):
     """A result cannot be written where asked (an existing file in the way, a read-only
     folder, no space)."""
+
+
+class SessionError(IcegError):
+    """A saved session cannot be read, continued or edited (missing or corrupt file, a format
+    version this ICEG does not know, a log whose scans no longer match their hashes), or a log
+    cannot be placed in its map."""

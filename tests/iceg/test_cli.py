@@ -27,7 +27,7 @@ def demo_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_demo_writes_every_output(demo_dir: Path) -> None:
-    assert sorted(p.name for p in demo_dir.iterdir()) == sorted(OUTPUT_FILES)
+    assert sorted(p.name for p in demo_dir.iterdir()) == sorted([*OUTPUT_FILES, "session"])
     metrics = json.loads((demo_dir / "metrics.json").read_text())
     n = metrics["scans"]
     assert len((demo_dir / "trajectory.tum").read_text().splitlines()) == n
@@ -325,7 +325,7 @@ def test_unrenderable_map_keeps_the_run(tmp_path: Path) -> None:
     args = ["run", str(_short_log(tmp_path)), "--config", str(cfg)]
     result = runner.invoke(app, [*args, "--out", str(out), "--no-progress"])
     assert result.exit_code == 0, result.output
-    assert sorted(p.name for p in out.iterdir()) == sorted(CORE_FILES)
+    assert sorted(p.name for p in out.iterdir()) == sorted([*CORE_FILES, "session"])
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["map"]["rendered"] is False, metrics["map"]
     assert len((out / "trajectory.tum").read_text().splitlines()) == 20

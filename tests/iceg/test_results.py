@@ -28,7 +28,14 @@ from iceg.grid import (
     write_map_server,
 )
 from iceg.pipeline import run_scans
-from iceg.results import CORE_FILES, MAP_FILES, OUTPUT_FILES, STAGING_MARKER, SlamResult
+from iceg.results import (
+    CORE_FILES,
+    MAP_FILES,
+    OUTPUT_FILES,
+    SESSION_DIR,
+    STAGING_MARKER,
+    SlamResult,
+)
 from iceg_common.errors import GraphError, OutputError
 
 REPO = Path(__file__).resolve().parents[2]
@@ -52,7 +59,9 @@ def result_b() -> SlamResult:
 
 
 def _files(folder: Path) -> dict[str, bytes]:
-    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+    """The result files (the session folder is checked by tests/iceg/test_session.py)."""
+    assert (folder / SESSION_DIR / "manifest.json").is_file()
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.name != SESSION_DIR}
 
 
 def _leftovers(out: Path) -> list[str]:
@@ -80,7 +89,7 @@ def test_unrenderable_map_keeps_trajectory_graph_metrics(tmp_path: Path) -> None
     result = _result(config={"grid": {"max_cells": 1000}})
     out = tmp_path / "run"
     result.save(out)
-    assert sorted(p.name for p in out.iterdir()) == sorted(CORE_FILES)
+    assert sorted(_files(out)) == sorted(CORE_FILES)
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["map"]["rendered"] is False
     assert "max_cells=1000" in metrics["map"]["reason"]
@@ -96,7 +105,7 @@ def test_absurd_extent_is_a_warning_not_a_lost_run(
     broken = dataclasses.replace(result_a, poses=poses, metrics={})
     out = tmp_path / "run"
     broken.save(out)
-    assert sorted(p.name for p in out.iterdir()) == sorted(CORE_FILES)
+    assert sorted(_files(out)) == sorted(CORE_FILES)
     assert "no map written" in caplog.text
     assert "tiles" in json.loads((out / "metrics.json").read_text())["map"]["reason"]
 

@@ -1,0 +1,237 @@
+"""Continue a saved session with another log (``iceg run LOG --continue SESSION``, issue 15).
+
+The session is loaded exactly (:func:`iceg.session.load`); the new log's first scan is placed
+in the old map by ICE matching, around ``initial_pose`` when given, else globally
+(:meth:`iceg.localize.FixedMap.place`), and the placement must be confirmed by tracking the
+next scans in the fixed map (:class:`iceg.localize.Localizer`). The first scan then becomes a
+node linked to the map by the placement match (:meth:`iceg.slam.Slam.start_segment`) and the
+run goes on in the same graph and feature map. A log that cannot be placed is refused
+(:class:`~iceg_common.errors.SessionError`), never guessed.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from tqdm.auto import tqdm
+
+from frontends import LaserScan
+from graph import odometry_covariance
+from iceg import session as sess
+from iceg.features import extract
+from iceg.localize import FixedMap, Localizer, LocalizeSettings, Placement, Status
+from iceg.matching import MatchBounds
+from iceg.results import SlamResult
+from iceg.slam import Slam
+from iceg.types import MatchResult, ScanFeatures
+from iceg_common import se2
+from iceg_common.errors import SessionError
+
+logger = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+
+#: Scans of the new log tracked to confirm the first scan's placement (at most).
+CONFIRM_SCANS = 150
+
+
+def fixed_map_of(slam: Slam) -> FixedMap:
+    """The Slam's current map as a :class:`FixedMap` (its own feature map: references built
+    from it can be given back to the Slam)."""
+    ids, poses = slam.graph.estimates()
+    return FixedMap(ids, poses, slam.feature_map, slam.config)
+
+
+#: Scans tried, in order, for a placement when the first ones cannot be placed (a scan with
+#: too few features, e.g. facing a bare wall); the placement is carried back to the first scan
+#: by odometry.
+START_SCANS = 60
+
+#: Without an initial pose, every this many of those scans is searched globally.
+START_STEP = 5
+
+
+def place_first_scan(
+    fixed: FixedMap,
+    scans: Sequence[LaserScan],
+    initial_pose: ArrayLike | None = None,
+    settings: LocalizeSettings | None = None,
+) -> Placement:
+    """Place ``scans[0]`` in the map, confirmed by tracking the next scans.
+
+    The first scan that can be placed among the first :data:`START_SCANS` (around
+    ``initial_pose``, carried along by odometry, when given; else globally) is placed and
+    confirmed (:func:`_confirm`); when it is not the first scan, its placement is carried back
+    to the first scan by odometry (the covariance grows by the odometry noise).
+
+    Args:
+        fixed: the map.
+        scans: the new log's scans.
+        initial_pose: ``(3,)`` map-frame guess of the first scan ``[x_m, y_m, theta_rad]``.
+        settings: localization tuning.
+
+    Returns:
+        The first scan's placement (``match.pose`` in the frame of node ``anchor``).
+
+    Raises:
+        SessionError: no placement, an ambiguous one, or one the next scans contradict.
+    """
+    st = settings or LocalizeSettings()
+    guess = None if initial_pose is None else np.asarray(initial_pose, dtype=np.float64)
+    for k, scan in enumerate(scans[:START_SCANS]):
+        if k and (scan.odom_pose is None or scan.odom_break):
+            break  # no odometry back to the first scan
+        if guess is None and k % START_STEP:
+            continue  # a global search is costly: every START_STEP-th scan
+        feats = extract(scan, fixed.config.features)
+        if feats.n_features < 2:
+            continue
+        here = None if guess is None else se2.compose(guess, _odometry(scans, 0, k))
+        placement = _place_one(fixed, feats, here, st)
+        if placement is None:
+            continue
+        _confirm(fixed, scans[k:], placement, st)
+        return placement if k == 0 else _carry_back(fixed, scans, k, placement)
+    raise SessionError(
+        f"{scans[0].source}: the log cannot be placed in the map (no unambiguous ICE match of "
+        f"enough correlation and fit in its first {min(len(scans), START_SCANS)} scans); is "
+        "it from this building? Give --initial-pose X Y THETA_DEG if it is"
+    )
+
+
+def _odometry(scans: Sequence[LaserScan], i: int, j: int) -> FloatArray:
+    """Odometry motion from scan ``i`` to scan ``j`` (``(3,)``, frame of scan ``i``)."""
+    return se2.between(scans[i].odom_pose, scans[j].odom_pose)  # type: ignore[arg-type]
+
+
+def _place_one(
+    fixed: FixedMap, feats: ScanFeatures, guess: FloatArray | None, st: LocalizeSettings
+) -> Placement | None:
+    if guess is not None:
+        bounds = MatchBounds.local(st.initial_translation_m, st.initial_rotation_deg)
+        p = fixed.match_at(feats, guess, bounds, st.reference_nodes)
+        if p is not None and p.match.correlation >= st.min_correlation:
+            return p
+    return fixed.place(feats, st)
+
+
+def _carry_back(fixed: FixedMap, scans: Sequence[LaserScan], k: int, p: Placement) -> Placement:
+    """Scan ``k``'s placement moved to scan 0 by the odometry between them."""
+    back = _odometry(scans, k, 0)
+    pose0 = se2.compose(p.pose, back)
+    ad = se2.adjoint(se2.inverse(back))
+    cov = ad @ p.match.cov @ ad.T + odometry_covariance(back, fixed.config.odometry_noise)
+    anchor_pose = fixed.poses[int(np.searchsorted(fixed.ids, p.anchor))]
+    match = MatchResult(
+        success=True,
+        pose=se2.between(anchor_pose, pose0),
+        cov=0.5 * (cov + cov.T),
+        correlation=p.match.correlation,
+    )
+    return Placement(p.anchor, p.reference, match, pose0)
+
+
+def _confirm(
+    fixed: FixedMap, scans: Sequence[LaserScan], p: Placement, st: LocalizeSettings
+) -> None:
+    loc = Localizer(fixed, st, initial_pose=p.pose)
+    tracked = 0
+    for scan in scans[:CONFIRM_SCANS]:
+        _, _, status, _ = loc.process(scan)
+        if loc.relocalizations or status == Status.LOST:
+            raise SessionError(
+                f"{scans[0].source}: the first scan matched the map at "
+                f"{np.round(p.pose, 2).tolist()} (correlation {p.match.correlation:.2f}) but "
+                "the next scans do not follow it there; refusing to guess"
+            )
+        tracked += status == Status.TRACKED
+        if tracked >= st.confirm_keyframes:
+            return
+    if len(scans) > 1:
+        raise SessionError(
+            f"{scans[0].source}: the placement of the first scan could not be confirmed by "
+            f"the next {min(len(scans), CONFIRM_SCANS)} scans"
+        )
+
+
+def continue_scans(
+    session_path: str | os.PathLike[str],
+    scans: Sequence[LaserScan],
+    initial_pose: ArrayLike | None = None,
+    progress: bool = False,
+) -> SlamResult:
+    """Continue a session with new scans; the finished result of the extended run.
+
+    Raises:
+        SessionError: unreadable session or a log that cannot be placed.
+        ScanError: the new scans are earlier than the session's last scan.
+    """
+    if not scans:
+        raise SessionError("the new log holds no laser scans")
+    slam = sess.load(session_path)
+    last = slam.export_state().scans[-1].stamp_s
+    if scans[0].stamp_s < last:
+        raise SessionError(
+            f"{scans[0].source}: the log starts at {scans[0].stamp_s:.6f} s, before the "
+            f"session's last scan ({last:.6f} s); the map's time-validity needs the new log "
+            "to come later"
+        )
+    placement = place_first_scan(fixed_map_of(slam), scans, initial_pose)
+    logger.info(
+        "first scan placed at %s near node %d (correlation %.2f)",
+        np.round(placement.pose, 3).tolist(),
+        placement.anchor,
+        placement.match.correlation,
+    )
+    slam.start_segment(scans[0], placement.anchor, placement.reference, placement.match)
+    for scan in tqdm(scans[1:], unit="scan", disable=not progress, desc="iceg"):
+        slam.process(scan)
+    return slam.finish()
+
+
+def session_path_of(path: Path) -> Path:
+    """The session folder given a session or a run folder."""
+    return path / sess.SESSION_DIR if (path / sess.SESSION_DIR).is_dir() else path
+
+
+def continue_log(
+    path: str | Path,
+    session_path: str | Path,
+    relations: str | Path | None = None,
+    initial_pose: ArrayLike | None = None,
+    progress: bool = False,
+    stamps: str = "sort",
+    reader_options: dict[str, Any] | None = None,
+) -> SlamResult:
+    """:func:`continue_scans` over a log file, scored with ``relations`` like
+    :func:`iceg.pipeline.run_log` (the relations that fall on either log's scans count).
+
+    Raises:
+        LogFormatError: missing, unreadable or empty log.
+        SessionError: unreadable session, or a log that cannot be placed.
+        EvaluationError: the relations match no scan.
+    """
+    from frontends import open_log
+    from frontends.relations import read_relations
+    from iceg.evaluation import relation_errors
+    from iceg.pipeline import RELATION_TOLERANCE_S, check_log_file, check_relations_match
+
+    check_log_file(Path(path))
+    scans = list(open_log(path, stamps=stamps, **(reader_options or {})))
+    rel = read_relations(relations) if relations is not None else None
+    if rel is not None:
+        check_relations_match(rel, np.array([s.stamp_s for s in scans]))
+    result = continue_scans(session_path, scans, initial_pose, progress)
+    result.metrics["continued_from"] = str(Path(session_path).resolve())
+    if rel is not None:
+        summary, _ = relation_errors(
+            result.stamps_s, result.poses, rel.stamps_s, rel.deltas, RELATION_TOLERANCE_S
+        )
+        result.metrics["relations"] = summary.as_dict()
+    return result

@@ -1,0 +1,305 @@
+"""Merge two sessions of one building into one graph and one map (``iceg merge``, issue 15).
+
+Scans of session B (nodes spread over its map, ``query_spacing_m`` apart) are placed in A's map
+by global ICE matching (:meth:`iceg.localize.FixedMap.place`: correlation, fit to A's walls,
+no ambiguity). Each placement implies the rigid transform ``T = pose_A(anchor) ∘ z ∘
+pose_B(node)^-1`` from B's map frame to A's; the largest set of placements whose transforms
+agree (within ``agree_m`` / ``agree_deg``) is kept, and must hold ``min_closures`` of them
+(consistency, in the spirit of Olson 2009's pairwise check). B's nodes are renumbered after A's
+and moved by ``T``; B's prior is dropped (A's anchors the merged map); the agreeing placements
+become loop-closure factors (robust kernel of the run's configuration); the graph is refined by
+batch Levenberg–Marquardt. The feature maps are concatenated (B's landmarks anchored to B's
+renumbered nodes; duplicates of one corner seen in both sessions are not fused).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from graph import FactorKind
+from iceg.features import extract
+from iceg.localize import FixedMap, LocalizeSettings, Placement, fixed_map_of_session
+from iceg.session import (
+    FACTOR_KINDS,
+    ORIGIN_RUN,
+    ROBUST_KERNELS,
+    Session,
+    graph_arrays,
+    read_scans,
+    rebuild_graph,
+)
+from iceg_common import se2
+from iceg_common.errors import SessionError
+
+logger = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class MergeSettings:
+    """Inter-session closure search.
+
+    Attributes:
+        query_spacing_m: B's query nodes: one per square of this side (B's map frame).
+        max_queries: most B nodes matched against A.
+        agree_m / agree_deg / drift_per_m: largest difference between the relative poses of
+            two agreeing closures (metres plus a fraction of their distance; degrees).
+        min_closures: least number of agreeing closures.
+    """
+
+    query_spacing_m: float = 2.0
+    max_queries: int = 60
+    agree_m: float = 0.5
+    agree_deg: float = 5.0
+    drift_per_m: float = 0.05
+    min_closures: int = 2
+
+
+@dataclass(frozen=True, eq=False)
+class InterClosure:
+    """A B node placed in A's map.
+
+    Attributes:
+        node_b: B's node (B's numbering).
+        placement: the match (``anchor`` an A node; ``match.pose`` B's node in its frame).
+        transform: ``(3,)`` B map frame -> A map frame that it implies.
+    """
+
+    node_b: int
+    placement: Placement
+    transform: FloatArray
+
+
+def find_closures(
+    a: Session, b: Session, settings: MergeSettings | None = None
+) -> list[InterClosure]:
+    """Place spread B nodes' scans in A's map; keep the largest consistent set.
+
+    Raises:
+        SessionError: B's scans cannot be re-read, or fewer than ``min_closures`` agree.
+    """
+    st = settings or MergeSettings()
+    fixed = fixed_map_of_session(a)
+    found = _placements(fixed, b, st)
+    best = _consistent(found, st)
+    if len(best) < st.min_closures:
+        raise SessionError(
+            f"{b.path}: only {len(best)} of {len(found)} placements of its scans in {a.path} "
+            f"agree (need {st.min_closures}); are the two sessions of the same building?"
+        )
+    return best
+
+
+def _placements(fixed: FixedMap, b: Session, st: MergeSettings) -> list[InterClosure]:
+    ids_b, poses_b = b.node_poses
+    rows = FixedMap(ids_b, poses_b, b.feature_map(), b.config).candidates(st.query_spacing_m)
+    step = max(1, int(np.ceil(rows.shape[0] / st.max_queries)))
+    rows = rows[::step]
+    scans = read_scans(b, b.arrays["n_scan"][rows].tolist())
+    out = []
+    # Each placement must be unambiguous (corridors repeat): the consistency vote alone lets
+    # a set of equally aliased placements through.
+    loc = LocalizeSettings()
+    for row, scan in zip(rows.tolist(), scans, strict=True):
+        p = fixed.place(extract(scan, fixed.config.features), loc)
+        if p is None:
+            continue
+        t = se2.compose(p.pose, se2.inverse(poses_b[row]))
+        out.append(InterClosure(int(ids_b[row]), p, t))
+    logger.info("merge: %d of %d B scans placed in A", len(out), rows.shape[0])
+    return out
+
+
+def _consistent(found: list[InterClosure], st: MergeSettings) -> list[InterClosure]:
+    """The largest group of closures that agree pairwise with one of them (and with each
+    other): two closures agree when the relative pose of their B nodes in B's map matches
+    that of their placements in A's map, within ``agree_m`` plus ``drift_per_m`` of the
+    distance between them and ``agree_deg`` (B's own drift between the two places is
+    allowed for; pairwise consistency after Olson 2009)."""
+    best: list[InterClosure] = []
+    for c in found:
+        group = [o for o in found if _agree(c, o, st)]
+        group = [o for o in group if all(_agree(o, q, st) for q in group)]
+        if len(group) > len(best):
+            best = group
+    return best
+
+
+def _agree(a: InterClosure, b: InterClosure, st: MergeSettings) -> bool:
+    if a is b:
+        return True
+    in_a = se2.between(a.placement.pose, b.placement.pose)
+    pa_b = se2.compose(se2.inverse(a.transform), a.placement.pose)  # a's B node, B frame
+    pb_b = se2.compose(se2.inverse(b.transform), b.placement.pose)
+    in_b = se2.between(pa_b, pb_b)
+    d = se2.between(in_b, in_a)
+    dist = float(np.hypot(in_b[0], in_b[1]))
+    return bool(
+        np.hypot(d[0], d[1]) <= st.agree_m + st.drift_per_m * dist
+        and abs(d[2]) <= np.radians(st.agree_deg)
+    )
+
+
+# --------------------------------------------------------------------------- arrays
+
+
+def merge_arrays(
+    a: Session, b: Session, closures: list[InterClosure], max_iterations: int = 100
+) -> dict[str, np.ndarray]:
+    """The merged session's ``state.npz`` arrays (see :mod:`iceg.session`).
+
+    Raises:
+        GraphError: gtsam failed on the merged graph.
+    """
+    aa, ba = a.arrays, b.arrays
+    n_a = int(aa["g_node_ids"].max()) + 1
+    t = closures[0].transform if len(closures) == 1 else _mean_transform(closures)
+    out = {**_graph_part(aa, ba, n_a, t), **_scan_part(aa, ba, n_a), **_map_part(aa, ba, n_a)}
+    out = _add_closures(out, closures, n_a, a.config.loop_closure.robust_kernel)
+    graph = rebuild_graph(out, a.config.graph)
+    graph.optimize_batch(max_iterations)
+    corr = {k: float(v) for k, v in enumerate(out["g_correlation"]) if np.isfinite(v)}
+    out.update(graph_arrays(graph, corr, out["g_origin"].tolist()))
+    return out
+
+
+def _mean_transform(closures: list[InterClosure]) -> FloatArray:
+    ts = np.array([c.transform for c in closures])
+    theta = np.arctan2(np.sin(ts[:, 2]).mean(), np.cos(ts[:, 2]).mean())
+    return np.array([ts[:, 0].mean(), ts[:, 1].mean(), theta])
+
+
+def _graph_part(
+    aa: dict[str, np.ndarray], ba: dict[str, np.ndarray], n_a: int, t: FloatArray
+) -> dict[str, np.ndarray]:
+    keep = ba["g_kind"] != FACTOR_KINDS.index(FactorKind.PRIOR)  # A's prior anchors the map
+    ij = ba["g_ij"][keep] + n_a
+    out = {
+        "g_node_ids": np.concatenate([aa["g_node_ids"], ba["g_node_ids"] + n_a]),
+        "g_node_initial": np.concatenate([aa["g_node_final"], se2.compose(t, ba["g_node_final"])]),
+        "g_node_final": np.concatenate([aa["g_node_final"], se2.compose(t, ba["g_node_final"])]),
+        "g_ij": np.concatenate([aa["g_ij"], ij]),
+    }
+    for k in ("g_kind", "g_measured", "g_cov", "g_robust", "g_robust_k", "g_origin"):
+        out[k] = np.concatenate([aa[k], ba[k][keep]])
+    out["g_correlation"] = np.concatenate([aa["g_correlation"], ba["g_correlation"][keep]])
+    return out
+
+
+def _scan_part(
+    aa: dict[str, np.ndarray], ba: dict[str, np.ndarray], n_a: int
+) -> dict[str, np.ndarray]:
+    n_scans_a = aa["s_stamp"].shape[0]
+    n_logs_a = int(aa["s_log"].max()) + 1 if aa["s_log"].size else 0
+    inline_a = aa["inline_meta"].shape[0]
+    b_log = np.where(ba["s_log"] >= 0, ba["s_log"] + n_logs_a, -1)
+    b_key = np.array(
+        [
+            str(int(k) + inline_a) if li < 0 else k
+            for li, k in zip(ba["s_log"], ba["s_key"], strict=True)
+        ],
+        dtype=np.str_,
+    )
+    path_off = float(aa["n_path_m"].max()) + 1000.0 if aa["n_path_m"].size else 0.0
+    cat = np.concatenate
+    return {
+        "s_stamp": cat([aa["s_stamp"], ba["s_stamp"]]),
+        "s_node": cat([aa["s_node"], ba["s_node"] + n_a]),
+        "s_delta": cat([aa["s_delta"], ba["s_delta"]]),
+        "s_log": cat([aa["s_log"], b_log]),
+        "s_key": cat([aa["s_key"], b_key]),
+        "s_hash": cat([aa["s_hash"], ba["s_hash"]]),
+        "n_scan": cat([aa["n_scan"], ba["n_scan"] + n_scans_a]),
+        "n_odom": cat([aa["n_odom"], ba["n_odom"]]),
+        "n_odom_measured": cat([aa["n_odom_measured"], ba["n_odom_measured"]]),
+        "n_path_m": cat([aa["n_path_m"], ba["n_path_m"] + path_off]),
+        "lc_ij": cat([aa["lc_ij"], ba["lc_ij"] + n_a]),
+        "lc_measured": cat([aa["lc_measured"], ba["lc_measured"]]),
+        "lc_cov": cat([aa["lc_cov"], ba["lc_cov"]]),
+        "lc_correlation": cat([aa["lc_correlation"], ba["lc_correlation"]]),
+        "lc_implied": cat([aa["lc_implied"], ba["lc_implied"]]),
+        "lc_places_rows": cat([aa["lc_places_rows"], ba["lc_places_rows"]]),
+        "lc_places_ids": cat([aa["lc_places_ids"], ba["lc_places_ids"] + n_a]),
+        "cal_state": aa["cal_state"],
+        "inline_meta": cat([aa["inline_meta"], ba["inline_meta"]]),
+        "inline_offsets": cat(
+            [aa["inline_offsets"], ba["inline_offsets"][1:] + aa["inline_offsets"][-1]]
+        ),
+        "inline_ranges": cat([aa["inline_ranges"], ba["inline_ranges"]]),
+        "inline_angles": cat([aa["inline_angles"], ba["inline_angles"]]),
+    }
+
+
+#: Feature-map arrays holding node ids (shifted for B) and landmark ids.
+_NODE_KEYS = ("fm_lm_anchor", "fm_lm_last_node", "fm_seg_node", "fm_pts_node", "fm_pruned_anchor")
+_ID_KEYS = ("fm_lm_id", "fm_pruned_ids")
+
+
+def _map_part(
+    aa: dict[str, np.ndarray], ba: dict[str, np.ndarray], n_a: int
+) -> dict[str, np.ndarray]:
+    next_a = int(aa["fm_scalars"][0])
+    out = {}
+    for k in (k for k in aa if k.startswith("fm_") and k not in ("fm_scalars", "fm_nodes")):
+        shift = n_a if k in _NODE_KEYS else next_a if k in _ID_KEYS else 0
+        out[k] = np.concatenate([aa[k], ba[k] + shift if shift else ba[k]])
+    out["fm_nodes"] = np.concatenate([aa["fm_nodes"], ba["fm_nodes"] + n_a])
+    sa, sb = aa["fm_scalars"], ba["fm_scalars"]
+    out["fm_scalars"] = np.array(
+        [sa[0] + sb[0], sa[1] + sb[1], max(sa[2], sb[2]), max(sa[3], sb[3])]
+    )
+    return out
+
+
+def _add_closures(
+    out: dict[str, np.ndarray], closures: list[InterClosure], n_a: int, kernel: str
+) -> dict[str, np.ndarray]:
+    k = len(closures)
+    rows = {
+        "g_kind": np.full(k, FACTOR_KINDS.index(FactorKind.LOOP_CLOSURE)),
+        "g_ij": np.array([[c.placement.anchor, c.node_b + n_a] for c in closures]),
+        "g_measured": np.array([c.placement.match.pose for c in closures]),
+        "g_cov": np.array([c.placement.match.cov for c in closures]),
+        "g_robust": np.full(k, ROBUST_KERNELS.index(kernel)),
+        "g_robust_k": np.full(k, np.nan),
+        "g_origin": np.full(k, ORIGIN_RUN),
+        "g_correlation": np.array([c.placement.match.correlation for c in closures]),
+    }
+    return {
+        **out,
+        **{key: np.concatenate([out[key], v.astype(out[key].dtype)]) for key, v in rows.items()},
+    }
+
+
+def merge_sessions(
+    a: Session, b: Session, out: str | Path, settings: MergeSettings | None = None
+) -> tuple[Path, list[InterClosure]]:
+    """Merge B into A and write the merged session into ``out/session`` (with
+    ``trajectory.tum`` beside it); A's configuration is kept.
+
+    Raises:
+        SessionError: no consistent inter-session closures, or unreadable scans.
+        OSError: the folder cannot be written.
+    """
+    from frontends.tum import write_tum
+    from iceg.session import SESSION_DIR, write_folder
+
+    closures = find_closures(a, b, settings)
+    arrays = merge_arrays(a, b, closures)
+    folder = Path(out)
+    logs = [*a.manifest.get("logs", []), *b.manifest.get("logs", [])]
+    session_dir = folder / SESSION_DIR
+    session_dir.mkdir(parents=True, exist_ok=True)
+    logs = [{**e, "relative": str(Path(e["path"]).resolve())} for e in logs]
+    extra = {"merged_from": [str(a.path.resolve()), str(b.path.resolve())]}
+    write_folder(session_dir, arrays, a.config, logs, extra, edited=True)
+    merged = Session(session_dir, {"logs": logs}, a.config, arrays)
+    write_tum(folder / "trajectory.tum", *merged.trajectory())
+    return folder, closures

@@ -1,0 +1,777 @@
+"""Saved SLAM sessions: a folder that gives back a :class:`~iceg.slam.Slam` exactly where a run
+ended, for continuing, localizing, merging and editing (issue 15).
+
+Layout of a session folder (``<run output>/session/``, format ``iceg-session`` version 1)::
+
+    manifest.json      format, version, counts, the logs the scans come from (absolute and
+                       relative paths), loop and match statistics; written last
+    state.npz          every array below (numpy ``.npz``, read with allow_pickle=False)
+    graph.g2o          the pose graph at the saved (batch-refined) estimates, factor kinds,
+                       robust kernels and priors as ``# ICEG_*`` lines (graph.g2o)
+    loop_closures.csv  one row per loop closure, accepted or held back (see CLOSURE_COLUMNS)
+    config.yaml        the run's configuration
+
+``state.npz`` arrays (frames: the map frame unless said; metres, radians, seconds):
+
+- graph ``g_*``: ``g_node_ids (N,)`` int64 ascending (the order nodes were added),
+  ``g_node_initial (N, 3)`` initial values, ``g_node_final (N, 3)`` estimates when saved;
+  factors in insertion order ``g_kind (F,)`` (index into :data:`FACTOR_KINDS`), ``g_ij (F, 2)``
+  (``j = -1`` for a prior), ``g_measured (F, 3)``, ``g_cov (F, 3, 3)`` (tangent space of the
+  measurement, gtsam convention), ``g_robust (F,)`` (index into :data:`ROBUST_KERNELS`),
+  ``g_robust_k (F,)`` (NaN: none), ``g_origin (F,)`` (0: the run, 1: added by the user),
+  ``g_correlation (F,)`` (ICE correlation, NaN: none); ``g_steps (S, 3)`` the solver call log
+  (:attr:`graph.PoseGraph.steps`) that rebuilds iSAM2 bit for bit.
+- scans ``s_*``: one row per processed scan in order: ``s_stamp``, ``s_node`` (its node),
+  ``s_delta (R, 3)`` (odometry from the node's scan), ``s_log`` (index into the manifest's
+  ``logs``; -1: stored inline in ``inline_*``), ``s_key`` (the record's place in its log,
+  e.g. the CARMEN line), ``s_hash`` (sha256 prefix of the scan's content).
+- nodes ``n_*``: ``n_scan (N,)`` scan row of each node, ``n_odom (N, 3)`` odometry pose,
+  ``n_odom_measured (N,)``, ``n_path_m (N,)`` odometry path length.
+- held-back loop closures ``lc_*``: ``lc_ij (P, 2)``, ``lc_measured (P, 3)``,
+  ``lc_cov (P, 3, 3)``, ``lc_correlation (P,)``, ``lc_implied (P, 3)``; the place index of
+  the global loop-closure search ``lc_places_rows (n, D)`` (descriptors) and
+  ``lc_places_ids (n,)``; the odometry calibration ``cal_state (14,)``
+  (:meth:`iceg.odometry_calibration.OdometryCalibrator.export_state`).
+- the feature map ``fm_*`` (:meth:`iceg.feature_map.FeatureMap.export_state`).
+- inline scans (runs from memory, e.g. the simulator): ``inline_meta (K, 10)``
+  ``[stamp, range_min, range_max, odom x y theta (NaN: none), offset x y theta, odom_break]``,
+  ``inline_offsets (K + 1,)`` into ``inline_ranges`` / ``inline_angles``.
+
+Continuation is exact: :func:`load` replays the factor log with the same update() calls (the
+final batch refinement of the saved run is left out, as an uninterrupted run has none at that
+point), restores the bookkeeping, the feature map and the held-back closures, and re-reads each
+scan from its log by reference, checking its hash.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+from collections import defaultdict
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from frontends import LaserScan, open_log
+from graph import FactorKind, FactorRecord, GraphConfig, PoseGraph
+from graph.g2o import write_g2o_file
+from graph.pose_graph import STEP_BATCH, STEP_DELTA, STEP_UPDATE
+from iceg.config import IcegConfig, config_from_yaml
+from iceg.feature_map import FeatureMap
+from iceg.loop_closure import LoopClosure, LoopClosureStats
+from iceg.slam import Slam, SlamState, _ScanRecord
+from iceg_common import se2
+from iceg_common.atomic import atomic_write
+from iceg_common.errors import IcegError, SessionError
+
+logger = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+SESSION_DIR = "session"
+FORMAT = "iceg-session"
+FORMAT_VERSION = 1
+MANIFEST, STATE, GRAPH, CLOSURES, CONFIG = (
+    "manifest.json",
+    "state.npz",
+    "graph.g2o",
+    "loop_closures.csv",
+    "config.yaml",
+)
+SESSION_FILES = (STATE, GRAPH, CLOSURES, CONFIG, MANIFEST)
+
+FACTOR_KINDS: tuple[FactorKind, ...] = tuple(FactorKind)
+ROBUST_KERNELS: tuple[str | None, ...] = (None, "huber", "cauchy")
+ORIGIN_RUN, ORIGIN_USER = 0, 1
+
+#: Columns of ``loop_closures.csv``.
+CLOSURE_COLUMNS = (
+    "factor",  # factor index in the graph (-1: held back, not in the graph)
+    "node_i",  # the old node
+    "node_j",  # the new node
+    "stamp_i_s",
+    "stamp_j_s",
+    "x_m",  # measured pose of node_j in the frame of node_i
+    "y_m",
+    "theta_rad",
+    "cov_xx",  # covariance, tangent space of the measurement (upper triangle)
+    "cov_xy",
+    "cov_xt",
+    "cov_yy",
+    "cov_yt",
+    "cov_tt",
+    "correlation",  # ICE correlation (eq. 1), NaN for a closure given with its pose
+    "chi2",  # Mahalanobis distance² of the residual at the saved estimate (3 dof)
+    "status",  # accepted | held_back
+    "why",
+)
+
+
+# --------------------------------------------------------------------------- graph table
+
+
+def graph_arrays(
+    graph: PoseGraph,
+    correlations: Mapping[int, float] | None = None,
+    origin: Sequence[int] | None = None,
+) -> dict[str, np.ndarray]:
+    """The ``g_*`` arrays of a graph (see the module docstring)."""
+    ids, final = graph.estimates()
+    recs = graph.factors
+    corr = correlations or {}
+    return {
+        "g_node_ids": ids,
+        "g_node_initial": np.array([graph.initial_pose(int(n)) for n in ids]).reshape(-1, 3),
+        "g_node_final": final,
+        "g_kind": np.array([FACTOR_KINDS.index(r.kind) for r in recs], dtype=np.int64),
+        "g_ij": np.array([[r.i, -1 if r.j is None else r.j] for r in recs], dtype=np.int64),
+        "g_measured": np.array([r.measured for r in recs]).reshape(-1, 3),
+        "g_cov": np.array([r.cov for r in recs]).reshape(-1, 3, 3),
+        "g_robust": np.array([ROBUST_KERNELS.index(r.robust) for r in recs], dtype=np.int64),
+        "g_robust_k": np.array([np.nan if r.robust_k is None else r.robust_k for r in recs]),
+        "g_origin": np.asarray(
+            origin if origin is not None else [ORIGIN_RUN] * len(recs), dtype=np.int64
+        ),
+        "g_correlation": np.array([corr.get(r.index, np.nan) for r in recs], dtype=np.float64),
+        "g_steps": np.array(graph.steps, dtype=np.int64).reshape(-1, 3),
+    }
+
+
+def factor_records(a: Mapping[str, np.ndarray]) -> list[FactorRecord]:
+    """The factors of ``g_*`` arrays as :class:`graph.FactorRecord` (index = row)."""
+    out = []
+    for k in range(a["g_kind"].shape[0]):
+        j = int(a["g_ij"][k, 1])
+        rk = float(a["g_robust_k"][k])
+        out.append(
+            FactorRecord(
+                k,
+                FACTOR_KINDS[int(a["g_kind"][k])],
+                int(a["g_ij"][k, 0]),
+                None if j < 0 else j,
+                a["g_measured"][k],
+                a["g_cov"][k],
+                ROBUST_KERNELS[int(a["g_robust"][k])],
+                None if np.isnan(rk) else rk,
+            )
+        )
+    return out
+
+
+def _add_factor(graph: PoseGraph, r: FactorRecord) -> None:
+    if r.j is None:
+        graph.add_prior(r.i, r.measured, r.cov)
+    else:
+        graph.add_between(
+            r.i,
+            r.j,
+            r.measured,
+            r.cov,
+            kind=r.kind,
+            robust=r.robust,  # type: ignore[arg-type]
+            robust_k=r.robust_k,
+        )
+
+
+def replay_graph(
+    a: Mapping[str, np.ndarray], config: GraphConfig, *, skip_final_batch: bool = True
+) -> PoseGraph:
+    """Rebuild a graph by replaying its solver call log (``g_steps``): the same nodes, factors
+    and calls in the same order, hence the same iSAM2 state bit for bit.
+
+    Args:
+        a: ``g_*`` arrays (:func:`graph_arrays`).
+        config: the graph settings of the saved run.
+        skip_final_batch: leave out a batch refinement that ended the log (the run's
+            ``finish()``), so that the graph continues as the uninterrupted run would.
+
+    Raises:
+        SessionError: the log refers to more nodes or factors than saved.
+        GraphError: gtsam failed on the replayed calls.
+    """
+    steps = [tuple(int(v) for v in s) for s in a["g_steps"]]
+    if skip_final_batch:
+        last = max((k for k, s in enumerate(steps) if s[0] != STEP_DELTA), default=-1)
+        if last >= 0 and steps[last][0] == STEP_BATCH:
+            steps = steps[:last]
+    ids, init, recs = a["g_node_ids"], a["g_node_initial"], factor_records(a)
+    graph = PoseGraph(config, auto_prior=False)
+    nn = nf = 0
+    for code, n_a, n_b in steps:
+        if code == STEP_DELTA:
+            graph.read_delta()
+            continue
+        upto_nodes = n_a if code == STEP_UPDATE else len(ids)
+        if upto_nodes > len(ids) or n_b > len(recs):
+            raise SessionError(f"solver log step {(code, n_a, n_b)} beyond the saved graph")
+        for k in range(nn, upto_nodes):
+            graph.add_node(int(ids[k]), init[k])
+        for r in recs[nf:n_b]:
+            _add_factor(graph, r)
+        nn, nf = max(nn, upto_nodes), n_b
+        if code == STEP_UPDATE:
+            graph.update()
+        else:
+            graph.optimize_batch(n_a)
+    return graph
+
+
+def rebuild_graph(a: Mapping[str, np.ndarray], config: GraphConfig) -> PoseGraph:
+    """A new graph of the factors of ``g_*`` arrays, every node starting at its saved
+    estimate, through one iSAM2 update (its own call log then replays it exactly).
+
+    Raises:
+        GraphError: a node is left without factor, or gtsam failed.
+    """
+    graph = PoseGraph(config, auto_prior=False)
+    for n, pose in zip(a["g_node_ids"].tolist(), a["g_node_final"], strict=True):
+        graph.add_node(n, pose)
+    for r in factor_records(a):
+        _add_factor(graph, r)
+    graph.update()
+    return graph
+
+
+# --------------------------------------------------------------------------- scans
+
+
+def scan_hash(scan: LaserScan) -> str:
+    """Content hash of a scan (16 hex digits of sha256 over stamp, ranges, bearings,
+    odometry and laser offset): the check that a re-read scan is the saved one."""
+    h = hashlib.sha256()
+    h.update(np.float64(scan.stamp_s).tobytes())
+    for arr in (scan.ranges_m, scan.angles_rad, scan.laser_offset):
+        h.update(np.ascontiguousarray(arr, dtype=np.float64).tobytes())
+    if scan.odom_pose is not None:
+        h.update(np.ascontiguousarray(scan.odom_pose, dtype=np.float64).tobytes())
+    return h.hexdigest()[:16]
+
+
+def _split_source(source: str) -> tuple[str, str] | None:
+    """``(path, key)`` of a ``path:key`` source whose path is a readable log, else None."""
+    path, sep, key = source.rpartition(":")
+    if not sep or not path or not os.path.exists(path):
+        return None
+    return path, key
+
+
+def scan_arrays(
+    scans: Sequence[LaserScan], session_dir: Path
+) -> tuple[dict[str, np.ndarray], list[dict[str, str]]]:
+    """Scan references (``s_log``, ``s_key``, ``s_hash``) and inline scans, and the logs table
+    of the manifest (``{"path": absolute, "relative": from the session folder}``)."""
+    logs: dict[str, int] = {}
+    log_idx: list[int] = []
+    keys: list[str] = []
+    inline: list[LaserScan] = []
+    for scan in scans:
+        split = _split_source(scan.source)
+        if split is None:
+            log_idx.append(-1)
+            keys.append(str(len(inline)))
+            inline.append(scan)
+            continue
+        path = str(Path(split[0]).resolve())
+        log_idx.append(logs.setdefault(path, len(logs)))
+        keys.append(split[1])
+    out = {
+        "s_log": np.array(log_idx, dtype=np.int64),
+        "s_key": np.array(keys, dtype=np.str_),
+        "s_hash": np.array([scan_hash(s) for s in scans], dtype=np.str_),
+        **_inline_arrays(inline),
+    }
+    table = [{"path": p, "relative": os.path.relpath(p, session_dir.resolve())} for p in logs]
+    return out, table
+
+
+def _inline_arrays(scans: Sequence[LaserScan]) -> dict[str, np.ndarray]:
+    meta = np.zeros((len(scans), 10))
+    for k, s in enumerate(scans):
+        odom = s.odom_pose if s.odom_pose is not None else np.full(3, np.nan)
+        meta[k] = [s.stamp_s, s.range_min_m, s.range_max_m, *odom, *s.laser_offset, s.odom_break]
+    lengths = [s.ranges_m.shape[0] for s in scans]
+    cat = (lambda xs: np.concatenate(xs)) if scans else (lambda xs: np.zeros(0))
+    return {
+        "inline_meta": meta,
+        "inline_offsets": np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64),
+        "inline_ranges": cat([s.ranges_m for s in scans]),
+        "inline_angles": cat([s.angles_rad for s in scans]),
+    }
+
+
+def _inline_scans(a: Mapping[str, np.ndarray]) -> list[LaserScan]:
+    meta, off = a["inline_meta"], a["inline_offsets"]
+    out = []
+    for k in range(meta.shape[0]):
+        m = meta[k]
+        out.append(
+            LaserScan(
+                stamp_s=float(m[0]),
+                ranges_m=a["inline_ranges"][off[k] : off[k + 1]].copy(),
+                angles_rad=a["inline_angles"][off[k] : off[k + 1]].copy(),
+                range_min_m=float(m[1]),
+                range_max_m=float(m[2]),
+                odom_pose=None if np.isnan(m[3]) else m[3:6].copy(),
+                laser_offset=m[6:9].copy(),
+                source=f"<session inline scan {k}>",
+                odom_break=bool(m[9]),
+            )
+        )
+    return out
+
+
+def read_scans(session: Session, rows: Sequence[int] | None = None) -> list[LaserScan]:
+    """Scans of a session (every one, in processing order, or the scan ``rows``), re-read
+    from their logs by reference (or from the inline arrays).
+
+    Raises:
+        SessionError: a log is missing, a scan is not in it, or its content hash differs.
+    """
+    a = session.arrays
+    inline = _inline_scans(a)
+    by_log: dict[int, dict[str, LaserScan]] = {}
+    out = []
+    wanted = range(a["s_log"].shape[0]) if rows is None else rows
+    for k in wanted:
+        li, key, digest = int(a["s_log"][k]), str(a["s_key"][k]), str(a["s_hash"][k])
+        if li < 0:
+            scan = inline[int(key)]
+        else:
+            if li not in by_log:
+                by_log[li] = _read_log(session, li)
+            scan = by_log[li].get(key)  # type: ignore[assignment]
+            if scan is None:
+                raise SessionError(f"{session.log_path(li)}: has no scan record {key} (scan {k})")
+        if scan_hash(scan) != digest:
+            raise SessionError(
+                f"{scan.source}: the scan differs from the one saved in {session.path} "
+                "(content hash); was the log changed?"
+            )
+        out.append(scan)
+    return out
+
+
+def _read_log(session: Session, li: int) -> dict[str, LaserScan]:
+    path = session.log_path(li)
+    try:
+        scans = list(open_log(path))
+    except IcegError as exc:
+        raise SessionError(f"{session.path}: cannot re-read its log {path}: {exc}") from exc
+    return {s.source.rpartition(":")[2]: s for s in scans}
+
+
+# --------------------------------------------------------------------------- Slam state
+
+
+def _slam_arrays(slam: Slam) -> dict[str, np.ndarray]:
+    s = slam.export_state()
+    recs = s.records
+    pend = slam.loop_closer.pending
+    return {
+        "s_stamp": np.array([r.stamp_s for r in recs], dtype=np.float64),
+        "s_node": np.array([r.node_id for r in recs], dtype=np.int64),
+        "s_delta": np.array([r.delta_from_node for r in recs]).reshape(-1, 3),
+        "n_scan": np.array(s.node_scan_index, dtype=np.int64),
+        "n_odom": np.array(s.node_odom).reshape(-1, 3),
+        "n_odom_measured": np.array(s.node_odom_measured, dtype=bool),
+        "n_path_m": np.array(s.node_path_m, dtype=np.float64),
+        "lc_ij": np.array([[c.node_from, c.node_to] for c in pend], dtype=np.int64).reshape(-1, 2),
+        "lc_measured": np.array([c.measured for c in pend]).reshape(-1, 3),
+        "lc_cov": np.array([c.cov for c in pend]).reshape(-1, 3, 3),
+        "lc_correlation": np.array([c.correlation for c in pend], dtype=np.float64),
+        "lc_implied": np.array([c.implied for c in pend]).reshape(-1, 3),
+        **{f"lc_places_{k}": v for k, v in slam.loop_closer.places.export_state().items()},
+        "cal_state": slam.odometry_calibrator.export_state(),
+    }
+
+
+def _slam_state(session: Session, scans: list[LaserScan]) -> SlamState:
+    a = session.arrays
+    corr = a["g_correlation"]
+    return SlamState(
+        scans=scans,
+        records=[
+            _ScanRecord(float(t), int(n), d.copy())
+            for t, n, d in zip(a["s_stamp"], a["s_node"], a["s_delta"], strict=True)
+        ],
+        node_scan_index=[int(v) for v in a["n_scan"]],
+        node_odom=[p.copy() for p in a["n_odom"]],
+        node_odom_measured=[bool(v) for v in a["n_odom_measured"]],
+        node_path_m=[float(v) for v in a["n_path_m"]],
+        correlations={int(k): float(corr[k]) for k in np.flatnonzero(np.isfinite(corr))},
+        match_failures=defaultdict(int, session.manifest.get("match_failures", {})),
+    )
+
+
+def _pending(a: Mapping[str, np.ndarray]) -> list[LoopClosure]:
+    return [
+        LoopClosure(int(ij[0]), int(ij[1]), m.copy(), c.copy(), float(r), implied=p.copy())
+        for ij, m, c, r, p in zip(
+            a["lc_ij"],
+            a["lc_measured"],
+            a["lc_cov"],
+            a["lc_correlation"],
+            a["lc_implied"],
+            strict=True,
+        )
+    ]
+
+
+# --------------------------------------------------------------------------- session
+
+
+@dataclass
+class Session:
+    """A session folder read into memory (nothing replayed yet).
+
+    Attributes:
+        path: the session folder.
+        manifest: ``manifest.json`` as a dict.
+        config: the run's configuration.
+        arrays: every array of ``state.npz`` (see the module docstring).
+    """
+
+    path: Path
+    manifest: dict[str, Any]
+    config: IcegConfig
+    arrays: dict[str, np.ndarray]
+
+    @property
+    def edited(self) -> bool:
+        """Whether the graph was edited and re-optimized (``iceg optimize``): its solver log
+        ends with a batch refinement that belongs to the state (kept on load)."""
+        return bool(self.manifest.get("edited", False))
+
+    @property
+    def node_poses(self) -> tuple[IntArray, FloatArray]:
+        """Saved node estimates: ``ids (N,)``, ``poses (N, 3)`` map frame."""
+        return self.arrays["g_node_ids"], self.arrays["g_node_final"]
+
+    def log_path(self, li: int) -> Path:
+        """Path of log ``li``: relative to the session folder if it exists there, else the
+        absolute path saved."""
+        entry = self.manifest["logs"][li]
+        rel = (self.path / entry["relative"]).resolve()
+        return rel if rel.exists() else Path(entry["path"])
+
+    def trajectory(self, node_poses: FloatArray | None = None) -> tuple[FloatArray, FloatArray]:
+        """Pose of every scan, ``(stamps_s (R,), poses (R, 3))``, from node poses (the saved
+        estimates by default; rows = ``g_node_ids`` order) and each scan's odometry delta."""
+        a = self.arrays
+        poses = a["g_node_final"] if node_poses is None else node_poses
+        row = np.searchsorted(a["g_node_ids"], a["s_node"])
+        return a["s_stamp"].copy(), se2.compose(poses[row], a["s_delta"])
+
+    def feature_map(self) -> FeatureMap:
+        """The saved feature map."""
+        prefix = "fm_"
+        state = {k[len(prefix) :]: v for k, v in self.arrays.items() if k.startswith(prefix)}
+        return FeatureMap.from_state(state, self.config.feature_map)
+
+    def node_stamps(self) -> FloatArray:
+        """``(N,)`` stamp of each node's scan, seconds."""
+        return self.arrays["s_stamp"][self.arrays["n_scan"]]
+
+
+def read(path: str | os.PathLike[str]) -> Session:
+    """Read a session folder (or a run folder holding ``session/``).
+
+    Raises:
+        SessionError: not a session, an unknown format version, or a missing/corrupt file.
+    """
+    folder = Path(path)
+    if not (folder / MANIFEST).is_file() and (folder / SESSION_DIR / MANIFEST).is_file():
+        folder = folder / SESSION_DIR
+    try:
+        manifest = json.loads((folder / MANIFEST).read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise SessionError(f"{folder}: not a readable iceg session ({exc})") from exc
+    if manifest.get("format") != FORMAT:
+        raise SessionError(f"{folder}: {MANIFEST} is not an {FORMAT} manifest")
+    if manifest.get("version") != FORMAT_VERSION:
+        raise SessionError(
+            f"{folder}: session format version {manifest.get('version')!r}; this ICEG reads "
+            f"version {FORMAT_VERSION}"
+        )
+    try:
+        config = config_from_yaml(folder / CONFIG)
+        with np.load(folder / STATE, allow_pickle=False) as npz:
+            arrays = {k: npz[k] for k in npz.files}
+    except (OSError, ValueError, IcegError) as exc:
+        raise SessionError(f"{folder}: cannot read the session state ({exc})") from exc
+    return Session(folder, manifest, config, arrays)
+
+
+#: Arrays :func:`load` needs besides the feature map's.
+_REQUIRED = (
+    "g_node_ids",
+    "g_node_initial",
+    "g_kind",
+    "g_ij",
+    "g_measured",
+    "g_cov",
+    "g_robust",
+    "g_robust_k",
+    "g_correlation",
+    "g_steps",
+    "s_stamp",
+    "s_node",
+    "s_delta",
+    "s_log",
+    "s_key",
+    "s_hash",
+    "n_scan",
+    "n_odom",
+    "n_odom_measured",
+    "n_path_m",
+    "lc_ij",
+    "lc_measured",
+    "lc_cov",
+    "lc_correlation",
+    "lc_implied",
+    "lc_places_rows",
+    "lc_places_ids",
+    "cal_state",
+    "inline_meta",
+    "inline_offsets",
+    "inline_ranges",
+    "inline_angles",
+)
+
+
+def load(path: str | os.PathLike[str], *, scans: Sequence[LaserScan] | None = None) -> Slam:
+    """A :class:`~iceg.slam.Slam` that continues exactly where the saved run ended.
+
+    Processing more scans and calling ``finish()`` gives the same result, bit for bit, as
+    one uninterrupted run over all the scans (a session edited by ``iceg optimize``
+    continues from its re-optimized graph).
+
+    Args:
+        path: the session folder (or the run folder holding it).
+        scans: the session's scans in processing order, if already in memory (checked by
+            hash); by default re-read from their logs.
+
+    Raises:
+        SessionError: unreadable session, missing log, or a scan whose hash differs.
+        GraphError: gtsam failed while replaying the graph.
+    """
+    session = read(path)
+    missing = sorted(set(_REQUIRED) - set(session.arrays))
+    if missing:
+        raise SessionError(
+            f"{session.path}: state.npz lacks {missing[0]}{' ...' if len(missing) > 1 else ''}"
+            " (written by an older ICEG?); run the log again"
+        )
+    if scans is None:
+        loaded = read_scans(session)
+    else:
+        loaded = list(scans)
+        digests = session.arrays["s_hash"].tolist()
+        if len(loaded) != len(digests) or any(
+            scan_hash(s) != d for s, d in zip(loaded, digests, strict=True)
+        ):
+            raise SessionError(f"{session.path}: the scans given are not the session's scans")
+    a = session.arrays
+    graph = replay_graph(a, session.config.graph, skip_final_batch=not session.edited)
+    stats = LoopClosureStats(**session.manifest.get("loop_closures", {}))
+    slam = Slam.from_state(
+        session.config,
+        graph,
+        session.feature_map(),
+        _slam_state(session, loaded),
+        stats,
+    )
+    slam.loop_closer.pending = _pending(a)
+    slam.loop_closer.places.restore_state({"rows": a["lc_places_rows"], "ids": a["lc_places_ids"]})
+    slam.odometry_calibrator.restore_state(a["cal_state"])
+    return slam
+
+
+def save(slam: Slam, folder: str | os.PathLike[str]) -> Path:
+    """Write ``slam``'s session (before or after ``finish()``) into ``folder`` (created).
+
+    Each file is written atomically; ``manifest.json`` last, so a folder without it is not
+    a session.
+
+    Raises:
+        OSError: the folder cannot be written (the caller maps it to an ``OutputError``).
+    """
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    s = slam.export_state()
+    refs, logs = scan_arrays(s.scans, out)
+    arrays = {
+        **graph_arrays(slam.graph, s.correlations),
+        **_slam_arrays(slam),
+        **refs,
+        **{f"fm_{k}": v for k, v in slam.feature_map.export_state().items()},
+    }
+    extra = {
+        "loop_closures": slam.loop_stats.as_dict(),
+        "match_failures": dict(s.match_failures),
+        "stage_seconds": {k: round(v, 6) for k, v in slam.timer.seconds.items()},
+    }
+    write_folder(out, arrays, slam.config, logs, extra)
+    return out
+
+
+def write_folder(
+    out: Path,
+    arrays: Mapping[str, np.ndarray],
+    config: IcegConfig,
+    logs: list[dict[str, str]],
+    extra: Mapping[str, Any],
+    edited: bool = False,
+) -> None:
+    """Write the session files from their arrays (see :func:`save`)."""
+    from iceg import __version__
+
+    out.mkdir(parents=True, exist_ok=True)
+    with atomic_write(out / STATE, "wb") as fb:
+        np.savez(fb, **dict(arrays))  # type: ignore[arg-type]
+    write_g2o_file(
+        out / GRAPH, arrays["g_node_ids"], arrays["g_node_final"], factor_records(arrays)
+    )
+    with atomic_write(out / CONFIG) as fh:
+        fh.write(config.to_yaml())
+    write_closures_csv(out / CLOSURES, arrays)
+    manifest = {
+        "format": FORMAT,
+        "version": FORMAT_VERSION,
+        "iceg_version": __version__,
+        "edited": edited,
+        "nodes": int(arrays["g_node_ids"].shape[0]),
+        "factors": int(arrays["g_kind"].shape[0]),
+        "scans": int(arrays["s_stamp"].shape[0]),
+        "landmarks": int(arrays["fm_lm_id"].shape[0]),
+        "logs": logs,
+        "files": list(SESSION_FILES),
+        **extra,
+    }
+    with atomic_write(out / MANIFEST) as fh:
+        json.dump(manifest, fh, indent=2)
+        fh.write("\n")
+
+
+# --------------------------------------------------------------------------- loop closures
+
+
+def closure_chi2(
+    measured: FloatArray, cov: FloatArray, pose_i: FloatArray, pose_j: FloatArray
+) -> float:
+    """Squared Mahalanobis distance of a closure's residual ``measured^-1 ∘ pose_i^-1 ∘
+    pose_j`` (``(3,)`` x, y, theta) under its covariance ``(3, 3)``; chi-square, 3 dof."""
+    e = se2.between(measured, se2.between(pose_i, pose_j))
+    return float(e @ np.linalg.solve(cov, e))
+
+
+def closure_rows(a: Mapping[str, np.ndarray]) -> list[list[Any]]:
+    """Rows of ``loop_closures.csv`` (:data:`CLOSURE_COLUMNS`): accepted closures (graph
+    factors of kind loop closure), then the held-back ones."""
+    ids, poses = a["g_node_ids"], a["g_node_final"]
+    stamps = a["s_stamp"][a["n_scan"]] if a["n_scan"].size else np.zeros(0)
+
+    def row(
+        f: int, ij: IntArray, z: FloatArray, c: FloatArray, r: float, status: str, why: str
+    ) -> list[Any]:
+        pi, pj = (int(np.searchsorted(ids, n)) for n in ij)
+        up = c[np.triu_indices(3)]
+        chi2 = closure_chi2(z, c, poses[pi], poses[pj])
+        return [f, int(ij[0]), int(ij[1]), stamps[pi], stamps[pj], *z, *up, r, chi2, status, why]
+
+    rows = []
+    lc = FACTOR_KINDS.index(FactorKind.LOOP_CLOSURE)
+    for f in np.flatnonzero(a["g_kind"] == lc).tolist():
+        rows.append(
+            row(
+                f,
+                a["g_ij"][f],
+                a["g_measured"][f],
+                a["g_cov"][f],
+                a["g_correlation"][f],
+                "accepted",
+                _why_accepted(a, f),
+            )
+        )
+    for k in range(a["lc_ij"].shape[0]):
+        rows.append(
+            row(
+                -1,
+                a["lc_ij"][k],
+                a["lc_measured"][k],
+                a["lc_cov"][k],
+                a["lc_correlation"][k],
+                "held_back",
+                "failed the chi-square gate; no agreeing closure yet",
+            )
+        )
+    return rows
+
+
+def _why_accepted(a: Mapping[str, np.ndarray], f: int) -> str:
+    if int(a["g_origin"][f]) == ORIGIN_USER:
+        return "added by the user"
+    kernel = ROBUST_KERNELS[int(a["g_robust"][f])]
+    if kernel is None:
+        return "pairwise agreement with another closure"
+    return f"passed the chi-square gate ({kernel} kernel)"
+
+
+def write_closures_csv(path: Path, a: Mapping[str, np.ndarray]) -> None:
+    """Write ``loop_closures.csv`` atomically (floats exact, ``repr``)."""
+    with atomic_write(path) as fh:
+        fh.write(",".join(CLOSURE_COLUMNS) + "\n")
+        for r in closure_rows(a):
+            fh.write(",".join(_cell(v) for v in r) + "\n")
+
+
+def _cell(v: Any) -> str:
+    if isinstance(v, str):
+        return '"' + v.replace('"', "'") + '"' if "," in v else v
+    if isinstance(v, (float, np.floating)):
+        return repr(float(v))
+    return str(v)
+
+
+def read_closures_csv(path: str | os.PathLike[str]) -> list[dict[str, str]]:
+    """``loop_closures.csv`` rows as dicts of strings (column name -> cell)."""
+    import csv
+
+    with open(path, encoding="utf-8", newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def link_session(src: Path, dst: Path) -> None:
+    """Hard-link (or copy) a session folder's files from ``src`` into a new ``dst``."""
+    import shutil
+
+    dst.mkdir()
+    for name in os.listdir(src):
+        try:
+            os.link(src / name, dst / name)
+        except OSError:
+            shutil.copy2(src / name, dst / name)
+
+
+def iter_logs(session: Session) -> Iterable[Path]:
+    """Paths of the logs a session's scans come from."""
+    return (session.log_path(k) for k in range(len(session.manifest["logs"])))
+
+
+__all__ = [
+    "CLOSURE_COLUMNS",
+    "SESSION_DIR",
+    "Session",
+    "load",
+    "read",
+    "read_closures_csv",
+    "replay_graph",
+    "save",
+]

@@ -1,0 +1,128 @@
+"""Localization in a saved map and ``--continue`` on simulated worlds with exact truth."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from frontends.carmen import write_carmen
+from frontends.simulate import office_world, simulate, simulate_scenario
+from iceg import session
+from iceg.cli import app
+from iceg.continuation import continue_scans
+from iceg.evaluation import position_errors
+from iceg.localize import Status, fixed_map_of_session, localize_scans
+from iceg.slam import Slam
+from iceg_common import se2
+from iceg_common.errors import SessionError
+
+K, N = 260, 450  # the session covers scans [0, K); the second "log" is [K, N)
+OTHER_FRAME = np.array([3.0, -7.0, 1.0])  # the second log's odometry frame
+
+
+def _reframe(scans):  # type: ignore[no-untyped-def]
+    return [dataclasses.replace(s, odom_pose=se2.compose(OTHER_FRAME, s.odom_pose)) for s in scans]
+
+
+@pytest.fixture(scope="module")
+def office(tmp_path_factory):  # type: ignore[no-untyped-def]
+    run = simulate(office_world(), seed=1)
+    folder = tmp_path_factory.mktemp("loc") / "first"
+    slam = Slam()
+    for scan in run.scans[:K]:
+        slam.process(scan)
+    slam.finish()
+    session.save(slam, folder)
+    return run, folder
+
+
+def _err(poses, truth):  # type: ignore[no-untyped-def]
+    return np.hypot(*(poses[:, :2] - truth[:, :2]).T)
+
+
+def test_localize_without_initial_pose_tracks_the_map(office) -> None:  # type: ignore[no-untyped-def]
+    run, folder = office
+    s = session.read(folder)
+    result = localize_scans(fixed_map_of_session(s), _reframe(run.scans[120:K]))
+    assert result.status[0] == Status.PLACED
+    assert np.all(result.status > Status.LOST)
+    assert _err(result.poses, run.true_poses[120:K]).max() < 0.05
+    assert np.all(np.linalg.eigvalsh(result.covs) > 0)
+    assert s.arrays["g_kind"].shape == session.read(folder).arrays["g_kind"].shape  # untouched
+
+
+def test_localize_from_a_wrong_initial_pose(office) -> None:  # type: ignore[no-untyped-def]
+    run, folder = office
+    fixed = fixed_map_of_session(session.read(folder))
+    wrong = run.true_poses[120] + np.array([4.0, -3.0, 1.0])
+    result = localize_scans(fixed, run.scans[120:200], initial_pose=wrong)
+    assert result.relocalizations >= 1
+    ok = result.status > Status.LOST
+    assert ok[:5].all()
+    assert _err(result.poses[ok], run.true_poses[120:200][ok]).max() < 0.05
+
+
+def test_localize_recovers_after_a_kidnapping(office) -> None:  # type: ignore[no-untyped-def]
+    run, folder = office
+    fixed = fixed_map_of_session(session.read(folder))
+    # carried from scan 170 to scan 220: the odometry does not see it
+    before, after = list(run.scans[120:170]), list(run.scans[220:K])
+    jump = se2.between(after[0].odom_pose, before[-1].odom_pose)
+    carried = [dataclasses.replace(s, odom_pose=se2.compose(jump, s.odom_pose)) for s in after]
+    result = localize_scans(fixed, before + carried)
+    truth = np.concatenate([run.true_poses[120:170], run.true_poses[220:K]])
+    assert result.relocalizations >= 2  # the start, and after the kidnapping
+    tail = slice(len(before) + 30, None)  # recovered within 30 scans (corridor aliasing)
+    assert np.all(result.status[tail] > Status.LOST)
+    assert _err(result.poses[tail], truth[tail]).max() < 0.05
+
+
+def test_a_log_of_another_building_is_refused(office) -> None:  # type: ignore[no-untyped-def]
+    _, folder = office
+    other = simulate_scenario("outdoor", seed=2).scans[:40]
+    later = [dataclasses.replace(s, stamp_s=s.stamp_s + 1000.0) for s in other]
+    with pytest.raises(SessionError, match="cannot be placed"):
+        continue_scans(folder, later)
+    result = localize_scans(fixed_map_of_session(session.read(folder)), later)
+    assert np.all(result.status == Status.LOST)
+
+
+def test_continue_extends_the_graph_as_well_as_one_run(office) -> None:  # type: ignore[no-untyped-def]
+    run, folder = office
+    whole = Slam()
+    for scan in run.scans[:N]:
+        whole.process(scan)
+    w = whole.finish()
+    c = continue_scans(folder, _reframe(run.scans[K:N]))
+    n_old = session.read(folder).arrays["g_node_ids"].shape[0]
+    assert c.node_ids.shape[0] > n_old
+    link = [f for f in c.factors if f.j == n_old]
+    assert [f.kind.value for f in link] == ["loop_closure"]  # placed, no odometry across
+    e_cont = position_errors(c.poses[K:], run.true_poses[K:N]).mean_m
+    e_whole = position_errors(w.poses[K:], run.true_poses[K:N]).mean_m
+    assert e_cont < 1.1 * e_whole + 0.005
+
+
+def test_cli_continue_and_localize(office, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    run, folder = office
+    log = tmp_path / "second.clf"
+    write_carmen(log, _reframe(run.scans[K:N]))
+    runner = CliRunner()
+    r = runner.invoke(
+        app, ["localize", str(log), "--map", str(folder), "--out", str(tmp_path / "l")]
+    )
+    assert r.exit_code == 0, r.output
+    assert {"trajectory.tum", "localization.csv", "map.png", "metrics.json"} <= {
+        p.name for p in (tmp_path / "l").iterdir()
+    }
+    r = runner.invoke(
+        app,
+        ["run", str(log), "--continue", str(folder), "--out", str(tmp_path / "c"), "--no-progress"],
+    )
+    assert r.exit_code == 0, r.output
+    cont = session.read(tmp_path / "c")
+    assert cont.arrays["s_stamp"].shape[0] == N
+    assert len(cont.manifest["logs"]) == 1  # the first half came from memory (inline)

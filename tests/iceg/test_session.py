@@ -1,0 +1,156 @@
+"""Sessions: save, load and continue bit for bit; scans by reference; loop_closures.csv."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from frontends.simulate import office_world, simulate
+from iceg import session
+from iceg.config import config_from_dict
+from iceg.pipeline import run_log
+from iceg.slam import Slam
+from iceg_common.errors import SessionError
+
+N_SCANS = 260  # office prefix: enough for nodes, matches and map pruning, a few seconds
+
+
+@pytest.fixture(scope="module")
+def office_scans():  # type: ignore[no-untyped-def]
+    return simulate(office_world(), seed=1).scans[:N_SCANS]
+
+
+@pytest.fixture(scope="module")
+def whole(office_scans):  # type: ignore[no-untyped-def]
+    slam = Slam()
+    for scan in office_scans:
+        slam.process(scan)
+    return slam.finish()
+
+
+def _split_run(scans, k, folder):  # type: ignore[no-untyped-def]
+    first = Slam()
+    for scan in scans[:k]:
+        first.process(scan)
+    first.finish()  # the batch refinement of the first run must not leak into the second
+    session.save(first, folder)
+    second = session.load(folder)
+    for scan in scans[k:]:
+        second.process(scan)
+    return second.finish()
+
+
+@pytest.mark.parametrize("k", [1, 97, 200])
+def test_split_run_equals_the_whole_run_bit_for_bit(office_scans, whole, tmp_path, k) -> None:  # type: ignore[no-untyped-def]
+    split = _split_run(office_scans, k, tmp_path / "s")
+    assert np.array_equal(split.stamps_s, whole.stamps_s)
+    assert np.array_equal(split.poses, whole.poses)  # bit for bit, not approximately
+    assert np.array_equal(split.node_poses, whole.node_poses)
+    assert [f.kind for f in split.factors] == [f.kind for f in whole.factors]
+    assert split.graph.steps == whole.graph.steps
+    fa, fb = split.feature_map.export_state(), whole.feature_map.export_state()
+    assert fa.keys() == fb.keys()
+    for key in fa:
+        assert np.array_equal(fa[key], fb[key], equal_nan=True), key
+    pa, pb = split.slam.loop_closer.places, whole.slam.loop_closer.places
+    for key, value in pa.export_state().items():
+        assert np.array_equal(value, pb.export_state()[key]), key
+    assert np.array_equal(
+        split.slam.odometry_calibrator.export_state(),
+        whole.slam.odometry_calibrator.export_state(),
+    )
+
+
+def test_split_run_with_odometry_calibration_is_bit_identical(office_scans, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    config = config_from_dict({"odometry_calibration": {"enabled": True}})
+    whole = Slam(config)
+    for scan in office_scans:
+        whole.process(scan)
+    w = whole.finish()
+    first = Slam(config)
+    for scan in office_scans[:120]:
+        first.process(scan)
+    first.finish()
+    session.save(first, tmp_path / "s")
+    second = session.load(tmp_path / "s")
+    assert second.odometry_calibrator.n_observations > 0
+    for scan in office_scans[120:]:
+        second.process(scan)
+    assert np.array_equal(second.finish().poses, w.poses)
+
+
+def test_session_files_are_documented_formats_without_pickle(whole, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    folder = session.save(whole.slam, tmp_path / "s")
+    assert sorted(p.name for p in folder.iterdir()) == sorted(session.SESSION_FILES)
+    manifest = json.loads((folder / "manifest.json").read_text())
+    assert manifest["format"] == "iceg-session" and manifest["version"] == 1
+    assert manifest["nodes"] == whole.node_ids.shape[0]
+    with np.load(folder / "state.npz", allow_pickle=False) as npz:
+        assert all(npz[k].dtype != object for k in npz.files)
+        assert np.array_equal(npz["g_node_final"], whole.node_poses)
+    g2o = (folder / "graph.g2o").read_text().splitlines()
+    assert sum(line.startswith("VERTEX_SE2") for line in g2o) == whole.node_ids.shape[0]
+    stamps, poses = session.read(folder).trajectory()
+    assert np.array_equal(poses, whole.poses) and np.array_equal(stamps, whole.stamps_s)
+
+
+def test_scans_are_re_read_from_the_log_by_reference_and_checked(office_scans, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    log = tmp_path / "office.clf"
+    simulate(office_world(), seed=1).write_carmen(log)
+    result = run_log(log)
+    out = result.save(tmp_path / "run")
+    folder = out / session.SESSION_DIR
+    a = session.read(folder).arrays
+    assert np.all(a["s_log"] == 0) and a["inline_meta"].shape[0] == 0
+    slam = session.load(out)  # the run folder works too
+    rescans = slam.export_state().scans
+    assert [s.source.rpartition(":")[2] for s in rescans] == [
+        s.source.rpartition(":")[2] for s in result.scans
+    ]
+    assert [session.scan_hash(s) for s in rescans] == [session.scan_hash(s) for s in result.scans]
+    # a changed log is refused, not silently used
+    lines = log.read_text().splitlines(keepends=True)
+    k = next(i for i, line in enumerate(lines) if line.startswith("FLASER"))
+    fields = lines[k].split(" ")
+    fields[5] = "7.777"
+    lines[k] = " ".join(fields)
+    log.write_text("".join(lines))
+    with pytest.raises(SessionError, match="content hash"):
+        session.load(folder)
+
+
+def test_unknown_version_and_non_session_are_refused(whole, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    with pytest.raises(SessionError, match="not a readable"):
+        session.read(tmp_path)
+    folder = session.save(whole.slam, tmp_path / "s")
+    manifest = json.loads((folder / "manifest.json").read_text())
+    manifest["version"] = 99
+    (folder / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(SessionError, match="version 99"):
+        session.read(folder)
+
+
+def test_loop_closures_csv_lists_each_closure_with_its_chi2(whole, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    folder = session.save(whole.slam, tmp_path / "s")
+    rows = session.read_closures_csv(folder / "loop_closures.csv")
+    lc = [f for f in whole.factors if f.kind.value == "loop_closure"]
+    accepted = [r for r in rows if r["status"] == "accepted"]
+    held = [r for r in rows if r["status"] == "held_back"]
+    assert len(accepted) == len(lc)
+    assert len(held) == len(whole.slam.loop_closer.pending)
+    for r, f in zip(accepted, lc, strict=True):
+        assert int(r["factor"]) == f.index and (int(r["node_i"]), int(r["node_j"])) == (f.i, f.j)
+        assert float(r["x_m"]) == f.measured[0]
+        assert 0.0 <= float(r["chi2"]) < 16.27  # accepted closures agree with the optimum
+        assert r["why"]
+
+
+def test_a_state_without_a_needed_array_is_refused(whole, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    folder = session.save(whole.slam, tmp_path / "s")
+    with np.load(folder / "state.npz", allow_pickle=False) as npz:
+        arrays = {k: npz[k] for k in npz.files if k != "cal_state"}
+    np.savez(folder / "state.npz", **arrays)
+    with pytest.raises(SessionError, match="lacks cal_state"):
+        session.load(folder)
