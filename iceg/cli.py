@@ -152,6 +152,25 @@ def _summary_rows(result: SlamResult, out: Path) -> list[tuple[str, str]]:
     return rows
 
 
+# ROS bag options of ``iceg run`` (typer reads the help from the annotation).
+ScanTopicOption = Annotated[
+    str | None, typer.Option(help="ROS bag: the LaserScan topic (if several).")
+]
+OdomTopicOption = Annotated[
+    str | None, typer.Option(help="ROS bag: the nav_msgs/Odometry topic (if several).")
+]
+OdomFrameOption = Annotated[
+    str | None, typer.Option(help="ROS bag: odometry from /tf, this frame to the base.")
+]
+BaseFrameOption = Annotated[
+    str | None, typer.Option(help="ROS bag: the robot base frame (tf to the laser).")
+]
+LaserOffsetOption = Annotated[
+    str | None,
+    typer.Option(help="ROS bag: laser pose in the base frame 'X_M,Y_M,YAW_DEG' (not tf)."),
+]
+
+
 @app.command()
 @_one_line_errors
 def run(
@@ -177,22 +196,11 @@ def run(
             "file:line) or refuse the log. Recorded in metrics.json."
         ),
     ] = StampChoice.sort,
-    scan_topic: Annotated[
-        str | None, typer.Option(help="ROS bag: the LaserScan topic (if several).")
-    ] = None,
-    odom_topic: Annotated[
-        str | None, typer.Option(help="ROS bag: the nav_msgs/Odometry topic (if several).")
-    ] = None,
-    odom_frame: Annotated[
-        str | None, typer.Option(help="ROS bag: odometry from /tf, this frame to the base.")
-    ] = None,
-    base_frame: Annotated[
-        str | None, typer.Option(help="ROS bag: the robot base frame (tf to the laser).")
-    ] = None,
-    laser_frame_offset: Annotated[
-        str | None,
-        typer.Option(help="ROS bag: laser pose in the base frame 'X_M,Y_M,YAW_DEG' (not tf)."),
-    ] = None,
+    scan_topic: ScanTopicOption = None,
+    odom_topic: OdomTopicOption = None,
+    odom_frame: OdomFrameOption = None,
+    base_frame: BaseFrameOption = None,
+    laser_frame_offset: LaserOffsetOption = None,
     continue_: Annotated[
         Path | None,
         typer.Option(
