@@ -35,15 +35,12 @@ from numpy.typing import ArrayLike, NDArray
 from iceg.matching.config import MatchBounds, MatchingConfig
 from iceg.matching.matcher import IceMatcher
 from iceg.matching.plicp import (
-    MIN_POINTS,
     PlIcpMatcher,
-    checked_prediction,
     lattice_covariance,
     overlap,
     plicp_problem,
+    point_inputs,
     point_result,
-    reference_points,
-    subsample,
 )
 from iceg.matching.protocol import Matcher
 from iceg.types import MatchResult, ScanFeatures
@@ -155,14 +152,12 @@ class _PointPeer:
         bounds: MatchBounds | None = None,
     ) -> MatchResult:
         """See :class:`~iceg.matching.protocol.Matcher`."""
-        pred = checked_prediction(prediction)
+        pred, new, ref, failure = point_inputs(
+            features, reference, prediction, self.config.refinement.max_points
+        )
+        if failure is not None:
+            return failure
         b = bounds or MatchBounds.global_()
-        new = subsample(features.points_xy, self.config.refinement.max_points)
-        ref = reference_points(reference)
-        if new.shape[0] < MIN_POINTS or ref.shape[0] < MIN_POINTS:
-            return MatchResult(
-                False, pred, np.full((3, 3), np.nan), 0.0, reason="too few candidates: points"
-            )
         pose, cov = self._register(new, ref, pred)
         if cov is None:
             cov = lattice_covariance(plicp_problem(new, ref, pred, b, self.config), pose)

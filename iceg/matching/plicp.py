@@ -247,6 +247,28 @@ def checked_prediction(prediction: ArrayLike) -> FloatArray:
     return pred
 
 
+def point_inputs(
+    features: ScanFeatures, reference: ScanFeatures, prediction: ArrayLike, max_points: int
+) -> tuple[FloatArray, FloatArray, FloatArray, MatchResult | None]:
+    """What a point matcher starts from: the prediction ``(3,)``, the new scan's points
+    ``(P, 2)`` (at most ``max_points``, robot frame) and the reference's points ``(Q, 2)``
+    (reference frame); and a failed :class:`MatchResult` when either has fewer than
+    ``MIN_POINTS`` points, else ``None``.
+
+    Raises:
+        MatchingError: a mis-shaped or non-finite prediction.
+    """
+    pred = checked_prediction(prediction)
+    new = subsample(features.points_xy, max_points)
+    ref = reference_points(reference)
+    if new.shape[0] < MIN_POINTS or ref.shape[0] < MIN_POINTS:
+        failed = MatchResult(
+            False, pred, np.full((3, 3), np.nan), 0.0, reason="too few candidates: points"
+        )
+        return pred, new, ref, failed
+    return pred, new, ref, None
+
+
 class PlIcpMatcher:
     """Point-to-line ICP (Censi 2008) from the prediction, on the project's refinement.
 
@@ -270,14 +292,12 @@ class PlIcpMatcher:
         bounds: MatchBounds | None = None,
     ) -> MatchResult:
         """See :class:`~iceg.matching.protocol.Matcher`."""
-        pred = checked_prediction(prediction)
+        pred, new, ref, failure = point_inputs(
+            features, reference, prediction, self.config.refinement.max_points
+        )
+        if failure is not None:
+            return failure
         b = bounds or MatchBounds.global_()
-        new = subsample(features.points_xy, self.config.refinement.max_points)
-        ref = reference_points(reference)
-        if new.shape[0] < MIN_POINTS or ref.shape[0] < MIN_POINTS:
-            return MatchResult(
-                False, pred, np.full((3, 3), np.nan), 0.0, reason="too few candidates: points"
-            )
         problem = plicp_problem(new, ref, pred, b, self.config)
         pose = refine(problem, pred, np.zeros((0, 2), np.int64)).pose
         if np.all(np.isfinite(pose)):
