@@ -23,7 +23,14 @@ from numpy.typing import NDArray
 
 from graph import FactorKind
 from iceg.features import extract
-from iceg.localize import FixedMap, LocalizeSettings, Placement, fixed_map_of_session
+from iceg.localize import (
+    FixedMap,
+    LocalizeSettings,
+    Placement,
+    fixed_map_of_session,
+    segment_fit,
+)
+from iceg.matching import MatchBounds
 from iceg.session import (
     FACTOR_KINDS,
     ORIGIN_RUN,
@@ -52,6 +59,8 @@ class MergeSettings:
         agree_m / agree_deg / drift_per_m: largest difference between the relative poses of
             two agreeing closures (metres plus a fraction of their distance; degrees).
         min_closures: least number of agreeing closures.
+        densify_*: the local closures added after the first alignment (every this many B
+            nodes within this radius of A's nodes; bounds of their matches).
     """
 
     query_spacing_m: float = 2.0
@@ -60,6 +69,10 @@ class MergeSettings:
     agree_deg: float = 5.0
     drift_per_m: float = 0.05
     min_closures: int = 2
+    densify_every: int = 3
+    densify_radius_m: float = 3.0
+    densify_translation_m: float = 1.0
+    densify_rotation_deg: float = 15.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -151,7 +164,11 @@ def _agree(a: InterClosure, b: InterClosure, st: MergeSettings) -> bool:
 
 
 def merge_arrays(
-    a: Session, b: Session, closures: list[InterClosure], max_iterations: int = 100
+    a: Session,
+    b: Session,
+    closures: list[InterClosure],
+    max_iterations: int = 100,
+    settings: MergeSettings | None = None,
 ) -> dict[str, np.ndarray]:
     """The merged session's ``state.npz`` arrays (see :mod:`iceg.session`).
 
@@ -162,12 +179,51 @@ def merge_arrays(
     n_a = int(aa["g_node_ids"].max()) + 1
     t = closures[0].transform if len(closures) == 1 else _mean_transform(closures)
     out = {**_graph_part(aa, ba, n_a, t), **_scan_part(aa, ba, n_a), **_map_part(aa, ba, n_a)}
-    out = _add_closures(out, closures, n_a, a.config.loop_closure.robust_kernel)
+    kernel = a.config.loop_closure.robust_kernel
+    out = _add_closures(out, closures, n_a, kernel)
+    out = _optimized(out, a, max_iterations)
+    dense = _densify(a, b, out, n_a, settings or MergeSettings())
+    if dense:
+        out = _optimized(_add_closures(out, dense, n_a, kernel), a, max_iterations)
+    return out
+
+
+def _optimized(
+    out: dict[str, np.ndarray], a: Session, max_iterations: int
+) -> dict[str, np.ndarray]:
+    """The arrays with the graph rebuilt at their estimates and batch-refined."""
     graph = rebuild_graph(out, a.config.graph)
     graph.optimize_batch(max_iterations)
     corr = {k: float(v) for k, v in enumerate(out["g_correlation"]) if np.isfinite(v)}
-    out.update(graph_arrays(graph, corr, out["g_origin"].tolist()))
-    return out
+    return {**out, **graph_arrays(graph, corr, out["g_origin"].tolist())}
+
+
+def _densify(
+    a: Session, b: Session, out: dict[str, np.ndarray], n_a: int, st: MergeSettings
+) -> list[InterClosure]:
+    """More inter-session closures once B is in A's frame: every ``densify_every``-th B node
+    within ``densify_radius_m`` of an A node is matched locally against A's map at its merged
+    estimate (as the loop-closure search of a run would); matches that fit are kept."""
+    fixed = fixed_map_of_session(a)
+    ids_b = b.arrays["g_node_ids"]
+    poses = out["g_node_final"][np.searchsorted(out["g_node_ids"], ids_b + n_a)]
+    near = np.array(
+        [np.hypot(*(fixed.poses[:, :2] - p[:2]).T).min() <= st.densify_radius_m for p in poses]
+    )
+    rows = np.flatnonzero(near)[:: st.densify_every]
+    scans = read_scans(b, b.arrays["n_scan"][rows].tolist())
+    loc = LocalizeSettings()
+    bounds = MatchBounds.local(st.densify_translation_m, st.densify_rotation_deg)
+    found = []
+    for row, scan in zip(rows.tolist(), scans, strict=True):
+        feats = extract(scan, fixed.config.features)
+        p = fixed.match_at(feats, poses[row], bounds, loc.reference_nodes)
+        if p is None or p.match.correlation < loc.min_correlation:
+            continue
+        if segment_fit(feats, p, loc.fit_tolerance_m) >= loc.min_fit:
+            found.append(InterClosure(int(ids_b[row]), p, np.zeros(3)))
+    logger.info("merge: %d local inter-session closures of %d tried", len(found), rows.shape[0])
+    return found
 
 
 def _mean_transform(closures: list[InterClosure]) -> FloatArray:
@@ -292,7 +348,7 @@ def merge_sessions(
     from iceg.session import SESSION_DIR, write_folder
 
     closures = find_closures(a, b, settings)
-    arrays = merge_arrays(a, b, closures)
+    arrays = merge_arrays(a, b, closures, settings=settings)
     folder = Path(out)
     logs = [*a.manifest.get("logs", []), *b.manifest.get("logs", [])]
     session_dir = folder / SESSION_DIR
