@@ -36,14 +36,9 @@ from iceg.matching.config import MatchBounds, MatchingConfig
 from iceg.matching.matcher import IceMatcher
 from iceg.matching.plicp import (
     PlIcpMatcher,
-    lattice_covariance,
-    overlap,
     plicp_problem,
-    point_inputs,
-    point_result,
 )
 from iceg.matching.protocol import Matcher
-from iceg.types import MatchResult, ScanFeatures
 from iceg_common.errors import ConfigError
 
 FloatArray = NDArray[np.float64]
@@ -132,42 +127,18 @@ def available_methods() -> list[str]:
     return out
 
 
-class _PointPeer:
-    """Common part of the adapters: points, registration, covariance, checks."""
+class _PointPeer(PlIcpMatcher):
+    """Common part of the adapters: the point matcher of :class:`PlIcpMatcher` (points,
+    checks, lattice covariance where the library gives none) with the library's registration."""
 
     method = ""
 
     def __init__(self, config: MatchingConfig | None = None) -> None:
-        self.config = config or MatchingConfig()
+        super().__init__(config)
         self.lib = _import(self.method)
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.method})"
-
-    def match(
-        self,
-        features: ScanFeatures,
-        reference: ScanFeatures,
-        prediction: ArrayLike,
-        bounds: MatchBounds | None = None,
-    ) -> MatchResult:
-        """See :class:`~iceg.matching.protocol.Matcher`."""
-        pred, new, ref, failure = point_inputs(
-            features, reference, prediction, self.config.refinement.max_points
-        )
-        if failure is not None:
-            return failure
-        b = bounds or MatchBounds.global_()
-        pose, cov = self._register(new, ref, pred)
-        if cov is None:
-            cov = lattice_covariance(plicp_problem(new, ref, pred, b, self.config), pose)
-        return point_result(pose, cov, overlap(new, ref, pose), pred, b, self.config)
-
-    def _register(
-        self, new: FloatArray, ref: FloatArray, pred: FloatArray
-    ) -> tuple[FloatArray, FloatArray | None]:
-        """Final pose ``(3,)`` and covariance (None: the library gives none)."""
-        raise NotImplementedError
 
 
 class SmallGicpMatcher(_PointPeer):
@@ -176,7 +147,7 @@ class SmallGicpMatcher(_PointPeer):
     method = "small_gicp"
 
     def _register(
-        self, new: FloatArray, ref: FloatArray, pred: FloatArray
+        self, new: FloatArray, ref: FloatArray, pred: FloatArray, bounds: MatchBounds
     ) -> tuple[FloatArray, FloatArray | None]:
         res = self.lib.align(
             extruded(ref),
@@ -214,7 +185,7 @@ class KissIcpMatcher(_PointPeer):
     method = "kiss_icp"
 
     def _register(
-        self, new: FloatArray, ref: FloatArray, pred: FloatArray
+        self, new: FloatArray, ref: FloatArray, pred: FloatArray, bounds: MatchBounds
     ) -> tuple[FloatArray, FloatArray | None]:
         from kiss_icp.mapping import VoxelHashMap
         from kiss_icp.registration import Registration
@@ -236,7 +207,7 @@ class Open3dMatcher(_PointPeer):
         super().__init__(config)
 
     def _register(
-        self, new: FloatArray, ref: FloatArray, pred: FloatArray
+        self, new: FloatArray, ref: FloatArray, pred: FloatArray, bounds: MatchBounds
     ) -> tuple[FloatArray, FloatArray | None]:
         o3d = self.lib
         reg = o3d.pipelines.registration

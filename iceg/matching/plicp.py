@@ -298,17 +298,25 @@ class PlIcpMatcher:
         if failure is not None:
             return failure
         b = bounds or MatchBounds.global_()
-        problem = plicp_problem(new, ref, pred, b, self.config)
-        pose = refine(problem, pred, np.zeros((0, 2), np.int64)).pose
-        if np.all(np.isfinite(pose)):
-            sigma = robust_sigma(problem, pose)
-            s = problem.settings
-            fine_gate = min(s.gate_m, max(s.gate_min_m, FINE_GATE_SIGMAS * sigma))
-            fine = dataclasses.replace(problem, settings=dataclasses.replace(s, gate_m=fine_gate))
-            pose = refine(fine, pose, np.zeros((0, 2), np.int64)).pose
-        cov = (
-            lattice_covariance(problem, pose)
-            if np.all(np.isfinite(pose))
-            else np.full((3, 3), np.inf)
-        )
+        pose, cov = self._register(new, ref, pred, b)
+        if cov is None:
+            cov = lattice_covariance(plicp_problem(new, ref, pred, b, self.config), pose)
         return point_result(pose, cov, overlap(new, ref, pose), pred, b, self.config)
+
+    def _register(
+        self, new: FloatArray, ref: FloatArray, pred: FloatArray, bounds: MatchBounds
+    ) -> tuple[FloatArray, FloatArray | None]:
+        """Final pose ``(3,)`` and its covariance (``None``: the lattice covariance of the
+        final pose is used): two refinement passes from the prediction, coarse then fine."""
+        problem = plicp_problem(new, ref, pred, bounds, self.config)
+        pose = refine(problem, pred, np.zeros((0, 2), np.int64)).pose
+        if not np.all(np.isfinite(pose)):
+            return pose, np.full((3, 3), np.inf)
+        sigma = robust_sigma(problem, pose)
+        s = problem.settings
+        fine_gate = min(s.gate_m, max(s.gate_min_m, FINE_GATE_SIGMAS * sigma))
+        fine = dataclasses.replace(problem, settings=dataclasses.replace(s, gate_m=fine_gate))
+        pose = refine(fine, pose, np.zeros((0, 2), np.int64)).pose
+        if not np.all(np.isfinite(pose)):
+            return pose, np.full((3, 3), np.inf)
+        return pose, lattice_covariance(problem, pose)
