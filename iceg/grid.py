@@ -725,6 +725,26 @@ def _axis_start(p0: float, i0: int, d: float) -> tuple[int, float, float]:
 
 
 @numba.njit(cache=True, inline="always")
+def _next_cell(
+    ix: int,
+    iy: int,
+    ix_end: int,
+    iy_end: int,
+    step_x: int,
+    step_y: int,
+    t_max_x: float,
+    t_max_y: float,
+    t_delta_x: float,
+    t_delta_y: float,
+) -> tuple[int, int, float, float]:
+    """One Amanatides–Woo step: to the neighbour cell whose boundary the ray crosses first
+    (in y on a tie; never past the end cell's column or row)."""
+    if ix == ix_end or (iy != iy_end and t_max_y <= t_max_x):
+        return ix, iy + step_y, t_max_x, t_max_y + t_delta_y
+    return ix + step_x, iy, t_max_x + t_delta_x, t_max_y
+
+
+@numba.njit(cache=True, inline="always")
 def _cell(tile_index: NDArray[np.int64], shift: int, ix: int, iy: int) -> int:
     """Flat storage index of cell (column ``ix``, row ``iy``; both >= 0) in the tiled arrays
     (tiles of ``2**shift`` cells on a side), or -1 when its tile has no storage."""
@@ -769,12 +789,9 @@ def _mark_tiles(
                 tile_mask[iy >> up, ix >> up] = True
                 if k == n_steps:
                     break
-                if ix == ix_end or (iy != iy_end and t_max_y <= t_max_x):
-                    iy += step_y
-                    t_max_y += t_delta_y
-                else:
-                    ix += step_x
-                    t_max_x += t_delta_x
+                ix, iy, t_max_x, t_max_y = _next_cell(
+                    ix, iy, ix_end, iy_end, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y
+                )
 
 
 @numba.njit(cache=True, nogil=True)
@@ -857,12 +874,9 @@ def _trace_scans(
                     log_odds[c] = v if v > l_min else l_min
                 if k == n_steps:
                     break
-                if ix == ix_end or (iy != iy_end and t_max_y <= t_max_x):
-                    iy += step_y
-                    t_max_y += t_delta_y
-                else:
-                    ix += step_x
-                    t_max_x += t_delta_x
+                ix, iy, t_max_x, t_max_y = _next_cell(
+                    ix, iy, ix_end, iy_end, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y
+                )
     return missing
 
 
