@@ -32,7 +32,7 @@ is one ``iceg batch`` spec (:func:`batch_spec`): ``--batch DIR`` runs it through
 ``--write-spec PATH`` writes it as YAML for ``iceg batch PATH``.
 
 Run: ``python benchmarks/bench_accuracy.py [--only NAME ...] [--quick] [--json PATH]
-[--maps DIR] [--seed N] [--batch DIR [--local] [--workers N]] [--write-spec PATH]``.
+[--maps DIR] [--seed N] [--config YAML] [--batch DIR [--local] [--workers N]] [--write-spec PATH]``.
 ``--quick`` stops every case after its first 300 scans (a smoke
 test: loops are not closed).
 """
@@ -57,7 +57,7 @@ from frontends import LaserScan, open_log
 from frontends.relations import Relations, read_relations
 from frontends.simulate import SCENARIOS, OdometryModel, simulate_scenario, synthetic_odometry
 from graph import FactorKind
-from iceg.config import IcegConfig
+from iceg.config import IcegConfig, config_from_yaml
 from iceg.evaluation import position_errors, relation_errors
 from iceg.results import SlamResult
 from iceg.slam import Slam
@@ -215,7 +215,11 @@ def _relation_metrics(result: SlamResult, odom: FloatArray, rel: Relations) -> d
 
 
 def run_case(
-    name: str, quick: bool = False, seed: int = 0, maps_dir: Path | None = None
+    name: str,
+    quick: bool = False,
+    seed: int = 0,
+    maps_dir: Path | None = None,
+    config: IcegConfig | None = None,
 ) -> dict[str, Any]:
     """Run one benchmark case with the default pipeline and return its row.
 
@@ -225,6 +229,8 @@ def run_case(
         seed: Seed of the simulation / synthetic odometry noise.
         maps_dir: If given, the run's output files (``map.png``, ``trajectory.tum``, ...)
             are saved in ``maps_dir / name``.
+        config: The configuration (``None``: the default, which is what the benchmark
+            measures; another one is for experiments).
 
     Returns:
         A JSON-ready dict: ``name``, ``description``, ``scans``, ``nodes``, ``seconds``,
@@ -244,7 +250,7 @@ def run_case(
     n = min(len(case.scans), QUICK_SCANS) if quick else len(case.scans)
     scans = case.scans[:n]
     t0 = time.perf_counter()
-    slam = Slam(IcegConfig())
+    slam = Slam(config or IcegConfig())
     online = np.array([slam.process(scan) for scan in scans], dtype=np.float64)
     result = slam.finish()
     seconds = time.perf_counter() - t0
@@ -387,6 +393,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, help="also write the rows as JSON here")
     ap.add_argument("--maps", type=Path, help="save each run's output files in MAPS/<case>")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--config", type=Path, help="a config YAML instead of the default")
     ap.add_argument("--batch", type=Path, help="run the cases as one iceg batch in BATCH")
     ap.add_argument("--local", action="store_true", help="--batch on a process pool, not Ray")
     ap.add_argument("--workers", type=int, help="--batch: parallel runs")
@@ -394,9 +401,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.batch is not None or args.write_spec is not None:
         return _run_as_batch(args)
+    config = config_from_yaml(args.config) if args.config is not None else None
     rows = []
     for name in args.only or list(CASES):
-        rows.append(run_case(name, quick=args.quick, seed=args.seed, maps_dir=args.maps))
+        rows.append(
+            run_case(name, quick=args.quick, seed=args.seed, maps_dir=args.maps, config=config)
+        )
         sys.stderr.write(f"done {name}\n")
     table = format_table(rows)
     sys.stdout.write(table + "\n")

@@ -55,6 +55,16 @@ class SlamConfig(BaseModel):
         gt=0,
         description="Admissible rotation around the odometry prediction (§III-C2).",
     )
+    point_fallback: bool = Field(
+        default=False,
+        description="Where the ICE match against the local map fails (too few or too ambiguous "
+        "features: trees, posts, clutter), match the scan's points against the recent nodes' "
+        "points by point-to-line ICP seeded by the odometry (Censi 2008) and keep it as the "
+        "scan-match factor when it agrees with the odometry (chi-square test). Off by default: "
+        "it gives every keyframe of the outdoor world a factor, but its covariance is "
+        "overconfident on real scans and it made MIT CSAIL and the ACES log with synthetic "
+        "odometry worse (docs/design.md, 'Point fallback').",
+    )
     no_odometry_sigma_m: float = Field(
         default=0.5,
         gt=0,

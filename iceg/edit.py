@@ -198,7 +198,7 @@ def write_edited(
         OSError: the folder cannot be written.
     """
     folder = Path(out)
-    keep = ("loop_closures", "match_failures", "stage_seconds")
+    keep = ("loop_closures", "match_failures", "point_fallbacks", "stage_seconds")
     extra = {k: session.manifest[k] for k in keep if k in session.manifest}
     logs = list(session.manifest.get("logs", []))
     if folder.resolve() != session.path.resolve():

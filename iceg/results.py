@@ -82,7 +82,9 @@ class SlamResult:
         correlations: ICE correlation (eq. 1) of each scan-match and loop-closure factor,
             by factor index.
         loop_closures: loop-closure statistics.
-        match_failures: count of failed local matches per reason.
+        match_failures: count of failed local matches per reason (no scan-match factor).
+        point_fallbacks: count of failed local ICE matches per reason whose scan got a
+            point-match factor instead (``slam.point_fallback``).
         stage_seconds: wall time per pipeline stage, seconds.
         feature_map: the final feature map (landmarks anchored to nodes).
         graph: the pose graph (marginals, g2o export).
@@ -108,6 +110,7 @@ class SlamResult:
     graph: PoseGraph
     config: IcegConfig
     scans: tuple[LaserScan, ...] = ()
+    point_fallbacks: dict[str, int] = field(default_factory=dict)
     metrics: dict[str, Any] = field(default_factory=dict)
     slam: Slam | None = field(default=None, repr=False)
     _map: TiledGrid | None = field(default=None, init=False, repr=False)
@@ -131,6 +134,7 @@ class SlamResult:
             "factors": self.factor_counts(),
             "loop_closures": self.loop_closures.as_dict(),
             "match_failures": self.match_failures,
+            "point_fallbacks": self.point_fallbacks,
             "stage_seconds": {k: round(v, 6) for k, v in self.stage_seconds.items()},
             "total_seconds": round(total, 6),
             "scans_per_second": self.n_scans / total if total > 0 else float("nan"),

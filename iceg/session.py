@@ -407,6 +407,7 @@ def _slam_state(session: Session, scans: list[LaserScan]) -> SlamState:
         node_path_m=[float(v) for v in a["n_path_m"]],
         correlations={int(k): float(corr[k]) for k in np.flatnonzero(np.isfinite(corr))},
         match_failures=defaultdict(int, session.manifest.get("match_failures", {})),
+        point_fallbacks=defaultdict(int, session.manifest.get("point_fallbacks", {})),
     )
 
 
@@ -616,6 +617,7 @@ def save(slam: Slam, folder: str | os.PathLike[str]) -> Path:
     extra = {
         "loop_closures": slam.loop_stats.as_dict(),
         "match_failures": dict(s.match_failures),
+        "point_fallbacks": dict(s.point_fallbacks),
         "stage_seconds": {k: round(v, 6) for k, v in slam.timer.seconds.items()},
     }
     write_folder(out, arrays, slam.config, logs, extra)

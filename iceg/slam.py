@@ -21,6 +21,7 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import chi2 as chi2_distribution
 
 from frontends import LaserScan
 from graph import FactorKind, PoseGraph, odometry_covariance
@@ -30,6 +31,7 @@ from iceg.features import extract
 from iceg.loop_closure import LoopCloser, LoopClosureStats
 from iceg.matching import MatchBounds
 from iceg.matching.peers import make_matcher
+from iceg.matching.plicp import PlIcpMatcher
 from iceg.odometry_calibration import OdometryCalibrator
 from iceg.results import SlamResult
 from iceg.types import MatchResult, ScanFeatures
@@ -44,10 +46,21 @@ FloatArray = NDArray[np.float64]
 #: many standard deviations of the joint noise (a 3-sigma consistency test).
 AGREE_SIGMAS = 3.0
 
+#: Probability of the chi-square test of a point match against the prediction.
+CONSISTENCY_PROBABILITY = 0.999
+CHI2_3DOF = float(chi2_distribution.ppf(CONSISTENCY_PROBABILITY, 3))
+
 #: Failure category of a match whose reason is empty.
 _UNKNOWN_REASON = "unknown"
 
-__all__ = ["LoopClosureStats", "Slam", "SlamState", "StageTimer"]
+__all__ = [
+    "LoopClosureStats",
+    "Slam",
+    "SlamState",
+    "StageTimer",
+    "consistent_with_prediction",
+    "remap_weak_directions",
+]
 
 
 class StageTimer:
@@ -104,6 +117,8 @@ class SlamState:
     node_path_m: list[float] = field(default_factory=list)  # odometry path length at node
     correlations: dict[int, float] = field(default_factory=dict)  # factor index -> eq. 1
     match_failures: dict[str, int] = field(default_factory=lambda: defaultdict(int))
+    # ICE failures (by reason category) whose scan got the point match's factor instead
+    point_fallbacks: dict[str, int] = field(default_factory=lambda: defaultdict(int))
 
 
 class Slam:
@@ -123,6 +138,8 @@ class Slam:
         self.config = config or IcegConfig()
         self.graph = PoseGraph(self.config.graph)
         self.matcher = make_matcher(self.config.matching)
+        self.point_matcher = PlIcpMatcher(self.config.matching)
+        self._node_points: dict[int, FloatArray] = {}  # recent nodes' scan points (cache)
         self.feature_map = FeatureMap(self.config.feature_map)
         self.loop_closer = LoopCloser(self.config.loop_closure, self.matcher, self.feature_map)
         self.odometry_calibrator = OdometryCalibrator(self.config.odometry_calibration)
@@ -234,10 +251,11 @@ class Slam:
         """A keyframe: features, local match, node and factors, iSAM2, loop closure, map."""
         feats = extract(scan, self.config.features)
         t0 = self.timer.add("features", t0)
-        local = self._match_local(feats, motion.delta, last)
+        local = self._match_local(feats, motion, last)
         self._calibrate_odometry(local, motion)
         t0 = self.timer.add("matching", t0)
         new_id = self._add_keyframe(scan, motion, local, last)
+        self._remember_points(new_id, feats)
         self.loop_closer.observe(new_id, feats)
         t0 = self.timer.add("graph_build", t0)
         self.graph.update()
@@ -261,6 +279,7 @@ class Slam:
         feats = extract(scan, self.config.features)
         t0 = self.timer.add("features", t0)
         self._add_node(scan, odom, initial=odom, odom_measured=scan.odom_pose is not None)
+        self._remember_points(0, feats)
         self.loop_closer.observe(0, feats)
         self.graph.update()
         self.feature_map.update(0, feats, scan.stamp_s, scan=scan)
@@ -295,18 +314,69 @@ class Slam:
         )
         return _Motion(odom, delta, cov, is_keyframe, raw=(raw, raw_cov))
 
-    def _match_local(self, feats: ScanFeatures, delta: FloatArray, last: int) -> _LocalMatch:
-        """ICE match against the landmarks of the ``local_map_nodes`` most recent nodes."""
+    def _match_local(self, feats: ScanFeatures, motion: _Motion, last: int) -> _LocalMatch:
+        """ICE match against the landmarks of the ``local_map_nodes`` most recent nodes; where
+        it fails, the point match (:meth:`_point_match`) when ``slam.point_fallback``."""
         cfg = self.config.slam
         ids, poses = self.graph.estimates()
         recent = ids[max(0, last - cfg.local_map_nodes + 1) : last + 1]
         reference = self.feature_map.reference((ids, poses), recent, poses[last])
         bounds = MatchBounds.local(cfg.match_max_translation_m, cfg.match_max_rotation_deg)
-        result = self.matcher.match(feats, reference.features, delta, bounds)
+        result = self.matcher.match(feats, reference.features, motion.delta, bounds)
         if not result.success:
             # Count by the reason's category (the text before the first colon).
-            self._s.match_failures[(result.reason or _UNKNOWN_REASON).split(":")[0]] += 1
+            category = (result.reason or _UNKNOWN_REASON).split(":")[0]
+            fallback = self._point_match(feats, motion, bounds, recent, poses)
+            if fallback is not None and fallback.success:
+                self._s.point_fallbacks[category] += 1
+                return _LocalMatch(reference, fallback, poses[last])
+            self._s.match_failures[category] += 1
         return _LocalMatch(reference, result, poses[last])
+
+    def _point_match(
+        self,
+        feats: ScanFeatures,
+        motion: _Motion,
+        bounds: MatchBounds,
+        recent: NDArray[np.int64],
+        poses: FloatArray,
+    ) -> MatchResult | None:
+        """Point-to-line ICP (:class:`~iceg.matching.plicp.PlIcpMatcher`, Censi 2008) of the
+        scan's points against the scan points of the ``recent`` nodes, seeded by the
+        odometry prediction ``delta`` (frame of the last of ``recent``): a factor for a scan
+        whose ICE features are too few or too ambiguous (outdoors: trees, posts), with the
+        point match's own covariance. ``None`` when disabled or the matcher is not ICE."""
+        if not self.config.slam.point_fallback or self.config.matching.method != "ice":
+            return None
+        frame = poses[recent[-1]]
+        ref = np.concatenate(
+            [
+                se2.transform_points(se2.between(frame, poses[i]), self._points_of(int(i)))
+                for i in recent
+            ]
+        )
+        result = self.point_matcher.match(feats, ScanFeatures.empty(ref), motion.delta, bounds)
+        if result.success and not consistent_with_prediction(result, motion.delta, motion.cov):
+            return None
+        return result
+
+    def _remember_points(self, node_id: int, feats: ScanFeatures) -> None:
+        """Keep the new node's scan points for :meth:`_point_match`; forget those of nodes
+        that left the local map."""
+        self._node_points[node_id] = feats.points_xy
+        for old in [
+            i for i in self._node_points if i <= node_id - self.config.slam.local_map_nodes
+        ]:
+            del self._node_points[old]
+
+    def _points_of(self, node_id: int) -> FloatArray:
+        """``(P, 2)`` float64 scan points of a node, its frame (features' ``points_xy``;
+        re-extracted for a node of a loaded session)."""
+        points = self._node_points.get(node_id)
+        if points is None:
+            scan = self._s.scans[self._s.node_scan_index[node_id]]
+            points = extract(scan, self.config.features).points_xy
+        return points
 
     def _calibrate_odometry(self, local: _LocalMatch, motion: _Motion) -> None:
         """Feed a successful local match to the odometry calibration (same step's raw
@@ -468,6 +538,7 @@ class Slam:
             correlations=dict(self._s.correlations),
             loop_closures=self.loop_stats,
             match_failures=dict(self._s.match_failures),
+            point_fallbacks=dict(self._s.point_fallbacks),
             stage_seconds=dict(self.timer.seconds),
             feature_map=self.feature_map,
             graph=self.graph,
@@ -476,6 +547,33 @@ class Slam:
             slam=self,
         )
         return self._result
+
+
+def consistent_with_prediction(
+    result: MatchResult, prediction: FloatArray, prediction_cov: FloatArray
+) -> bool:
+    """Whether a point match agrees with the prediction: the squared Mahalanobis distance of
+    their difference under the sum of their covariances is within the chi-square quantile of
+    :data:`CONSISTENCY_PROBABILITY` (3 degrees of freedom). A point match has no feature
+    correspondences to vouch for it, only the basin ICP slid into, so it is a factor only
+    where the odometry does not contradict it.
+
+    Args:
+        result: A successful match: ``pose`` ``(3,)`` float64 ``[x_m, y_m, theta_rad]``
+            (frame of the last node) and ``cov`` ``(3, 3)`` in the tangent space at it.
+        prediction: ``(3,)`` float64 the predicted (odometry) motion, same frame.
+        prediction_cov: ``(3, 3)`` float64 its covariance.
+
+    Returns:
+        True when the difference passes the test; False otherwise or when the summed
+        covariance is singular.
+    """
+    d = se2.between(prediction, result.pose)
+    try:
+        chi2 = float(d @ np.linalg.solve(result.cov + prediction_cov, d))
+    except np.linalg.LinAlgError:
+        return False
+    return chi2 <= CHI2_3DOF
 
 
 def remap_weak_directions(

@@ -253,8 +253,7 @@ def _refine_settings(c: MatchingConfig) -> RefineSettings:
         normal_gate_rad=math.radians(r.normal_gate_deg),
         cauchy_sigmas=c.cauchy_scale_sigmas,
         sigma_min_m=r.point_sigma_min_m,
-        line_angle_sigma_min_rad=math.radians(r.line_angle_sigma_min_deg),
-        line_offset_sigma_min_m=r.line_offset_sigma_min_m,
+        wall_end_sigma_m=r.wall_end_sigma_m,
         lattice_steps=cov.lattice_steps,
         lattice_sigmas=cov.lattice_sigmas,
         lattice_kappa=cov.lattice_kappa,
@@ -448,7 +447,7 @@ class IceMatcher:
         point_alpha = features.seg_lines[pseg[on_seg], 0] if on_seg.shape[0] else np.zeros(0)
         segs = SegmentSet.from_features(ctx.reference)
         s = self._settings
-        line_cov = effective_line_cov(segs, s.line_angle_sigma_min_rad, s.line_offset_sigma_min_m)
+        line_cov = effective_line_cov(segs, s.wall_end_sigma_m)
         b = ctx.bounds
         prior = PosePrior(
             ctx.prediction, bounds_prior_information(b.max_translation_m, b.max_rotation_rad)

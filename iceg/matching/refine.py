@@ -69,6 +69,8 @@ GATE_TO_SIGMA0 = 3.0
 LATTICE_POINTS = 100
 #: Variance floor of a feature pair's second whitened direction.
 _MIN_VARIANCE = 1e-18
+#: Guard of the wall-length division in :func:`effective_line_cov` (metres).
+_MIN_WALL_LENGTH_M = 1e-3
 
 
 @dataclass(frozen=True, eq=False)
@@ -85,8 +87,7 @@ class RefineSettings:
     normal_gate_rad: float
     cauchy_sigmas: float
     sigma_min_m: float
-    line_angle_sigma_min_rad: float
-    line_offset_sigma_min_m: float
+    wall_end_sigma_m: float
     lattice_steps: int
     lattice_sigmas: float
     lattice_kappa: float
@@ -395,22 +396,25 @@ def _cat_rows(a: _Rows, b: _Rows) -> _Rows:
     )
 
 
-def effective_line_cov(
-    segs: SegmentSet, angle_sigma_min_rad: float, offset_sigma_min_m: float
-) -> FloatArray:
+def effective_line_cov(segs: SegmentSet, wall_end_sigma_m: float) -> FloatArray:
     """``(M, 2, 2)`` covariance of each reference line ``(alpha, rho)``: the fit covariance
-    plus a floor for how far real walls are from straight lines (a rotation of
-    ``angle_sigma_min_rad`` about the segment's midpoint and a shift of
-    ``offset_sigma_min_m``)."""
+    plus the model error of the wall: its two ends off the fitted line by independent
+    offsets of standard deviation ``wall_end_sigma_m`` (systematic range error, walls that
+    are not straight). For a wall of length ``L`` that is an angle variance
+    ``2 sigma^2 / L^2`` (a rotation about the midpoint) and an offset variance
+    ``sigma^2 / 2`` at the midpoint, moved to ``(alpha, rho)`` through
+    ``d rho / d alpha`` about the midpoint. Unlike the fit covariance it does not shrink with
+    the number of beams on the wall, so the information one wall gives saturates."""
     mid = segs.a + 0.5 * segs.length[:, None] * segs.u
     tang = np.stack([-np.sin(segs.alpha), np.cos(segs.alpha)], axis=1)
     k = np.einsum("ma,ma->m", tang, mid)  # d rho / d alpha about the midpoint
-    jac = np.zeros((segs.n, 2, 2))
-    jac[:, 0, 0] = 1.0
-    jac[:, 1, 1] = 1.0
-    jac[:, 1, 0] = k
-    floor = np.diag([angle_sigma_min_rad**2, offset_sigma_min_m**2])
-    return segs.cov + jac @ floor @ np.swapaxes(jac, 1, 2)
+    var_angle = 2.0 * wall_end_sigma_m**2 / np.maximum(segs.length, _MIN_WALL_LENGTH_M) ** 2
+    var_offset = 0.5 * wall_end_sigma_m**2
+    floor = np.zeros((segs.n, 2, 2))
+    floor[:, 0, 0] = var_angle
+    floor[:, 0, 1] = floor[:, 1, 0] = k * var_angle
+    floor[:, 1, 1] = var_offset + k * k * var_angle
+    return np.asarray(segs.cov + floor, dtype=np.float64)
 
 
 def refine(
