@@ -51,15 +51,20 @@ __all__ = ["LoopClosureStats", "Slam", "SlamState", "StageTimer"]
 
 
 class StageTimer:
-    """Accumulates wall time per pipeline stage (seconds)."""
+    """Wall time per pipeline stage (seconds): totals in ``seconds`` and every call's time
+    in ``samples`` (one float per call, in call order: per-keyframe medians for
+    ``benchmarks/bench_pipeline.py``)."""
 
     def __init__(self) -> None:
         self.seconds: dict[str, float] = defaultdict(float)
+        self.samples: dict[str, list[float]] = defaultdict(list)
 
     def add(self, stage: str, t0: float) -> float:
-        """Add ``now - t0`` to ``stage``; return now."""
+        """Add ``now - t0`` to ``stage`` (total and one sample); return now."""
         now = time.perf_counter()
-        self.seconds[stage] += now - t0
+        dt = now - t0
+        self.seconds[stage] += dt
+        self.samples[stage].append(dt)
         return now
 
 

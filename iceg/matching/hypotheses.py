@@ -10,6 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from iceg.matching._kernels import kernel_density
 from iceg.matching.config import MatchBounds
 from iceg.matching.geometry import CORNER, INTERSECTION, FeatureGeometry, rot
 from iceg_common.se2 import wrap_angle
@@ -368,7 +369,7 @@ def segment_rotation(
     d, w = d[keep], w[keep]
     if d.shape[0] == 0:
         return None
-    dens = (w[None, :] * np.exp(-0.5 * ((d[:, None] - d[None, :]) / kernel_rad) ** 2)).sum(axis=1)
+    dens = kernel_density(np.ascontiguousarray(d), np.ascontiguousarray(w), kernel_rad)
     dens[np.abs(d) > max_dev_rad] = -np.inf
     k = int(np.argmax(dens))
     if not np.isfinite(dens[k]) or dens[k] < min_support_m:
