@@ -151,9 +151,7 @@ def _report(
     print(f"    {'whole run':<16} {wall:8.3f} {'s':<21} budget  6.00  {flag}")
 
 
-def run_csail(
-    log: Path, rel: Path, workers: int | None, profile: Path | None
-) -> dict[str, Any]:
+def run_csail(log: Path, rel: Path, workers: int | None, profile: Path | None) -> dict[str, Any]:
     """The CSAIL run, timed (or profiled), with relation errors."""
     from iceg.pipeline import run_log
 
@@ -198,8 +196,14 @@ def run_demo(workers: int | None) -> None:
         result.render_map()
         wall = time.perf_counter() - t0
     duration = float(result.stamps_s[-1] - result.stamps_s[0])
-    _report("built-in demo (simulated office)", wall, result.n_scans, duration,
-            result.stage_seconds, samples)
+    _report(
+        "built-in demo (simulated office)",
+        wall,
+        result.n_scans,
+        duration,
+        result.stage_seconds,
+        samples,
+    )
     gt = result.metrics["ground_truth"]
     print(f"ground truth: {json.dumps({k: round(v, 4) for k, v in gt.items()})}")
 
@@ -235,7 +239,10 @@ def cold_start(log: Path) -> None:
     for _ in range(3):
         out = subprocess.run(
             [sys.executable, "-c", _COLD, str(log)],
-            env=env, capture_output=True, text=True, check=True,
+            env=env,
+            capture_output=True,
+            text=True,
+            check=True,
         ).stdout
         runs.append(json.loads(out.strip().splitlines()[-1]))
     first, warm = runs[0], min(runs[1:], key=lambda r: sum(r.values()))

@@ -68,6 +68,13 @@ class SlamConfig(BaseModel):
         default=True,
         description="Run batch Levenberg–Marquardt over the whole graph after the run.",
     )
+    workers: int = Field(
+        default=2,
+        ge=1,
+        description="Processes of a whole run (iceg run): with 2 or more, ICE features of "
+        "upcoming scans are extracted in workers - 1 other processes while this one matches. "
+        "The result is identical with any number (features do not depend on the pose).",
+    )
 
 
 class IcegConfig(BaseModel):

@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -204,7 +205,9 @@ class Slam:
 
     # ------------------------------------------------------------------ per scan
 
-    def process(self, scan: LaserScan) -> FloatArray:
+    def process(
+        self, scan: LaserScan, features: Callable[[], ScanFeatures] | None = None
+    ) -> FloatArray:
         """Process one scan; return its current pose estimate ``(3,)`` in the map frame.
 
         The map frame is the odometry frame of the first scan (the first node is fixed at
@@ -212,6 +215,10 @@ class Slam:
         (docs/design.md "Data flow of one scan"): motion from odometry and keyframe decision; for a
         keyframe ICE features, local match, node and factors, iSAM2 update, loop-closure
         search and feature-map update.
+
+        ``features``, when given, returns exactly ``extract(scan, config.features)`` (e.g.
+        computed ahead by :class:`iceg.features.prefetch.FeaturePrefetcher`); it is called
+        only when the scan needs features (a keyframe).
 
         Raises:
             ScanError: the scan's stamp is earlier than the previous scan's.
@@ -223,21 +230,26 @@ class Slam:
         odom = self._odometry_of(scan)
         self._s.scans.append(scan)
         if not self._s.node_odom:
-            return self._start(scan, odom, t0)
+            return self._start(scan, odom, t0, features)
         last = len(self._s.node_odom) - 1
         motion = self._motion(scan, odom, last)
         if not motion.is_keyframe:
             self._s.records.append(_ScanRecord(scan.stamp_s, last, motion.delta))
             return se2.compose(self.graph.estimate(last), motion.delta)
-        return self._process_keyframe(scan, motion, last, t0)
+        return self._process_keyframe(scan, motion, last, t0, features)
 
     # ------------------------------------------------------------------ steps
 
     def _process_keyframe(
-        self, scan: LaserScan, motion: _Motion, last: int, t0: float
+        self,
+        scan: LaserScan,
+        motion: _Motion,
+        last: int,
+        t0: float,
+        features: Callable[[], ScanFeatures] | None = None,
     ) -> FloatArray:
         """A keyframe: features, local match, node and factors, iSAM2, loop closure, map."""
-        feats = extract(scan, self.config.features)
+        feats = self._features(scan, features)
         t0 = self.timer.add("features", t0)
         local = self._match_local(feats, motion.delta, last)
         self._calibrate_odometry(local, motion)
@@ -261,9 +273,20 @@ class Slam:
                 f"{self._s.scans[-1].stamp_s:.6f} s: Slam.process needs scans in time order"
             )
 
-    def _start(self, scan: LaserScan, odom: FloatArray, t0: float) -> FloatArray:
+    def _features(
+        self, scan: LaserScan, features: Callable[[], ScanFeatures] | None
+    ) -> ScanFeatures:
+        return features() if features is not None else extract(scan, self.config.features)
+
+    def _start(
+        self,
+        scan: LaserScan,
+        odom: FloatArray,
+        t0: float,
+        features: Callable[[], ScanFeatures] | None = None,
+    ) -> FloatArray:
         """The first scan: node 0, fixed at its odometry pose, and its landmarks."""
-        feats = extract(scan, self.config.features)
+        feats = self._features(scan, features)
         t0 = self.timer.add("features", t0)
         self._add_node(scan, odom, initial=odom, odom_measured=scan.odom_pose is not None)
         self.loop_closer.observe(0, feats)
