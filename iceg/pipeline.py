@@ -12,7 +12,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from frontends import LaserScan, open_log
 from frontends.relations import Relations, match_stamps, read_relations
@@ -46,10 +45,12 @@ def run_scans(
     """
     slam = Slam(config)
     n = 0
+    if progress:
+        from tqdm.auto import tqdm  # lazy: tqdm.auto imports asyncio (a cold-start cost)
+
+        scans = tqdm(scans, total=total, unit="scan", desc="iceg")
     with FeaturePrefetcher(slam.config.features, slam.config.slam.workers) as prefetch:
-        for scan, features in prefetch.scans(
-            tqdm(scans, total=total, unit="scan", disable=not progress, desc="iceg")
-        ):
+        for scan, features in prefetch.scans(scans):
             slam.process(scan, features=features)
             n += 1
     if n == 0:
