@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import signal
 import sys
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
@@ -76,7 +77,9 @@ class FeaturePrefetcher:
     def __enter__(self) -> FeaturePrefetcher:
         if self.workers > 1 and sys.platform == "linux":
             ctx = multiprocessing.get_context("fork")
-            self._pool = ProcessPoolExecutor(max_workers=self.workers - 1, mp_context=ctx)
+            self._pool = ProcessPoolExecutor(
+                max_workers=self.workers - 1, mp_context=ctx, initializer=_worker_init
+            )
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -142,3 +145,8 @@ class FeaturePrefetcher:
             return extract(scan, self.config)
 
         return features
+
+
+def _worker_init() -> None:
+    """A worker ignores Ctrl-C: the main process handles it (and shuts the pool down)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
