@@ -51,5 +51,5 @@ def test_prefetched_features_equal_extract(short_run) -> None:  # type: ignore[n
 
 def test_one_worker_has_no_pool(short_run) -> None:  # type: ignore[no-untyped-def]
     with FeaturePrefetcher(IcegConfig().features, workers=1) as prefetch:
-        assert prefetch._pool is None
+        assert not prefetch._pool
         assert len(list(prefetch.scans(short_run.scans[:3]))) == 3
