@@ -23,6 +23,7 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
 
+
 def _kdtree() -> type[cKDTree]:
     """scipy's ``cKDTree``, imported on first use (scipy costs most of a cold start, and
     most scans never need a tree)."""
