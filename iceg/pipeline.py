@@ -18,7 +18,7 @@ from frontends.relations import Relations, match_stamps, read_relations
 from frontends.scan import StampPolicy, StampReport
 from iceg.config import IcegConfig
 from iceg.evaluation import position_errors, relation_errors
-from iceg.features.prefetch import FeaturePrefetcher
+from iceg.features.prefetch import FeaturePrefetcher, auto_workers
 from iceg.results import SlamResult
 from iceg.slam import Slam
 from iceg_common.errors import EvaluationError, LogFormatError
@@ -37,8 +37,9 @@ def run_scans(
 ) -> SlamResult:
     """Run SLAM over scans in order and return the finished result.
 
-    With ``config.slam.workers`` > 1 the features of upcoming scans are extracted in worker
-    processes (:class:`~iceg.features.prefetch.FeaturePrefetcher`); the result is the same.
+    With ``config.slam.workers`` > 1 (0: :func:`~iceg.features.prefetch.auto_workers`) the
+    features of upcoming scans are extracted in worker processes
+    (:class:`~iceg.features.prefetch.FeaturePrefetcher`); the result is the same.
 
     Raises:
         LogFormatError: there are no scans.
@@ -49,7 +50,8 @@ def run_scans(
         from tqdm.auto import tqdm  # lazy: tqdm.auto imports asyncio (a cold-start cost)
 
         scans = tqdm(scans, total=total, unit="scan", desc="iceg")
-    with FeaturePrefetcher(slam.config.features, slam.config.slam.workers) as prefetch:
+    workers = slam.config.slam.workers or auto_workers()
+    with FeaturePrefetcher(slam.config.features, workers) as prefetch:
         for scan, features in prefetch.scans(scans):
             slam.process(scan, features=features)
             n += 1

@@ -173,6 +173,20 @@ def _serve(
                 return
 
 
+def auto_workers() -> int:
+    """Processes for a run when the configuration leaves it open (``slam.workers: 0``): 2
+    when at least one core is idle by the 1-minute load average (Linux), else 1. A second
+    process pays off only on a free core: on a saturated machine it slowed runs down."""
+    cores = os.cpu_count() or 1
+    if cores < 2 or sys.platform != "linux":
+        return 1
+    try:
+        load = os.getloadavg()[0]
+    except OSError:
+        return 1
+    return 2 if load <= cores - 1 else 1
+
+
 class FeaturePrefetcher:
     """Extract features of upcoming scans in ``workers - 1`` processes.
 

@@ -10,8 +10,9 @@ import pytest
 from frontends.simulate import corridor_world, default_trajectory, simulate
 from iceg.config import IcegConfig
 from iceg.features import extract
-from iceg.features.prefetch import FeaturePrefetcher
+from iceg.features.prefetch import FeaturePrefetcher, auto_workers
 from iceg.pipeline import run_scans
+from iceg.slam import Slam
 
 
 def _config(workers: int) -> IcegConfig:
@@ -30,6 +31,18 @@ def test_trajectory_identical_with_one_and_two_workers(short_run) -> None:  # ty
     two = run_scans(short_run.scans, _config(2))
     assert one.poses.tobytes() == two.poses.tobytes()
     assert one.stamps_s.tobytes() == two.stamps_s.tobytes()
+    assert one.node_poses.tobytes() == two.node_poses.tobytes()
+
+
+def test_trajectory_identical_when_every_feature_comes_from_a_worker(short_run) -> None:  # type: ignore[no-untyped-def]
+    one = run_scans(short_run.scans, _config(1))
+    slam = Slam(_config(2))
+    with FeaturePrefetcher(slam.config.features, workers=2, wait=True) as prefetch:
+        for scan, features in prefetch.scans(short_run.scans):
+            slam.process(scan, features=features)
+    two = slam.finish()
+    assert prefetch.hits > 0 and prefetch.misses == 0
+    assert one.poses.tobytes() == two.poses.tobytes()
     assert one.node_poses.tobytes() == two.node_poses.tobytes()
 
 
@@ -53,3 +66,7 @@ def test_one_worker_has_no_pool(short_run) -> None:  # type: ignore[no-untyped-d
     with FeaturePrefetcher(IcegConfig().features, workers=1) as prefetch:
         assert not prefetch._pool
         assert len(list(prefetch.scans(short_run.scans[:3]))) == 3
+
+
+def test_auto_workers_is_one_or_two() -> None:
+    assert auto_workers() in (1, 2)
