@@ -40,16 +40,18 @@ from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from fractions import Fraction
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from frontends.registry import register_reader
 from frontends.scan import LaserScan, StampPolicy, StampReport, order_by_stamp
 from iceg_common import se2
 from iceg_common.errors import ConfigError, LogFormatError, ScanError
+
+if TYPE_CHECKING:
+    from scipy.spatial.transform import Rotation
 
 logger = logging.getLogger(__name__)
 
@@ -127,9 +129,16 @@ def widen_angle(value: float) -> float:
     return float(widen_decimal(np.array([a32], dtype=np.float32))[0])
 
 
+def _rotation() -> type[Rotation]:
+    """scipy's ``Rotation``, imported on first use (scipy costs most of a cold start)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation
+
+
 def quaternion_yaw(x: float, y: float, z: float, w: float) -> float:
     """Heading (rad, ``[-π, π]``) of a quaternion: the first angle of its ZYX Euler angles."""
-    return float(Rotation.from_quat([x, y, z, w]).as_euler("ZYX")[0])
+    return float(_rotation().from_quat([x, y, z, w]).as_euler("ZYX")[0])
 
 
 def yaw_quaternion(yaw_rad: float) -> tuple[float, float, float, float]:
@@ -214,7 +223,7 @@ class Transform3:
 
 def _transform_of(msg: Any) -> Transform3:
     tr, q = msg.transform.translation, msg.transform.rotation
-    return Transform3(np.array([tr.x, tr.y, tr.z]), Rotation.from_quat([q.x, q.y, q.z, q.w]))
+    return Transform3(np.array([tr.x, tr.y, tr.z]), _rotation().from_quat([q.x, q.y, q.z, q.w]))
 
 
 def _frame(name: str) -> str:
@@ -225,12 +234,12 @@ def _frame(name: str) -> str:
 def _chain(edges: dict[tuple[str, str], Transform3], src: str, dst: str) -> Transform3 | None:
     """Transform ``src -> dst`` through the tree of ``edges`` (either direction), or None."""
     if src == dst:
-        return Transform3(np.zeros(3), Rotation.identity())
+        return Transform3(np.zeros(3), _rotation().identity())
     adj: dict[str, list[tuple[str, Transform3]]] = {}
     for (parent, child), tf in edges.items():
         adj.setdefault(parent, []).append((child, tf))
         adj.setdefault(child, []).append((parent, tf.inverse()))
-    seen = {src: Transform3(np.zeros(3), Rotation.identity())}
+    seen = {src: Transform3(np.zeros(3), _rotation().identity())}
     queue = deque([src])
     while queue:
         node = queue.popleft()
@@ -1064,7 +1073,7 @@ def _write_all(
 def _planar(offset: FloatArray) -> Transform3:
     """An SE(2) laser offset ``[x, y, yaw]`` as a 3D transform."""
     quat = yaw_quaternion(float(offset[2]))
-    return Transform3(np.array([offset[0], offset[1], 0.0]), Rotation.from_quat(quat))
+    return Transform3(np.array([offset[0], offset[1], 0.0]), _rotation().from_quat(quat))
 
 
 def _header(store: Any, ns: int, frame: str) -> Any:

@@ -78,6 +78,14 @@ class SlamConfig(BaseModel):
         default=True,
         description="Run batch Levenberg–Marquardt over the whole graph after the run.",
     )
+    workers: int = Field(
+        default=0,
+        ge=0,
+        description="Processes of a whole run (iceg run): with 2 or more, ICE features of "
+        "upcoming scans are extracted in workers - 1 other processes while this one matches; "
+        "0 picks 2 when a core is idle (load average), else 1. The result is identical with "
+        "any number (features do not depend on the pose).",
+    )
 
 
 class IcegConfig(BaseModel):

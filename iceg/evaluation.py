@@ -18,7 +18,6 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
 
 from frontends.relations import match_stamps
 from iceg_common import se2
@@ -175,6 +174,8 @@ def position_errors(estimate: ArrayLike, truth: ArrayLike, align: bool = True) -
     if align and len(est) >= 2:
         mu_e, mu_g = est[:, :2].mean(0), gt[:, :2].mean(0)
         pad = np.zeros((len(est), 1))
+        from scipy.spatial.transform import Rotation  # lazy: scipy is slow to import
+
         rot, _ = Rotation.align_vectors(
             np.hstack([gt[:, :2] - mu_g, pad]), np.hstack([est[:, :2] - mu_e, pad])
         )

@@ -12,13 +12,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from frontends import LaserScan, open_log
 from frontends.relations import Relations, match_stamps, read_relations
 from frontends.scan import StampPolicy, StampReport
 from iceg.config import IcegConfig
 from iceg.evaluation import position_errors, relation_errors
+from iceg.features.prefetch import FeaturePrefetcher, auto_workers
 from iceg.results import SlamResult
 from iceg.slam import Slam
 from iceg_common.errors import EvaluationError, LogFormatError
@@ -37,14 +37,24 @@ def run_scans(
 ) -> SlamResult:
     """Run SLAM over scans in order and return the finished result.
 
+    With ``config.slam.workers`` > 1 (0: :func:`~iceg.features.prefetch.auto_workers`) the
+    features of upcoming scans are extracted in worker processes
+    (:class:`~iceg.features.prefetch.FeaturePrefetcher`); the result is the same.
+
     Raises:
         LogFormatError: there are no scans.
     """
     slam = Slam(config)
     n = 0
-    for scan in tqdm(scans, total=total, unit="scan", disable=not progress, desc="iceg"):
-        slam.process(scan)
-        n += 1
+    if progress:
+        from tqdm.auto import tqdm  # lazy: tqdm.auto imports asyncio (a cold-start cost)
+
+        scans = tqdm(scans, total=total, unit="scan", desc="iceg")
+    workers = slam.config.slam.workers or auto_workers()
+    with FeaturePrefetcher(slam.config.features, workers) as prefetch:
+        for scan, features in prefetch.scans(scans):
+            slam.process(scan, features=features)
+            n += 1
     if n == 0:
         raise LogFormatError("the input holds no laser scans")
     return slam.finish()

@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -64,15 +65,20 @@ __all__ = [
 
 
 class StageTimer:
-    """Accumulates wall time per pipeline stage (seconds)."""
+    """Wall time per pipeline stage (seconds): totals in ``seconds`` and every call's time
+    in ``samples`` (one float per call, in call order: per-keyframe medians for
+    ``benchmarks/bench_pipeline.py``)."""
 
     def __init__(self) -> None:
         self.seconds: dict[str, float] = defaultdict(float)
+        self.samples: dict[str, list[float]] = defaultdict(list)
 
     def add(self, stage: str, t0: float) -> float:
-        """Add ``now - t0`` to ``stage``; return now."""
+        """Add ``now - t0`` to ``stage`` (total and one sample); return now."""
         now = time.perf_counter()
-        self.seconds[stage] += now - t0
+        dt = now - t0
+        self.seconds[stage] += dt
+        self.samples[stage].append(dt)
         return now
 
 
@@ -216,7 +222,9 @@ class Slam:
 
     # ------------------------------------------------------------------ per scan
 
-    def process(self, scan: LaserScan) -> FloatArray:
+    def process(
+        self, scan: LaserScan, features: Callable[[], ScanFeatures] | None = None
+    ) -> FloatArray:
         """Process one scan; return its current pose estimate ``(3,)`` in the map frame.
 
         The map frame is the odometry frame of the first scan (the first node is fixed at
@@ -224,6 +232,10 @@ class Slam:
         (docs/design.md "Data flow of one scan"): motion from odometry and keyframe decision; for a
         keyframe ICE features, local match, node and factors, iSAM2 update, loop-closure
         search and feature-map update.
+
+        ``features``, when given, returns exactly ``extract(scan, config.features)`` (e.g.
+        computed ahead by :class:`iceg.features.prefetch.FeaturePrefetcher`); it is called
+        only when the scan needs features (a keyframe).
 
         Raises:
             ScanError: the scan's stamp is earlier than the previous scan's.
@@ -235,21 +247,26 @@ class Slam:
         odom = self._odometry_of(scan)
         self._s.scans.append(scan)
         if not self._s.node_odom:
-            return self._start(scan, odom, t0)
+            return self._start(scan, odom, t0, features)
         last = len(self._s.node_odom) - 1
         motion = self._motion(scan, odom, last)
         if not motion.is_keyframe:
             self._s.records.append(_ScanRecord(scan.stamp_s, last, motion.delta))
             return se2.compose(self.graph.estimate(last), motion.delta)
-        return self._process_keyframe(scan, motion, last, t0)
+        return self._process_keyframe(scan, motion, last, t0, features)
 
     # ------------------------------------------------------------------ steps
 
     def _process_keyframe(
-        self, scan: LaserScan, motion: _Motion, last: int, t0: float
+        self,
+        scan: LaserScan,
+        motion: _Motion,
+        last: int,
+        t0: float,
+        features: Callable[[], ScanFeatures] | None = None,
     ) -> FloatArray:
         """A keyframe: features, local match, node and factors, iSAM2, loop closure, map."""
-        feats = extract(scan, self.config.features)
+        feats = self._features(scan, features)
         t0 = self.timer.add("features", t0)
         local = self._match_local(feats, motion, last)
         self._calibrate_odometry(local, motion)
@@ -274,9 +291,20 @@ class Slam:
                 f"{self._s.scans[-1].stamp_s:.6f} s: Slam.process needs scans in time order"
             )
 
-    def _start(self, scan: LaserScan, odom: FloatArray, t0: float) -> FloatArray:
+    def _features(
+        self, scan: LaserScan, features: Callable[[], ScanFeatures] | None
+    ) -> ScanFeatures:
+        return features() if features is not None else extract(scan, self.config.features)
+
+    def _start(
+        self,
+        scan: LaserScan,
+        odom: FloatArray,
+        t0: float,
+        features: Callable[[], ScanFeatures] | None = None,
+    ) -> FloatArray:
         """The first scan: node 0, fixed at its odometry pose, and its landmarks."""
-        feats = extract(scan, self.config.features)
+        feats = self._features(scan, features)
         t0 = self.timer.add("features", t0)
         self._add_node(scan, odom, initial=odom, odom_measured=scan.odom_pose is not None)
         self._remember_points(0, feats)

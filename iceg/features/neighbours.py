@@ -9,15 +9,28 @@ than a tree and are used directly; both give the same pairs after the exact test
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from iceg.features.geometry import norm
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
+
+
+def _kdtree() -> type[cKDTree]:
+    """scipy's ``cKDTree``, imported on first use (scipy costs most of a cold start, and
+    most scans never need a tree)."""
+    from scipy.spatial import cKDTree
+
+    return cKDTree
+
 
 # Up to this many rows all pairs are enumerated directly (a tree costs more than it saves).
 DENSE_MAX_ROWS = 64
@@ -69,7 +82,7 @@ def close_pairs(xy: FloatArray, radius_m: float) -> IntArray:
     if q <= DENSE_MAX_ROWS:
         a, b = _all_pairs(q)
     else:
-        cand = cKDTree(xy).query_pairs(_tree_radius(radius_m), output_type="ndarray")
+        cand = _kdtree()(xy).query_pairs(_tree_radius(radius_m), output_type="ndarray")
         a, b = _lexicographic(cand[:, 0], cand[:, 1], q).T
     near = norm(xy[a] - xy[b]) <= radius_m
     return np.stack([a[near], b[near]], axis=1).astype(np.int64, copy=False)
@@ -92,7 +105,7 @@ def close_to_any(xy: FloatArray, ref: FloatArray, radius_m: float) -> BoolArray:
     if xy.shape[0] * ref.shape[0] <= DENSE_MAX_ROWS**2:
         out[(norm(xy[:, None, :] - ref[None, :, :]) <= radius_m).any(axis=1)] = True
         return out
-    lists = cKDTree(ref).query_ball_point(xy, _tree_radius(radius_m))
+    lists = _kdtree()(ref).query_ball_point(xy, _tree_radius(radius_m))
     counts = np.array([len(li) for li in lists], dtype=np.int64)
     q = np.repeat(np.arange(xy.shape[0]), counts)
     r = np.fromiter((k for li in lists for k in li), dtype=np.int64, count=int(counts.sum()))
@@ -126,6 +139,6 @@ def segment_pairs_within(endpoints: FloatArray, radius_m: float) -> tuple[IntArr
     a, b = endpoints[seg_of, 0], endpoints[seg_of, 1]
     samples = a + t[:, None] * (b - a)
     reach = _tree_radius(radius_m + SEGMENT_SAMPLE_STEP_M)
-    cand = cKDTree(samples).query_pairs(reach, output_type="ndarray")
+    cand = _kdtree()(samples).query_pairs(reach, output_type="ndarray")
     pairs = _lexicographic(seg_of[cand[:, 0]], seg_of[cand[:, 1]], m)
     return pairs[:, 0], pairs[:, 1]

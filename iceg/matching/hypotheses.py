@@ -8,8 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
+from iceg.matching._kernels import kernel_density
 from iceg.matching.config import MatchBounds
 from iceg.matching.geometry import CORNER, INTERSECTION, FeatureGeometry, rot
 from iceg_common.se2 import wrap_angle
@@ -69,7 +69,7 @@ def feasible_pairs(
 
     A new feature at ``p`` (new frame) can only be at ``prediction ∘ p`` moved by at most
     ``max_translation_m + |p| * chord(max_rotation)``; reference candidates inside that disc
-    (plus ``margin_m``) are found with a KD-tree (``scipy.spatial.cKDTree.query_ball_point``).
+    (plus ``margin_m``) are found by testing all pairs (squared distances).
 
     Returns:
         ``(Q,)`` new indices and ``(Q,)`` reference indices of pairs passing type, opening
@@ -83,13 +83,15 @@ def feasible_pairs(
     r0 = rot(prediction[2])
     pred_xy = gn.xy @ r0.T + prediction[:2]
     radius = bounds.max_translation_m + gn.dist * rotation_chord(bounds.max_rotation_rad) + margin_m
-    tree = cKDTree(gr.xy)
-    hits = tree.query_ball_point(pred_xy, r=radius)
-    lengths = np.fromiter((len(h) for h in hits), dtype=np.int64, count=len(hits))
-    if lengths.sum() == 0:
+    # All (new, reference) pairs at once: a few dozen by a few hundred features, cheaper
+    # than a KD-tree. Squared distances against squared radii, as cKDTree.query_ball_point
+    # tests them, in row-major (sorted) order.
+    dx = pred_xy[:, None, 0] - gr.xy[None, :, 0]
+    dy = pred_xy[:, None, 1] - gr.xy[None, :, 1]
+    i, j = np.nonzero(dx * dx + dy * dy <= (radius * radius)[:, None])
+    if i.shape[0] == 0:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    i = np.repeat(np.arange(gn.n, dtype=np.int64), lengths)
-    j = np.fromiter((k for h in hits for k in h), dtype=np.int64, count=int(lengths.sum()))
+    i, j = i.astype(np.int64), j.astype(np.int64)
     keep = codes[i, j] != INCOMPATIBLE
     return i[keep], j[keep]
 
@@ -368,7 +370,7 @@ def segment_rotation(
     d, w = d[keep], w[keep]
     if d.shape[0] == 0:
         return None
-    dens = (w[None, :] * np.exp(-0.5 * ((d[:, None] - d[None, :]) / kernel_rad) ** 2)).sum(axis=1)
+    dens = kernel_density(np.ascontiguousarray(d), np.ascontiguousarray(w), kernel_rad)
     dens[np.abs(d) > max_dev_rad] = -np.inf
     k = int(np.argmax(dens))
     if not np.isfinite(dens[k]) or dens[k] < min_support_m:

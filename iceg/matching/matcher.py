@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import logging
 import math
+import weakref
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -144,10 +146,11 @@ class MatchContext:
 
     def __post_init__(self) -> None:
         c, f, r = self.config, self.features, self.reference
-        self.new_geom = feature_geometry(f)
+        derived = scan_derived(f)
+        self.new_geom = derived.geometry
         self.ref_geom = feature_geometry(r)
         range_max = float(f.range_max_m)
-        self.profile = PolarProfile.from_points(f.points_xy, range_max)
+        self.profile = derived.profile
         # The reference's beams can be checked only if its points are one scan seen from
         # the reference origin (a feature-map reference gathers several nodes' points).
         self.ref_profile = (
@@ -178,6 +181,36 @@ class MatchContext:
             n_hypotheses=n_hypotheses,
             reason=reason,
         )
+
+
+class ScanDerived(NamedTuple):
+    """What every match of one new scan derives from its features alone (pose-independent):
+    its feature geometry, its polar profile (range ``range_max_m``) and the segment of each
+    point (``(P,)`` int64, -1: none)."""
+
+    geometry: FeatureGeometry
+    profile: PolarProfile
+    point_segment: IntArray
+
+
+#: :func:`scan_derived` results by features object (identity; dropped with the object).
+_DERIVED: weakref.WeakKeyDictionary[ScanFeatures, ScanDerived] = weakref.WeakKeyDictionary()
+
+
+def scan_derived(features: ScanFeatures) -> ScanDerived:
+    """The pose-independent quantities of a new scan's features, computed once per
+    features object (a keyframe is matched locally and then against loop-closure
+    candidates). ``ScanFeatures`` are never modified after extraction, so the cached values
+    are exactly those a fresh computation would give."""
+    got = _DERIVED.get(features)
+    if got is None:
+        got = ScanDerived(
+            feature_geometry(features),
+            PolarProfile.from_points(features.points_xy, float(features.range_max_m)),
+            point_segment_index(features),
+        )
+        _DERIVED[features] = got
+    return got
 
 
 def _is_one_scan(points_xy: FloatArray) -> bool:
@@ -439,7 +472,7 @@ class IceMatcher:
         prior centred on the prediction and the off-segment point cloud."""
         c = ctx.config.refinement
         features = ctx.features
-        pseg = point_segment_index(features)
+        pseg = scan_derived(features).point_segment
         on_seg = np.flatnonzero(pseg >= 0)
         if on_seg.shape[0] > c.max_points:
             on_seg = on_seg[np.linspace(0, on_seg.shape[0] - 1, c.max_points).astype(np.int64)]

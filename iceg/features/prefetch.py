@@ -1,0 +1,301 @@
+"""Feature extraction ahead of the pipeline, in worker processes (issue 13).
+
+A scan's ICE features depend on the scan and the feature configuration only, never on the
+pose estimate, so they can be computed while the main process matches the previous scans.
+:class:`FeaturePrefetcher` sends the scans a few places ahead to worker processes and hands
+each scan back with a callable that returns its features: the worker's result when it has
+arrived, else (a worker starting, behind or failed) :func:`extract` run in the calling
+process. Both are the same computation on the same inputs, so the features, and every result
+of the run, are bit for bit those of a run without workers, whatever the timing.
+
+Processes rather than threads: most of the extraction is small numpy operations that hold
+the GIL. Each worker is a forked process (Linux only; elsewhere the calling process extracts
+alone) fed through its own pipe, read and written by the calling thread only: no helper
+thread competes with the main process for the GIL (a ``concurrent.futures`` pool's manager
+thread did, and cost more than the extraction it saved). A forked worker starts at once with
+the package loaded and never re-runs the user's ``__main__`` script, which ``spawn`` and
+``forkserver`` would (a script without an ``if __name__ == "__main__"`` guard would run
+twice). The workers only extract features (numpy and numba: no gtsam, no threads of the
+parent), which is what makes forking a process that may hold other threads safe here.
+Scans go out in batches (one wake-up of a worker per few scans), never more than
+``LOOKAHEAD_PER_WORKER`` unfinished per worker, and workers run at a lower priority
+(``WORKER_NICENESS``): on a busy machine they take spare CPU only, and the main process
+extracts what they have not done yet.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import multiprocessing
+import os
+import signal
+import sys
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from multiprocessing.connection import Connection
+from multiprocessing.process import BaseProcess
+
+from frontends.scan import LaserScan
+from iceg.features.config import FeatureConfig
+from iceg.features.extract import extract
+from iceg.types import ScanFeatures
+
+log = logging.getLogger(__name__)
+
+#: Scans sent ahead of the one being processed, per worker process.
+LOOKAHEAD_PER_WORKER = 8
+#: Seconds to wait for a worker to exit before it is terminated.
+JOIN_TIMEOUT_S = 2.0
+#: An idle worker checks this often (seconds) that its parent process still runs.
+PARENT_CHECK_S = 1.0
+#: Scheduling niceness added to a worker (it uses spare cores, not the main process's).
+WORKER_NICENESS = 10
+
+FeaturesOf = Callable[[], ScanFeatures]
+
+
+class _Inbox:
+    """Results arrived from the workers, by scan index; those below ``floor`` (scans already
+    handed out) are dropped on arrival."""
+
+    def __init__(self) -> None:
+        self.results: dict[int, ScanFeatures | None] = {}
+        self.floor = 0
+
+    def put(self, index: int, feats: ScanFeatures | None) -> None:
+        if index >= self.floor:
+            self.results[index] = feats
+
+    def advance(self, floor: int) -> None:
+        self.floor = floor
+        for k in [k for k in self.results if k < floor]:
+            del self.results[k]
+
+
+class _Worker:
+    """One forked extraction process and the calling side of its pipe. ``others`` are the
+    calling sides of the workers started before (the child closes its copies of them, so
+    that every worker sees the end of its pipe when the calling process exits)."""
+
+    def __init__(self, config: FeatureConfig, others: list[Connection]) -> None:
+        ctx = multiprocessing.get_context("fork")
+        self.conn, child = ctx.Pipe(duplex=True)
+        self.proc: BaseProcess = ctx.Process(
+            target=_serve,
+            args=(child, [self.conn, *others], os.getpid(), config),
+            daemon=True,
+            name="iceg-features",
+        )
+        self.proc.start()
+        child.close()
+        self.alive = True
+        self.outstanding = 0  # scans sent whose results have not been read
+
+    def send(self, batch: list[tuple[int, LaserScan]], inbox: _Inbox, block: bool) -> bool:
+        """Send a batch unless the worker is gone or still has ``LOOKAHEAD_PER_WORKER``
+        scans to do (a worker starved of CPU must not fill the pipe and block the calling
+        process), or with ``block`` after waiting for it to catch up; whether it was sent."""
+        try:
+            while block and self.alive and self.outstanding >= LOOKAHEAD_PER_WORKER:
+                inbox.put(*self.conn.recv())
+                self.outstanding -= 1
+        except (EOFError, OSError):
+            self.alive = False
+        if not self.alive or not batch or self.outstanding >= LOOKAHEAD_PER_WORKER:
+            return False
+        try:
+            self.conn.send(batch)
+        except (OSError, ValueError):
+            self.alive = False
+            return False
+        self.outstanding += len(batch)
+        return True
+
+    def drain(self, inbox: _Inbox) -> None:
+        """Move every result already arrived into ``inbox`` (never blocks)."""
+        try:
+            while self.alive and self.conn.poll(0):
+                inbox.put(*self.conn.recv())
+                self.outstanding -= 1
+        except (EOFError, OSError):
+            self.alive = False
+
+    def wait_for(self, index: int, inbox: _Inbox) -> None:
+        """Block until the result for ``index`` (sent to this worker) has arrived."""
+        try:
+            while self.alive and index not in inbox.results:
+                inbox.put(*self.conn.recv())
+                self.outstanding -= 1
+        except (EOFError, OSError):
+            self.alive = False
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError, ValueError):
+            self.conn.send(None)
+        self.proc.join(JOIN_TIMEOUT_S)
+        if self.proc.is_alive():
+            self.proc.terminate()
+            self.proc.join(JOIN_TIMEOUT_S)
+        self.conn.close()
+
+
+def _serve(
+    conn: Connection, inherited: list[Connection], parent_pid: int, config: FeatureConfig
+) -> None:
+    """Worker loop: batches ``[(index, scan), ...]`` in, one ``(index, features or None)``
+    out per scan; None, the end of the pipe or the parent's exit stops it."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle
+    with contextlib.suppress(OSError):
+        # Spare CPU only: on a busy machine the worker must not take the main process's
+        # time (it would then fall behind, and the main process extract itself).
+        os.nice(WORKER_NICENESS)
+    for other in inherited:  # the parent's ends: never hold them open here
+        other.close()
+    while True:
+        try:
+            while not conn.poll(PARENT_CHECK_S):
+                if os.getppid() != parent_pid:
+                    return
+            msg = conn.recv()
+        except Exception:  # the pipe ended or broke: the calling process is gone
+            return
+        if msg is None:
+            return
+        for index, scan in msg:
+            try:
+                feats: ScanFeatures | None = extract(scan, config)
+            except Exception:  # the calling process recomputes it and raises it there
+                feats = None
+            try:
+                conn.send((index, feats))
+            except (OSError, ValueError):  # the calling process is gone
+                return
+
+
+def auto_workers() -> int:
+    """Processes for a run when the configuration leaves it open (``slam.workers: 0``): 2
+    when at least one core is idle by the 1-minute load average (Linux), else 1. A second
+    process pays off only on a free core: on a saturated machine it slowed runs down."""
+    cores = os.cpu_count() or 1
+    if cores < 2 or sys.platform != "linux":
+        return 1
+    try:
+        load = os.getloadavg()[0]
+    except OSError:
+        return 1
+    return 2 if load <= cores - 1 else 1
+
+
+class FeaturePrefetcher:
+    """Extract features of upcoming scans in ``workers - 1`` processes.
+
+    Use as a context manager (the workers are stopped on exit)::
+
+        with FeaturePrefetcher(config.features, workers=2) as prefetch:
+            for scan, features in prefetch.scans(log):
+                slam.process(scan, features=features)
+
+    ``features()`` returns exactly ``extract(scan, config)``; it is only worth calling for
+    scans that need features (keyframes), the others' results are dropped.
+
+    Args:
+        config: The feature configuration (as ``extract`` takes it).
+        workers: Processes in all, the calling one included: 1 extracts in the calling
+            process only (no worker).
+        wait: Wait for a worker's result rather than extracting in the calling process
+            when it has not arrived (for tests).
+
+    Attributes:
+        hits: Features taken from a worker so far.
+        misses: Features extracted in the calling process instead (no worker, a worker
+            behind or failed).
+    """
+
+    def __init__(self, config: FeatureConfig, workers: int, wait: bool = False) -> None:
+        self.config = config
+        self.workers = max(1, int(workers))
+        self.wait = wait
+        self.hits = 0
+        self.misses = 0
+        self._pool: list[_Worker] = []
+        self._inbox = _Inbox()
+
+    def __enter__(self) -> FeaturePrefetcher:
+        if self.workers > 1 and sys.platform == "linux":
+            try:
+                for _ in range(self.workers - 1):
+                    self._pool.append(_Worker(self.config, [w.conn for w in self._pool]))
+            except OSError as exc:
+                log.warning("feature prefetch off (%s); extracting here", exc)
+                self.__exit__()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._pool:
+            log.debug("feature prefetch: %d from workers, %d here", self.hits, self.misses)
+        for worker in self._pool:
+            worker.close()
+        self._pool = []
+        self._inbox = _Inbox()
+
+    def scans(self, scans: Iterable[LaserScan]) -> Iterator[tuple[LaserScan, FeaturesOf]]:
+        """Each scan, in order, with a callable returning its features (see the class)."""
+        if not self._pool:
+            for scan in scans:
+                yield scan, self._local(scan)
+            return
+        pool = self._pool
+        ahead = LOOKAHEAD_PER_WORKER * len(pool)
+        queue: deque[tuple[int, LaserScan, _Worker | None]] = deque()
+        it = iter(scans)
+        sent = 0
+        exhausted = False
+        while True:
+            if not exhausted and len(queue) <= ahead // 2:
+                # Refill in batches: one message (one wake-up of a worker) per few scans.
+                batches: list[list[tuple[int, LaserScan]]] = [[] for _ in pool]
+                fresh: list[tuple[int, LaserScan]] = []
+                while len(queue) + len(fresh) < ahead:
+                    upcoming = next(it, None)
+                    if upcoming is None:
+                        exhausted = True
+                        break
+                    batches[sent % len(pool)].append((sent, upcoming))
+                    fresh.append((sent, upcoming))
+                    sent += 1
+                taken: dict[int, _Worker | None] = {}
+                for worker, batch in zip(pool, batches, strict=True):
+                    worker.drain(self._inbox)
+                    ok = worker.send(batch, self._inbox, block=self.wait)
+                    taken.update((i, worker if ok else None) for i, _ in batch)
+                queue.extend((i, scan, taken[i]) for i, scan in fresh)
+            if not queue:
+                return
+            index, scan, owner = queue.popleft()
+            yield scan, (self._local(scan) if owner is None else self._resolver(index, scan, owner))
+            self._inbox.advance(index + 1)
+
+    def _local(self, scan: LaserScan) -> FeaturesOf:
+        def features() -> ScanFeatures:
+            self.misses += 1
+            return extract(scan, self.config)
+
+        return features
+
+    def _resolver(self, index: int, scan: LaserScan, worker: _Worker) -> FeaturesOf:
+        def features() -> ScanFeatures:
+            if self.wait:
+                worker.wait_for(index, self._inbox)
+            else:
+                worker.drain(self._inbox)
+            got = self._inbox.results.get(index)
+            if got is not None:
+                self.hits += 1
+                return got
+            # Not arrived (the worker is behind) or failed: the same computation here (an
+            # error is then raised in this process).
+            self.misses += 1
+            return extract(scan, self.config)
+
+        return features
