@@ -38,6 +38,7 @@ from iceg.slam import remap_weak_directions
 from iceg.types import MatchResult, ScanFeatures
 from iceg_common import se2
 from iceg_common.atomic import atomic_write
+from iceg_common.errors import GraphError
 
 logger = logging.getLogger(__name__)
 
@@ -139,6 +140,10 @@ class FixedMap:
         self.feature_map = feature_map
         self.config = config
         self.matcher = IceMatcher(config.matching)
+        #: The saved session the map comes from (None: a live map); with it,
+        #: :func:`localize_scans` smooths each segment against the frozen map
+        #: (:func:`frozen_map_trajectory`).
+        self.session: Session | None = None
 
     def reference_near(self, pose: FloatArray, k: int) -> tuple[int, MapReference]:
         """Reference of the ``k`` nodes nearest ``pose`` (position), in the nearest one's
@@ -436,7 +441,11 @@ class Localizer:
             if p is None:
                 return self._out(Status.PREDICTED, np.nan)
             if not self._agrees(p):
-                logger.info("placed globally away from the prediction: a new segment")
+                logger.info(
+                    "placed globally at %s, away from the prediction %s: a new segment",
+                    np.round(p.pose, 2).tolist(),
+                    np.round(t.pose, 2).tolist(),  # type: ignore[union-attr]
+                )
                 self.relocalizations += 1
                 return self._start_segment(feats, p)
             on_map = True
@@ -607,6 +616,20 @@ class Localizer:
             covs[r] = ad @ kf_cov[kf] @ ad.T + q
         return poses, covs
 
+    def segments(self) -> list[tuple[int, int, FloatArray]]:
+        """The kept segments: ``(first scan, stop scan, first scan's map-frame pose)``."""
+        out = []
+        segs = sorted({k.segment for k in self._kfs} - self._withdrawn)
+        kf_of_row = np.array([r[0] for r in self._rows], dtype=np.int64)
+        seg_of_row = np.array(
+            [self._kfs[k].segment if k >= 0 else -1 for k in kf_of_row.tolist()], dtype=np.int64
+        )
+        for seg in segs:
+            rows = np.flatnonzero(seg_of_row == seg)
+            first = self._kfs[int(kf_of_row[rows[0]])]
+            out.append((int(rows[0]), int(rows[-1]) + 1, first.pose.copy()))
+        return out
+
     def statuses(self) -> tuple[IntArray, FloatArray]:
         """``(R,)`` :class:`Status` and map-match correlation of every processed scan
         (LOST for the scans of a withdrawn placement)."""
@@ -629,17 +652,40 @@ def localize_scans(
     settings: LocalizeSettings | None = None,
     initial_pose: FloatArray | None = None,
 ) -> LocalizationResult:
-    """Localize every scan of a log in a fixed map (see :class:`Localizer`): the smoothed
-    trajectory with marginal covariances.
+    """Localize every scan of a log in a fixed map.
+
+    The :class:`Localizer` pass places the log (global matching, an initial pose) and cuts it
+    into segments at kidnappings; each segment is then smoothed: against the frozen saved map
+    by :func:`frozen_map_trajectory` when ``fixed.session`` is set (the run's own SLAM with the
+    map's nodes held fixed: local matching, loop closure within the segment and to the map),
+    else by :meth:`Localizer.smoothed`.
+
+    Args:
+        fixed: the map.
+        scans: the log's scans in time order.
+        settings: tuning.
+        initial_pose: ``(3,)`` map-frame guess of the first scan (may be wrong).
+
+    Returns:
+        The trajectory in the map frame with per-scan covariance and status.
 
     Raises:
-        GraphError: gtsam failed on a segment's pose graph.
+        GraphError: gtsam failed.
+        SessionError: the session's scans cannot be re-read.
     """
     loc = Localizer(fixed, settings, initial_pose)
     for s in scans:
         loc.process(s)
-    poses, covs = loc.smoothed()
     status, corr = loc.statuses()
+    if fixed.session is None:
+        poses, covs = loc.smoothed()
+    else:
+        poses = np.full((len(scans), 3), np.nan)
+        covs = np.full((len(scans), 3, 3), np.nan)
+        for first, stop, pose in loc.segments():
+            poses[first:stop], covs[first:stop] = frozen_map_trajectory(
+                fixed, scans[first:stop], pose
+            )
     result = LocalizationResult(
         stamps_s=np.array([s.stamp_s for s in scans], dtype=np.float64),
         poses=poses,
@@ -652,10 +698,92 @@ def localize_scans(
     return result
 
 
+def frozen_map_trajectory(
+    fixed: FixedMap, scans: Sequence[LaserScan], first_pose: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """One segment's trajectory against the frozen saved map, like Cartographer's pure
+    localization (a new trajectory optimized in the pose graph of a frozen one).
+
+    The session is loaded (:func:`iceg.session.load`, in memory), each of its nodes is held
+    by a prior at its saved estimate (``graph.prior_sigma_*``, the gauge prior's), the first
+    scan is matched to the map around ``first_pose`` and starts a segment
+    (:meth:`iceg.slam.Slam.start_segment`), and the run's SLAM goes on over the scans: local
+    matching against the segment's recent nodes, loop closures to its own older nodes and to
+    the map's, batch refinement. The copy is then discarded: the saved map is not changed.
+
+    Args:
+        fixed: a map with ``session`` set.
+        scans: the segment's scans, time order.
+        first_pose: ``(3,)`` map-frame pose of ``scans[0]`` (from the placement).
+
+    Returns:
+        ``poses (R, 3)`` map frame and ``covs (R, 3, 3)`` body frame: a node's marginal, a
+        scan between nodes its node's marginal moved by the odometry since (covariance grown
+        by the odometry noise).
+
+    Raises:
+        GraphError: gtsam failed, or ``fixed.session`` is None.
+        SessionError: the session's scans cannot be re-read.
+    """
+    from iceg import session as sess
+
+    if fixed.session is None:
+        raise GraphError("frozen_map_trajectory needs a map read from a saved session")
+    slam = sess.load(fixed.session.path)
+    ids, saved = slam.graph.estimates()
+    g = slam.config.graph
+    hold = np.diag([g.prior_sigma_xy_m**2] * 2 + [g.prior_sigma_theta_rad**2])
+    for i, pose in zip(ids.tolist(), saved, strict=True):
+        slam.graph.add_prior(i, pose, hold)
+    slam.graph.update()
+    live = FixedMap(ids, saved, slam.feature_map, slam.config)
+    feats = extract(scans[0], slam.config.features)
+    st = LocalizeSettings()
+    p = live.match_at(
+        feats,
+        first_pose,
+        MatchBounds.local(st.track_translation_m, st.track_rotation_deg),
+        st.reference_nodes,
+    )
+    if p is None:  # the placement came from a later scan (carried back by odometry)
+        anchor, ref = live.reference_near(first_pose, st.reference_nodes)
+        pose = se2.between(saved[anchor], first_pose)
+        cov = np.diag([st.track_translation_m**2] * 2 + [np.radians(st.track_rotation_deg) ** 2])
+        match = MatchResult(success=True, pose=pose, cov=cov, correlation=float("nan"))
+        p = Placement(int(ids[anchor]), ref, match, first_pose)
+    saved_scans = slam.export_state().scans
+    n_before = len(saved_scans)
+    # The map's time-validity needs scans after its own: a log recorded before the map (or
+    # overlapping it) is shifted in time as a whole, which changes nothing else.
+    shift = max(0.0, saved_scans[-1].stamp_s - scans[0].stamp_s) if saved_scans else 0.0
+    if shift:
+        scans = [dataclasses.replace(s, stamp_s=s.stamp_s + shift) for s in scans]
+    slam.start_segment(scans[0], p.anchor, p.reference, p.match)
+    for scan in scans[1:]:
+        slam.process(scan)
+    result = slam.finish()
+    poses = result.poses[n_before:]
+    node_of_scan = np.searchsorted(result.node_scan_index, np.arange(len(result.poses)), "right")
+    node_rows = node_of_scan[n_before:] - 1
+    covs = np.empty((len(scans), 3, 3))
+    marg: dict[int, FloatArray] = {}
+    for r, row in enumerate(node_rows.tolist()):
+        node = int(result.node_ids[row])
+        if node not in marg:
+            marg[node] = slam.graph.marginal_covariance(node)
+        delta = se2.between(result.node_poses[row], poses[r])
+        ad = se2.adjoint(se2.inverse(delta))
+        q = odometry_covariance(delta, slam.config.odometry_noise)
+        covs[r] = ad @ marg[node] @ ad.T + q
+    return poses, covs
+
+
 def fixed_map_of_session(session: Session) -> FixedMap:
     """A saved session's map (saved estimates and feature map) as a :class:`FixedMap`."""
     ids, poses = session.node_poses
-    return FixedMap(ids, poses, session.feature_map(), session.config)
+    fixed = FixedMap(ids, poses, session.feature_map(), session.config)
+    fixed.session = session
+    return fixed
 
 
 def localization_rows(result: LocalizationResult) -> list[list[object]]:
