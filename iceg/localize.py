@@ -267,6 +267,20 @@ class _Keyframe:
     prior: tuple[FloatArray, FloatArray] | None = None  # map match: map-frame pose, body cov
 
 
+@dataclass(frozen=True)
+class _Row:
+    """One processed scan: its keyframe (-1: lost), the odometry since it (``(3,)``, the
+    keyframe's frame) with its covariance, status, map-match correlation, and the same
+    relative to the replaced track while a global placement is tentative."""
+
+    kf: int
+    since: FloatArray
+    since_cov: FloatArray
+    status: Status
+    corr: float
+    alt: tuple[int, FloatArray, FloatArray] | None
+
+
 @dataclass
 class _Track:
     pose: FloatArray | None = None
@@ -280,6 +294,7 @@ class _Track:
     lost_scans: int = 0  # scans since the robot was lost
     segment: int = -1  # current segment (a new one at each global placement)
     segment_start: int = 0  # first keyframe of the current segment
+    last_kf: int = -1  # the current segment's last keyframe
 
 
 class Localizer:
@@ -335,15 +350,19 @@ class Localizer:
         self._local_map = FeatureMap(fixed.config.feature_map)
         self._kfs: list[_Keyframe] = []
         self._withdrawn: set[int] = set()  # segments whose placement was not confirmed
-        # per scan: (keyframe index or -1, odometry since it, its covariance, status, corr)
-        self._rows: list[tuple[int, FloatArray, FloatArray, Status, float]] = []
+        # the track before a tentative global placement, carried on by odometry: restored if
+        # the placement is withdrawn
+        self._fallback: _Track | None = None
+        self._rows: list[_Row] = []
         self._n_scans = 0
 
     def process(self, scan: LaserScan) -> tuple[FloatArray, FloatArray, Status, float]:
         """One scan: its causal ``(pose (3,), cov (3, 3), status, correlation)``."""
         out = self._process(scan)
-        kf = len(self._kfs) - 1 if self._t.pose is not None and self._kfs else -1
-        self._rows.append((kf, self._t.since_kf.copy(), self._t.since_kf_cov.copy(), *out[2:]))
+        t, fb = self._t, self._fallback
+        kf = t.last_kf if t.pose is not None else -1
+        alt = None if fb is None else (fb.last_kf, fb.since_kf.copy(), fb.since_kf_cov.copy())
+        self._rows.append(_Row(kf, t.since_kf.copy(), t.since_kf_cov.copy(), out[2], out[3], alt))
         self._n_scans += 1
         return out
 
@@ -353,9 +372,14 @@ class Localizer:
         if t.pose is not None:
             ad = se2.adjoint(se2.inverse(delta))
             t.pose, t.cov = se2.compose(t.pose, delta), ad @ t.cov @ ad.T + q
-        t.since_kf = se2.compose(t.since_kf, delta)
-        ad = se2.adjoint(se2.inverse(delta))
-        t.since_kf_cov = ad @ t.since_kf_cov @ ad.T + q
+        for track in (t, self._fallback):
+            if track is None:
+                continue
+            ad = se2.adjoint(se2.inverse(delta))
+            if track is not t and track.pose is not None:
+                track.pose, track.cov = se2.compose(track.pose, delta), ad @ track.cov @ ad.T + q
+            track.since_kf = se2.compose(track.since_kf, delta)
+            track.since_kf_cov = ad @ track.since_kf_cov @ ad.T + q
         if not self._keyframe(scan):
             return self._out(Status.PREDICTED if t.pose is not None else Status.LOST, np.nan)
         self._scan = scan
@@ -426,6 +450,9 @@ class Localizer:
         if t.tentative > 0 and not on_map:
             logger.info("a global placement was not confirmed by the next keyframe")
             self._withdrawn.add(t.segment)
+            if self._fallback is not None:  # back to the track it replaced
+                self._fallback.odom, self._t, self._fallback = t.odom, self._fallback, None
+                return self._out(Status.PREDICTED, np.nan)
             t.pose, t.cov, t.tentative = None, np.full((3, 3), np.nan), 0
             return self._relocalize(feats)
         local, ref, last = self._match_local(feats)
@@ -444,7 +471,7 @@ class Localizer:
                 logger.info(
                     "placed globally at %s, away from the prediction %s: a new segment",
                     np.round(p.pose, 2).tolist(),
-                    np.round(t.pose, 2).tolist(),  # type: ignore[union-attr]
+                    np.round(np.asarray(t.pose), 2).tolist(),
                 )
                 self.relocalizations += 1
                 return self._start_segment(feats, p)
@@ -463,6 +490,8 @@ class Localizer:
             kf.prior = (p.pose, p.match.cov)  # type: ignore[union-attr]
             t.pose, t.cov = p.pose, p.match.cov  # type: ignore[union-attr]
             t.tentative = max(t.tentative - 1, 0)
+            if t.tentative == 0:
+                self._fallback = None  # confirmed
             status, corr = Status.TRACKED, p.match.correlation  # type: ignore[union-attr]
         kf.pose, kf.cov = t.pose.copy(), t.cov.copy()  # type: ignore[union-attr]
         self._add_keyframe(kf, feats, ref, local)
@@ -487,13 +516,18 @@ class Localizer:
     ) -> tuple[MatchResult | None, MapReference | None, int]:
         """Match against the local tracking map (the segment's last keyframes)."""
         t, cfg = self._t, self.fixed.config.slam
-        last = len(self._kfs) - 1
-        first = max(t.segment_start, last - cfg.local_map_nodes + 1)
-        if last < t.segment_start:
+        last = t.last_kf
+        if last < 0:
             return None, None, last
+        recent = [last]
+        for i in range(last - 1, t.segment_start - 1, -1):
+            if len(recent) >= cfg.local_map_nodes:
+                break
+            if self._kfs[i].segment == t.segment:
+                recent.append(i)
         ids = np.arange(len(self._kfs), dtype=np.int64)
         poses = np.array([k.pose for k in self._kfs])
-        ref = self._local_map.reference((ids, poses), ids[first : last + 1], poses[last])
+        ref = self._local_map.reference((ids, poses), np.array(recent), poses[last])
         bounds = self._bounds(t.since_kf_cov, False)
         res = self.fixed.matcher.match(feats, ref.features, t.since_kf, bounds)
         if not res.success:
@@ -512,6 +546,7 @@ class Localizer:
         """Record the keyframe and add its features to the local tracking map."""
         t = self._t
         self._kfs.append(kf)
+        t.last_kf = len(self._kfs) - 1
         ids = np.arange(len(self._kfs), dtype=np.int64)
         poses = np.array([k.pose for k in self._kfs])
         self._local_map.update(
@@ -548,7 +583,8 @@ class Localizer:
     ) -> tuple[FloatArray, FloatArray, Status, float]:
         """A global (or initial-pose) placement: a new segment, tentative until confirmed."""
         t, st = self._t, self.settings
-        t.segment += 1
+        self._fallback = dataclasses.replace(t) if t.pose is not None else None
+        t.segment = max((k.segment for k in self._kfs), default=-1) + 1
         t.segment_start = len(self._kfs)
         t.pose, t.cov, t.fails, t.tentative = p.pose, p.match.cov, 0, st.confirm_keyframes
         t.lost_scans = 0
@@ -593,23 +629,25 @@ class Localizer:
             for i in rows:
                 g.add_node(i, self._kfs[i].pose)
             for a, b in itertools.pairwise(rows):
-                kf = self._kfs[b]
-                g.add_between(a, b, kf.odom, _pd(kf.odom_cov), kind=FactorKind.ODOMETRY)
+                k = self._kfs[b]
+                if k.odom is not None and k.odom_cov is not None:
+                    g.add_between(a, b, k.odom, _pd(k.odom_cov), kind=FactorKind.ODOMETRY)
             for i in rows:
-                kf = self._kfs[i]
-                if kf.local is not None:
+                k = self._kfs[i]
+                if k.local is not None:
                     g.add_between(
-                        kf.local_from, i, kf.local.pose, kf.local.cov, kind=FactorKind.SCAN_MATCH
+                        k.local_from, i, k.local.pose, k.local.cov, kind=FactorKind.SCAN_MATCH
                     )
-                if kf.prior is not None:
-                    g.add_prior(i, kf.prior[0], kf.prior[1])
+                if k.prior is not None:
+                    g.add_prior(i, k.prior[0], k.prior[1])
             g.optimize_batch()
             ids, est = g.estimates()
             kf_pose[ids] = est
             for i in rows:
                 kf_cov[i] = g.marginal_covariance(i)
-        for r, (kf, delta, q, _, _) in enumerate(self._rows):
-            if kf < 0 or self._kfs[kf].segment in self._withdrawn:
+        for r in range(n):
+            kf, delta, q, _, _ = self._effective(r)
+            if kf < 0:
                 continue
             poses[r] = se2.compose(kf_pose[kf], delta)
             ad = se2.adjoint(se2.inverse(delta))
@@ -620,7 +658,7 @@ class Localizer:
         """The kept segments: ``(first scan, stop scan, first scan's map-frame pose)``."""
         out = []
         segs = sorted({k.segment for k in self._kfs} - self._withdrawn)
-        kf_of_row = np.array([r[0] for r in self._rows], dtype=np.int64)
+        kf_of_row = np.array([self._effective(r)[0] for r in range(len(self._rows))])
         seg_of_row = np.array(
             [self._kfs[k].segment if k >= 0 else -1 for k in kf_of_row.tolist()], dtype=np.int64
         )
@@ -633,12 +671,20 @@ class Localizer:
     def statuses(self) -> tuple[IntArray, FloatArray]:
         """``(R,)`` :class:`Status` and map-match correlation of every processed scan
         (LOST for the scans of a withdrawn placement)."""
-        status = np.array([int(r[3]) for r in self._rows], dtype=np.int64)
-        corr = np.array([r[4] for r in self._rows], dtype=np.float64)
-        for r, row in enumerate(self._rows):
-            if row[0] >= 0 and self._kfs[row[0]].segment in self._withdrawn:
-                status[r], corr[r] = int(Status.LOST), np.nan
+        rows = [self._effective(r) for r in range(len(self._rows))]
+        status = np.array([int(r[3]) for r in rows], dtype=np.int64)
+        corr = np.array([r[4] for r in rows], dtype=np.float64)
         return status, corr
+
+    def _effective(self, r: int) -> tuple[int, FloatArray, FloatArray, Status, float]:
+        """Row ``r`` with withdrawn placements undone: its keyframe (-1: lost), odometry
+        since it and covariance, status and correlation."""
+        row = self._rows[r]
+        if row.kf < 0 or self._kfs[row.kf].segment not in self._withdrawn:
+            return row.kf, row.since, row.since_cov, row.status, row.corr
+        if row.alt is not None:
+            return row.alt[0], row.alt[1], row.alt[2], Status.PREDICTED, np.nan
+        return -1, row.since, row.since_cov, Status.LOST, np.nan
 
 
 def _pd(cov: FloatArray) -> FloatArray:
