@@ -34,7 +34,7 @@ from iceg.feature_map import FeatureMap, MapReference
 from iceg.features import extract
 from iceg.matching import IceMatcher, MatchBounds
 from iceg.session import Session
-from iceg.slam import remap_weak_directions
+from iceg.slam import Slam, remap_weak_directions
 from iceg.types import MatchResult, ScanFeatures
 from iceg_common import se2
 from iceg_common.atomic import atomic_write
@@ -79,6 +79,10 @@ class LocalizeSettings:
         lost_retry_scans: a lost robot searches globally every this many scans.
         search_n_sigma: a tracking match against the map searches this many standard
             deviations of the predicted pose (at least the tracking bounds).
+        check_every_nodes: localization in a saved map: every this many new nodes (and
+            every ``lost_retry_scans`` scans after ``lost_after`` unmatched keyframes) the
+            scan is placed globally; ``confirm_keyframes`` placements in a row that disagree
+            with the track and agree with each other mean the robot was carried away.
     """
 
     reference_nodes: int = 12
@@ -99,6 +103,7 @@ class LocalizeSettings:
     max_global_tries: int = 1_000_000
     lost_retry_scans: int = 5
     search_n_sigma: float = 3.0
+    check_every_nodes: int = 10
 
 
 @dataclass(frozen=True, eq=False)
@@ -141,8 +146,7 @@ class FixedMap:
         self.config = config
         self.matcher = IceMatcher(config.matching)
         #: The saved session the map comes from (None: a live map); with it,
-        #: :func:`localize_scans` smooths each segment against the frozen map
-        #: (:func:`frozen_map_trajectory`).
+        #: :func:`localize_scans` runs the session's SLAM against the frozen map.
         self.session: Session | None = None
 
     def reference_near(self, pose: FloatArray, k: int) -> tuple[int, MapReference]:
@@ -426,7 +430,13 @@ class Localizer:
         p = self.fixed.match_at(feats, pose, bounds, st.reference_nodes)  # type: ignore[arg-type]
         if p is None or p.match.correlation < st.min_correlation:
             logger.info("the initial pose does not match the map; searching globally")
-            return self._relocalize(feats)
+            p = self.fixed.place(feats, st)
+            if p is None or _far(p.pose, pose, st):  # type: ignore[arg-type]
+                self._t.global_tries += 1
+                self.relocalizations += p is not None
+                return (
+                    self._out(Status.LOST, np.nan) if p is None else self._start_segment(feats, p)
+                )
         return self._start_segment(feats, p)
 
     def _bounds(self, cov: FloatArray, on_map: bool) -> MatchBounds:
@@ -654,20 +664,6 @@ class Localizer:
             covs[r] = ad @ kf_cov[kf] @ ad.T + q
         return poses, covs
 
-    def segments(self) -> list[tuple[int, int, FloatArray]]:
-        """The kept segments: ``(first scan, stop scan, first scan's map-frame pose)``."""
-        out = []
-        segs = sorted({k.segment for k in self._kfs} - self._withdrawn)
-        kf_of_row = np.array([self._effective(r)[0] for r in range(len(self._rows))])
-        seg_of_row = np.array(
-            [self._kfs[k].segment if k >= 0 else -1 for k in kf_of_row.tolist()], dtype=np.int64
-        )
-        for seg in segs:
-            rows = np.flatnonzero(seg_of_row == seg)
-            first = self._kfs[int(kf_of_row[rows[0]])]
-            out.append((int(rows[0]), int(rows[-1]) + 1, first.pose.copy()))
-        return out
-
     def statuses(self) -> tuple[IntArray, FloatArray]:
         """``(R,)`` :class:`Status` and map-match correlation of every processed scan
         (LOST for the scans of a withdrawn placement)."""
@@ -700,11 +696,10 @@ def localize_scans(
 ) -> LocalizationResult:
     """Localize every scan of a log in a fixed map.
 
-    The :class:`Localizer` pass places the log (global matching, an initial pose) and cuts it
-    into segments at kidnappings; each segment is then smoothed: against the frozen saved map
-    by :func:`frozen_map_trajectory` when ``fixed.session`` is set (the run's own SLAM with the
-    map's nodes held fixed: local matching, loop closure within the segment and to the map),
-    else by :meth:`Localizer.smoothed`.
+    With a saved session (``fixed.session``, as :func:`fixed_map_of_session` makes): pure
+    localization in the manner of Cartographer's localization mode, a new trajectory
+    optimized in the pose graph of the frozen one (:func:`_localize_in_session`). Without
+    (a live map): the causal :class:`Localizer` and its per-segment smoothing.
 
     Args:
         fixed: the map.
@@ -719,62 +714,84 @@ def localize_scans(
         GraphError: gtsam failed.
         SessionError: the session's scans cannot be re-read.
     """
+    if fixed.session is not None:
+        return _localize_in_session(fixed, scans, settings or LocalizeSettings(), initial_pose)
     loc = Localizer(fixed, settings, initial_pose)
     for s in scans:
         loc.process(s)
     status, corr = loc.statuses()
-    if fixed.session is None:
-        poses, covs = loc.smoothed()
-    else:
-        poses = np.full((len(scans), 3), np.nan)
-        covs = np.full((len(scans), 3, 3), np.nan)
-        for first, stop, pose in loc.segments():
-            poses[first:stop], covs[first:stop] = frozen_map_trajectory(
-                fixed, scans[first:stop], pose
-            )
+    poses, covs = loc.smoothed()
+    return _result(scans, poses, covs, status, corr, loc.relocalizations)
+
+
+def _result(
+    scans: Sequence[LaserScan],
+    poses: FloatArray,
+    covs: FloatArray,
+    status: IntArray,
+    corr: FloatArray,
+    relocalizations: int,
+) -> LocalizationResult:
     result = LocalizationResult(
         stamps_s=np.array([s.stamp_s for s in scans], dtype=np.float64),
         poses=poses,
         covs=covs,
         status=status,
         correlations=corr,
-        relocalizations=loc.relocalizations,
+        relocalizations=relocalizations,
     )
     result.summary = {s.name.lower(): int(np.sum(status == s)) for s in Status}
     return result
 
 
-def frozen_map_trajectory(
-    fixed: FixedMap, scans: Sequence[LaserScan], first_pose: FloatArray
-) -> tuple[FloatArray, FloatArray]:
-    """One segment's trajectory against the frozen saved map, like Cartographer's pure
-    localization (a new trajectory optimized in the pose graph of a frozen one).
+def _localize_in_session(
+    fixed: FixedMap,
+    scans: Sequence[LaserScan],
+    st: LocalizeSettings,
+    initial_pose: FloatArray | None,
+) -> LocalizationResult:
+    """Localization against a frozen saved map, segment by segment.
 
-    The session is loaded (:func:`iceg.session.load`, in memory), each of its nodes is held
-    by a prior at its saved estimate (``graph.prior_sigma_*``, the gauge prior's), the first
-    scan is matched to the map around ``first_pose`` and starts a segment
-    (:meth:`iceg.slam.Slam.start_segment`), and the run's SLAM goes on over the scans: local
-    matching against the segment's recent nodes, loop closures to its own older nodes and to
-    the map's, batch refinement. The copy is then discarded: the saved map is not changed.
-
-    Args:
-        fixed: a map with ``session`` set.
-        scans: the segment's scans, time order.
-        first_pose: ``(3,)`` map-frame pose of ``scans[0]`` (from the placement).
-
-    Returns:
-        ``poses (R, 3)`` map frame and ``covs (R, 3, 3)`` body frame: a node's marginal, a
-        scan between nodes its node's marginal moved by the odometry since (covariance grown
-        by the odometry noise).
-
-    Raises:
-        GraphError: gtsam failed, or ``fixed.session`` is None.
-        SessionError: the session's scans cannot be re-read.
+    A segment starts where a scan is placed in the map and the placement is confirmed by
+    the next scans (:func:`iceg.continuation.place_first_scan`: around ``initial_pose`` for
+    the first segment when given, else by global matching; an offline run may look ahead).
+    It runs the session's own SLAM with the map frozen (:func:`_run_segment`) until the
+    track is lost: ``lost_after`` keyframes in a row matched nothing and a global placement
+    of the current scan disagrees with the estimate (a kidnapping). Scans that cannot be
+    placed are LOST; the next placement is searched after them.
     """
+    from iceg.continuation import START_SCANS, place_first_scan
+    from iceg_common.errors import SessionError
+
+    n = len(scans)
+    poses = np.full((n, 3), np.nan)
+    covs = np.full((n, 3, 3), np.nan)
+    status = np.full(n, int(Status.LOST), dtype=np.int64)
+    corr = np.full(n, np.nan)
+    relocalizations = 0
+    guess = None if initial_pose is None else np.asarray(initial_pose, dtype=np.float64)
+    i = 0
+    while i < n:
+        try:
+            placement = place_first_scan(fixed, scans[i:], guess, st)
+        except SessionError as exc:
+            logger.info("scans %d-%d not placed: %s", i, min(n, i + START_SCANS) - 1, exc)
+            guess, i = None, i + START_SCANS
+            continue
+        relocalizations += guess is None or _far(placement.pose, guess, st)
+        guess = None
+        stop = _run_segment(fixed, scans, i, placement, st, (poses, covs, status, corr))
+        i = stop
+    return _result(scans, poses, covs, status, corr, relocalizations)
+
+
+def _frozen_slam(fixed: FixedMap) -> Slam:
+    """The session loaded in memory with each of its nodes held by a prior at its saved
+    estimate (``graph.prior_sigma_*``, the gauge prior's sigmas): the frozen map."""
     from iceg import session as sess
 
     if fixed.session is None:
-        raise GraphError("frozen_map_trajectory needs a map read from a saved session")
+        raise GraphError("a frozen map needs a map read from a saved session")
     slam = sess.load(fixed.session.path)
     ids, saved = slam.graph.estimates()
     g = slam.config.graph
@@ -782,46 +799,157 @@ def frozen_map_trajectory(
     for i, pose in zip(ids.tolist(), saved, strict=True):
         slam.graph.add_prior(i, pose, hold)
     slam.graph.update()
+    return slam
+
+
+def _run_segment(
+    fixed: FixedMap,
+    scans: Sequence[LaserScan],
+    first: int,
+    placement: Placement,
+    st: LocalizeSettings,
+    out: tuple[FloatArray, FloatArray, IntArray, FloatArray],
+) -> int:
+    """One segment, from scan ``first`` placed by ``placement``, against the frozen map:
+    the run's SLAM (local matching against the segment's recent nodes, loop closures to its
+    own nodes and to the map's, batch refinement) in a copy of the session whose nodes are
+    held fixed (:func:`_frozen_slam`; discarded after: the saved map is not changed). Fills
+    ``out`` = (poses, covs, status, correlation) for the segment's scans and returns the
+    stop index (the scan where the track was found lost, or the log's end).
+
+    Poses are the refined estimates (map frame); covariances the nodes' marginals, a scan
+    between nodes its node's moved by the odometry since (grown by the odometry noise).
+    Status: PLACED (first scan), TRACKED (a node with a closure to a map node), LOCAL (a node
+    with a local match), PREDICTED (no match; scans between nodes).
+    """
+    slam = _frozen_slam(fixed)
+    ids, saved = slam.graph.estimates()
+    n_map = int(ids.max()) + 1
     live = FixedMap(ids, saved, slam.feature_map, slam.config)
-    feats = extract(scans[0], slam.config.features)
-    st = LocalizeSettings()
-    p = live.match_at(
-        feats,
-        first_pose,
-        MatchBounds.local(st.track_translation_m, st.track_rotation_deg),
-        st.reference_nodes,
-    )
-    if p is None:  # the placement came from a later scan (carried back by odometry)
-        anchor, ref = live.reference_near(first_pose, st.reference_nodes)
-        pose = se2.between(saved[anchor], first_pose)
-        cov = np.diag([st.track_translation_m**2] * 2 + [np.radians(st.track_rotation_deg) ** 2])
-        match = MatchResult(success=True, pose=pose, cov=cov, correlation=float("nan"))
-        p = Placement(int(ids[anchor]), ref, match, first_pose)
+    feats = extract(scans[first], slam.config.features)
+    bounds = MatchBounds.local(st.track_translation_m, st.track_rotation_deg)
+    p = live.match_at(feats, placement.pose, bounds, st.reference_nodes)
+    if p is None:  # the placement came from a later scan, carried back by odometry
+        anchor, ref = live.reference_near(placement.pose, st.reference_nodes)
+        rel = se2.between(saved[anchor], placement.pose)
+        p = Placement(
+            int(ids[anchor]),
+            ref,
+            dataclasses.replace(placement.match, pose=rel),
+            placement.pose,
+        )
     saved_scans = slam.export_state().scans
     n_before = len(saved_scans)
     # The map's time-validity needs scans after its own: a log recorded before the map (or
     # overlapping it) is shifted in time as a whole, which changes nothing else.
-    shift = max(0.0, saved_scans[-1].stamp_s - scans[0].stamp_s) if saved_scans else 0.0
-    if shift:
-        scans = [dataclasses.replace(s, stamp_s=s.stamp_s + shift) for s in scans]
-    slam.start_segment(scans[0], p.anchor, p.reference, p.match)
-    for scan in scans[1:]:
-        slam.process(scan)
+    shift = max(0.0, saved_scans[-1].stamp_s - scans[first].stamp_s) if saved_scans else 0.0
+    slam.start_segment(_shifted(scans[first], shift), p.anchor, p.reference, p.match)
+    fails, stop, checked = 0, len(scans), 0
+    chi2 = slam.config.loop_closure.consistency_chi2
+    doubts: list[tuple[int, FloatArray, Placement]] = []  # placements against the track
+    for j in range(first + 1, len(scans)):
+        n_nodes, n_factors = slam.graph.n_nodes, slam.graph.n_factors
+        slam.process(_shifted(scans[j], shift))
+        if slam.graph.n_nodes == n_nodes:
+            continue
+        added = slam.graph.factors[n_factors:]
+        matched = any(f.kind in (FactorKind.SCAN_MATCH, FactorKind.LOOP_CLOSURE) for f in added)
+        fails = 0 if matched else fails + 1
+        checked += 1
+        unmatched = fails >= st.lost_after and (fails - st.lost_after) % st.lost_retry_scans == 0
+        if not (unmatched or checked % st.check_every_nodes == 0):
+            continue
+        node = slam.graph.n_nodes - 1
+        est = slam.graph.estimate(node)
+        again = fixed.place(extract(scans[j], slam.config.features), st)
+        if again is None:
+            continue
+        if _agrees(est, slam.graph.marginal_covariance(node), again, chi2):
+            doubts.clear()
+            continue
+        doubts.append((j, est, again))
+        if _kidnapped(doubts[-st.confirm_keyframes :], st.confirm_keyframes, chi2):
+            stop = doubts[-st.confirm_keyframes][0]
+            logger.info("scans %d-%d: placed in the map away from the track: lost", stop, j)
+            break
     result = slam.finish()
-    poses = result.poses[n_before:]
-    node_of_scan = np.searchsorted(result.node_scan_index, np.arange(len(result.poses)), "right")
-    node_rows = node_of_scan[n_before:] - 1
-    covs = np.empty((len(scans), 3, 3))
+    poses, covs, status, corr = out
+    poses[first:stop] = result.poses[n_before : n_before + stop - first]
+    node_row = np.searchsorted(result.node_scan_index, np.arange(len(result.poses)), "right") - 1
+    seg_nodes = result.node_ids[node_row[n_before : n_before + stop - first]]
+    to_map: dict[int, float] = {}
+    local: set[int] = set()
+    for f in result.factors:
+        if f.j is None or f.j < n_map:
+            continue
+        if f.kind is FactorKind.LOOP_CLOSURE and f.i < n_map:
+            to_map[f.j] = result.correlations.get(f.index, np.nan)
+        elif f.kind is FactorKind.SCAN_MATCH:
+            local.add(f.j)
     marg: dict[int, FloatArray] = {}
-    for r, row in enumerate(node_rows.tolist()):
-        node = int(result.node_ids[row])
+    for r, node in enumerate(seg_nodes.tolist()):
         if node not in marg:
             marg[node] = slam.graph.marginal_covariance(node)
-        delta = se2.between(result.node_poses[row], poses[r])
+        row = node_row[n_before + r]
+        delta = se2.between(result.node_poses[row], result.poses[n_before + r])
         ad = se2.adjoint(se2.inverse(delta))
         q = odometry_covariance(delta, slam.config.odometry_noise)
-        covs[r] = ad @ marg[node] @ ad.T + q
-    return poses, covs
+        covs[first + r] = ad @ marg[node] @ ad.T + q
+        is_node = result.node_scan_index[row] == n_before + r
+        if r == 0:
+            status[first], corr[first] = int(Status.PLACED), placement.match.correlation
+        elif is_node and node in to_map:
+            status[first + r], corr[first + r] = int(Status.TRACKED), to_map[node]
+        elif is_node and node in local:
+            status[first + r] = int(Status.LOCAL)
+        else:
+            status[first + r] = int(Status.PREDICTED)
+    return stop
+
+
+def _kidnapped(doubts: list[tuple[int, FloatArray, Placement]], need: int, chi2: float) -> bool:
+    """``need`` global placements against the track that agree with each other: each
+    consecutive pair's relative pose matches the track's relative motion between the two
+    scans (short, hence accurate even when the track is in the wrong place) within the
+    ``chi2`` gate under the two placements' covariances."""
+    if len(doubts) < need:
+        return False
+    for (_, e1, p1), (_, e2, p2) in itertools.pairwise(doubts):
+        d = se2.between(se2.between(e1, e2), se2.between(p1.pose, p2.pose))
+        rel = se2.between(p1.pose, p2.pose)
+        ad = se2.adjoint(se2.inverse(rel))
+        s = ad @ p1.match.cov @ ad.T + p2.match.cov
+        try:
+            if float(d @ np.linalg.solve(s, d)) > chi2:
+                return False
+        except np.linalg.LinAlgError:
+            return False
+    return True
+
+
+def _far(pose: FloatArray, guess: FloatArray, st: LocalizeSettings) -> bool:
+    """A placement outside the initial pose's bounds (found by the global search)."""
+    d = se2.between(guess, pose)
+    return bool(
+        np.hypot(d[0], d[1]) > st.initial_translation_m
+        or abs(d[2]) > np.radians(st.initial_rotation_deg)
+    )
+
+
+def _shifted(scan: LaserScan, shift_s: float) -> LaserScan:
+    return dataclasses.replace(scan, stamp_s=scan.stamp_s + shift_s) if shift_s else scan
+
+
+def _agrees(pose: FloatArray, cov: FloatArray, p: Placement, chi2: float) -> bool:
+    """A placement agrees with an estimate ``pose`` of covariance ``cov`` (body frame): its
+    innovation is within the ``chi2`` gate under both covariances."""
+    e = se2.between(pose, p.pose)
+    ad = se2.adjoint(se2.inverse(e))
+    s = ad @ cov @ ad.T + p.match.cov
+    try:
+        return float(e @ np.linalg.solve(s, e)) <= chi2
+    except np.linalg.LinAlgError:
+        return False
 
 
 def fixed_map_of_session(session: Session) -> FixedMap:
