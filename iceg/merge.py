@@ -14,6 +14,7 @@ renumbered nodes; duplicates of one corner seen in both sessions are not fused).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -86,11 +87,14 @@ class InterClosure:
         node_b: B's node (B's numbering).
         placement: the match (``anchor`` an A node; ``match.pose`` B's node in its frame).
         transform: ``(3,)`` B map frame -> A map frame that it implies.
+        robust: enters with the run's robust kernel (False: accepted as a consistent group
+            correcting B's estimate by more than its bounds, as the run's global closures).
     """
 
     node_b: int
     placement: Placement
     transform: FloatArray
+    robust: bool = True
 
 
 def find_closures(
@@ -246,16 +250,33 @@ def _densify(
             todo.append((row, MatchBounds.local(trans, rot)))
     scans = read_scans(b, [int(b.arrays["n_scan"][row]) for row, _ in todo])
     loc = LocalizeSettings()
-    found = []
+    found: list[InterClosure] = []
     tried = len(todo)
+    # matched without bounds around the estimate: accepted by consistency only
+    wide: list[InterClosure] = []
     for (row, bounds), scan in zip(todo, scans, strict=True):
         feats = extract(scan, fixed.config.features)
-        p = fixed.match_at(feats, poses[row], bounds, loc.reference_nodes)
-        if p is None or p.match.correlation < loc.min_correlation:
-            continue
-        if segment_fit(feats, p, loc.fit_tolerance_m) >= loc.min_fit:
-            found.append(InterClosure(int(ids_b[row]), p, np.zeros(3)))
-    logger.info("merge: %d local inter-session closures of %d tried", len(found), tried)
+        for bnd, out_list in ((bounds, found), (MatchBounds.global_(), wide)):
+            p = fixed.match_at(feats, poses[row], bnd, loc.reference_nodes)
+            if p is None or p.match.correlation < loc.min_correlation:
+                continue
+            if segment_fit(feats, p, loc.fit_tolerance_m) >= loc.min_fit:
+                t = se2.compose(p.pose, se2.inverse(poses[row]))
+                out_list.append(InterClosure(int(ids_b[row]), p, t))
+                break
+    # The run's loop closer searches without bounds where the local radius is capped; here,
+    # as in its global search, such closures enter only as a mutually consistent group
+    # (pairwise consistency of their implied B-to-A corrections, :func:`_consistent`).
+    group = _consistent(wide, st) if len(wide) >= st.min_closures else []
+    if len(group) >= st.min_closures:  # no robust kernel: it would ignore the correction
+        found += [dataclasses.replace(c, robust=False) for c in group]
+    logger.info(
+        "merge: %d local inter-session closures of %d tried (%d of %d unbounded ones agree)",
+        len(found),
+        tried,
+        len(group),
+        len(wide),
+    )
     return found
 
 
@@ -356,7 +377,9 @@ def _add_closures(
         "g_ij": np.array([[c.placement.anchor, c.node_b + n_a] for c in closures]),
         "g_measured": np.array([c.placement.match.pose for c in closures]),
         "g_cov": np.array([c.placement.match.cov for c in closures]),
-        "g_robust": np.full(k, ROBUST_KERNELS.index(kernel)),
+        "g_robust": np.array(
+            [ROBUST_KERNELS.index(kernel if c.robust else None) for c in closures], dtype=int
+        ),
         "g_robust_k": np.full(k, np.nan),
         "g_origin": np.full(k, ORIGIN_RUN),
         "g_correlation": np.array([c.placement.match.correlation for c in closures]),
