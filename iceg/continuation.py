@@ -87,13 +87,14 @@ def place_first_scan(
     for k, scan in enumerate(scans[:START_SCANS]):
         if k and (scan.odom_pose is None or scan.odom_break):
             break  # no odometry back to the first scan
-        if guess is None and k % START_STEP:
-            continue  # a global search is costly: every START_STEP-th scan
+        search = k % START_STEP == 0  # a global search is costly: every START_STEP-th scan
+        if guess is None and not search:
+            continue
         feats = extract(scan, fixed.config.features)
         if feats.n_features < 2:
             continue
         here = None if guess is None else se2.compose(guess, _odometry(scans, 0, k))
-        placement = _place_one(fixed, feats, here, st)
+        placement = _place_one(fixed, feats, here, st, search)
         if placement is None:
             continue
         _confirm(fixed, scans[k:], placement, st)
@@ -111,14 +112,19 @@ def _odometry(scans: Sequence[LaserScan], i: int, j: int) -> FloatArray:
 
 
 def _place_one(
-    fixed: FixedMap, feats: ScanFeatures, guess: FloatArray | None, st: LocalizeSettings
+    fixed: FixedMap,
+    feats: ScanFeatures,
+    guess: FloatArray | None,
+    st: LocalizeSettings,
+    search: bool = True,
 ) -> Placement | None:
+    """Around ``guess`` when given, else (or when that fails) globally if ``search``."""
     if guess is not None:
         bounds = MatchBounds.local(st.initial_translation_m, st.initial_rotation_deg)
         p = fixed.match_at(feats, guess, bounds, st.reference_nodes)
         if p is not None and p.match.correlation >= st.min_correlation:
             return p
-    return fixed.place(feats, st)
+    return fixed.place(feats, st) if search else None
 
 
 def _carry_back(fixed: FixedMap, scans: Sequence[LaserScan], k: int, p: Placement) -> Placement:

@@ -1,14 +1,13 @@
 """Localization in a saved map, and placing a new log in it (``iceg localize``, ``iceg run
 --continue``; issue 15).
 
-The map is fixed: the session's node poses and feature map are read, nothing is added. Each
-keyframe of the new log is ICE-matched against the landmarks of the map nodes nearest its
-predicted pose (odometry from the last matched pose); its pose is ``anchor ∘ match`` with the
-match covariance, and scans between keyframes follow odometry with the covariance grown by the
-odometry noise. When no pose is known (start without an initial pose, or after
-``lost_after`` failed keyframes: a kidnapping, dropped scans) the keyframe is matched
-globally (no prediction, unbounded rotation) against candidate places spread over the map;
-a global placement is only trusted after ``confirm_keyframes`` consecutive tracked keyframes.
+The map is fixed: the session's node poses and feature map are read, nothing is added to
+them. :class:`Localizer` is a pure-localization mode in the manner of Cartographer's and
+slam_toolbox's: odometry prediction, keyframes matched against the fixed map (bounds grown with
+the pose's uncertainty) and against a local tracking map of the log's own recent keyframes
+(places the map never saw), global matching (no prediction) at the start without a pose and
+when the robot is lost (neither map matches, a kidnapping), and at the end a smoothing pose
+graph per segment with the map matches as priors (the map stays fixed).
 
 Frames: poses ``[x_m, y_m, theta_rad]`` in the map frame of the session; covariances ``(3, 3)``
 in the tangent space of the pose (body frame, gtsam convention), m² / rad².
@@ -16,6 +15,8 @@ in the tangent space of the pose (body frame, gtsam convention), m² / rad².
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 import json
 import logging
 from collections.abc import Sequence
@@ -27,15 +28,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from frontends import LaserScan
-from graph import odometry_covariance
+from graph import FactorKind, PoseGraph, odometry_covariance
 from iceg.config import IcegConfig
 from iceg.feature_map import FeatureMap, MapReference
 from iceg.features import extract
 from iceg.matching import IceMatcher, MatchBounds
 from iceg.session import Session
+from iceg.slam import Slam, remap_weak_directions
 from iceg.types import MatchResult, ScanFeatures
 from iceg_common import se2
 from iceg_common.atomic import atomic_write
+from iceg_common.errors import GraphError
 
 logger = logging.getLogger(__name__)
 
@@ -47,9 +50,10 @@ class Status(IntEnum):
     """How a scan's pose was obtained."""
 
     LOST = 0  # no pose known (before the first placement); pose NaN
-    PREDICTED = 1  # odometry from the last matched pose
-    TRACKED = 2  # a local match against the map
+    PREDICTED = 1  # odometry from the last keyframe (or a keyframe that matched nothing)
+    TRACKED = 2  # a keyframe matched against the fixed map
     PLACED = 3  # a global match (tentative until confirmed)
+    LOCAL = 4  # a match against the local tracking map only (a place the map never saw)
 
 
 @dataclass(frozen=True)
@@ -61,7 +65,8 @@ class LocalizeSettings:
         track_translation_m / track_rotation_deg: bounds of a tracking match.
         initial_translation_m / initial_rotation_deg: bounds around a given initial pose.
         min_correlation: least ICE correlation (eq. 1) of an accepted match.
-        lost_after: failed tracking keyframes before a global search.
+        lost_after: consecutive keyframe scans matching neither the map nor the local
+            tracking map before a global search.
         min_fit: least fraction of a globally placed scan's points (within the map's
             reach) lying within ``fit_tolerance_m`` of a map segment.
         ambiguity_margin: a global placement is refused when a distinct place (more than
@@ -72,6 +77,12 @@ class LocalizeSettings:
         max_global_tries: global searches before giving up (bounds the cost of a log
             outside the map).
         lost_retry_scans: a lost robot searches globally every this many scans.
+        search_n_sigma: a tracking match against the map searches this many standard
+            deviations of the predicted pose (at least the tracking bounds).
+        check_every_nodes: localization in a saved map: every this many new nodes (and
+            every ``lost_retry_scans`` scans after ``lost_after`` unmatched keyframes) the
+            scan is placed globally; ``confirm_keyframes`` placements in a row that disagree
+            with the track and agree with each other mean the robot was carried away.
     """
 
     reference_nodes: int = 12
@@ -91,6 +102,8 @@ class LocalizeSettings:
     keyframe_rotation_deg: float = 15.0
     max_global_tries: int = 1_000_000
     lost_retry_scans: int = 5
+    search_n_sigma: float = 3.0
+    check_every_nodes: int = 10
 
 
 @dataclass(frozen=True, eq=False)
@@ -132,6 +145,9 @@ class FixedMap:
         self.feature_map = feature_map
         self.config = config
         self.matcher = IceMatcher(config.matching)
+        #: The saved session the map comes from (None: a live map); with it,
+        #: :func:`localize_scans` runs the session's SLAM against the frozen map.
+        self.session: Session | None = None
 
     def reference_near(self, pose: FloatArray, k: int) -> tuple[int, MapReference]:
         """Reference of the ``k`` nodes nearest ``pose`` (position), in the nearest one's
@@ -222,10 +238,13 @@ class LocalizationResult:
 
     Attributes:
         stamps_s: ``(R,)`` scan stamps.
-        poses: ``(R, 3)`` map-frame poses (NaN while lost).
-        covs: ``(R, 3, 3)`` pose covariances, body frame (NaN while lost).
+        poses: ``(R, 3)`` map-frame poses ``[x_m, y_m, theta_rad]`` (NaN while lost).
+        covs: ``(R, 3, 3)`` pose covariances, body frame, m² / rad² (NaN while lost).
         status: ``(R,)`` int64 :class:`Status` values.
-        correlations: ``(R,)`` ICE correlation of the scan's match (NaN: not matched).
+        correlations: ``(R,)`` ICE correlation of the scan's map match (NaN: not matched
+            against the map).
+        relocalizations: global placements made (the start without a pose, kidnappings).
+        summary: scans per status (lower-case names) and keyframe counts.
     """
 
     stamps_s: FloatArray
@@ -238,19 +257,81 @@ class LocalizationResult:
 
 
 @dataclass
+class _Keyframe:
+    """A keyframe of the new log: its causal pose and the measurements that placed it."""
+
+    scan_index: int
+    segment: int
+    pose: FloatArray  # causal (filtered) map-frame estimate
+    cov: FloatArray  # its covariance, body frame
+    odom: FloatArray | None = None  # odometry from the previous keyframe of the segment
+    odom_cov: FloatArray | None = None
+    local: MatchResult | None = None  # match against the previous keyframes (from ``local_from``)
+    local_from: int = -1
+    prior: tuple[FloatArray, FloatArray] | None = None  # map match: map-frame pose, body cov
+
+
+@dataclass(frozen=True)
+class _Row:
+    """One processed scan: its keyframe (-1: lost), the odometry since it (``(3,)``, the
+    keyframe's frame) with its covariance, status, map-match correlation, and the same
+    relative to the replaced track while a global placement is tentative."""
+
+    kf: int
+    since: FloatArray
+    since_cov: FloatArray
+    status: Status
+    corr: float
+    alt: tuple[int, FloatArray, FloatArray] | None
+
+
+@dataclass
 class _Track:
     pose: FloatArray | None = None
     cov: FloatArray = field(default_factory=lambda: np.full((3, 3), np.nan))
     odom: FloatArray | None = None  # odometry of the last scan
-    since_match: FloatArray = field(default_factory=lambda: np.zeros(3))  # odometry motion
-    fails: int = 0
-    tentative: int = 0  # >0: confirmations still needed after a global placement
+    since_kf: FloatArray = field(default_factory=lambda: np.zeros(3))  # odometry motion
+    since_kf_cov: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))
+    fails: int = 0  # consecutive keyframes matched neither to the map nor to the local map
+    tentative: int = 0  # >0: map matches still needed to confirm a global placement
     global_tries: int = 0
     lost_scans: int = 0  # scans since the robot was lost
+    segment: int = -1  # current segment (a new one at each global placement)
+    segment_start: int = 0  # first keyframe of the current segment
+    last_kf: int = -1  # the current segment's last keyframe
 
 
 class Localizer:
     """Scan-by-scan localization in a :class:`FixedMap` (nothing is added to the map).
+
+    Pure localization in the manner of Cartographer's localization mode and slam_toolbox's
+    localization mode (a frozen map plus a trimmed local map of the new trajectory):
+
+    - **Odometry prediction** between scans (covariance grown by the odometry motion model,
+      or by the no-odometry sigmas across a break).
+    - Each keyframe (``keyframe_distance_m`` / ``keyframe_rotation_deg`` of odometry) is
+      ICE-matched against the **fixed map** around the predicted pose, within bounds that
+      grow with the pose's uncertainty (``search_n_sigma`` sigmas, at least the tracking
+      bounds, at most the run's ``loop_closure.max_search_radius_m``), and against the
+      **local tracking map**: the landmarks of the log's own last ``slam.local_map_nodes``
+      keyframes, in a :class:`~iceg.feature_map.FeatureMap` of its own (trimmed to those
+      keyframes for matching; discarded at the end). The local map keeps the track where the
+      old map never saw the place; the fixed map anchors it where it did.
+    - A keyframe that matches neither the fixed map nor its local map is retried on the next
+      scan, the prediction going on with a growing covariance. After ``lost_after`` such
+      scans in a row the pose may be wrong (a kidnapping, dropped scans): every
+      ``lost_retry_scans`` scans the keyframe is matched **globally** (no prediction,
+      unbounded rotation) against candidate places spread over the map
+      (:meth:`FixedMap.place`), as at the start without a pose. A global placement that
+      agrees with the prediction (``loop_closure.consistency_chi2``) is a map match; one that
+      does not starts a new segment of the trajectory (no odometry across), trusted after
+      ``confirm_keyframes`` map matches and withdrawn (its scans LOST) when the next keyframe
+      fails the map. LOST means no pose: before the first placement only.
+
+    :meth:`process` returns the causal (filtered) estimate; :meth:`smoothed` solves each
+    segment's pose graph (odometry and local-match factors between keyframes, the map
+    matches as priors: the map is fixed) by batch Levenberg–Marquardt and gives every scan
+    its smoothed pose and marginal covariance.
 
     Args:
         fixed: the map.
@@ -270,17 +351,42 @@ class Localizer:
         self._t = _Track()
         self._initial = None if initial_pose is None else np.asarray(initial_pose, dtype=float)
         self.relocalizations = 0
+        self._local_map = FeatureMap(fixed.config.feature_map)
+        self._kfs: list[_Keyframe] = []
+        self._withdrawn: set[int] = set()  # segments whose placement was not confirmed
+        # the track before a tentative global placement, carried on by odometry: restored if
+        # the placement is withdrawn
+        self._fallback: _Track | None = None
+        self._rows: list[_Row] = []
+        self._n_scans = 0
 
     def process(self, scan: LaserScan) -> tuple[FloatArray, FloatArray, Status, float]:
-        """One scan: ``(pose (3,), cov (3, 3), status, correlation)``."""
+        """One scan: its causal ``(pose (3,), cov (3, 3), status, correlation)``."""
+        out = self._process(scan)
+        t, fb = self._t, self._fallback
+        kf = t.last_kf if t.pose is not None else -1
+        alt = None if fb is None else (fb.last_kf, fb.since_kf.copy(), fb.since_kf_cov.copy())
+        self._rows.append(_Row(kf, t.since_kf.copy(), t.since_kf_cov.copy(), out[2], out[3], alt))
+        self._n_scans += 1
+        return out
+
+    def _process(self, scan: LaserScan) -> tuple[FloatArray, FloatArray, Status, float]:
         t = self._t
         delta, q = self._odometry_step(scan)
         if t.pose is not None:
             ad = se2.adjoint(se2.inverse(delta))
             t.pose, t.cov = se2.compose(t.pose, delta), ad @ t.cov @ ad.T + q
-        t.since_match = se2.compose(t.since_match, delta)
+        for track in (t, self._fallback):
+            if track is None:
+                continue
+            ad = se2.adjoint(se2.inverse(delta))
+            if track is not t and track.pose is not None:
+                track.pose, track.cov = se2.compose(track.pose, delta), ad @ track.cov @ ad.T + q
+            track.since_kf = se2.compose(track.since_kf, delta)
+            track.since_kf_cov = ad @ track.since_kf_cov @ ad.T + q
         if not self._keyframe(scan):
             return self._out(Status.PREDICTED if t.pose is not None else Status.LOST, np.nan)
+        self._scan = scan
         feats = extract(scan, self.fixed.config.features)
         if self._initial is not None:
             return self._try_initial(feats)
@@ -295,24 +401,27 @@ class Localizer:
         odom = None if scan.odom_pose is None else np.asarray(scan.odom_pose, dtype=float)
         usable = odom is not None and t.odom is not None and not scan.odom_break
         delta = se2.between(t.odom, odom) if usable else np.zeros(3)  # type: ignore[arg-type]
+        first = t.odom is None and odom is not None and self._n_scans == 0
         t.odom = odom
         cfg = self.fixed.config
         if usable:
             return delta, odometry_covariance(delta, cfg.odometry_noise)
+        if first:
+            return delta, np.zeros((3, 3))
         s = cfg.slam
         q = np.diag([s.no_odometry_sigma_m**2] * 2 + [np.radians(s.no_odometry_sigma_deg) ** 2])
         return delta, q
 
     def _keyframe(self, scan: LaserScan) -> bool:
         t, st = self._t, self.settings
-        d = t.since_match
+        d = t.since_kf
         moved = np.hypot(d[0], d[1]) >= st.keyframe_distance_m or abs(d[2]) >= np.radians(
             st.keyframe_rotation_deg
         )
         if t.pose is None:  # lost: a global search every ``lost_retry_scans`` scans
             t.lost_scans += 1
             return (t.lost_scans - 1) % st.lost_retry_scans == 0
-        return bool(moved or scan.odom_pose is None or t.tentative > 0)
+        return bool(moved or scan.odom_pose is None or scan.odom_break or t.tentative > 0)
 
     def _try_initial(self, feats: ScanFeatures) -> tuple[FloatArray, FloatArray, Status, float]:
         st = self.settings
@@ -321,25 +430,148 @@ class Localizer:
         p = self.fixed.match_at(feats, pose, bounds, st.reference_nodes)  # type: ignore[arg-type]
         if p is None or p.match.correlation < st.min_correlation:
             logger.info("the initial pose does not match the map; searching globally")
-            return self._relocalize(feats)
-        return self._accept(p, Status.PLACED, tentative=st.confirm_keyframes)
+            p = self.fixed.place(feats, st)
+            if p is None or _far(p.pose, pose, st):  # type: ignore[arg-type]
+                self._t.global_tries += 1
+                self.relocalizations += p is not None
+                return (
+                    self._out(Status.LOST, np.nan) if p is None else self._start_segment(feats, p)
+                )
+        return self._start_segment(feats, p)
+
+    def _bounds(self, cov: FloatArray, on_map: bool) -> MatchBounds:
+        """Match bounds around a prediction of covariance ``cov``: ``search_n_sigma`` of its
+        standard deviations, at least the tracking bounds (the map's, or the run's local
+        match bounds for the local map), at most ``loop_closure.max_search_radius_m``."""
+        st, cfg = self.settings, self.fixed.config
+        base_m = st.track_translation_m if on_map else cfg.slam.match_max_translation_m
+        base_deg = st.track_rotation_deg if on_map else cfg.slam.match_max_rotation_deg
+        sxy = float(np.sqrt(max(np.linalg.eigvalsh(cov[:2, :2]).max(), 0.0)))
+        sth = float(np.sqrt(max(cov[2, 2], 0.0)))
+        trans = min(max(base_m, st.search_n_sigma * sxy), cfg.loop_closure.max_search_radius_m)
+        rot = min(max(base_deg, np.degrees(st.search_n_sigma * sth)), 180.0)
+        return MatchBounds.local(trans, rot)
 
     def _track(self, feats: ScanFeatures) -> tuple[FloatArray, FloatArray, Status, float]:
         t, st = self._t, self.settings
-        bounds = MatchBounds.local(st.track_translation_m, st.track_rotation_deg)
-        p = self.fixed.match_at(feats, t.pose, bounds, st.reference_nodes)  # type: ignore[arg-type]
-        if p is not None and self._good(feats, p):
-            t.tentative = max(t.tentative - 1, 0)
-            return self._accept(p, Status.TRACKED, t.tentative)
-        t.fails += 1
-        if t.tentative > 0 or t.fails >= st.lost_after:
-            logger.info("lost after %d failed matches; searching globally", t.fails)
+        pred = t.pose
+        p = self.fixed.match_at(feats, pred, self._bounds(t.cov, True), st.reference_nodes)  # type: ignore[arg-type]
+        on_map = p is not None and self._good(feats, p)
+        if t.tentative > 0 and not on_map:
+            logger.info("a global placement was not confirmed by the next keyframe")
+            self._withdrawn.add(t.segment)
+            if self._fallback is not None:  # back to the track it replaced
+                self._fallback.odom, self._t, self._fallback = t.odom, self._fallback, None
+                return self._out(Status.PREDICTED, np.nan)
             t.pose, t.cov, t.tentative = None, np.full((3, 3), np.nan), 0
             return self._relocalize(feats)
-        return self._out(Status.PREDICTED, np.nan)
+        local, ref, last = self._match_local(feats)
+        if not on_map and local is None:
+            # Not a keyframe: the next scan tries again (the odometry since the last keyframe
+            # keeps accumulating, the covariance grows). After ``lost_after`` scans in a row
+            # the pose may be wrong (a kidnapping): a global search every
+            # ``lost_retry_scans`` scans while the prediction goes on.
+            t.fails += 1
+            if t.fails < st.lost_after or (t.fails - st.lost_after) % st.lost_retry_scans:
+                return self._out(Status.PREDICTED, np.nan)
+            p = self.fixed.place(feats, st)
+            if p is None:
+                return self._out(Status.PREDICTED, np.nan)
+            if not self._agrees(p):
+                logger.info(
+                    "placed globally at %s, away from the prediction %s: a new segment",
+                    np.round(p.pose, 2).tolist(),
+                    np.round(np.asarray(t.pose), 2).tolist(),
+                )
+                self.relocalizations += 1
+                return self._start_segment(feats, p)
+            on_map = True
+        t.fails = 0
+        kf = _Keyframe(len(self._rows), t.segment, pred.copy(), t.cov.copy())  # type: ignore[union-attr]
+        kf.odom, kf.odom_cov = t.since_kf.copy(), t.since_kf_cov.copy()
+        if local is not None:
+            kf.local, kf.local_from = local, last
+            ad = se2.adjoint(se2.inverse(local.pose))
+            t.pose = se2.compose(self._kfs[last].pose, local.pose)
+            t.cov = ad @ self._kfs[last].cov @ ad.T + local.cov
+        corr = np.nan
+        status = Status.LOCAL
+        if on_map:
+            kf.prior = (p.pose, p.match.cov)  # type: ignore[union-attr]
+            t.pose, t.cov = p.pose, p.match.cov  # type: ignore[union-attr]
+            t.tentative = max(t.tentative - 1, 0)
+            if t.tentative == 0:
+                self._fallback = None  # confirmed
+            status, corr = Status.TRACKED, p.match.correlation  # type: ignore[union-attr]
+        kf.pose, kf.cov = t.pose.copy(), t.cov.copy()  # type: ignore[union-attr]
+        self._add_keyframe(kf, feats, ref, local)
+        return self._out(status, corr)
+
+    def _agrees(self, p: Placement) -> bool:
+        """A global placement agrees with the predicted pose: its innovation is within the
+        ``consistency_chi2`` gate of the run's loop closure under the prediction's and the
+        match's covariances (both body frame)."""
+        t = self._t
+        e = se2.between(t.pose, p.pose)  # type: ignore[arg-type]
+        ad = se2.adjoint(se2.inverse(e))
+        s = ad @ t.cov @ ad.T + p.match.cov
+        try:
+            d2 = float(e @ np.linalg.solve(s, e))
+        except np.linalg.LinAlgError:
+            return False
+        return d2 <= self.fixed.config.loop_closure.consistency_chi2
+
+    def _match_local(
+        self, feats: ScanFeatures
+    ) -> tuple[MatchResult | None, MapReference | None, int]:
+        """Match against the local tracking map (the segment's last keyframes)."""
+        t, cfg = self._t, self.fixed.config.slam
+        last = t.last_kf
+        if last < 0:
+            return None, None, last
+        recent = [last]
+        for i in range(last - 1, t.segment_start - 1, -1):
+            if len(recent) >= cfg.local_map_nodes:
+                break
+            if self._kfs[i].segment == t.segment:
+                recent.append(i)
+        ids = np.arange(len(self._kfs), dtype=np.int64)
+        poses = np.array([k.pose for k in self._kfs])
+        ref = self._local_map.reference((ids, poses), np.array(recent), poses[last])
+        bounds = self._bounds(t.since_kf_cov, False)
+        res = self.fixed.matcher.match(feats, ref.features, t.since_kf, bounds)
+        if not res.success:
+            return None, ref, last
+        measured = remap_weak_directions(res.pose, res.cov, t.since_kf, t.since_kf_cov)
+        res = dataclasses.replace(res, pose=measured)
+        return res, ref, last
+
+    def _add_keyframe(
+        self,
+        kf: _Keyframe,
+        feats: ScanFeatures,
+        ref: MapReference | None,
+        local: MatchResult | None,
+    ) -> None:
+        """Record the keyframe and add its features to the local tracking map."""
+        t = self._t
+        self._kfs.append(kf)
+        t.last_kf = len(self._kfs) - 1
+        ids = np.arange(len(self._kfs), dtype=np.int64)
+        poses = np.array([k.pose for k in self._kfs])
+        self._local_map.update(
+            len(self._kfs) - 1,
+            feats,
+            self._scan.stamp_s,
+            reference=ref if local is not None else None,
+            match=local,
+            scan=self._scan,
+            node_poses=(ids, poses),
+        )
+        t.since_kf, t.since_kf_cov = np.zeros(3), np.zeros((3, 3))
 
     def _good(self, feats: ScanFeatures, p: Placement) -> bool:
-        """A tracking match is kept when well correlated, or when its points fit the map
+        """A map match is kept when well correlated, or when its points fit the map
         (a refinement on few features, correlation 0, can still be exact)."""
         st = self.settings
         if p.match.correlation >= st.min_correlation:
@@ -354,22 +586,106 @@ class Localizer:
             t.pose = None
             return self._out(Status.LOST, np.nan)
         self.relocalizations += 1
-        return self._accept(found, Status.PLACED, tentative=st.confirm_keyframes)
+        return self._start_segment(feats, found)
 
-    def _accept(
-        self, p: Placement, status: Status, tentative: int
+    def _start_segment(
+        self, feats: ScanFeatures, p: Placement
     ) -> tuple[FloatArray, FloatArray, Status, float]:
-        t = self._t
-        t.pose, t.cov, t.fails, t.tentative = p.pose, p.match.cov, 0, tentative
+        """A global (or initial-pose) placement: a new segment, tentative until confirmed."""
+        t, st = self._t, self.settings
+        self._fallback = dataclasses.replace(t) if t.pose is not None else None
+        t.segment = max((k.segment for k in self._kfs), default=-1) + 1
+        t.segment_start = len(self._kfs)
+        t.pose, t.cov, t.fails, t.tentative = p.pose, p.match.cov, 0, st.confirm_keyframes
         t.lost_scans = 0
-        t.since_match = np.zeros(3)
-        return self._out(status, p.match.correlation)
+        kf = _Keyframe(
+            len(self._rows), t.segment, p.pose.copy(), p.match.cov, prior=(p.pose, p.match.cov)
+        )
+        self._add_keyframe(kf, feats, None, None)
+        return self._out(Status.PLACED, p.match.correlation)
 
     def _out(self, status: Status, corr: float) -> tuple[FloatArray, FloatArray, Status, float]:
         t = self._t
         if t.pose is None:
             return np.full(3, np.nan), np.full((3, 3), np.nan), Status.LOST, np.nan
         return t.pose.copy(), t.cov.copy(), status, corr
+
+    # ------------------------------------------------------------------ smoothing
+
+    def smoothed(self) -> tuple[FloatArray, FloatArray]:
+        """Every processed scan's smoothed pose ``(R, 3)`` and covariance ``(R, 3, 3)``
+        (map frame / body frame; NaN while lost or in a withdrawn placement).
+
+        Each segment is one pose graph (:class:`graph.PoseGraph`, no automatic prior):
+        keyframe nodes, odometry factors between consecutive keyframes (the motion model's
+        covariance accumulated scan by scan), local-match factors from the keyframe the
+        local reference was built in, and each map match as a prior (the map is fixed, so a
+        map match is an absolute measurement of the keyframe). Batch Levenberg–Marquardt,
+        then marginal covariances; a scan between keyframes takes its keyframe's pose
+        composed with the odometry since it, the covariance grown accordingly.
+
+        Raises:
+            GraphError: gtsam failed.
+        """
+        n = len(self._rows)
+        poses = np.full((n, 3), np.nan)
+        covs = np.full((n, 3, 3), np.nan)
+        kf_pose = np.full((len(self._kfs), 3), np.nan)
+        kf_cov = np.full((len(self._kfs), 3, 3), np.nan)
+        segs = sorted({k.segment for k in self._kfs} - self._withdrawn)
+        for seg in segs:
+            rows = [i for i, k in enumerate(self._kfs) if k.segment == seg]
+            g = PoseGraph(self.fixed.config.graph, auto_prior=False)
+            for i in rows:
+                g.add_node(i, self._kfs[i].pose)
+            for a, b in itertools.pairwise(rows):
+                k = self._kfs[b]
+                if k.odom is not None and k.odom_cov is not None:
+                    g.add_between(a, b, k.odom, _pd(k.odom_cov), kind=FactorKind.ODOMETRY)
+            for i in rows:
+                k = self._kfs[i]
+                if k.local is not None:
+                    g.add_between(
+                        k.local_from, i, k.local.pose, k.local.cov, kind=FactorKind.SCAN_MATCH
+                    )
+                if k.prior is not None:
+                    g.add_prior(i, k.prior[0], k.prior[1])
+            g.optimize_batch()
+            ids, est = g.estimates()
+            kf_pose[ids] = est
+            for i in rows:
+                kf_cov[i] = g.marginal_covariance(i)
+        for r in range(n):
+            kf, delta, q, _, _ = self._effective(r)
+            if kf < 0:
+                continue
+            poses[r] = se2.compose(kf_pose[kf], delta)
+            ad = se2.adjoint(se2.inverse(delta))
+            covs[r] = ad @ kf_cov[kf] @ ad.T + q
+        return poses, covs
+
+    def statuses(self) -> tuple[IntArray, FloatArray]:
+        """``(R,)`` :class:`Status` and map-match correlation of every processed scan
+        (LOST for the scans of a withdrawn placement)."""
+        rows = [self._effective(r) for r in range(len(self._rows))]
+        status = np.array([int(r[3]) for r in rows], dtype=np.int64)
+        corr = np.array([r[4] for r in rows], dtype=np.float64)
+        return status, corr
+
+    def _effective(self, r: int) -> tuple[int, FloatArray, FloatArray, Status, float]:
+        """Row ``r`` with withdrawn placements undone: its keyframe (-1: lost), odometry
+        since it and covariance, status and correlation."""
+        row = self._rows[r]
+        if row.kf < 0 or self._kfs[row.kf].segment not in self._withdrawn:
+            return row.kf, row.since, row.since_cov, row.status, row.corr
+        if row.alt is not None:
+            return row.alt[0], row.alt[1], row.alt[2], Status.PREDICTED, np.nan
+        return -1, row.since, row.since_cov, Status.LOST, np.nan
+
+
+def _pd(cov: FloatArray) -> FloatArray:
+    """A covariance made positive definite (a zero odometry step has zero covariance)."""
+    return 0.5 * (cov + cov.T) + np.diag([1e-10, 1e-10, 1e-12])
 
 
 def localize_scans(
@@ -378,26 +694,270 @@ def localize_scans(
     settings: LocalizeSettings | None = None,
     initial_pose: FloatArray | None = None,
 ) -> LocalizationResult:
-    """Localize every scan of a log in a fixed map (see :class:`Localizer`)."""
+    """Localize every scan of a log in a fixed map.
+
+    With a saved session (``fixed.session``, as :func:`fixed_map_of_session` makes): pure
+    localization in the manner of Cartographer's localization mode, a new trajectory
+    optimized in the pose graph of the frozen one (:func:`_localize_in_session`). Without
+    (a live map): the causal :class:`Localizer` and its per-segment smoothing.
+
+    Args:
+        fixed: the map.
+        scans: the log's scans in time order.
+        settings: tuning.
+        initial_pose: ``(3,)`` map-frame guess of the first scan (may be wrong).
+
+    Returns:
+        The trajectory in the map frame with per-scan covariance and status.
+
+    Raises:
+        GraphError: gtsam failed.
+        SessionError: the session's scans cannot be re-read.
+    """
+    if fixed.session is not None:
+        return _localize_in_session(fixed, scans, settings or LocalizeSettings(), initial_pose)
     loc = Localizer(fixed, settings, initial_pose)
-    rows = [loc.process(s) for s in scans]
-    status = np.array([int(r[2]) for r in rows], dtype=np.int64)
+    for s in scans:
+        loc.process(s)
+    status, corr = loc.statuses()
+    poses, covs = loc.smoothed()
+    return _result(scans, poses, covs, status, corr, loc.relocalizations)
+
+
+def _result(
+    scans: Sequence[LaserScan],
+    poses: FloatArray,
+    covs: FloatArray,
+    status: IntArray,
+    corr: FloatArray,
+    relocalizations: int,
+) -> LocalizationResult:
     result = LocalizationResult(
         stamps_s=np.array([s.stamp_s for s in scans], dtype=np.float64),
-        poses=np.array([r[0] for r in rows]).reshape(-1, 3),
-        covs=np.array([r[1] for r in rows]).reshape(-1, 3, 3),
+        poses=poses,
+        covs=covs,
         status=status,
-        correlations=np.array([r[3] for r in rows], dtype=np.float64),
-        relocalizations=loc.relocalizations,
+        correlations=corr,
+        relocalizations=relocalizations,
     )
     result.summary = {s.name.lower(): int(np.sum(status == s)) for s in Status}
     return result
 
 
+def _localize_in_session(
+    fixed: FixedMap,
+    scans: Sequence[LaserScan],
+    st: LocalizeSettings,
+    initial_pose: FloatArray | None,
+) -> LocalizationResult:
+    """Localization against a frozen saved map, segment by segment.
+
+    A segment starts where a scan is placed in the map and the placement is confirmed by
+    the next scans (:func:`iceg.continuation.place_first_scan`: around ``initial_pose`` for
+    the first segment when given, else by global matching; an offline run may look ahead).
+    It runs the session's own SLAM with the map frozen (:func:`_run_segment`) until the
+    track is lost: ``lost_after`` keyframes in a row matched nothing and a global placement
+    of the current scan disagrees with the estimate (a kidnapping). Scans that cannot be
+    placed are LOST; the next placement is searched after them.
+    """
+    from iceg.continuation import START_SCANS, place_first_scan
+    from iceg_common.errors import SessionError
+
+    n = len(scans)
+    poses = np.full((n, 3), np.nan)
+    covs = np.full((n, 3, 3), np.nan)
+    status = np.full(n, int(Status.LOST), dtype=np.int64)
+    corr = np.full(n, np.nan)
+    relocalizations = 0
+    guess = None if initial_pose is None else np.asarray(initial_pose, dtype=np.float64)
+    i = 0
+    while i < n:
+        try:
+            placement = place_first_scan(fixed, scans[i:], guess, st)
+        except SessionError as exc:
+            logger.info("scans %d-%d not placed: %s", i, min(n, i + START_SCANS) - 1, exc)
+            guess, i = None, i + START_SCANS
+            continue
+        relocalizations += guess is None or _far(placement.pose, guess, st)
+        guess = None
+        stop = _run_segment(fixed, scans, i, placement, st, (poses, covs, status, corr))
+        i = stop
+    return _result(scans, poses, covs, status, corr, relocalizations)
+
+
+def _frozen_slam(fixed: FixedMap) -> Slam:
+    """The session loaded in memory with each of its nodes held by a prior at its saved
+    estimate (``graph.prior_sigma_*``, the gauge prior's sigmas): the frozen map."""
+    from iceg import session as sess
+
+    if fixed.session is None:
+        raise GraphError("a frozen map needs a map read from a saved session")
+    slam = sess.load(fixed.session.path)
+    ids, saved = slam.graph.estimates()
+    g = slam.config.graph
+    hold = np.diag([g.prior_sigma_xy_m**2] * 2 + [g.prior_sigma_theta_rad**2])
+    for i, pose in zip(ids.tolist(), saved, strict=True):
+        slam.graph.add_prior(i, pose, hold)
+    slam.graph.update()
+    return slam
+
+
+def _run_segment(
+    fixed: FixedMap,
+    scans: Sequence[LaserScan],
+    first: int,
+    placement: Placement,
+    st: LocalizeSettings,
+    out: tuple[FloatArray, FloatArray, IntArray, FloatArray],
+) -> int:
+    """One segment, from scan ``first`` placed by ``placement``, against the frozen map:
+    the run's SLAM (local matching against the segment's recent nodes, loop closures to its
+    own nodes and to the map's, batch refinement) in a copy of the session whose nodes are
+    held fixed (:func:`_frozen_slam`; discarded after: the saved map is not changed). Fills
+    ``out`` = (poses, covs, status, correlation) for the segment's scans and returns the
+    stop index (the scan where the track was found lost, or the log's end).
+
+    Poses are the refined estimates (map frame); covariances the nodes' marginals, a scan
+    between nodes its node's moved by the odometry since (grown by the odometry noise).
+    Status: PLACED (first scan), TRACKED (a node with a closure to a map node), LOCAL (a node
+    with a local match), PREDICTED (no match; scans between nodes).
+    """
+    slam = _frozen_slam(fixed)
+    ids, saved = slam.graph.estimates()
+    n_map = int(ids.max()) + 1
+    live = FixedMap(ids, saved, slam.feature_map, slam.config)
+    feats = extract(scans[first], slam.config.features)
+    bounds = MatchBounds.local(st.track_translation_m, st.track_rotation_deg)
+    p = live.match_at(feats, placement.pose, bounds, st.reference_nodes)
+    if p is None:  # the placement came from a later scan, carried back by odometry
+        anchor, ref = live.reference_near(placement.pose, st.reference_nodes)
+        rel = se2.between(saved[anchor], placement.pose)
+        p = Placement(
+            int(ids[anchor]),
+            ref,
+            dataclasses.replace(placement.match, pose=rel),
+            placement.pose,
+        )
+    saved_scans = slam.export_state().scans
+    n_before = len(saved_scans)
+    # The map's time-validity needs scans after its own: a log recorded before the map (or
+    # overlapping it) is shifted in time as a whole, which changes nothing else.
+    shift = max(0.0, saved_scans[-1].stamp_s - scans[first].stamp_s) if saved_scans else 0.0
+    slam.start_segment(_shifted(scans[first], shift), p.anchor, p.reference, p.match)
+    fails, stop, checked = 0, len(scans), 0
+    chi2 = slam.config.loop_closure.consistency_chi2
+    doubts: list[tuple[int, FloatArray, Placement]] = []  # placements against the track
+    for j in range(first + 1, len(scans)):
+        n_nodes, n_factors = slam.graph.n_nodes, slam.graph.n_factors
+        slam.process(_shifted(scans[j], shift))
+        if slam.graph.n_nodes == n_nodes:
+            continue
+        added = slam.graph.factors[n_factors:]
+        matched = any(f.kind in (FactorKind.SCAN_MATCH, FactorKind.LOOP_CLOSURE) for f in added)
+        fails = 0 if matched else fails + 1
+        checked += 1
+        unmatched = fails >= st.lost_after and (fails - st.lost_after) % st.lost_retry_scans == 0
+        if not (unmatched or checked % st.check_every_nodes == 0):
+            continue
+        node = slam.graph.n_nodes - 1
+        est = slam.graph.estimate(node)
+        again = fixed.place(extract(scans[j], slam.config.features), st)
+        if again is None:
+            continue
+        if _agrees(est, slam.graph.marginal_covariance(node), again, chi2):
+            doubts.clear()
+            continue
+        doubts.append((j, est, again))
+        if _kidnapped(doubts[-st.confirm_keyframes :], st.confirm_keyframes, chi2):
+            stop = doubts[-st.confirm_keyframes][0]
+            logger.info("scans %d-%d: placed in the map away from the track: lost", stop, j)
+            break
+    result = slam.finish()
+    poses, covs, status, corr = out
+    poses[first:stop] = result.poses[n_before : n_before + stop - first]
+    node_row = np.searchsorted(result.node_scan_index, np.arange(len(result.poses)), "right") - 1
+    seg_nodes = result.node_ids[node_row[n_before : n_before + stop - first]]
+    to_map: dict[int, float] = {}
+    local: set[int] = set()
+    for f in result.factors:
+        if f.j is None or f.j < n_map:
+            continue
+        if f.kind is FactorKind.LOOP_CLOSURE and f.i < n_map:
+            to_map[f.j] = result.correlations.get(f.index, np.nan)
+        elif f.kind is FactorKind.SCAN_MATCH:
+            local.add(f.j)
+    marg: dict[int, FloatArray] = {}
+    for r, node in enumerate(seg_nodes.tolist()):
+        if node not in marg:
+            marg[node] = slam.graph.marginal_covariance(node)
+        row = node_row[n_before + r]
+        delta = se2.between(result.node_poses[row], result.poses[n_before + r])
+        ad = se2.adjoint(se2.inverse(delta))
+        q = odometry_covariance(delta, slam.config.odometry_noise)
+        covs[first + r] = ad @ marg[node] @ ad.T + q
+        is_node = result.node_scan_index[row] == n_before + r
+        if r == 0:
+            status[first], corr[first] = int(Status.PLACED), placement.match.correlation
+        elif is_node and node in to_map:
+            status[first + r], corr[first + r] = int(Status.TRACKED), to_map[node]
+        elif is_node and node in local:
+            status[first + r] = int(Status.LOCAL)
+        else:
+            status[first + r] = int(Status.PREDICTED)
+    return stop
+
+
+def _kidnapped(doubts: list[tuple[int, FloatArray, Placement]], need: int, chi2: float) -> bool:
+    """``need`` global placements against the track that agree with each other: each
+    consecutive pair's relative pose matches the track's relative motion between the two
+    scans (short, hence accurate even when the track is in the wrong place) within the
+    ``chi2`` gate under the two placements' covariances."""
+    if len(doubts) < need:
+        return False
+    for (_, e1, p1), (_, e2, p2) in itertools.pairwise(doubts):
+        d = se2.between(se2.between(e1, e2), se2.between(p1.pose, p2.pose))
+        rel = se2.between(p1.pose, p2.pose)
+        ad = se2.adjoint(se2.inverse(rel))
+        s = ad @ p1.match.cov @ ad.T + p2.match.cov
+        try:
+            if float(d @ np.linalg.solve(s, d)) > chi2:
+                return False
+        except np.linalg.LinAlgError:
+            return False
+    return True
+
+
+def _far(pose: FloatArray, guess: FloatArray, st: LocalizeSettings) -> bool:
+    """A placement outside the initial pose's bounds (found by the global search)."""
+    d = se2.between(guess, pose)
+    return bool(
+        np.hypot(d[0], d[1]) > st.initial_translation_m
+        or abs(d[2]) > np.radians(st.initial_rotation_deg)
+    )
+
+
+def _shifted(scan: LaserScan, shift_s: float) -> LaserScan:
+    return dataclasses.replace(scan, stamp_s=scan.stamp_s + shift_s) if shift_s else scan
+
+
+def _agrees(pose: FloatArray, cov: FloatArray, p: Placement, chi2: float) -> bool:
+    """A placement agrees with an estimate ``pose`` of covariance ``cov`` (body frame): its
+    innovation is within the ``chi2`` gate under both covariances."""
+    e = se2.between(pose, p.pose)
+    ad = se2.adjoint(se2.inverse(e))
+    s = ad @ cov @ ad.T + p.match.cov
+    try:
+        return float(e @ np.linalg.solve(s, e)) <= chi2
+    except np.linalg.LinAlgError:
+        return False
+
+
 def fixed_map_of_session(session: Session) -> FixedMap:
     """A saved session's map (saved estimates and feature map) as a :class:`FixedMap`."""
     ids, poses = session.node_poses
-    return FixedMap(ids, poses, session.feature_map(), session.config)
+    fixed = FixedMap(ids, poses, session.feature_map(), session.config)
+    fixed.session = session
+    return fixed
 
 
 def localization_rows(result: LocalizationResult) -> list[list[object]]:

@@ -14,6 +14,7 @@ renumbered nodes; duplicates of one corner seen in both sessions are not fused).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from graph import FactorKind
+from graph import FactorKind, PoseGraph
 from iceg.features import extract
 from iceg.localize import (
     FixedMap,
@@ -60,7 +61,9 @@ class MergeSettings:
             two agreeing closures (metres plus a fraction of their distance; degrees).
         min_closures: least number of agreeing closures.
         densify_*: the local closures added after the first alignment (every this many B
-            nodes within this radius of A's nodes; bounds of their matches).
+            nodes within this radius of A's nodes; least bounds of their matches, grown
+            with the node's marginal; rounds of search and refinement while closures are
+            found).
     """
 
     query_spacing_m: float = 2.0
@@ -73,6 +76,7 @@ class MergeSettings:
     densify_radius_m: float = 3.0
     densify_translation_m: float = 1.0
     densify_rotation_deg: float = 15.0
+    densify_rounds: int = 3
 
 
 @dataclass(frozen=True, eq=False)
@@ -83,11 +87,14 @@ class InterClosure:
         node_b: B's node (B's numbering).
         placement: the match (``anchor`` an A node; ``match.pose`` B's node in its frame).
         transform: ``(3,)`` B map frame -> A map frame that it implies.
+        robust: enters with the run's robust kernel (False: accepted as a consistent group
+            correcting B's estimate by more than its bounds, as the run's global closures).
     """
 
     node_b: int
     placement: Placement
     transform: FloatArray
+    robust: bool = True
 
 
 def find_closures(
@@ -180,49 +187,96 @@ def merge_arrays(
     t = closures[0].transform if len(closures) == 1 else _mean_transform(closures)
     out = {**_graph_part(aa, ba, n_a, t), **_scan_part(aa, ba, n_a), **_map_part(aa, ba, n_a)}
     kernel = a.config.loop_closure.robust_kernel
+    st = settings or MergeSettings()
     out = _add_closures(out, closures, n_a, kernel)
-    out = _optimized(out, a, max_iterations)
-    dense = _densify(a, b, out, n_a, settings or MergeSettings())
-    if dense:
-        out = _optimized(_add_closures(out, dense, n_a, kernel), a, max_iterations)
+    out, graph = _optimized(out, a, max_iterations)
+    linked = {c.node_b for c in closures}
+    for _ in range(st.densify_rounds):
+        dense = _densify(a, b, out, graph, n_a, st, linked)
+        if not dense:
+            break
+        linked |= {c.node_b for c in dense}
+        out, graph = _optimized(_add_closures(out, dense, n_a, kernel), a, max_iterations)
     return out
 
 
 def _optimized(
     out: dict[str, np.ndarray], a: Session, max_iterations: int
-) -> dict[str, np.ndarray]:
-    """The arrays with the graph rebuilt at their estimates and batch-refined."""
+) -> tuple[dict[str, np.ndarray], PoseGraph]:
+    """The arrays with the graph rebuilt at their estimates and batch-refined (and the
+    graph, for its marginals)."""
     graph = rebuild_graph(out, a.config.graph)
     graph.optimize_batch(max_iterations)
     corr = {k: float(v) for k, v in enumerate(out["g_correlation"]) if np.isfinite(v)}
-    return {**out, **graph_arrays(graph, corr, out["g_origin"].tolist())}
+    return {**out, **graph_arrays(graph, corr, out["g_origin"].tolist())}, graph
 
 
 def _densify(
-    a: Session, b: Session, out: dict[str, np.ndarray], n_a: int, st: MergeSettings
+    a: Session,
+    b: Session,
+    out: dict[str, np.ndarray],
+    graph: PoseGraph,
+    n_a: int,
+    st: MergeSettings,
+    linked: set[int],
 ) -> list[InterClosure]:
     """More inter-session closures once B is in A's frame: every ``densify_every``-th B node
-    within ``densify_radius_m`` of an A node is matched locally against A's map at its merged
-    estimate (as the loop-closure search of a run would); matches that fit are kept."""
+    not yet linked, near A's nodes, is matched locally against A's map at its merged
+    estimate (as the loop-closure search of a run would). The search grows with the node's
+    marginal uncertainty in the merged graph (``search_n_sigma`` sigmas of the run's loop
+    closure, capped at its ``max_search_radius_m``): B nodes far from the closures so far
+    can be off by more than the base bounds. Matches of enough correlation whose points fit
+    A's walls are kept."""
     fixed = fixed_map_of_session(a)
+    lc = a.config.loop_closure
     ids_b = b.arrays["g_node_ids"]
     poses = out["g_node_final"][np.searchsorted(out["g_node_ids"], ids_b + n_a)]
-    near = np.array(
-        [np.hypot(*(fixed.poses[:, :2] - p[:2]).T).min() <= st.densify_radius_m for p in poses]
-    )
-    rows = np.flatnonzero(near)[:: st.densify_every]
-    scans = read_scans(b, b.arrays["n_scan"][rows].tolist())
+    dist = np.array([np.hypot(*(fixed.poses[:, :2] - p[:2]).T).min() for p in poses])
+    rows = [
+        r
+        for r in np.flatnonzero(dist <= st.densify_radius_m + lc.max_search_radius_m)[
+            :: st.densify_every
+        ].tolist()
+        if int(ids_b[r]) not in linked
+    ]
+    todo = []
+    for row in rows:
+        cov = graph.marginal_covariance(int(ids_b[row]) + n_a)
+        sxy = float(np.sqrt(np.linalg.eigvalsh(cov[:2, :2]).max()))
+        sth = float(np.sqrt(cov[2, 2]))
+        trans = min(max(st.densify_translation_m, lc.search_n_sigma * sxy), lc.max_search_radius_m)
+        rot = min(max(st.densify_rotation_deg, np.degrees(lc.search_n_sigma * sth)), 180.0)
+        if dist[row] <= st.densify_radius_m + trans:
+            todo.append((row, MatchBounds.local(trans, rot)))
+    scans = read_scans(b, [int(b.arrays["n_scan"][row]) for row, _ in todo])
     loc = LocalizeSettings()
-    bounds = MatchBounds.local(st.densify_translation_m, st.densify_rotation_deg)
-    found = []
-    for row, scan in zip(rows.tolist(), scans, strict=True):
+    found: list[InterClosure] = []
+    tried = len(todo)
+    # matched without bounds around the estimate: accepted by consistency only
+    wide: list[InterClosure] = []
+    for (row, bounds), scan in zip(todo, scans, strict=True):
         feats = extract(scan, fixed.config.features)
-        p = fixed.match_at(feats, poses[row], bounds, loc.reference_nodes)
-        if p is None or p.match.correlation < loc.min_correlation:
-            continue
-        if segment_fit(feats, p, loc.fit_tolerance_m) >= loc.min_fit:
-            found.append(InterClosure(int(ids_b[row]), p, np.zeros(3)))
-    logger.info("merge: %d local inter-session closures of %d tried", len(found), rows.shape[0])
+        for bnd, out_list in ((bounds, found), (MatchBounds.global_(), wide)):
+            p = fixed.match_at(feats, poses[row], bnd, loc.reference_nodes)
+            if p is None or p.match.correlation < loc.min_correlation:
+                continue
+            if segment_fit(feats, p, loc.fit_tolerance_m) >= loc.min_fit:
+                t = se2.compose(p.pose, se2.inverse(poses[row]))
+                out_list.append(InterClosure(int(ids_b[row]), p, t))
+                break
+    # The run's loop closer searches without bounds where the local radius is capped; here,
+    # as in its global search, such closures enter only as a mutually consistent group
+    # (pairwise consistency of their implied B-to-A corrections, :func:`_consistent`).
+    group = _consistent(wide, st) if len(wide) >= st.min_closures else []
+    if len(group) >= st.min_closures:  # no robust kernel: it would ignore the correction
+        found += [dataclasses.replace(c, robust=False) for c in group]
+    logger.info(
+        "merge: %d local inter-session closures of %d tried (%d of %d unbounded ones agree)",
+        len(found),
+        tried,
+        len(group),
+        len(wide),
+    )
     return found
 
 
@@ -323,7 +377,9 @@ def _add_closures(
         "g_ij": np.array([[c.placement.anchor, c.node_b + n_a] for c in closures]),
         "g_measured": np.array([c.placement.match.pose for c in closures]),
         "g_cov": np.array([c.placement.match.cov for c in closures]),
-        "g_robust": np.full(k, ROBUST_KERNELS.index(kernel)),
+        "g_robust": np.array(
+            [ROBUST_KERNELS.index(kernel if c.robust else None) for c in closures], dtype=int
+        ),
         "g_robust_k": np.full(k, np.nan),
         "g_origin": np.full(k, ORIGIN_RUN),
         "g_correlation": np.array([c.placement.match.correlation for c in closures]),

@@ -1,9 +1,12 @@
-"""Acceptance on MIT CSAIL (slow): split runs bit for bit, ``--continue`` of the second half
-within 10 % of the whole run, and a log of another building (ACES) refused."""
+"""Acceptance on MIT CSAIL (slow): split runs bit for bit; ``--continue`` and ``localize`` of
+the second half against a session of the first within 10 % of the whole run's relation error
+on the second half; localization from a wrong initial pose; a log of another building (ACES)
+refused. The whole run and the first-half session are computed once for the module."""
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 
 import numpy as np
 import pytest
@@ -13,23 +16,30 @@ from frontends.relations import read_relations
 from iceg import session
 from iceg.continuation import continue_scans
 from iceg.evaluation import relation_errors
+from iceg.localize import Status, fixed_map_of_session, localize_scans
 from iceg.slam import Slam
 from iceg_common import se2
 from iceg_common.errors import SessionError
 from tests.conftest import shared_file
 
+pytestmark = pytest.mark.slow
+
+FRAME = np.array([5.0, -3.0, 2.0])  # the second half's own odometry frame
+
 
 def _second_half_error(stamps, poses, rel, start_s):  # type: ignore[no-untyped-def]
+    """Relation error (translation m, rotation deg) over the relations within the second
+    half, scans without a pose left out; and how many relations matched a scan."""
     keep = (rel.stamps_s[:, 0] >= start_s) & (rel.stamps_s[:, 1] >= start_s)
-    summary, _ = relation_errors(stamps, poses, rel.stamps_s[keep], rel.deltas[keep], 1e-3)
-    return summary.trans_mean_m
+    ok = ~np.isnan(poses[:, 0])
+    summary, _ = relation_errors(stamps[ok], poses[ok], rel.stamps_s[keep], rel.deltas[keep], 1e-3)
+    return summary.trans_mean_m, summary.rot_mean_deg, summary.n_matched
 
 
-@pytest.mark.slow
-def test_csail_halves(tmp_path) -> None:  # type: ignore[no-untyped-def]
+@pytest.fixture(scope="module")
+def csail(tmp_path_factory):  # type: ignore[no-untyped-def]
     scans = list(open_log(shared_file("mit-csail/mit-csail.clf")))
     rel = read_relations(shared_file("mit-csail/mit-csail.relations"))
-    aces = shared_file("aces/aces-corrected.log.gz")
     k = len(scans) // 2
     whole = Slam()
     for scan in scans:
@@ -39,21 +49,70 @@ def test_csail_halves(tmp_path) -> None:  # type: ignore[no-untyped-def]
     for scan in scans[:k]:
         first.process(scan)
     first.finish()
-    session.save(first, tmp_path / "first")
-    resumed = session.load(tmp_path / "first")
+    folder = tmp_path_factory.mktemp("csail") / "first"
+    session.save(first, folder)
+    # the second half as another log (own odometry frame)
+    second = [
+        dataclasses.replace(s, odom_pose=se2.compose(FRAME, s.odom_pose), source=f"b:{i}")
+        for i, s in enumerate(scans[k:])
+    ]
+    start = scans[k].stamp_s
+    return scans, rel, k, w, folder, second, _second_half_error(w.stamps_s, w.poses, rel, start)
+
+
+def _digest(folder):  # type: ignore[no-untyped-def]
+    return hashlib.sha256(
+        b"".join(p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file())
+    ).hexdigest()
+
+
+@pytest.fixture(scope="module")
+def localized(csail):  # type: ignore[no-untyped-def]
+    _, _, _, _, folder, second, _ = csail
+    before = _digest(folder)
+    return localize_scans(fixed_map_of_session(session.read(folder)), second), before
+
+
+def test_csail_halves(csail) -> None:  # type: ignore[no-untyped-def]
+    scans, rel, k, w, folder, second, (e_whole, _, _) = csail
+    resumed = session.load(folder)
     for scan in scans[k:]:
         resumed.process(scan)
     assert np.array_equal(resumed.finish().poses, w.poses)  # bit for bit
-    # the second half as another log (own odometry frame), placed without an initial pose
-    frame = np.array([5.0, -3.0, 2.0])
-    second = [
-        dataclasses.replace(s, odom_pose=se2.compose(frame, s.odom_pose), source=f"b:{i}")
-        for i, s in enumerate(scans[k:])
-    ]
-    c = continue_scans(tmp_path / "first", second)
-    start = scans[k].stamp_s
-    e_whole = _second_half_error(w.stamps_s, w.poses, rel, start)
-    assert _second_half_error(c.stamps_s, c.poses, rel, start) <= 1.1 * e_whole
+    c = continue_scans(folder, second)  # placed without an initial pose
+    e_cont, _, _ = _second_half_error(c.stamps_s, c.poses, rel, scans[k].stamp_s)
+    assert e_cont <= 1.1 * e_whole
+    aces = shared_file("aces/aces-corrected.log.gz")
     other = [dataclasses.replace(s, stamp_s=s.stamp_s + 2e9) for s in list(open_log(aces))[:300]]
     with pytest.raises(SessionError, match="cannot be placed"):
-        continue_scans(tmp_path / "first", other)
+        continue_scans(folder, other)
+
+
+def test_csail_localize_second_half(csail, localized) -> None:  # type: ignore[no-untyped-def]
+    """The second half (parts of it where the first half never drove) localized in the
+    first half's map without an initial pose: every scan has a pose, every relation is
+    scored, and the relation error is within 10 % of the whole run's on the second half."""
+    scans, rel, k, _, folder, _, (e_whole, r_whole, n_whole) = csail
+    r, before = localized
+    assert np.all(r.status > Status.LOST)
+    e, rot, n = _second_half_error(r.stamps_s, r.poses, rel, scans[k].stamp_s)
+    assert n == n_whole
+    assert e <= 1.1 * e_whole
+    assert rot <= 1.1 * r_whole
+    assert np.all(np.linalg.eigvalsh(r.covs) > 0)
+    assert _digest(folder) == before  # the map is not changed
+
+
+def test_csail_localize_from_a_wrong_initial_pose(csail, localized) -> None:  # type: ignore[no-untyped-def]
+    """A wrong initial pose (10 m and 90 deg off) is refused by the map and the log placed
+    globally: the first 150 scans land where the run without an initial pose put them."""
+    _, _, _, _, folder, second, _ = csail
+    fixed = fixed_map_of_session(session.read(folder))
+    placed = localized[0].poses
+    start = placed[0]
+    wrong = se2.compose(start, np.array([10.0, 0.0, np.pi / 2]))
+    r = localize_scans(fixed, second[:150], initial_pose=wrong)
+    assert r.relocalizations >= 1
+    assert np.all(r.status > Status.LOST)
+    d = np.hypot(*(r.poses[:, :2] - placed[:150, :2]).T)
+    assert np.median(d) < 0.15  # the same placement, within the tracking precision
