@@ -32,6 +32,7 @@ from iceg.matching import MatchBounds
 from iceg.matching.peers import make_matcher
 from iceg.odometry_calibration import OdometryCalibrator
 from iceg.results import SlamResult
+from iceg.scan_store import ScanStore
 from iceg.types import MatchResult, ScanFeatures
 from iceg_common import se2
 from iceg_common.errors import GraphError, ScanError
@@ -94,9 +95,13 @@ class _LocalMatch:
 
 @dataclass
 class SlamState:
-    """Mutable per-run bookkeeping of :class:`Slam` (scans, nodes, match statistics)."""
+    """Mutable per-run bookkeeping of :class:`Slam` (scans, nodes, match statistics).
 
-    scans: list[LaserScan] = field(default_factory=list)
+    ``scans`` is a compact :class:`~iceg.scan_store.ScanStore`; a sequence of scans given
+    instead (e.g. by :mod:`iceg.session`) is stored into one.
+    """
+
+    scans: ScanStore = field(default_factory=ScanStore)
     records: list[_ScanRecord] = field(default_factory=list)
     node_scan_index: list[int] = field(default_factory=list)
     node_odom: list[FloatArray] = field(default_factory=list)
@@ -104,6 +109,10 @@ class SlamState:
     node_path_m: list[float] = field(default_factory=list)  # odometry path length at node
     correlations: dict[int, float] = field(default_factory=dict)  # factor index -> eq. 1
     match_failures: dict[str, int] = field(default_factory=lambda: defaultdict(int))
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.scans, ScanStore):
+            self.scans = ScanStore(self.scans)
 
 
 class Slam:
@@ -250,10 +259,10 @@ class Slam:
         return self.graph.estimate(new_id)
 
     def _check_order(self, scan: LaserScan) -> None:
-        if self._s.scans and scan.stamp_s < self._s.scans[-1].stamp_s:
+        if self._s.scans and scan.stamp_s < self._s.scans.stamp_s(-1):
             raise ScanError(
                 f"scan at {scan.stamp_s:.6f} s is earlier than the previous scan at "
-                f"{self._s.scans[-1].stamp_s:.6f} s: Slam.process needs scans in time order"
+                f"{self._s.scans.stamp_s(-1):.6f} s: Slam.process needs scans in time order"
             )
 
     def _start(self, scan: LaserScan, odom: FloatArray, t0: float) -> FloatArray:
@@ -287,7 +296,7 @@ class Slam:
         delta, cov = raw, raw_cov
         if self.config.odometry_calibration.enabled:
             delta, cov = self.odometry_calibrator.correct(raw, raw_cov)
-        dt = scan.stamp_s - s.scans[s.node_scan_index[last]].stamp_s
+        dt = scan.stamp_s - s.scans.stamp_s(s.node_scan_index[last])
         is_keyframe = bool(
             np.hypot(delta[0], delta[1]) >= cfg.keyframe_distance_m
             or abs(delta[2]) >= np.radians(cfg.keyframe_rotation_deg)
@@ -472,7 +481,7 @@ class Slam:
             feature_map=self.feature_map,
             graph=self.graph,
             config=self.config,
-            scans=tuple(self._s.scans),
+            scans=self._s.scans,
             slam=self,
         )
         return self._result
