@@ -167,6 +167,11 @@ class ScanStore(Sequence[LaserScan]):
         return float(self._head["stamp_s"][k])
 
     @property
+    def stamps_s(self) -> FloatArray:
+        """``(N,)`` float64 timestamps of all scans (s), a copy."""
+        return self._head["stamp_s"][: self._n].copy()
+
+    @property
     def nbytes(self) -> int:
         """Bytes held by the arrays (capacity included)."""
         return int(
