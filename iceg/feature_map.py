@@ -853,6 +853,38 @@ class FeatureMap:
         )
         return MapReference(features, frame, ids, poses, self._token)
 
+    def reference_pose_nodes(self, node_ids: Sequence[int] | ArrayLike) -> IntArray:
+        """The nodes whose poses :meth:`reference` reads for ``node_ids``: those nodes and the
+        anchors of their landmarks. A pose table holding (at least) these gives the same
+        reference as a table of every node.
+
+        Returns:
+            ``(k,)`` int64 sorted node ids.
+        """
+        want = np.unique(np.asarray(node_ids, dtype=np.int64).reshape(-1))
+        lm = self._lm
+        chosen = np.isin(lm.anchor, want) | np.isin(lm.last_node, want)
+        return np.union1d(want, lm.anchor[chosen])
+
+    def update_pose_nodes(self, node_id: int, reference: MapReference | None) -> IntArray:
+        """The nodes whose poses :meth:`update` reads for the new node ``node_id`` matched
+        against ``reference``: the node and the anchors of the landmarks taking part in its
+        bookkeeping. A ``node_poses`` table holding (at least) these gives the same update as
+        a table of every node.
+
+        Returns:
+            ``(k,)`` int64 sorted node ids.
+        """
+        lm = self._lm
+        if self.config.bookkeeping_recent_nodes is None:
+            anchors = lm.anchor
+        else:
+            part = lm.last_node >= int(node_id) - self.config.bookkeeping_recent_nodes
+            if reference is not None:
+                part |= np.isin(lm.id, reference.landmark_ids)
+            anchors = lm.anchor[part]
+        return np.union1d(np.array([int(node_id)], dtype=np.int64), anchors)
+
     def _reference_landmarks(
         self, ids: IntArray, poses: FloatArray, want: IntArray, frame: FloatArray
     ) -> LandmarkView:

@@ -307,15 +307,16 @@ class Slam:
     def _match_local(self, feats: ScanFeatures, delta: FloatArray, last: int) -> _LocalMatch:
         """ICE match against the landmarks of the ``local_map_nodes`` most recent nodes."""
         cfg = self.config.slam
-        ids, poses = self.graph.estimates()
-        recent = ids[max(0, last - cfg.local_map_nodes + 1) : last + 1]
-        reference = self.feature_map.reference((ids, poses), recent, poses[last])
+        recent = np.arange(max(0, last - cfg.local_map_nodes + 1), last + 1, dtype=np.int64)
+        ids, poses = self.graph.estimates_of(self.feature_map.reference_pose_nodes(recent))
+        last_pose = poses[np.searchsorted(ids, last)]
+        reference = self.feature_map.reference((ids, poses), recent, last_pose)
         bounds = MatchBounds.local(cfg.match_max_translation_m, cfg.match_max_rotation_deg)
         result = self.matcher.match(feats, reference.features, delta, bounds)
         if not result.success:
             # Count by the reason's category (the text before the first colon).
             self._s.match_failures[(result.reason or _UNKNOWN_REASON).split(":")[0]] += 1
-        return _LocalMatch(reference, result, poses[last])
+        return _LocalMatch(reference, result, last_pose)
 
     def _calibrate_odometry(self, local: _LocalMatch, motion: _Motion) -> None:
         """Feed a successful local match to the odometry calibration (same step's raw
@@ -378,7 +379,10 @@ class Slam:
             reference=local.reference,
             match=local.result,
             scan=scan,
-            node_poses=self.graph.estimates(),
+            # Only the poses the update reads (same values as the full table, O(k) not O(N)).
+            node_poses=self.graph.estimates_of(
+                self.feature_map.update_pose_nodes(node_id, local.reference)
+            ),
         )
 
     # ------------------------------------------------------------------ internals

@@ -256,7 +256,13 @@ def test_cached_estimates_follow_every_change_and_are_copies() -> None:
     g.add_node(0, [0.0, 0.0, 0.0])
 
     def check() -> None:
+        # estimates_of, read node by node (before the cache is filled), gives the same bits.
+        some = np.arange(g.n_nodes)[::2][::-1]  # unsorted, a subset
+        sub_ids, sub = g.estimates_of(np.r_[some, some])
         ids, poses = g.estimates()
+        np.testing.assert_array_equal(sub_ids, np.sort(some))
+        np.testing.assert_array_equal(sub, poses[np.searchsorted(ids, sub_ids)])
+        np.testing.assert_array_equal(g.estimates_of(some)[1], sub)  # now from the cache
         expect = np.array([g.estimate(int(n)) for n in ids])
         np.testing.assert_array_equal(poses, expect)
         poses[:] = 99.0  # a copy: the next call is unaffected
