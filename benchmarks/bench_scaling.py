@@ -100,6 +100,11 @@ def run_one(n: int, log: Path, grid: bool) -> dict:
             blocks.append(now - t_block)
             rss_blocks.append(peak_rss_mb())
             t_block = now
+            print(
+                f"  [{n}] scans {k}: block {blocks[-1]:.1f} s, peak RSS {rss_blocks[-1]:.0f} MB",
+                file=sys.stderr,
+                flush=True,
+            )
     del source
     t0 = time.perf_counter()
     result = slam.finish()
@@ -168,7 +173,7 @@ def main() -> None:
         cmd = [sys.executable, __file__, "--child", str(n), "--log", str(args.log)]
         if args.no_grid:
             cmd.append("--no-grid")
-        out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+        out = subprocess.run(cmd, check=True, stdout=subprocess.PIPE, text=True).stdout
         fig = json.loads(out.strip().splitlines()[-1])
         report(fig)
         summary.append(fig)
