@@ -90,7 +90,9 @@ def run_one(n: int, log: Path, grid: bool) -> dict:
     rss_start = peak_rss_mb()
     slam = Slam()
     blocks: list[float] = []
+    cpu_blocks: list[float] = []
     rss_blocks: list[float] = []
+    c_block = time.process_time()
     t_block = time.perf_counter()
     t_start = t_block
     for k, scan in enumerate(back_and_forth(source, n), start=1):
@@ -98,10 +100,12 @@ def run_one(n: int, log: Path, grid: bool) -> dict:
         if k % BLOCK == 0 or k == n:
             now = time.perf_counter()
             blocks.append(now - t_block)
+            cpu_blocks.append(time.process_time() - c_block)
             rss_blocks.append(peak_rss_mb())
-            t_block = now
+            t_block, c_block = now, time.process_time()
             print(
-                f"  [{n}] scans {k}: block {blocks[-1]:.1f} s, peak RSS {rss_blocks[-1]:.0f} MB",
+                f"  [{n}] scans {k}: block {blocks[-1]:.1f} s (CPU {cpu_blocks[-1]:.1f} s), "
+                f"peak RSS {rss_blocks[-1]:.0f} MB",
                 file=sys.stderr,
                 flush=True,
             )
@@ -118,6 +122,7 @@ def run_one(n: int, log: Path, grid: bool) -> dict:
     return {
         "n": n,
         "blocks_s": blocks,
+        "cpu_blocks_s": cpu_blocks,
         "rss_blocks_mb": rss_blocks,
         "process_s": time.perf_counter() - t_start - t_finish - (0.0 if not grid else t_grid),
         "finish_s": t_finish,
@@ -140,10 +145,12 @@ def report(fig: dict) -> None:
     n = fig["n"]
     k = n / BLOCK
     print(f"\n== {n} scans: {fig['nodes']} nodes, {fig['loop_closures']} loop closures")
-    print("  block (scans)      time (s)   s/1000 scans   peak RSS after (MB)")
-    for i, (t, r) in enumerate(zip(fig["blocks_s"], fig["rss_blocks_mb"], strict=True)):
+    print("  block (scans)   wall (s)  CPU (s)  wall s/1000  CPU s/1000  peak RSS after (MB)")
+    rows = zip(fig["blocks_s"], fig["cpu_blocks_s"], fig["rss_blocks_mb"], strict=True)
+    for i, (t, c, r) in enumerate(rows):
         lo, hi = i * BLOCK, min((i + 1) * BLOCK, n)
-        print(f"  {lo:6d}-{hi:<6d}    {t:9.2f}   {t / (hi - lo) * BLOCK:12.2f}   {r:10.0f}")
+        per = BLOCK / (hi - lo)
+        print(f"  {lo:6d}-{hi:<6d}  {t:8.2f} {c:8.2f}  {t * per:11.2f} {c * per:11.2f}  {r:10.0f}")
     per_k = fig["process_s"] / k
     print(f"  scans processed: {fig['process_s']:.1f} s ({per_k:.2f} s per 1000 scans)")
     print(f"  finish (batch refinement, result): {fig['finish_s']:.1f} s")
@@ -178,16 +185,21 @@ def main() -> None:
         report(fig)
         summary.append(fig)
         sys.stdout.flush()
+    print("\nsummary (s per 1000 scans; blocks after the first, which includes JIT compilation)")
     print(
-        "\nsize    s/1000 scans: first block, last block, mean   "
-        "peak RSS MB: total, above start per 1000 scans"
+        "  size   wall first/last/mean   CPU first/last/mean   CPU max/min   peak RSS MB, per 1000"
     )
     for fig in summary:
-        b = fig["blocks_s"]
         k = fig["n"] / BLOCK
+        last = (fig["n"] - 1) % BLOCK + 1
+        b = fig["blocks_s"]
+        c = fig["cpu_blocks_s"]
+        full = c[1 : len(c) - (1 if last < BLOCK else 0)]  # whole blocks after the first
+        spread = max(full) / min(full) if full else float("nan")
         print(
-            f"{fig['n']:6d}   {b[0]:6.2f} {b[-1] / ((fig['n'] - 1) % BLOCK + 1) * BLOCK:8.2f} "
-            f"{fig['process_s'] / k:8.2f}       {fig['rss_peak_mb']:8.0f} {_grown(fig) / k:8.1f}"
+            f"  {fig['n']:6d}  {b[0]:6.1f} {b[-1] * BLOCK / last:6.1f} {fig['process_s'] / k:6.1f}"
+            f"   {c[0]:6.1f} {c[-1] * BLOCK / last:6.1f} {sum(c) / k:6.1f}   {spread:8.2f}"
+            f"      {fig['rss_peak_mb']:6.0f}, {_grown(fig) / k:5.1f} above start"
         )
 
 
