@@ -93,6 +93,7 @@ def run_one(n: int, log: Path, grid: bool) -> dict:
     cpu_blocks: list[float] = []
     rss_blocks: list[float] = []
     c_block = time.process_time()
+    stages_before: dict[str, float] = {}
     t_block = time.perf_counter()
     t_start = t_block
     for k, scan in enumerate(back_and_forth(source, n), start=1):
@@ -103,9 +104,15 @@ def run_one(n: int, log: Path, grid: bool) -> dict:
             cpu_blocks.append(time.process_time() - c_block)
             rss_blocks.append(peak_rss_mb())
             t_block, c_block = now, time.process_time()
+            stages = dict(slam.timer.seconds)
+            grown = {s: v - stages_before.get(s, 0.0) for s, v in stages.items()}
+            stages_before = stages
             print(
                 f"  [{n}] scans {k}: block {blocks[-1]:.1f} s (CPU {cpu_blocks[-1]:.1f} s), "
-                f"peak RSS {rss_blocks[-1]:.0f} MB",
+                f"peak RSS {rss_blocks[-1]:.0f} MB, nodes {slam.graph.n_nodes}, "
+                f"landmarks {len(slam.feature_map)}, global closures "
+                f"{slam.loop_stats.global_accepted}; stage s: "
+                + ", ".join(f"{s} {v:.1f}" for s, v in sorted(grown.items(), key=lambda x: -x[1])),
                 file=sys.stderr,
                 flush=True,
             )
