@@ -55,9 +55,9 @@ def back_and_forth(scans: Sequence, n: int) -> Iterator:
     k = 0
     forward = True
     while True:
-        order = range(len(scans)) if forward else range(len(scans) - 1, -1, -1)
+        order: Sequence[int] = range(len(scans)) if forward else range(len(scans) - 1, -1, -1)
         if k > 0:
-            order = list(order)[1:]
+            order = order[1:]
         t0 = base
         for i in order:
             s = scans[i]
