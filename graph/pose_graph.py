@@ -28,6 +28,7 @@ import operator
 import os
 import re
 from collections import Counter
+from collections.abc import Iterable
 from dataclasses import dataclass
 from enum import Enum
 from typing import Literal
@@ -185,6 +186,8 @@ class PoseGraph:
         # Solver call log (see :attr:`steps`): what rebuilds iSAM2 bit for bit on replay.
         self._steps: list[tuple[int, int, int]] = []
         self._delta_read = True  # iSAM2's lazy delta was read since the last update()
+        # estimates() of the current state (ids, poses); dropped by every change of state.
+        self._estimates: tuple[NDArray[np.int64], FloatArray] | None = None
 
     # ------------------------------------------------------------------ building the graph
 
@@ -203,6 +206,7 @@ class PoseGraph:
             raise GraphError(f"add_node: node {n} already exists; node ids must be unique")
         pose = self._vector3(initial_pose, "initial_pose", f"add_node({n})")
         first = not self._initial
+        self._estimates = None
         self._initial[n] = pose
         self._factors_of[n] = []
         self._pending_nodes.append(n)
@@ -316,6 +320,7 @@ class PoseGraph:
                 gtsam failure the next ``update()`` rebuilds iSAM2 from every factor.
         """
         self._check_connected(self._pending_nodes)
+        self._estimates = None
         self._steps.append((STEP_UPDATE, len(self._initial), len(self._records)))
         self._delta_read = False
         if self._isam is None:
@@ -408,6 +413,7 @@ class PoseGraph:
             )
         self._reseed(result)
         self._served = result
+        self._estimates = None
         return stats
 
     # ------------------------------------------------------------------ reading results
@@ -436,14 +442,50 @@ class PoseGraph:
     def estimates(self) -> tuple[NDArray[np.int64], FloatArray]:
         """Current estimates of every node, sorted by id (same sources as :meth:`estimate`).
 
+        The arrays are built once per state of the graph (after each :meth:`add_node`,
+        :meth:`update`, :meth:`optimize_batch`) and cached; each call returns copies.
+
         Returns:
             ``ids`` ``(N,)`` int64 ascending, and ``poses`` ``(N, 3)`` float64
             ``[x_m, y_m, theta_rad]`` in the world frame.
         """
+        if self._estimates is None:
+            self._estimates = self._read_estimates()
+        ids, poses = self._estimates
+        return ids.copy(), poses.copy()
+
+    def estimates_of(self, node_ids: ArrayLike) -> tuple[NDArray[np.int64], FloatArray]:
+        """Current estimates of some nodes: the same values as the rows of :meth:`estimates`,
+        read node by node (O(k), not O(N), when :meth:`estimates` is not cached).
+
+        Args:
+            node_ids: ``(k,)`` node ids (repeats allowed).
+
+        Returns:
+            ``ids`` ``(m,)`` int64, the sorted unique ``node_ids``, and ``poses`` ``(m, 3)``
+            float64 ``[x_m, y_m, theta_rad]``, world frame.
+
+        Raises:
+            GraphError: an unknown node.
+        """
+        ids = np.unique(np.asarray(node_ids, dtype=np.int64).reshape(-1))
+        if self._estimates is not None:
+            all_ids, all_poses = self._estimates
+            pos = np.searchsorted(all_ids, ids)
+            ok = (pos < all_ids.shape[0]) & (all_ids[np.minimum(pos, all_ids.shape[0] - 1)] == ids)
+            if bool(np.all(ok)):
+                return ids, all_poses[pos].copy()
+        poses = np.array([self.estimate(int(n)) for n in ids]).reshape(-1, 3)
+        return ids, poses
+
+    def _read_estimates(self) -> tuple[NDArray[np.int64], FloatArray]:
         values = self._current_values()
-        ids = np.asarray(list(values.keys()), dtype=np.int64)
+        # Values hold exactly the nodes of _initial, in ascending key order.
+        ids = np.fromiter(self._initial, dtype=np.int64, count=len(self._initial))
         if ids.size == 0:
             return ids, np.zeros((0, 3))
+        if ids.size > 1 and not bool(np.all(ids[1:] > ids[:-1])):
+            ids.sort()
         poses = np.asarray(gtsam.utilities.extractPose2(values), dtype=np.float64).reshape(-1, 3)
         return ids, poses
 
@@ -652,6 +694,9 @@ class PoseGraph:
 
     def _current_values(self) -> gtsam.Values:
         """Estimate of every node as gtsam Values (served, iSAM2 or seed, then initial)."""
+        # With iSAM2 (and the batch values it was rebuilt at) every node is in iSAM2 or
+        # buffered: only the buffered ones can be missing (no O(N) loop per call).
+        missing: Iterable[int] = self._pending_nodes
         if self._served is not None:
             values = gtsam.Values(self._served)
         elif self._isam is not None:
@@ -660,9 +705,10 @@ class PoseGraph:
             values = self._isam.calculateEstimate() if self._in_isam else gtsam.Values()
         else:
             values = gtsam.Values(self._seed) if self._seed is not None else gtsam.Values()
-        for n, pose in self._initial.items():
+            missing = self._initial
+        for n in missing:
             if not values.exists(n):
-                values.insert(n, _pose2(pose))
+                values.insert(n, _pose2(self._initial[n]))
         return values
 
     def _seed_values(self) -> gtsam.Values:
@@ -686,6 +732,7 @@ class PoseGraph:
         self._seed = seed
         self._isam = None
         self._in_isam.clear()
+        self._estimates = None
 
     def _reseed(self, values: gtsam.Values) -> UpdateStats:
         """Rebuild iSAM2 from every factor, linearized at ``values``; clears the buffer."""
@@ -704,6 +751,7 @@ class PoseGraph:
         self._isam = isam
         self._seed = None
         self._served = None
+        self._estimates = None
         self._in_isam = set(self._initial)
         stats = UpdateStats(
             new_nodes=len(self._initial),

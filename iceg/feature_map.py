@@ -287,13 +287,24 @@ def _move_points(r: FloatArray, t: FloatArray, pts: FloatArray) -> FloatArray:
 
 _C = TypeVar("_C", bound="_Columns")
 
+#: Initial row capacity of a growing column container (:class:`_Columns`).
+_MIN_CAPACITY = 64
+
 
 @dataclass
 class _Columns:
     """Rows held as one numpy array per field (first axis: row); subclasses are dataclasses
-    whose ``SPEC`` gives each field's dtype and trailing shape."""
+    whose ``SPEC`` gives each field's dtype and trailing shape.
+
+    Each field is a view of the first rows of a buffer with spare capacity that doubles when
+    full, so appending rows costs amortized O(rows appended), not O(rows held).
+    """
 
     SPEC: ClassVar[dict[str, tuple[type, tuple[int, ...]]]] = {}
+
+    def __post_init__(self) -> None:
+        self._bufs: dict[str, np.ndarray] = {f.name: getattr(self, f.name) for f in fields(self)}
+        self._cap = len(self)
 
     @classmethod
     def empty(cls: type[_C]) -> _C:
@@ -305,9 +316,19 @@ class _Columns:
 
     def append(self: _C, other: _C) -> None:
         """Append ``other``'s rows (cast to this container's dtypes)."""
+        n, m = len(self), len(other)
+        if n + m > self._cap:
+            cap = max(2 * self._cap, n + m, _MIN_CAPACITY)
+            for f in fields(self):
+                mine = getattr(self, f.name)
+                buf = np.empty((cap, *mine.shape[1:]), dtype=mine.dtype)
+                buf[:n] = mine
+                self._bufs[f.name] = buf
+            self._cap = cap
         for f in fields(self):
-            mine = getattr(self, f.name)
-            setattr(self, f.name, np.concatenate([mine, getattr(other, f.name).astype(mine.dtype)]))
+            buf = self._bufs[f.name]
+            buf[n : n + m] = getattr(other, f.name).astype(buf.dtype)
+            setattr(self, f.name, buf[: n + m])
 
     def take(self: _C, rows: IntArray | BoolArray) -> _C:
         """A copy holding the selected rows (indices or a mask)."""
@@ -539,6 +560,26 @@ def _node_pose_table(node_poses: NodePoses) -> tuple[IntArray, FloatArray]:
     return ids[order], poses[order]
 
 
+def _node_blocks(node: IntArray) -> dict[int, tuple[int, int]]:
+    """``{node: (start, stop)}`` of a node column made of one contiguous block per node."""
+    if node.shape[0] == 0:
+        return {}
+    starts = np.flatnonzero(np.r_[True, node[1:] != node[:-1]])
+    stops = np.r_[starts[1:], node.shape[0]]
+    blocks = {int(node[a]): (int(a), int(b)) for a, b in zip(starts, stops, strict=True)}
+    if len(blocks) != starts.shape[0]:
+        raise FeatureMapError("FeatureMap.from_state: a node's rows are not contiguous")
+    return blocks
+
+
+def _block_rows(blocks: Mapping[int, tuple[int, int]], nodes: IntArray) -> IntArray:
+    """Ascending rows of the blocks of ``nodes`` (nodes without a block have none)."""
+    spans = sorted(blocks[n] for n in nodes.tolist() if n in blocks)
+    if not spans:
+        return np.zeros(0, dtype=np.int64)
+    return np.concatenate([np.arange(a, b, dtype=np.int64) for a, b in spans])
+
+
 def _lookup(table_ids: IntArray, query: IntArray) -> tuple[IntArray, BoolArray]:
     """Positions of ``query`` in the sorted ``table_ids`` and whether each was found."""
     if table_ids.shape[0] == 0:
@@ -637,6 +678,9 @@ class FeatureMap:
         self._lm = _Landmarks.empty()
         self._seg = _Segments.empty()
         self._pts = _Points.empty()
+        # Each node's segments and points are one contiguous block of rows: node -> [start, stop).
+        self._seg_rows: dict[int, tuple[int, int]] = {}
+        self._pts_rows: dict[int, tuple[int, int]] = {}
         self._nodes: set[int] = set()
         self._next_id = 0
         self.n_merged = 0
@@ -728,6 +772,8 @@ class FeatureMap:
             raise FeatureMapError(
                 f"FeatureMap.from_state: scalars must be (4,), got {scalars.shape}"
             )
+        fmap._seg_rows = _node_blocks(fmap._seg.node)
+        fmap._pts_rows = _node_blocks(fmap._pts.node)
         fmap._pruned = [PrunedLandmarks(**pruned)] if pruned["ids"].shape[0] else []
         fmap._nodes = {int(n) for n in nodes}
         fmap._next_id, fmap.n_merged = int(scalars[0]), int(scalars[1])
@@ -782,11 +828,13 @@ class FeatureMap:
         ids, poses = _node_pose_table(node_poses)
         want = np.unique(np.asarray(node_ids, dtype=np.int64).reshape(-1))
         view = self._reference_landmarks(ids, poses, want, frame)
-        spos, sfound = _lookup(ids, self._seg.node)
-        ssel = np.flatnonzero(np.isin(self._seg.node, want) & sfound)
-        srel = between(frame, poses[spos[ssel]]) if ssel.shape[0] else np.zeros((0, 3))
+        _, posed = _lookup(ids, want)
+        want_posed = want[posed]  # nodes whose segments and points can be placed
+        ssel = _block_rows(self._seg_rows, want_posed)
+        spos, _ = _lookup(ids, self._seg.node[ssel])
+        srel = between(frame, poses[spos]) if ssel.shape[0] else np.zeros((0, 3))
         ep, lines, lcov = self._seg.take(ssel).in_frame(srel)
-        points, seg_pr = self._reference_points(ids, poses, want, frame, ssel)
+        points, seg_pr = self._reference_points(ids, poses, want_posed, frame, ssel)
         features = ScanFeatures(
             points_xy=points,
             seg_endpoints=ep,
@@ -805,6 +853,38 @@ class FeatureMap:
         )
         return MapReference(features, frame, ids, poses, self._token)
 
+    def reference_pose_nodes(self, node_ids: Sequence[int] | ArrayLike) -> IntArray:
+        """The nodes whose poses :meth:`reference` reads for ``node_ids``: those nodes and the
+        anchors of their landmarks. A pose table holding (at least) these gives the same
+        reference as a table of every node.
+
+        Returns:
+            ``(k,)`` int64 sorted node ids.
+        """
+        want = np.unique(np.asarray(node_ids, dtype=np.int64).reshape(-1))
+        lm = self._lm
+        chosen = np.isin(lm.anchor, want) | np.isin(lm.last_node, want)
+        return np.union1d(want, lm.anchor[chosen])
+
+    def update_pose_nodes(self, node_id: int, reference: MapReference | None) -> IntArray:
+        """The nodes whose poses :meth:`update` reads for the new node ``node_id`` matched
+        against ``reference``: the node and the anchors of the landmarks taking part in its
+        bookkeeping. A ``node_poses`` table holding (at least) these gives the same update as
+        a table of every node.
+
+        Returns:
+            ``(k,)`` int64 sorted node ids.
+        """
+        lm = self._lm
+        if self.config.bookkeeping_recent_nodes is None:
+            anchors = lm.anchor
+        else:
+            part = lm.last_node >= int(node_id) - self.config.bookkeeping_recent_nodes
+            if reference is not None:
+                part |= np.isin(lm.id, reference.landmark_ids)
+            anchors = lm.anchor[part]
+        return np.union1d(np.array([int(node_id)], dtype=np.int64), anchors)
+
     def _reference_landmarks(
         self, ids: IntArray, poses: FloatArray, want: IntArray, frame: FloatArray
     ) -> LandmarkView:
@@ -819,16 +899,16 @@ class FeatureMap:
     def _reference_points(
         self, ids: IntArray, poses: FloatArray, want: IntArray, frame: FloatArray, ssel: IntArray
     ) -> tuple[FloatArray, IntArray]:
-        """Scan points of ``want`` in the frame ``frame`` and each chosen segment's
-        ``[start, stop)`` into them (-1 without points)."""
+        """Scan points of ``want`` (nodes with a pose in ``ids``) in the frame ``frame`` and
+        each chosen segment's ``[start, stop)`` into them (-1 without points)."""
         points = np.zeros((0, 2))
         seg_pr = np.full((ssel.shape[0], 2), -1, dtype=np.int64)
         if not (self.config.reference_points and len(self._pts)):
             return points, seg_pr
         sg, pt = self._seg, self._pts
-        ppos, pfound = _lookup(ids, pt.node)
-        psel = np.flatnonzero(np.isin(pt.node, want) & pfound)
-        prel = between(frame, poses[ppos[psel]])
+        psel = _block_rows(self._pts_rows, want)
+        ppos, _ = _lookup(ids, pt.node[psel])
+        prel = between(frame, poses[ppos])
         points = np.einsum("nab,nb->na", rotation_matrix(prel[:, 2]), pt.xy[psel]) + prel[:, :2]
         # Each node's points are contiguous: shift its segments' ranges to its block.
         nodes_sel, first = np.unique(pt.node[psel], return_index=True)
@@ -932,6 +1012,8 @@ class FeatureMap:
     def _store_segments(self, node_id: int, features: ScanFeatures) -> None:
         m = features.n_segments
         keep = self.config.reference_points
+        start = len(self._seg)
+        self._seg_rows[node_id] = (start, start + m)
         pr = np.asarray(features.seg_point_range, dtype=np.int64).reshape(m, 2)
         self._seg.append(
             _Segments(
@@ -944,6 +1026,8 @@ class FeatureMap:
         )
         if keep:
             pts = np.asarray(features.points_xy, dtype=np.float64).reshape(-1, 2)
+            start = len(self._pts)
+            self._pts_rows[node_id] = (start, start + pts.shape[0])
             self._pts.append(_Points(np.full(pts.shape[0], node_id, dtype=np.int64), pts))
 
     def _add_landmarks(

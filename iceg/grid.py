@@ -48,6 +48,7 @@ __all__ = [
     "render",
     "render_ranges",
     "render_tiled",
+    "render_tiled_beams",
     "write_map_server",
     "write_npz",
     "write_png",
@@ -470,6 +471,39 @@ def render_tiled(
     rmin = np.repeat(np.array([s.range_min_m for s in scans]), counts)
     rmax = np.repeat(np.array([s.range_max_m for s in scans]), counts)
     return _render_flat(p, offsets, counts, ranges, angles, rmin, rmax, cfg)
+
+
+def render_tiled_beams(
+    poses: ArrayLike,
+    laser_offsets: FloatArray,
+    beam_counts: NDArray[np.int64],
+    ranges_m: FloatArray,
+    angles_rad: FloatArray,
+    range_min_m: FloatArray,
+    range_max_m: FloatArray,
+    config: GridConfig | None = None,
+) -> TiledGrid:
+    """:func:`render_tiled` from flattened beams (no per-scan objects; same cell values).
+
+    Args:
+        poses: ``(N, 3)`` robot poses, world frame.
+        laser_offsets: ``(N, 3)`` laser pose in each robot frame.
+        beam_counts: ``(N,)`` int64 beams of each scan; the beam arrays hold scan 0's beams,
+            then scan 1's, ...
+        ranges_m, angles_rad, range_min_m, range_max_m: ``(B,)`` float64 per beam, laser
+            frame, ``B = beam_counts.sum()``.
+        config: Grid parameters.
+
+    Raises:
+        GridError: as :func:`render_tiled`.
+    """
+    cfg = config or GridConfig()
+    p = _check_poses(poses, int(beam_counts.shape[0]))
+    if p.shape[0] == 0:
+        return _empty_grid(p, cfg)
+    return _render_flat(
+        p, laser_offsets, beam_counts, ranges_m, angles_rad, range_min_m, range_max_m, cfg
+    )
 
 
 def render_ranges(

@@ -465,9 +465,9 @@ class LoopCloser:
         (more than ``reference_nodes`` nodes apart)."""
         lc = self.config
         dist = np.hypot(*(s.poses[s.older, :2] - s.poses[s.node_id, :2]).T)
-        order = np.argsort(dist, kind="stable")
+        inside = np.flatnonzero(dist <= s.radius_m)  # sort only the nodes within the radius
         candidates: list[int] = []
-        for k in order[dist[order] <= s.radius_m]:
+        for k in inside[np.argsort(dist[inside], kind="stable")]:
             if all(abs(int(s.older[k]) - c) > lc.reference_nodes for c in candidates):
                 candidates.append(int(s.older[k]))
             if len(candidates) == lc.max_candidates:
@@ -486,7 +486,7 @@ class LoopCloser:
         """The landmarks of the old nodes nearest the candidate (any pass through the place),
         in the candidate's frame."""
         near_cand = np.hypot(*(s.poses[s.older, :2] - s.poses[candidate, :2]).T)
-        window = s.older[np.argsort(near_cand, kind="stable")[: self.config.reference_nodes]]
+        window = s.older[nearest_k(near_cand, self.config.reference_nodes)]
         return self.feature_map.reference((s.ids, s.poses), window, s.poses[candidate]).features
 
     def _best_match(self, s: _Search, features: ScanFeatures) -> _Best | None:
@@ -727,6 +727,17 @@ class LoopCloser:
         return AcceptedClosures(tuple(closures), kernel, large_correction)
 
 
+def nearest_k(dist: FloatArray, k: int) -> IntArray:
+    """Indices of the ``k`` smallest of ``dist`` ``(n,)`` (finite), nearest first, ties by
+    index: the first ``k`` of a stable argsort, in O(n + k log k) (only the entries up to the
+    k-th value are sorted). Returns ``(min(n, k),)`` int64."""
+    if dist.shape[0] <= k:
+        return np.argsort(dist, kind="stable")
+    kth = np.partition(dist, k - 1)[k - 1]
+    few = np.flatnonzero(dist <= kth)
+    return few[np.argsort(dist[few], kind="stable")[:k]]
+
+
 def _ends(c: LoopClosure) -> tuple[int, int]:
     return c.node_from, c.node_to
 
@@ -740,5 +751,6 @@ __all__ = [
     "chain_covariance",
     "closures_agree",
     "innovation_chi2",
+    "nearest_k",
     "pcm_chi2",
 ]

@@ -7,7 +7,7 @@ from __future__ import annotations
 import logging
 import os
 import stat
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +20,7 @@ from iceg.config import IcegConfig
 from iceg.evaluation import position_errors, relation_errors
 from iceg.features.prefetch import FeaturePrefetcher, auto_workers
 from iceg.results import SlamResult
+from iceg.scan_store import ScanStore
 from iceg.slam import Slam
 from iceg_common.errors import EvaluationError, LogFormatError
 
@@ -99,11 +100,11 @@ def run_log(
     check_log_file(Path(path))
     reader = open_log(path, stamps=stamps, **(reader_options or {}))
     rel = read_relations(relations) if relations is not None else None
-    scans: Sequence[LaserScan] = list(reader)
+    scans = ScanStore(reader)  # compact: no LaserScan object per scan held during the run
     if not scans:
         raise LogFormatError(f"{path}: the log holds no laser scans")
     if rel is not None:
-        check_relations_match(rel, np.array([s.stamp_s for s in scans]))
+        check_relations_match(rel, scans.stamps_s)
     result = run_scans(scans, config, progress=progress, total=len(scans))
     report = getattr(reader, "stamp_report", None)
     result.metrics["stamps"] = (

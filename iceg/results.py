@@ -19,7 +19,7 @@ import os
 import shutil
 import time
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -28,7 +28,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from frontends.tum import write_tum
-from iceg.grid import OccupancyGrid, TiledGrid, render_tiled, write_map_server, write_png
+from iceg.grid import (
+    OccupancyGrid,
+    TiledGrid,
+    render_tiled,
+    render_tiled_beams,
+    write_map_server,
+    write_png,
+)
+from iceg.scan_store import ScanStore
 from iceg_common.atomic import atomic_write
 from iceg_common.errors import GridError, OutputError
 
@@ -89,7 +97,8 @@ class SlamResult:
         feature_map: the final feature map (landmarks anchored to nodes).
         graph: the pose graph (marginals, g2o export).
         config: the effective configuration.
-        scans: the input scans, for rendering the map along ``poses``.
+        scans: the input scans (a compact :class:`~iceg.scan_store.ScanStore` from
+            :class:`~iceg.slam.Slam`), for rendering the map along ``poses``.
         metrics: evaluation figures added by the caller (relations, ground truth), and
             ``map`` once the map was rendered (or could not be).
         slam: the :class:`~iceg.slam.Slam` that produced the result; :meth:`save` writes
@@ -109,7 +118,7 @@ class SlamResult:
     feature_map: FeatureMap
     graph: PoseGraph
     config: IcegConfig
-    scans: tuple[LaserScan, ...] = ()
+    scans: Sequence[LaserScan] = ()
     point_fallbacks: dict[str, int] = field(default_factory=dict)
     metrics: dict[str, Any] = field(default_factory=dict)
     slam: Slam | None = field(default=None, repr=False)
@@ -178,7 +187,13 @@ class SlamResult:
             return None
         t0 = time.perf_counter()
         try:
-            self._map = render_tiled(self.scans, self.poses, self.config.grid)
+            if isinstance(self.scans, ScanStore):
+                counts, ranges, angles, rmin, rmax, offsets = self.scans.beams()
+                self._map = render_tiled_beams(
+                    self.poses, offsets, counts, ranges, angles, rmin, rmax, self.config.grid
+                )
+            else:
+                self._map = render_tiled(self.scans, self.poses, self.config.grid)
         except GridError as exc:
             logger.warning("no map written: %s", exc)
             self.metrics["map"] = {"rendered": False, "reason": str(exc)}

@@ -65,6 +65,7 @@ from graph.pose_graph import STEP_BATCH, STEP_DELTA, STEP_UPDATE
 from iceg.config import IcegConfig, config_from_yaml
 from iceg.feature_map import FeatureMap
 from iceg.loop_closure import LoopClosure, LoopClosureStats
+from iceg.scan_store import ScanStore
 from iceg.slam import Slam, SlamState, _ScanRecord
 from iceg_common import se2
 from iceg_common.atomic import atomic_write
@@ -396,7 +397,7 @@ def _slam_state(session: Session, scans: list[LaserScan]) -> SlamState:
     a = session.arrays
     corr = a["g_correlation"]
     return SlamState(
-        scans=scans,
+        scans=ScanStore(scans),
         records=[
             _ScanRecord(float(t), int(n), d.copy())
             for t, n, d in zip(a["s_stamp"], a["s_node"], a["s_delta"], strict=True)

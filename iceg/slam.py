@@ -35,6 +35,7 @@ from iceg.matching.peers import make_matcher
 from iceg.matching.plicp import PlIcpMatcher
 from iceg.odometry_calibration import OdometryCalibrator
 from iceg.results import SlamResult
+from iceg.scan_store import ScanStore
 from iceg.types import MatchResult, ScanFeatures
 from iceg_common import se2
 from iceg_common.errors import GraphError, ScanError
@@ -113,9 +114,13 @@ class _LocalMatch:
 
 @dataclass
 class SlamState:
-    """Mutable per-run bookkeeping of :class:`Slam` (scans, nodes, match statistics)."""
+    """Mutable per-run bookkeeping of :class:`Slam` (scans, nodes, match statistics).
 
-    scans: list[LaserScan] = field(default_factory=list)
+    ``scans`` is a compact :class:`~iceg.scan_store.ScanStore`; a sequence of scans given
+    instead (e.g. by :mod:`iceg.session`) is stored into one.
+    """
+
+    scans: ScanStore = field(default_factory=ScanStore)
     records: list[_ScanRecord] = field(default_factory=list)
     node_scan_index: list[int] = field(default_factory=list)
     node_odom: list[FloatArray] = field(default_factory=list)
@@ -125,6 +130,10 @@ class SlamState:
     match_failures: dict[str, int] = field(default_factory=lambda: defaultdict(int))
     # ICE failures (by reason category) whose scan got the point match's factor instead
     point_fallbacks: dict[str, int] = field(default_factory=lambda: defaultdict(int))
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.scans, ScanStore):
+            self.scans = ScanStore(self.scans)
 
 
 class Slam:
@@ -285,10 +294,10 @@ class Slam:
         return self.graph.estimate(new_id)
 
     def _check_order(self, scan: LaserScan) -> None:
-        if self._s.scans and scan.stamp_s < self._s.scans[-1].stamp_s:
+        if self._s.scans and scan.stamp_s < self._s.scans.stamp_s(-1):
             raise ScanError(
                 f"scan at {scan.stamp_s:.6f} s is earlier than the previous scan at "
-                f"{self._s.scans[-1].stamp_s:.6f} s: Slam.process needs scans in time order"
+                f"{self._s.scans.stamp_s(-1):.6f} s: Slam.process needs scans in time order"
             )
 
     def _features(
@@ -334,7 +343,7 @@ class Slam:
         delta, cov = raw, raw_cov
         if self.config.odometry_calibration.enabled:
             delta, cov = self.odometry_calibrator.correct(raw, raw_cov)
-        dt = scan.stamp_s - s.scans[s.node_scan_index[last]].stamp_s
+        dt = scan.stamp_s - s.scans.stamp_s(s.node_scan_index[last])
         is_keyframe = bool(
             np.hypot(delta[0], delta[1]) >= cfg.keyframe_distance_m
             or abs(delta[2]) >= np.radians(cfg.keyframe_rotation_deg)
@@ -346,20 +355,21 @@ class Slam:
         """ICE match against the landmarks of the ``local_map_nodes`` most recent nodes; where
         it fails, the point match (:meth:`_point_match`) when ``slam.point_fallback``."""
         cfg = self.config.slam
-        ids, poses = self.graph.estimates()
-        recent = ids[max(0, last - cfg.local_map_nodes + 1) : last + 1]
-        reference = self.feature_map.reference((ids, poses), recent, poses[last])
+        recent = np.arange(max(0, last - cfg.local_map_nodes + 1), last + 1, dtype=np.int64)
+        ids, poses = self.graph.estimates_of(self.feature_map.reference_pose_nodes(recent))
+        last_pose = poses[np.searchsorted(ids, last)]
+        reference = self.feature_map.reference((ids, poses), recent, last_pose)
         bounds = MatchBounds.local(cfg.match_max_translation_m, cfg.match_max_rotation_deg)
         result = self.matcher.match(feats, reference.features, motion.delta, bounds)
         if not result.success:
             # Count by the reason's category (the text before the first colon).
             category = (result.reason or _UNKNOWN_REASON).split(":")[0]
-            fallback = self._point_match(feats, motion, bounds, recent, poses)
+            fallback = self._point_match(feats, motion, bounds, recent)
             if fallback is not None and fallback.success:
                 self._s.point_fallbacks[category] += 1
-                return _LocalMatch(reference, fallback, poses[last])
+                return _LocalMatch(reference, fallback, last_pose)
             self._s.match_failures[category] += 1
-        return _LocalMatch(reference, result, poses[last])
+        return _LocalMatch(reference, result, last_pose)
 
     def _point_match(
         self,
@@ -367,7 +377,6 @@ class Slam:
         motion: _Motion,
         bounds: MatchBounds,
         recent: NDArray[np.int64],
-        poses: FloatArray,
     ) -> MatchResult | None:
         """Point-to-line ICP (:class:`~iceg.matching.plicp.PlIcpMatcher`, Censi 2008) of the
         scan's points against the scan points of the ``recent`` nodes, seeded by the
@@ -376,11 +385,11 @@ class Slam:
         point match's own covariance. ``None`` when disabled or the matcher is not ICE."""
         if not self.config.slam.point_fallback or self.config.matching.method != "ice":
             return None
-        frame = poses[recent[-1]]
+        _, poses = self.graph.estimates_of(recent)
         ref = np.concatenate(
             [
-                se2.transform_points(se2.between(frame, poses[i]), self._points_of(int(i)))
-                for i in recent
+                se2.transform_points(se2.between(poses[-1], pose), self._points_of(int(i)))
+                for i, pose in zip(recent, poses, strict=True)
             ]
         )
         result = self.point_matcher.match(feats, ScanFeatures.empty(ref), motion.delta, bounds)
@@ -467,7 +476,10 @@ class Slam:
             reference=local.reference,
             match=local.result,
             scan=scan,
-            node_poses=self.graph.estimates(),
+            # Only the poses the update reads (same values as the full table, O(k) not O(N)).
+            node_poses=self.graph.estimates_of(
+                self.feature_map.update_pose_nodes(node_id, local.reference)
+            ),
         )
 
     # ------------------------------------------------------------------ internals
@@ -571,7 +583,7 @@ class Slam:
             feature_map=self.feature_map,
             graph=self.graph,
             config=self.config,
-            scans=tuple(self._s.scans),
+            scans=self._s.scans,
             slam=self,
         )
         return self._result

@@ -247,3 +247,42 @@ def test_indeterminant_system_is_wrapped_and_recoverable() -> None:
 def test_repr_counts_kinds() -> None:
     g = _chain(3)
     assert "nodes=3" in repr(g) and "'odometry': 2" in repr(g) and "pending=3" in repr(g)
+
+
+def test_cached_estimates_follow_every_change_and_are_copies() -> None:
+    # estimates() is cached per graph state: after each add_node, update, optimize_batch it
+    # equals the per-node estimate() (iSAM2, batch or initial values), and callers get copies.
+    g = PoseGraph()
+    g.add_node(0, [0.0, 0.0, 0.0])
+
+    def check() -> None:
+        # estimates_of, read node by node (before the cache is filled), gives the same bits.
+        some = np.arange(g.n_nodes)[::2][::-1]  # unsorted, a subset
+        sub_ids, sub = g.estimates_of(np.r_[some, some])
+        ids, poses = g.estimates()
+        np.testing.assert_array_equal(sub_ids, np.sort(some))
+        np.testing.assert_array_equal(sub, poses[np.searchsorted(ids, sub_ids)])
+        np.testing.assert_array_equal(g.estimates_of(some)[1], sub)  # now from the cache
+        expect = np.array([g.estimate(int(n)) for n in ids])
+        np.testing.assert_array_equal(poses, expect)
+        poses[:] = 99.0  # a copy: the next call is unaffected
+        np.testing.assert_array_equal(g.estimates()[1], expect)
+
+    check()
+    g.update()
+    check()
+    for k in range(1, 6):
+        g.add_node(k, [k + 0.1, 0.05 * k, 0.0])
+        check()  # the new node at its initial value
+        g.add_between(k - 1, k, [1.0, 0.0, 0.0], COV)
+        g.update()
+        check()
+    g.add_between(0, 5, [5.0, 0.0, 0.0], COV)
+    g.optimize_batch()
+    check()
+    g.add_node(6, [6.0, 0.0, 0.0])
+    check()
+    g.add_between(5, 6, [1.0, 0.0, 0.0], COV)
+    g.update()
+    check()
+    assert g.estimates()[0].tolist() == list(range(7))

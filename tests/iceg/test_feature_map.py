@@ -255,3 +255,52 @@ def test_reference_points_follow_their_nodes() -> None:
         assert np.abs(res).max() < 0.05  # 1 cm range noise, TLS lines
     # Without the option the reference carries no points.
     assert FeatureMap().reference({}, [], frame).features.points_xy.shape == (0, 2)
+
+
+def test_reference_of_any_node_subset_equals_a_brute_force_selection() -> None:
+    # Segments and points are found through a per-node block index (no scan of every row):
+    # for random subsets of nodes (some unknown, some without a pose) the reference holds
+    # exactly the rows a full scan of the stored arrays selects, in the same order.
+    rng = np.random.default_rng(5)
+    w = room_walls()
+    fm = FeatureMap(FeatureMapConfig(reference_points=True))
+    poses: dict[int, np.ndarray] = {}
+    for node in range(30):
+        pose = np.array([2.0 + 0.05 * node, 2.0 + 0.03 * node, 0.02 * node])
+        poses[node] = pose
+        fm.update(node, hand_scan(w, pose, rng), 0.1 * node)
+    state = fm.export_state()
+    frame = np.array([0.5, -0.2, 0.3])
+    for _ in range(20):
+        want = rng.choice(35, size=int(rng.integers(0, 8)), replace=False)
+        posed = {k: v for k, v in poses.items() if rng.random() > 0.2}
+        ref = fm.reference(posed, want, frame).features
+        keep = np.isin(state["seg_node"], [k for k in want if k in posed])
+        rows = np.flatnonzero(keep)
+        ep = np.array(
+            [
+                transform_points(
+                    between(frame, posed[int(state["seg_node"][r])]), state["seg_ep"][r]
+                )
+                for r in rows
+            ]
+        ).reshape(-1, 2, 2)
+        np.testing.assert_allclose(ref.seg_endpoints, ep, rtol=0, atol=1e-12)
+        pkeep = np.isin(state["pts_node"], [k for k in want if k in posed])
+        pts = [
+            transform_points(between(frame, posed[int(n)]), state["pts_xy"][state["pts_node"] == n])
+            for n in np.unique(state["pts_node"][pkeep])
+        ]
+        expect = np.concatenate(pts) if pts else np.zeros((0, 2))
+        np.testing.assert_allclose(ref.points_xy, expect, rtol=0, atol=1e-12)
+        # Each segment's point range selects points of its own node's block.
+        for m in range(ref.n_segments):
+            a, b = ref.seg_point_range[m]
+            assert 0 <= a <= b <= ref.points_xy.shape[0]
+    # A map rebuilt from its state selects the same rows.
+    again = FeatureMap.from_state(state, FeatureMapConfig(reference_points=True))
+    a = fm.reference(poses, [3, 7, 8], frame).features
+    b = again.reference(poses, [3, 7, 8], frame).features
+    np.testing.assert_array_equal(a.seg_endpoints, b.seg_endpoints)
+    np.testing.assert_array_equal(a.points_xy, b.points_xy)
+    np.testing.assert_array_equal(a.seg_point_range, b.seg_point_range)

@@ -8,6 +8,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from frontends.simulate import (
     OdometryModel,
@@ -27,6 +29,7 @@ from iceg.loop_closure import (
     chain_covariance,
     closures_agree,
     innovation_chi2,
+    nearest_k,
     pcm_chi2,
 )
 from iceg.slam import Slam
@@ -239,3 +242,14 @@ def test_two_loop_world_with_large_odometry_drift_closes_with_true_closures() ->
     assert position_errors(poses, run.true_poses).rmse_m <= 0.10
     assert slam.loop_stats.global_searches > 0
     assert _assert_true_closures(slam, run.true_poses) >= 10
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(st.integers(0, 6), min_size=0, max_size=60),  # small range: many ties
+    st.integers(1, 12),
+)
+def test_nearest_k_equals_the_head_of_a_stable_argsort(values: list[int], k: int) -> None:
+    dist = np.asarray(values, dtype=np.float64) * 0.5
+    expect = np.argsort(dist, kind="stable")[:k]
+    np.testing.assert_array_equal(nearest_k(dist, k), expect)

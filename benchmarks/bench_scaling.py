@@ -1,0 +1,214 @@
+"""Benchmark: per-scan cost and memory against log length (issue 12, long logs).
+
+Builds long logs in memory from the MIT CSAIL log (1988 scans) driven forward, then backward
+along the same path, then forward again, ... (a backward pass is the log in reverse order with
+increasing stamps: the same odometry poses and ranges, so odometry stays consistent and every
+pass revisits the same building). Each size runs the library pipeline (:class:`iceg.slam.Slam`
+scan by scan, :meth:`Slam.finish`, then the occupancy grid of the result) in a fresh
+subprocess and prints:
+
+- the wall time of each successive block of 1000 scans (growth with the map is visible),
+- the time of the final step (batch refinement, result) and of the grid rendering,
+- the time per stage (the pipeline's own stage timer),
+- the peak RSS (``resource.getrusage`` ``ru_maxrss``) after each block, after the final step
+  and after the grid, and the peak RSS per 1000 scans.
+
+Every generated scan owns fresh range and bearing arrays (nothing is shared with the source
+log), so what the pipeline keeps is what the measurement sees.
+
+Run: ``python benchmarks/bench_scaling.py [--sizes 2000,10000,50000] [--log path.clf]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "mit-csail" / "mit-csail.clf"
+BLOCK = 1000
+
+
+def peak_rss_mb() -> float:
+    """Peak resident set size of this process so far (MB; Linux reports KB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def back_and_forth(scans: Sequence, n: int) -> Iterator:
+    """``n`` scans: ``scans`` forward, backward, forward, ... with increasing stamps.
+
+    The turnaround scan is not repeated; the stamp step across a turnaround is the log's
+    median step. Each yielded scan is a new :class:`frontends.LaserScan` with its own arrays.
+    """
+    from frontends import LaserScan
+
+    stamps = np.array([s.stamp_s for s in scans])
+    step = float(np.median(np.diff(stamps)))
+    base = stamps[0]
+    k = 0
+    forward = True
+    while True:
+        order: Sequence[int] = range(len(scans)) if forward else range(len(scans) - 1, -1, -1)
+        if k > 0:
+            order = order[1:]
+        t0 = base
+        for i in order:
+            s = scans[i]
+            rel = (stamps[i] - stamps[0]) if forward else (stamps[-1] - stamps[i])
+            stamp = t0 + rel
+            base = stamp
+            yield LaserScan(
+                stamp_s=float(stamp),
+                ranges_m=np.array(s.ranges_m, dtype=np.float64),
+                angles_rad=np.array(s.angles_rad, dtype=np.float64),
+                range_min_m=s.range_min_m,
+                range_max_m=s.range_max_m,
+                odom_pose=None if s.odom_pose is None else np.array(s.odom_pose),
+                laser_offset=np.array(s.laser_offset),
+                source=s.source,
+            )
+            k += 1
+            if k >= n:
+                return
+        base += step
+        forward = not forward
+
+
+def run_one(n: int, log: Path, grid: bool) -> dict:
+    """Run the pipeline over ``n`` scans in this process; return the figures."""
+    from frontends import open_log
+    from iceg.slam import Slam
+
+    source = list(open_log(log))
+    rss_start = peak_rss_mb()
+    slam = Slam()
+    blocks: list[float] = []
+    cpu_blocks: list[float] = []
+    rss_blocks: list[float] = []
+    c_block = time.process_time()
+    stages_before: dict[str, float] = {}
+    t_block = time.perf_counter()
+    t_start = t_block
+    for k, scan in enumerate(back_and_forth(source, n), start=1):
+        slam.process(scan)
+        if k % BLOCK == 0 or k == n:
+            now = time.perf_counter()
+            blocks.append(now - t_block)
+            cpu_blocks.append(time.process_time() - c_block)
+            rss_blocks.append(peak_rss_mb())
+            t_block, c_block = now, time.process_time()
+            stages = dict(slam.timer.seconds)
+            grown = {s: v - stages_before.get(s, 0.0) for s, v in stages.items()}
+            stages_before = stages
+            print(
+                f"  [{n}] scans {k}: block {blocks[-1]:.1f} s (CPU {cpu_blocks[-1]:.1f} s), "
+                f"peak RSS {rss_blocks[-1]:.0f} MB, nodes {slam.graph.n_nodes}, "
+                f"landmarks {len(slam.feature_map)}, global closures "
+                f"{slam.loop_stats.global_accepted}; stage s: "
+                + ", ".join(f"{s} {v:.1f}" for s, v in sorted(grown.items(), key=lambda x: -x[1])),
+                file=sys.stderr,
+                flush=True,
+            )
+    del source
+    t0 = time.perf_counter()
+    result = slam.finish()
+    t_finish = time.perf_counter() - t0
+    rss_finish = peak_rss_mb()
+    t_grid = float("nan")
+    if grid:
+        t0 = time.perf_counter()
+        result.render_map()
+        t_grid = time.perf_counter() - t0
+    return {
+        "n": n,
+        "blocks_s": blocks,
+        "cpu_blocks_s": cpu_blocks,
+        "rss_blocks_mb": rss_blocks,
+        "process_s": time.perf_counter() - t_start - t_finish - (0.0 if not grid else t_grid),
+        "finish_s": t_finish,
+        "grid_s": t_grid,
+        "rss_start_mb": rss_start,
+        "rss_finish_mb": rss_finish,
+        "rss_peak_mb": peak_rss_mb(),
+        "nodes": len(result.node_ids),
+        "loop_closures": result.loop_closures.accepted,
+        "stages_s": dict(sorted(result.stage_seconds.items(), key=lambda kv: -kv[1])),
+    }
+
+
+def _grown(fig: dict) -> float:
+    """Peak RSS above the process's RSS before the first scan (MB)."""
+    return float(fig["rss_peak_mb"] - fig["rss_start_mb"])
+
+
+def report(fig: dict) -> None:
+    n = fig["n"]
+    k = n / BLOCK
+    print(f"\n== {n} scans: {fig['nodes']} nodes, {fig['loop_closures']} loop closures")
+    print("  block (scans)   wall (s)  CPU (s)  wall s/1000  CPU s/1000  peak RSS after (MB)")
+    rows = zip(fig["blocks_s"], fig["cpu_blocks_s"], fig["rss_blocks_mb"], strict=True)
+    for i, (t, c, r) in enumerate(rows):
+        lo, hi = i * BLOCK, min((i + 1) * BLOCK, n)
+        per = BLOCK / (hi - lo)
+        print(f"  {lo:6d}-{hi:<6d}  {t:8.2f} {c:8.2f}  {t * per:11.2f} {c * per:11.2f}  {r:10.0f}")
+    per_k = fig["process_s"] / k
+    print(f"  scans processed: {fig['process_s']:.1f} s ({per_k:.2f} s per 1000 scans)")
+    print(f"  finish (batch refinement, result): {fig['finish_s']:.1f} s")
+    print(f"  grid: {fig['grid_s']:.1f} s")
+    print(
+        f"  peak RSS: {fig['rss_peak_mb']:.0f} MB; above the start (imports and source log, "
+        f"{fig['rss_start_mb']:.0f} MB): {_grown(fig) / k:.1f} MB per 1000 scans; after "
+        f"the scans {fig['rss_blocks_mb'][-1]:.0f} MB, after finish {fig['rss_finish_mb']:.0f} MB"
+    )
+    print("  stages (s): " + ", ".join(f"{s} {v:.1f}" for s, v in fig["stages_s"].items()))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", default="2000,10000,50000", help="comma-separated scan counts")
+    ap.add_argument("--log", type=Path, default=DATA, help="source CARMEN log")
+    ap.add_argument("--no-grid", action="store_true", help="skip the occupancy grid")
+    ap.add_argument("--child", type=int, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if not args.log.exists():
+        sys.exit(f"{args.log}: not found (the MIT CSAIL log lives in ../shared/data)")
+    if args.child is not None:
+        print(json.dumps(run_one(args.child, args.log, not args.no_grid)))
+        return
+    summary = []
+    for n in (int(s) for s in args.sizes.split(",")):
+        cmd = [sys.executable, __file__, "--child", str(n), "--log", str(args.log)]
+        if args.no_grid:
+            cmd.append("--no-grid")
+        out = subprocess.run(cmd, check=True, stdout=subprocess.PIPE, text=True).stdout
+        fig = json.loads(out.strip().splitlines()[-1])
+        report(fig)
+        summary.append(fig)
+        sys.stdout.flush()
+    print("\nsummary (s per 1000 scans; blocks after the first, which includes JIT compilation)")
+    print(
+        "  size   wall first/last/mean   CPU first/last/mean   CPU max/min   peak RSS MB, per 1000"
+    )
+    for fig in summary:
+        k = fig["n"] / BLOCK
+        last = (fig["n"] - 1) % BLOCK + 1
+        b = fig["blocks_s"]
+        c = fig["cpu_blocks_s"]
+        full = c[1 : len(c) - (1 if last < BLOCK else 0)]  # whole blocks after the first
+        spread = max(full) / min(full) if full else float("nan")
+        print(
+            f"  {fig['n']:6d}  {b[0]:6.1f} {b[-1] * BLOCK / last:6.1f} {fig['process_s'] / k:6.1f}"
+            f"   {c[0]:6.1f} {c[-1] * BLOCK / last:6.1f} {sum(c) / k:6.1f}   {spread:8.2f}"
+            f"      {fig['rss_peak_mb']:6.0f}, {_grown(fig) / k:5.1f} above start"
+        )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,109 @@
+"""Tests of the compact scan storage (:mod:`iceg.scan_store`): exact round trips and the
+flattened beams the occupancy grid renders from."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from frontends import LaserScan
+from frontends.simulate import office_world, simulate
+from iceg.grid import render_tiled, render_tiled_beams
+from iceg.scan_store import ScanStore
+
+
+def _same(a: LaserScan, b: LaserScan) -> bool:
+    return (
+        a.stamp_s == b.stamp_s
+        and np.array_equal(a.ranges_m, b.ranges_m, equal_nan=True)
+        and np.array_equal(a.angles_rad, b.angles_rad)
+        and a.range_min_m == b.range_min_m
+        and a.range_max_m == b.range_max_m
+        and (
+            (a.odom_pose is None and b.odom_pose is None)
+            or (
+                a.odom_pose is not None
+                and b.odom_pose is not None
+                and np.array_equal(a.odom_pose, b.odom_pose)
+            )
+        )
+        and np.array_equal(a.laser_offset, b.laser_offset)
+        and a.source == b.source
+        and a.odom_break == b.odom_break
+    )
+
+
+_floats = st.floats(-1e6, 1e6, allow_nan=False)
+
+
+@st.composite
+def _scans(draw: st.DrawFn) -> list[LaserScan]:
+    n = draw(st.integers(0, 40))
+    fans = [np.linspace(-1.5, 1.5, 11), np.linspace(-2.0, 2.0, 7), np.array([0.1])]
+    out = []
+    stamp = 0.0
+    for k in range(n):
+        angles = fans[draw(st.integers(0, 2))]
+        ranges = np.array(
+            draw(
+                st.lists(
+                    st.one_of(st.floats(0, 100), st.just(float("nan")), st.just(float("inf"))),
+                    min_size=len(angles),
+                    max_size=len(angles),
+                )
+            )
+        )
+        stamp += draw(st.floats(0, 10))
+        odom = None if draw(st.booleans()) else np.array([draw(_floats) for _ in range(3)])
+        source = draw(
+            st.sampled_from([f"log.clf:{k + 1}", "<memory>", "a:b:007", f"x:{k}:", "bag:/scan#3"])
+        )
+        out.append(
+            LaserScan(
+                stamp_s=stamp,
+                ranges_m=ranges,
+                angles_rad=angles.copy(),
+                range_min_m=draw(st.floats(0, 1)),
+                range_max_m=draw(st.floats(1, 100)),
+                odom_pose=odom,
+                laser_offset=np.array([draw(_floats) for _ in range(3)]),
+                source=source,
+                odom_break=draw(st.booleans()),
+            )
+        )
+    return out
+
+
+@settings(max_examples=60, deadline=None)
+@given(_scans())
+def test_scans_round_trip_exactly(scans: list[LaserScan]) -> None:
+    store = ScanStore(scans)
+    assert len(store) == len(scans)
+    assert all(_same(a, b) for a, b in zip(store, scans, strict=True))
+    if scans:
+        assert _same(store[-1], scans[-1])
+        assert store.stamp_s(-1) == scans[-1].stamp_s
+        assert [s.source for s in store[1:3]] == [s.source for s in scans[1:3]]
+        counts, ranges, angles, rmin, rmax, offsets = store.beams()
+        np.testing.assert_array_equal(counts, [s.ranges_m.shape[0] for s in scans])
+        np.testing.assert_array_equal(ranges, np.concatenate([s.ranges_m for s in scans]))
+        np.testing.assert_array_equal(angles, np.concatenate([s.angles_rad for s in scans]))
+        np.testing.assert_array_equal(rmin, np.repeat([s.range_min_m for s in scans], counts))
+        np.testing.assert_array_equal(rmax, np.repeat([s.range_max_m for s in scans], counts))
+        np.testing.assert_array_equal(offsets, np.stack([s.laser_offset for s in scans]))
+
+
+def test_store_is_compact_and_renders_the_same_map() -> None:
+    run = simulate(office_world(), seed=0)
+    scans = run.scans[:150]
+    store = ScanStore(scans)
+    big = ScanStore(s for _ in range(20) for s in scans)  # 3000 scans
+    per_scan = big.nbytes / len(big)
+    beams = scans[0].ranges_m.shape[0]
+    # The ranges (8 bytes a beam) and a small header; capacity at most doubles it.
+    assert per_scan <= 2 * (8 * beams + 150)
+    a = render_tiled(scans, run.true_poses[:150])
+    counts, ranges, angles, rmin, rmax, offsets = store.beams()
+    b = render_tiled_beams(run.true_poses[:150], offsets, counts, ranges, angles, rmin, rmax)
+    np.testing.assert_array_equal(a.to_dense().log_odds, b.to_dense().log_odds)
