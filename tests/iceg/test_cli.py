@@ -104,16 +104,11 @@ def test_dump_config_round_trips(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_mit_csail_benchmark(tmp_path: Path) -> None:
+def test_mit_csail_benchmark(csail_run: Path) -> None:
     # Truth: the Kümmerle et al. 2009 relations of MIT CSAIL. Issue 7 acceptance: all 1172
     # matched, mean error at most 0.10 m and 1.0 deg (raw odometry: 1.68 m, 5.07 deg).
-    log = shared_file("mit-csail/mit-csail.clf")
     rel = shared_file("mit-csail/mit-csail.relations")
-    out = tmp_path / "csail"
-    result = runner.invoke(
-        app, ["run", str(log), "--relations", str(rel), "--out", str(out), "--no-progress"]
-    )
-    assert result.exit_code == 0, result.output
+    out = csail_run
     r = json.loads((out / "metrics.json").read_text())["relations"]
     assert r["n_matched"] == 1172
     assert r["trans_mean_m"] <= 0.10, r

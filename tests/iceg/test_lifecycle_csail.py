@@ -1,7 +1,8 @@
 """Acceptance on MIT CSAIL (slow): split runs bit for bit; ``--continue`` and ``localize`` of
 the second half against a session of the first within 10 % of the whole run's relation error
 on the second half; localization from a wrong initial pose; a log of another building (ACES)
-refused. The whole run and the first-half session are computed once for the module."""
+refused. The whole run (`iceg run`, the session-wide ``csail_run`` fixture) and the first-half
+session are computed once."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import pytest
 
 from frontends import open_log
 from frontends.relations import read_relations
+from frontends.tum import read_tum, write_tum
 from iceg import session
 from iceg.continuation import continue_scans
 from iceg.evaluation import relation_errors
@@ -37,14 +39,11 @@ def _second_half_error(stamps, poses, rel, start_s):  # type: ignore[no-untyped-
 
 
 @pytest.fixture(scope="module")
-def csail(tmp_path_factory):  # type: ignore[no-untyped-def]
+def csail(tmp_path_factory, csail_run):  # type: ignore[no-untyped-def]
     scans = list(open_log(shared_file("mit-csail/mit-csail.clf")))
     rel = read_relations(shared_file("mit-csail/mit-csail.relations"))
     k = len(scans) // 2
-    whole = Slam()
-    for scan in scans:
-        whole.process(scan)
-    w = whole.finish()
+    whole = csail_run / "trajectory.tum"  # the whole run (`iceg run`, shared fixture)
     first = Slam()
     for scan in scans[:k]:
         first.process(scan)
@@ -56,8 +55,16 @@ def csail(tmp_path_factory):  # type: ignore[no-untyped-def]
         dataclasses.replace(s, odom_pose=se2.compose(FRAME, s.odom_pose), source=f"b:{i}")
         for i, s in enumerate(scans[k:])
     ]
-    start = scans[k].stamp_s
-    return scans, rel, k, w, folder, second, _second_half_error(w.stamps_s, w.poses, rel, start)
+    stamps, poses = read_tum(whole)
+    return (
+        scans,
+        rel,
+        k,
+        whole,
+        folder,
+        second,
+        _second_half_error(stamps, poses, rel, scans[k].stamp_s),
+    )
 
 
 def _digest(folder):  # type: ignore[no-untyped-def]
@@ -73,12 +80,14 @@ def localized(csail):  # type: ignore[no-untyped-def]
     return localize_scans(fixed_map_of_session(session.read(folder)), second), before
 
 
-def test_csail_halves(csail) -> None:  # type: ignore[no-untyped-def]
-    scans, rel, k, w, folder, second, (e_whole, _, _) = csail
+def test_csail_halves(csail, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    scans, rel, k, whole_tum, folder, second, (e_whole, _, _) = csail
     resumed = session.load(folder)
     for scan in scans[k:]:
         resumed.process(scan)
-    assert np.array_equal(resumed.finish().poses, w.poses)  # bit for bit
+    r = resumed.finish()
+    write_tum(tmp_path / "resumed.tum", r.stamps_s, r.poses)
+    assert (tmp_path / "resumed.tum").read_bytes() == whole_tum.read_bytes()  # bit for bit
     c = continue_scans(folder, second)  # placed without an initial pose
     e_cont, _, _ = _second_half_error(c.stamps_s, c.poses, rel, scans[k].stamp_s)
     assert e_cont <= 1.1 * e_whole
