@@ -844,6 +844,23 @@ def _run_segment(
     # overlapping it) is shifted in time as a whole, which changes nothing else.
     shift = max(0.0, saved_scans[-1].stamp_s - scans[first].stamp_s) if saved_scans else 0.0
     slam.start_segment(_shifted(scans[first], shift), p.anchor, p.reference, p.match)
+    stop = _track_segment(slam, fixed, scans, first, shift, st)
+    _fill_segment(slam, placement, first, stop, (n_before, n_map), out)
+    return stop
+
+
+def _track_segment(
+    slam: Slam,
+    fixed: FixedMap,
+    scans: Sequence[LaserScan],
+    first: int,
+    shift: float,
+    st: LocalizeSettings,
+) -> int:
+    """Run the frozen-map SLAM on the scans after ``first`` (stamps shifted by ``shift``
+    seconds) until a kidnapping is confirmed; return the stop index (the first scan of the
+    confirming placements, or the log's end). Every ``check_every_nodes`` nodes, and while
+    keyframes go unmatched, the scan is also placed globally in ``fixed``."""
     fails, stop, checked = 0, len(scans), 0
     chi2 = slam.config.loop_closure.consistency_chi2
     doubts: list[tuple[int, FloatArray, Placement]] = []  # placements against the track
@@ -872,6 +889,21 @@ def _run_segment(
             stop = doubts[-st.confirm_keyframes][0]
             logger.info("scans %d-%d: placed in the map away from the track: lost", stop, j)
             break
+    return stop
+
+
+def _fill_segment(
+    slam: Slam,
+    placement: Placement,
+    first: int,
+    stop: int,
+    counts: tuple[int, int],
+    out: tuple[FloatArray, FloatArray, IntArray, FloatArray],
+) -> None:
+    """Finish the segment's SLAM and write the poses, covariances, status and correlation of
+    scans ``first``..``stop - 1`` into ``out`` (see :func:`_run_segment`). ``counts`` are the
+    session's scans and nodes before the segment."""
+    n_before, n_map = counts
     result = slam.finish()
     poses, covs, status, corr = out
     poses[first:stop] = result.poses[n_before : n_before + stop - first]
@@ -904,7 +936,6 @@ def _run_segment(
             status[first + r] = int(Status.LOCAL)
         else:
             status[first + r] = int(Status.PREDICTED)
-    return stop
 
 
 def _kidnapped(doubts: list[tuple[int, FloatArray, Placement]], need: int, chi2: float) -> bool:

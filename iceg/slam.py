@@ -29,7 +29,7 @@ from graph import FactorKind, PoseGraph, odometry_covariance
 from iceg.config import IcegConfig
 from iceg.feature_map import FeatureMap, MapReference
 from iceg.features import extract
-from iceg.loop_closure import LoopCloser, LoopClosureStats
+from iceg.loop_closure import LoopCloser, LoopClosureStats, innovation_chi2
 from iceg.matching import MatchBounds
 from iceg.matching.peers import make_matcher
 from iceg.matching.plicp import PlIcpMatcher
@@ -608,9 +608,8 @@ def consistent_with_prediction(
         True when the difference passes the test; False otherwise or when the summed
         covariance is singular.
     """
-    d = se2.between(prediction, result.pose)
     try:
-        chi2 = float(d @ np.linalg.solve(result.cov + prediction_cov, d))
+        _, chi2 = innovation_chi2(prediction, result.pose, prediction_cov, result.cov)
     except np.linalg.LinAlgError:
         return False
     return chi2 <= CHI2_3DOF
