@@ -51,6 +51,7 @@ from iceg.matching._kernels import (
     gauss_newton_phase,
     lattice_point_cost,
     point_line_system,
+    segment_grid,
 )
 from iceg.matching.geometry import EOW, FeatureGeometry, SegmentSet, rot
 
@@ -67,6 +68,9 @@ FINE_TOL_THETA_RAD = 1e-4
 GATE_TO_SIGMA0 = 3.0
 #: Points evaluated on the lattice (evenly subsampled beyond; the cost is scaled up).
 LATTICE_POINTS = 100
+#: Smallest cell of the reference segments' association grid (metres; the cell is the
+#: association's reach, gate plus end tolerance, when larger).
+SEGMENT_GRID_MIN_CELL_M = 0.25
 #: Variance floor of a feature pair's second whitened direction.
 _MIN_VARIANCE = 1e-18
 #: Guard of the wall-length division in :func:`effective_line_cov` (metres).
@@ -212,7 +216,9 @@ class RefineProblem:
         """Reference segments with their line information, for the kernels."""
         s = self.segs
         info = np.linalg.inv(self.line_cov + 1e-12 * np.eye(2))
-        return LineSegments(s.a, s.u, s.length, s.normal, s.rho, info)
+        reach = self.settings.gate_m + self.settings.end_tol_m  # every gate is <= gate_m
+        grid = segment_grid(s.a, s.u, s.length, reach, max(reach, SEGMENT_GRID_MIN_CELL_M))
+        return LineSegments(s.a, s.u, s.length, s.normal, s.rho, info, grid)
 
     @functools.cached_property
     def pair_geometry(self) -> PairGeometry:
