@@ -188,6 +188,10 @@ class PoseGraph:
         self._delta_read = True  # iSAM2's lazy delta was read since the last update()
         # estimates() of the current state (ids, poses); dropped by every change of state.
         self._estimates: tuple[NDArray[np.int64], FloatArray] | None = None
+        # Estimates of single nodes read since the solver last changed them (update, batch,
+        # rebuild); a new node changes no other node's estimate, so add_node keeps them.
+        self._pose_cache: dict[int, FloatArray] = {}
+        self._ids: NDArray[np.int64] | None = None  # sorted node ids; dropped by add_node
 
     # ------------------------------------------------------------------ building the graph
 
@@ -207,6 +211,7 @@ class PoseGraph:
         pose = self._vector3(initial_pose, "initial_pose", f"add_node({n})")
         first = not self._initial
         self._estimates = None
+        self._ids = None
         self._initial[n] = pose
         self._factors_of[n] = []
         self._pending_nodes.append(n)
@@ -320,7 +325,7 @@ class PoseGraph:
                 gtsam failure the next ``update()`` rebuilds iSAM2 from every factor.
         """
         self._check_connected(self._pending_nodes)
-        self._estimates = None
+        self._drop_estimates()
         self._steps.append((STEP_UPDATE, len(self._initial), len(self._records)))
         self._delta_read = False
         if self._isam is None:
@@ -413,7 +418,7 @@ class PoseGraph:
             )
         self._reseed(result)
         self._served = result
-        self._estimates = None
+        self._drop_estimates()
         return stats
 
     # ------------------------------------------------------------------ reading results
@@ -430,6 +435,13 @@ class PoseGraph:
             GraphError: unknown node.
         """
         n = self._existing(node_id, f"estimate({node_id!r})")
+        pose = self._pose_cache.get(n)
+        if pose is None:
+            pose = self._pose_cache[n] = self._read_estimate(n)
+        return pose.copy()
+
+    def _read_estimate(self, n: int) -> FloatArray:
+        """:meth:`estimate` of an existing node, read from the solver."""
         if self._served is not None and self._served.exists(n):
             return _array(self._served.atPose2(n))
         if self._isam is not None and n in self._in_isam:
@@ -475,17 +487,35 @@ class PoseGraph:
             ok = (pos < all_ids.shape[0]) & (all_ids[np.minimum(pos, all_ids.shape[0] - 1)] == ids)
             if bool(np.all(ok)):
                 return ids, all_poses[pos].copy()
-        poses = np.array([self.estimate(int(n)) for n in ids]).reshape(-1, 3)
-        return ids, poses
+        cache = self._pose_cache
+        rows = []
+        for n in ids.tolist():
+            pose = cache.get(n)
+            if pose is None:
+                pose = cache[n] = self._read_estimate(self._existing(n, f"estimate({n!r})"))
+            rows.append(pose)
+        return ids, np.array(rows, dtype=np.float64).reshape(-1, 3)
+
+    def _drop_estimates(self) -> None:
+        """Forget every cached estimate (the solver state changed)."""
+        self._estimates = None
+        self._pose_cache.clear()
+
+    def _sorted_ids(self) -> NDArray[np.int64]:
+        """``(N,)`` int64 node ids, ascending (cached until the next :meth:`add_node`)."""
+        if self._ids is None:
+            ids = np.fromiter(self._initial, dtype=np.int64, count=len(self._initial))
+            if ids.size > 1 and not bool(np.all(ids[1:] > ids[:-1])):
+                ids.sort()
+            self._ids = ids
+        return self._ids
 
     def _read_estimates(self) -> tuple[NDArray[np.int64], FloatArray]:
         values = self._current_values()
         # Values hold exactly the nodes of _initial, in ascending key order.
-        ids = np.fromiter(self._initial, dtype=np.int64, count=len(self._initial))
+        ids = self._sorted_ids().copy()
         if ids.size == 0:
             return ids, np.zeros((0, 3))
-        if ids.size > 1 and not bool(np.all(ids[1:] > ids[:-1])):
-            ids.sort()
         poses = np.asarray(gtsam.utilities.extractPose2(values), dtype=np.float64).reshape(-1, 3)
         return ids, poses
 
@@ -732,7 +762,7 @@ class PoseGraph:
         self._seed = seed
         self._isam = None
         self._in_isam.clear()
-        self._estimates = None
+        self._drop_estimates()
 
     def _reseed(self, values: gtsam.Values) -> UpdateStats:
         """Rebuild iSAM2 from every factor, linearized at ``values``; clears the buffer."""
@@ -751,7 +781,7 @@ class PoseGraph:
         self._isam = isam
         self._seed = None
         self._served = None
-        self._estimates = None
+        self._drop_estimates()
         self._in_isam = set(self._initial)
         stats = UpdateStats(
             new_nodes=len(self._initial),
