@@ -108,10 +108,10 @@ def _grid_cells(
         ay = a[j, 1]
         bx = ax + length[j] * u[j, 0]
         by = ay + length[j] * u[j, 1]
-        x0 = int(math.floor((min(ax, bx) - reach - origin[0]) / cell_m))
-        x1 = int(math.floor((max(ax, bx) + reach - origin[0]) / cell_m))
-        y0 = int(math.floor((min(ay, by) - reach - origin[1]) / cell_m))
-        y1 = int(math.floor((max(ay, by) + reach - origin[1]) / cell_m))
+        x0 = math.floor((min(ax, bx) - reach - origin[0]) / cell_m)
+        x1 = math.floor((max(ax, bx) + reach - origin[0]) / cell_m)
+        y0 = math.floor((min(ay, by) - reach - origin[1]) / cell_m)
+        y1 = math.floor((max(ay, by) + reach - origin[1]) / cell_m)
         lim = (reach + half_diag) * (reach + half_diag)
         for ix in range(max(x0, 0), min(x1, n_cells[0] - 1) + 1):
             cx = origin[0] + (ix + 0.5) * cell_m
@@ -163,7 +163,7 @@ def segment_grid(
     origin = lo - reach - cell_m
     n_cells = np.empty(2, np.int64)
     for d in range(2):
-        n_cells[d] = int(math.floor((hi[d] + reach - origin[d]) / cell_m)) + 2
+        n_cells[d] = math.floor((hi[d] + reach - origin[d]) / cell_m) + 2
     key = np.empty(4 * m, np.int64)
     seg = np.empty(4 * m, np.int64)
     n = _grid_cells(a, u, length, reach, origin, cell_m, n_cells, key, seg)

@@ -537,6 +537,17 @@ def _final_point_rows(
     return hess, _PointRows(idx, sel, res[sel], jac, rp + pose[:2]), sigma
 
 
+def _final_system(
+    problem: RefineProblem, pose: FloatArray, gate: float, sigma: float, pairs: IntArray
+) -> tuple[FloatArray, _PointRows, _Rows, float]:
+    """Linearisation at the refined pose: the information ``(3, 3)`` of the point-to-line,
+    EOW-pair and off-segment rows (prior excluded), the point-to-line rows and the other
+    rows (for the lattice), and the point noise (m)."""
+    point_hess, pr, sigma = _final_point_rows(problem, pose, gate, sigma)
+    hess, rows = _final_rows(problem, pose, point_hess, pairs, gate, sigma)
+    return hess, pr, rows, sigma
+
+
 def _final_rows(
     problem: RefineProblem,
     pose: FloatArray,
