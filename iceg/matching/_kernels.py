@@ -164,10 +164,16 @@ def segment_grid(
     n_cells = np.empty(2, np.int64)
     for d in range(2):
         n_cells[d] = math.floor((hi[d] + reach - origin[d]) / cell_m) + 2
-    key = np.empty(4 * m, np.int64)
-    seg = np.empty(4 * m, np.int64)
+    # Room for every cell of every segment's box (an upper bound of the incidences).
+    room = 0
+    for j in range(m):
+        wx = abs(length[j] * u[j, 0]) + 2.0 * reach
+        wy = abs(length[j] * u[j, 1]) + 2.0 * reach
+        room += (math.floor(wx / cell_m) + 2) * (math.floor(wy / cell_m) + 2)
+    key = np.empty(room, np.int64)
+    seg = np.empty(room, np.int64)
     n = _grid_cells(a, u, length, reach, origin, cell_m, n_cells, key, seg)
-    if n > key.shape[0]:
+    if n > key.shape[0]:  # never (the bound above), but stay exact if rounding says else
         key = np.empty(n, np.int64)
         seg = np.empty(n, np.int64)
         _grid_cells(a, u, length, reach, origin, cell_m, n_cells, key, seg)
@@ -303,6 +309,11 @@ def associate(
     # so ties resolve as in the loop over all segments); without one, all are tested.
     gridded = g.reach_m > 0.0 and gate_m + end_tol_m <= g.reach_m
     all_segs = np.arange(segs.a.shape[0])
+    # Points come segment by segment: the normal's sine and cosine are those of the previous
+    # point while its segment angle repeats (the same numbers, computed once).
+    alpha_prev = np.nan
+    sq = 0.0
+    cq = 1.0
     for i in range(n_p):
         px = c * pts.xy[i, 0] - s * pts.xy[i, 1] + pose[0]
         py = s * pts.xy[i, 0] + c * pts.xy[i, 1] + pose[1]
@@ -314,9 +325,11 @@ def associate(
                 continue  # outside the grid (or not finite): no segment within reach
             key = int(fx) * g.n_cells[1] + int(fy)
             cand = g.segs[g.start[key] : g.start[key + 1]]
-        qa = pts.alpha[i] + pose[2]
-        sq = math.sin(qa)
-        cq = math.cos(qa)
+        if pts.alpha[i] != alpha_prev:
+            alpha_prev = pts.alpha[i]
+            qa = pts.alpha[i] + pose[2]
+            sq = math.sin(qa)
+            cq = math.cos(qa)
         best = gate2
         bj = -1
         for j in cand:
