@@ -16,7 +16,10 @@ search (whole run) <= 1.0 s; grid (whole run) <= 0.4 s; cold start <= 1.0 s; who
 Per-keyframe samples come from :class:`iceg.slam.StageTimer` (its ``samples``); the
 reference build (inside the ``matching`` stage) is timed here by wrapping
 ``FeatureMap.reference`` during the local match only, and reported as its own row (the
-``match`` row is ``matching`` minus it). With ``--profile`` the CSAIL run is profiled with
+``match`` row is ``matching`` minus it). Beside each wall figure the CPU time of the main
+process (``time.process_time``, marked at the start of ``Slam.process`` / ``finish`` and at
+each stage boundary; the grid's around ``render_map``): on a machine shared with other jobs,
+compare CPU times of runs made back to back. With ``--profile`` the CSAIL run is profiled with
 pyinstrument instead (wall figures then include the profiler's overhead): the HTML goes to
 the printed path and the five largest self-time costs are listed.
 

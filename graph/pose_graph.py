@@ -147,8 +147,8 @@ def _pose2(p: FloatArray) -> gtsam.Pose2:
     return gtsam.Pose2(float(p[0]), float(p[1]), float(p[2]))
 
 
-def _array(pose: gtsam.Pose2) -> FloatArray:
-    return np.array([pose.x(), pose.y(), pose.theta()])
+def _xyt(pose: gtsam.Pose2) -> tuple[float, float, float]:
+    return pose.x(), pose.y(), pose.theta()
 
 
 class PoseGraph:
@@ -190,7 +190,7 @@ class PoseGraph:
         self._estimates: tuple[NDArray[np.int64], FloatArray] | None = None
         # Estimates of single nodes read since the solver last changed them (update, batch,
         # rebuild); a new node changes no other node's estimate, so add_node keeps them.
-        self._pose_cache: dict[int, FloatArray] = {}
+        self._pose_cache: dict[int, tuple[float, float, float]] = {}
         self._ids: NDArray[np.int64] | None = None  # sorted node ids; dropped by add_node
 
     # ------------------------------------------------------------------ building the graph
@@ -437,19 +437,20 @@ class PoseGraph:
         n = self._existing(node_id, f"estimate({node_id!r})")
         pose = self._pose_cache.get(n)
         if pose is None:
-            pose = self._pose_cache[n] = self._read_estimate(n)
-        return pose.copy()
+            pose = self._pose_cache[n] = self._read_pose(n)
+        return np.array(pose, dtype=np.float64)
 
-    def _read_estimate(self, n: int) -> FloatArray:
-        """:meth:`estimate` of an existing node, read from the solver."""
+    def _read_pose(self, n: int) -> tuple[float, float, float]:
+        """``(x, y, theta)`` of :meth:`estimate` of an existing node, read from the solver."""
         if self._served is not None and self._served.exists(n):
-            return _array(self._served.atPose2(n))
+            return _xyt(self._served.atPose2(n))
         if self._isam is not None and n in self._in_isam:
             self._note_delta_read()
-            return _array(self._isam.calculateEstimatePose2(n))
+            return _xyt(self._isam.calculateEstimatePose2(n))
         if self._isam is None and self._seed is not None and self._seed.exists(n):
-            return _array(self._seed.atPose2(n))
-        return self._initial[n].copy()
+            return _xyt(self._seed.atPose2(n))
+        x, y, t = self._initial[n].tolist()
+        return x, y, t
 
     def estimates(self) -> tuple[NDArray[np.int64], FloatArray]:
         """Current estimates of every node, sorted by id (same sources as :meth:`estimate`).
@@ -487,12 +488,23 @@ class PoseGraph:
             ok = (pos < all_ids.shape[0]) & (all_ids[np.minimum(pos, all_ids.shape[0] - 1)] == ids)
             if bool(np.all(ok)):
                 return ids, all_poses[pos].copy()
-        cache = self._pose_cache
+        cache, initial = self._pose_cache, self._initial
+        # Straight from iSAM2 when it serves the estimates (the common case), else as
+        # estimate() reads them.
+        isam = self._isam if self._served is None else None
         rows = []
         for n in ids.tolist():
             pose = cache.get(n)
             if pose is None:
-                pose = cache[n] = self._read_estimate(self._existing(n, f"estimate({n!r})"))
+                if n not in initial:
+                    self._existing(n, f"estimate({n!r})")  # raises
+                if isam is not None and n in self._in_isam:
+                    self._note_delta_read()
+                    p = isam.calculateEstimatePose2(n)
+                    pose = (p.x(), p.y(), p.theta())
+                else:
+                    pose = self._read_pose(n)
+                cache[n] = pose
             rows.append(pose)
         return ids, np.array(rows, dtype=np.float64).reshape(-1, 3)
 
