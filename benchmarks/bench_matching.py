@@ -101,7 +101,7 @@ def kernel_comparison(jobs: list[tuple], matcher: IceMatcher) -> tuple[float, fl
             continue
         pts, pal = feats.points_xy[on], feats.seg_lines[pseg[on], 0]
         segs = SegmentSet.from_features(ref)
-        info = np.linalg.inv(effective_line_cov(segs, 0.0, 0.0) + 1e-12 * np.eye(2))
+        info = np.linalg.inv(effective_line_cov(segs, 0.0) + 1e-12 * np.eye(2))
         lines = LineSegments(
             segs.a, segs.u, segs.length, segs.normal, segs.rho, info, no_segment_grid()
         )

@@ -343,7 +343,7 @@ def associate(
             d2 = perp * perp + over * over
             if d2 <= best:
                 best = d2
-                bj = j
+                bj = int(j)
         if bj >= 0:
             idx[i] = bj
             res[i] = px * segs.normal[bj, 0] + py * segs.normal[bj, 1] - segs.rho[bj]
