@@ -32,7 +32,12 @@ from frontends import open_log
 from iceg.feature_map import FeatureMap, FeatureMapConfig
 from iceg.features import extract
 from iceg.matching import IceMatcher, MatchBounds
-from iceg.matching._kernels import LineSegments, SegmentPoints, point_line_system
+from iceg.matching._kernels import (
+    LineSegments,
+    SegmentPoints,
+    no_segment_grid,
+    point_line_system,
+)
 from iceg.matching.geometry import SegmentSet, associate_points, point_segment_index, rot
 from iceg.matching.refine import effective_line_cov
 from iceg_common.se2 import between, compose
@@ -96,8 +101,10 @@ def kernel_comparison(jobs: list[tuple], matcher: IceMatcher) -> tuple[float, fl
             continue
         pts, pal = feats.points_xy[on], feats.seg_lines[pseg[on], 0]
         segs = SegmentSet.from_features(ref)
-        info = np.linalg.inv(effective_line_cov(segs, 0.0, 0.0) + 1e-12 * np.eye(2))
-        lines = LineSegments(segs.a, segs.u, segs.length, segs.normal, segs.rho, info)
+        info = np.linalg.inv(effective_line_cov(segs, 0.0) + 1e-12 * np.eye(2))
+        lines = LineSegments(
+            segs.a, segs.u, segs.length, segs.normal, segs.rho, info, no_segment_grid()
+        )
         t0 = time.perf_counter()
         point_line_system(pred, SegmentPoints(pts, pal), lines, s.gate_m, 0.01, kernel)
         t1 = time.perf_counter()

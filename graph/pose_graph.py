@@ -147,8 +147,8 @@ def _pose2(p: FloatArray) -> gtsam.Pose2:
     return gtsam.Pose2(float(p[0]), float(p[1]), float(p[2]))
 
 
-def _array(pose: gtsam.Pose2) -> FloatArray:
-    return np.array([pose.x(), pose.y(), pose.theta()])
+def _xyt(pose: gtsam.Pose2) -> tuple[float, float, float]:
+    return pose.x(), pose.y(), pose.theta()
 
 
 class PoseGraph:
@@ -188,6 +188,10 @@ class PoseGraph:
         self._delta_read = True  # iSAM2's lazy delta was read since the last update()
         # estimates() of the current state (ids, poses); dropped by every change of state.
         self._estimates: tuple[NDArray[np.int64], FloatArray] | None = None
+        # Estimates of single nodes read since the solver last changed them (update, batch,
+        # rebuild); a new node changes no other node's estimate, so add_node keeps them.
+        self._pose_cache: dict[int, tuple[float, float, float]] = {}
+        self._ids: NDArray[np.int64] | None = None  # sorted node ids; dropped by add_node
 
     # ------------------------------------------------------------------ building the graph
 
@@ -207,6 +211,7 @@ class PoseGraph:
         pose = self._vector3(initial_pose, "initial_pose", f"add_node({n})")
         first = not self._initial
         self._estimates = None
+        self._ids = None
         self._initial[n] = pose
         self._factors_of[n] = []
         self._pending_nodes.append(n)
@@ -320,7 +325,7 @@ class PoseGraph:
                 gtsam failure the next ``update()`` rebuilds iSAM2 from every factor.
         """
         self._check_connected(self._pending_nodes)
-        self._estimates = None
+        self._drop_estimates()
         self._steps.append((STEP_UPDATE, len(self._initial), len(self._records)))
         self._delta_read = False
         if self._isam is None:
@@ -413,7 +418,7 @@ class PoseGraph:
             )
         self._reseed(result)
         self._served = result
-        self._estimates = None
+        self._drop_estimates()
         return stats
 
     # ------------------------------------------------------------------ reading results
@@ -430,14 +435,22 @@ class PoseGraph:
             GraphError: unknown node.
         """
         n = self._existing(node_id, f"estimate({node_id!r})")
+        pose = self._pose_cache.get(n)
+        if pose is None:
+            pose = self._pose_cache[n] = self._read_pose(n)
+        return np.array(pose, dtype=np.float64)
+
+    def _read_pose(self, n: int) -> tuple[float, float, float]:
+        """``(x, y, theta)`` of :meth:`estimate` of an existing node, read from the solver."""
         if self._served is not None and self._served.exists(n):
-            return _array(self._served.atPose2(n))
+            return _xyt(self._served.atPose2(n))
         if self._isam is not None and n in self._in_isam:
             self._note_delta_read()
-            return _array(self._isam.calculateEstimatePose2(n))
+            return _xyt(self._isam.calculateEstimatePose2(n))
         if self._isam is None and self._seed is not None and self._seed.exists(n):
-            return _array(self._seed.atPose2(n))
-        return self._initial[n].copy()
+            return _xyt(self._seed.atPose2(n))
+        x, y, t = self._initial[n].tolist()
+        return x, y, t
 
     def estimates(self) -> tuple[NDArray[np.int64], FloatArray]:
         """Current estimates of every node, sorted by id (same sources as :meth:`estimate`).
@@ -475,17 +488,46 @@ class PoseGraph:
             ok = (pos < all_ids.shape[0]) & (all_ids[np.minimum(pos, all_ids.shape[0] - 1)] == ids)
             if bool(np.all(ok)):
                 return ids, all_poses[pos].copy()
-        poses = np.array([self.estimate(int(n)) for n in ids]).reshape(-1, 3)
-        return ids, poses
+        cache, initial = self._pose_cache, self._initial
+        # Straight from iSAM2 when it serves the estimates (the common case), else as
+        # estimate() reads them.
+        isam = self._isam if self._served is None else None
+        rows = []
+        for n in ids.tolist():
+            pose = cache.get(n)
+            if pose is None:
+                if n not in initial:
+                    self._existing(n, f"estimate({n!r})")  # raises
+                if isam is not None and n in self._in_isam:
+                    self._note_delta_read()
+                    p = isam.calculateEstimatePose2(n)
+                    pose = (p.x(), p.y(), p.theta())
+                else:
+                    pose = self._read_pose(n)
+                cache[n] = pose
+            rows.append(pose)
+        return ids, np.array(rows, dtype=np.float64).reshape(-1, 3)
+
+    def _drop_estimates(self) -> None:
+        """Forget every cached estimate (the solver state changed)."""
+        self._estimates = None
+        self._pose_cache.clear()
+
+    def _sorted_ids(self) -> NDArray[np.int64]:
+        """``(N,)`` int64 node ids, ascending (cached until the next :meth:`add_node`)."""
+        if self._ids is None:
+            ids = np.fromiter(self._initial, dtype=np.int64, count=len(self._initial))
+            if ids.size > 1 and not bool(np.all(ids[1:] > ids[:-1])):
+                ids.sort()
+            self._ids = ids
+        return self._ids
 
     def _read_estimates(self) -> tuple[NDArray[np.int64], FloatArray]:
         values = self._current_values()
         # Values hold exactly the nodes of _initial, in ascending key order.
-        ids = np.fromiter(self._initial, dtype=np.int64, count=len(self._initial))
+        ids = self._sorted_ids().copy()
         if ids.size == 0:
             return ids, np.zeros((0, 3))
-        if ids.size > 1 and not bool(np.all(ids[1:] > ids[:-1])):
-            ids.sort()
         poses = np.asarray(gtsam.utilities.extractPose2(values), dtype=np.float64).reshape(-1, 3)
         return ids, poses
 
@@ -732,7 +774,7 @@ class PoseGraph:
         self._seed = seed
         self._isam = None
         self._in_isam.clear()
-        self._estimates = None
+        self._drop_estimates()
 
     def _reseed(self, values: gtsam.Values) -> UpdateStats:
         """Rebuild iSAM2 from every factor, linearized at ``values``; clears the buffer."""
@@ -751,7 +793,7 @@ class PoseGraph:
         self._isam = isam
         self._seed = None
         self._served = None
-        self._estimates = None
+        self._drop_estimates()
         self._in_isam = set(self._initial)
         stats = UpdateStats(
             new_nodes=len(self._initial),

@@ -13,6 +13,7 @@ The pipeline never reads files: it takes :class:`frontends.LaserScan` records.
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
 from collections import defaultdict
@@ -22,7 +23,6 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import chi2 as chi2_distribution
 
 from frontends import LaserScan
 from graph import FactorKind, PoseGraph, odometry_covariance
@@ -50,7 +50,17 @@ AGREE_SIGMAS = 3.0
 
 #: Probability of the chi-square test of a point match against the prediction.
 CONSISTENCY_PROBABILITY = 0.999
-CHI2_3DOF = float(chi2_distribution.ppf(CONSISTENCY_PROBABILITY, 3))
+
+
+@functools.cache
+def chi2_3dof() -> float:
+    """The chi-square quantile of :data:`CONSISTENCY_PROBABILITY` for 3 degrees of freedom,
+    as ``scipy.stats.chi2.ppf`` computes it (``2 gammaincinv(k / 2, p)``); scipy is imported
+    on first use, not with this module (most of a cold start)."""
+    from scipy.special import gammaincinv
+
+    return float(2.0 * gammaincinv(1.5, CONSISTENCY_PROBABILITY))
+
 
 #: Failure category of a match whose reason is empty.
 _UNKNOWN_REASON = "unknown"
@@ -60,6 +70,7 @@ __all__ = [
     "Slam",
     "SlamState",
     "StageTimer",
+    "chi2_3dof",
     "consistent_with_prediction",
     "remap_weak_directions",
 ]
@@ -612,7 +623,7 @@ def consistent_with_prediction(
         _, chi2 = innovation_chi2(prediction, result.pose, prediction_cov, result.cov)
     except np.linalg.LinAlgError:
         return False
-    return chi2 <= CHI2_3DOF
+    return chi2 <= chi2_3dof()
 
 
 def remap_weak_directions(

@@ -23,6 +23,35 @@ MAD_TO_SIGMA = 1.4826
 GN_DAMPING = 1e-9
 
 
+#: Slack (metres) added to a segment grid's reach: far above the rounding of the distances
+#: involved (~1e-15 m), so a segment the exact test would accept is never left out.
+GRID_SLACK_M = 1e-6
+
+
+class SegmentGrid(NamedTuple):
+    """Uniform grid over reference segments for the point association (:func:`associate`):
+    cell ``(ix, iy)`` lists, in ascending order, every segment that passes within
+    ``reach_m`` of some point of the cell. Built by :func:`segment_grid`; ``reach_m = 0``
+    (:func:`no_segment_grid`) means no grid (every segment is tested).
+
+    Attributes:
+        origin: ``(2,)`` float64 corner of cell ``(0, 0)``, metres.
+        cell_m: Cell side, metres.
+        n_cells: ``(2,)`` int64 cells along x and y.
+        start: ``(n_cells[0] * n_cells[1] + 1,)`` int64 offsets of each cell's list in
+            ``segs`` (cell key ``ix * n_cells[1] + iy``).
+        segs: ``(K,)`` int64 segment indices, cell by cell, ascending within a cell.
+        reach_m: Largest ``gate + end tolerance`` the grid answers exactly, metres.
+    """
+
+    origin: np.ndarray
+    cell_m: float
+    n_cells: np.ndarray
+    start: np.ndarray
+    segs: np.ndarray
+    reach_m: float
+
+
 class LineSegments(NamedTuple):
     """Reference segments for the kernels (reference frame, metres/radians).
 
@@ -33,6 +62,8 @@ class LineSegments(NamedTuple):
         normal: ``(M, 2)`` float64 unit line normal ``(cos alpha, sin alpha)``.
         rho: ``(M,)`` float64 line distance from the origin.
         line_info: ``(M, 2, 2)`` float64 inverse covariance of each line's ``(alpha, rho)``.
+        grid: The segments gridded for the association (:func:`segment_grid`), or
+            :func:`no_segment_grid`.
     """
 
     a: np.ndarray
@@ -41,6 +72,124 @@ class LineSegments(NamedTuple):
     normal: np.ndarray
     rho: np.ndarray
     line_info: np.ndarray
+    grid: SegmentGrid
+
+
+def no_segment_grid() -> SegmentGrid:
+    """An empty :class:`SegmentGrid`: :func:`associate` tests every segment."""
+    return SegmentGrid(
+        np.zeros(2), 1.0, np.ones(2, np.int64), np.zeros(2, np.int64), np.zeros(0, np.int64), 0.0
+    )
+
+
+@njit(cache=True, nogil=True)
+def _segment_distance2(px: float, py: float, ax: float, ay: float, bx: float, by: float) -> float:
+    """Squared distance from point ``p`` to segment ``a b``."""
+    ex = bx - ax
+    ey = by - ay
+    l2 = ex * ex + ey * ey
+    t = 0.0 if l2 <= 0.0 else max(0.0, min(1.0, ((px - ax) * ex + (py - ay) * ey) / l2))
+    dx = px - (ax + t * ex)
+    dy = py - (ay + t * ey)
+    return dx * dx + dy * dy
+
+
+@njit(cache=True, nogil=True)
+def _grid_cells(
+    a: np.ndarray, u: np.ndarray, length: np.ndarray, reach: float, origin: np.ndarray,
+    cell_m: float, n_cells: np.ndarray, out_key: np.ndarray, out_seg: np.ndarray,
+) -> int:  # fmt: skip
+    """Cells (key) and segment of every (cell, segment) incidence, segments in ascending
+    order; written into ``out_*`` when they are long enough. Returns the count."""
+    half_diag = 0.5 * math.sqrt(2.0) * cell_m
+    k = 0
+    for j in range(a.shape[0]):
+        ax = a[j, 0]
+        ay = a[j, 1]
+        bx = ax + length[j] * u[j, 0]
+        by = ay + length[j] * u[j, 1]
+        x0 = math.floor((min(ax, bx) - reach - origin[0]) / cell_m)
+        x1 = math.floor((max(ax, bx) + reach - origin[0]) / cell_m)
+        y0 = math.floor((min(ay, by) - reach - origin[1]) / cell_m)
+        y1 = math.floor((max(ay, by) + reach - origin[1]) / cell_m)
+        lim = (reach + half_diag) * (reach + half_diag)
+        for ix in range(max(x0, 0), min(x1, n_cells[0] - 1) + 1):
+            cx = origin[0] + (ix + 0.5) * cell_m
+            for iy in range(max(y0, 0), min(y1, n_cells[1] - 1) + 1):
+                cy = origin[1] + (iy + 0.5) * cell_m
+                if _segment_distance2(cx, cy, ax, ay, bx, by) <= lim:
+                    if k < out_key.shape[0]:
+                        out_key[k] = ix * n_cells[1] + iy
+                        out_seg[k] = j
+                    k += 1
+    return k
+
+
+@njit(cache=True, nogil=True)
+def segment_grid(
+    a: np.ndarray, u: np.ndarray, length: np.ndarray, reach_m: float, cell_m: float
+) -> SegmentGrid:
+    """Grid reference segments ``a + t u``, ``0 <= t <= length`` (``(M, 2)``, ``(M, 2)``,
+    ``(M,)``, metres) for :func:`associate` with any ``gate + end tolerance <= reach_m``: a
+    cell lists each segment within ``reach_m`` (plus :data:`GRID_SLACK_M`) of its centre's
+    half diagonal, so a point is never further than ``reach_m`` from a segment its cell
+    leaves out, and the exact test then decides on the listed ones."""
+    reach = reach_m + GRID_SLACK_M
+    m = a.shape[0]
+    empty = SegmentGrid(
+        np.zeros(2), cell_m, np.ones(2, np.int64), np.zeros(2, np.int64),
+        np.zeros(0, np.int64), 0.0,
+    )  # fmt: skip
+    if m == 0:
+        return empty
+    for j in range(m):
+        # The association's distance is a distance to the segment only for a unit direction
+        # (a zero-length segment has u = 0 and matches anywhere) and finite numbers: else
+        # no grid, every segment is tested.
+        n2 = u[j, 0] * u[j, 0] + u[j, 1] * u[j, 1]
+        if not (abs(n2 - 1.0) <= 1e-9) or not (
+            math.isfinite(a[j, 0]) and math.isfinite(a[j, 1]) and math.isfinite(length[j])
+        ):
+            return empty
+    lo = np.empty(2)
+    hi = np.empty(2)
+    for d in range(2):
+        lo[d] = np.inf
+        hi[d] = -np.inf
+        for j in range(m):
+            e = a[j, d] + length[j] * u[j, d]
+            lo[d] = min(lo[d], a[j, d], e)
+            hi[d] = max(hi[d], a[j, d], e)
+    origin = lo - reach - cell_m
+    n_cells = np.empty(2, np.int64)
+    for d in range(2):
+        n_cells[d] = math.floor((hi[d] + reach - origin[d]) / cell_m) + 2
+    # Room for every cell of every segment's box (an upper bound of the incidences).
+    room = 0
+    for j in range(m):
+        wx = abs(length[j] * u[j, 0]) + 2.0 * reach
+        wy = abs(length[j] * u[j, 1]) + 2.0 * reach
+        room += (math.floor(wx / cell_m) + 2) * (math.floor(wy / cell_m) + 2)
+    key = np.empty(room, np.int64)
+    seg = np.empty(room, np.int64)
+    n = _grid_cells(a, u, length, reach, origin, cell_m, n_cells, key, seg)
+    if n > key.shape[0]:  # never (the bound above), but stay exact if rounding says else
+        key = np.empty(n, np.int64)
+        seg = np.empty(n, np.int64)
+        _grid_cells(a, u, length, reach, origin, cell_m, n_cells, key, seg)
+    # Counting sort by cell; segments stay in ascending order within a cell.
+    n_all = n_cells[0] * n_cells[1]
+    start = np.zeros(n_all + 1, np.int64)
+    for k in range(n):
+        start[key[k] + 1] += 1
+    for c in range(n_all):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    segs = np.empty(n, np.int64)
+    for k in range(n):
+        segs[fill[key[k]]] = seg[k]
+        fill[key[k]] += 1
+    return SegmentGrid(origin, cell_m, n_cells, start, segs, reach_m)
 
 
 class SegmentPoints(NamedTuple):
@@ -155,15 +304,35 @@ def associate(
     idx = np.full(n_p, -1, dtype=np.int64)
     res = np.full(n_p, np.nan)
     gate2 = gate_m * gate_m
+    g = segs.grid
+    # The grid lists, per cell, every segment that can pass the gate (in ascending order,
+    # so ties resolve as in the loop over all segments); without one, all are tested.
+    gridded = g.reach_m > 0.0 and gate_m + end_tol_m <= g.reach_m
+    all_segs = np.arange(segs.a.shape[0])
+    # Points come segment by segment: the normal's sine and cosine are those of the previous
+    # point while its segment angle repeats (the same numbers, computed once).
+    alpha_prev = np.nan
+    sq = 0.0
+    cq = 1.0
     for i in range(n_p):
         px = c * pts.xy[i, 0] - s * pts.xy[i, 1] + pose[0]
         py = s * pts.xy[i, 0] + c * pts.xy[i, 1] + pose[1]
-        qa = pts.alpha[i] + pose[2]
-        sq = math.sin(qa)
-        cq = math.cos(qa)
+        cand = all_segs
+        if gridded:
+            fx = np.floor((px - g.origin[0]) / g.cell_m)
+            fy = np.floor((py - g.origin[1]) / g.cell_m)
+            if not (0.0 <= fx < g.n_cells[0] and 0.0 <= fy < g.n_cells[1]):
+                continue  # outside the grid (or not finite): no segment within reach
+            key = int(fx) * g.n_cells[1] + int(fy)
+            cand = g.segs[g.start[key] : g.start[key + 1]]
+        if pts.alpha[i] != alpha_prev:
+            alpha_prev = pts.alpha[i]
+            qa = pts.alpha[i] + pose[2]
+            sq = math.sin(qa)
+            cq = math.cos(qa)
         best = gate2
         bj = -1
-        for j in range(segs.a.shape[0]):
+        for j in cand:
             if abs(sq * segs.normal[j, 0] - cq * segs.normal[j, 1]) > sin_normal_gate:
                 continue
             rx = px - segs.a[j, 0]
@@ -174,7 +343,7 @@ def associate(
             d2 = perp * perp + over * over
             if d2 <= best:
                 best = d2
-                bj = j
+                bj = int(j)
         if bj >= 0:
             idx[i] = bj
             res[i] = px * segs.normal[bj, 0] + py * segs.normal[bj, 1] - segs.rho[bj]

@@ -205,8 +205,9 @@ class PolarProfile:
         if n == 0:
             return out
         k = np.searchsorted(self.bearing, q)
-        k0 = np.clip(k - 1, 0, n - 1)
-        k1 = np.clip(k, 0, n - 1)
+        # searchsorted gives 0..n: the bracketing indices, clipped (np.clip costs more).
+        k0 = np.maximum(k - 1, 0)
+        k1 = np.minimum(k, n - 1)
         d0 = np.abs(q - self.bearing[k0])
         d1 = np.abs(self.bearing[k1] - q)
         kk = np.where(d0 <= d1, k0, k1)

@@ -310,7 +310,7 @@ def vote(poses: FloatArray, cell_m: float, cell_rad: float, max_clusters: int) -
         nkeys,
         -1,
     )
-    pos = np.clip(np.searchsorted(ukeys, nkeys), 0, ukeys.shape[0] - 1)
+    pos = np.minimum(np.searchsorted(ukeys, nkeys), ukeys.shape[0] - 1)  # 0..U: clip to U-1
     found = ukeys[pos] == nkeys
     nsum = np.where(found, counts[pos], 0).sum(axis=0)  # (U,)
     u = ukeys.shape[0]

@@ -787,8 +787,8 @@ def _bracket(prof: PolarProfile, bearing: FloatArray) -> tuple[FloatArray, Float
     nearest; NaN where the bracket spans a gap of more than ``MAX_GAP_BEAMS`` beam spacings."""
     n = prof.bearing.shape[0]
     k = np.searchsorted(prof.bearing, bearing)
-    k0 = np.clip(k - 1, 0, n - 1)
-    k1 = np.clip(k, 0, n - 1)
+    k0 = np.maximum(k - 1, 0)  # searchsorted gives 0..n
+    k1 = np.minimum(k, n - 1)
     b0, b1 = prof.bearing[k0], prof.bearing[k1]
     ok = (k > 0) & (k < n) & (b1 - b0 <= MAX_GAP_BEAMS * prof.spacing)
     r0, r1 = prof.range[k0], prof.range[k1]

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
@@ -51,6 +51,7 @@ from iceg.matching._kernels import (
     gauss_newton_phase,
     lattice_point_cost,
     point_line_system,
+    segment_grid,
 )
 from iceg.matching.geometry import EOW, FeatureGeometry, SegmentSet, rot
 
@@ -67,6 +68,9 @@ FINE_TOL_THETA_RAD = 1e-4
 GATE_TO_SIGMA0 = 3.0
 #: Points evaluated on the lattice (evenly subsampled beyond; the cost is scaled up).
 LATTICE_POINTS = 100
+#: Smallest cell of the reference segments' association grid (metres; the cell is the
+#: association's reach, gate plus end tolerance, when larger).
+SEGMENT_GRID_MIN_CELL_M = 1.0
 #: Variance floor of a feature pair's second whitened direction.
 _MIN_VARIANCE = 1e-18
 #: Guard of the wall-length division in :func:`effective_line_cov` (metres).
@@ -115,33 +119,6 @@ class FeaturePairing(Protocol):
     def pairs(self, pose: FloatArray) -> IntArray:
         """``(Q, 2)`` int64 feature pairs ``[new index, reference index]`` at ``pose``."""
         ...
-
-
-@dataclass(frozen=True, eq=False)
-class Refined:
-    """Result of :func:`refine`.
-
-    Attributes:
-        pose: ``(3,)`` float64 refined pose of the new scan in the reference frame.
-        cov_ls: ``(3, 3)`` least-squares (sandwich) covariance of ``pose`` as a perturbation
-            of ``(x, y, theta)`` in the **reference** frame (prior from the bounds included).
-        cov: ``(3, 3)`` final covariance (lattice second moment, floored by ``cov_ls``), same
-            frame as ``cov_ls``.
-        sigma_m: Estimated point-to-line noise, metres.
-        overlap: Fraction of the used points associated with a reference segment.
-        n_points: Points associated in the last iteration.
-        point_segment: ``(P,)`` int64 reference segment of each used point (-1: none).
-        iterations: Gauss-Newton iterations run.
-    """
-
-    pose: FloatArray
-    cov_ls: FloatArray
-    cov: FloatArray
-    sigma_m: float
-    overlap: float
-    n_points: int
-    point_segment: IntArray
-    iterations: int
 
 
 def _cauchy_weight(r: FloatArray, c: float) -> FloatArray:
@@ -212,7 +189,9 @@ class RefineProblem:
         """Reference segments with their line information, for the kernels."""
         s = self.segs
         info = np.linalg.inv(self.line_cov + 1e-12 * np.eye(2))
-        return LineSegments(s.a, s.u, s.length, s.normal, s.rho, info)
+        reach = self.settings.gate_m + self.settings.end_tol_m  # every gate is <= gate_m
+        grid = segment_grid(s.a, s.u, s.length, reach, max(reach, SEGMENT_GRID_MIN_CELL_M))
+        return LineSegments(s.a, s.u, s.length, s.normal, s.rho, info, grid)
 
     @functools.cached_property
     def pair_geometry(self) -> PairGeometry:
@@ -233,6 +212,64 @@ class RefineProblem:
     def kernel_settings(self) -> GnSettings:
         """:meth:`RefineSettings.kernel` of ``settings``."""
         return self.settings.kernel()
+
+
+@dataclass(frozen=True, eq=False)
+class _FinalSystem:
+    """What the covariance of a refined pose needs (computed on first use of
+    :attr:`Refined.cov`): the problem, the point-to-line information ``(3, 3)`` and rows at
+    the pose, the feature pairs, the point noise and the gate (m)."""
+
+    problem: RefineProblem
+    pose: FloatArray
+    point_hess: FloatArray
+    point_rows: _PointRows
+    pairs: IntArray
+    sigma: float
+    gate: float
+
+
+@dataclass(frozen=True, eq=False)
+class Refined:
+    """Result of :func:`refine`.
+
+    The covariances are computed on first access (a match reads them of its chosen
+    hypothesis only); the values are those of an eager computation.
+
+    Attributes:
+        pose: ``(3,)`` float64 refined pose of the new scan in the reference frame.
+        sigma_m: Estimated point-to-line noise, metres.
+        overlap: Fraction of the used points associated with a reference segment.
+        n_points: Points associated in the last iteration.
+        point_segment: ``(P,)`` int64 reference segment of each used point (-1: none).
+        iterations: Gauss-Newton iterations run.
+    """
+
+    pose: FloatArray
+    sigma_m: float
+    overlap: float
+    n_points: int
+    point_segment: IntArray
+    iterations: int
+    _system: _FinalSystem = field(repr=False)
+
+    @functools.cached_property
+    def _covariances(self) -> tuple[FloatArray, FloatArray]:
+        f = self._system
+        hess, rows = _final_rows(f.problem, f.pose, f.point_hess, f.pairs, f.gate, f.sigma)
+        return _covariance(f.problem, f.pose, hess, f.point_rows, rows, f.sigma, f.gate)
+
+    @property
+    def cov_ls(self) -> FloatArray:
+        """``(3, 3)`` least-squares (sandwich) covariance of ``pose`` as a perturbation of
+        ``(x, y, theta)`` in the **reference** frame (prior from the bounds included)."""
+        return self._covariances[0]
+
+    @property
+    def cov(self) -> FloatArray:
+        """``(3, 3)`` final covariance (lattice second moment, floored by ``cov_ls``), same
+        frame as ``cov_ls``."""
+        return self._covariances[1]
 
 
 def empty_cloud() -> PointCloud:
@@ -435,10 +472,10 @@ def refine(
         reference frame.
     """
     pose, sigma, gate, iterations, pairs = _gauss_newton(problem, pose0, initial_pairs)
-    hess, pr, rows, sigma = _final_system(problem, pose, gate, sigma, pairs)
-    cov_ls, cov = _covariance(problem, pose, hess, pr, rows, sigma, gate)
+    hess, pr, sigma = _final_point_rows(problem, pose, gate, sigma)
     overlap = float(pr.sel.sum()) / max(1, problem.points.xy.shape[0])
-    return Refined(pose, cov_ls, cov, sigma, overlap, int(pr.sel.sum()), pr.idx, iterations)
+    system = _FinalSystem(problem, pose.copy(), hess, pr, pairs, sigma, gate)
+    return Refined(pose, sigma, overlap, int(pr.sel.sum()), pr.idx, iterations, system)
 
 
 def _gauss_newton(
@@ -485,12 +522,11 @@ def _phase(
     )
 
 
-def _final_system(
-    problem: RefineProblem, pose: FloatArray, gate: float, sigma: float, pairs: IntArray
-) -> tuple[FloatArray, _PointRows, _Rows, float]:
-    """Linearisation at the refined pose: the information ``(3, 3)`` of the point-to-line,
-    EOW-pair and off-segment rows (prior excluded), the point-to-line rows and the other
-    rows (for the lattice), and the point noise (m)."""
+def _final_point_rows(
+    problem: RefineProblem, pose: FloatArray, gate: float, sigma: float
+) -> tuple[FloatArray, _PointRows, float]:
+    """Linearisation of the point-to-line rows at the refined pose: their information
+    ``(3, 3)``, the rows, and the point noise (m)."""
     hess, _, sigma, idx, res = point_line_system(
         pose, problem.points, problem.lines, gate, sigma, problem.kernel_settings
     )
@@ -498,13 +534,38 @@ def _final_system(
     rp = problem.points.xy[sel] @ rot(pose[2]).T
     nrm = problem.segs.normal[idx[sel]]
     jac = np.column_stack([nrm[:, 0], nrm[:, 1], nrm[:, 1] * rp[:, 0] - nrm[:, 0] * rp[:, 1]])
-    pr = _PointRows(idx, sel, res[sel], jac, rp + pose[:2])
+    return hess, _PointRows(idx, sel, res[sel], jac, rp + pose[:2]), sigma
+
+
+def _final_system(
+    problem: RefineProblem, pose: FloatArray, gate: float, sigma: float, pairs: IntArray
+) -> tuple[FloatArray, _PointRows, _Rows, float]:
+    """Linearisation at the refined pose: the information ``(3, 3)`` of the point-to-line,
+    EOW-pair and off-segment rows (prior excluded), the point-to-line rows and the other
+    rows (for the lattice), and the point noise (m)."""
+    point_hess, pr, sigma = _final_point_rows(problem, pose, gate, sigma)
+    hess, rows = _final_rows(problem, pose, point_hess, pairs, gate, sigma)
+    return hess, pr, rows, sigma
+
+
+def _final_rows(
+    problem: RefineProblem,
+    pose: FloatArray,
+    point_hess: FloatArray,
+    pairs: IntArray,
+    gate: float,
+    sigma: float,
+) -> tuple[FloatArray, _Rows]:
+    """The information ``(3, 3)`` of the point-to-line (``point_hess``), EOW-pair and
+    off-segment rows at the refined pose (prior excluded), and the latter rows (for the
+    lattice)."""
+    hess = point_hess.copy()
     rows = _cat_rows(
         _feature_rows(problem, pose, pairs, False), _cloud_rows(problem, pose, gate, sigma)
     )
     if rows.r.shape[0] > 0:
         hess += (rows.jac.T * (rows.w / rows.var)) @ rows.jac
-    return hess, pr, rows, sigma
+    return hess, rows
 
 
 def _covariance(

@@ -34,8 +34,11 @@ from iceg.matching._kernels import (
     GnSettings,
     LineSegments,
     SegmentPoints,
+    associate,
     cloud_nearest,
+    no_segment_grid,
     point_line_system,
+    segment_grid,
 )
 from iceg.matching.config import CovarianceConfig
 from iceg.matching.correlation import CorrelationSettings, correlate, fimp
@@ -395,7 +398,7 @@ def test_compiled_kernel_equals_the_numpy_reference() -> None:
     h_np, g_np, sig, idx_np = _numpy_point_line_system(pose, pts, pal, segs, line_cov, 0.3)
     lines = LineSegments(
         segs.a, segs.u, segs.length, segs.normal, segs.rho,
-        np.linalg.inv(line_cov + 1e-12 * np.eye(2)),
+        np.linalg.inv(line_cov + 1e-12 * np.eye(2)), no_segment_grid(),
     )  # fmt: skip
     settings = GnSettings(0.15, math.sin(math.radians(20)), 0.005, 2.5, 0.3, 4.0, 0.04, EOW)
     h, g, sig_k, idx, _ = point_line_system(
@@ -407,6 +410,46 @@ def test_compiled_kernel_equals_the_numpy_reference() -> None:
     assert sig_k == pytest.approx(sig)
     np.testing.assert_allclose(h, h_np, rtol=1e-5)
     np.testing.assert_allclose(g, g_np, rtol=1e-4, atol=1e-6 * np.abs(g_np).max())
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_gridded_association_equals_all_segments(seed: int) -> None:
+    # The segment grid only skips segments no point of a cell can reach: the association
+    # (segment and residual of each point, ties included) is bit for bit the one that tests
+    # every segment, for every gate up to the grid's reach; larger gates test all.
+    rng = np.random.default_rng(seed)
+    m = 60
+    a = rng.uniform(-5.0, 5.0, (m, 2))
+    ang = rng.uniform(-np.pi, np.pi, m)
+    u = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    length = rng.choice([0.0, 0.05, 0.5, 3.0, 12.0], m)
+    a[:5] = np.round(a[:5])  # endpoints on cell borders
+    normal = np.stack([-u[:, 1], u[:, 0]], axis=1)
+    rho = np.einsum("ma,ma->m", a, normal)
+    info = np.broadcast_to(np.eye(2), (m, 2, 2)).copy()
+    pose = np.array([0.3, -0.2, 0.7])
+    # Points (new frame) with the normal angle of a random segment (most pass the normal
+    # gate of some segment), some on cell borders, some next to segments.
+    alpha = np.arctan2(normal[:, 1], normal[:, 0])[rng.integers(0, m, 2000)] - pose[2]
+    pts = SegmentPoints(rng.uniform(-7.0, 7.0, (2000, 2)), alpha)
+    pts.xy[:200] = np.round(pts.xy[:200] * 2.0) / 2.0
+    near = rng.integers(0, m, 800)
+    along = rng.uniform(-0.3, length[near] + 0.3)
+    off = rng.uniform(-0.5, 0.5, 800)
+    world = a[near] + along[:, None] * u[near] + off[:, None] * normal[near]
+    pts.xy[200:1000] = transform_points(inverse(pose), world)
+    pts.alpha[200:1000] = np.arctan2(normal[near, 1], normal[near, 0]) - pose[2]
+    end_tol, sin_gate = 0.15, math.sin(math.radians(20.0))
+    grid = segment_grid(a, u, length, 0.45, 0.45)
+    assert grid.reach_m == 0.45 and grid.segs.shape[0] < m * grid.n_cells.prod()
+    plain = LineSegments(a, u, length, normal, rho, info, no_segment_grid())
+    gridded = plain._replace(grid=grid)
+    for gate in (0.3, 0.1, 0.04, 0.6):
+        want = associate(pose, pts, plain, gate, end_tol, sin_gate)
+        got = associate(pose, pts, gridded, gate, end_tol, sin_gate)
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], want[1])
+        assert np.count_nonzero(want[0] >= 0) > 50
 
 
 def test_cloud_nearest_equals_brute_force() -> None:

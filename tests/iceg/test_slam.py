@@ -21,7 +21,13 @@ from graph import FactorKind
 from iceg.config import IcegConfig, SlamConfig
 from iceg.evaluation import position_errors
 from iceg.pipeline import run_scans
-from iceg.slam import Slam, consistent_with_prediction, remap_weak_directions
+from iceg.slam import (
+    CONSISTENCY_PROBABILITY,
+    Slam,
+    chi2_3dof,
+    consistent_with_prediction,
+    remap_weak_directions,
+)
 from iceg.types import MatchResult
 from iceg_common import se2
 from iceg_common.errors import ScanError
@@ -253,6 +259,13 @@ def test_point_fallback_gives_feature_poor_outdoor_keyframes_a_factor() -> None:
     )
     assert np.median(np.hypot(e[:, 0], e[:, 1])) < 0.02
     assert np.degrees(np.median(np.abs(e[:, 2]))) < 0.2
+
+
+def test_chi2_quantile_is_scipy_stats() -> None:
+    # The gate computed without importing scipy.stats is its value, bit for bit.
+    from scipy.stats import chi2
+
+    assert chi2_3dof() == float(chi2.ppf(CONSISTENCY_PROBABILITY, 3))
 
 
 def test_point_match_that_contradicts_the_prediction_is_refused() -> None:
