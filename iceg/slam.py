@@ -449,7 +449,13 @@ class Slam:
         if result.success:
             measured = remap_weak_directions(result.pose, result.cov, motion.delta, motion.cov)
             self._add_factor(
-                FactorKind.SCAN_MATCH, last, new_id, measured, result.cov, result.correlation
+                FactorKind.SCAN_MATCH,
+                last,
+                new_id,
+                measured,
+                result.cov,
+                result.correlation,
+                robust=self.config.slam.scan_match_kernel,
             )
         return new_id
 
@@ -541,7 +547,9 @@ class Slam:
         correlation: float = float("nan"),
         robust: Literal["huber", "cauchy"] | None = None,
     ) -> None:
-        robust_k = self.config.loop_closure.robust_k if robust else None
+        # Loop closures use the configured width; scan matches the kernel's 95 % efficiency.
+        is_closure = kind == FactorKind.LOOP_CLOSURE
+        robust_k = self.config.loop_closure.robust_k if robust and is_closure else None
         record = self.graph.add_between(
             i, j, measured, cov, kind=kind, robust=robust, robust_k=robust_k
         )

@@ -268,6 +268,28 @@ def test_chi2_quantile_is_scipy_stats() -> None:
     assert chi2_3dof() == float(chi2.ppf(CONSISTENCY_PROBABILITY, 3))
 
 
+def test_robust_scan_match_factors_let_odometry_carry_wrong_outdoor_matches() -> None:
+    # Issue 11 item 4: among trees, ICE sometimes returns a confident wrong match (heading
+    # off by 5-25 deg against accurate odometry) and the local map it corrupts breeds more.
+    # Gaussian scan-match factors then leave the trajectory worse than the odometry alone;
+    # with a Huber kernel (slam.scan_match_kernel) the wrong matches end many sigmas from the
+    # odometry and lose their weight. Truth: the simulator's poses.
+    world = outdoor_world()
+    run = simulate(world, default_trajectory(world)[:150], seed=0)
+    odom_ate = position_errors(run.odom_poses, run.true_poses).rmse_m
+    ates = {}
+    for kernel in (None, "huber"):
+        slam = Slam(IcegConfig(slam=SlamConfig(scan_match_kernel=kernel)))
+        for scan in run.scans:
+            slam.process(scan)
+        result = slam.finish()
+        ates[kernel] = position_errors(result.poses, run.true_poses).rmse_m
+        kernels = {f.robust for f in result.factors if f.kind == FactorKind.SCAN_MATCH}
+        assert kernels == {kernel}
+    assert ates[None] > 2.0 * odom_ate  # the failure is reproduced
+    assert ates["huber"] < odom_ate and ates["huber"] < 0.05
+
+
 def test_point_match_that_contradicts_the_prediction_is_refused() -> None:
     # chi-square test with 3 degrees of freedom at 0.999 (16.27): a 1 cm difference under
     # 1 cm + 1 cm sigmas is chi2 = 0.5; 30 cm is chi2 = 450.
