@@ -32,6 +32,7 @@ from iceg.localize import (
     segment_fit,
 )
 from iceg.matching import MatchBounds
+from iceg.place_index import PlaceIndex, place_descriptor
 from iceg.session import (
     FACTOR_KINDS,
     ORIGIN_RUN,
@@ -55,22 +56,26 @@ class MergeSettings:
     """Inter-session closure search.
 
     Attributes:
-        query_spacing_m: B's query nodes: one per square of this side (B's map frame).
-        max_queries: most B nodes matched against A.
-        agree_m / agree_deg / drift_per_m: largest difference between the relative poses of
-            two agreeing closures (metres plus a fraction of their distance; degrees).
-        min_closures: least number of agreeing closures.
+        query_every: every this many of B's nodes (all over B) is matched against A.
+        agree_m / agree_deg: largest difference between the relative poses of two closures
+            whose B nodes are close along B's path (their B-to-A corrections agree).
+        drift_per_m / drift_deg_per_m: the allowance grows by this much per metre of B's
+            path between the two B nodes (B's own drift, uncorrected until the merge).
+        support_window_m: a closure needs ``min_closures - 1`` others within this much of
+            B's path that agree with it within ``agree_m`` / ``agree_deg`` plus the drift.
+        min_closures: least number of agreeing closures in a place (and over the merge).
         densify_*: the local closures added after the first alignment (every this many B
             nodes within this radius of A's nodes; least bounds of their matches, grown
             with the node's marginal; rounds of search and refinement while closures are
             found).
     """
 
-    query_spacing_m: float = 2.0
-    max_queries: int = 60
+    query_every: int = 3
     agree_m: float = 0.5
     agree_deg: float = 5.0
     drift_per_m: float = 0.05
+    drift_deg_per_m: float = 0.1
+    support_window_m: float = 20.0
     min_closures: int = 2
     densify_every: int = 3
     densify_radius_m: float = 3.0
@@ -89,26 +94,31 @@ class InterClosure:
         transform: ``(3,)`` B map frame -> A map frame that it implies.
         robust: enters with the run's robust kernel (False: accepted as a consistent group
             correcting B's estimate by more than its bounds, as the run's global closures).
+        path_m: B's odometry path length at ``node_b`` (m).
     """
 
     node_b: int
     placement: Placement
     transform: FloatArray
     robust: bool = True
+    path_m: float = 0.0
 
 
 def find_closures(
     a: Session, b: Session, settings: MergeSettings | None = None
 ) -> list[InterClosure]:
-    """Place spread B nodes' scans in A's map; keep the largest consistent set.
+    """Inter-session loop closures wherever the sessions overlap: every ``query_every``-th
+    B node is matched globally against the A places most like it (:func:`_placements`), and
+    the largest pairwise-consistent set whose members are each supported by close agreeing
+    ones is kept (:func:`_consistent`).
 
     Raises:
         SessionError: B's scans cannot be re-read, or fewer than ``min_closures`` agree.
     """
     st = settings or MergeSettings()
     fixed = fixed_map_of_session(a)
-    found = _placements(fixed, b, st)
-    best = _consistent(found, st)
+    found = _placements(fixed, a, b, st)
+    best = [dataclasses.replace(c, robust=False) for c in _consistent(found, st)]
     if len(best) < st.min_closures:
         raise SessionError(
             f"{b.path}: only {len(best)} of {len(found)} placements of its scans in {a.path} "
@@ -117,54 +127,119 @@ def find_closures(
     return best
 
 
-def _placements(fixed: FixedMap, b: Session, st: MergeSettings) -> list[InterClosure]:
+def place_index_of(s: Session) -> PlaceIndex:
+    """The session's place index (saved by runs with the global loop-closure search; else
+    built from its node scans' features)."""
+    lc = s.config.loop_closure
+    index = PlaceIndex(lc.place_index)
+    rows, ids = s.arrays["lc_places_rows"], s.arrays["lc_places_ids"]
+    if ids.size == s.arrays["g_node_ids"].size:
+        index.restore_state({"rows": rows, "ids": ids})
+        return index
+    scans = read_scans(s, s.arrays["n_scan"].tolist())
+    for node, scan in zip(s.arrays["g_node_ids"].tolist(), scans, strict=True):
+        index.add(node, place_descriptor(extract(scan, s.config.features), lc.place_index))
+    return index
+
+
+def _placements(fixed: FixedMap, a: Session, b: Session, st: MergeSettings) -> list[InterClosure]:
+    """Every ``query_every``-th B node's scan, globally matched (no prediction, unbounded
+    rotation) against the ``global_candidates`` A places most similar in appearance
+    (:class:`~iceg.place_index.PlaceIndex`, as the run's global loop-closure search); a
+    match counts with enough correlation and fit to A's walls, and when no distinct place
+    matched almost as well (aliasing)."""
+    lc = a.config.loop_closure
+    index = place_index_of(a)
     ids_b, poses_b = b.node_poses
-    rows = FixedMap(ids_b, poses_b, b.feature_map(), b.config).candidates(st.query_spacing_m)
-    step = max(1, int(np.ceil(rows.shape[0] / st.max_queries)))
-    rows = rows[::step]
+    path_b = b.arrays["n_path_m"]
+    rows = np.arange(0, ids_b.size, st.query_every)
     scans = read_scans(b, b.arrays["n_scan"][rows].tolist())
-    out = []
-    # Each placement must be unambiguous (corridors repeat): the consistency vote alone lets
-    # a set of equally aliased placements through.
     loc = LocalizeSettings()
+    row_of = {int(n): r for r, n in enumerate(fixed.ids.tolist())}
+    out = []
     for row, scan in zip(rows.tolist(), scans, strict=True):
-        p = fixed.place(extract(scan, fixed.config.features), loc)
-        if p is None:
-            continue
-        t = se2.compose(p.pose, se2.inverse(poses_b[row]))
-        out.append(InterClosure(int(ids_b[row]), p, t))
-    logger.info("merge: %d of %d B scans placed in A", len(out), rows.shape[0])
+        feats = extract(scan, fixed.config.features)
+        query = place_descriptor(feats, lc.place_index)
+        verified = []
+        for cand in index.query(query, fixed.ids, lc.global_candidates, lc.reference_nodes):
+            pose = fixed.poses[row_of[cand]]
+            p = fixed.match_at(feats, pose, MatchBounds.global_(), lc.reference_nodes)
+            if (
+                p is not None
+                and p.match.correlation >= loc.min_correlation
+                and segment_fit(feats, p, loc.fit_tolerance_m) >= loc.min_fit
+            ):
+                verified.append(p)
+        p = _unambiguous(verified, loc)
+        if p is not None:
+            t = se2.compose(p.pose, se2.inverse(poses_b[row]))
+            out.append(InterClosure(int(ids_b[row]), p, t, path_m=float(path_b[row])))
+    logger.info("merge: %d of %d B scans placed in A", len(out), rows.size)
     return out
 
 
-def _consistent(found: list[InterClosure], st: MergeSettings) -> list[InterClosure]:
-    """The largest group of closures that agree pairwise with one of them (and with each
-    other): two closures agree when the relative pose of their B nodes in B's map matches
-    that of their placements in A's map, within ``agree_m`` plus ``drift_per_m`` of the
-    distance between them and ``agree_deg`` (B's own drift between the two places is
-    allowed for; pairwise consistency after Olson 2009)."""
-    best: list[InterClosure] = []
-    for c in found:
-        group = [o for o in found if _agree(c, o, st)]
-        group = [o for o in group if all(_agree(o, q, st) for q in group)]
-        if len(group) > len(best):
-            best = group
+def _unambiguous(found: list[Placement], loc: LocalizeSettings) -> Placement | None:
+    """The best-correlated placement, unless a distinct place (``distinct_place_m`` or 10
+    degrees away) matched within ``ambiguity_margin`` of it (as :meth:`FixedMap.place`)."""
+    if not found:
+        return None
+    found = sorted(found, key=lambda p: -p.match.correlation)
+    best = found[0]
+    for other in found[1:]:
+        d = se2.between(best.pose, other.pose)
+        distinct = np.hypot(d[0], d[1]) > loc.distinct_place_m or abs(d[2]) > np.radians(10)
+        if distinct and other.match.correlation >= best.match.correlation - loc.ambiguity_margin:
+            return None
     return best
 
 
-def _agree(a: InterClosure, b: InterClosure, st: MergeSettings) -> bool:
-    if a is b:
-        return True
-    in_a = se2.between(a.placement.pose, b.placement.pose)
-    pa_b = se2.compose(se2.inverse(a.transform), a.placement.pose)  # a's B node, B frame
-    pb_b = se2.compose(se2.inverse(b.transform), b.placement.pose)
-    in_b = se2.between(pa_b, pb_b)
-    d = se2.between(in_b, in_a)
-    dist = float(np.hypot(in_b[0], in_b[1]))
-    return bool(
-        np.hypot(d[0], d[1]) <= st.agree_m + st.drift_per_m * dist
-        and abs(d[2]) <= np.radians(st.agree_deg)
-    )
+def _consistent(found: list[InterClosure], st: MergeSettings) -> list[InterClosure]:
+    """The largest set of closures that agree pairwise (:func:`_agreement`; after Olson
+    2009 and PCM, Mangelson et al. 2018: the largest group agreeing with one seed, then with
+    each other), whose members each have ``min_closures - 1`` agreeing others within
+    ``support_window_m`` of B's path: far apart along B, B's drift lets almost any two
+    agree, so each place must vouch for itself."""
+    if not found:
+        return []
+    agree = _agreement(found, st)
+    path = np.array([c.path_m for c in found])
+    near = np.abs(path[:, None] - path[None, :]) <= st.support_window_m
+    best = np.zeros(len(found), dtype=bool)
+    for seed in range(len(found)):
+        group = agree[seed].copy()
+        group &= agree[:, group].all(axis=1)
+        while True:  # drop members without support, until none is dropped
+            support = (agree & near & group[None, :]).sum(axis=1) - 1
+            keep = group & (support >= st.min_closures - 1)
+            if keep.sum() == group.sum():
+                break
+            group = keep
+        if group.sum() > best.sum():
+            best = group
+    return [c for c, k in zip(found, best.tolist(), strict=True) if k]
+
+
+def _agreement(found: list[InterClosure], st: MergeSettings) -> NDArray[np.bool_]:
+    """``(n, n)`` whether two closures agree: the relative pose of their B nodes in B's map
+    matches that of their placements in A's map within ``agree_m`` / ``agree_deg`` plus the
+    drift allowance for the B path between them (its rotation part moving the far node by
+    the distance between them)."""
+    n = len(found)
+    in_a = np.array([c.placement.pose for c in found])
+    in_b = np.array([se2.compose(se2.inverse(c.transform), c.placement.pose) for c in found])
+    path = np.array([c.path_m for c in found])
+    out = np.eye(n, dtype=bool)
+    for i in range(n):
+        rel_a = se2.between(np.broadcast_to(in_a[i], (n, 3)), in_a)
+        rel_b = se2.between(np.broadcast_to(in_b[i], (n, 3)), in_b)
+        d = se2.between(rel_b, rel_a)
+        span = np.abs(path - path[i])
+        rot = np.radians(st.agree_deg + st.drift_deg_per_m * span)
+        dist = np.hypot(rel_b[:, 0], rel_b[:, 1])
+        lever = np.radians(st.drift_deg_per_m * span)  # B's heading drift swings the far node
+        trans = st.agree_m + st.drift_per_m * span + np.minimum(lever, np.pi) * dist
+        out[i] |= (np.hypot(d[:, 0], d[:, 1]) <= trans) & (np.abs(d[:, 2]) <= rot)
+    return out
 
 
 # --------------------------------------------------------------------------- arrays
@@ -262,7 +337,8 @@ def _densify(
                 continue
             if segment_fit(feats, p, loc.fit_tolerance_m) >= loc.min_fit:
                 t = se2.compose(p.pose, se2.inverse(poses[row]))
-                out_list.append(InterClosure(int(ids_b[row]), p, t))
+                path = float(b.arrays["n_path_m"][row])
+                out_list.append(InterClosure(int(ids_b[row]), p, t, path_m=path))
                 break
     # The run's loop closer searches without bounds where the local radius is capped; here,
     # as in its global search, such closures enter only as a mutually consistent group
