@@ -22,17 +22,21 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from frontends import LaserScan
 from graph import FactorKind, PoseGraph
 from iceg.features import extract
 from iceg.localize import (
     FixedMap,
+    LocalizationResult,
     LocalizeSettings,
     Placement,
+    Status,
+    agrees_with,
     fixed_map_of_session,
+    localize_scans,
     segment_fit,
 )
 from iceg.matching import MatchBounds
-from iceg.place_index import PlaceIndex, place_descriptor
 from iceg.session import (
     FACTOR_KINDS,
     ORIGIN_RUN,
@@ -106,91 +110,81 @@ class InterClosure:
 
 def find_closures(
     a: Session, b: Session, settings: MergeSettings | None = None
-) -> list[InterClosure]:
-    """Inter-session loop closures wherever the sessions overlap: every ``query_every``-th
-    B node is matched globally against the A places most like it (:func:`_placements`), and
-    the largest pairwise-consistent set whose members are each supported by close agreeing
-    ones is kept (:func:`_consistent`).
+) -> tuple[list[InterClosure], FloatArray]:
+    """Inter-session loop closures wherever the sessions overlap.
+
+    B's log is localized in A's frozen map (:func:`iceg.localize.localize_scans`: global ICE
+    placement without an initial pose, confirmed by tracking; then the run's own SLAM with
+    A's nodes held, its local and global loop closures to A's nodes gated as in a run, and
+    new segments where a kidnapping is confirmed). That puts every B scan the map can
+    explain into A's frame along one consistent track, however far B drifted on its own.
+    Every ``query_every``-th B node with a pose is then matched against A's map at its
+    localized pose (:func:`_track_closures`).
+
+    Returns:
+        ``(closures, initial)``: the closures and ``(N_b, 3)`` A-frame poses of B's nodes
+        where they were localized (NaN rows elsewhere).
 
     Raises:
-        SessionError: B's scans cannot be re-read, or fewer than ``min_closures`` agree.
+        SessionError: B's scans cannot be re-read, or fewer than ``min_closures`` closures.
     """
     st = settings or MergeSettings()
     fixed = fixed_map_of_session(a)
-    found = _placements(fixed, a, b, st)
-    best = [dataclasses.replace(c, robust=False) for c in _consistent(found, st)]
-    if len(best) < st.min_closures:
+    scans = read_scans(b)
+    loc = localize_scans(fixed, scans)
+    rows = b.arrays["n_scan"]
+    initial = np.where((loc.status[rows] > Status.LOST)[:, None], loc.poses[rows], np.nan)
+    found = _track_closures(fixed, b, scans, loc, st)
+    if len(found) < st.min_closures:
         raise SessionError(
-            f"{b.path}: only {len(best)} of {len(found)} placements of its scans in {a.path} "
-            f"agree (need {st.min_closures}); are the two sessions of the same building?"
+            f"{b.path}: only {len(found)} of its scans could be placed in {a.path} "
+            f"(need {st.min_closures}); are the two sessions of the same building?"
         )
-    return best
+    return found, initial
 
 
-def place_index_of(s: Session) -> PlaceIndex:
-    """The session's place index (saved by runs with the global loop-closure search; else
-    built from its node scans' features)."""
-    lc = s.config.loop_closure
-    index = PlaceIndex(lc.place_index)
-    rows, ids = s.arrays["lc_places_rows"], s.arrays["lc_places_ids"]
-    if ids.size == s.arrays["g_node_ids"].size:
-        index.restore_state({"rows": rows, "ids": ids})
-        return index
-    scans = read_scans(s, s.arrays["n_scan"].tolist())
-    for node, scan in zip(s.arrays["g_node_ids"].tolist(), scans, strict=True):
-        index.add(node, place_descriptor(extract(scan, s.config.features), lc.place_index))
-    return index
-
-
-def _placements(fixed: FixedMap, a: Session, b: Session, st: MergeSettings) -> list[InterClosure]:
-    """Every ``query_every``-th B node's scan, globally matched (no prediction, unbounded
-    rotation) against the ``global_candidates`` A places most similar in appearance
-    (:class:`~iceg.place_index.PlaceIndex`, as the run's global loop-closure search); a
-    match counts with enough correlation and fit to A's walls, and when no distinct place
-    matched almost as well (aliasing)."""
-    lc = a.config.loop_closure
-    index = place_index_of(a)
+def _track_closures(
+    fixed: FixedMap,
+    b: Session,
+    scans: list[LaserScan],
+    loc: LocalizationResult,
+    st: MergeSettings,
+) -> list[InterClosure]:
+    """B nodes (every ``query_every``-th with a localized pose) matched against A's map at
+    that pose, within bounds of ``search_n_sigma`` of its covariance (at least the tracking
+    bounds, at most the run's ``max_search_radius_m``); kept with enough correlation, fit
+    to A's walls (:func:`~iceg.localize.segment_fit`), and an innovation within the run's
+    chi-square gate (``loop_closure.consistency_chi2``) under the localization's
+    covariance: the track is the consistency check, as a run's estimate is for its loop
+    closures."""
+    lc = fixed.config.loop_closure
+    ls = LocalizeSettings()
     ids_b, poses_b = b.node_poses
     path_b = b.arrays["n_path_m"]
-    rows = np.arange(0, ids_b.size, st.query_every)
-    scans = read_scans(b, b.arrays["n_scan"][rows].tolist())
-    loc = LocalizeSettings()
-    row_of = {int(n): r for r, n in enumerate(fixed.ids.tolist())}
     out = []
-    for row, scan in zip(rows.tolist(), scans, strict=True):
-        feats = extract(scan, fixed.config.features)
-        query = place_descriptor(feats, lc.place_index)
-        verified = []
-        for cand in index.query(query, fixed.ids, lc.global_candidates, lc.reference_nodes):
-            pose = fixed.poses[row_of[cand]]
-            p = fixed.match_at(feats, pose, MatchBounds.global_(), lc.reference_nodes)
-            if (
-                p is not None
-                and p.match.correlation >= loc.min_correlation
-                and segment_fit(feats, p, loc.fit_tolerance_m) >= loc.min_fit
-            ):
-                verified.append(p)
-        p = _unambiguous(verified, loc)
-        if p is not None:
-            t = se2.compose(p.pose, se2.inverse(poses_b[row]))
-            out.append(InterClosure(int(ids_b[row]), p, t, path_m=float(path_b[row])))
-    logger.info("merge: %d of %d B scans placed in A", len(out), rows.size)
+    for row in range(0, ids_b.size, st.query_every):
+        r = int(b.arrays["n_scan"][row])
+        if loc.status[r] <= Status.LOST:
+            continue
+        pose, cov = loc.poses[r], loc.covs[r]
+        sxy = float(np.sqrt(np.linalg.eigvalsh(cov[:2, :2]).max()))
+        trans = min(max(ls.track_translation_m, ls.search_n_sigma * sxy), lc.max_search_radius_m)
+        rot = max(ls.track_rotation_deg, np.degrees(ls.search_n_sigma * np.sqrt(cov[2, 2])))
+        feats = extract(scans[r], fixed.config.features)
+        p = fixed.match_at(
+            feats, pose, MatchBounds.local(trans, min(rot, 180.0)), lc.reference_nodes
+        )
+        if (
+            p is None
+            or p.match.correlation < ls.min_correlation
+            or segment_fit(feats, p, ls.fit_tolerance_m) < ls.min_fit
+            or not agrees_with(pose, cov, p, lc.consistency_chi2)
+        ):
+            continue
+        t = se2.compose(p.pose, se2.inverse(poses_b[row]))
+        out.append(InterClosure(int(ids_b[row]), p, t, path_m=float(path_b[row])))
+    logger.info("merge: %d inter-session closures along B's localized track", len(out))
     return out
-
-
-def _unambiguous(found: list[Placement], loc: LocalizeSettings) -> Placement | None:
-    """The best-correlated placement, unless a distinct place (``distinct_place_m`` or 10
-    degrees away) matched within ``ambiguity_margin`` of it (as :meth:`FixedMap.place`)."""
-    if not found:
-        return None
-    found = sorted(found, key=lambda p: -p.match.correlation)
-    best = found[0]
-    for other in found[1:]:
-        d = se2.between(best.pose, other.pose)
-        distinct = np.hypot(d[0], d[1]) > loc.distinct_place_m or abs(d[2]) > np.radians(10)
-        if distinct and other.match.correlation >= best.match.correlation - loc.ambiguity_margin:
-            return None
-    return best
 
 
 def _consistent(found: list[InterClosure], st: MergeSettings) -> list[InterClosure]:
@@ -251,8 +245,12 @@ def merge_arrays(
     closures: list[InterClosure],
     max_iterations: int = 100,
     settings: MergeSettings | None = None,
+    initial: FloatArray | None = None,
 ) -> dict[str, np.ndarray]:
     """The merged session's ``state.npz`` arrays (see :mod:`iceg.session`).
+
+    ``initial``: ``(N_b, 3)`` A-frame initial values of B's nodes (NaN rows: B's estimate
+    moved by the closures' mean B-to-A transform, as all of them when not given).
 
     Raises:
         GraphError: gtsam failed on the merged graph.
@@ -260,7 +258,11 @@ def merge_arrays(
     aa, ba = a.arrays, b.arrays
     n_a = int(aa["g_node_ids"].max()) + 1
     t = closures[0].transform if len(closures) == 1 else _mean_transform(closures)
-    out = {**_graph_part(aa, ba, n_a, t), **_scan_part(aa, ba, n_a), **_map_part(aa, ba, n_a)}
+    b_init = se2.compose(t, ba["g_node_final"])
+    if initial is not None:
+        b_init = np.where(np.isnan(initial[:, :1]), b_init, initial)
+    parts = (_graph_part(aa, ba, n_a, b_init), _scan_part(aa, ba, n_a), _map_part(aa, ba, n_a))
+    out = {k: v for part in parts for k, v in part.items()}
     kernel = a.config.loop_closure.robust_kernel
     st = settings or MergeSettings()
     out = _add_closures(out, closures, n_a, kernel)
@@ -363,14 +365,14 @@ def _mean_transform(closures: list[InterClosure]) -> FloatArray:
 
 
 def _graph_part(
-    aa: dict[str, np.ndarray], ba: dict[str, np.ndarray], n_a: int, t: FloatArray
+    aa: dict[str, np.ndarray], ba: dict[str, np.ndarray], n_a: int, b_init: FloatArray
 ) -> dict[str, np.ndarray]:
     keep = ba["g_kind"] != FACTOR_KINDS.index(FactorKind.PRIOR)  # A's prior anchors the map
     ij = ba["g_ij"][keep] + n_a
     out = {
         "g_node_ids": np.concatenate([aa["g_node_ids"], ba["g_node_ids"] + n_a]),
-        "g_node_initial": np.concatenate([aa["g_node_final"], se2.compose(t, ba["g_node_final"])]),
-        "g_node_final": np.concatenate([aa["g_node_final"], se2.compose(t, ba["g_node_final"])]),
+        "g_node_initial": np.concatenate([aa["g_node_final"], b_init]),
+        "g_node_final": np.concatenate([aa["g_node_final"], b_init]),
         "g_ij": np.concatenate([aa["g_ij"], ij]),
     }
     for k in ("g_kind", "g_measured", "g_cov", "g_robust", "g_robust_k", "g_origin"):
@@ -479,8 +481,8 @@ def merge_sessions(
     from frontends.tum import write_tum
     from iceg.session import SESSION_DIR, write_folder
 
-    closures = find_closures(a, b, settings)
-    arrays = merge_arrays(a, b, closures, settings=settings)
+    closures, initial = find_closures(a, b, settings)
+    arrays = merge_arrays(a, b, closures, settings=settings, initial=initial)
     folder = Path(out)
     logs = [*a.manifest.get("logs", []), *b.manifest.get("logs", [])]
     session_dir = folder / SESSION_DIR

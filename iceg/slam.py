@@ -250,8 +250,29 @@ class Slam:
         # the old place's that the placement matched.
         self._remember_points(new_id, feats)
         self.feature_map.update(new_id, feats, scan.stamp_s, scan=scan)
+        self._match_before(new_id, before)
         self.timer.add("segment_start", t0)
         return self.graph.estimate(new_id)
+
+    def _match_before(self, node_id: int, before: Sequence[LaserScan]) -> None:
+        """The scans before a segment's first node, each matched against that node's
+        landmarks (predicted by the odometry, the local match's bounds): a match of enough
+        correlation (``loop_closure.min_correlation``) replaces the odometry delta of its
+        record. Scans between nodes need none, but these may be many scans back."""
+        if not before:
+            return
+        cfg = self.config.slam
+        nodes = np.array([node_id], dtype=np.int64)
+        ids, poses = self.graph.estimates_of(self.feature_map.reference_pose_nodes(nodes))
+        ref = self.feature_map.reference((ids, poses), nodes, poses[np.searchsorted(ids, node_id)])
+        bounds = MatchBounds.local(cfg.match_max_translation_m, cfg.match_max_rotation_deg)
+        records = self._s.records[-1 - len(before) : -1]
+        for early, rec in zip(before, records, strict=True):
+            result = self.matcher.match(
+                extract(early, self.config.features), ref.features, rec.delta_from_node, bounds
+            )
+            if result.success and result.correlation >= self.config.loop_closure.min_correlation:
+                rec.delta_from_node = result.pose
 
     # ------------------------------------------------------------------ per scan
 
