@@ -1,15 +1,17 @@
 """Merge two sessions of one building into one graph and one map (``iceg merge``, issue 15).
 
-Scans of session B (nodes spread over its map, ``query_spacing_m`` apart) are placed in A's map
-by global ICE matching (:meth:`iceg.localize.FixedMap.place`: correlation, fit to A's walls,
-no ambiguity). Each placement implies the rigid transform ``T = pose_A(anchor) ∘ z ∘
-pose_B(node)^-1`` from B's map frame to A's; the largest set of placements whose transforms
-agree (within ``agree_m`` / ``agree_deg``) is kept, and must hold ``min_closures`` of them
-(consistency, in the spirit of Olson 2009's pairwise check). B's nodes are renumbered after A's
-and moved by ``T``; B's prior is dropped (A's anchors the merged map); the agreeing placements
-become loop-closure factors (robust kernel of the run's configuration); the graph is refined by
-batch Levenberg–Marquardt. The feature maps are concatenated (B's landmarks anchored to B's
-renumbered nodes; duplicates of one corner seen in both sessions are not fused).
+B's log is localized in A's frozen map (:func:`iceg.localize.localize_scans`: global ICE
+placement, tracking, the run's gated loop closures to A's nodes), which puts B's scans in A's
+frame along one consistent track however far B drifted on its own; every ``query_every``-th B
+node is then matched against A's map at its localized pose, and kept with enough correlation,
+fit to A's walls and an innovation within the run's chi-square gate (:func:`find_closures`):
+inter-session closures wherever the sessions overlap. B's nodes are renumbered after A's and
+start at their localized poses; B's prior is dropped (A's anchors the merged map); the
+closures become loop-closure factors (robust kernel of the run's configuration); the graph is
+refined by batch Levenberg–Marquardt, then densified by local closures at the merged
+estimates in rounds (:func:`_densify`). The feature maps are concatenated (B's landmarks
+anchored to B's renumbered nodes; duplicates of one corner seen in both sessions are not
+fused).
 """
 
 from __future__ import annotations
@@ -60,14 +62,16 @@ class MergeSettings:
     """Inter-session closure search.
 
     Attributes:
-        query_every: every this many of B's nodes (all over B) is matched against A.
-        agree_m / agree_deg: largest difference between the relative poses of two closures
-            whose B nodes are close along B's path (their B-to-A corrections agree).
-        drift_per_m / drift_deg_per_m: the allowance grows by this much per metre of B's
-            path between the two B nodes (B's own drift, uncorrected until the merge).
-        support_window_m: a closure needs ``min_closures - 1`` others within this much of
-            B's path that agree with it within ``agree_m`` / ``agree_deg`` plus the drift.
-        min_closures: least number of agreeing closures in a place (and over the merge).
+        query_every: every this many of B's nodes (all over B, where localized) is matched
+            against A's map at its localized pose.
+        min_closures: least number of inter-session closures (fewer: not the same
+            building), and of an agreeing group of unbounded densify closures.
+        agree_m / agree_deg: unbounded densify closures: largest difference between the
+            relative poses of two whose B nodes are close along B's path.
+        drift_per_m / drift_deg_per_m: that allowance grows by this much per metre of B's
+            path between the two B nodes (B's own drift).
+        support_window_m: each closure of such a group needs ``min_closures - 1`` others
+            within this much of B's path that agree with it.
         densify_*: the local closures added after the first alignment (every this many B
             nodes within this radius of A's nodes; least bounds of their matches, grown
             with the node's marginal; rounds of search and refinement while closures are
