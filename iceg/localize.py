@@ -887,7 +887,7 @@ def _track_segment(
         again = fixed.place(extract(scans[j], slam.config.features), st)
         if again is None:
             continue
-        if agrees_with(est, slam.graph.marginal_covariance(node), again, chi2):
+        if _agrees(est, slam.graph.marginal_covariance(node), again, chi2):
             doubts.clear()
             continue
         doubts.append((j, est, again))
@@ -977,7 +977,7 @@ def _shifted(scan: LaserScan, shift_s: float) -> LaserScan:
     return dataclasses.replace(scan, stamp_s=scan.stamp_s + shift_s) if shift_s else scan
 
 
-def agrees_with(pose: FloatArray, cov: FloatArray, p: Placement, chi2: float) -> bool:
+def _agrees(pose: FloatArray, cov: FloatArray, p: Placement, chi2: float) -> bool:
     """A placement agrees with an estimate ``pose`` of covariance ``cov`` (body frame): its
     innovation is within the ``chi2`` gate under both covariances."""
     e = se2.between(pose, p.pose)

@@ -1,17 +1,15 @@
 """Merge two sessions of one building into one graph and one map (``iceg merge``, issue 15).
 
-B's log is localized in A's frozen map (:func:`iceg.localize.localize_scans`: global ICE
-placement, tracking, the run's gated loop closures to A's nodes), which puts B's scans in A's
-frame along one consistent track however far B drifted on its own; every ``query_every``-th B
-node is then matched against A's map at its localized pose, and kept with enough correlation,
-fit to A's walls and an innovation within the run's chi-square gate (:func:`find_closures`):
-inter-session closures wherever the sessions overlap. B's nodes are renumbered after A's and
-start at their localized poses; B's prior is dropped (A's anchors the merged map); the
-closures become loop-closure factors (robust kernel of the run's configuration); the graph is
-refined by batch Levenberg–Marquardt, then densified by local closures at the merged
-estimates in rounds (:func:`_densify`). The feature maps are concatenated (B's landmarks
-anchored to B's renumbered nodes; duplicates of one corner seen in both sessions are not
-fused).
+Scans of session B (nodes spread over its map, ``query_spacing_m`` apart) are placed in A's map
+by global ICE matching (:meth:`iceg.localize.FixedMap.place`: correlation, fit to A's walls,
+no ambiguity). Each placement implies the rigid transform ``T = pose_A(anchor) ∘ z ∘
+pose_B(node)^-1`` from B's map frame to A's; the largest set of placements whose transforms
+agree (within ``agree_m`` / ``agree_deg``) is kept, and must hold ``min_closures`` of them
+(consistency, in the spirit of Olson 2009's pairwise check). B's nodes are renumbered after A's
+and moved by ``T``; B's prior is dropped (A's anchors the merged map); the agreeing placements
+become loop-closure factors (robust kernel of the run's configuration); the graph is refined by
+batch Levenberg–Marquardt. The feature maps are concatenated (B's landmarks anchored to B's
+renumbered nodes; duplicates of one corner seen in both sessions are not fused).
 """
 
 from __future__ import annotations
@@ -24,18 +22,13 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from frontends import LaserScan
 from graph import FactorKind, PoseGraph
 from iceg.features import extract
 from iceg.localize import (
     FixedMap,
-    LocalizationResult,
     LocalizeSettings,
     Placement,
-    Status,
-    agrees_with,
     fixed_map_of_session,
-    localize_scans,
     segment_fit,
 )
 from iceg.matching import MatchBounds
@@ -62,28 +55,22 @@ class MergeSettings:
     """Inter-session closure search.
 
     Attributes:
-        query_every: every this many of B's nodes (all over B, where localized) is matched
-            against A's map at its localized pose.
-        min_closures: least number of inter-session closures (fewer: not the same
-            building), and of an agreeing group of unbounded densify closures.
-        agree_m / agree_deg: unbounded densify closures: largest difference between the
-            relative poses of two whose B nodes are close along B's path.
-        drift_per_m / drift_deg_per_m: that allowance grows by this much per metre of B's
-            path between the two B nodes (B's own drift).
-        support_window_m: each closure of such a group needs ``min_closures - 1`` others
-            within this much of B's path that agree with it.
+        query_spacing_m: B's query nodes: one per square of this side (B's map frame).
+        max_queries: most B nodes matched against A.
+        agree_m / agree_deg / drift_per_m: largest difference between the relative poses of
+            two agreeing closures (metres plus a fraction of their distance; degrees).
+        min_closures: least number of agreeing closures.
         densify_*: the local closures added after the first alignment (every this many B
             nodes within this radius of A's nodes; least bounds of their matches, grown
             with the node's marginal; rounds of search and refinement while closures are
             found).
     """
 
-    query_every: int = 3
+    query_spacing_m: float = 2.0
+    max_queries: int = 60
     agree_m: float = 0.5
     agree_deg: float = 5.0
     drift_per_m: float = 0.05
-    drift_deg_per_m: float = 0.1
-    support_window_m: float = 20.0
     min_closures: int = 2
     densify_every: int = 3
     densify_radius_m: float = 3.0
@@ -102,142 +89,82 @@ class InterClosure:
         transform: ``(3,)`` B map frame -> A map frame that it implies.
         robust: enters with the run's robust kernel (False: accepted as a consistent group
             correcting B's estimate by more than its bounds, as the run's global closures).
-        path_m: B's odometry path length at ``node_b`` (m).
     """
 
     node_b: int
     placement: Placement
     transform: FloatArray
     robust: bool = True
-    path_m: float = 0.0
 
 
 def find_closures(
     a: Session, b: Session, settings: MergeSettings | None = None
-) -> tuple[list[InterClosure], FloatArray]:
-    """Inter-session loop closures wherever the sessions overlap.
-
-    B's log is localized in A's frozen map (:func:`iceg.localize.localize_scans`: global ICE
-    placement without an initial pose, confirmed by tracking; then the run's own SLAM with
-    A's nodes held, its local and global loop closures to A's nodes gated as in a run, and
-    new segments where a kidnapping is confirmed). That puts every B scan the map can
-    explain into A's frame along one consistent track, however far B drifted on its own.
-    Every ``query_every``-th B node with a pose is then matched against A's map at its
-    localized pose (:func:`_track_closures`).
-
-    Returns:
-        ``(closures, initial)``: the closures and ``(N_b, 3)`` A-frame poses of B's nodes
-        where they were localized (NaN rows elsewhere).
+) -> list[InterClosure]:
+    """Place spread B nodes' scans in A's map; keep the largest consistent set.
 
     Raises:
-        SessionError: B's scans cannot be re-read, or fewer than ``min_closures`` closures.
+        SessionError: B's scans cannot be re-read, or fewer than ``min_closures`` agree.
     """
     st = settings or MergeSettings()
     fixed = fixed_map_of_session(a)
-    scans = read_scans(b)
-    loc = localize_scans(fixed, scans)
-    rows = b.arrays["n_scan"]
-    initial = np.where((loc.status[rows] > Status.LOST)[:, None], loc.poses[rows], np.nan)
-    found = _track_closures(fixed, b, scans, loc, st)
-    if len(found) < st.min_closures:
+    found = _placements(fixed, b, st)
+    best = _consistent(found, st)
+    if len(best) < st.min_closures:
         raise SessionError(
-            f"{b.path}: only {len(found)} of its scans could be placed in {a.path} "
-            f"(need {st.min_closures}); are the two sessions of the same building?"
+            f"{b.path}: only {len(best)} of {len(found)} placements of its scans in {a.path} "
+            f"agree (need {st.min_closures}); are the two sessions of the same building?"
         )
-    return found, initial
+    return best
 
 
-def _track_closures(
-    fixed: FixedMap,
-    b: Session,
-    scans: list[LaserScan],
-    loc: LocalizationResult,
-    st: MergeSettings,
-) -> list[InterClosure]:
-    """B nodes (every ``query_every``-th with a localized pose) matched against A's map at
-    that pose, within bounds of ``search_n_sigma`` of its covariance (at least the tracking
-    bounds, at most the run's ``max_search_radius_m``); kept with enough correlation, fit
-    to A's walls (:func:`~iceg.localize.segment_fit`), and an innovation within the run's
-    chi-square gate (``loop_closure.consistency_chi2``) under the localization's
-    covariance: the track is the consistency check, as a run's estimate is for its loop
-    closures."""
-    lc = fixed.config.loop_closure
-    ls = LocalizeSettings()
+def _placements(fixed: FixedMap, b: Session, st: MergeSettings) -> list[InterClosure]:
     ids_b, poses_b = b.node_poses
-    path_b = b.arrays["n_path_m"]
+    rows = FixedMap(ids_b, poses_b, b.feature_map(), b.config).candidates(st.query_spacing_m)
+    step = max(1, int(np.ceil(rows.shape[0] / st.max_queries)))
+    rows = rows[::step]
+    scans = read_scans(b, b.arrays["n_scan"][rows].tolist())
     out = []
-    for row in range(0, ids_b.size, st.query_every):
-        r = int(b.arrays["n_scan"][row])
-        if loc.status[r] <= Status.LOST:
-            continue
-        pose, cov = loc.poses[r], loc.covs[r]
-        sxy = float(np.sqrt(np.linalg.eigvalsh(cov[:2, :2]).max()))
-        trans = min(max(ls.track_translation_m, ls.search_n_sigma * sxy), lc.max_search_radius_m)
-        rot = max(ls.track_rotation_deg, np.degrees(ls.search_n_sigma * np.sqrt(cov[2, 2])))
-        feats = extract(scans[r], fixed.config.features)
-        p = fixed.match_at(
-            feats, pose, MatchBounds.local(trans, min(rot, 180.0)), lc.reference_nodes
-        )
-        if (
-            p is None
-            or p.match.correlation < ls.min_correlation
-            or segment_fit(feats, p, ls.fit_tolerance_m) < ls.min_fit
-            or not agrees_with(pose, cov, p, lc.consistency_chi2)
-        ):
+    # Each placement must be unambiguous (corridors repeat): the consistency vote alone lets
+    # a set of equally aliased placements through.
+    loc = LocalizeSettings()
+    for row, scan in zip(rows.tolist(), scans, strict=True):
+        p = fixed.place(extract(scan, fixed.config.features), loc)
+        if p is None:
             continue
         t = se2.compose(p.pose, se2.inverse(poses_b[row]))
-        out.append(InterClosure(int(ids_b[row]), p, t, path_m=float(path_b[row])))
-    logger.info("merge: %d inter-session closures along B's localized track", len(out))
+        out.append(InterClosure(int(ids_b[row]), p, t))
+    logger.info("merge: %d of %d B scans placed in A", len(out), rows.shape[0])
     return out
 
 
 def _consistent(found: list[InterClosure], st: MergeSettings) -> list[InterClosure]:
-    """The largest set of closures that agree pairwise (:func:`_agreement`; after Olson
-    2009 and PCM, Mangelson et al. 2018: the largest group agreeing with one seed, then with
-    each other), whose members each have ``min_closures - 1`` agreeing others within
-    ``support_window_m`` of B's path: far apart along B, B's drift lets almost any two
-    agree, so each place must vouch for itself."""
-    if not found:
-        return []
-    agree = _agreement(found, st)
-    path = np.array([c.path_m for c in found])
-    near = np.abs(path[:, None] - path[None, :]) <= st.support_window_m
-    best = np.zeros(len(found), dtype=bool)
-    for seed in range(len(found)):
-        group = agree[seed].copy()
-        group &= agree[:, group].all(axis=1)
-        while True:  # drop members without support, until none is dropped
-            support = (agree & near & group[None, :]).sum(axis=1) - 1
-            keep = group & (support >= st.min_closures - 1)
-            if keep.sum() == group.sum():
-                break
-            group = keep
-        if group.sum() > best.sum():
+    """The largest group of closures that agree pairwise with one of them (and with each
+    other): two closures agree when the relative pose of their B nodes in B's map matches
+    that of their placements in A's map, within ``agree_m`` plus ``drift_per_m`` of the
+    distance between them and ``agree_deg`` (B's own drift between the two places is
+    allowed for; pairwise consistency after Olson 2009)."""
+    best: list[InterClosure] = []
+    for c in found:
+        group = [o for o in found if _agree(c, o, st)]
+        group = [o for o in group if all(_agree(o, q, st) for q in group)]
+        if len(group) > len(best):
             best = group
-    return [c for c, k in zip(found, best.tolist(), strict=True) if k]
+    return best
 
 
-def _agreement(found: list[InterClosure], st: MergeSettings) -> NDArray[np.bool_]:
-    """``(n, n)`` whether two closures agree: the relative pose of their B nodes in B's map
-    matches that of their placements in A's map within ``agree_m`` / ``agree_deg`` plus the
-    drift allowance for the B path between them (its rotation part moving the far node by
-    the distance between them)."""
-    n = len(found)
-    in_a = np.array([c.placement.pose for c in found])
-    in_b = np.array([se2.compose(se2.inverse(c.transform), c.placement.pose) for c in found])
-    path = np.array([c.path_m for c in found])
-    out = np.eye(n, dtype=bool)
-    for i in range(n):
-        rel_a = se2.between(np.broadcast_to(in_a[i], (n, 3)), in_a)
-        rel_b = se2.between(np.broadcast_to(in_b[i], (n, 3)), in_b)
-        d = se2.between(rel_b, rel_a)
-        span = np.abs(path - path[i])
-        rot = np.radians(st.agree_deg + st.drift_deg_per_m * span)
-        dist = np.hypot(rel_b[:, 0], rel_b[:, 1])
-        lever = np.radians(st.drift_deg_per_m * span)  # B's heading drift swings the far node
-        trans = st.agree_m + st.drift_per_m * span + np.minimum(lever, np.pi) * dist
-        out[i] |= (np.hypot(d[:, 0], d[:, 1]) <= trans) & (np.abs(d[:, 2]) <= rot)
-    return out
+def _agree(a: InterClosure, b: InterClosure, st: MergeSettings) -> bool:
+    if a is b:
+        return True
+    in_a = se2.between(a.placement.pose, b.placement.pose)
+    pa_b = se2.compose(se2.inverse(a.transform), a.placement.pose)  # a's B node, B frame
+    pb_b = se2.compose(se2.inverse(b.transform), b.placement.pose)
+    in_b = se2.between(pa_b, pb_b)
+    d = se2.between(in_b, in_a)
+    dist = float(np.hypot(in_b[0], in_b[1]))
+    return bool(
+        np.hypot(d[0], d[1]) <= st.agree_m + st.drift_per_m * dist
+        and abs(d[2]) <= np.radians(st.agree_deg)
+    )
 
 
 # --------------------------------------------------------------------------- arrays
@@ -249,12 +176,8 @@ def merge_arrays(
     closures: list[InterClosure],
     max_iterations: int = 100,
     settings: MergeSettings | None = None,
-    initial: FloatArray | None = None,
 ) -> dict[str, np.ndarray]:
     """The merged session's ``state.npz`` arrays (see :mod:`iceg.session`).
-
-    ``initial``: ``(N_b, 3)`` A-frame initial values of B's nodes (NaN rows: B's estimate
-    moved by the closures' mean B-to-A transform, as all of them when not given).
 
     Raises:
         GraphError: gtsam failed on the merged graph.
@@ -262,11 +185,7 @@ def merge_arrays(
     aa, ba = a.arrays, b.arrays
     n_a = int(aa["g_node_ids"].max()) + 1
     t = closures[0].transform if len(closures) == 1 else _mean_transform(closures)
-    b_init = se2.compose(t, ba["g_node_final"])
-    if initial is not None:
-        b_init = np.where(np.isnan(initial[:, :1]), b_init, initial)
-    parts = (_graph_part(aa, ba, n_a, b_init), _scan_part(aa, ba, n_a), _map_part(aa, ba, n_a))
-    out = {k: v for part in parts for k, v in part.items()}
+    out = {**_graph_part(aa, ba, n_a, t), **_scan_part(aa, ba, n_a), **_map_part(aa, ba, n_a)}
     kernel = a.config.loop_closure.robust_kernel
     st = settings or MergeSettings()
     out = _add_closures(out, closures, n_a, kernel)
@@ -343,8 +262,7 @@ def _densify(
                 continue
             if segment_fit(feats, p, loc.fit_tolerance_m) >= loc.min_fit:
                 t = se2.compose(p.pose, se2.inverse(poses[row]))
-                path = float(b.arrays["n_path_m"][row])
-                out_list.append(InterClosure(int(ids_b[row]), p, t, path_m=path))
+                out_list.append(InterClosure(int(ids_b[row]), p, t))
                 break
     # The run's loop closer searches without bounds where the local radius is capped; here,
     # as in its global search, such closures enter only as a mutually consistent group
@@ -369,14 +287,14 @@ def _mean_transform(closures: list[InterClosure]) -> FloatArray:
 
 
 def _graph_part(
-    aa: dict[str, np.ndarray], ba: dict[str, np.ndarray], n_a: int, b_init: FloatArray
+    aa: dict[str, np.ndarray], ba: dict[str, np.ndarray], n_a: int, t: FloatArray
 ) -> dict[str, np.ndarray]:
     keep = ba["g_kind"] != FACTOR_KINDS.index(FactorKind.PRIOR)  # A's prior anchors the map
     ij = ba["g_ij"][keep] + n_a
     out = {
         "g_node_ids": np.concatenate([aa["g_node_ids"], ba["g_node_ids"] + n_a]),
-        "g_node_initial": np.concatenate([aa["g_node_final"], b_init]),
-        "g_node_final": np.concatenate([aa["g_node_final"], b_init]),
+        "g_node_initial": np.concatenate([aa["g_node_final"], se2.compose(t, ba["g_node_final"])]),
+        "g_node_final": np.concatenate([aa["g_node_final"], se2.compose(t, ba["g_node_final"])]),
         "g_ij": np.concatenate([aa["g_ij"], ij]),
     }
     for k in ("g_kind", "g_measured", "g_cov", "g_robust", "g_robust_k", "g_origin"):
@@ -485,8 +403,8 @@ def merge_sessions(
     from frontends.tum import write_tum
     from iceg.session import SESSION_DIR, write_folder
 
-    closures, initial = find_closures(a, b, settings)
-    arrays = merge_arrays(a, b, closures, settings=settings, initial=initial)
+    closures = find_closures(a, b, settings)
+    arrays = merge_arrays(a, b, closures, settings=settings)
     folder = Path(out)
     logs = [*a.manifest.get("logs", []), *b.manifest.get("logs", [])]
     session_dir = folder / SESSION_DIR
