@@ -753,14 +753,14 @@ def _localize_in_session(
     """Localization against a frozen saved map, segment by segment.
 
     A segment starts where a scan is placed in the map and the placement is confirmed by
-    the next scans (:func:`iceg.continuation.place_start`: around ``initial_pose`` for
+    the next scans (:func:`iceg.continuation.place_first_scan`: around ``initial_pose`` for
     the first segment when given, else by global matching; an offline run may look ahead).
     It runs the session's own SLAM with the map frozen (:func:`_run_segment`) until the
     track is lost: ``lost_after`` keyframes in a row matched nothing and a global placement
     of the current scan disagrees with the estimate (a kidnapping). Scans that cannot be
     placed are LOST; the next placement is searched after them.
     """
-    from iceg.continuation import START_SCANS, place_start
+    from iceg.continuation import START_SCANS, place_first_scan
     from iceg_common.errors import SessionError
 
     n = len(scans)
@@ -773,17 +773,14 @@ def _localize_in_session(
     i = 0
     while i < n:
         try:
-            k, placement = place_start(fixed, scans[i:], guess, st)
+            placement = place_first_scan(fixed, scans[i:], guess, st)
         except SessionError as exc:
             logger.info("scans %d-%d not placed: %s", i, min(n, i + START_SCANS) - 1, exc)
             guess, i = None, i + START_SCANS
             continue
-        if guess is not None and k:  # the guess carried along the odometry to scan i + k
-            moved = se2.between(scans[i].odom_pose, scans[i + k].odom_pose)  # type: ignore[arg-type]
-            guess = se2.compose(guess, moved)
         relocalizations += guess is None or _far(placement.pose, guess, st)
         guess = None
-        stop = _run_segment(fixed, scans, (i, k), placement, st, (poses, covs, status, corr))
+        stop = _run_segment(fixed, scans, i, placement, st, (poses, covs, status, corr))
         i = stop
     return _result(scans, poses, covs, status, corr, relocalizations)
 
@@ -808,13 +805,12 @@ def _frozen_slam(fixed: FixedMap) -> Slam:
 def _run_segment(
     fixed: FixedMap,
     scans: Sequence[LaserScan],
-    start: tuple[int, int],
+    first: int,
     placement: Placement,
     st: LocalizeSettings,
     out: tuple[FloatArray, FloatArray, IntArray, FloatArray],
 ) -> int:
-    """One segment from scan ``first`` (``start = (first, k)``: scan ``first + k`` placed by
-    ``placement`` starts the graph, the ``k`` scans before it hang on it), against the frozen map:
+    """One segment, from scan ``first`` placed by ``placement``, against the frozen map:
     the run's SLAM (local matching against the segment's recent nodes, loop closures to its
     own nodes and to the map's, batch refinement) in a copy of the session whose nodes are
     held fixed (:func:`_frozen_slam`; discarded after: the saved map is not changed). Fills
@@ -830,11 +826,10 @@ def _run_segment(
     ids, saved = slam.graph.estimates()
     n_map = int(ids.max()) + 1
     live = FixedMap(ids, saved, slam.feature_map, slam.config)
-    first, k = start
-    feats = extract(scans[first + k], slam.config.features)
+    feats = extract(scans[first], slam.config.features)
     bounds = MatchBounds.local(st.track_translation_m, st.track_rotation_deg)
     p = live.match_at(feats, placement.pose, bounds, st.reference_nodes)
-    if p is None:  # keep the placement's own match, re-anchored in the live map
+    if p is None:  # the placement came from a later scan, carried back by odometry
         anchor, ref = live.reference_near(placement.pose, st.reference_nodes)
         rel = se2.between(saved[anchor], placement.pose)
         p = Placement(
@@ -848,9 +843,8 @@ def _run_segment(
     # The map's time-validity needs scans after its own: a log recorded before the map (or
     # overlapping it) is shifted in time as a whole, which changes nothing else.
     shift = max(0.0, saved_scans[-1].stamp_s - scans[first].stamp_s) if saved_scans else 0.0
-    before = [_shifted(s, shift) for s in scans[first : first + k]]
-    slam.start_segment(_shifted(scans[first + k], shift), p.anchor, p.reference, p.match, before)
-    stop = _track_segment(slam, fixed, scans, first + k, shift, st)
+    slam.start_segment(_shifted(scans[first], shift), p.anchor, p.reference, p.match)
+    stop = _track_segment(slam, fixed, scans, first, shift, st)
     _fill_segment(slam, placement, first, stop, (n_before, n_map), out)
     return stop
 
