@@ -63,12 +63,25 @@ def place_first_scan(
     initial_pose: ArrayLike | None = None,
     settings: LocalizeSettings | None = None,
 ) -> Placement:
-    """Place ``scans[0]`` in the map, confirmed by tracking the next scans.
+    """Place ``scans[0]`` in the map: :func:`place_start`, carried back to the first scan by
+    odometry when a later scan was placed (the covariance grows by the odometry noise).
 
-    The first scan that can be placed among the first :data:`START_SCANS` (around
-    ``initial_pose``, carried along by odometry, when given; else globally) is placed and
-    confirmed (:func:`_confirm`); when it is not the first scan, its placement is carried back
-    to the first scan by odometry (the covariance grows by the odometry noise).
+    Raises:
+        SessionError: see :func:`place_start`.
+    """
+    k, placement = place_start(fixed, scans, initial_pose, settings)
+    return placement if k == 0 else _carry_back(fixed, scans, k, placement)
+
+
+def place_start(
+    fixed: FixedMap,
+    scans: Sequence[LaserScan],
+    initial_pose: ArrayLike | None = None,
+    settings: LocalizeSettings | None = None,
+) -> tuple[int, Placement]:
+    """The first scan among the first :data:`START_SCANS` that can be placed in the map
+    (around ``initial_pose``, carried along by odometry, when given; else globally), placed
+    and confirmed by tracking the next scans (:func:`_confirm`).
 
     Args:
         fixed: the map.
@@ -77,7 +90,8 @@ def place_first_scan(
         settings: localization tuning.
 
     Returns:
-        The first scan's placement (``match.pose`` in the frame of node ``anchor``).
+        ``(k, placement)``: the placed scan's index (odometry runs unbroken from scan 0 to
+        it) and its placement (``match.pose`` in the frame of node ``anchor``).
 
     Raises:
         SessionError: no placement, an ambiguous one, or one the next scans contradict.
@@ -98,7 +112,7 @@ def place_first_scan(
         if placement is None:
             continue
         _confirm(fixed, scans[k:], placement, st)
-        return placement if k == 0 else _carry_back(fixed, scans, k, placement)
+        return k, placement
     raise SessionError(
         f"{scans[0].source}: the log cannot be placed in the map (no unambiguous ICE match of "
         f"enough correlation and fit in its first {min(len(scans), START_SCANS)} scans); is "
@@ -188,15 +202,21 @@ def continue_scans(
             f"session's last scan ({last:.6f} s); the map's time-validity needs the new log "
             "to come later"
         )
-    placement = place_first_scan(fixed_map_of(slam), scans, initial_pose)
+    k, placement = place_start(fixed_map_of(slam), scans, initial_pose)
     logger.info(
-        "first scan placed at %s near node %d (correlation %.2f)",
+        "scan %d placed at %s near node %d (correlation %.2f)",
+        k,
         np.round(placement.pose, 3).tolist(),
         placement.anchor,
         placement.match.correlation,
     )
-    slam.start_segment(scans[0], placement.anchor, placement.reference, placement.match)
-    for scan in tqdm(scans[1:], unit="scan", disable=not progress, desc="iceg"):
+    # The placed scan starts the segment; the scans before it hang on it by odometry. Scan 0
+    # carried back by odometry would enter the graph with that odometry counted twice (in
+    # its placement and in the odometry factors to the placed scan).
+    slam.start_segment(
+        scans[k], placement.anchor, placement.reference, placement.match, before=scans[:k]
+    )
+    for scan in tqdm(scans[k + 1 :], unit="scan", disable=not progress, desc="iceg"):
         slam.process(scan)
     return slam.finish()
 

@@ -409,7 +409,17 @@ def _slam_state(session: Session, scans: list[LaserScan]) -> SlamState:
         correlations={int(k): float(corr[k]) for k in np.flatnonzero(np.isfinite(corr))},
         match_failures=defaultdict(int, session.manifest.get("match_failures", {})),
         point_fallbacks=defaultdict(int, session.manifest.get("point_fallbacks", {})),
+        segment_start=segment_start(a),
     )
+
+
+def segment_start(a: Mapping[str, np.ndarray]) -> int:
+    """First node of the session's last log: the last node without an odometry factor from
+    the node before it (:meth:`iceg.slam.Slam.start_segment`; 0 for a single run)."""
+    odo = a["g_kind"] == FACTOR_KINDS.index(FactorKind.ODOMETRY)
+    linked = set(a["g_ij"][odo, 1].tolist())
+    starts = [int(n) for n in a["g_node_ids"].tolist() if n > 0 and n not in linked]
+    return max(starts, default=0)
 
 
 def _pending(a: Mapping[str, np.ndarray]) -> list[LoopClosure]:

@@ -17,7 +17,7 @@ import functools
 import logging
 import time
 from collections import defaultdict
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -141,6 +141,8 @@ class SlamState:
     match_failures: dict[str, int] = field(default_factory=lambda: defaultdict(int))
     # ICE failures (by reason category) whose scan got the point match's factor instead
     point_fallbacks: dict[str, int] = field(default_factory=lambda: defaultdict(int))
+    # first node of the current log (Slam.start_segment): the local map's oldest node
+    segment_start: int = 0
 
     def __post_init__(self) -> None:
         if not isinstance(self.scans, ScanStore):
@@ -206,14 +208,22 @@ class Slam:
         return slam
 
     def start_segment(
-        self, scan: LaserScan, anchor: int, reference: MapReference, match: MatchResult
+        self,
+        scan: LaserScan,
+        anchor: int,
+        reference: MapReference,
+        match: MatchResult,
+        before: Sequence[LaserScan] = (),
     ) -> FloatArray:
         """Begin another log in this map (``iceg run --continue``): ``scan`` becomes a node
         placed by ``match`` (its pose in the frame of node ``anchor``, from a match against
         ``reference``, built by this map's ``feature_map.reference`` in ``anchor``'s frame),
         linked to ``anchor`` by a loop-closure factor and to nothing by odometry (the new log
-        is a new odometry frame); its features join the map. Later scans go to
-        :meth:`process`. Returns the node's pose estimate ``(3,)``, map frame.
+        is a new odometry frame); its features join the map. ``before``: the new log's scans
+        before ``scan`` (none could be placed), in order, with odometry unbroken up to
+        ``scan``: they take the node's pose moved by the odometry between them, as scans
+        between nodes do. Later scans go to :meth:`process`. Returns the node's pose
+        estimate ``(3,)``, map frame.
 
         Raises:
             ScanError: the scan is earlier than the last one processed.
@@ -221,24 +231,59 @@ class Slam:
         """
         if self._result is not None or not match.success or not self._s.node_odom:
             raise GraphError("Slam.start_segment needs a running Slam and a successful match")
-        self._check_order(scan)
         t0 = time.perf_counter()
+        odom = self._odometry_of(scan)
+        for early in before:
+            self._check_order(early)
+            self._s.scans.append(early)
+            delta = se2.between(odom, self._odometry_of(early))
+            self._s.records.append(_ScanRecord(early.stamp_s, len(self._s.node_odom), delta))
+        self._check_order(scan)
         feats = extract(scan, self.config.features)
         anchor_pose = self.graph.estimate(anchor)
         self._s.scans.append(scan)
         new_id = self._add_node(
             scan,
-            self._odometry_of(scan),
+            odom,
             initial=se2.compose(anchor_pose, match.pose),
             odom_measured=scan.odom_pose is not None,
         )
         self._add_factor(
             FactorKind.LOOP_CLOSURE, anchor, new_id, match.pose, match.cov, match.correlation
         )
+        # The local map of the new log holds its own nodes only: the old log's last nodes
+        # are another trajectory, linked to this one only through the map (which may not yet
+        # agree with itself where that log left a loop open).
+        self._s.segment_start = new_id
         self.graph.update()
-        self._update_map(new_id, feats, scan, _LocalMatch(reference, match, anchor_pose))
+        # All its features become its own landmarks, as the first node of a run: the next
+        # scans are matched against the landmarks of the recent nodes (this one), not against
+        # the old place's that the placement matched.
+        self._remember_points(new_id, feats)
+        self.feature_map.update(new_id, feats, scan.stamp_s, scan=scan)
+        self._match_before(new_id, before)
         self.timer.add("segment_start", t0)
         return self.graph.estimate(new_id)
+
+    def _match_before(self, node_id: int, before: Sequence[LaserScan]) -> None:
+        """The scans before a segment's first node, each matched against that node's
+        landmarks (predicted by the odometry, the local match's bounds): a match of enough
+        correlation (``loop_closure.min_correlation``) replaces the odometry delta of its
+        record. Scans between nodes need none, but these may be many scans back."""
+        if not before:
+            return
+        cfg = self.config.slam
+        nodes = np.array([node_id], dtype=np.int64)
+        ids, poses = self.graph.estimates_of(self.feature_map.reference_pose_nodes(nodes))
+        ref = self.feature_map.reference((ids, poses), nodes, poses[np.searchsorted(ids, node_id)])
+        bounds = MatchBounds.local(cfg.match_max_translation_m, cfg.match_max_rotation_deg)
+        records = self._s.records[-1 - len(before) : -1]
+        for early, rec in zip(before, records, strict=True):
+            result = self.matcher.match(
+                extract(early, self.config.features), ref.features, rec.delta_from_node, bounds
+            )
+            if result.success and result.correlation >= self.config.loop_closure.min_correlation:
+                rec.delta_from_node = result.pose
 
     # ------------------------------------------------------------------ per scan
 
@@ -366,7 +411,8 @@ class Slam:
         """ICE match against the landmarks of the ``local_map_nodes`` most recent nodes; where
         it fails, the point match (:meth:`_point_match`) when ``slam.point_fallback``."""
         cfg = self.config.slam
-        recent = np.arange(max(0, last - cfg.local_map_nodes + 1), last + 1, dtype=np.int64)
+        first = max(self._s.segment_start, last - cfg.local_map_nodes + 1)
+        recent = np.arange(first, last + 1, dtype=np.int64)
         ids, poses = self.graph.estimates_of(self.feature_map.reference_pose_nodes(recent))
         last_pose = poses[np.searchsorted(ids, last)]
         reference = self.feature_map.reference((ids, poses), recent, last_pose)

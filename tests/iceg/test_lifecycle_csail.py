@@ -81,7 +81,7 @@ def localized(csail):  # type: ignore[no-untyped-def]
 
 
 def test_csail_halves(csail, tmp_path) -> None:  # type: ignore[no-untyped-def]
-    scans, rel, k, whole_tum, folder, second, (e_whole, _, _) = csail
+    scans, rel, k, whole_tum, folder, second, (e_whole, r_whole, _) = csail
     resumed = session.load(folder)
     for scan in scans[k:]:
         resumed.process(scan)
@@ -89,8 +89,9 @@ def test_csail_halves(csail, tmp_path) -> None:  # type: ignore[no-untyped-def]
     write_tum(tmp_path / "resumed.tum", r.stamps_s, r.poses)
     assert (tmp_path / "resumed.tum").read_bytes() == whole_tum.read_bytes()  # bit for bit
     c = continue_scans(folder, second)  # placed without an initial pose
-    e_cont, _, _ = _second_half_error(c.stamps_s, c.poses, rel, scans[k].stamp_s)
+    e_cont, r_cont, _ = _second_half_error(c.stamps_s, c.poses, rel, scans[k].stamp_s)
     assert e_cont <= 1.1 * e_whole
+    assert r_cont <= 1.1 * r_whole
     aces = shared_file("aces/aces-corrected.log.gz")
     other = [dataclasses.replace(s, stamp_s=s.stamp_s + 2e9) for s in list(open_log(aces))[:300]]
     with pytest.raises(SessionError, match="cannot be placed"):

@@ -101,6 +101,7 @@ def test_continue_extends_the_graph_as_well_as_one_run(office) -> None:  # type:
     assert c.node_ids.shape[0] > n_old
     link = [f for f in c.factors if f.j == n_old]
     assert [f.kind.value for f in link] == ["loop_closure"]  # placed, no odometry across
+    assert c.slam is not None and c.slam.export_state().segment_start == n_old  # own local map
     e_cont = position_errors(c.poses[K:], run.true_poses[K:N]).mean_m
     e_whole = position_errors(w.poses[K:], run.true_poses[K:N]).mean_m
     assert e_cont < 1.1 * e_whole + 0.005
@@ -126,3 +127,5 @@ def test_cli_continue_and_localize(office, tmp_path) -> None:  # type: ignore[no
     cont = session.read(tmp_path / "c")
     assert cont.arrays["s_stamp"].shape[0] == N
     assert len(cont.manifest["logs"]) == 1  # the first half came from memory (inline)
+    # the new log's first node, found again from the graph when the session is loaded
+    assert session.segment_start(cont.arrays) == session.read(folder).manifest["nodes"]
