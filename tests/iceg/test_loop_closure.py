@@ -289,6 +289,6 @@ def test_node_index_gives_the_candidates_of_a_scan_of_every_node() -> None:
             want = inside[np.argsort(d[inside], kind="stable")]
             np.testing.assert_array_equal(closer._inside(node, poses, n_older, radius), want)
             s = _Search(node, poses, n_older, np.eye(3), radius, want)
-            for cand in want[:3].tolist() + [0, 5]:
+            for cand in [*want[:3].tolist(), 0, 5]:
                 dc = np.hypot(*(every[:n_older, :2] - every[cand, :2]).T)
                 np.testing.assert_array_equal(closer._window(s, cand), nearest_k(dc, 10))
