@@ -57,7 +57,8 @@ class NodeGrid:
 
     @property
     def extent_m(self) -> float:
-        """Diagonal of the bounding box of the indexed positions (m; 0 when empty)."""
+        """Diagonal of the bounding box of every position indexed since the last
+        :meth:`clear` (m; 0 when empty): at least the extent of the current positions."""
         return float(np.hypot(*(self._hi - self._lo))) if self._count else 0.0
 
     def clear(self) -> None:
