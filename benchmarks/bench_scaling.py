@@ -111,7 +111,8 @@ def run_one(n: int, log: Path, grid: bool) -> dict:
                 f"  [{n}] scans {k}: block {blocks[-1]:.1f} s (CPU {cpu_blocks[-1]:.1f} s), "
                 f"peak RSS {rss_blocks[-1]:.0f} MB, nodes {slam.graph.n_nodes}, "
                 f"landmarks {len(slam.feature_map)}, global closures "
-                f"{slam.loop_stats.global_accepted}; stage s: "
+                f"{slam.loop_stats.global_accepted}, node-index rebuilds "
+                f"{slam.loop_closer.index_rebuilds}; stage s: "
                 + ", ".join(f"{s} {v:.1f}" for s, v in sorted(grown.items(), key=lambda x: -x[1])),
                 file=sys.stderr,
                 flush=True,

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, NamedTuple
@@ -41,6 +41,7 @@ from iceg_common.errors import GridError
 from iceg_common.se2 import compose
 
 __all__ = [
+    "BeamChunk",
     "GridConfig",
     "GridError",
     "OccupancyGrid",
@@ -49,6 +50,7 @@ __all__ = [
     "render_ranges",
     "render_tiled",
     "render_tiled_beams",
+    "render_tiled_chunks",
     "write_map_server",
     "write_npz",
     "write_png",
@@ -57,6 +59,10 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
+
+#: Scans per chunk of :func:`render_tiled_chunks` (about 360 beams each: ~40 MB of work
+#: arrays per chunk).
+CHUNK_SCANS = 1000
 
 #: map_server PGM grey levels (ROS map_server ``map_saver`` convention).
 PGM_OCCUPIED = 0
@@ -506,6 +512,37 @@ def render_tiled_beams(
     )
 
 
+def render_tiled_chunks(
+    poses: ArrayLike,
+    chunks: ChunkReader,
+    config: GridConfig | None = None,
+    chunk_scans: int = CHUNK_SCANS,
+) -> TiledGrid:
+    """:func:`render_tiled` in bounded memory: the beams are read and traced in chunks of
+    ``chunk_scans`` consecutive scans (same cell values as one pass over all beams).
+
+    The per-beam work arrays (endpoints, cell coordinates, masks: about 100 bytes a beam)
+    exist for one chunk at a time, so a long log's grid pass adds a constant to the memory
+    of the run instead of a multiple of its beams. Each chunk is read three times (bounds,
+    tiles, tracing).
+
+    Args:
+        poses: ``(N, 3)`` robot poses, world frame, one per scan.
+        chunks: ``chunks(lo, hi)`` returns the :class:`BeamChunk` of scans ``[lo, hi)``.
+        config: Grid parameters.
+        chunk_scans: Scans per chunk (>= 1).
+
+    Raises:
+        GridError: as :func:`render_tiled`.
+    """
+    cfg = config or GridConfig()
+    p = np.asarray(poses, dtype=np.float64)
+    p = _check_poses(p, p.shape[0] if p.ndim == 2 else 0)
+    if p.shape[0] == 0:
+        return _empty_grid(p, cfg)
+    return _render_chunks(p, chunks, cfg, max(1, int(chunk_scans)))
+
+
 def render_ranges(
     ranges_m: ArrayLike,
     angles_rad: ArrayLike,
@@ -646,12 +683,97 @@ def _render_flat(
     cfg: GridConfig,
 ) -> TiledGrid:
     """Shared body of :func:`render_tiled` and :func:`render_ranges` on flattened beams."""
+    chunk = BeamChunk(laser_offsets, beam_counts, ranges, angles, range_min, range_max)
+    return _render_chunks(poses, lambda lo, hi: chunk, cfg, chunk_scans=poses.shape[0])
+
+
+def _render_chunks(
+    poses: FloatArray, chunks: ChunkReader, cfg: GridConfig, chunk_scans: int
+) -> TiledGrid:
+    """Render in passes over chunks of whole scans: bounds, tiles, then tracing.
+
+    Each pass rebuilds a chunk's beams (:func:`_chunk_beams`), so the per-beam work arrays
+    live for one chunk only; the bounds are the min/max over chunks and the tracer processes
+    the scans in order, so the cells are the same as in one pass over all beams.
+    """
     n = poses.shape[0]
-    scan_of_beam = np.repeat(np.arange(n), beam_counts)
-    laser = compose(poses, laser_offsets)  # (N, 3) laser pose in the world
-    rmax = range_max if cfg.range_max_m is None else np.minimum(range_max, cfg.range_max_m)
+    spans = [(lo, min(lo + chunk_scans, n)) for lo in range(0, n, max(1, chunk_scans))]
+    lo_xy = np.full(2, np.inf)
+    hi_xy = np.full(2, -np.inf)
+    n_traced = n_hits = 0
+    for a, b in spans:
+        beams = _chunk_beams(poses[a:b], chunks(a, b), cfg, None)
+        pts = np.concatenate([beams.end, beams.laser_xy, poses[a:b, :2]])
+        lo_xy = np.minimum(lo_xy, pts.min(axis=0))
+        hi_xy = np.maximum(hi_xy, pts.max(axis=0))
+        n_traced += beams.end.shape[0]
+        n_hits += int(np.count_nonzero(beams.is_hit))
+    frame = _frame(np.stack([lo_xy, hi_xy]), cfg)
+
+    def walk(a: int, b: int) -> _Beams:
+        return _chunk_beams(poses[a:b], chunks(a, b), cfg, frame).grid
+
+    grid = _trace_tiled(frame, spans, walk, cfg, exact=False)
+    if grid is None:  # the tile walk missed a tile a cell walk reaches: walk cell by cell
+        grid = _trace_tiled(frame, spans, walk, cfg, exact=True)
+        assert grid is not None
+    if cfg.mode == "binary":
+        _binarize(grid, cfg)
+    logger.debug(
+        "rendered %d scans, %d beams traced (%d hits) into %d tiles of a %dx%d grid",
+        *(n, n_traced, n_hits, grid.n_tiles, *frame.shape),
+    )
+    return grid
+
+
+class BeamChunk(NamedTuple):
+    """Flattened beams of a run of consecutive scans (for :func:`render_tiled_chunks`).
+
+    Attributes:
+        laser_offsets: ``(n, 3)`` laser pose in each robot frame.
+        beam_counts: ``(n,)`` int64 beams of each scan; the beam arrays hold the first scan's
+            beams, then the next scan's, ...
+        ranges_m, angles_rad, range_min_m, range_max_m: ``(B,)`` float64 per beam, laser
+            frame, ``B = beam_counts.sum()``.
+    """
+
+    laser_offsets: FloatArray
+    beam_counts: NDArray[np.int64]
+    ranges_m: FloatArray
+    angles_rad: FloatArray
+    range_min_m: FloatArray
+    range_max_m: FloatArray
+
+
+#: Reads the beams of scans ``[lo, hi)`` (a :class:`BeamChunk`).
+ChunkReader = Callable[[int, int], BeamChunk]
+
+
+class _ChunkBeams(NamedTuple):
+    """One chunk's traced beams: world endpoints and laser positions, and (with a frame)
+    the tracer's input."""
+
+    end: FloatArray  # (K, 2) world
+    laser_xy: FloatArray  # (n, 2) world
+    is_hit: NDArray[np.bool_]  # (K,)
+    grid: _Beams
+
+
+def _chunk_beams(
+    poses: FloatArray, chunk: BeamChunk, cfg: GridConfig, frame: _Frame | None
+) -> _ChunkBeams:
+    """The beams of one chunk to trace (hits, and no-returns cleared up to
+    ``no_return_clear_m``): world endpoints and, given the grid frame, continuous cell
+    coordinates."""
+    n = poses.shape[0]
+    ranges, angles = chunk.ranges_m, chunk.angles_rad
+    scan_of_beam = np.repeat(np.arange(n), chunk.beam_counts)
+    laser = compose(poses, chunk.laser_offsets)  # (n, 3) laser pose in the world
+    rmax = chunk.range_max_m
+    if cfg.range_max_m is not None:
+        rmax = np.minimum(rmax, cfg.range_max_m)
     with np.errstate(invalid="ignore"):
-        is_hit = np.isfinite(ranges) & (ranges > range_min) & (ranges < rmax)
+        is_hit = np.isfinite(ranges) & (ranges > chunk.range_min_m) & (ranges < rmax)
         no_return = ranges >= rmax  # inf included, NaN excluded
     length = np.where(is_hit, ranges, 0.0)
     traced = is_hit.copy()
@@ -662,7 +784,10 @@ def _render_flat(
     s = scan_of_beam[keep]
     bearing = laser[s, 2] + angles[keep]
     end = laser[s, :2] + length[keep, None] * np.stack([np.cos(bearing), np.sin(bearing)], 1)
-    frame = _frame(np.concatenate([end, laser[:, :2], poses[:, :2]]), cfg)
+    hit = is_hit[keep]
+    if frame is None:
+        empty = np.zeros((0, 2))
+        return _ChunkBeams(end, laser[:, :2], hit, _Beams(np.zeros(1, np.int64), empty, empty, hit))
     h, w = frame.shape
     scan_start = np.zeros(n + 1, dtype=np.int64)
     np.cumsum(np.bincount(s, minlength=n), out=scan_start[1:])
@@ -672,23 +797,7 @@ def _render_flat(
     upper = np.nextafter(np.array([w, h], dtype=np.float64), 0.0)
     origin_g = np.clip((laser[:, :2] - frame.origin) / res, 0.0, upper)
     end_g = np.clip((end - frame.origin) / res, 0.0, upper)
-    beams = _Beams(scan_start, origin_g, end_g, is_hit[keep])
-    grid = _trace_tiled(frame, beams, cfg, exact=False)
-    if grid is None:  # the tile walk missed a tile a cell walk reaches: walk cell by cell
-        grid = _trace_tiled(frame, beams, cfg, exact=True)
-        assert grid is not None
-    if cfg.mode == "binary":
-        _binarize(grid, cfg)
-    logger.debug(
-        "rendered %d scans, %d beams traced (%d hits) into %d tiles of a %dx%d grid",
-        n,
-        keep.size,
-        int(np.count_nonzero(is_hit)),
-        grid.n_tiles,
-        h,
-        w,
-    )
-    return grid
+    return _ChunkBeams(end, laser[:, :2], hit, _Beams(scan_start, origin_g, end_g, hit))
 
 
 class _Beams(NamedTuple):
@@ -700,25 +809,37 @@ class _Beams(NamedTuple):
     is_hit: NDArray[np.bool_]
 
 
-def _trace_tiled(frame: _Frame, beams: _Beams, cfg: GridConfig, exact: bool) -> TiledGrid | None:
-    """Allocate the tiles the beams cross and trace them. The tile marking walks tile by
-    tile, or cell by cell when ``exact``; None when the tile walk missed a tile the cell walk
-    reaches (a segment through a tile corner within rounding)."""
+def _trace_tiled(
+    frame: _Frame,
+    spans: list[tuple[int, int]],
+    walk: Callable[[int, int], _Beams],
+    cfg: GridConfig,
+    exact: bool,
+) -> TiledGrid | None:
+    """Allocate the tiles the beams cross and trace them, chunk by chunk (``walk(lo, hi)``
+    gives the beams of scans ``[lo, hi)``). The tile marking walks tile by tile, or cell by
+    cell when ``exact``; None when the tile walk missed a tile the cell walk reaches (a
+    segment through a tile corner within rounding)."""
     h, w = frame.shape
     tile_mask = np.zeros((-(-h // TILE_SIZE), -(-w // TILE_SIZE)), dtype=np.bool_)
     unit = 0 if exact else TILE_SHIFT
-    _mark_tiles(beams.scan_start, beams.origin_g, beams.end_g, unit, TILE_SHIFT, tile_mask)
+    for a, b in spans:
+        beams = walk(a, b)
+        _mark_tiles(beams.scan_start, beams.origin_g, beams.end_g, unit, TILE_SHIFT, tile_mask)
     order = np.cumsum(tile_mask.reshape(-1)).reshape(tile_mask.shape) - 1
     grid = _tiled_grid(frame, np.where(tile_mask, order, -1), cfg)
-    missing = _trace_scans(
-        *beams,
-        grid.tile_index,
-        TILE_SHIFT,
-        InverseSensorModel(cfg.l_occ, cfg.l_free, cfg.l_min, cfg.l_max),
-        grid.log_odds.reshape(-1),
-        grid.hits.reshape(-1),
-        grid.misses.reshape(-1),
-    )
+    model = InverseSensorModel(cfg.l_occ, cfg.l_free, cfg.l_min, cfg.l_max)
+    missing = 0
+    for a, b in spans:
+        missing += _trace_scans(
+            *walk(a, b),
+            grid.tile_index,
+            TILE_SHIFT,
+            model,
+            grid.log_odds.reshape(-1),
+            grid.hits.reshape(-1),
+            grid.misses.reshape(-1),
+        )
     if missing:
         logger.debug("tile walk missed %d cell visits; marking tiles cell by cell", missing)
         return None

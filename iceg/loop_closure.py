@@ -23,6 +23,7 @@ each other (perceptual aliasing) is dropped (the uniqueness test of Olson 2009).
 
 from __future__ import annotations
 
+import bisect
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -35,6 +36,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from graph import FactorKind, PoseGraph
 from iceg.feature_map import FeatureMap
 from iceg.matching import MatchBounds, Matcher
+from iceg.node_index import NodeGrid
 from iceg.place_index import PlaceIndex, PlaceIndexConfig, place_descriptor
 from iceg.types import MatchResult, ScanFeatures
 from iceg_common import se2
@@ -46,6 +48,21 @@ IntArray = NDArray[np.int64]
 
 #: Decimals of the innovation in debug log lines.
 _LOG_DECIMALS = 3
+
+#: Cell edge of the spatial index of nodes (m), about twice the base search radius.
+_INDEX_CELL_M = 4.0
+
+#: Staleness margin of the node index (m): queries reach this much farther on the indexed
+#: positions, and the index is rebuilt from all estimates once the accepted corrections may
+#: have moved a node by half of it (the other half absorbs iSAM2's small re-estimates).
+_INDEX_MARGIN_M = 2.0
+
+#: First radius (m) of the search for the old nodes nearest a candidate (doubled until the
+#: ``reference_nodes`` nearest are certain).
+_REFERENCE_RADIUS_M = 4.0
+
+#: More new nodes than this to index at once: read every estimate (one gtsam call).
+_INDEX_BULK = 512
 
 
 class LoopClosureConfig(BaseModel):
@@ -330,16 +347,56 @@ def chain_covariance(poses: FloatArray, step_covs: Sequence[FloatArray]) -> Floa
     return cov
 
 
+class _Poses:
+    """Current estimates of the nodes a search reads, fetched on first use
+    (``PoseGraph.estimates_of``: the same values as the full table, bit for bit), or served
+    from a full table when the search read one.
+
+    ``poses[n]`` is node ``n``'s ``(3,)`` pose, ``poses[lo:hi]`` the ``(hi - lo, 3)`` poses of
+    ``lo..hi-1``, map frame.
+    """
+
+    def __init__(self, graph: PoseGraph) -> None:
+        self._graph = graph
+        self._cache: dict[int, FloatArray] = {}
+        self._full: FloatArray | None = None
+
+    def use_full(self, poses: FloatArray) -> None:
+        """Serve from ``poses`` ``(N, 3)``, row = node id (``PoseGraph.estimates()``)."""
+        self._full = poses
+
+    def rows(self, node_ids: IntArray) -> FloatArray:
+        """``(k, 3)`` poses of ``node_ids`` ``(k,)``, in that order."""
+        ids = np.asarray(node_ids, dtype=np.int64).reshape(-1)
+        if self._full is not None:
+            return self._full[ids]
+        missing = [n for n in ids.tolist() if n not in self._cache]
+        if missing:
+            got, poses = self._graph.estimates_of(missing)
+            self._cache.update(zip(got.tolist(), poses, strict=True))
+        return np.array([self._cache[n] for n in ids.tolist()]).reshape(-1, 3)
+
+    def table(self, node_ids: IntArray) -> tuple[IntArray, FloatArray]:
+        """``(ids (k,), poses (k, 3))`` of the sorted unique ``node_ids`` (a pose table)."""
+        ids = np.unique(np.asarray(node_ids, dtype=np.int64))
+        return ids, self.rows(ids)
+
+    def __getitem__(self, key: int | np.integer | slice) -> FloatArray:
+        if isinstance(key, slice):
+            return self.rows(np.arange(key.start, key.stop, dtype=np.int64))
+        return self.rows(np.array([int(key)]))[0]
+
+
 @dataclass(frozen=True, eq=False)
 class _Search:
     """Inputs shared by the steps of one search (estimates at the search's start)."""
 
     node_id: int
-    ids: IntArray
-    poses: FloatArray  # (N, 3) map frame, row = node id
-    older: IntArray  # candidate pool: old in node count and along the path
+    poses: _Poses
+    n_older: int  # candidate pool: nodes 0..n_older-1 (old in node count and along the path)
     marginal: FloatArray  # (3, 3) current node
     radius_m: float
+    inside: IntArray  # old nodes within radius_m of the current estimate, nearest first
 
 
 @dataclass(frozen=True, eq=False)
@@ -376,6 +433,12 @@ class LoopCloser:
         self.places = PlaceIndex(config.place_index)
         self._step_info: dict[int, FloatArray] = {}  # node i -> information of i -> i+1
         self._factors_seen = 0
+        self.nodes = NodeGrid(_INDEX_CELL_M)
+        self._indexed_to = 0  # nodes 0.._indexed_to-1 are in self.nodes
+        self._moved_m = 0.0  # bound on how far estimates moved since the index was built
+        self._closures_seen = 0  # loop-closure factors in the graph, seen by _sync_steps
+        self._closures_own = 0  # of those, the ones this closer accepted
+        self.index_rebuilds = 0
 
     def due(self, node_id: int) -> bool:
         """Whether a search runs for this new node (enabled, every ``every_n_nodes``)."""
@@ -422,30 +485,91 @@ class LoopCloser:
         Raises:
             GraphError: the graph cannot give the current node's marginal covariance.
         """
-        ids, poses = graph.estimates()
-        older = self._older_nodes(node_id, ids, np.asarray(path_m))
-        if older.size == 0:
+        n_older = self._n_older(node_id, path_m)
+        if n_older == 0:
             return None
         self.stats.searches += 1
         self._sync_steps(graph)
         marginal = graph.marginal_covariance(node_id)
         radius, capped = self._radius(marginal)
-        search = _Search(node_id, ids, poses, older, marginal, radius)
+        poses = _Poses(graph)
+        self._sync_index(graph, poses)
+        inside = self._inside(node_id, poses, n_older, radius)
+        search = _Search(node_id, poses, n_older, marginal, radius, inside)
         best = self._best_match(search, features)
         accepted = self._decide(search, best, graph, path_m) if best is not None else None
         if accepted is None and self._global_due(capped):
             accepted = self._global(search, features, path_m)
+        if accepted is not None:
+            self._note_correction(accepted, poses)
         return accepted
 
     # ------------------------------------------------------------------ steps
 
-    def _older_nodes(self, node_id: int, ids: IntArray, path: FloatArray) -> IntArray:
-        """Old in node count and far along the path: a node reached again after a detour,
-        not the corridor just driven."""
+    def _n_older(self, node_id: int, path_m: Sequence[float]) -> int:
+        """Candidates are nodes ``0..n-1``: old in node count and far along the path (a node
+        reached again after a detour, not the corridor just driven). The path length never
+        decreases along the nodes, so ``path[node] - path[i] >= min_path_m`` holds for a
+        prefix of the ids: found by bisection on that test, O(log N)."""
         lc = self.config
-        return ids[
-            (ids <= node_id - lc.min_node_gap) & (path[node_id] - path[ids] >= lc.min_path_m)
-        ]
+        by_count = max(0, node_id - lc.min_node_gap + 1)
+        now = path_m[node_id]
+        by_path = bisect.bisect_left(
+            range(by_count), True, key=lambda i: not now - path_m[i] >= lc.min_path_m
+        )
+        return int(by_path)
+
+    # ------------------------------------------------------------------ node index
+
+    def _sync_index(self, graph: PoseGraph, poses: _Poses) -> None:
+        """Bring the node index up to the graph: index the nodes added since the last search
+        (their current estimates), or rebuild it from every estimate when the estimates may
+        have moved more than half the margin (or the graph is not the one indexed)."""
+        n = graph.n_nodes
+        if (
+            self._moved_m > 0.5 * _INDEX_MARGIN_M
+            or n < self._indexed_to
+            or n - self._indexed_to > _INDEX_BULK
+        ):
+            ids, all_poses = graph.estimates()
+            poses.use_full(all_poses)
+            self.nodes.clear()
+            self.nodes.add(ids, all_poses[:, :2])
+            self._indexed_to, self._moved_m = n, 0.0
+            self.index_rebuilds += 1
+            return
+        new = np.arange(self._indexed_to, n, dtype=np.int64)
+        self.nodes.add(new, poses.rows(new)[:, :2])
+        self._indexed_to = n
+
+    def _note_correction(self, accepted: AcceptedClosures, poses: _Poses) -> None:
+        """Add what the accepted closures may move any estimate by to the staleness bound:
+        each closure's correction of its new node, translation plus rotation times the
+        extent of the map (a rotation about any node moves the others by at most that); a
+        large correction (batch solve) moves everything: rebuild at the next search."""
+        self._closures_own += len(accepted.closures)
+        if accepted.large_correction:
+            self._moved_m = np.inf
+            return
+        extent = self.nodes.extent_m
+        for c in accepted.closures:
+            d = se2.between(poses[c.node_to], c.implied)
+            self._moved_m += float(np.hypot(d[0], d[1]) + abs(d[2]) * extent)
+
+    def _near(self, center: FloatArray, poses: _Poses, n_older: int, radius: float) -> tuple:
+        """Old nodes (ids below ``n_older``) near ``center`` ``(2,)``: ids ascending and their
+        exact distances (m) on the current estimates, for every old node within ``radius``
+        (and some beyond)."""
+        ids = self.nodes.query(center, radius + _INDEX_MARGIN_M)
+        ids = ids[ids < n_older]
+        dist = np.hypot(*(poses.rows(ids)[:, :2] - center).T)
+        return ids, dist
+
+    def _inside(self, node_id: int, poses: _Poses, n_older: int, radius: float) -> IntArray:
+        """Old nodes within ``radius`` of the current estimate, nearest first (ties by id)."""
+        ids, dist = self._near(poses[node_id][:2], poses, n_older, radius)
+        keep = np.flatnonzero(dist <= radius)
+        return ids[keep[np.argsort(dist[keep], kind="stable")]]
 
     def _radius(self, marginal: FloatArray) -> tuple[float, bool]:
         """The local search radius and whether the cap cut it."""
@@ -464,12 +588,10 @@ class LoopCloser:
         """Up to ``max_candidates`` nearest old nodes within the radius, from distinct places
         (more than ``reference_nodes`` nodes apart)."""
         lc = self.config
-        dist = np.hypot(*(s.poses[s.older, :2] - s.poses[s.node_id, :2]).T)
-        inside = np.flatnonzero(dist <= s.radius_m)  # sort only the nodes within the radius
         candidates: list[int] = []
-        for k in inside[np.argsort(dist[inside], kind="stable")]:
-            if all(abs(int(s.older[k]) - c) > lc.reference_nodes for c in candidates):
-                candidates.append(int(s.older[k]))
+        for n in s.inside.tolist():
+            if all(abs(n - c) > lc.reference_nodes for c in candidates):
+                candidates.append(n)
             if len(candidates) == lc.max_candidates:
                 break
         return candidates
@@ -485,9 +607,23 @@ class LoopCloser:
     def _reference(self, s: _Search, candidate: int) -> ScanFeatures:
         """The landmarks of the old nodes nearest the candidate (any pass through the place),
         in the candidate's frame."""
-        near_cand = np.hypot(*(s.poses[s.older, :2] - s.poses[candidate, :2]).T)
-        window = s.older[nearest_k(near_cand, self.config.reference_nodes)]
-        return self.feature_map.reference((s.ids, s.poses), window, s.poses[candidate]).features
+        window = self._window(s, candidate)
+        table = s.poses.table(self.feature_map.reference_pose_nodes(window))
+        return self.feature_map.reference(table, window, s.poses[candidate]).features
+
+    def _window(self, s: _Search, candidate: int) -> IntArray:
+        """The ``reference_nodes`` old nodes nearest the candidate (ties by id): from the node
+        index, on a radius doubled until the k-th nearest lies within it."""
+        k = self.config.reference_nodes
+        center = s.poses[candidate][:2]
+        radius = _REFERENCE_RADIUS_M
+        while True:
+            ids, dist = self._near(center, s.poses, s.n_older, radius)
+            if ids.shape[0] == s.n_older or (
+                ids.shape[0] >= k and np.partition(dist, k - 1)[k - 1] <= radius
+            ):
+                return ids[nearest_k(dist, k)]
+            radius *= 2.0
 
     def _best_match(self, s: _Search, features: ScanFeatures) -> _Best | None:
         """Match each candidate place; keep the best-correlated acceptable match."""
@@ -572,7 +708,7 @@ class LoopCloser:
         lc = self.config
         self.stats.global_searches += 1
         # Places within the radius are the local search's: the global one adds the rest.
-        far = s.older[np.hypot(*(s.poses[s.older, :2] - s.poses[s.node_id, :2]).T) > s.radius_m]
+        far = np.setdiff1d(np.arange(s.n_older, dtype=np.int64), s.inside, assume_unique=True)
         query = place_descriptor(features, lc.place_index)
         places = self.places.query(query, far, lc.global_candidates, lc.reference_nodes)
         verified = [c for c in (self._verify_global(s, features, p) for p in places) if c]
@@ -604,7 +740,7 @@ class LoopCloser:
         return None
 
     def _clique(
-        self, closure: LoopClosure, poses: FloatArray, path_m: Sequence[float]
+        self, closure: LoopClosure, poses: _Poses, path_m: Sequence[float]
     ) -> list[LoopClosure]:
         """Held closures consistent with ``closure`` and with each other (greedy clique of
         the pairwise consistency graph, newest first, as PCM's maximum clique)."""
@@ -634,7 +770,7 @@ class LoopCloser:
             candidate, s.node_id, result.pose, result.cov, result.correlation, implied, True
         )
 
-    def _unique(self, verified: list[LoopClosure], poses: FloatArray) -> bool:
+    def _unique(self, verified: list[LoopClosure], poses: _Poses) -> bool:
         """Whether every two verified places put the current node at the same pose (the
         :func:`pcm_chi2` cycle through the old path between them, same new node)."""
         zero = (np.zeros(3), np.zeros((3, 3)))
@@ -648,7 +784,7 @@ class LoopCloser:
     # ------------------------------------------------------------------ consistency
 
     def _agree(
-        self, a: LoopClosure, b: LoopClosure, poses: FloatArray, path_m: Sequence[float]
+        self, a: LoopClosure, b: LoopClosure, poses: _Poses, path_m: Sequence[float]
     ) -> bool:
         """Local pairs: :func:`closures_agree`; a pair with a global closure: :func:`pcm_chi2`,
         both the new and the old nodes within ``global_window_nodes`` of each other (the
@@ -677,12 +813,17 @@ class LoopCloser:
         match) into the per-step information used by :func:`chain_covariance`."""
         factors = graph.factors
         for f in factors[self._factors_seen :]:
-            if f.j == f.i + 1 and f.kind is not FactorKind.LOOP_CLOSURE:
+            if f.kind is FactorKind.LOOP_CLOSURE:
+                self._closures_seen += 1
+            elif f.j == f.i + 1:
                 info = np.linalg.inv(f.cov)
                 self._step_info[f.i] = self._step_info.get(f.i, np.zeros((3, 3))) + info
         self._factors_seen = len(factors)
+        if self._closures_seen > self._closures_own:  # closures added by someone else
+            self._closures_own = self._closures_seen
+            self._moved_m = np.inf
 
-    def _relative(self, u: int, v: int, poses: FloatArray) -> tuple[FloatArray, FloatArray] | None:
+    def _relative(self, u: int, v: int, poses: _Poses) -> tuple[FloatArray, FloatArray] | None:
         """Pose of node ``v`` in the frame of node ``u`` (estimates) and its dead-reckoning
         covariance along the sequential factors, tangent at ``v``; ``None`` if a step has no
         sequential factor."""

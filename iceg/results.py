@@ -32,7 +32,7 @@ from iceg.grid import (
     OccupancyGrid,
     TiledGrid,
     render_tiled,
-    render_tiled_beams,
+    render_tiled_chunks,
     write_map_server,
     write_png,
 )
@@ -188,10 +188,8 @@ class SlamResult:
         t0 = time.perf_counter()
         try:
             if isinstance(self.scans, ScanStore):
-                counts, ranges, angles, rmin, rmax, offsets = self.scans.beams()
-                self._map = render_tiled_beams(
-                    self.poses, offsets, counts, ranges, angles, rmin, rmax, self.config.grid
-                )
+                # Chunk by chunk: the grid pass adds a constant, not a copy of every beam.
+                self._map = render_tiled_chunks(self.poses, self.scans.beam_chunk, self.config.grid)
             else:
                 self._map = render_tiled(self.scans, self.poses, self.config.grid)
         except GridError as exc:

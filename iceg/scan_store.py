@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from frontends import LaserScan
+from iceg.grid import BeamChunk
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -188,21 +189,42 @@ class ScanStore(Sequence[LaserScan]):
             laser frame, ``range_min_m`` ``(B,)``, ``range_max_m`` ``(B,)`` (each beam its
             scan's limits) and ``laser_offsets`` ``(N, 3)``; ``B`` the total beam count.
         """
-        h, n = self._head, self._n
-        counts = h["n_beams"][:n].copy()
-        ranges = self._ranges[: self._n_beams].copy()
-        angles = np.empty(self._n_beams)
-        which = h["angles"][:n]
-        starts = h["beam_start"][:n]
+        c = self.beam_chunk(0, self._n)
+        return (
+            c.beam_counts,
+            c.ranges_m,
+            c.angles_rad,
+            c.range_min_m,
+            c.range_max_m,
+            c.laser_offsets,
+        )
+
+    def beam_chunk(self, lo: int, hi: int) -> BeamChunk:
+        """The flattened beams of scans ``[lo, hi)`` as new arrays (the grid's chunk reader,
+        :func:`iceg.grid.render_tiled_chunks`): memory of the chunk only.
+
+        Raises:
+            IndexError: ``[lo, hi)`` is not within ``[0, len(self)]``.
+        """
+        if not 0 <= lo <= hi <= self._n:
+            raise IndexError(f"scans [{lo}, {hi}) outside a store of {self._n} scans")
+        h = self._head
+        counts = h["n_beams"][lo:hi].copy()
+        starts = h["beam_start"][lo:hi]
+        b0 = int(starts[0]) if hi > lo else 0
+        b1 = int(starts[-1] + counts[-1]) if hi > lo else 0
+        ranges = self._ranges[b0:b1].copy()
+        angles = np.empty(b1 - b0)
+        which = h["angles"][lo:hi]
         for k, table in enumerate(self._angle_table):
             sel = np.flatnonzero(which == k)
             if sel.shape[0] == 0:
                 continue
-            idx = (starts[sel, None] + np.arange(table.shape[0])).reshape(-1)
+            idx = (starts[sel, None] - b0 + np.arange(table.shape[0])).reshape(-1)
             angles[idx] = np.tile(table, sel.shape[0])
-        rmin = np.repeat(h["range_min_m"][:n], counts)
-        rmax = np.repeat(h["range_max_m"][:n], counts)
-        return counts, ranges, angles, rmin, rmax, h["offset"][:n].copy()
+        rmin = np.repeat(h["range_min_m"][lo:hi], counts)
+        rmax = np.repeat(h["range_max_m"][lo:hi], counts)
+        return BeamChunk(h["offset"][lo:hi].copy(), counts, ranges, angles, rmin, rmax)
 
 
 def _grown(a: np.ndarray, rows: int) -> np.ndarray:

@@ -253,3 +253,42 @@ def test_nearest_k_equals_the_head_of_a_stable_argsort(values: list[int], k: int
     dist = np.asarray(values, dtype=np.float64) * 0.5
     expect = np.argsort(dist, kind="stable")[:k]
     np.testing.assert_array_equal(nearest_k(dist, k), expect)
+
+
+def test_node_index_gives_the_candidates_of_a_scan_of_every_node() -> None:
+    """The search's node index (grid hash with a staleness margin) selects the same old
+    nodes as a distance test over every estimate: those within the radius, nearest first,
+    and each candidate's ``reference_nodes`` nearest (ties by id), also after the estimates
+    moved a little and the index was rebuilt."""
+    from graph import PoseGraph
+    from iceg.feature_map import FeatureMap
+    from iceg.loop_closure import _Poses, _Search
+    from iceg.matching import IceMatcher
+
+    rng = np.random.default_rng(3)
+    t = np.linspace(0, 6 * np.pi, 400)  # three laps of a 12 m circle, slightly wobbling
+    truth = np.stack([12 * np.cos(t), 12 * np.sin(t), t + np.pi / 2], axis=1)
+    truth[:, :2] += rng.normal(0, 0.3, (400, 2))
+    graph = PoseGraph()
+    cov = np.diag([1e-2, 1e-2, 1e-3])
+    graph.add_node(0, truth[0])
+    graph.add_prior(0, truth[0], cov)
+    for k in range(1, 400):
+        graph.add_node(k, truth[k] + rng.normal(0, 0.05, 3))
+        graph.add_between(k - 1, k, se2.between(truth[k - 1], truth[k]), cov)
+    graph.update()
+    closer = LoopCloser(LoopClosureConfig(), IceMatcher(), FeatureMap())
+    for rebuild in (False, True):
+        closer._moved_m = np.inf if rebuild else 0.0
+        poses = _Poses(graph)
+        closer._sync_index(graph, poses)
+        _, every = graph.estimates()
+        for node, n_older, radius in [(399, 300, 2.0), (250, 200, 6.5), (399, 369, 0.7)]:
+            d = np.hypot(*(every[:n_older, :2] - every[node, :2]).T)
+            inside = np.flatnonzero(d <= radius)
+            want = inside[np.argsort(d[inside], kind="stable")]
+            np.testing.assert_array_equal(closer._inside(node, poses, n_older, radius), want)
+            s = _Search(node, poses, n_older, np.eye(3), radius, want)
+            for cand in [*want[:3].tolist(), 0, 5]:
+                dc = np.hypot(*(every[:n_older, :2] - every[cand, :2]).T)
+                np.testing.assert_array_equal(closer._window(s, cand), nearest_k(dc, 10))

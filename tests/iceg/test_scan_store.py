@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from frontends import LaserScan
 from frontends.simulate import office_world, simulate
-from iceg.grid import render_tiled, render_tiled_beams
+from iceg.grid import GridConfig, render_tiled, render_tiled_beams, render_tiled_chunks
 from iceg.scan_store import ScanStore
 
 
@@ -107,3 +107,30 @@ def test_store_is_compact_and_renders_the_same_map() -> None:
     counts, ranges, angles, rmin, rmax, offsets = store.beams()
     b = render_tiled_beams(run.true_poses[:150], offsets, counts, ranges, angles, rmin, rmax)
     np.testing.assert_array_equal(a.to_dense().log_odds, b.to_dense().log_odds)
+
+
+def test_chunked_grid_equals_one_pass_and_chunks_slice_the_beams() -> None:
+    """The grid rendered chunk by chunk (bounded memory) has the same cells, hits and
+    misses as one pass over every beam, for any chunk size; chunks are slices of beams()."""
+    run = simulate(office_world(), seed=1)
+    scans = run.scans[:120]
+    poses = run.true_poses[:120]
+    store = ScanStore(scans)
+    counts, ranges, angles, rmin, rmax, offsets = store.beams()
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    for lo, hi in [(0, 120), (7, 8), (30, 71), (119, 120), (5, 5)]:
+        c = store.beam_chunk(lo, hi)
+        np.testing.assert_array_equal(c.ranges_m, ranges[starts[lo] : starts[hi]])
+        np.testing.assert_array_equal(c.angles_rad, angles[starts[lo] : starts[hi]])
+        np.testing.assert_array_equal(c.range_max_m, rmax[starts[lo] : starts[hi]])
+        np.testing.assert_array_equal(c.laser_offsets, offsets[lo:hi])
+    for cfg in (GridConfig(), GridConfig(mode="binary", no_return_clear_m=3.0)):
+        one = render_tiled_beams(poses, offsets, counts, ranges, angles, rmin, rmax, cfg)
+        for size in (1, 17, 50, 1000):
+            chunked = render_tiled_chunks(poses, store.beam_chunk, cfg, chunk_scans=size)
+            assert chunked.shape == one.shape
+            np.testing.assert_array_equal(chunked.origin_xy, one.origin_xy)
+            np.testing.assert_array_equal(chunked.tile_index, one.tile_index)
+            np.testing.assert_array_equal(chunked.log_odds, one.log_odds)
+            np.testing.assert_array_equal(chunked.hits, one.hits)
+            np.testing.assert_array_equal(chunked.misses, one.misses)

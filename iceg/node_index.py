@@ -1,0 +1,145 @@
+"""Spatial index of pose-graph nodes for the loop-closure search (docs/design.md "Long logs").
+
+The loop-closure search asks, every few nodes, which old nodes lie near a point (the current
+estimate, a candidate place). Reading every node's estimate for that costs O(N) per search,
+so a long log slows down with its length. :class:`NodeGrid` is a grid hash (cells of
+``cell_m`` metres, a dict from cell to the node ids whose **indexed** position falls in it):
+adding a node is O(1), and a query reads only the cells that overlap its disc, O(nodes
+nearby).
+
+Indexed positions go stale when the graph moves its estimates. The caller bounds the
+staleness: it queries with a radius enlarged by a margin, measures the exact distances on the
+current estimates of the nodes returned, and rebuilds the index from all current estimates
+when the estimates may have moved by more than the margin (a large correction, accumulated
+loop-closure corrections). Grid hashing for neighbour queries: Teschner et al., "Optimized
+Spatial Hashing for Collision Detection of Deformable Objects", VMV 2003.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+class NodeGrid:
+    """Node ids hashed by the grid cell of their indexed position ``(x_m, y_m)``, map frame.
+
+    Args:
+        cell_m: Cell edge length in metres (> 0); a query reads the cells its disc overlaps.
+    """
+
+    def __init__(self, cell_m: float) -> None:
+        if not (math.isfinite(cell_m) and cell_m > 0):
+            raise ValueError(f"NodeGrid: cell_m must be a positive number, got {cell_m!r}")
+        self.cell_m = float(cell_m)
+        self._cells: dict[tuple[int, int], list[int]] = {}
+        self._xy = np.zeros((0, 2))  # row = node id; NaN: not indexed
+        self._n = 0  # rows in use (1 + the largest id indexed)
+        self._count = 0
+        self._lo = np.full(2, np.inf)
+        self._hi = np.full(2, -np.inf)
+
+    def __len__(self) -> int:
+        """Number of indexed nodes."""
+        return self._count
+
+    def __contains__(self, node_id: object) -> bool:
+        return (
+            isinstance(node_id, int | np.integer)
+            and 0 <= int(node_id) < self._n
+            and not np.isnan(self._xy[int(node_id), 0])
+        )
+
+    @property
+    def extent_m(self) -> float:
+        """Diagonal of the bounding box of every position indexed since the last
+        :meth:`clear` (m; 0 when empty): at least the extent of the current positions."""
+        return float(np.hypot(*(self._hi - self._lo))) if self._count else 0.0
+
+    def clear(self) -> None:
+        """Forget every node."""
+        self.__init__(self.cell_m)  # type: ignore[misc]
+
+    def add(self, node_ids: ArrayLike, xy: ArrayLike) -> None:
+        """Index nodes at positions ``xy`` ``(k, 2)`` metres (a node already indexed is moved).
+
+        Raises:
+            ValueError: negative ids, shapes that differ, or non-finite positions.
+        """
+        ids = np.asarray(node_ids, dtype=np.int64).reshape(-1)
+        pts = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        if ids.shape[0] != pts.shape[0] or (ids.size and int(ids.min()) < 0):
+            raise ValueError("NodeGrid.add: need (k,) non-negative ids and (k, 2) positions")
+        if not np.all(np.isfinite(pts)):
+            raise ValueError("NodeGrid.add: positions must be finite")
+        if ids.size == 0:
+            return
+        self._reserve(int(ids.max()) + 1)
+        keys = np.floor(pts / self.cell_m).astype(np.int64)
+        for n, (cx, cy), p in zip(ids.tolist(), keys.tolist(), pts, strict=True):
+            if not np.isnan(self._xy[n, 0]):
+                self._remove(n)
+            self._cells.setdefault((cx, cy), []).append(n)
+            self._xy[n] = p
+            self._count += 1
+        self._lo = np.minimum(self._lo, pts.min(axis=0))
+        self._hi = np.maximum(self._hi, pts.max(axis=0))
+
+    def query(self, center_xy: ArrayLike, radius_m: float) -> IntArray:
+        """Ids of the nodes whose indexed position is within ``radius_m`` of ``center_xy``
+        (``(2,)`` metres), ascending: the same set as a brute-force distance test.
+
+        Returns:
+            ``(k,)`` int64 node ids.
+        """
+        c = np.asarray(center_xy, dtype=np.float64).reshape(2)
+        r = float(radius_m)
+        if self._count == 0 or not r >= 0:
+            return np.zeros(0, dtype=np.int64)
+        lo = np.floor((c - r) / self.cell_m).astype(np.int64)
+        hi = np.floor((c + r) / self.cell_m).astype(np.int64)
+        n_cells = int((hi[0] - lo[0] + 1) * (hi[1] - lo[1] + 1))
+        if n_cells > len(self._cells):  # a disc wider than the map: scan the cells
+            found = [n for ids in self._cells.values() for n in ids]
+        else:
+            found = [
+                n
+                for cx in range(int(lo[0]), int(hi[0]) + 1)
+                for cy in range(int(lo[1]), int(hi[1]) + 1)
+                for n in self._cells.get((cx, cy), ())
+            ]
+        ids = np.array(sorted(found), dtype=np.int64)
+        d = self._xy[ids] - c
+        return ids[d[:, 0] ** 2 + d[:, 1] ** 2 <= r * r]
+
+    def position(self, node_ids: ArrayLike) -> FloatArray:
+        """Indexed positions ``(k, 2)`` of indexed nodes (NaN rows for others)."""
+        ids = np.asarray(node_ids, dtype=np.int64).reshape(-1)
+        out = np.full((ids.shape[0], 2), np.nan)
+        ok = (ids >= 0) & (ids < self._n)
+        out[ok] = self._xy[ids[ok]]
+        return out
+
+    def _reserve(self, rows: int) -> None:
+        if rows > self._xy.shape[0]:
+            grown = np.full((max(rows, 2 * self._xy.shape[0], 256), 2), np.nan)
+            grown[: self._n] = self._xy[: self._n]
+            self._xy = grown
+        self._n = max(self._n, rows)
+
+    def _remove(self, n: int) -> None:
+        key = tuple(np.floor(self._xy[n] / self.cell_m).astype(np.int64).tolist())
+        cell = self._cells[key]  # type: ignore[index]
+        cell.remove(n)
+        if not cell:
+            del self._cells[key]  # type: ignore[arg-type]
+        self._xy[n] = np.nan
+        self._count -= 1
+
+
+__all__ = ["NodeGrid"]

@@ -1,0 +1,50 @@
+"""Tests of the spatial index of nodes (:mod:`iceg.node_index`): queries equal brute force."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from iceg.node_index import NodeGrid
+
+#: Coordinates in micrometres (a squared distance of 1e-250 m would underflow to 0).
+coords = st.floats(-50.0, 50.0, allow_nan=False).map(lambda v: round(v, 6))
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(st.tuples(coords, coords), min_size=0, max_size=80),
+    st.tuples(coords, coords),
+    st.floats(0.0, 120.0),
+    st.floats(0.5, 10.0),
+    st.lists(st.tuples(st.integers(0, 79), coords, coords), max_size=10),
+)
+def test_query_equals_brute_force(
+    points: list[tuple[float, float]],
+    center: tuple[float, float],
+    radius: float,
+    cell: float,
+    moves: list[tuple[int, float, float]],
+) -> None:
+    xy = np.array(points, dtype=np.float64).reshape(-1, 2)
+    grid = NodeGrid(cell)
+    half = xy.shape[0] // 2
+    grid.add(np.arange(half), xy[:half])  # in two batches, as nodes arrive
+    grid.add(np.arange(half, xy.shape[0]), xy[half:])
+    for n, x, y in moves:  # re-indexing a node moves it
+        if n < xy.shape[0]:
+            xy[n] = (x, y)
+            grid.add([n], [[x, y]])
+    c = np.array(center)
+    d2 = ((xy - c) ** 2).sum(axis=1)
+    np.testing.assert_array_equal(grid.query(c, radius), np.flatnonzero(d2 <= radius * radius))
+    assert len(grid) == xy.shape[0]
+    np.testing.assert_array_equal(grid.position(np.arange(xy.shape[0])), xy)
+    if xy.shape[0]:  # the extent covers every position indexed (moved nodes' old ones too)
+        span = float(np.hypot(*(xy.max(axis=0) - xy.min(axis=0))))
+        assert grid.extent_m >= span
+        if not moves:
+            assert grid.extent_m == span
+    grid.clear()
+    assert len(grid) == 0 and grid.query(c, radius).shape == (0,)
