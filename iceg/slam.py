@@ -65,12 +65,6 @@ def chi2_3dof() -> float:
 #: Failure category of a match whose reason is empty.
 _UNKNOWN_REASON = "unknown"
 
-#: iSAM2 relinearization rounds tried after a large correction before the batch solve.
-_SETTLE_ROUNDS = 3
-
-#: A round that lowers the total graph error by less than this fraction has settled.
-_SETTLED_RELATIVE_DECREASE = 1e-3
-
 __all__ = [
     "LoopClosureStats",
     "Slam",
@@ -526,35 +520,13 @@ class Slam:
                 c.correlation,
                 robust=accepted.robust_kernel,
             )
-        self.graph.update()
         if accepted.large_correction:
-            self._absorb_large_correction()
-
-    def _absorb_large_correction(self) -> None:
-        """After a group of global closures (a correction of up to tens of metres): a few
-        iSAM2 relinearization rounds (``relinearize_skip`` updates each), and the batch
-        Levenberg-Marquardt solve only when they do not settle.
-
-        The total error (sum of :meth:`PoseGraph.residual_errors`) is taken after each round;
-        iSAM2 has settled when a round lowers it by less than
-        ``_SETTLED_RELATIVE_DECREASE``. A rise (Gauss-Newton overshooting far from the
-        optimum) or no settling within ``_SETTLE_ROUNDS`` rounds falls back to the batch
-        solve, which converges from far (and rebuilds iSAM2). Each round costs about one
-        elimination of the affected part of the graph, the batch solve up to 100 of the
-        whole graph.
-        """
-        graph = self.graph
-        error = sum(graph.residual_errors().values())
-        for _ in range(_SETTLE_ROUNDS):
-            for _ in range(graph.config.relinearize_skip):
-                graph.update()
-            after = sum(graph.residual_errors().values())
-            if after > error:
-                break
-            if error - after <= _SETTLED_RELATIVE_DECREASE * error:
-                return
-            error = after
-        graph.optimize_batch()
+            # A global closure can move the estimate by tens of metres and degrees: a batch
+            # Levenberg-Marquardt from the current estimate converges where iSAM2's
+            # incremental relinearisation would take many updates (it is rebuilt after).
+            self.graph.optimize_batch()
+        else:
+            self.graph.update()
 
     def _update_map(
         self, node_id: int, feats: ScanFeatures, scan: LaserScan, local: _LocalMatch
