@@ -213,9 +213,7 @@ def continue_scans(
     # The placed scan starts the segment; the scans before it hang on it by odometry. Scan 0
     # carried back by odometry would enter the graph with that odometry counted twice (in
     # its placement and in the odometry factors to the placed scan).
-    slam.start_segment(
-        scans[k], placement.anchor, placement.reference, placement.match, before=scans[:k]
-    )
+    slam.start_segment(scans[k], placement.anchor, placement.match, before=scans[:k])
     for scan in tqdm(scans[k + 1 :], unit="scan", disable=not progress, desc="iceg"):
         slam.process(scan)
     return slam.finish()

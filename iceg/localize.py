@@ -843,7 +843,7 @@ def _run_segment(
     # The map's time-validity needs scans after its own: a log recorded before the map (or
     # overlapping it) is shifted in time as a whole, which changes nothing else.
     shift = max(0.0, saved_scans[-1].stamp_s - scans[first].stamp_s) if saved_scans else 0.0
-    slam.start_segment(_shifted(scans[first], shift), p.anchor, p.reference, p.match)
+    slam.start_segment(_shifted(scans[first], shift), p.anchor, p.match)
     stop = _track_segment(slam, fixed, scans, first, shift, st)
     _fill_segment(slam, placement, first, stop, (n_before, n_map), out)
     return stop

@@ -211,15 +211,14 @@ class Slam:
         self,
         scan: LaserScan,
         anchor: int,
-        reference: MapReference,
         match: MatchResult,
         before: Sequence[LaserScan] = (),
     ) -> FloatArray:
         """Begin another log in this map (``iceg run --continue``): ``scan`` becomes a node
-        placed by ``match`` (its pose in the frame of node ``anchor``, from a match against
-        ``reference``, built by this map's ``feature_map.reference`` in ``anchor``'s frame),
-        linked to ``anchor`` by a loop-closure factor and to nothing by odometry (the new log
-        is a new odometry frame); its features join the map. ``before``: the new log's scans
+        placed by ``match`` (its pose in the frame of node ``anchor``, from a match against a
+        reference built by this map's ``feature_map.reference`` in ``anchor``'s frame), linked
+        to ``anchor`` by a loop-closure factor and to nothing by odometry (the new log is a
+        new odometry frame); its features join the map. ``before``: the new log's scans
         before ``scan`` (none could be placed), in order, with odometry unbroken up to
         ``scan``: they take the node's pose moved by the odometry between them, as scans
         between nodes do. Later scans go to :meth:`process`. Returns the node's pose
