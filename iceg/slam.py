@@ -518,6 +518,7 @@ class Slam:
                 c.cov,
                 c.correlation,
                 robust=accepted.robust_kernel,
+                robust_k=self.config.loop_closure.robust_k,
             )
         if accepted.large_correction:
             # A global closure can move the estimate by tens of metres and degrees: a batch
@@ -591,10 +592,10 @@ class Slam:
         cov: FloatArray,
         correlation: float = float("nan"),
         robust: Literal["huber", "cauchy"] | None = None,
+        robust_k: float | None = None,
     ) -> None:
-        # Loop closures use the configured width; scan matches the kernel's 95 % efficiency.
-        is_closure = kind == FactorKind.LOOP_CLOSURE
-        robust_k = self.config.loop_closure.robust_k if robust and is_closure else None
+        """Add a between-factor and keep its correlation; ``robust_k`` ``None``: the kernel's
+        95 %-efficiency width."""
         record = self.graph.add_between(
             i, j, measured, cov, kind=kind, robust=robust, robust_k=robust_k
         )
