@@ -77,6 +77,14 @@ class SlamConfig(BaseModel):
         "overconfident on real scans and it made MIT CSAIL and the ACES log with synthetic "
         "odometry worse (docs/design.md, 'Point fallback').",
     )
+    drop_walls_seen_through: bool = Field(
+        default=True,
+        description="Before a local match, drop the local map's walls that the last node's own "
+        "scan sees through more than it confirms (a door that opened, a person who walked on), "
+        "when that node was itself placed by a match. Otherwise a scan that sees past such a "
+        "wall fails the free-space check at its true pose and the step is left to the "
+        "odometry (docs/design.md, 'Walls that are gone').",
+    )
     no_odometry_sigma_m: float = Field(
         default=0.5,
         gt=0,

@@ -20,7 +20,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from typing import ClassVar, TypeVar
 
 import numpy as np
@@ -29,6 +29,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from frontends.scan import LaserScan
 from iceg.matching import transform_lines
+from iceg.matching.geometry import PolarProfile
+from iceg.matching.matcher import walls_seen_through
 from iceg.types import FeatureKind, MatchResult, ScanFeatures
 from iceg_common.errors import FeatureMapError
 from iceg_common.se2 import between, compose, inverse, rotation_matrix
@@ -277,6 +279,43 @@ class MapReference:
     def landmark_ids(self) -> IntArray:
         """``(K,)`` int64 landmark id of each reference feature."""
         return self.features.ids
+
+    def without_walls_seen_through(
+        self, points_xy: FloatArray, tolerance_m: float
+    ) -> tuple[MapReference, int]:
+        """This reference without the walls that a scan taken at its frame sees through more
+        than it confirms (``iceg.matching.matcher.walls_seen_through``): a door that opened,
+        a person who walked on. The wall is gone, and a new scan that sees past it would
+        otherwise fail the matcher's free-space check at its true pose (on the ACES log, 23 of
+        44 failed keyframes). Walls the scan does not see (outside its field of view, behind
+        other walls, at grazing incidence) are kept. Landmarks and points are unchanged.
+
+        Args:
+            points_xy: ``(P, 2)`` float64 scan points (metres) seen from the origin of the
+                reference frame: the scan of the node at ``frame_pose``, whose pose the
+                reference's walls are placed against.
+            tolerance_m: A beam sees through a wall when it reaches this far beyond it.
+
+        Returns:
+            ``(reference, dropped)``: the reference (``self`` when nothing is dropped) and
+            the number of walls dropped.
+        """
+        f = self.features
+        if f.seg_endpoints.shape[0] == 0 or points_xy.shape[0] < 3:
+            return self, 0
+        profile = PolarProfile.from_points(points_xy, float(f.range_max_m))
+        see, confirmed = walls_seen_through(f.seg_endpoints, profile, tolerance_m)
+        keep = see <= confirmed
+        if keep.all():
+            return self, 0
+        walls = replace(
+            f,
+            seg_endpoints=f.seg_endpoints[keep],
+            seg_lines=f.seg_lines[keep],
+            seg_cov=f.seg_cov[keep],
+            seg_point_range=f.seg_point_range[keep],
+        )
+        return replace(self, features=walls), int(keep.size - keep.sum())
 
 
 def _move_points(r: FloatArray, t: FloatArray, pts: FloatArray) -> FloatArray:

@@ -405,12 +405,25 @@ def _slam_state(session: Session, scans: list[LaserScan]) -> SlamState:
         node_scan_index=[int(v) for v in a["n_scan"]],
         node_odom=[p.copy() for p in a["n_odom"]],
         node_odom_measured=[bool(v) for v in a["n_odom_measured"]],
+        node_matched=node_matched(a),
         node_path_m=[float(v) for v in a["n_path_m"]],
         correlations={int(k): float(corr[k]) for k in np.flatnonzero(np.isfinite(corr))},
         match_failures=defaultdict(int, session.manifest.get("match_failures", {})),
         point_fallbacks=defaultdict(int, session.manifest.get("point_fallbacks", {})),
         segment_start=segment_start(a),
     )
+
+
+def node_matched(a: Mapping[str, np.ndarray]) -> list[bool]:
+    """Per node, whether it was placed by a match (:attr:`iceg.slam.SlamState.node_matched`):
+    a scan-match factor from the node before it, or no odometry factor into it (the first
+    node of a log, placed by :meth:`iceg.slam.Slam.start_segment` or fixed at the start)."""
+    kind, ij = a["g_kind"], a["g_ij"]
+    sequential = ij[:, 1] == ij[:, 0] + 1
+    scan_match = ij[(kind == FACTOR_KINDS.index(FactorKind.SCAN_MATCH)) & sequential, 1]
+    odometry = ij[kind == FACTOR_KINDS.index(FactorKind.ODOMETRY), 1]
+    ids = a["g_node_ids"]
+    return (np.isin(ids, scan_match) | ~np.isin(ids, odometry)).tolist()
 
 
 def segment_start(a: Mapping[str, np.ndarray]) -> int:

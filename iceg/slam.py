@@ -136,6 +136,8 @@ class SlamState:
     node_scan_index: list[int] = field(default_factory=list)
     node_odom: list[FloatArray] = field(default_factory=list)
     node_odom_measured: list[bool] = field(default_factory=list)  # False: predicted odom
+    # True: the node was placed by a match (a local scan match, the first node, a placement)
+    node_matched: list[bool] = field(default_factory=list)
     node_path_m: list[float] = field(default_factory=list)  # odometry path length at node
     correlations: dict[int, float] = field(default_factory=dict)  # factor index -> eq. 1
     match_failures: dict[str, int] = field(default_factory=lambda: defaultdict(int))
@@ -415,6 +417,12 @@ class Slam:
         ids, poses = self.graph.estimates_of(self.feature_map.reference_pose_nodes(recent))
         last_pose = poses[np.searchsorted(ids, last)]
         reference = self.feature_map.reference((ids, poses), recent, last_pose)
+        if cfg.drop_walls_seen_through and self._s.node_matched[last]:
+            # The last node's scan is the newest view of the place; its pose comes from a
+            # match against these walls, so a wall it sees through is gone.
+            reference, _ = reference.without_walls_seen_through(
+                self._points_of(last), self.config.matching.validation.see_through_tolerance_m
+            )
         bounds = MatchBounds.local(cfg.match_max_translation_m, cfg.match_max_rotation_deg)
         result = self.matcher.match(feats, reference.features, motion.delta, bounds)
         if not result.success:
@@ -489,6 +497,7 @@ class Slam:
             initial=se2.compose(local.last_pose, step),
             odom_measured=motion.measured,
             step_m=self._step_m(motion, last),
+            matched=result.success,
         )
         self._add_factor(FactorKind.ODOMETRY, last, new_id, motion.delta, motion.cov)
         if result.success:
@@ -571,10 +580,13 @@ class Slam:
         initial: FloatArray,
         odom_measured: bool,
         step_m: float = 0.0,
+        matched: bool = True,
     ) -> int:
-        """Node of ``scan``; ``step_m`` is the path travelled since the last node (m)."""
+        """Node of ``scan``; ``step_m`` is the path travelled since the last node (m);
+        ``matched``: its initial pose comes from a match (not the odometry alone)."""
         s = self._s
         s.node_odom_measured.append(odom_measured)
+        s.node_matched.append(matched)
         node_id = len(s.node_odom)
         s.node_path_m.append((s.node_path_m[-1] if s.node_path_m else 0.0) + step_m)
         s.node_odom.append(odom)

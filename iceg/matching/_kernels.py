@@ -892,11 +892,12 @@ def ray_wall_check(
     range_max_m: float,
     tol_m: float,
     cos_max_incidence: float,
-) -> tuple[float, float]:
+) -> tuple[np.ndarray, np.ndarray]:
     """Cast segments ``ep`` (M, 2, 2) along beams (bearing, range) from the origin; see
-    ``matcher._ray_check``. Returns the wall length seen through and confirmed (metres)."""
-    see = 0.0
-    cons = 0.0
+    ``matcher._ray_check``. Returns ``(M,)`` float64 arrays: each segment's wall length seen
+    through and confirmed (metres)."""
+    see = np.zeros(ep.shape[0])
+    cons = np.zeros(ep.shape[0])
     for b in range(bearing.shape[0]):
         dx = math.cos(bearing[b])
         dy = math.sin(bearing[b])
@@ -927,9 +928,9 @@ def ray_wall_check(
             continue
         cover = best * spacing / max(cos_inc, 1e-3)
         if ranges[b] > best + tol_m:
-            see += cover
+            see[bk] += cover
         elif abs(ranges[b] - best) <= tol_m:
-            cons += cover
+            cons[bk] += cover
     return see, cons
 
 

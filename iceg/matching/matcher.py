@@ -761,25 +761,42 @@ def _local_lines(rp: FloatArray, max_gap_m: float) -> tuple[FloatArray, FloatArr
     return nn, normal
 
 
-def _ray_check(ep: FloatArray, prof: PolarProfile, tol_m: float) -> tuple[float, float]:
-    """Cast the segments ``ep`` (M, 2, 2) (the checking scan's frame) along its beams (its
-    profile): a beam that reaches more than ``tol_m`` beyond the nearest segment it crosses
-    sees through that wall; one that ends within ``tol_m`` of it confirms it. Returns the
-    wall length (metres) seen through and confirmed; each beam counts the wall it covers
-    (``distance * spacing / cos(incidence)``) once, however many copies of the wall a map
-    reference holds. Walls met at more than ``MAX_INCIDENCE_DEG`` incidence are not judged."""
-    if ep.shape[0] == 0 or prof.bearing.shape[0] == 0:
-        return 0.0, 0.0
+def walls_seen_through(
+    seg_endpoints: FloatArray, profile: PolarProfile, tolerance_m: float
+) -> tuple[FloatArray, FloatArray]:
+    """Free-space test of each wall against one scan: cast the segments ``seg_endpoints``
+    ``(M, 2, 2)`` float64 (metres, the scan's frame) along the scan's beams (``profile``). A
+    beam that reaches more than ``tolerance_m`` beyond the nearest segment it crosses sees
+    through that wall; one that ends within ``tolerance_m`` of it confirms it. Each beam
+    counts the wall length it covers (``distance * spacing / cos(incidence)``) on the nearest
+    segment only; walls met at more than :data:`MAX_INCIDENCE_DEG` incidence and beams without
+    a return are not judged.
+
+    Returns:
+        ``(see, confirmed)``: ``(M,)`` float64 wall length (metres) of each segment seen
+        through and confirmed.
+    """
+    m = seg_endpoints.shape[0]
+    if m == 0 or profile.bearing.shape[0] == 0:
+        return np.zeros(m), np.zeros(m)
     see, cons = ray_wall_check(
-        np.ascontiguousarray(ep, dtype=np.float64),
-        prof.bearing,
-        prof.range,
-        prof.spacing,
-        prof.range_max_m,
-        tol_m,
+        np.ascontiguousarray(seg_endpoints, dtype=np.float64),
+        profile.bearing,
+        profile.range,
+        profile.spacing,
+        profile.range_max_m,
+        tolerance_m,
         math.cos(math.radians(MAX_INCIDENCE_DEG)),
     )
-    return float(see), float(cons)
+    return see, cons
+
+
+def _ray_check(ep: FloatArray, prof: PolarProfile, tol_m: float) -> tuple[float, float]:
+    """Total wall length (metres) of the segments ``ep`` (M, 2, 2) seen through and confirmed
+    by the scan of ``prof`` (:func:`walls_seen_through`); each beam counts once, however many
+    copies of the wall a map reference holds."""
+    see, cons = walls_seen_through(ep, prof, tol_m)
+    return float(see.sum()), float(cons.sum())
 
 
 def _bracket(prof: PolarProfile, bearing: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:

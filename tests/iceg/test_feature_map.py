@@ -304,3 +304,32 @@ def test_reference_of_any_node_subset_equals_a_brute_force_selection() -> None:
     np.testing.assert_array_equal(a.seg_endpoints, b.seg_endpoints)
     np.testing.assert_array_equal(a.points_xy, b.points_xy)
     np.testing.assert_array_equal(a.seg_point_range, b.seg_point_range)
+
+
+@pytest.mark.parametrize("removed", [True, False])
+def test_walls_the_newest_scan_sees_through_are_dropped_from_a_reference(removed: bool) -> None:
+    # Truth: box_world's box spans x 5.5-6.5, y 3.5-4.5 in a 12 m x 8 m room. Node 0 looks at
+    # it from (2, 4) facing +x while it stands (stamp 0 s); node 1, 0.5 m further, looks at
+    # the same place at 1 s, after the box was taken away at 0.5 s (or, as a control, while it
+    # still stands). Node 1's beams then pass through where node 0 saw the box's west face.
+    world = box_world(removed_at_s=0.5 if removed else 10.0)
+    run = simulate(world, trajectory=[[2.0, 4.0, 0.0], [2.5, 4.0, 0.0]], rate_hz=1.0)
+    fm = FeatureMap(FeatureMapConfig())
+    poses = {0: run.true_poses[0], 1: run.true_poses[1]}
+    feats = [extract(s) for s in run.scans]
+    fm.update(0, feats[0], run.scans[0].stamp_s, scan=run.scans[0])
+    fm.update(1, feats[1], run.scans[1].stamp_s, scan=run.scans[1], node_poses=poses)
+    ref = fm.reference(poses, [0, 1], poses[1])
+    kept, dropped = ref.without_walls_seen_through(feats[1].points_xy, tolerance_m=0.3)
+    walls = transform_points(poses[1], ref.features.seg_endpoints.reshape(-1, 2)).reshape(-1, 2, 2)
+    on_box = np.all((np.abs(walls[..., 0] - 6.0) < 0.6) & (np.abs(walls[..., 1] - 4.0) < 0.6), 1)
+    assert on_box.any()  # node 0 saw the box
+    if not removed:
+        assert dropped == 0 and kept is ref
+        return
+    # Exactly the box's walls went (node 1 sees through them); every wall of the room stayed.
+    assert dropped == int(on_box.sum())
+    left = transform_points(poses[1], kept.features.seg_endpoints.reshape(-1, 2)).reshape(-1, 2, 2)
+    assert left.shape[0] == walls.shape[0] - dropped
+    np.testing.assert_array_equal(left, walls[~on_box])
+    assert kept.features.ids is ref.features.ids  # landmarks untouched

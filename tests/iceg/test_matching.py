@@ -57,6 +57,7 @@ from iceg.matching.hypotheses import (
     pair_codes,
     vote,
 )
+from iceg.matching.matcher import walls_seen_through
 from iceg.matching.refine import build_cloud, effective_line_cov
 from iceg.types import FeatureKind, ScanFeatures
 from iceg_common.errors import ConfigError, MatchingError
@@ -820,3 +821,18 @@ def test_wall_model_error_is_the_covariance_of_perturbed_wall_ends() -> None:
     # uncertain as a wall twice as long; no floor at sigma 0.
     assert cov[0, 0, 0] == pytest.approx(2 * sigma**2 / length[0] ** 2)
     np.testing.assert_array_equal(effective_line_cov(segs, 0.0), np.zeros((2, 2, 2)))
+
+
+def test_walls_seen_through_measures_each_wall_against_the_beams() -> None:
+    # Hand geometry: a scan whose beams (-60..60 deg, 0.5 deg apart) all end on a wall at
+    # x = 3 m. Wall A (x = 2, y 0.5..1.5) stands in front of that wall: every beam crossing it
+    # reaches 1 m beyond it, so all of its 1 m is seen through. Wall B (x = 3, y -1.5..-0.5)
+    # is where the beams end: its 1 m is confirmed. Each beam covers its share of the wall it
+    # crosses, so the lengths add up to the walls' lengths within one beam's share.
+    bearing = np.radians(np.arange(-60.0, 60.0 + 1e-9, 0.5))
+    points = np.column_stack([np.full_like(bearing, 3.0), 3.0 * np.tan(bearing)])
+    profile = PolarProfile.from_points(points, range_max_m=80.0)
+    walls = np.array([[[2.0, 0.5], [2.0, 1.5]], [[3.0, -1.5], [3.0, -0.5]]])
+    see, confirmed = walls_seen_through(walls, profile, tolerance_m=0.3)
+    assert see == pytest.approx([1.0, 0.0], abs=0.03)
+    assert confirmed == pytest.approx([0.0, 1.0], abs=0.03)
