@@ -22,14 +22,13 @@ from numpy.typing import ArrayLike, NDArray
 from tqdm.auto import tqdm
 
 from frontends import LaserScan
-from graph import odometry_covariance
 from iceg import session as sess
 from iceg.features import extract
 from iceg.localize import FixedMap, Localizer, LocalizeSettings, Placement, Status
 from iceg.matching import MatchBounds
 from iceg.results import SlamResult
 from iceg.slam import Slam
-from iceg.types import MatchResult, ScanFeatures
+from iceg.types import ScanFeatures
 from iceg_common import se2
 from iceg_common.errors import SessionError
 
@@ -49,28 +48,12 @@ def fixed_map_of(slam: Slam) -> FixedMap:
 
 
 #: Scans tried, in order, for a placement when the first ones cannot be placed (a scan with
-#: too few features, e.g. facing a bare wall); the placement is carried back to the first scan
-#: by odometry.
+#: too few features, e.g. facing a bare wall); the placed scan starts the segment and the scans
+#: before it are tracked backwards from it (:meth:`iceg.slam.Slam.start_segment`).
 START_SCANS = 60
 
 #: Without an initial pose, every this many of those scans is searched globally.
 START_STEP = 5
-
-
-def place_first_scan(
-    fixed: FixedMap,
-    scans: Sequence[LaserScan],
-    initial_pose: ArrayLike | None = None,
-    settings: LocalizeSettings | None = None,
-) -> Placement:
-    """Place ``scans[0]`` in the map: :func:`place_start`, carried back to the first scan by
-    odometry when a later scan was placed (the covariance grows by the odometry noise).
-
-    Raises:
-        SessionError: see :func:`place_start`.
-    """
-    k, placement = place_start(fixed, scans, initial_pose, settings)
-    return placement if k == 0 else _carry_back(fixed, scans, k, placement)
 
 
 def place_start(
@@ -81,7 +64,9 @@ def place_start(
 ) -> tuple[int, Placement]:
     """The first scan among the first :data:`START_SCANS` that can be placed in the map
     (around ``initial_pose``, carried along by odometry, when given; else globally), placed
-    and confirmed by tracking the next scans (:func:`_confirm`).
+    and confirmed by tracking the next scans (:func:`_unconfirmed`); a placement they refuse
+    (a wrong match, or a right one whose next scans cannot be tracked, as in a fast turn) is
+    dropped and the search goes on with the next scans.
 
     Args:
         fixed: the map.
@@ -94,10 +79,12 @@ def place_start(
         it) and its placement (``match.pose`` in the frame of node ``anchor``).
 
     Raises:
-        SessionError: no placement, an ambiguous one, or one the next scans contradict.
+        SessionError: no scan placed and confirmed (the message says why the refused
+            placements were refused).
     """
     st = settings or LocalizeSettings()
     guess = None if initial_pose is None else np.asarray(initial_pose, dtype=np.float64)
+    unconfirmed: list[str] = []
     for k, scan in enumerate(scans[:START_SCANS]):
         if k and (scan.odom_pose is None or scan.odom_break):
             break  # no odometry back to the first scan
@@ -111,12 +98,19 @@ def place_start(
         placement = _place_one(fixed, feats, here, st, search)
         if placement is None:
             continue
-        _confirm(fixed, scans[k:], placement, st)
+        refused = _unconfirmed(fixed, scans[k:], placement, st)
+        if refused:
+            unconfirmed.append(refused)
+            continue
         return k, placement
+    detail = (
+        f"; {len(unconfirmed)} placement(s) refused, first: {unconfirmed[0]}" if unconfirmed else ""
+    )
     raise SessionError(
         f"{scans[0].source}: the log cannot be placed in the map (no unambiguous ICE match of "
-        f"enough correlation and fit in its first {min(len(scans), START_SCANS)} scans); is "
-        "it from this building? Give --initial-pose X Y THETA_DEG if it is"
+        f"enough correlation and fit, confirmed by tracking, in its first "
+        f"{min(len(scans), START_SCANS)} scans{detail}); is it from this building? Give "
+        "--initial-pose X Y THETA_DEG if it is"
     )
 
 
@@ -141,43 +135,28 @@ def _place_one(
     return fixed.place(feats, st) if search else None
 
 
-def _carry_back(fixed: FixedMap, scans: Sequence[LaserScan], k: int, p: Placement) -> Placement:
-    """Scan ``k``'s placement moved to scan 0 by the odometry between them."""
-    back = _odometry(scans, k, 0)
-    pose0 = se2.compose(p.pose, back)
-    ad = se2.adjoint(se2.inverse(back))
-    cov = ad @ p.match.cov @ ad.T + odometry_covariance(back, fixed.config.odometry_noise)
-    anchor_pose = fixed.poses[int(np.searchsorted(fixed.ids, p.anchor))]
-    match = MatchResult(
-        success=True,
-        pose=se2.between(anchor_pose, pose0),
-        cov=0.5 * (cov + cov.T),
-        correlation=p.match.correlation,
-    )
-    return Placement(p.anchor, p.reference, match, pose0)
-
-
-def _confirm(
+def _unconfirmed(
     fixed: FixedMap, scans: Sequence[LaserScan], p: Placement, st: LocalizeSettings
-) -> None:
+) -> str:
+    """Why the placement ``p`` of ``scans[0]`` is refused: the next :data:`CONFIRM_SCANS`
+    scans, tracked from it, are lost or placed elsewhere before ``confirm_keyframes`` of them
+    are tracked on the map (an empty string: confirmed, or nothing left to confirm it with)."""
     loc = Localizer(fixed, st, initial_pose=p.pose)
     tracked = 0
+    where = (
+        f"{scans[0].source} matched the map at {np.round(p.pose, 2).tolist()} (correlation "
+        f"{p.match.correlation:.2f})"
+    )
     for scan in scans[:CONFIRM_SCANS]:
         _, _, status, _ = loc.process(scan)
         if loc.relocalizations or status == Status.LOST:
-            raise SessionError(
-                f"{scans[0].source}: the first scan matched the map at "
-                f"{np.round(p.pose, 2).tolist()} (correlation {p.match.correlation:.2f}) but "
-                "the next scans do not follow it there; refusing to guess"
-            )
+            return f"{where} but the next scans do not follow it there"
         tracked += status == Status.TRACKED
         if tracked >= st.confirm_keyframes:
-            return
+            return ""
     if len(scans) > 1:
-        raise SessionError(
-            f"{scans[0].source}: the placement of the first scan could not be confirmed by "
-            f"the next {min(len(scans), CONFIRM_SCANS)} scans"
-        )
+        return f"{where} but the next {min(len(scans), CONFIRM_SCANS)} scans did not confirm it"
+    return ""
 
 
 def continue_scans(
@@ -210,9 +189,9 @@ def continue_scans(
         placement.anchor,
         placement.match.correlation,
     )
-    # The placed scan starts the segment; the scans before it hang on it by odometry. Scan 0
-    # carried back by odometry would enter the graph with that odometry counted twice (in
-    # its placement and in the odometry factors to the placed scan).
+    # The placed scan starts the segment; the scans before it are tracked backwards from it.
+    # Scan 0 carried back by odometry would enter the graph with that odometry counted twice
+    # (in its placement and in the odometry factors to the placed scan).
     slam.start_segment(scans[k], placement.anchor, placement.match, before=scans[:k])
     for scan in tqdm(scans[k + 1 :], unit="scan", disable=not progress, desc="iceg"):
         slam.process(scan)

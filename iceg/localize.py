@@ -359,6 +359,8 @@ class Localizer:
         self._fallback: _Track | None = None
         self._rows: list[_Row] = []
         self._n_scans = 0
+        # the newest keyframe's index and scan points (its frame)
+        self._last_points: tuple[int, FloatArray] = (-1, np.zeros((0, 2)))
 
     def process(self, scan: LaserScan) -> tuple[FloatArray, FloatArray, Status, float]:
         """One scan: its causal ``(pose (3,), cov (3, 3), status, correlation)``."""
@@ -538,6 +540,13 @@ class Localizer:
         ids = np.arange(len(self._kfs), dtype=np.int64)
         poses = np.array([k.pose for k in self._kfs])
         ref = self._local_map.reference((ids, poses), np.array(recent), poses[last])
+        kf, (newest, points) = self._kfs[last], self._last_points
+        matched = kf.local is not None or kf.prior is not None
+        if cfg.drop_walls_seen_through and matched and newest == last:
+            # as the run's tracking (Slam._match_local): walls the last matched keyframe
+            # sees through are gone
+            tolerance = self.fixed.config.matching.validation.see_through_tolerance_m
+            ref, _ = ref.without_walls_seen_through(points, tolerance)
         bounds = self._bounds(t.since_kf_cov, False)
         res = self.fixed.matcher.match(feats, ref.features, t.since_kf, bounds)
         if not res.success:
@@ -557,6 +566,7 @@ class Localizer:
         t = self._t
         self._kfs.append(kf)
         t.last_kf = len(self._kfs) - 1
+        self._last_points = (t.last_kf, feats.points_xy)
         ids = np.arange(len(self._kfs), dtype=np.int64)
         poses = np.array([k.pose for k in self._kfs])
         self._local_map.update(
@@ -753,14 +763,14 @@ def _localize_in_session(
     """Localization against a frozen saved map, segment by segment.
 
     A segment starts where a scan is placed in the map and the placement is confirmed by
-    the next scans (:func:`iceg.continuation.place_first_scan`: around ``initial_pose`` for
+    the next scans (:func:`iceg.continuation.place_start`: around ``initial_pose`` for
     the first segment when given, else by global matching; an offline run may look ahead).
     It runs the session's own SLAM with the map frozen (:func:`_run_segment`) until the
     track is lost: ``lost_after`` keyframes in a row matched nothing and a global placement
     of the current scan disagrees with the estimate (a kidnapping). Scans that cannot be
     placed are LOST; the next placement is searched after them.
     """
-    from iceg.continuation import START_SCANS, place_first_scan
+    from iceg.continuation import START_SCANS, place_start
     from iceg_common.errors import SessionError
 
     n = len(scans)
@@ -773,14 +783,14 @@ def _localize_in_session(
     i = 0
     while i < n:
         try:
-            placement = place_first_scan(fixed, scans[i:], guess, st)
+            k, placement = place_start(fixed, scans[i:], guess, st)
         except SessionError as exc:
             logger.info("scans %d-%d not placed: %s", i, min(n, i + START_SCANS) - 1, exc)
             guess, i = None, i + START_SCANS
             continue
         relocalizations += guess is None or _far(placement.pose, guess, st)
         guess = None
-        stop = _run_segment(fixed, scans, i, placement, st, (poses, covs, status, corr))
+        stop = _run_segment(fixed, scans, (i, i + k), placement, st, (poses, covs, status, corr))
         i = stop
     return _result(scans, poses, covs, status, corr, relocalizations)
 
@@ -805,12 +815,14 @@ def _frozen_slam(fixed: FixedMap) -> Slam:
 def _run_segment(
     fixed: FixedMap,
     scans: Sequence[LaserScan],
-    first: int,
+    span: tuple[int, int],
     placement: Placement,
     st: LocalizeSettings,
     out: tuple[FloatArray, FloatArray, IntArray, FloatArray],
 ) -> int:
-    """One segment, from scan ``first`` placed by ``placement``, against the frozen map:
+    """One segment, from scan ``first`` to the placed scan ``placed`` (``span``) and on,
+    against the frozen map. The placed scan starts the segment
+    (:meth:`iceg.slam.Slam.start_segment`; the scans before it are tracked backwards from it):
     the run's SLAM (local matching against the segment's recent nodes, loop closures to its
     own nodes and to the map's, batch refinement) in a copy of the session whose nodes are
     held fixed (:func:`_frozen_slam`; discarded after: the saved map is not changed). Fills
@@ -826,10 +838,11 @@ def _run_segment(
     ids, saved = slam.graph.estimates()
     n_map = int(ids.max()) + 1
     live = FixedMap(ids, saved, slam.feature_map, slam.config)
-    feats = extract(scans[first], slam.config.features)
+    first, placed = span
+    feats = extract(scans[placed], slam.config.features)
     bounds = MatchBounds.local(st.track_translation_m, st.track_rotation_deg)
     p = live.match_at(feats, placement.pose, bounds, st.reference_nodes)
-    if p is None:  # the placement came from a later scan, carried back by odometry
+    if p is None:  # the placement's match was made in the saved map, not this live copy
         anchor, ref = live.reference_near(placement.pose, st.reference_nodes)
         rel = se2.between(saved[anchor], placement.pose)
         p = Placement(
@@ -843,9 +856,10 @@ def _run_segment(
     # The map's time-validity needs scans after its own: a log recorded before the map (or
     # overlapping it) is shifted in time as a whole, which changes nothing else.
     shift = max(0.0, saved_scans[-1].stamp_s - scans[first].stamp_s) if saved_scans else 0.0
-    slam.start_segment(_shifted(scans[first], shift), p.anchor, p.match)
-    stop = _track_segment(slam, fixed, scans, first, shift, st)
-    _fill_segment(slam, placement, first, stop, (n_before, n_map), out)
+    before = [_shifted(scan, shift) for scan in scans[first:placed]]
+    slam.start_segment(_shifted(scans[placed], shift), p.anchor, p.match, before=before)
+    stop = _track_segment(slam, fixed, scans, placed, shift, st)
+    _fill_segment(slam, placement, span, stop, (n_before, n_map), out)
     return stop
 
 
@@ -895,19 +909,22 @@ def _track_segment(
 def _fill_segment(
     slam: Slam,
     placement: Placement,
-    first: int,
+    span: tuple[int, int],
     stop: int,
     counts: tuple[int, int],
     out: tuple[FloatArray, FloatArray, IntArray, FloatArray],
 ) -> None:
     """Finish the segment's SLAM and write the poses, covariances, status and correlation of
-    scans ``first``..``stop - 1`` into ``out`` (see :func:`_run_segment`). ``counts`` are the
-    session's scans and nodes before the segment."""
+    scans ``first``..``stop - 1`` into ``out`` (see :func:`_run_segment`; ``span`` is
+    ``(first, placed)``). ``counts`` are the session's scans and nodes before the segment."""
+    first, placed = span
     n_before, n_map = counts
     result = slam.finish()
     poses, covs, status, corr = out
     poses[first:stop] = result.poses[n_before : n_before + stop - first]
     node_row = np.searchsorted(result.node_scan_index, np.arange(len(result.poses)), "right") - 1
+    # the scans before the placed one hang off the segment's first node
+    node_row[n_before : n_before + placed - first] = node_row[n_before + placed - first]
     seg_nodes = result.node_ids[node_row[n_before : n_before + stop - first]]
     to_map: dict[int, float] = {}
     local: set[int] = set()
@@ -928,8 +945,8 @@ def _fill_segment(
         q = odometry_covariance(delta, slam.config.odometry_noise)
         covs[first + r] = ad @ marg[node] @ ad.T + q
         is_node = result.node_scan_index[row] == n_before + r
-        if r == 0:
-            status[first], corr[first] = int(Status.PLACED), placement.match.correlation
+        if first + r == placed:
+            status[placed], corr[placed] = int(Status.PLACED), placement.match.correlation
         elif is_node and node in to_map:
             status[first + r], corr[first + r] = int(Status.TRACKED), to_map[node]
         elif is_node and node in local:
