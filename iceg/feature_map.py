@@ -280,9 +280,7 @@ class MapReference:
         """``(K,)`` int64 landmark id of each reference feature."""
         return self.features.ids
 
-    def without_walls_seen_through(
-        self, points_xy: FloatArray, tolerance_m: float
-    ) -> tuple[MapReference, int]:
+    def without_walls_seen_through(self, points_xy: FloatArray, tolerance_m: float) -> MapReference:
         """This reference without the walls that a scan taken at its frame sees through more
         than it confirms (``iceg.matching.matcher.walls_seen_through``): a door that opened,
         a person who walked on. The wall is gone, and a new scan that sees past it would
@@ -297,17 +295,16 @@ class MapReference:
             tolerance_m: A beam sees through a wall when it reaches this far beyond it.
 
         Returns:
-            ``(reference, dropped)``: the reference (``self`` when nothing is dropped) and
-            the number of walls dropped.
+            The reference without those walls (``self`` when none is dropped).
         """
         f = self.features
         if f.seg_endpoints.shape[0] == 0 or points_xy.shape[0] < 3:
-            return self, 0
+            return self
         profile = PolarProfile.from_points(points_xy, float(f.range_max_m))
         see, confirmed = walls_seen_through(f.seg_endpoints, profile, tolerance_m)
         keep = see <= confirmed
         if keep.all():
-            return self, 0
+            return self
         walls = replace(
             f,
             seg_endpoints=f.seg_endpoints[keep],
@@ -315,7 +312,7 @@ class MapReference:
             seg_cov=f.seg_cov[keep],
             seg_point_range=f.seg_point_range[keep],
         )
-        return replace(self, features=walls), int(keep.size - keep.sum())
+        return replace(self, features=walls)
 
 
 def _move_points(r: FloatArray, t: FloatArray, pts: FloatArray) -> FloatArray:

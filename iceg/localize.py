@@ -546,7 +546,7 @@ class Localizer:
             # as the run's tracking (Slam._match_local): walls the last matched keyframe
             # sees through are gone
             tolerance = self.fixed.config.matching.validation.see_through_tolerance_m
-            ref, _ = ref.without_walls_seen_through(points, tolerance)
+            ref = ref.without_walls_seen_through(points, tolerance)
         bounds = self._bounds(t.since_kf_cov, False)
         res = self.fixed.matcher.match(feats, ref.features, t.since_kf, bounds)
         if not res.success:

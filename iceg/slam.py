@@ -422,7 +422,7 @@ class Slam:
         if cfg.drop_walls_seen_through and self._s.node_matched[last]:
             # The last node's scan is the newest view of the place; its pose comes from a
             # match against these walls, so a wall it sees through is gone.
-            reference, _ = reference.without_walls_seen_through(
+            reference = reference.without_walls_seen_through(
                 self._points_of(last), self.config.matching.validation.see_through_tolerance_m
             )
         bounds = MatchBounds.local(cfg.match_max_translation_m, cfg.match_max_rotation_deg)
