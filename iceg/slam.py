@@ -222,9 +222,9 @@ class Slam:
         to ``anchor`` by a loop-closure factor and to nothing by odometry (the new log is a
         new odometry frame); its features join the map. ``before``: the new log's scans
         before ``scan`` (none could be placed), in order, with odometry unbroken up to
-        ``scan``: they take the node's pose moved by the odometry between them, as scans
-        between nodes do. Later scans go to :meth:`process`. Returns the node's pose
-        estimate ``(3,)``, map frame.
+        ``scan``: they hang off the node as scans between nodes do, each placed by tracking
+        backwards from it (:meth:`_match_before`). Later scans go to :meth:`process`.
+        Returns the node's pose estimate ``(3,)``, map frame.
 
         Raises:
             ScanError: the scan is earlier than the last one processed.
