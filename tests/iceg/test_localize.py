@@ -12,7 +12,7 @@ from frontends.carmen import write_carmen
 from frontends.simulate import office_world, simulate, simulate_scenario
 from iceg import session
 from iceg.cli import app
-from iceg.continuation import continue_scans
+from iceg.continuation import continue_scans, fixed_map_of, place_start
 from iceg.evaluation import position_errors
 from iceg.localize import Status, fixed_map_of_session, localize_scans
 from iceg.slam import Slam
@@ -129,3 +129,25 @@ def test_cli_continue_and_localize(office, tmp_path) -> None:  # type: ignore[no
     assert len(cont.manifest["logs"]) == 1  # the first half came from memory (inline)
     # the new log's first node, found again from the graph when the session is loaded
     assert session.segment_start(cont.arrays) == session.read(folder).manifest["nodes"]
+
+
+def test_scans_before_the_placed_one_are_tracked_backwards(office) -> None:  # type: ignore[no-untyped-def]
+    # Truth: the simulator's poses (the session's map frame is the world frame). The new log
+    # starts with the robot turning 72 deg in place; its first 8 scans carry a frozen
+    # odometry, all equal to that of scan 8, the one placed: odometry lagging behind the
+    # robot, as in MIT CSAIL's fast turns. Carried by odometry they would all take scan 8's
+    # heading; tracked backwards from it (each matched against the scan after it), each
+    # lands on its true pose.
+    run, folder = office
+    new = list(run.scans[K : K + 9])
+    new[:8] = [dataclasses.replace(s, odom_pose=new[8].odom_pose) for s in new[:8]]
+    truth = run.true_poses[K : K + 9]
+    assert abs(np.degrees(truth[8, 2] - truth[0, 2])) > 60.0  # the robot did turn
+    slam = session.load(folder)
+    k, placement = place_start(fixed_map_of(slam), new[8:], initial_pose=truth[8])
+    assert k == 0
+    slam.start_segment(new[8], placement.anchor, placement.match, before=new[:8])
+    _, poses = slam.trajectory()
+    assert _err(poses[-9:], truth).max() < 0.05
+    heading = np.degrees(np.abs(np.angle(np.exp(1j * (poses[-9:, 2] - truth[:, 2])))))
+    assert heading.max() < 1.0
