@@ -223,7 +223,7 @@ class Slam:
         new odometry frame); its features join the map. ``before``: the new log's scans
         before ``scan`` (none could be placed), in order, with odometry unbroken up to
         ``scan``: they hang off the node as scans between nodes do, each placed by tracking
-        backwards from it (:meth:`_match_before`). Later scans go to :meth:`process`.
+        backwards from it (:meth:`_track_backwards`). Later scans go to :meth:`process`.
         Returns the node's pose estimate ``(3,)``, map frame.
 
         Raises:
@@ -233,19 +233,18 @@ class Slam:
         if self._result is not None or not match.success or not self._s.node_odom:
             raise GraphError("Slam.start_segment needs a running Slam and a successful match")
         t0 = time.perf_counter()
-        odom = self._odometry_of(scan)
         for early in before:
             self._check_order(early)
             self._s.scans.append(early)
-            delta = se2.between(odom, self._odometry_of(early))
-            self._s.records.append(_ScanRecord(early.stamp_s, len(self._s.node_odom), delta))
         self._check_order(scan)
         feats = extract(scan, self.config.features)
+        for early, delta in zip(before, self._track_backwards(scan, feats, before), strict=True):
+            self._s.records.append(_ScanRecord(early.stamp_s, len(self._s.node_odom), delta))
         anchor_pose = self.graph.estimate(anchor)
         self._s.scans.append(scan)
         new_id = self._add_node(
             scan,
-            odom,
+            self._odometry_of(scan),
             initial=se2.compose(anchor_pose, match.pose),
             odom_measured=scan.odom_pose is not None,
         )
@@ -262,31 +261,32 @@ class Slam:
         # the old place's that the placement matched.
         self._remember_points(new_id, feats)
         self.feature_map.update(new_id, feats, scan.stamp_s, scan=scan)
-        self._match_before(scan, feats, before)
         self.timer.add("segment_start", t0)
         return self.graph.estimate(new_id)
 
-    def _match_before(
+    def _track_backwards(
         self, scan: LaserScan, feats: ScanFeatures, before: Sequence[LaserScan]
-    ) -> None:
-        """The scans before a segment's first node (``scan``, features ``feats``), tracked
-        backwards in time as the run tracks forwards: each is matched against the scan after
-        it, predicted by the odometry between them (the local match's bounds), and takes the
-        matched motion where the match succeeds, the odometry where it fails. Carrying them
-        all by odometry from the node would put a fast turn's lagging odometry into their
-        poses (MIT CSAIL's second half starts in one: up to 17 degrees)."""
+    ) -> list[FloatArray]:
+        """Poses ``(3,)`` of the scans ``before`` a segment's first node (``scan``, features
+        ``feats``) in the node's frame, in their order: tracked backwards in time as the run
+        tracks forwards. Each is matched against the scan after it, predicted by the odometry
+        between them (the local match's bounds), and takes the matched motion where the match
+        succeeds, the odometry where it fails. Carrying them all by odometry from the node
+        would put a fast turn's lagging odometry into their poses (MIT CSAIL's second half
+        starts in one: up to 17 degrees)."""
         cfg = self.config.slam
         bounds = MatchBounds.local(cfg.match_max_translation_m, cfg.match_max_rotation_deg)
-        records = self._s.records[-1 - len(before) : -1]
+        poses: list[FloatArray] = [np.zeros(3)] * len(before)
         later, later_feats, later_pose = scan, feats, np.zeros(3)  # in the node's frame
-        for early, rec in zip(reversed(before), reversed(records), strict=True):
+        for i in range(len(before) - 1, -1, -1):
+            early = before[i]
             early_feats = extract(early, self.config.features)
             odometry = se2.between(self._odometry_of(later), self._odometry_of(early))
             result = self.matcher.match(early_feats, later_feats, odometry, bounds)
-            rec.delta_from_node = se2.compose(
-                later_pose, result.pose if result.success else odometry
-            )
-            later, later_feats, later_pose = early, early_feats, rec.delta_from_node
+            later_pose = se2.compose(later_pose, result.pose if result.success else odometry)
+            poses[i] = later_pose
+            later, later_feats = early, early_feats
+        return poses
 
     # ------------------------------------------------------------------ per scan
 
