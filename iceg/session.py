@@ -417,7 +417,14 @@ def _slam_state(session: Session, scans: list[LaserScan]) -> SlamState:
 def node_matched(a: Mapping[str, np.ndarray]) -> list[bool]:
     """Per node, whether it was placed by a match (:attr:`iceg.slam.SlamState.node_matched`):
     a scan-match factor from the node before it, or no odometry factor into it (the first
-    node of a log, placed by :meth:`iceg.slam.Slam.start_segment` or fixed at the start)."""
+    node of a log, placed by :meth:`iceg.slam.Slam.start_segment` or fixed at the start).
+
+    Args:
+        a: A session's arrays (``g_node_ids``, ``g_kind``, ``g_ij``).
+
+    Returns:
+        One bool per entry of ``g_node_ids``, in its order.
+    """
     kind, ij = a["g_kind"], a["g_ij"]
     sequential = ij[:, 1] == ij[:, 0] + 1
     scan_match = ij[(kind == FACTOR_KINDS.index(FactorKind.SCAN_MATCH)) & sequential, 1]
