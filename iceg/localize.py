@@ -42,6 +42,10 @@ from iceg_common.errors import GraphError
 
 logger = logging.getLogger(__name__)
 
+#: Most candidate-place references a :class:`FixedMap` keeps for its global placements
+#: (about 0.1 MB each on MIT CSAIL: ten nodes' landmarks, segments and scan points).
+_MAX_CACHED_PLACES = 1024
+
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
@@ -148,6 +152,9 @@ class FixedMap:
         #: The saved session the map comes from (None: a live map); with it,
         #: :func:`localize_scans` runs the session's SLAM against the frozen map.
         self.session: Session | None = None
+        #: References of candidate places, by (row, nodes): every global placement matches
+        #: the same places of the frozen map (at most ``_MAX_CACHED_PLACES`` kept).
+        self._places: dict[tuple[int, int], tuple[int, MapReference]] = {}
 
     def reference_near(self, pose: FloatArray, k: int) -> tuple[int, MapReference]:
         """Reference of the ``k`` nodes nearest ``pose`` (position), in the nearest one's
@@ -170,7 +177,29 @@ class FixedMap:
         self, feats: ScanFeatures, pose: FloatArray, bounds: MatchBounds, k: int
     ) -> Placement | None:
         """Match around a predicted map-frame ``pose`` (None: failed)."""
-        anchor, ref = self.reference_near(pose, k)
+        return self._match_reference(feats, *self.reference_near(pose, k), pose, bounds)
+
+    def _match_place(self, feats: ScanFeatures, row: int, k: int) -> Placement | None:
+        """Global match against the place of node row ``row`` (its ``k`` nearest nodes):
+        :meth:`match_at` at the node's pose, with the place's reference built once."""
+        key = (row, k)
+        got = self._places.get(key)
+        if got is None:
+            got = self.reference_near(self.poses[row], k)
+            if len(self._places) < _MAX_CACHED_PLACES:
+                self._places[key] = got
+        return self._match_reference(feats, *got, self.poses[row], MatchBounds.global_())
+
+    def _match_reference(
+        self,
+        feats: ScanFeatures,
+        anchor: int,
+        ref: MapReference,
+        pose: FloatArray,
+        bounds: MatchBounds,
+    ) -> Placement | None:
+        """Match against ``ref`` (in anchor row ``anchor``'s frame) around the map-frame
+        ``pose`` (None: failed)."""
         prediction = se2.between(self.poses[anchor], pose)
         res = self.matcher.match(feats, ref.features, prediction, bounds)
         if not res.success:
@@ -187,7 +216,7 @@ class FixedMap:
         st = settings
         found = []
         for row in self.candidates(st.candidate_spacing_m).tolist():
-            p = self.match_at(feats, self.poses[row], MatchBounds.global_(), st.reference_nodes)
+            p = self._match_place(feats, row, st.reference_nodes)
             if (
                 p is not None
                 and p.match.correlation >= st.min_correlation

@@ -148,16 +148,9 @@ class MatchContext:
         c, f, r = self.config, self.features, self.reference
         derived = scan_derived(f)
         self.new_geom = derived.geometry
-        self.ref_geom = feature_geometry(r)
+        self.ref_geom, self.ref_profile = reference_derived(r)
         range_max = float(f.range_max_m)
         self.profile = derived.profile
-        # The reference's beams can be checked only if its points are one scan seen from
-        # the reference origin (a feature-map reference gathers several nodes' points).
-        self.ref_profile = (
-            PolarProfile.from_points(r.points_xy, float(r.range_max_m))
-            if _is_one_scan(r.points_xy)
-            else None
-        )
         codes = pair_codes(
             self.new_geom,
             self.ref_geom,
@@ -210,6 +203,29 @@ def scan_derived(features: ScanFeatures) -> ScanDerived:
             point_segment_index(features),
         )
         _DERIVED[features] = got
+    return got
+
+
+#: :func:`reference_derived` results by reference object (identity; dropped with the object).
+_REF_DERIVED: weakref.WeakKeyDictionary[ScanFeatures, tuple[FeatureGeometry, PolarProfile | None]]
+_REF_DERIVED = weakref.WeakKeyDictionary()
+
+
+def reference_derived(reference: ScanFeatures) -> tuple[FeatureGeometry, PolarProfile | None]:
+    """A reference's feature geometry and, when its points are one scan seen from its
+    origin, its polar profile (a feature-map reference gathers several nodes' points, whose
+    beams cannot be checked): computed once per reference object, as :func:`scan_derived`
+    does for new scans (a fixed map's places are matched by every global placement)."""
+    got = _REF_DERIVED.get(reference)
+    if got is None:
+        r = reference
+        profile = (
+            PolarProfile.from_points(r.points_xy, float(r.range_max_m))
+            if _is_one_scan(r.points_xy)
+            else None
+        )
+        got = (feature_geometry(r), profile)
+        _REF_DERIVED[reference] = got
     return got
 
 
