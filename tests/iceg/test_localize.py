@@ -14,7 +14,8 @@ from iceg import session
 from iceg.cli import app
 from iceg.continuation import continue_scans, fixed_map_of, place_start
 from iceg.evaluation import position_errors
-from iceg.localize import Status, fixed_map_of_session, localize_scans
+from iceg.features import extract
+from iceg.localize import LocalizeSettings, Status, fixed_map_of_session, localize_scans
 from iceg.slam import Slam
 from iceg_common import se2
 from iceg_common.errors import SessionError
@@ -52,6 +53,26 @@ def test_localize_without_initial_pose_tracks_the_map(office) -> None:  # type: 
     assert _err(result.poses, run.true_poses[120:K]).max() < 0.05
     assert np.all(np.linalg.eigvalsh(result.covs) > 0)
     assert s.arrays["g_kind"].shape == session.read(folder).arrays["g_kind"].shape  # untouched
+
+
+def test_repeated_global_placement_reuses_places_and_gives_the_same_pose(office) -> None:  # type: ignore[no-untyped-def]
+    # The second placement matches the places' references built by the first: the same
+    # answers bit for bit as a fresh map, and each at the scan's true pose.
+    run, folder = office
+    fixed = fixed_map_of_session(session.read(folder))
+    settings = LocalizeSettings()
+    for i in (120, 180, 240):
+        feats = extract(run.scans[i], fixed.config.features)
+        first, again = fixed.place(feats, settings), fixed.place(feats, settings)
+        fresh = fixed_map_of_session(session.read(folder)).place(feats, settings)
+        assert first is not None and again is not None and fresh is not None
+        for p in (again, fresh):
+            assert p.anchor == first.anchor
+            assert p.pose.tobytes() == first.pose.tobytes()
+            assert p.match.cov.tobytes() == first.match.cov.tobytes()
+        e = se2.between(run.true_poses[i], first.pose)
+        assert np.hypot(e[0], e[1]) < 0.05 and abs(e[2]) < np.radians(1.0)
+    assert 0 < len(fixed._places) <= fixed.candidates(settings.candidate_spacing_m).shape[0]
 
 
 def test_localize_from_a_wrong_initial_pose(office) -> None:  # type: ignore[no-untyped-def]
