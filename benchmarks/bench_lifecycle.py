@@ -6,7 +6,8 @@ Runs the whole log, a session of its first half (A) and a session of its second 
 - ``whole`` over all relations, and over the relations within the second half;
 - ``continue``: A continued with the second half (``iceg run --continue``), second half;
 - ``localize``: the second half localized in A (``iceg localize``), second half;
-- ``merge``: A and B merged (``iceg merge``), over all relations.
+- ``merge``: A and B merged (``iceg merge``), over all relations, then split into those within
+  each half and those across the halves; ``B alone``: B's own run, second half.
 
 Acceptance: continue, localize and merge within 10 % of the whole run (translation and
 rotation). About four SLAM runs of half the log each plus one whole run.
@@ -43,12 +44,20 @@ FRAME = np.array([5.0, -3.0, 2.0])  # the second half's own odometry frame
 
 
 def error(
-    rel: Relations, stamps: np.ndarray, poses: np.ndarray, start_s: float | None = None
+    rel: Relations,
+    stamps: np.ndarray,
+    poses: np.ndarray,
+    start_s: float | None = None,
+    part: str = "2nd half",
 ) -> tuple[float, float, int]:
-    """Mean relation error (m, deg) and matched count; from ``start_s`` on when given."""
-    keep = np.ones(len(rel.stamps_s), dtype=bool)
+    """Mean relation error (m, deg) and matched count: over all relations without
+    ``start_s``, else over those with both ends after it (``part`` "2nd half"), both before
+    it ("1st half") or one on each side ("across")."""
+    keep: np.ndarray = np.ones(len(rel.stamps_s), dtype=bool)
     if start_s is not None:
-        keep = (rel.stamps_s[:, 0] >= start_s) & (rel.stamps_s[:, 1] >= start_s)
+        after = rel.stamps_s >= start_s
+        both, either = np.all(after, axis=1), np.any(after, axis=1)
+        keep = {"2nd half": both, "1st half": ~either, "across": either & ~both}[part]
     ok = ~np.isnan(poses[:, 0])
     s, _ = relation_errors(stamps[ok], poses[ok], rel.stamps_s[keep], rel.deltas[keep], 1e-3)
     return s.trans_mean_m, s.rot_mean_deg, s.n_matched
@@ -86,6 +95,8 @@ def main() -> int:
     rows.append(("whole", "2nd half", error(rel, whole.stamps_s, whole.poses, start), 0.0))
     session.save(run(scans[:k]), work / "A")
     session.save(run(second), work / "B")
+    stamps_b, poses_b = session.read(work / "B").trajectory()
+    rows.append(("B alone", "2nd half", error(rel, stamps_b, poses_b, start), 0.0))
     t = time.perf_counter()
     c = continue_scans(work / "A", second)
     rows.append(
@@ -105,6 +116,8 @@ def main() -> int:
     folder, _ = merge_sessions(session.read(work / "A"), session.read(work / "B"), work / "merged")
     stamps, poses = session.read(folder).trajectory()
     rows.append(("merge", "all", error(rel, stamps, poses), time.perf_counter() - t))
+    for part in ("1st half", "2nd half", "across"):
+        rows.append(("merge", part, error(rel, stamps, poses, start, part), 0.0))
     print(f"{'case':10s} {'relations':9s} {'rel m':>8s} {'rel deg':>8s} {'n':>5s} {'time s':>7s}")
     for name, part, (m, deg, n), sec in rows:
         print(f"{name:10s} {part:9s} {m:8.4f} {deg:8.3f} {n:5d} {sec:7.1f}")
