@@ -206,12 +206,13 @@ def scan_derived(features: ScanFeatures) -> ScanDerived:
     return got
 
 
+#: A reference's feature geometry and polar profile (None: its points are not one scan).
+RefDerived = tuple[FeatureGeometry, PolarProfile | None]
 #: :func:`reference_derived` results by reference object (identity; dropped with the object).
-_REF_DERIVED: weakref.WeakKeyDictionary[ScanFeatures, tuple[FeatureGeometry, PolarProfile | None]]
-_REF_DERIVED = weakref.WeakKeyDictionary()
+_REF_DERIVED: weakref.WeakKeyDictionary[ScanFeatures, RefDerived] = weakref.WeakKeyDictionary()
 
 
-def reference_derived(reference: ScanFeatures) -> tuple[FeatureGeometry, PolarProfile | None]:
+def reference_derived(reference: ScanFeatures) -> RefDerived:
     """A reference's feature geometry and, when its points are one scan seen from its
     origin, its polar profile (a feature-map reference gathers several nodes' points, whose
     beams cannot be checked): computed once per reference object, as :func:`scan_derived`
