@@ -216,7 +216,18 @@ def reference_derived(reference: ScanFeatures) -> RefDerived:
     """A reference's feature geometry and, when its points are one scan seen from its
     origin, its polar profile (a feature-map reference gathers several nodes' points, whose
     beams cannot be checked): computed once per reference object, as :func:`scan_derived`
-    does for new scans (a fixed map's places are matched by every global placement)."""
+    does for new scans (a fixed map's places are matched by every global placement).
+
+    Args:
+        reference: Features, segments and ``points_xy`` ``(P, 2)`` float64 (metres) of a
+            scan or a feature-map reference, in the reference frame; never modified after
+            it is built, so the cached values are those a fresh computation gives.
+
+    Returns:
+        ``(geometry, profile)``: the :class:`FeatureGeometry` of its features and the
+        :class:`PolarProfile` of its points up to ``range_max_m`` (None when the points are
+        not one scan in beam order).
+    """
     got = _REF_DERIVED.get(reference)
     if got is None:
         r = reference
