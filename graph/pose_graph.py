@@ -62,7 +62,7 @@ _MISSING_KEY = re.compile(r"key\s+\"?(\d+)\"?.*does not exist")
 
 
 #: Codes of :attr:`PoseGraph.steps`.
-STEP_UPDATE, STEP_DELTA, STEP_BATCH = 0, 1, 2
+STEP_UPDATE, STEP_DELTA, STEP_BATCH, STEP_BATCH_GAUSSIAN_LOOPS = 0, 1, 2, 3
 
 
 class FactorKind(str, Enum):
@@ -363,7 +363,9 @@ class PoseGraph:
         self._served = None
         return stats
 
-    def optimize_batch(self, max_iterations: int = 100) -> BatchStats:
+    def optimize_batch(
+        self, max_iterations: int = 100, *, loop_closure_kernels: bool = True
+    ) -> BatchStats:
         """Levenberg–Marquardt over every factor ever added, from the current estimate.
 
         Buffered nodes and factors take part (buffered nodes start at their initial value)
@@ -378,6 +380,10 @@ class PoseGraph:
 
         Args:
             max_iterations: iteration cap; hitting it is logged as a warning.
+            loop_closure_kernels: ``False``: loop-closure factors enter this solve with their
+                Gaussian noise model, their robust kernel left out (every other factor, and
+                iSAM2 rebuilt afterwards, keeps its kernel). A run's final refinement over
+                the loop closures it accepted (``iceg.slam.Slam.finish``).
 
         Returns:
             Iterations and errors (:class:`BatchStats`).
@@ -389,8 +395,9 @@ class PoseGraph:
             raise GraphError("optimize_batch: the graph has no node")
         self._check_connected(self._pending_nodes)
         values = self._current_values()
-        self._steps.append((STEP_BATCH, int(max_iterations), len(self._records)))
-        graph = self._full_graph()
+        code = STEP_BATCH if loop_closure_kernels else STEP_BATCH_GAUSSIAN_LOOPS
+        self._steps.append((code, int(max_iterations), len(self._records)))
+        graph = self._full_graph(gaussian_loops=not loop_closure_kernels)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(int(max_iterations))
         params.setRelativeErrorTol(self.config.batch_relative_error_tol)
@@ -672,7 +679,8 @@ class PoseGraph:
         when the graph held ``nodes`` nodes and ``factors`` factors; ``(STEP_DELTA, 0, 0)``
         the first read of an iSAM2 estimate after an update (gtsam solves its delta lazily,
         so when it is read changes later floating point); ``(STEP_BATCH, max_iterations,
-        factors)`` an :meth:`optimize_batch`. Replaying the same node and factor additions
+        factors)`` an :meth:`optimize_batch` (``STEP_BATCH_GAUSSIAN_LOOPS`` one without the
+        loop closures' kernels). Replaying the same node and factor additions
         with these calls (``iceg.session.replay_graph``) gives the same iSAM2 state bit for bit.
         """
         return tuple(self._steps)
@@ -728,9 +736,16 @@ class PoseGraph:
             self._factors_of[j].append(index)
         return record
 
-    def _full_graph(self) -> gtsam.NonlinearFactorGraph:
+    def _full_graph(self, gaussian_loops: bool = False) -> gtsam.NonlinearFactorGraph:
+        """Every factor; with ``gaussian_loops`` the robust loop closures as Gaussian ones."""
         graph = gtsam.NonlinearFactorGraph()
-        for factor in self._gfactors:
+        for record, factor in zip(self._records, self._gfactors, strict=True):
+            loop = record.kind is FactorKind.LOOP_CLOSURE and record.j is not None
+            if gaussian_loops and loop and record.robust is not None:
+                model = self._gaussian(np.asarray(record.cov), "loop closure")
+                factor = gtsam.BetweenFactorPose2(
+                    record.i, record.j, _pose2(record.measured), model
+                )
             graph.add(factor)
         return graph
 

@@ -96,7 +96,8 @@ class SlamConfig(BaseModel):
     )
     batch_refinement: bool = Field(
         default=True,
-        description="Run batch Levenberg–Marquardt over the whole graph after the run.",
+        description="Run batch Levenberg–Marquardt over the whole graph after the run, with "
+        "the accepted loop closures as Gaussian factors (no robust kernel).",
     )
     workers: int = Field(
         default=0,

@@ -103,7 +103,9 @@ def edit_and_optimize(
     add: Sequence[ClosureEdit] = (),
     max_iterations: int = 100,
 ) -> dict[str, np.ndarray]:
-    """The session's arrays after removing factors, adding closures and re-optimizing.
+    """The session's arrays after removing factors, adding closures and re-optimizing (batch
+    Levenberg–Marquardt with the loop closures as Gaussian factors, as a run's final
+    refinement: :meth:`graph.PoseGraph.optimize_batch` ``loop_closure_kernels=False``).
 
     Args:
         session: the session (:func:`iceg.session.read`).
@@ -125,7 +127,7 @@ def edit_and_optimize(
     for edit in add:
         a = _append_closure(a, _closure_row(session, a, edit))
     graph = rebuild_graph(a, session.config.graph)
-    stats = graph.optimize_batch(max_iterations)
+    stats = graph.optimize_batch(max_iterations, loop_closure_kernels=False)  # as a run ends
     logger.info("re-optimized: error %.6g -> %.6g", stats.error_before, stats.error_after)
     corr = {k: float(v) for k, v in enumerate(a["g_correlation"]) if np.isfinite(v)}
     a.update(graph_arrays(graph, corr, a["g_origin"].tolist()))

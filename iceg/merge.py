@@ -206,7 +206,7 @@ def _optimized(
     """The arrays with the graph rebuilt at their estimates and batch-refined (and the
     graph, for its marginals)."""
     graph = rebuild_graph(out, a.config.graph)
-    graph.optimize_batch(max_iterations)
+    graph.optimize_batch(max_iterations, loop_closure_kernels=False)
     corr = {k: float(v) for k, v in enumerate(out["g_correlation"]) if np.isfinite(v)}
     return {**out, **graph_arrays(graph, corr, out["g_origin"].tolist())}, graph
 

@@ -61,7 +61,7 @@ from numpy.typing import NDArray
 from frontends import LaserScan, open_log
 from graph import FactorKind, FactorRecord, GraphConfig, PoseGraph
 from graph.g2o import write_g2o_file
-from graph.pose_graph import STEP_BATCH, STEP_DELTA, STEP_UPDATE
+from graph.pose_graph import STEP_BATCH, STEP_BATCH_GAUSSIAN_LOOPS, STEP_DELTA, STEP_UPDATE
 from iceg.config import IcegConfig, config_from_yaml
 from iceg.feature_map import FeatureMap
 from iceg.loop_closure import LoopClosure, LoopClosureStats
@@ -200,7 +200,7 @@ def replay_graph(
     steps = [tuple(int(v) for v in s) for s in a["g_steps"]]
     if skip_final_batch:
         last = max((k for k, s in enumerate(steps) if s[0] != STEP_DELTA), default=-1)
-        if last >= 0 and steps[last][0] == STEP_BATCH:
+        if last >= 0 and steps[last][0] in (STEP_BATCH, STEP_BATCH_GAUSSIAN_LOOPS):
             steps = steps[:last]
     ids, init, recs = a["g_node_ids"], a["g_node_initial"], factor_records(a)
     graph = PoseGraph(config, auto_prior=False)
@@ -220,7 +220,7 @@ def replay_graph(
         if code == STEP_UPDATE:
             graph.update()
         else:
-            graph.optimize_batch(n_a)
+            graph.optimize_batch(n_a, loop_closure_kernels=code == STEP_BATCH)
     return graph
 
 

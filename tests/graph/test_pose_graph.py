@@ -8,9 +8,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.optimize import least_squares
+from scipy.optimize import brentq, least_squares
 
 from graph import FactorKind, GraphConfig, PoseGraph
+from graph.pose_graph import STEP_BATCH, STEP_BATCH_GAUSSIAN_LOOPS
 from iceg_common.errors import GraphError
 from iceg_common.se2 import between, compose, wrap_angle
 
@@ -286,3 +287,35 @@ def test_cached_estimates_follow_every_change_and_are_copies() -> None:
     g.update()
     check()
     assert g.estimates()[0].tolist() == list(range(7))
+
+
+def test_batch_without_loop_closure_kernels_solves_the_gaussian_problem() -> None:
+    # Node 0 fixed at the origin by the prior; node 1 measured by odometry z1 and by a loop
+    # closure z2 with a Cauchy kernel (k = 1) 30 sigmas away. The relative heading is pinned
+    # to 0 (variance 1e-12), so without kernels the optimum is the information-weighted mean
+    # of the translations (hand-computable); with the kernel, x balances the odometry's pull
+    # (x - 1) / 0.1^2 against the Cauchy closure's r / (1 + r^2) / 0.01, r = (1.3 - x) / 0.01
+    # (a scalar root, found by brentq): the closure is all but ignored.
+    s1 = np.diag([0.01, 0.01, 1e-12])
+    s2 = np.diag([1e-4, 1e-4, 1e-12])
+    z1, z2 = np.array([1.0, 0.0, 0.0]), np.array([1.3, 0.0, 0.0])
+    g = PoseGraph()
+    g.add_node(0, [0.0, 0.0, 0.0])
+    g.add_node(1, z1)
+    g.add_between(0, 1, z1, s1, kind="odometry")
+    g.add_between(0, 1, z2, s2, kind="loop_closure", robust="cauchy", robust_k=1.0)
+    g.optimize_batch()
+    x = brentq(
+        lambda x: (x - 1.0) / 0.01 - (1.3 - x) / 1e-2 / (1.0 + ((1.3 - x) / 0.01) ** 2) / 0.01,
+        1.0,
+        1.3,
+    )
+    assert x < 1.05
+    np.testing.assert_allclose(g.estimate(1), [x, 0.0, 0.0], atol=1e-6)
+
+    g.optimize_batch(loop_closure_kernels=False)
+    w1, w2 = np.linalg.inv(s1[:2, :2]), np.linalg.inv(s2[:2, :2])
+    t = np.linalg.solve(w1 + w2, w1 @ z1[:2] + w2 @ z2[:2])
+    np.testing.assert_allclose(g.estimate(1), [*t, 0.0], atol=1e-6)
+    assert [s[0] for s in g.steps][-2:] == [STEP_BATCH, STEP_BATCH_GAUSSIAN_LOOPS]
+    assert g.factors[-1].robust == "cauchy"  # the factor itself keeps its kernel
