@@ -740,12 +740,11 @@ class PoseGraph:
         """Every factor; with ``gaussian_loops`` the robust loop closures as Gaussian ones."""
         graph = gtsam.NonlinearFactorGraph()
         for record, factor in zip(self._records, self._gfactors, strict=True):
-            loop = record.kind is FactorKind.LOOP_CLOSURE and record.j is not None
-            if gaussian_loops and loop and record.robust is not None:
+            j = record.j
+            loop = record.kind is FactorKind.LOOP_CLOSURE and record.robust is not None
+            if gaussian_loops and loop and j is not None:
                 model = self._gaussian(np.asarray(record.cov), "loop closure")
-                factor = gtsam.BetweenFactorPose2(
-                    record.i, record.j, _pose2(record.measured), model
-                )
+                factor = gtsam.BetweenFactorPose2(record.i, j, _pose2(record.measured), model)
             graph.add(factor)
         return graph
 
