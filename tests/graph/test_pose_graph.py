@@ -305,11 +305,12 @@ def test_batch_without_loop_closure_kernels_solves_the_gaussian_problem() -> Non
     g.add_between(0, 1, z1, s1, kind="odometry")
     g.add_between(0, 1, z2, s2, kind="loop_closure", robust="cauchy", robust_k=1.0)
     g.optimize_batch()
-    x = brentq(
-        lambda x: (x - 1.0) / 0.01 - (1.3 - x) / 1e-2 / (1.0 + ((1.3 - x) / 0.01) ** 2) / 0.01,
-        1.0,
-        1.3,
-    )
+
+    def balance(x: float) -> float:
+        r = (z2[0] - x) / 0.01  # the closure's residual in its own sigmas
+        return (x - z1[0]) / s1[0, 0] - r / (1.0 + r * r) / 0.01
+
+    x = brentq(balance, z1[0], z2[0])
     assert x < 1.05
     np.testing.assert_allclose(g.estimate(1), [x, 0.0, 0.0], atol=1e-6)
 
