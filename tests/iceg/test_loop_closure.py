@@ -252,7 +252,7 @@ def test_final_estimate_satisfies_the_accepted_closures_on_aces() -> None:
     # scale, 0.4 deg/m heading drift, seed 0; the benchmark's case). Truth: those corrected
     # poses. Every accepted closure is within 0.1 m / 1.5 deg of the reference (they are
     # right), and the final estimate satisfies each within 0.1 m / 1 deg: the final
-    # refinement gives them full weight (with their Cauchy kernels it ended 0.9-1.1 m from
+    # refinement gives them full weight (with their Cauchy kernels it ended 0.8-1.1 m from
     # four of them). ATE 0.21 m (0.62 m before).
     scans = list(open_log(shared_file("aces/aces-corrected.log.gz")))
     model = OdometryModel.biased(scale_error=0.01, heading_drift_deg_per_m=0.4)
