@@ -12,6 +12,8 @@ from frontends.simulate import office_world, simulate, simulate_scenario
 from iceg import session
 from iceg.cli import app
 from iceg.evaluation import position_errors
+from iceg.loop_closure import LoopClosureConfig
+from iceg.merge import MergeSettings, densify_bounds
 from iceg.slam import Slam
 from iceg_common import se2
 
@@ -66,3 +68,22 @@ def test_merge_refuses_another_building(sessions, tmp_path) -> None:  # type: ig
     r = CliRunner().invoke(app, ["merge", str(a), str(other), "--out", str(tmp_path / "C")])
     assert r.exit_code == 1
     assert "same building" in r.output
+
+
+def test_densify_bounds_grow_with_the_drift_since_the_nearest_closure() -> None:
+    # Hand-computed: defaults densify 1.0 m / 15 deg, drift 0.05 per metre of path, loop
+    # closure 3 sigmas capped at its search radius.
+    st = MergeSettings()
+    lc = LoopClosureConfig()
+    tight = np.diag([1e-4, 4e-4, np.radians(1.0) ** 2])  # sigmas 1 cm, 2 cm, 1 deg
+    near = densify_bounds(tight, 4.0, st, lc)  # drift 0.2 m: the base bounds hold
+    assert near.max_translation_m == pytest.approx(st.densify_translation_m)
+    assert near.max_rotation_rad == pytest.approx(np.radians(st.densify_rotation_deg))
+    far = densify_bounds(tight, 44.0, st, lc)  # 44 m of path since a closure: 2.2 m
+    assert far.max_translation_m == pytest.approx(0.05 * 44.0)
+    loose = np.diag([0.9**2, 0.1**2, np.radians(8.0) ** 2])  # the marginal's 3 sigmas rule
+    wide = densify_bounds(loose, 4.0, st, lc)
+    assert wide.max_translation_m == pytest.approx(lc.search_n_sigma * 0.9)
+    assert wide.max_rotation_rad == pytest.approx(np.radians(lc.search_n_sigma * 8.0))
+    lost = densify_bounds(tight, 1e4, st, lc)
+    assert lost.max_translation_m == pytest.approx(lc.max_search_radius_m)
