@@ -63,8 +63,8 @@ class MergeSettings:
         min_closures: least number of agreeing closures.
         densify_*: the local closures added after the first alignment (every this many B
             nodes within this radius of A's nodes; least bounds of their matches, grown
-            with the node's marginal; rounds of search and refinement while closures are
-            found).
+            with the node's marginal and B's drift, :func:`densify_bounds`; rounds of
+            search and refinement while closures are found).
     """
 
     query_spacing_m: float = 2.0
