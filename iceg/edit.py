@@ -22,6 +22,7 @@ from graph import FactorKind
 from iceg.features import extract
 from iceg.matching import IceMatcher, MatchBounds
 from iceg.session import (
+    FACTOR_ARRAYS,
     FACTOR_KINDS,
     ORIGIN_USER,
     ROBUST_KERNELS,
@@ -41,18 +42,6 @@ FloatArray = NDArray[np.float64]
 #: Default standard deviations of a closure given with its pose (metres, degrees).
 DEFAULT_CLOSURE_SIGMA_M = 0.05
 DEFAULT_CLOSURE_SIGMA_DEG = 1.0
-
-#: The factor-table arrays (one row per factor) that removal and addition edit.
-_FACTOR_KEYS = (
-    "g_kind",
-    "g_ij",
-    "g_measured",
-    "g_cov",
-    "g_robust",
-    "g_robust_k",
-    "g_origin",
-    "g_correlation",
-)
 
 
 @dataclass(frozen=True)
@@ -143,7 +132,7 @@ def _remove_factors(a: dict[str, np.ndarray], remove: Sequence[int]) -> dict[str
             raise SessionError(f"--remove-factor {f}: it is the prior that anchors the map")
     keep = np.ones(n, dtype=bool)
     keep[list(remove)] = False
-    return {**a, **{k: a[k][keep] for k in _FACTOR_KEYS}}
+    return {**a, **{k: a[k][keep] for k in FACTOR_ARRAYS}}
 
 
 def _closure_row(
@@ -188,7 +177,7 @@ def _row(edit: ClosureEdit, z: FloatArray, cov: FloatArray, corr: float) -> dict
 
 
 def _append_closure(a: dict[str, np.ndarray], row: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    return {**a, **{k: np.concatenate([a[k], row[k].astype(a[k].dtype)]) for k in _FACTOR_KEYS}}
+    return {**a, **{k: np.concatenate([a[k], row[k].astype(a[k].dtype)]) for k in FACTOR_ARRAYS}}
 
 
 def write_edited(

@@ -393,8 +393,13 @@ def _slam_arrays(slam: Slam) -> dict[str, np.ndarray]:
     }
 
 
-def _slam_state(session: Session, scans: list[LaserScan]) -> SlamState:
-    a = session.arrays
+def _factor_prefix(a: Mapping[str, np.ndarray], n: int) -> dict[str, np.ndarray]:
+    """The arrays with only the first ``n`` factors: those of the online run when the replay
+    left out the final refinement (whose factors, :meth:`iceg.slam.Slam.finish`, come after)."""
+    return {k: v[:n] if k in FACTOR_ARRAYS else v for k, v in a.items()}
+
+
+def _slam_state(session: Session, a: Mapping[str, np.ndarray], scans: list[LaserScan]) -> SlamState:
     corr = a["g_correlation"]
     return SlamState(
         scans=ScanStore(scans),
@@ -541,6 +546,18 @@ def read(path: str | os.PathLike[str]) -> Session:
     return Session(folder, manifest, config, arrays)
 
 
+#: The factor table's arrays (one row per factor, in factor order).
+FACTOR_ARRAYS = (
+    "g_kind",
+    "g_ij",
+    "g_measured",
+    "g_cov",
+    "g_robust",
+    "g_robust_k",
+    "g_origin",
+    "g_correlation",
+)
+
 #: Arrays :func:`load` needs besides the feature map's.
 _REQUIRED = (
     "g_node_ids",
@@ -617,7 +634,7 @@ def load(path: str | os.PathLike[str], *, scans: Sequence[LaserScan] | None = No
         session.config,
         graph,
         session.feature_map(),
-        _slam_state(session, loaded),
+        _slam_state(session, _factor_prefix(a, len(graph.factors)), loaded),
         stats,
     )
     slam.loop_closer.pending = _pending(a)

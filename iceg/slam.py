@@ -121,6 +121,7 @@ class _LocalMatch:
     reference: MapReference
     result: MatchResult
     last_pose: FloatArray  # (3,) estimate of the last node when the reference was built
+    ice_failure: str = ""  # why the ICE match failed (reason category; "": it succeeded)
 
 
 @dataclass
@@ -336,7 +337,10 @@ class Slam:
         """A keyframe: features, local match, node and factors, iSAM2, loop closure, map."""
         feats = self._features(scan, features)
         t0 = self.timer.add("features", t0)
-        local = self._match_local(feats, motion, last)
+        local = self._match_local(feats, motion, last, self._s.segment_start)
+        if local.ice_failure:
+            counts = self._s.point_fallbacks if local.result.success else self._s.match_failures
+            counts[local.ice_failure] += 1
         self._calibrate_odometry(local, motion)
         t0 = self.timer.add("matching", t0)
         new_id = self._add_keyframe(scan, motion, local, last)
@@ -410,11 +414,14 @@ class Slam:
         )
         return _Motion(odom, delta, cov, is_keyframe, raw=(raw, raw_cov))
 
-    def _match_local(self, feats: ScanFeatures, motion: _Motion, last: int) -> _LocalMatch:
-        """ICE match against the landmarks of the ``local_map_nodes`` most recent nodes; where
-        it fails, the point match (:meth:`_point_match`) when ``slam.point_fallback``."""
+    def _match_local(
+        self, feats: ScanFeatures, motion: _Motion, last: int, log_start: int
+    ) -> _LocalMatch:
+        """ICE match against the landmarks of the ``local_map_nodes`` nodes up to ``last``
+        (none before ``log_start``, the first node of their log); where it fails, the point
+        match (:meth:`_point_match`) when ``slam.point_fallback``."""
         cfg = self.config.slam
-        first = max(self._s.segment_start, last - cfg.local_map_nodes + 1)
+        first = max(log_start, last - cfg.local_map_nodes + 1)
         recent = np.arange(first, last + 1, dtype=np.int64)
         ids, poses = self.graph.estimates_of(self.feature_map.reference_pose_nodes(recent))
         last_pose = poses[np.searchsorted(ids, last)]
@@ -428,13 +435,12 @@ class Slam:
         bounds = MatchBounds.local(cfg.match_max_translation_m, cfg.match_max_rotation_deg)
         result = self.matcher.match(feats, reference.features, motion.delta, bounds)
         if not result.success:
-            # Count by the reason's category (the text before the first colon).
+            # Counted by the reason's category (the text before the first colon).
             category = (result.reason or _UNKNOWN_REASON).split(":")[0]
             fallback = self._point_match(feats, motion, bounds, recent)
             if fallback is not None and fallback.success:
-                self._s.point_fallbacks[category] += 1
-                return _LocalMatch(reference, fallback, last_pose)
-            self._s.match_failures[category] += 1
+                return _LocalMatch(reference, fallback, last_pose, category)
+            return _LocalMatch(reference, result, last_pose, category)
         return _LocalMatch(reference, result, last_pose)
 
     def _point_match(
@@ -503,17 +509,28 @@ class Slam:
         )
         self._add_factor(FactorKind.ODOMETRY, last, new_id, motion.delta, motion.cov)
         if result.success:
-            measured = remap_weak_directions(result.pose, result.cov, motion.delta, motion.cov)
-            self._add_factor(
-                FactorKind.SCAN_MATCH,
-                last,
-                new_id,
-                measured,
-                result.cov,
-                result.correlation,
-                robust=self.config.slam.scan_match_kernel,
-            )
+            self._add_scan_match(last, new_id, result, motion.delta, motion.cov)
         return new_id
+
+    def _add_scan_match(
+        self,
+        last: int,
+        node: int,
+        result: MatchResult,
+        odometry: FloatArray,
+        odometry_cov: FloatArray,
+    ) -> None:
+        """The scan-match factor ``last -> node``, remapped to the odometry along directions
+        where it is weaker than odometry and agrees with it."""
+        self._add_factor(
+            FactorKind.SCAN_MATCH,
+            last,
+            node,
+            remap_weak_directions(result.pose, result.cov, odometry, odometry_cov),
+            result.cov,
+            result.correlation,
+            robust=self.config.slam.scan_match_kernel,
+        )
 
     def _close_loops(self, node_id: int, feats: ScanFeatures) -> None:
         """Loop-closure search; accepted closures enter as factors, then iSAM2 updates."""
@@ -618,6 +635,46 @@ class Slam:
 
     # ------------------------------------------------------------------ results
 
+    def _rematch_unmatched_keyframes(self) -> int:
+        """Offline second chance for the keyframes whose local match failed online (part of
+        the final refinement, :meth:`finish`): each is matched again against the same local
+        map (the ``local_map_nodes`` nodes before it, within its log), predicted from the
+        current estimate instead of the odometry alone. Online, the prediction was the
+        odometry from the node before; now the estimate holds every later match and loop
+        closure, so a keyframe that a fast turn's lagging odometry or a stale reading put
+        beyond the bounds can be inside them. A match that agrees with the keyframe's odometry
+        factor (:func:`consistent_with_prediction`: a second chance has no tracking after it
+        to expose a wrong basin) adds the scan-match factor the keyframe would have had. The
+        factors enter the final batch only: iSAM2 is not updated, so a
+        session saved after :meth:`finish` continues from the online state
+        (:func:`iceg.session.load` leaves them out with the final batch).
+
+        Returns:
+            The number of scan-match factors added.
+        """
+        s = self._s
+        odometry = {r.j: r for r in self.graph.factors if r.kind is FactorKind.ODOMETRY}
+        log_start = 0
+        added = 0
+        for node in range(1, len(s.node_odom)):
+            link = odometry.get(node)
+            if link is None or link.i != node - 1:  # the first node of another log
+                log_start = node
+                continue
+            if s.node_matched[node]:
+                continue
+            last = node - 1
+            predicted = se2.between(self.graph.estimate(last), self.graph.estimate(node))
+            motion = _Motion(s.node_odom[node], predicted, link.cov, is_keyframe=True)
+            feats = extract(s.scans[s.node_scan_index[node]], self.config.features)
+            local = self._match_local(feats, motion, last, log_start)
+            if local.result.success and consistent_with_prediction(
+                local.result, link.measured, link.cov
+            ):
+                self._add_scan_match(last, node, local.result, link.measured, link.cov)
+                added += 1
+        return added
+
     def trajectory(self) -> tuple[FloatArray, FloatArray]:
         """Current estimate of every processed scan: ``(stamps_s (N,), poses (N, 3))``.
 
@@ -643,6 +700,9 @@ class Slam:
             return self._result
         t0 = time.perf_counter()
         if self.config.slam.batch_refinement and self._s.node_odom:
+            added = self._rematch_unmatched_keyframes()
+            t0 = self.timer.add("rematch", t0)
+            logger.info("finish: %d keyframes without a match online matched now", added)
             # The final estimate satisfies every closure the run accepted: their kernels
             # guarded the online estimate, but a kernel a few match sigmas wide all but
             # ignores a true closure against a drifted chain (docs/design.md, "Loop closure").

@@ -58,6 +58,7 @@ REASON_DEGENERATE = "degenerate"
 REASON_INCONSISTENT = "inconsistent with free space"
 REASON_AMBIGUOUS = "ambiguous"
 REASON_OUT_OF_BOUNDS = "outside the bounds"
+REASON_WEAK_CLUSTER = "weak cluster"
 
 #: Ranking (fitness) of a refined hypothesis: correlation + point overlap, plus this per
 #: feature pair up to ``FITNESS_MAX_PAIRS``, minus this times the see-through fraction.
@@ -468,13 +469,23 @@ class IceMatcher:
     ) -> list[_Candidate]:
         """Refine the chosen starts (docs/design.md step 8) and check each result (step 10). A start
         next to an already refined pose is skipped (it would converge to it again), a
-        result equal to an earlier one dropped; a bounded match stops at the first
-        hypothesis that passes (rivals come from the bounds' small neighbourhood only)."""
+        result equal to an earlier one dropped.
+
+        A bounded match stops at the first hypothesis that passes (rivals come from the
+        bounds' small neighbourhood only) if that hypothesis is the prediction's own basin or
+        carries the evidence a global match needs (:meth:`_global_evidence`). A weaker
+        cluster that passes first (one feature pair, or a fit most of the scan disagrees
+        with) is no reason to leave the basin the odometry predicts unexplored: the
+        prediction's start is refined too, and where it passes it is the answer
+        (docs/design.md step 10, "A weak cluster does not overrule the prediction")."""
         problem = self._refine_problem(ctx)
         va = ctx.config.validation
         near_d, near_a = va.ambiguity_distance_m, math.radians(va.ambiguity_angle_deg)
         cands: list[_Candidate] = []
+        weak: list[_Candidate] = []  # passing clusters without global evidence
         for k in chosen:
+            if weak and not starts.from_prediction[k]:
+                continue
             if any(_same_pose(starts.poses[k], o.refined.pose, near_d, near_a) for o in cands):
                 continue
             i0 = np.flatnonzero(corr0.match[k] >= 0)
@@ -490,9 +501,28 @@ class IceMatcher:
             )
             cand.failure = self._validation(ctx, cand)
             cands.append(cand)
-            if not ctx.strict and not cand.failure:
+            if ctx.strict or cand.failure:
+                continue
+            if cand.from_prediction:
+                for other in weak:
+                    other.failure = f"{REASON_WEAK_CLUSTER}: the prediction's basin passes too"
+                    other.rival = False
                 break
+            if self._global_evidence(ctx, cand) or not starts.from_prediction.any():
+                break
+            weak.append(cand)
         return cands
+
+    @staticmethod
+    def _global_evidence(ctx: MatchContext, cand: _Candidate) -> bool:
+        """Whether a refined hypothesis has the feature pairs, correlation and point overlap
+        that a global match requires (``validation.*_global``)."""
+        v = ctx.config.validation
+        return (
+            int(cand.corr.n_matched[0]) >= v.min_matched_features_global
+            and float(cand.corr.score[0]) >= v.min_correlation_global
+            and cand.refined.overlap >= v.min_point_overlap_global
+        )
 
     def _refine_problem(self, ctx: MatchContext) -> RefineProblem:
         """What the refinements of this match share: the new scan's points on its segments

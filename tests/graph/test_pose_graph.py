@@ -289,6 +289,30 @@ def test_cached_estimates_follow_every_change_and_are_copies() -> None:
     assert g.estimates()[0].tolist() == list(range(7))
 
 
+def test_huber_scan_match_factor_pulls_a_bounded_amount() -> None:
+    # The slam.scan_match_kernel mechanism: accurate odometry z1 (sigma 0.01 m) and a wrong
+    # scan match z2 0.3 m away (sigma 0.05 m, 6 sigmas), the relative heading pinned to 0.
+    # Gaussian: the information-weighted mean, x = (z1 / 0.01^2 + z2 / 0.05^2) / (1 / 0.01^2
+    # + 1 / 0.05^2) = 1.01154. Huber (k = 1.345): where the match's residual r = (z2 - x) /
+    # 0.05 exceeds k, its pull on x is constant, k / 0.05, so (x - z1) / 0.01^2 = k / 0.05
+    # and x = z1 + k 0.01^2 / 0.05 = 1.00269 (r = 5.9 > k): a quarter of the Gaussian pull.
+    s1 = np.diag([1e-4, 1e-4, 1e-12])
+    s2 = np.diag([0.05**2, 0.05**2, 1e-12])
+    z1, z2 = np.array([1.0, 0.0, 0.0]), np.array([1.3, 0.0, 0.0])
+    x = {}
+    for robust in (None, "huber"):
+        g = PoseGraph()
+        g.add_node(0, [0.0, 0.0, 0.0])
+        g.add_node(1, z1)
+        g.add_between(0, 1, z1, s1, kind="odometry")
+        g.add_between(0, 1, z2, s2, kind=FactorKind.SCAN_MATCH, robust=robust)
+        g.optimize_batch()
+        x[robust] = g.estimate(1)
+    gaussian = (z1[0] / s1[0, 0] + z2[0] / s2[0, 0]) / (1.0 / s1[0, 0] + 1.0 / s2[0, 0])
+    np.testing.assert_allclose(x[None], [gaussian, 0.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(x["huber"], [z1[0] + 1.345 * s1[0, 0] / 0.05, 0.0, 0.0], atol=1e-6)
+
+
 def test_batch_without_loop_closure_kernels_solves_the_gaussian_problem() -> None:
     # Node 0 fixed at the origin by the prior; node 1 measured by odometry z1 and by a loop
     # closure z2 with a Cauchy kernel (k = 1) 30 sigmas away. The relative heading is pinned

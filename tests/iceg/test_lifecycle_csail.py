@@ -1,8 +1,9 @@
 """Acceptance on MIT CSAIL (slow): split runs bit for bit; ``--continue`` and ``localize`` of
 the second half against a session of the first within 10 % of the whole run's relation error
 on the second half; localization from a wrong initial pose; a log of another building (ACES)
-refused. The whole run (`iceg run`, the session-wide ``csail_run`` fixture) and the first-half
-session are computed once."""
+refused; the merge of the two halves recorded as separate sessions within 10 % of the whole
+run's relation error. The whole run (`iceg run`, the session-wide ``csail_run`` fixture) and
+the first-half session are computed once."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from iceg import session
 from iceg.continuation import continue_scans
 from iceg.evaluation import relation_errors
 from iceg.localize import Status, fixed_map_of_session, localize_scans
+from iceg.merge import merge_sessions
 from iceg.slam import Slam
 from iceg_common import se2
 from iceg_common.errors import SessionError
@@ -126,3 +128,21 @@ def test_csail_localize_from_a_wrong_initial_pose(csail, localized) -> None:  # 
     assert np.all(r.status > Status.LOST)
     d = np.hypot(*(r.poses[:, :2] - placed[:100, :2]).T)
     assert np.median(d) < 0.15  # the same placement, within the tracking precision
+
+
+def test_csail_merge_of_the_halves(csail, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """Issue 15: the second half recorded as its own session (own odometry frame), merged
+    with the first half's: relation error over all relations within 10 % of the whole run."""
+    _, rel, _, whole_tum, folder, second, _ = csail
+    b = Slam()
+    for scan in second:
+        b.process(scan)
+    b.finish()
+    session.save(b, tmp_path / "B")
+    merged, _ = merge_sessions(session.read(folder), session.read(tmp_path / "B"), tmp_path / "C")
+    stamps, poses = session.read(merged).trajectory()
+    whole, _ = relation_errors(*read_tum(whole_tum), rel.stamps_s, rel.deltas, 1e-3)
+    got, _ = relation_errors(stamps, poses, rel.stamps_s, rel.deltas, 1e-3)
+    assert got.n_matched == whole.n_matched == len(rel.deltas)
+    assert got.trans_mean_m <= 1.1 * whole.trans_mean_m
+    assert got.rot_mean_deg <= 1.1 * whole.rot_mean_deg
