@@ -599,7 +599,7 @@ def localize(
 def merge(
     session_a: Annotated[Path, typer.Argument(metavar="A", help="First session (kept fixed).")],
     session_b: Annotated[Path, typer.Argument(metavar="B", help="Session merged into A.")],
-    out: Annotated[Path, typer.Option(help="Output folder (session/ and trajectory.tum).")],
+    out: Annotated[Path, typer.Option(help="Output folder (session/, trajectory.tum, map files).")],
     relations: Annotated[
         Path | None, typer.Option(help="Score the merged trajectory with a .relations file.")
     ] = None,

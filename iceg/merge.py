@@ -424,8 +424,10 @@ def _add_closures(
 def merge_sessions(
     a: Session, b: Session, out: str | Path, settings: MergeSettings | None = None
 ) -> tuple[Path, list[InterClosure]]:
-    """Merge B into A and write the merged session into ``out/session`` (with
-    ``trajectory.tum`` beside it); A's configuration is kept.
+    """Merge B into A and write the merged session into ``out/session``, with
+    ``trajectory.tum`` and the merged map beside it (``map.pgm``/``map.yaml`` for
+    map_server and ``map.png``, rendered from both sessions' scans along the merged
+    trajectory, :func:`write_merged_map`); A's configuration is kept.
 
     Raises:
         SessionError: no consistent inter-session closures, or unreadable scans.
@@ -445,4 +447,32 @@ def merge_sessions(
     write_folder(session_dir, arrays, a.config, logs, extra, edited=True)
     merged = Session(session_dir, {"logs": logs}, a.config, arrays)
     write_tum(folder / "trajectory.tum", *merged.trajectory())
+    write_merged_map(merged, folder)
     return folder, closures
+
+
+def write_merged_map(merged: Session, folder: Path) -> bool:
+    """Render the occupancy grid of every scan of ``merged`` along its trajectory and write
+    ``map.pgm``, ``map.yaml`` and ``map.png`` (trajectory drawn over it) into ``folder``,
+    each atomically. A map that cannot be rendered (too many cells) is a warning, not a
+    failure: the merged session is already written.
+
+    Returns:
+        Whether the map was written.
+
+    Raises:
+        SessionError: the sessions' scans cannot be re-read from their logs.
+    """
+    from iceg.grid import render_tiled, write_map_server, write_png
+    from iceg.session import read_scans
+    from iceg_common.errors import GridError
+
+    _, poses = merged.trajectory()
+    try:
+        grid = render_tiled(read_scans(merged), poses, merged.config.grid)
+    except GridError as exc:
+        logger.warning("merge: no map written: %s", exc)
+        return False
+    write_map_server(grid, folder / "map")
+    write_png(grid, folder / "map.png", trajectory=poses)
+    return True

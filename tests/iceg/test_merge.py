@@ -6,6 +6,8 @@ import dataclasses
 
 import numpy as np
 import pytest
+import yaml
+from PIL import Image
 from typer.testing import CliRunner
 
 from frontends.simulate import office_world, simulate, simulate_scenario
@@ -60,6 +62,20 @@ def test_merge_links_the_sessions_in_one_frame(sessions) -> None:  # type: ignor
     assert position_errors(poses, truth, align=False).max_m < 0.06
     slam = session.load(root / "C")  # the merged session continues
     assert slam.graph.n_nodes == merged.manifest["nodes"]
+    # One map of both sessions: its occupied cells lie on the world's walls (truth frame).
+    assert (root / "C" / "map.png").is_file()
+    meta = yaml.safe_load((root / "C" / "map.yaml").read_text())
+    pgm = np.asarray(Image.open(root / "C" / meta["image"]))
+    rows, cols = np.nonzero(pgm == 0)  # occupied; rows top-down
+    res, (x0, y0, _) = meta["resolution"], meta["origin"]
+    cells = np.column_stack([x0 + (cols + 0.5) * res, y0 + (pgm.shape[0] - rows - 0.5) * res])
+    assert cells.shape[0] > 1000
+    walls = office_world().walls
+    a0, e = walls[:, 0], walls[:, 1] - walls[:, 0]
+    t = np.einsum("pwk,wk->pw", cells[:, None] - a0[None], e) / (e * e).sum(1)
+    nearest = a0[None] + np.clip(t, 0.0, 1.0)[..., None] * e[None]
+    off_wall = np.linalg.norm(cells[:, None] - nearest, axis=2).min(axis=1)
+    assert np.quantile(off_wall, 0.99) < 2.0 * res
 
 
 def test_merge_refuses_another_building(sessions, tmp_path) -> None:  # type: ignore[no-untyped-def]
