@@ -71,7 +71,7 @@ def _instrument() -> Iterator[dict[str, list[float]]]:
     orig_local = slam_mod.Slam._match_local
     orig_process = slam_mod.Slam.process
     orig_finish = slam_mod.Slam.finish
-    state = {"local": False}
+    state = {"local": False, "finishing": False}
     # CPU time of this process per stage: every stage's t0 is the start of process() /
     # finish() or the previous add() of the same call, so the CPU clock is marked there.
     cpu_mark = [time.process_time()]
@@ -89,8 +89,14 @@ def _instrument() -> Iterator[dict[str, list[float]]]:
         return orig_process(self, *args, **kwargs)
 
     def finish(self: Any, *args: Any, **kwargs: Any) -> Any:
+        # The second chance for keyframes unmatched online (Slam.finish) matches again: its
+        # references belong to the finish, not to the keyframes' local matches.
         cpu_mark[0] = time.process_time()
-        return orig_finish(self, *args, **kwargs)
+        state["finishing"] = True
+        try:
+            return orig_finish(self, *args, **kwargs)
+        finally:
+            state["finishing"] = False
 
     def reference(self: Any, *args: Any, **kwargs: Any) -> Any:
         t0, c0 = time.perf_counter(), time.process_time()
@@ -101,7 +107,7 @@ def _instrument() -> Iterator[dict[str, list[float]]]:
         return out
 
     def match_local(self: Any, *args: Any, **kwargs: Any) -> Any:
-        state["local"] = True
+        state["local"] = not state["finishing"]
         try:
             return orig_local(self, *args, **kwargs)
         finally:
