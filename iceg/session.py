@@ -562,13 +562,7 @@ FACTOR_ARRAYS = (
 _REQUIRED = (
     "g_node_ids",
     "g_node_initial",
-    "g_kind",
-    "g_ij",
-    "g_measured",
-    "g_cov",
-    "g_robust",
-    "g_robust_k",
-    "g_correlation",
+    *(name for name in FACTOR_ARRAYS if name != "g_origin"),  # load does not read g_origin
     "g_steps",
     "s_stamp",
     "s_node",
