@@ -637,9 +637,10 @@ class Slam:
 
     def _rematch_unmatched_keyframes(self) -> int:
         """Offline second chance for the keyframes whose local match failed online (part of
-        the final refinement, :meth:`finish`): each is matched again against the same local
-        map (the ``local_map_nodes`` nodes before it, within its log), predicted from the
-        current estimate instead of the odometry alone. Online, the prediction was the
+        the final refinement, :meth:`finish`): each is matched again against the landmarks of
+        the same nodes as online (the ``local_map_nodes`` nodes before it, within its log, as
+        the feature map holds them now), predicted from the current estimate instead of the
+        odometry alone. Online, the prediction was the
         odometry from the node before; now the estimate holds every later match and loop
         closure, so a keyframe that a fast turn's lagging odometry or a stale reading put
         beyond the bounds can be inside them. A match that agrees with the keyframe's odometry

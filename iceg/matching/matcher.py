@@ -477,7 +477,7 @@ class IceMatcher:
         cluster that passes first (one feature pair, or a fit most of the scan disagrees
         with) is no reason to leave the basin the odometry predicts unexplored: the
         prediction's start is refined too, and where it passes it is the answer
-        (docs/design.md step 10, "A weak cluster does not overrule the prediction")."""
+        (docs/design.md step 8, "A weak cluster does not overrule the prediction")."""
         problem = self._refine_problem(ctx)
         va = ctx.config.validation
         near_d, near_a = va.ambiguity_distance_m, math.radians(va.ambiguity_angle_deg)
