@@ -109,13 +109,25 @@ def find_closures(
     st = settings or MergeSettings()
     fixed = fixed_map_of_session(a)
     found = _placements(fixed, b, st)
-    best = _consistent(found, st)
+    best, rival = _consistent(found, st)
     if len(best) < st.min_closures:
         raise SessionError(
             f"{b.path}: only {len(best)} of {len(found)} placements of its scans in {a.path} "
             f"agree (need {st.min_closures}); are the two sessions of the same building?"
         )
+    if len(rival) >= len(best):
+        raise SessionError(
+            f"{b.path}: its placements in {a.path} support two alignments equally "
+            f"({len(best)} placements each, {_offset(best, rival)} apart): the building "
+            "repeats where the sessions overlap; record more overlap between them"
+        )
     return best
+
+
+def _offset(g: list[InterClosure], h: list[InterClosure]) -> str:
+    """How far apart the alignments of two groups are (their first closures'), for messages."""
+    d = se2.between(g[0].transform, h[0].transform)
+    return f"{np.hypot(d[0], d[1]):.1f} m / {np.degrees(abs(d[2])):.0f} deg"
 
 
 def _placements(fixed: FixedMap, b: Session, st: MergeSettings) -> list[InterClosure]:
@@ -138,19 +150,26 @@ def _placements(fixed: FixedMap, b: Session, st: MergeSettings) -> list[InterClo
     return out
 
 
-def _consistent(found: list[InterClosure], st: MergeSettings) -> list[InterClosure]:
+def _consistent(
+    found: list[InterClosure], st: MergeSettings
+) -> tuple[list[InterClosure], list[InterClosure]]:
     """The largest group of closures that agree pairwise with one of them (and with each
-    other): two closures agree when the relative pose of their B nodes in B's map matches
-    that of their placements in A's map, within ``agree_m`` plus ``drift_per_m`` of the
-    distance between them and ``agree_deg`` (B's own drift between the two places is
-    allowed for; pairwise consistency after Olson 2009)."""
-    best: list[InterClosure] = []
+    other), and the largest rival group: one with a member that disagrees with a member of
+    the best, so that the two imply different alignments. Two closures agree when the
+    relative pose of their B nodes in B's map matches that of their placements in A's map,
+    within ``agree_m`` plus ``drift_per_m`` of the distance between them and ``agree_deg``
+    (B's own drift between the two places is allowed for; pairwise consistency after Olson
+    2009). A building that repeats (a mirror-symmetric floor, parallel corridors) gives
+    B's scans placements in A's map that are each unambiguous, because A never saw the true
+    place, and a stretch of them agrees with itself: only a larger group than every rival
+    tells the true alignment from the aliased one."""
+    groups = []
     for c in found:
         group = [o for o in found if _agree(c, o, st)]
-        group = [o for o in group if all(_agree(o, q, st) for q in group)]
-        if len(group) > len(best):
-            best = group
-    return best
+        groups.append([o for o in group if all(_agree(o, q, st) for q in group)])
+    best = max(groups, key=len, default=[])
+    rivals = [g for g in groups if any(not _agree(o, q, st) for o in g for q in best)]
+    return best, max(rivals, key=len, default=[])
 
 
 def _agree(a: InterClosure, b: InterClosure, st: MergeSettings) -> bool:
@@ -272,9 +291,11 @@ def _densify(
                 break
     # The run's loop closer searches without bounds where the local radius is capped; here,
     # as in its global search, such closures enter only as a mutually consistent group
-    # (pairwise consistency of their implied B-to-A corrections, :func:`_consistent`).
-    group = _consistent(wide, st) if len(wide) >= st.min_closures else []
-    if len(group) >= st.min_closures:  # no robust kernel: it would ignore the correction
+    # (pairwise consistency of their implied B-to-A corrections, :func:`_consistent`),
+    # larger than any rival group.
+    group, rival = _consistent(wide, st)
+    if len(group) >= st.min_closures and len(rival) < len(group):
+        # no robust kernel: it would ignore the correction
         found += [dataclasses.replace(c, robust=False) for c in group]
     logger.info(
         "merge: %d local inter-session closures of %d tried (%d of %d unbounded ones agree)",

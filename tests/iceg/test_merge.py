@@ -86,6 +86,21 @@ def test_merge_refuses_another_building(sessions, tmp_path) -> None:  # type: ig
     assert "same building" in r.output
 
 
+def test_merge_refuses_two_equally_supported_alignments(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    # The office world's halves: B drives the corridors A drove, the other way, and the floor
+    # is mirror-symmetric, so B's scans are placed in A's map at their mirror images as
+    # readily as at the truth. Truth (the simulator's poses): two groups of three placements
+    # each agree with themselves and imply alignments 9.5 m apart; the true one has one
+    # placement. Merged by the larger group, the map was 8.25 m ATE off; now it is refused.
+    run = simulate_scenario("office_biased", seed=0)
+    k = len(run.scans) // 2
+    a, b = _session(run.scans[:k], tmp_path / "A"), _session(run.scans[k:], tmp_path / "B")
+    r = CliRunner().invoke(app, ["merge", str(a), str(b), "--out", str(tmp_path / "C")])
+    assert r.exit_code == 1
+    assert "support two alignments equally" in r.output
+    assert not (tmp_path / "C" / "session").exists()
+
+
 def test_densify_bounds_grow_with_the_drift_since_the_nearest_closure() -> None:
     # Hand-computed: defaults densify 1.0 m / 15 deg, drift 0.05 per metre of path, loop
     # closure 3 sigmas capped at its search radius.
