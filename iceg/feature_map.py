@@ -831,6 +831,26 @@ class FeatureMap:
         sel = np.flatnonzero(found)
         return self._lm.take(sel).in_frame(poses[pos[sel]])
 
+    def world_segments(self, node_poses: NodePoses) -> tuple[FloatArray, IntArray]:
+        """Every stored segment (wall) of the nodes that have a pose, in the frame of
+        ``node_poses`` (the map frame of the graph estimates).
+
+        Args:
+            node_poses: ``{node_id: (3,) pose}`` or ``(ids (N,), poses (N, 3))``.
+
+        Returns:
+            ``(endpoints, nodes)``: ``(M, 2, 2)`` float64 endpoints (metres) and ``(M,)``
+            int64 the node that saw each segment.
+
+        Raises:
+            FeatureMapError: ``node_poses`` holds different numbers of ids and poses.
+        """
+        ids, poses = _node_pose_table(node_poses)
+        pos, found = _lookup(ids, self._seg.node)
+        sel = np.flatnonzero(found)
+        endpoints, _, _ = self._seg.take(sel).in_frame(poses[pos[sel]])
+        return endpoints, self._seg.node[sel]
+
     # ------------------------------------------------------------------ reference
     def reference(
         self,

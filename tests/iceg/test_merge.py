@@ -15,7 +15,14 @@ from iceg import session
 from iceg.cli import app
 from iceg.evaluation import position_errors
 from iceg.loop_closure import LoopClosureConfig
-from iceg.merge import MergeSettings, densify_bounds
+from iceg.merge import (
+    MergeSettings,
+    densify_bounds,
+    find_closures,
+    merge_arrays,
+    wall_crossings,
+)
+from iceg.session import Session
 from iceg.slam import Slam
 from iceg_common import se2
 
@@ -98,6 +105,35 @@ def test_merge_refuses_two_equally_supported_alignments(tmp_path) -> None:  # ty
     r = CliRunner().invoke(app, ["merge", str(a), str(b), "--out", str(tmp_path / "C")])
     assert r.exit_code == 1
     assert "support two alignments equally" in r.output
+    assert not (tmp_path / "C" / "session").exists()
+
+
+def test_merge_refuses_an_alignment_that_drives_through_walls(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    # The office world's halves without the odometry bias (seed 0): B's scans are placed in
+    # A's map only at mirror images (the floor repeats, and the halves overlap in two corners
+    # only), and two adjacent placements agree with each other. Merged at that alignment,
+    # B's path runs through walls A saw from dozens of nodes; the merge is refused.
+    run = simulate_scenario("office", seed=0)
+    k = len(run.scans) // 2
+    a, b = _session(run.scans[:k], tmp_path / "A"), _session(run.scans[k:], tmp_path / "B")
+    sa, sb = session.read(a), session.read(b)
+    closures = find_closures(sa, sb)
+    ids_b, poses_b = sb.node_poses
+    for c in closures:  # truth: the alignment they agree on is metres from B's true frame
+        row = int(np.searchsorted(ids_b, c.node_b))
+        true = se2.compose(
+            run.true_poses[k + int(sb.arrays["n_scan"][row])], se2.inverse(poses_b[row])
+        )
+        off = se2.between(true, c.transform)
+        assert np.hypot(off[0], off[1]) > 5.0
+    crossings = wall_crossings(
+        Session(tmp_path, {}, sa.config, merge_arrays(sa, sb, closures)),
+        int(sa.arrays["g_node_ids"].max()) + 1,
+    )
+    assert crossings.worst >= crossings.established == sa.config.feature_map.min_expected
+    r = CliRunner().invoke(app, ["merge", str(a), str(b), "--out", str(tmp_path / "C")])
+    assert r.exit_code == 1
+    assert "drives through a wall" in r.output
     assert not (tmp_path / "C" / "session").exists()
 
 
