@@ -335,7 +335,7 @@ def densify_bounds(
 
 @dataclass(frozen=True)
 class WallCrossings:
-    """How far the merged map lets one robot pass through the other's walls
+    """How far the merged map lets each robot pass through the other's walls
     (:func:`wall_crossings`).
 
     Attributes:
@@ -351,26 +351,30 @@ class WallCrossings:
     established: int
 
     @property
-    def worst(self) -> int:
-        """Most nodes of the other session that saw a wall one step passes through."""
-        return int(max(self.b_through_a.max(initial=0), self.a_through_b.max(initial=0)))
+    def worst(self) -> tuple[int, int]:
+        """Most nodes of A that saw a wall one of B's steps passes through, and the same for
+        A's steps and B's walls."""
+        return int(self.b_through_a.max(initial=0)), int(self.a_through_b.max(initial=0))
 
     @property
     def consistent(self) -> bool:
-        """No robot passes through a wall the other session established."""
-        return self.worst < self.established
+        """Not both robots pass through walls the other session established. A door closed
+        during one session and open during the other explains crossings one way only: the
+        robot that drove through saw it open, so the other's path meets no wall of its."""
+        return min(self.worst) < self.established
 
 
 def wall_crossings(merged: Session, first_b: int) -> WallCrossings:
-    """Whether, in the merged map, either robot drives through the other session's walls.
+    """Whether, in the merged map, each robot drives through the other session's walls.
 
     A merge is a hypothesis about the whole of both sessions, not only about the nodes its
     closures link. A building that repeats itself (a floor that is its own mirror image)
     gives placements of B in A's map that agree with each other at a wrong alignment;
     beyond the part that repeats, B's path then runs through walls A saw from dozens of
-    nodes. At the true alignment only transient walls are crossed (a door closed in one
-    session, a person): on MIT CSAIL's halves walls seen by at most 2 nodes; on the
-    simulated office's halves, merged at a mirror image, walls seen by 60-79 nodes. This is
+    nodes, and A's path through B's. At the true alignment only transient walls are crossed
+    (a person, a door closed in one session): on MIT CSAIL's halves walls seen by at most 2
+    nodes; on the simulated office's halves, merged at mirror images (seeds 0-5, halves and
+    thirds), walls seen by 28-79 nodes each way. This is
     the free-space agreement of the acceptance test for merged maps of Birk and Carpin
     (2006, "Merging occupancy grid maps from multiple robots"), on the cells a robot
     occupied (:func:`iceg.wall_crossings.nodes_of_walls_crossed`).
@@ -513,7 +517,8 @@ def merge_sessions(
 
     Raises:
         SessionError: no consistent inter-session closures, a merged map in which a robot
-            drives through a wall the other session established (:func:`wall_crossings`), or
+            drives through walls the other session established, and the other robot through
+            its (:func:`wall_crossings`), or
             unreadable scans.
         OSError: the folder cannot be written.
     """
@@ -529,11 +534,13 @@ def merge_sessions(
     merged = Session(session_dir, {"logs": logs}, a.config, arrays)
     crossings = wall_crossings(merged, int(a.arrays["g_node_ids"].max()) + 1)
     if not crossings.consistent:
+        through_a, through_b = crossings.worst
         raise SessionError(
-            f"{b.path}: merged into {a.path} at the alignment its placements agree on, a robot "
-            f"drives through a wall the other session saw from {crossings.worst} nodes: the "
-            "alignment is wrong (the building repeats where the sessions overlap); record more "
-            "overlap between them"
+            f"{b.path}: merged into {a.path} at the alignment its placements agree on, each "
+            f"robot drives through the other's walls (B through a wall of A seen from "
+            f"{through_a} nodes, A through one of B seen from {through_b}): the alignment is "
+            "wrong (the building repeats where the sessions overlap); record more overlap "
+            "between them"
         )
     session_dir.mkdir(parents=True, exist_ok=True)
     extra = {"merged_from": [str(a.path.resolve()), str(b.path.resolve())]}

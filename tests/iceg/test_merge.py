@@ -10,7 +10,13 @@ import yaml
 from PIL import Image
 from typer.testing import CliRunner
 
-from frontends.simulate import office_world, simulate, simulate_scenario
+from frontends.simulate import (
+    DynamicWalls,
+    office_world,
+    simulate,
+    simulate_scenario,
+    trajectory_from_waypoints,
+)
 from iceg import session
 from iceg.cli import app
 from iceg.evaluation import position_errors
@@ -112,7 +118,8 @@ def test_merge_refuses_an_alignment_that_drives_through_walls(tmp_path) -> None:
     # The office world's halves without the odometry bias (seed 0): B's scans are placed in
     # A's map only at mirror images (the floor repeats, and the halves overlap in two corners
     # only), and two adjacent placements agree with each other. Merged at that alignment,
-    # B's path runs through walls A saw from dozens of nodes; the merge is refused.
+    # B's path runs through walls A saw from dozens of nodes, and A's through B's; the merge
+    # is refused.
     run = simulate_scenario("office", seed=0)
     k = len(run.scans) // 2
     a, b = _session(run.scans[:k], tmp_path / "A"), _session(run.scans[k:], tmp_path / "B")
@@ -130,11 +137,38 @@ def test_merge_refuses_an_alignment_that_drives_through_walls(tmp_path) -> None:
         Session(tmp_path, {}, sa.config, merge_arrays(sa, sb, closures)),
         int(sa.arrays["g_node_ids"].max()) + 1,
     )
-    assert crossings.worst >= crossings.established == sa.config.feature_map.min_expected
+    assert min(crossings.worst) >= crossings.established == sa.config.feature_map.min_expected
     r = CliRunner().invoke(app, ["merge", str(a), str(b), "--out", str(tmp_path / "C")])
     assert r.exit_code == 1
-    assert "drives through a wall" in r.output
+    assert "each robot drives through the other's walls" in r.output
     assert not (tmp_path / "C" / "session").exists()
+
+
+def test_merge_accepts_a_door_closed_in_one_session(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    # B drives into a south room through its door; later, A drives the corridor past the same
+    # door, closed, and sees it from many nodes. The merged map has B's path through a wall A
+    # established, but A's path through none of B's: a change, not a wrong alignment.
+    door = DynamicWalls(np.array([[[7.05, 4.0], [7.95, 4.0]]]), present_from_s=500.0)
+    world = dataclasses.replace(office_world(), dynamic_walls=(door,))
+    route_b = trajectory_from_waypoints([[3, 5], [7.5, 5], [7.5, 2], [7.5, 5], [13, 5]])
+    run_b = simulate(world, route_b, seed=1)
+    run_a = simulate(
+        world, trajectory_from_waypoints([[13, 5], [3, 5], [13, 5]]), seed=2, start_stamp_s=1000.0
+    )
+    b_scans = [
+        dataclasses.replace(s, odom_pose=se2.compose(B_FRAME, s.odom_pose)) for s in run_b.scans
+    ]
+    a, b = _session(run_a.scans, tmp_path / "A"), _session(b_scans, tmp_path / "B")
+    sa, sb = session.read(a), session.read(b)
+    merged = Session(tmp_path, {}, sa.config, merge_arrays(sa, sb, find_closures(sa, sb)))
+    through_a, through_b = wall_crossings(merged, int(sa.arrays["g_node_ids"].max()) + 1).worst
+    assert through_a >= sa.config.feature_map.min_expected  # B drove through the closed door
+    assert through_b < 3
+    r = CliRunner().invoke(app, ["merge", str(a), str(b), "--out", str(tmp_path / "C")])
+    assert r.exit_code == 0, r.output
+    _, poses = session.read(tmp_path / "C").trajectory()
+    truth = np.concatenate([run_a.true_poses, run_b.true_poses])
+    assert position_errors(poses, truth, align=False).max_m < 0.06  # A's frame is the truth's
 
 
 def test_densify_bounds_grow_with_the_drift_since_the_nearest_closure() -> None:
