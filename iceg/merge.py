@@ -9,7 +9,9 @@ agree (within ``agree_m`` / ``agree_deg``) is kept, and must hold ``min_closures
 and moved by ``T``; B's prior is dropped (A's anchors the merged map); the agreeing placements
 become loop-closure factors (robust kernel of the run's configuration); the graph is refined by
 batch Levenberg–Marquardt. The feature maps are concatenated (B's landmarks anchored to B's
-renumbered nodes; duplicates of one corner seen in both sessions are not fused).
+renumbered nodes; duplicates of one corner seen in both sessions are not fused). A merged map
+in which each robot drives through walls the other session established is refused
+(:func:`wall_crossings`).
 """
 
 from __future__ import annotations
@@ -374,10 +376,10 @@ def wall_crossings(merged: Session, first_b: int) -> WallCrossings:
     nodes, and A's path through B's. At the true alignment only transient walls are crossed
     (a person, a door closed in one session): on MIT CSAIL's halves walls seen by at most 2
     nodes; on the simulated office's halves, merged at mirror images (seeds 0-5, halves and
-    thirds), walls seen by 28-79 nodes each way. This is
-    the free-space agreement of the acceptance test for merged maps of Birk and Carpin
-    (2006, "Merging occupancy grid maps from multiple robots"), on the cells a robot
-    occupied (:func:`iceg.wall_crossings.nodes_of_walls_crossed`).
+    thirds), walls seen by 28-79 nodes each way. This is the free-space agreement of the
+    acceptance test for merged maps of Birk and Carpin (2006, "Merging occupancy grid maps
+    from multiple robots"), on the cells a robot occupied
+    (:func:`iceg.wall_crossings.nodes_of_walls_crossed`).
 
     Args:
         merged: the merged session (:func:`merge_arrays`; A's configuration).
@@ -516,9 +518,8 @@ def merge_sessions(
     trajectory, :func:`write_merged_map`); A's configuration is kept.
 
     Raises:
-        SessionError: no consistent inter-session closures, a merged map in which a robot
-            drives through walls the other session established, and the other robot through
-            its (:func:`wall_crossings`), or
+        SessionError: no consistent inter-session closures; a merged map in which each robot
+            drives through walls the other session established (:func:`wall_crossings`);
             unreadable scans.
         OSError: the folder cannot be written.
     """
