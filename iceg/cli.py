@@ -620,6 +620,11 @@ def merge(
     rows = [
         ("nodes", f"{merged.manifest['nodes']} ({a.manifest['nodes']} + {b.manifest['nodes']})"),
         ("inter-session closures", str(len(closures))),
+        (
+            "walls driven through",
+            "seen by at most {b_through_a} of A's nodes (B's path), {a_through_b} of B's "
+            "(A's path)".format(**merged.manifest["wall_crossings"]),
+        ),
         *_relation_rows(merged, relations),
         ("output", str(folder)),
     ]

@@ -515,7 +515,8 @@ def merge_sessions(
     """Merge B into A and write the merged session into ``out/session``, with
     ``trajectory.tum`` and the merged map beside it (``map.pgm``/``map.yaml`` for
     map_server and ``map.png``, rendered from both sessions' scans along the merged
-    trajectory, :func:`write_merged_map`); A's configuration is kept.
+    trajectory, :func:`write_merged_map`); A's configuration is kept. The manifest's
+    ``wall_crossings`` gives :attr:`WallCrossings.worst` (``b_through_a``, ``a_through_b``).
 
     Raises:
         SessionError: no consistent inter-session closures; a merged map in which each robot
@@ -544,7 +545,10 @@ def merge_sessions(
             "between them"
         )
     session_dir.mkdir(parents=True, exist_ok=True)
-    extra = {"merged_from": [str(a.path.resolve()), str(b.path.resolve())]}
+    extra = {
+        "merged_from": [str(a.path.resolve()), str(b.path.resolve())],
+        "wall_crossings": dict(zip(("b_through_a", "a_through_b"), crossings.worst, strict=True)),
+    }
     write_folder(session_dir, arrays, a.config, logs, extra, edited=True)
     write_tum(folder / "trajectory.tum", *merged.trajectory())
     write_merged_map(merged, folder)

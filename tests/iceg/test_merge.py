@@ -166,7 +166,12 @@ def test_merge_accepts_a_door_closed_in_one_session(tmp_path) -> None:  # type: 
     assert through_b < 3
     r = CliRunner().invoke(app, ["merge", str(a), str(b), "--out", str(tmp_path / "C")])
     assert r.exit_code == 0, r.output
-    _, poses = session.read(tmp_path / "C").trajectory()
+    merged_session = session.read(tmp_path / "C")
+    assert merged_session.manifest["wall_crossings"] == {
+        "b_through_a": through_a,
+        "a_through_b": through_b,
+    }
+    _, poses = merged_session.trajectory()
     truth = np.concatenate([run_a.true_poses, run_b.true_poses])
     assert position_errors(poses, truth, align=False).max_m < 0.06  # A's frame is the truth's
 
