@@ -261,6 +261,7 @@ class Slam:
         # scans are matched against the landmarks of the recent nodes (this one), not against
         # the old place's that the placement matched.
         self._remember_points(new_id, feats)
+        self.loop_closer.observe(new_id, feats)  # a place the global search can find
         self.feature_map.update(new_id, feats, scan.stamp_s, scan=scan)
         self.timer.add("segment_start", t0)
         return self.graph.estimate(new_id)

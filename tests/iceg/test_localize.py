@@ -123,6 +123,9 @@ def test_continue_extends_the_graph_as_well_as_one_run(office) -> None:  # type:
     link = [f for f in c.factors if f.j == n_old]
     assert [f.kind.value for f in link] == ["loop_closure"]  # placed, no odometry across
     assert c.slam is not None and c.slam.export_state().segment_start == n_old  # own local map
+    # every node is a place the global loop-closure search can find, the placed one included
+    places = c.slam.loop_closer.places.export_state()["ids"]
+    np.testing.assert_array_equal(places, c.node_ids)
     e_cont = position_errors(c.poses[K:], run.true_poses[K:N]).mean_m
     e_whole = position_errors(w.poses[K:], run.true_poses[K:N]).mean_m
     assert e_cont < 1.1 * e_whole + 0.005
