@@ -365,7 +365,8 @@ class WallCrossings:
         explains crossings one way only (the robot that drove through saw it open, so the
         other's path meets no wall of its): the mean is then zero however often the door was
         seen. A wrong alignment makes each robot cross the other's walls (simulated office
-        halves: 14-79 nodes the lesser way, 29-79 the greater)."""
+        splits, ``benchmarks/bench_merge.py``: 11-66 nodes the lesser way, 29-79 the
+        greater)."""
         through_a, through_b = self.worst
         return through_a * through_b < self.established**2
 
@@ -381,8 +382,8 @@ def wall_crossings(merged: Session, first_b: int) -> WallCrossings:
     (a person; a door closed in one session, crossed one way only) or crossed one way where a
     session's own map is bent: on MIT CSAIL's halves walls seen by at most 2 nodes; on the
     halves of the ACES and CSAIL corrected logs with synthetic biased odometry by at most 5
-    and 14 one way and 0-1 the other; on the simulated office's halves, merged at mirror
-    images (seeds 0-5, halves and thirds), by 28-79 nodes each way.
+    and 14 one way and 0-1 the other; on the simulated office's splits, merged at mirror
+    images, by 11-66 nodes the lesser way and 29-79 the greater (``benchmarks/bench_merge.py``).
     This is the free-space agreement of the acceptance test for merged maps of Birk and
     Carpin (2006, "Merging occupancy grid maps from multiple robots"), on the cells a robot
     occupied (:func:`iceg.wall_crossings.nodes_of_walls_crossed`).
