@@ -122,16 +122,13 @@ def run_case(name: str, work: Path) -> list[str]:
     except SessionError as exc:
         why = "two groups tie" if "equally" in str(exc) else "too few agree"
         return [name, "-", "-", "-", f"refused ({why})", "-", "-", f"{time.perf_counter() - t:.1f}"]
-    arrays = merge_arrays(a, b, closures)
-    crossings = wall_crossings(
-        Session(a.path, {}, a.config, arrays), int(a.arrays["g_node_ids"].max()) + 1
-    )
+    merged = Session(a.path, {}, a.config, merge_arrays(a, b, closures))
+    crossings = wall_crossings(merged, int(a.arrays["g_node_ids"].max()) + 1)
     through_a, through_b = crossings.worst
     verdict = "merged" if crossings.consistent else "refused (walls)"
     ate = mx = "-"
     if reference is not None:
-        rows = np.searchsorted(arrays["g_node_ids"], arrays["s_node"])
-        poses = se2.compose(arrays["g_node_final"][rows], arrays["s_delta"])
+        _, poses = merged.trajectory()
         err = position_errors(poses, reference, align=True)
         ate, mx = f"{err.rmse_m:.3f}", f"{err.max_m:.2f}"
     return [

@@ -134,14 +134,11 @@ def test_merge_refuses_an_alignment_that_drives_through_walls(  # type: ignore[n
     ]
     a, b = _session(run.scans[:k], tmp_path / "A"), _session(b_scans, tmp_path / "B")
     sa, sb = session.read(a), session.read(b)
-    arrays = merge_arrays(sa, sb, find_closures(sa, sb))
-    rows = np.searchsorted(arrays["g_node_ids"], arrays["s_node"])
-    poses = se2.compose(arrays["g_node_final"][rows], arrays["s_delta"])
+    merged = Session(tmp_path, {}, sa.config, merge_arrays(sa, sb, find_closures(sa, sb)))
+    _, poses = merged.trajectory()
     # truth: merged at that alignment, the map is metres off the simulated world
     assert position_errors(poses, run.true_poses, align=True).rmse_m > 2.0
-    crossings = wall_crossings(
-        Session(tmp_path, {}, sa.config, arrays), int(sa.arrays["g_node_ids"].max()) + 1
-    )
+    crossings = wall_crossings(merged, int(sa.arrays["g_node_ids"].max()) + 1)
     through_a, through_b = crossings.worst
     assert crossings.established == sa.config.feature_map.min_expected
     assert min(through_a, through_b) >= 10 and through_a * through_b >= crossings.established**2
