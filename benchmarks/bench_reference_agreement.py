@@ -1,16 +1,18 @@
 """Benchmark: how well a corrected log's reference poses agree with its own scans.
 
-The corrected logs of ``../shared/data`` (ACES, csail.log) serve as references for the
-synthetic-odometry cases of ``bench_accuracy.py``. Their poses come from another SLAM
-system, so they carry their own error. This script measures it from the scans themselves:
-consecutive scans are matched pairwise by two independent matchers (ICE and point-to-line
-ICP, both seeded by the synthetic odometry), and the table prints how far each lies from
-the reference's relative pose, and how far the two matchers lie from each other.
+The corrected logs of ``../shared/data`` (ACES, csail.log, csail-corrected) serve as
+references for the synthetic-odometry cases of ``bench_accuracy.py``. Their poses come from
+another SLAM system, so they carry their own error. This script measures it from the scans
+themselves: consecutive scans are matched pairwise by two independent matchers (ICE and
+point-to-line ICP, both seeded by the synthetic odometry), and the table prints how far each
+lies from the reference's relative pose, and how far the two matchers lie from each other.
 
 When the two matchers agree much more closely with each other than with the reference, the
 per-step disagreement is the reference's own error (or a property of the scans, such as
 motion distortion during turns, that no scan matcher can undo), and it bounds the ATE any
-scan-matching SLAM can reach against that reference.
+scan-matching SLAM can reach against that reference. The last line of each case lists the steps
+the reference disputes: both matchers agree with each other (within ``AGREE_DEG`` /
+``AGREE_CM``) and put the heading change more than ``DISPUTE_DEG`` from the reference's.
 
 Run: ``python benchmarks/bench_reference_agreement.py [--only CASE ...] [--steps N]``.
 """
@@ -34,9 +36,14 @@ from iceg_common import se2
 
 FloatArray = NDArray[np.float64]
 #: Cases with a reference from another system's corrected poses.
-CORRECTED = ("aces_synth", "csail_log_synth")
+CORRECTED = ("aces_synth", "csail_log_synth", "csail_corrected_synth")
 #: Turns at least this large (degrees) are reported on their own.
 TURN_DEG = 15.0
+#: A step whose two matchers agree within these, and lie farther than DISPUTE_DEG from the
+#: reference's heading change, is one the reference disputes.
+AGREE_DEG = 1.0
+AGREE_CM = 10.0
+DISPUTE_DEG = 5.0
 
 
 def _error(truth: FloatArray, result: MatchResult) -> FloatArray | None:
@@ -82,11 +89,30 @@ def run(case: str, steps: int) -> list[str]:
         e_pl.append(_error(truth, r_pl))
         both = r_ice.success and r_pl.success
         e_pair.append(se2.between(r_pl.pose, r_ice.pose) if both else None)
+    disputed = _disputed_steps(e_ice, e_pair)
     return [
         _row(f"{case}: ICE - reference", e_ice, turns),
         _row(f"{case}: ICP - reference", e_pl, turns),
         _row(f"{case}: ICE - ICP", e_pair, turns),
+        f"{case}: {len(disputed)} steps where ICE and ICP agree (<= {AGREE_DEG} deg, "
+        f"<= {AGREE_CM} cm) and the reference turns > {DISPUTE_DEG} deg otherwise: "
+        + (", ".join(f"{k} ({d:+.1f} deg)" for k, d in disputed) or "none"),
     ]
+
+
+def _disputed_steps(
+    e_ice: list[FloatArray | None], e_pair: list[FloatArray | None]
+) -> list[tuple[int, float]]:
+    """``(step, heading error in degrees)`` of the steps ``k-1 -> k`` where the two matchers
+    agree with each other and both put the heading far from the reference's."""
+    out = []
+    for k, (ei, ep) in enumerate(zip(e_ice, e_pair, strict=True), start=1):
+        if ei is None or ep is None:
+            continue
+        agree = math.degrees(abs(ep[2])) <= AGREE_DEG and 100 * math.hypot(ep[0], ep[1]) <= AGREE_CM
+        if agree and math.degrees(abs(ei[2])) > DISPUTE_DEG:
+            out.append((k, math.degrees(ei[2])))
+    return out
 
 
 def main() -> None:
