@@ -154,7 +154,8 @@ def _closure_row(
     cfg = session.config
     fi, fj = extract(scan_i, cfg.features), extract(scan_j, cfg.features)
     res = IceMatcher(cfg.matching).match(fj, fi, se2.between(pi, pj), MatchBounds.global_())
-    if not res.success or res.correlation < cfg.loop_closure.min_correlation:
+    floor = cfg.loop_closure.min_correlation
+    if not res.success or (floor is not None and res.correlation < floor):
         raise SessionError(
             f"--add-closure {edit.node_i} {edit.node_j}: the ICE match of the two scans failed "
             f"({res.reason or 'correlation'} {res.correlation:.2f}); give the pose X_M Y_M "

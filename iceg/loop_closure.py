@@ -106,8 +106,15 @@ class LoopClosureConfig(BaseModel):
     max_rotation_deg: float = Field(
         default=30.0, gt=0, description="Base admissible rotation of a loop-closure match."
     )
-    min_correlation: float = Field(
-        default=0.5, ge=0, le=1, description="Minimum ICE correlation (eq. 1) of a loop closure."
+    min_correlation: float | None = Field(
+        default=None,
+        ge=0,
+        le=1,
+        description="A floor on the ICE correlation (eq. 1) of a loop-closure match above the "
+        "matcher's own: a loop-closure match has wider bounds than tracking, so the matcher "
+        "already requires the global evidence (matching.validation.*_global: correlation, "
+        "feature pairs, point overlap, free space, no rival). None: the matcher decides; the "
+        "chi-square gate and the agreement of several closures guard against aliasing.",
     )
     consistency_chi2: float = Field(
         default=16.27,
@@ -627,14 +634,13 @@ class LoopCloser:
 
     def _best_match(self, s: _Search, features: ScanFeatures) -> _Best | None:
         """Match each candidate place; keep the best-correlated acceptable match."""
-        lc = self.config
         bounds = self._bounds(s)
         best: _Best | None = None
         for candidate in self._candidates(s):
             prediction = se2.between(s.poses[candidate], s.poses[s.node_id])
             self.stats.attempts += 1
             result = self.matcher.match(features, self._reference(s, candidate), prediction, bounds)
-            if not result.success or result.correlation < lc.min_correlation:
+            if not self._usable(result):
                 self.stats.rejected_match += 1
                 logger.debug(
                     "loop closure %d->%d (radius %.2f m) not matched: %s (correlation %.2f)",
@@ -647,6 +653,11 @@ class LoopCloser:
             elif best is None or result.correlation > best.result.correlation:
                 best = _Best(candidate, prediction, result)
         return best
+
+    def _usable(self, result: MatchResult) -> bool:
+        """A successful match above the configured correlation floor, if any."""
+        floor = self.config.min_correlation
+        return result.success and (floor is None or result.correlation >= floor)
 
     def _decide(
         self, s: _Search, best: _Best, graph: PoseGraph, path_m: Sequence[float]
@@ -762,7 +773,7 @@ class LoopCloser:
         result = self.matcher.match(
             features, self._reference(s, candidate), prediction, MatchBounds.global_()
         )
-        if not result.success or result.correlation < self.config.min_correlation:
+        if not self._usable(result):
             self.stats.rejected_match += 1
             return None
         implied = se2.compose(s.poses[candidate], result.pose)
