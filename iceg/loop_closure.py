@@ -681,10 +681,8 @@ class LoopCloser:
                 *(best.candidate, s.node_id, rounded, d2, result.correlation),
             )
             return self._accept([closure], lc.robust_kernel)
-        agreeing = [c for c in self.pending if self._agree(c, closure, s.poses, path_m)]
+        agreeing = self._agreeing(closure, s.poses, path_m)
         if agreeing:
-            # Two independent places agree: the pair is its own outlier test, and a robust
-            # kernel would all but ignore the large residual the drift gives it.
             logger.debug(
                 "loop closures %s->%d accepted by pairwise agreement (chi2 %.1f vs estimate)",
                 *([c.node_from for c in agreeing], s.node_id, d2),
@@ -697,6 +695,25 @@ class LoopCloser:
             *(best.candidate, s.node_id, rounded, d2),
         )
         return None
+
+    def _agreeing(
+        self, closure: LoopClosure, poses: _Poses, path_m: Sequence[float]
+    ) -> list[LoopClosure]:
+        """The held closures that a local ``closure`` beyond the gate enters with, or none.
+
+        Held local closures that agree with it (:func:`closures_agree`): two independent
+        places are their own outlier test. Otherwise held global closures may vouch for it,
+        but as for a global closure (:meth:`_global`) the group must be a clique of
+        ``global_min_group`` mutually consistent closures: a pair with a global closure is
+        only as strong as the chains' covariances between them, and a wrong match with a wide
+        covariance is consistent with almost anything."""
+        local = [
+            c for c in self.pending if not c.is_global and self._agree(c, closure, poses, path_m)
+        ]
+        if local:
+            return local
+        clique = self._clique(closure, poses, path_m)
+        return clique if len(clique) + 1 >= self.config.global_min_group else []
 
     # ------------------------------------------------------------------ global search
 

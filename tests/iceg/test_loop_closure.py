@@ -5,6 +5,7 @@ simulator's ground truth, and on ACES (a real log) against its corrected poses."
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -94,6 +95,35 @@ def test_pairwise_agreement_on_hand_made_closures() -> None:
     # Too far apart in time: more than 30 nodes between the current nodes.
     late = _closure(20, 131, landing.tolist())
     assert not closures_agree(a, late, carry, path_m, cfg)
+
+
+def test_a_closure_vouched_for_by_global_closures_needs_a_group_of_global_min_group(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # Held closures and a new local one beyond the gate; which pairs are consistent is
+    # given by hand, so the grouping rule is what is checked (global_min_group = 3).
+    closer = Slam().loop_closer
+    assert closer.config.global_min_group == 3
+    new = _closure(50, 300, [0.0, 0.0, 0.0])
+    g1, g2 = (replace(_closure(n, 290, [0.0, 0.0, 0.0]), is_global=True) for n in (10, 30))
+    held = _closure(70, 295, [0.0, 0.0, 0.0])
+    consistent: set[frozenset[int]] = set()
+
+    def agree(self: LoopCloser, a: LoopClosure, b: LoopClosure, *_: object) -> bool:
+        return frozenset((a.node_from, b.node_from)) in consistent
+
+    monkeypatch.setattr(LoopCloser, "_agree", agree)
+    closer.pending = [g1]
+    consistent.add(frozenset((10, 50)))
+    assert closer._agreeing(new, None, []) == []  # a pair with a global closure: held
+    closer.pending = [g1, g2]
+    consistent.add(frozenset((30, 50)))
+    assert closer._agreeing(new, None, []) == []  # g1 and g2 disagree: no clique of 3
+    consistent.add(frozenset((10, 30)))
+    assert closer._agreeing(new, None, []) == [g1, g2]  # a clique of 3
+    closer.pending = [g1, held]
+    consistent.add(frozenset((70, 50)))
+    assert closer._agreeing(new, None, []) == [held]  # a local pair is its own test
 
 
 def test_loop_closer_searches_every_n_nodes_only_when_enabled() -> None:
