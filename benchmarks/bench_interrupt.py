@@ -24,29 +24,31 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 
-def interrupt_after(delay_s: float) -> tuple[float, int, str]:
-    """Seconds from SIGINT to exit, the exit code and stderr's last line of one run."""
-    with tempfile.TemporaryDirectory() as tmp:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "iceg.cli", "run", "--out", str(Path(tmp) / "o")],
-            cwd=REPO,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        assert proc.stderr is not None
-        seen = ""
-        while "%|" not in seen:  # the progress bar: the run is under way
-            char = proc.stderr.read(1)
-            if not char:
-                raise RuntimeError(f"the run ended before it started: {seen[-300:]}")
-            seen += char
-        time.sleep(delay_s)
-        proc.send_signal(signal.SIGINT)
-        t0 = time.perf_counter()
-        _, err = proc.communicate(timeout=120)
-        latency = time.perf_counter() - t0
-    last = (err.replace("\r", "\n").strip().splitlines() or [""])[-1]
-    return latency, proc.returncode, last
+def interrupt_after(delay_s: float, out: Path) -> tuple[float, int, str]:
+    """Run ``iceg run --out out`` on the demo, send SIGINT ``delay_s`` after its progress bar
+    shows; return the seconds from the signal to the exit, the exit code and the stderr."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "iceg.cli", "run", "--out", str(out)],
+        cwd=REPO,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stderr is not None
+    seen = ""
+    while "%|" not in seen:  # the progress bar: the run is under way
+        char = proc.stderr.read(1)
+        if not char:
+            raise RuntimeError(f"the run ended before it started: {seen[-300:]}")
+        seen += char
+    time.sleep(delay_s)
+    proc.send_signal(signal.SIGINT)
+    t0 = time.perf_counter()
+    _, err = proc.communicate(timeout=120)
+    return time.perf_counter() - t0, proc.returncode, seen + err
+
+
+def _last_line(stderr: str) -> str:
+    return (stderr.replace("\r", "\n").strip().splitlines() or [""])[-1]
 
 
 def main() -> None:
@@ -56,13 +58,14 @@ def main() -> None:
     args = parser.parse_args()
     print(f"{'delay s':>8s} {'median s':>9s} {'max s':>7s}  exit  last line")
     for delay in (float(d) for d in args.delays.split(",")):
-        runs = [interrupt_after(delay) for _ in range(args.repeats)]
+        runs = []
+        for _ in range(args.repeats):
+            with tempfile.TemporaryDirectory() as tmp:
+                runs.append(interrupt_after(delay, Path(tmp) / "o"))
         lat = [r[0] for r in runs]
         codes = sorted({r[1] for r in runs})
-        print(
-            f"{delay:8.1f} {statistics.median(lat):9.3f} {max(lat):7.3f}  {codes}  {runs[-1][2]}",
-            flush=True,
-        )
+        last = _last_line(runs[-1][2])
+        print(f"{delay:8.1f} {statistics.median(lat):9.3f} {max(lat):7.3f}  {codes}  {last}")
 
 
 if __name__ == "__main__":
