@@ -474,7 +474,9 @@ class LoopCloser:
         places, are matched against the landmarks of the ``reference_nodes`` old nodes
         nearest each candidate, and the best-correlated match is kept. It is accepted (robust
         kernel) when it passes the chi-square gate (:func:`innovation_chi2`), or together with
-        held closures it agrees with (:func:`closures_agree`, no kernel); otherwise it is held.
+        held closures it agrees with (no kernel; :meth:`_agreeing`: held local closures that
+        agree, else a clique of ``global_min_group`` with held global ones); otherwise it is
+        held.
 
         Global search (when nothing was accepted, every ``global_every_n_searches``-th search
         and whenever the radius is capped): see :meth:`_global`.
