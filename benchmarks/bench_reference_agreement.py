@@ -13,6 +13,9 @@ motion distortion during turns, that no scan matcher can undo), and it bounds th
 scan-matching SLAM can reach against that reference. The last line of each case lists the steps
 the reference disputes: both matchers agree with each other (within ``AGREE_DEG`` /
 ``AGREE_CM``) and put the heading change more than ``DISPUTE_DEG`` from the reference's.
+Then the whole log (every scan, whatever ``--steps``) runs through the default pipeline with
+the reference poses as its odometry: its ATE against the reference is what following these
+scans costs with no odometry error at all, the floor of the synthetic-odometry cases.
 
 Run: ``python benchmarks/bench_reference_agreement.py [--only CASE ...] [--steps N]``.
 """
@@ -20,17 +23,21 @@ Run: ``python benchmarks/bench_reference_agreement.py [--only CASE ...] [--steps
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 
 import numpy as np
 from bench_accuracy import CASES, CaseSkipped
 from numpy.typing import NDArray
 
+from frontends import LaserScan
 from iceg.config import IcegConfig
+from iceg.evaluation import position_errors
 from iceg.features import extract
 from iceg.matching import IceMatcher
 from iceg.matching.config import MatchBounds
 from iceg.matching.plicp import PlIcpMatcher
+from iceg.slam import Slam
 from iceg.types import MatchResult, ScanFeatures
 from iceg_common import se2
 
@@ -90,6 +97,7 @@ def run(case: str, steps: int) -> list[str]:
         both = r_ice.success and r_pl.success
         e_pair.append(se2.between(r_pl.pose, r_ice.pose) if both else None)
     disputed = _disputed_steps(e_ice, e_pair)
+    ate = _slam_ate_on_exact_odometry(data.scans, data.reference)
     return [
         _row(f"{case}: ICE - reference", e_ice, turns),
         _row(f"{case}: ICP - reference", e_pl, turns),
@@ -97,7 +105,19 @@ def run(case: str, steps: int) -> list[str]:
         f"{case}: {len(disputed)} steps where ICE and ICP agree (<= {AGREE_DEG} deg, "
         f"<= {AGREE_CM} cm) and the reference turns > {DISPUTE_DEG} deg otherwise: "
         + (", ".join(f"{k} ({d:+.1f} deg)" for k, d in disputed) or "none"),
+        f"{case}: the default pipeline with the reference itself as odometry ends "
+        f"{ate:.3f} m ATE from it",
     ]
+
+
+def _slam_ate_on_exact_odometry(scans: list[LaserScan], reference: FloatArray) -> float:
+    """ATE (m, RMSE after SE(2) alignment) of the default pipeline run on the scans with the
+    reference poses as their odometry: what following the scans costs against the reference
+    when the odometry has no error at all."""
+    slam = Slam(IcegConfig())
+    for scan, pose in zip(scans, reference, strict=True):
+        slam.process(dataclasses.replace(scan, odom_pose=np.array(pose, dtype=np.float64)))
+    return position_errors(slam.finish().poses, reference).rmse_m
 
 
 def _disputed_steps(
