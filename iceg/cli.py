@@ -332,7 +332,10 @@ def _interruptible(work: Callable[[], R], on_interrupt: Callable[[], str]) -> R:
             worker.join(0.1)
     except (KeyboardInterrupt, _Terminated) as exc:
         code = 143 if isinstance(exc, _Terminated) else 130
-        typer.echo(f"iceg: {on_interrupt()}", err=True)
+        message = on_interrupt()
+        if _progress_bar_open():
+            sys.stderr.write("\n")  # the bar's line ends where the run stopped
+        typer.echo(f"iceg: {message}", err=True)
         sys.stderr.flush()
         os._exit(code)
     finally:
@@ -340,6 +343,12 @@ def _interruptible(work: Callable[[], R], on_interrupt: Callable[[], str]) -> R:
     if "error" in box:
         raise box["error"]
     return box["result"]  # type: ignore[no-any-return]
+
+
+def _progress_bar_open() -> bool:
+    """Whether a tqdm progress bar is still drawn on stderr (the run was stopped in it)."""
+    std = sys.modules.get("tqdm.std")
+    return std is not None and bool(getattr(std.tqdm, "_instances", ()))
 
 
 class _Terminated(Exception):

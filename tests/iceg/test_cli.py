@@ -273,7 +273,7 @@ def test_sigint_stops_and_writes_nothing(tmp_path: Path) -> None:
     out = tmp_path / "o"
     _, code, err = bench.interrupt_after(0.5, out)
     assert code == 130
-    assert err.rstrip().endswith("iceg: interrupted, nothing written"), err[-300:]
+    assert err.rstrip().endswith("\niceg: interrupted, nothing written"), err[-300:]
     assert not out.exists()
     assert list(tmp_path.iterdir()) == []
 
