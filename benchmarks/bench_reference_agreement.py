@@ -10,7 +10,7 @@ lies from the reference's relative pose, and how far the two matchers lie from e
 When the two matchers agree much more closely with each other than with the reference, the
 per-step disagreement is the reference's own error (or a property of the scans, such as
 motion distortion during turns, that no scan matcher can undo), and it bounds the ATE any
-scan-matching SLAM can reach against that reference. The last line of each case lists the steps
+scan-matching SLAM can reach against that reference. The fourth line of each case lists the steps
 the reference disputes: both matchers agree with each other (within ``AGREE_DEG`` /
 ``AGREE_CM``) and put the heading change more than ``DISPUTE_DEG`` from the reference's.
 Then the whole log (every scan, whatever ``--steps``) runs through the default pipeline with

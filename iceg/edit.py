@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 
 from graph import FactorKind
 from iceg.features import extract
+from iceg.loop_closure import usable_match
 from iceg.matching import IceMatcher, MatchBounds
 from iceg.session import (
     FACTOR_ARRAYS,
@@ -154,8 +155,7 @@ def _closure_row(
     cfg = session.config
     fi, fj = extract(scan_i, cfg.features), extract(scan_j, cfg.features)
     res = IceMatcher(cfg.matching).match(fj, fi, se2.between(pi, pj), MatchBounds.global_())
-    floor = cfg.loop_closure.min_correlation
-    if not res.success or (floor is not None and res.correlation < floor):
+    if not usable_match(res, cfg.loop_closure):
         raise SessionError(
             f"--add-closure {edit.node_i} {edit.node_j}: the ICE match of the two scans failed "
             f"({res.reason or 'correlation'} {res.correlation:.2f}); give the pose X_M Y_M "

@@ -261,6 +261,13 @@ def innovation_chi2(
     return innovation, d2
 
 
+def usable_match(result: MatchResult, config: LoopClosureConfig) -> bool:
+    """Whether a loop-closure match may be used: successful (the matcher's own validation)
+    and at or above ``config.min_correlation`` when that floor is set."""
+    floor = config.min_correlation
+    return result.success and (floor is None or result.correlation >= floor)
+
+
 def closures_agree(
     a: LoopClosure,
     b: LoopClosure,
@@ -642,7 +649,7 @@ class LoopCloser:
             prediction = se2.between(s.poses[candidate], s.poses[s.node_id])
             self.stats.attempts += 1
             result = self.matcher.match(features, self._reference(s, candidate), prediction, bounds)
-            if not self._usable(result):
+            if not usable_match(result, self.config):
                 self.stats.rejected_match += 1
                 logger.debug(
                     "loop closure %d->%d (radius %.2f m) not matched: %s (correlation %.2f)",
@@ -655,11 +662,6 @@ class LoopCloser:
             elif best is None or result.correlation > best.result.correlation:
                 best = _Best(candidate, prediction, result)
         return best
-
-    def _usable(self, result: MatchResult) -> bool:
-        """A successful match above the configured correlation floor, if any."""
-        floor = self.config.min_correlation
-        return result.success and (floor is None or result.correlation >= floor)
 
     def _decide(
         self, s: _Search, best: _Best, graph: PoseGraph, path_m: Sequence[float]
@@ -792,7 +794,7 @@ class LoopCloser:
         result = self.matcher.match(
             features, self._reference(s, candidate), prediction, MatchBounds.global_()
         )
-        if not self._usable(result):
+        if not usable_match(result, self.config):
             self.stats.rejected_match += 1
             return None
         implied = se2.compose(s.poses[candidate], result.pose)
