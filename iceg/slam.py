@@ -62,6 +62,9 @@ def chi2_3dof() -> float:
     return float(2.0 * gammaincinv(1.5, CONSISTENCY_PROBABILITY))
 
 
+#: Failure category of a successful ICE match that :func:`points_prefer_prediction` rejects.
+REASON_CONTRADICTED = "contradicted by the points"
+
 #: Failure category of a match whose reason is empty.
 _UNKNOWN_REASON = "unknown"
 
@@ -72,6 +75,7 @@ __all__ = [
     "StageTimer",
     "chi2_3dof",
     "consistent_with_prediction",
+    "points_prefer_prediction",
     "remap_weak_directions",
 ]
 
@@ -419,8 +423,10 @@ class Slam:
         self, feats: ScanFeatures, motion: _Motion, last: int, log_start: int
     ) -> _LocalMatch:
         """ICE match against the landmarks of the ``local_map_nodes`` nodes up to ``last``
-        (none before ``log_start``, the first node of their log); where it fails, the point
-        match (:meth:`_point_match`) when ``slam.point_fallback``."""
+        (none before ``log_start``, the first node of their log). A match the scan's own
+        points contradict (:func:`points_prefer_prediction` against the recent nodes' points,
+        ``slam.contradiction_gate_m``) counts as failed; where it fails, the point match
+        (:meth:`_point_match`) when ``slam.point_fallback``."""
         cfg = self.config.slam
         first = max(log_start, last - cfg.local_map_nodes + 1)
         recent = np.arange(first, last + 1, dtype=np.int64)
@@ -435,6 +441,18 @@ class Slam:
             )
         bounds = MatchBounds.local(cfg.match_max_translation_m, cfg.match_max_rotation_deg)
         result = self.matcher.match(feats, reference.features, motion.delta, bounds)
+        if result.success and cfg.contradiction_gate_m is not None:
+            contradiction = points_prefer_prediction(
+                feats.points_xy,
+                self._recent_points(recent),
+                result.pose,
+                motion.delta,
+                cfg.contradiction_gate_m,
+            )
+            if contradiction:
+                result = MatchResult(
+                    False, motion.delta.copy(), np.full((3, 3), np.nan), 0.0, reason=contradiction
+                )
         if not result.success:
             # Counted by the reason's category (the text before the first colon).
             category = (result.reason or _UNKNOWN_REASON).split(":")[0]
@@ -458,17 +476,22 @@ class Slam:
         point match's own covariance. ``None`` when disabled or the matcher is not ICE."""
         if not self.config.slam.point_fallback or self.config.matching.method != "ice":
             return None
+        ref = ScanFeatures.empty(self._recent_points(recent))
+        result = self.point_matcher.match(feats, ref, motion.delta, bounds)
+        if result.success and not consistent_with_prediction(result, motion.delta, motion.cov):
+            return None
+        return result
+
+    def _recent_points(self, recent: NDArray[np.int64]) -> FloatArray:
+        """``(P, 2)`` float64 scan points of the ``recent`` nodes in the frame of the last of
+        them (current estimates), metres."""
         _, poses = self.graph.estimates_of(recent)
-        ref = np.concatenate(
+        return np.concatenate(
             [
                 se2.transform_points(se2.between(poses[-1], pose), self._points_of(int(i)))
                 for i, pose in zip(recent, poses, strict=True)
             ]
         )
-        result = self.point_matcher.match(feats, ScanFeatures.empty(ref), motion.delta, bounds)
-        if result.success and not consistent_with_prediction(result, motion.delta, motion.cov):
-            return None
-        return result
 
     def _remember_points(self, node_id: int, feats: ScanFeatures) -> None:
         """Keep the new node's scan points for :meth:`_point_match`; forget those of nodes
@@ -757,6 +780,60 @@ def consistent_with_prediction(
     except np.linalg.LinAlgError:
         return False
     return chi2 <= chi2_3dof()
+
+
+def points_prefer_prediction(
+    points_xy: FloatArray,
+    reference_xy: FloatArray,
+    pose: FloatArray,
+    prediction: FloatArray,
+    gate_m: float,
+) -> str:
+    """Why a match is contradicted by the scan's own points, or "" when it is not.
+
+    A scan point is explained at a pose when a reference point lies within ``gate_m`` of it
+    there. The match is contradicted when the points explained at the prediction only
+    outnumber those explained at the match only beyond chance: a one-sided sign test
+    (McNemar 1947) at :data:`CONSISTENCY_PROBABILITY`. A correct match explains the scan at
+    least as well as the odometry does; a cluster of look-alike features (tree trunks, posts)
+    that turns the scan by 5-20 degrees from an accurate prediction explains a third of it.
+
+    Args:
+        points_xy: ``(P, 2)`` float64 the new scan's points, its robot frame, metres.
+        reference_xy: ``(R, 2)`` float64 reference points (the recent nodes' scans), the
+            reference frame, metres.
+        pose: ``(3,)`` float64 the matched pose of the scan in the reference frame.
+        prediction: ``(3,)`` float64 the predicted (odometry) pose, same frame.
+        gate_m: Distance within which a reference point explains a scan point, metres.
+
+    Returns:
+        The failure reason ("contradicted by the points: ..."), or "".
+    """
+    if reference_xy.shape[0] == 0 or points_xy.shape[0] == 0:
+        return ""
+    # scipy on first use, not with this module (most of a cold start; see chi2_3dof)
+    from scipy.spatial import cKDTree
+    from scipy.special import bdtrc
+
+    tree = cKDTree(reference_xy)
+    at_pose = np.isfinite(
+        tree.query(se2.transform_points(pose, points_xy), distance_upper_bound=gate_m)[0]
+    )
+    at_prediction = np.isfinite(
+        tree.query(se2.transform_points(prediction, points_xy), distance_upper_bound=gate_m)[0]
+    )
+    only_prediction = int(np.count_nonzero(at_prediction & ~at_pose))
+    only_pose = int(np.count_nonzero(at_pose & ~at_prediction))
+    if only_prediction <= only_pose:
+        return ""
+    # P(X >= only_prediction) for X ~ Binomial(only_prediction + only_pose, 1/2)
+    p_value = float(bdtrc(only_prediction - 1, only_prediction + only_pose, 0.5))
+    if p_value >= 1.0 - CONSISTENCY_PROBABILITY:
+        return ""
+    return (
+        f"{REASON_CONTRADICTED}: {np.count_nonzero(at_prediction)} of {points_xy.shape[0]} "
+        f"scan points are explained at the prediction, {np.count_nonzero(at_pose)} at the match"
+    )
 
 
 def remap_weak_directions(
