@@ -31,6 +31,12 @@ from iceg.feature_map import FeatureMap, MapReference
 from iceg.features import extract
 from iceg.loop_closure import LoopCloser, LoopClosureStats, innovation_chi2
 from iceg.matching import MatchBounds
+from iceg.matching.matcher import (
+    REASON_DEGENERATE,
+    REASON_FEW_INLIERS,
+    REASON_LOW_CORRELATION,
+    REASON_NO_CANDIDATES,
+)
 from iceg.matching.peers import make_matcher
 from iceg.matching.plicp import PlIcpMatcher
 from iceg.odometry_calibration import OdometryCalibrator
@@ -64,6 +70,20 @@ def chi2_3dof() -> float:
 
 #: Failure category of a successful ICE match that :func:`points_prefer_prediction` rejects.
 REASON_CONTRADICTED = "contradicted by the points"
+
+#: Failure categories after which the point match is tried (``slam.point_fallback``): ICE
+#: had too little evidence (too few features, pairs or correlation, a degenerate scene) or the
+#: points contradict it. Not after a conflict ICE found (outside the bounds, inconsistent with
+#: free space, ambiguous): a point match seeded by the same prediction has no better answer.
+_POINT_FALLBACK_REASONS = frozenset(
+    {
+        REASON_NO_CANDIDATES,
+        REASON_FEW_INLIERS,
+        REASON_LOW_CORRELATION,
+        REASON_DEGENERATE,
+        REASON_CONTRADICTED,
+    }
+)
 
 #: Failure category of a match whose reason is empty.
 _UNKNOWN_REASON = "unknown"
@@ -425,7 +445,8 @@ class Slam:
         """ICE match against the landmarks of the ``local_map_nodes`` nodes up to ``last``
         (none before ``log_start``, the first node of their log). A match the scan's own
         points contradict (:func:`points_prefer_prediction` against the recent nodes' points,
-        ``slam.contradiction_gate_m``) counts as failed; where it fails, the point match
+        ``slam.contradiction_gate_m``) counts as failed; where it fails with too little
+        evidence or was contradicted (``_POINT_FALLBACK_REASONS``), the point match
         (:meth:`_point_match`) when ``slam.point_fallback``."""
         cfg = self.config.slam
         first = max(log_start, last - cfg.local_map_nodes + 1)
@@ -456,7 +477,11 @@ class Slam:
         if not result.success:
             # Counted by the reason's category (the text before the first colon).
             category = (result.reason or _UNKNOWN_REASON).split(":")[0]
-            fallback = self._point_match(feats, motion, bounds, recent)
+            fallback = (
+                self._point_match(feats, motion, bounds, recent)
+                if category in _POINT_FALLBACK_REASONS
+                else None
+            )
             if fallback is not None and fallback.success:
                 return _LocalMatch(reference, fallback, last_pose, category)
             return _LocalMatch(reference, result, last_pose, category)

@@ -295,20 +295,52 @@ def test_matches_the_scans_points_contradict_are_refused_outdoors() -> None:
     # prediction and a third of them do at the match (slam.points_prefer_prediction). On
     # the first 150 scans (seed 0; truth: the simulator's poses), without the test 20 factors
     # are over 2 deg off and the trajectory ends 4 times worse than the odometry alone; with
-    # it no factor is, and with the point fallback (the default) every keyframe has a factor
-    # and the trajectory is 5 times better than the odometry (0.010 m against 0.050 m).
+    # it (slam.contradiction_gate_m 0.1 m) no factor is, and with the point fallback as well
+    # every keyframe has a factor and the trajectory is 5 times better than the odometry
+    # (0.010 m against 0.050 m).
     world = outdoor_world()
     run = simulate(world, default_trajectory(world)[:150], seed=0)
     odom_ate = position_errors(run.odom_poses, run.true_poses).rmse_m
-    no_test = SlamConfig(contradiction_gate_m=None, point_fallback=False)
-    _, ate, err_deg = _outdoor_factor_errors(run, no_test)
+    _, ate, err_deg = _outdoor_factor_errors(run, SlamConfig())
     assert np.count_nonzero(err_deg > 5.0) >= 10 and ate > 2.0 * odom_ate  # reproduced
-    result, _, err_deg = _outdoor_factor_errors(run, SlamConfig(point_fallback=False))
+    result, _, err_deg = _outdoor_factor_errors(run, SlamConfig(contradiction_gate_m=0.1))
     assert result.match_failures["contradicted by the points"] >= 20
     assert err_deg.max() < 2.0
-    result, ate, err_deg = _outdoor_factor_errors(run, SlamConfig())
+    both = SlamConfig(contradiction_gate_m=0.1, point_fallback=True)
+    result, ate, err_deg = _outdoor_factor_errors(run, both)
     assert err_deg.shape[0] == result.node_ids.shape[0] - 1  # a factor on every keyframe
     assert ate < 0.5 * odom_ate
+
+
+@pytest.mark.parametrize(
+    ("reason", "falls_back"),
+    [("too few inliers: injected", True), ("outside the bounds: injected", False)],
+)
+def test_point_fallback_follows_too_little_evidence_not_a_conflict(  # type: ignore[no-untyped-def]
+    office_run, reason, falls_back
+) -> None:
+    # With slam.point_fallback, a local ICE match that fails for lack of evidence gets the
+    # point match; one that fails on a conflict ICE found (here: outside the bounds) does not,
+    # since a point match seeded by the same prediction has no better answer.
+    slam = Slam(IcegConfig(slam=SlamConfig(point_fallback=True)))
+    match = slam.matcher.match
+    calls = []
+
+    def failing_once(features, reference, prediction, bounds=None):  # type: ignore[no-untyped-def]
+        calls.append(1)
+        if len(calls) == 30:
+            return MatchResult(
+                False, np.asarray(prediction), np.full((3, 3), np.nan), 0.0, reason=reason
+            )
+        return match(features, reference, prediction, bounds)
+
+    slam.matcher.match = failing_once  # type: ignore[method-assign]
+    for scan in office_run.scans[:200]:
+        slam.process(scan)
+    state = slam.export_state()
+    category = reason.split(":")[0]
+    assert state.point_fallbacks.get(category, 0) == int(falls_back)
+    assert state.match_failures.get(category, 0) == int(not falls_back)
 
 
 def test_sign_test_of_the_points_against_the_prediction() -> None:
@@ -338,7 +370,7 @@ def test_sign_test_of_the_points_against_the_prediction() -> None:
 
 def test_robust_scan_match_factors_let_odometry_carry_wrong_outdoor_matches() -> None:
     # The Huber kernel (slam.scan_match_kernel) on the wrong outdoor matches that the points
-    # test above refuses (it is off here, as is the point fallback, to keep them): Gaussian
+    # test above refuses (it is off by default, as is the point fallback): Gaussian
     # scan-match factors leave the trajectory worse than twice the odometry alone; with the
     # kernel the wrong matches end many sigmas from the odometry and lose their weight (the
     # kernel's pull is checked by hand in tests/graph/test_pose_graph.py), which at least
@@ -350,10 +382,7 @@ def test_robust_scan_match_factors_let_odometry_carry_wrong_outdoor_matches() ->
     odom_ate = position_errors(run.odom_poses, run.true_poses).rmse_m
     ates = {}
     for kernel in (None, "huber"):
-        config = SlamConfig(
-            scan_match_kernel=kernel, contradiction_gate_m=None, point_fallback=False
-        )
-        result, ates[kernel], _ = _outdoor_factor_errors(run, config)
+        result, ates[kernel], _ = _outdoor_factor_errors(run, SlamConfig(scan_match_kernel=kernel))
         kernels = {f.robust for f in result.factors if f.kind == FactorKind.SCAN_MATCH}
         assert kernels == {kernel}
     assert ates[None] > 2.0 * odom_ate  # the failure is reproduced
