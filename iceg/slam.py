@@ -462,23 +462,23 @@ class Slam:
             )
         bounds = MatchBounds.local(cfg.match_max_translation_m, cfg.match_max_rotation_deg)
         result = self.matcher.match(feats, reference.features, motion.delta, bounds)
+        # the recent nodes' points, stacked once for the points test and the point match
+        recent_xy = functools.cache(lambda: self._recent_points(recent))
         if result.success and cfg.contradiction_gate_m is not None:
             contradiction = points_prefer_prediction(
                 feats.points_xy,
-                self._recent_points(recent),
+                recent_xy(),
                 result.pose,
                 motion.delta,
                 cfg.contradiction_gate_m,
             )
             if contradiction:
-                result = MatchResult(
-                    False, motion.delta.copy(), np.full((3, 3), np.nan), 0.0, reason=contradiction
-                )
+                result = MatchResult.failed(motion.delta, contradiction)
         if not result.success:
             # Counted by the reason's category (the text before the first colon).
             category = (result.reason or _UNKNOWN_REASON).split(":")[0]
             fallback = (
-                self._point_match(feats, motion, bounds, recent)
+                self._point_match(feats, motion, bounds, recent_xy)
                 if category in _POINT_FALLBACK_REASONS
                 else None
             )
@@ -492,16 +492,17 @@ class Slam:
         feats: ScanFeatures,
         motion: _Motion,
         bounds: MatchBounds,
-        recent: NDArray[np.int64],
+        recent_xy: Callable[[], FloatArray],
     ) -> MatchResult | None:
         """Point-to-line ICP (:class:`~iceg.matching.plicp.PlIcpMatcher`, Censi 2008) of the
-        scan's points against the scan points of the ``recent`` nodes, seeded by the
-        odometry prediction ``delta`` (frame of the last of ``recent``): a factor for a scan
-        whose ICE features are too few or too ambiguous (outdoors: trees, posts), with the
-        point match's own covariance. ``None`` when disabled or the matcher is not ICE."""
+        scan's points against the recent nodes' scan points (``recent_xy()``:
+        :meth:`_recent_points`), seeded by the odometry prediction ``delta`` (frame of the last
+        node): a factor for a scan whose ICE match had too little evidence or was contradicted
+        by its points (outdoors: trees, posts), with the point match's own covariance. ``None``
+        when disabled or the matcher is not ICE."""
         if not self.config.slam.point_fallback or self.config.matching.method != "ice":
             return None
-        ref = ScanFeatures.empty(self._recent_points(recent))
+        ref = ScanFeatures.empty(recent_xy())
         result = self.point_matcher.match(feats, ref, motion.delta, bounds)
         if result.success and not consistent_with_prediction(result, motion.delta, motion.cov):
             return None
@@ -832,7 +833,8 @@ def points_prefer_prediction(
         gate_m: Distance within which a reference point explains a scan point, metres.
 
     Returns:
-        The failure reason ("contradicted by the points: ..."), or "".
+        The failure reason ("contradicted by the points: ..."), or "" (also when either
+        point set is empty). Raises nothing.
     """
     if reference_xy.shape[0] == 0 or points_xy.shape[0] == 0:
         return ""

@@ -130,3 +130,16 @@ class MatchResult:
     inlier_pairs: IntArray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
     n_hypotheses: int = 0
     reason: str = ""
+
+    @classmethod
+    def failed(cls, prediction: FloatArray, reason: str, n_hypotheses: int = 0) -> MatchResult:
+        """A failed match: ``pose`` a copy of the ``(3,)`` prediction, NaN covariance,
+        correlation 0, no inlier pairs, and ``reason`` (its category before the first colon)."""
+        return cls(
+            False,
+            np.array(prediction, dtype=np.float64),
+            np.full((3, 3), np.nan),
+            0.0,
+            n_hypotheses=n_hypotheses,
+            reason=reason,
+        )

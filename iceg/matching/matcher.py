@@ -167,14 +167,7 @@ class MatchContext:
     def fail(self, reason: str, n_hypotheses: int) -> MatchResult:
         """A failed :class:`~iceg.types.MatchResult` at the prediction with ``reason``."""
         log.debug("ICE match failed: %s", reason)
-        return MatchResult(
-            success=False,
-            pose=self.prediction.copy(),
-            cov=np.full((3, 3), np.nan),
-            correlation=0.0,
-            n_hypotheses=n_hypotheses,
-            reason=reason,
-        )
+        return MatchResult.failed(self.prediction, reason, n_hypotheses)
 
 
 class ScanDerived(NamedTuple):

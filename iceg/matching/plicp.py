@@ -229,7 +229,7 @@ def point_result(
     """The :class:`~iceg.types.MatchResult` of a point matcher (correlation: the overlap)."""
     reason = check_result(pose, cov, fraction, prediction, bounds, config)
     if reason:
-        return MatchResult(False, prediction.copy(), np.full((3, 3), np.nan), 0.0, reason=reason)
+        return MatchResult.failed(prediction, reason)
     out = pose.copy()
     out[2] = float(wrap_angle(out[2]))
     return MatchResult(True, out, cov, fraction, n_hypotheses=1)
@@ -262,9 +262,7 @@ def point_inputs(
     new = subsample(features.points_xy, max_points)
     ref = reference_points(reference)
     if new.shape[0] < MIN_POINTS or ref.shape[0] < MIN_POINTS:
-        failed = MatchResult(
-            False, pred, np.full((3, 3), np.nan), 0.0, reason="too few candidates: points"
-        )
+        failed = MatchResult.failed(pred, "too few candidates: points")
         return pred, new, ref, failed
     return pred, new, ref, None
 
