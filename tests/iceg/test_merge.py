@@ -7,6 +7,8 @@ import dataclasses
 import numpy as np
 import pytest
 import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from PIL import Image
 from typer.testing import CliRunner
 
@@ -20,12 +22,15 @@ from frontends.simulate import (
 from iceg import session
 from iceg.cli import app
 from iceg.evaluation import position_errors
+from iceg.localize import Placement
 from iceg.loop_closure import LoopClosureConfig
 from iceg.merge import (
+    InterClosure,
     MergeSettings,
     densify_bounds,
     find_closures,
     merge_arrays,
+    same_alignment,
     wall_crossings,
 )
 from iceg.session import Session
@@ -97,6 +102,43 @@ def test_merge_refuses_another_building(sessions, tmp_path) -> None:  # type: ig
     r = CliRunner().invoke(app, ["merge", str(a), str(other), "--out", str(tmp_path / "C")])
     assert r.exit_code == 1
     assert "same building" in r.output
+
+
+def _closure(node_b_pose, placed):  # type: ignore[no-untyped-def]
+    """B's node at ``node_b_pose`` (B's map frame) placed at ``placed`` (A's map frame)."""
+    placement = Placement(0, None, None, np.asarray(placed, dtype=np.float64))  # type: ignore[arg-type]
+    transform = se2.compose(placement.pose, se2.inverse(np.asarray(node_b_pose, dtype=float)))
+    return InterClosure(0, placement, transform)
+
+
+def test_two_closures_agree_on_one_alignment_in_either_order() -> None:
+    # B's nodes 50 m apart along B's x axis; the first placed at the origin of A's map with
+    # B's heading (alignment rotation 0), the second at 4 deg (its alignment turns 4 deg, B
+    # drifted between them). By hand: turned by the mean rotation, 2 deg, B's vector
+    # (50, 0) lands 1.745 m from the placements' vector (49.878, 3.488), within 0.5 m +
+    # 0.05 * 50 m = 3.0 m. Turned by the first closure's rotation alone it missed by 3.49 m
+    # (refused in one order only); 4 m off sideways, it misses by 4.0 m either way.
+    tolerances = MergeSettings()
+    turn = np.radians(4.0)
+    a = _closure([0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+    b = _closure([50.0, 0.0, 0.0], [50.0 * np.cos(turn), 50.0 * np.sin(turn), turn])
+    assert same_alignment(a, b, tolerances) and same_alignment(b, a, tolerances)
+    side = _closure([50.0, 0.0, 0.0], [49.97, 1.745 + 4.0, turn])
+    assert not same_alignment(a, side, tolerances) and not same_alignment(side, a, tolerances)
+    too_turned = _closure([50.0, 0.0, 0.0], [50.0, 0.0, np.radians(5.5)])
+    assert not same_alignment(a, too_turned, tolerances)
+
+
+POSES = st.tuples(st.floats(-100, 100), st.floats(-100, 100), st.floats(-np.pi, np.pi)).map(
+    np.array
+)
+
+
+@settings(max_examples=200, deadline=None)
+@given(POSES, POSES, POSES, POSES)
+def test_closure_agreement_is_symmetric(qa, pa, qb, pb) -> None:  # type: ignore[no-untyped-def]
+    a, b = _closure(qa, pa), _closure(qb, pb)
+    assert same_alignment(a, b, MergeSettings()) == same_alignment(b, a, MergeSettings())
 
 
 def test_merge_refuses_two_equally_supported_alignments(tmp_path) -> None:  # type: ignore[no-untyped-def]
