@@ -68,32 +68,34 @@ class SlamConfig(BaseModel):
         "'Robust scan-match factors').",
     )
     point_fallback: bool = Field(
-        default=False,
+        default=True,
         description="Where the ICE match against the local map has too little evidence (too "
         "few features, pairs or correlation; a degenerate scene: trees, posts, clutter) or "
         "the scan's points contradict it (contradiction_gate_m), match the scan's points "
         "against the recent nodes' points by point-to-line ICP seeded by the odometry (Censi "
         "2008) and keep it as the scan-match factor when it agrees with the odometry "
-        "(chi-square test). For feature-poor logs, with contradiction_gate_m 0.1: every "
-        "keyframe of the outdoor world gets a factor (ATE seeds 0-2: 0.061/0.088/0.078 m "
-        "against 0.438/3.390/0.494 m) and MIT CSAIL with a 0.4 deg/m drift scores 0.030 m "
-        "(0.047 m). Off by default: the ACES log with synthetic odometry, seed 0, goes from "
-        "0.158 to 0.504 m, and two session merges change (docs/design.md, 'Point fallback').",
+        "(chi-square test). With contradiction_gate_m (both are the defaults): every "
+        "keyframe of the outdoor world gets a factor (ATE seeds 0-5: 0.061-0.107 m against "
+        "0.44-3.39 m without either), MIT CSAIL with a 0.4 deg/m drift scores 0.030 m "
+        "(0.047 m). The corrected logs with synthetic odometry, mean ATE over seeds 0-5: "
+        "ACES 0.29 m (0.34 m without), csail.log 0.21 m (0.30 m), but csail-corrected "
+        "0.16 m (0.13 m) (docs/design.md, 'Point fallback').",
     )
     contradiction_gate_m: float | None = Field(
-        default=None,
+        default=0.1,
         gt=0,
         description="When set, a successful ICE match against the local map is refused when "
         "the scan's points are explained (a recent node's point within this distance, "
         "metres) clearly better at the odometry prediction than at the match: a one-sided "
         "sign test at 0.999 on the points explained at one pose only "
         "(slam.points_prefer_prediction). It catches the look-alike clusters of trees and "
-        "posts that turn a scan 5-20 degrees. Use 0.1 with point_fallback (a refused match "
-        "then gets the point match): at 0.3 m points in clutter find a neighbour by chance "
+        "posts that turn a scan 5-20 degrees. 0.1 (the default) with point_fallback (a "
+        "refused match then gets the point match): at 0.3 m points in clutter find a "
+        "neighbour by chance "
         "and correct MIT CSAIL matches lost to odometry 4-7 degrees off; at 0.05 m the beams' "
         "spacing and noise count against correct matches. Without the fallback the refused "
-        "steps are left to the odometry (MIT CSAIL 0.029 -> 0.045 m). None (the default): no "
-        "test (docs/design.md, 'Matches the points contradict').",
+        "steps are left to the odometry (MIT CSAIL 0.029 -> 0.045 m). None: no test "
+        "(docs/design.md, 'Matches the points contradict').",
     )
     drop_walls_seen_through: bool = Field(
         default=True,

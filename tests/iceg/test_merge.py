@@ -158,14 +158,15 @@ def test_merge_refuses_two_equally_supported_alignments(tmp_path) -> None:  # ty
 
 @pytest.mark.parametrize(
     ("scenario", "seed", "b_frame"),
-    [("office", 0, np.zeros(3)), ("office_biased", 4, np.array([5.0, -3.0, 2.0]))],
+    [("office", 1, np.zeros(3)), ("office_biased", 4, np.array([5.0, -3.0, 2.0]))],
 )
 def test_merge_refuses_an_alignment_that_drives_through_walls(  # type: ignore[no-untyped-def]
     tmp_path, scenario, seed, b_frame
 ) -> None:
-    # The office world's halves: B's scans are placed in A's map only at mirror images (the
-    # floor repeats, and the halves overlap in two corners only), and two adjacent placements
-    # agree with each other. Merged at that alignment, B's path runs through walls A saw from
+    # The office world's halves (seed 1; on seed 0 too few placements agree and the merge is
+    # refused before this check): B's scans are placed in A's map only at mirror images (the
+    # floor repeats, and the halves overlap in two corners only), and two placements agree
+    # with each other. Merged at that alignment, B's path runs through walls A saw from
     # dozens of nodes, and A's through B's; the merge is refused. In the biased world (seed 4,
     # B in another odometry frame) one way is 14 nodes: the geometric mean of the two ways
     # decides, not the lesser (that merge was written 9.4 m ATE off).

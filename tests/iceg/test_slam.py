@@ -269,6 +269,10 @@ def test_chi2_quantile_is_scipy_stats() -> None:
     assert chi2_3dof() == float(chi2.ppf(CONSISTENCY_PROBABILITY, 3))
 
 
+#: Without the points test and the point fallback (their defaults): ICE's matches stay.
+NO_POINTS_TEST = SlamConfig(contradiction_gate_m=None, point_fallback=False)
+
+
 def _outdoor_factor_errors(run, config: SlamConfig):  # type: ignore[no-untyped-def]
     """Run the pipeline on ``run``; its result, ATE (m) and the heading error (deg) of each
     scan-match factor against the simulator's truth."""
@@ -297,17 +301,17 @@ def test_matches_the_scans_points_contradict_are_refused_outdoors() -> None:
     # are over 2 deg off and the trajectory ends 4 times worse than the odometry alone; with
     # it (slam.contradiction_gate_m 0.1 m) no factor is, and with the point fallback as well
     # every keyframe has a factor and the trajectory is 5 times better than the odometry
-    # (0.010 m against 0.050 m).
+    # (0.010 m against 0.050 m). Both are the defaults.
     world = outdoor_world()
     run = simulate(world, default_trajectory(world)[:150], seed=0)
     odom_ate = position_errors(run.odom_poses, run.true_poses).rmse_m
-    _, ate, err_deg = _outdoor_factor_errors(run, SlamConfig())
+    _, ate, err_deg = _outdoor_factor_errors(run, NO_POINTS_TEST)
     assert np.count_nonzero(err_deg > 5.0) >= 10 and ate > 2.0 * odom_ate  # reproduced
-    result, _, err_deg = _outdoor_factor_errors(run, SlamConfig(contradiction_gate_m=0.1))
+    test_only = SlamConfig(contradiction_gate_m=0.1, point_fallback=False)
+    result, _, err_deg = _outdoor_factor_errors(run, test_only)
     assert result.match_failures["contradicted by the points"] >= 20
     assert err_deg.max() < 2.0
-    both = SlamConfig(contradiction_gate_m=0.1, point_fallback=True)
-    result, ate, err_deg = _outdoor_factor_errors(run, both)
+    result, ate, err_deg = _outdoor_factor_errors(run, SlamConfig())
     assert err_deg.shape[0] == result.node_ids.shape[0] - 1  # a factor on every keyframe
     assert ate < 0.5 * odom_ate
 
@@ -370,7 +374,7 @@ def test_sign_test_of_the_points_against_the_prediction() -> None:
 
 def test_robust_scan_match_factors_let_odometry_carry_wrong_outdoor_matches() -> None:
     # The Huber kernel (slam.scan_match_kernel) on the wrong outdoor matches that the points
-    # test above refuses (it is off by default, as is the point fallback): Gaussian
+    # test above refuses (here off, as is the point fallback, so the matches stay): Gaussian
     # scan-match factors leave the trajectory worse than twice the odometry alone; with the
     # kernel the wrong matches end many sigmas from the odometry and lose their weight (the
     # kernel's pull is checked by hand in tests/graph/test_pose_graph.py), which at least
@@ -382,7 +386,8 @@ def test_robust_scan_match_factors_let_odometry_carry_wrong_outdoor_matches() ->
     odom_ate = position_errors(run.odom_poses, run.true_poses).rmse_m
     ates = {}
     for kernel in (None, "huber"):
-        result, ates[kernel], _ = _outdoor_factor_errors(run, SlamConfig(scan_match_kernel=kernel))
+        config = NO_POINTS_TEST.model_copy(update={"scan_match_kernel": kernel})
+        result, ates[kernel], _ = _outdoor_factor_errors(run, config)
         kernels = {f.robust for f in result.factors if f.kind == FactorKind.SCAN_MATCH}
         assert kernels == {kernel}
     assert ates[None] > 2.0 * odom_ate  # the failure is reproduced
