@@ -193,6 +193,8 @@ def same_alignment(a: InterClosure, b: InterClosure, st: MergeSettings) -> bool:
     """
     if a is b:
         return True
+    if (a.node_b, *a.placement.pose) > (b.node_b, *b.placement.pose):
+        a, b = b, a  # one order for both calls: symmetric to the last bit
     turn = float(se2.wrap_angle(b.transform[2] - a.transform[2]))
     if abs(turn) > np.radians(st.agree_deg):
         return False

@@ -269,7 +269,7 @@ def test_chi2_quantile_is_scipy_stats() -> None:
     assert chi2_3dof() == float(chi2.ppf(CONSISTENCY_PROBABILITY, 3))
 
 
-#: Without the points test and the point fallback (their defaults): ICE's matches stay.
+#: The points test and the point fallback off (both are on by default): ICE's matches stay.
 NO_POINTS_TEST = SlamConfig(contradiction_gate_m=None, point_fallback=False)
 
 
