@@ -499,7 +499,8 @@ class Slam:
         :meth:`_recent_points`), seeded by the odometry prediction ``delta`` (frame of the last
         node): a factor for a scan whose ICE match had too little evidence or was contradicted
         by its points (outdoors: trees, posts), with the point match's own covariance. ``None``
-        when disabled or the matcher is not ICE."""
+        when disabled, when the matcher is not ICE, or when a successful point match fails the
+        chi-square test against the odometry (:func:`consistent_with_prediction`)."""
         if not self.config.slam.point_fallback or self.config.matching.method != "ice":
             return None
         ref = ScanFeatures.empty(recent_xy())

@@ -333,9 +333,7 @@ def test_point_fallback_follows_too_little_evidence_not_a_conflict(  # type: ign
     def failing_once(features, reference, prediction, bounds=None):  # type: ignore[no-untyped-def]
         calls.append(1)
         if len(calls) == 30:
-            return MatchResult(
-                False, np.asarray(prediction), np.full((3, 3), np.nan), 0.0, reason=reason
-            )
+            return MatchResult.failed(prediction, reason)
         return match(features, reference, prediction, bounds)
 
     slam.matcher.match = failing_once  # type: ignore[method-assign]
