@@ -708,7 +708,16 @@ class PoseGraph:
 
     def _new_isam(self) -> gtsam.ISAM2:
         params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(self.config.relinearize_threshold)
+        cfg = self.config
+        if cfg.relinearize_threshold_xy_m is None:
+            params.setRelinearizeThreshold(cfg.relinearize_threshold)
+        else:  # per component of the Pose2 tangent (x, y, theta), by the key's top byte
+            thresholds = gtsam.ISAM2ThresholdMap()
+            xy = cfg.relinearize_threshold_xy_m
+            vector = np.array([xy, xy, cfg.relinearize_threshold])
+            for top in range((_MAX_NODE_ID >> 56) + 1):  # every top byte of a node id
+                thresholds.insert((chr(top), vector))
+            params.setRelinearizeThreshold(thresholds)
         params.relinearizeSkip = self.config.relinearize_skip
         params.setFactorization("QR" if self._qr else "CHOLESKY")
         return gtsam.ISAM2(params)

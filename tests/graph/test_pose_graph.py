@@ -91,7 +91,7 @@ def test_between_convention_matches_an_independent_least_squares() -> None:
         return np.concatenate([r @ _log(between(z, rel)) for r, z in pairs])
 
     ref = least_squares(residuals, compose(x0, z1), xtol=1e-15, ftol=1e-15, gtol=1e-15)
-    # iSAM2 stops relinearizing below relinearize_threshold (1e-3): close, not exact
+    # iSAM2 stops relinearizing below its thresholds: close, not exact
     np.testing.assert_allclose(g.estimate(1)[:2], ref.x[:2], atol=1e-5)
     assert float(wrap_angle(g.estimate(1)[2] - ref.x[2])) == pytest.approx(0.0, abs=1e-5)
     g.optimize_batch()  # Levenberg–Marquardt iterates to convergence
@@ -101,6 +101,29 @@ def test_between_convention_matches_an_independent_least_squares() -> None:
     errors = g.residual_errors()
     assert errors["odometry"] == pytest.approx(0.5 * r[:3] @ r[:3], rel=1e-6)
     assert errors["scan_match"] == pytest.approx(0.5 * r[3:] @ r[3:], rel=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("start", "xy_threshold_m", "relinearized"),
+    [
+        # node 1 starts 5 mm off along x: relinearized under 1e-3, not under 0.01 m for x, y
+        ([1.005, 0.0, 0.0], None, 1),
+        ([1.005, 0.0, 0.0], 0.01, 0),
+        # 5 mrad off in heading: relinearized either way (the heading threshold stays 1e-3)
+        ([1.0, 0.0, 0.005], None, 1),
+        ([1.0, 0.0, 0.005], 0.01, 1),
+    ],
+)
+def test_translation_threshold_applies_to_x_and_y_only(
+    start: list[float], xy_threshold_m: float | None, relinearized: int
+) -> None:
+    g = PoseGraph(GraphConfig(relinearize_threshold_xy_m=xy_threshold_m, relinearize_skip=1))
+    g.add_node(0, np.zeros(3))
+    g.add_node(1, np.array(start))
+    g.add_between(0, 1, np.array([1.0, 0.0, 0.0]), np.eye(3) * 1e-4)
+    assert g.update().relinearized == 2  # new nodes are linearized where they start
+    assert g.update().relinearized == relinearized  # the first check: delta is 5 mm / 5 mrad
+    np.testing.assert_allclose(g.estimate(1), [1.0, 0.0, 0.0], atol=1e-9)
 
 
 def test_buffer_is_cleared_and_no_factor_is_added_twice() -> None:
