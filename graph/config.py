@@ -112,8 +112,8 @@ class GraphConfig(BaseModel):
         "relative translation), so a stale translation costs a second-order error (the "
         "translation update times a heading update), while a stale heading turns the "
         "Jacobians: translations can wait longer. M3500b: 2.3 mm from the batch optimum "
-        "instead of 0.26 mm, 1.3 times faster; MIT CSAIL driven back and forth (10k scans): "
-        "iSAM2 relinearizes a third as many nodes and its updates take half the time.",
+        "instead of 0.26 mm, 1.3 times faster; MIT CSAIL driven back and forth (scans "
+        "2000-6000): iSAM2 relinearizes a third as many nodes, its updates take half the time.",
     )
     relinearize_skip: int = Field(
         default=10,

@@ -718,7 +718,7 @@ class PoseGraph:
             for top in range((_MAX_NODE_ID >> 56) + 1):  # every top byte of a node id
                 thresholds.insert((chr(top), vector))
             params.setRelinearizeThreshold(thresholds)
-        params.relinearizeSkip = self.config.relinearize_skip
+        params.relinearizeSkip = cfg.relinearize_skip
         params.setFactorization("QR" if self._qr else "CHOLESKY")
         return gtsam.ISAM2(params)
 

@@ -91,11 +91,10 @@ class SlamConfig(BaseModel):
         "(slam.points_prefer_prediction). It catches the look-alike clusters of trees and "
         "posts that turn a scan 5-20 degrees. 0.1 (the default) with point_fallback (a "
         "refused match then gets the point match): at 0.3 m points in clutter find a "
-        "neighbour by chance "
-        "and correct MIT CSAIL matches lost to odometry 4-7 degrees off; at 0.05 m the beams' "
-        "spacing and noise count against correct matches. Without the fallback the refused "
-        "steps are left to the odometry (MIT CSAIL 0.029 -> 0.045 m). None: no test "
-        "(docs/design.md, 'Matches the points contradict').",
+        "neighbour by chance and correct MIT CSAIL matches lost to odometry 4-7 degrees off; "
+        "at 0.05 m the beams' spacing and noise count against correct matches. Without the "
+        "fallback the refused steps are left to the odometry (MIT CSAIL 0.029 -> 0.045 m). "
+        "None: no test (docs/design.md, 'Matches the points contradict').",
     )
     drop_walls_seen_through: bool = Field(
         default=True,
