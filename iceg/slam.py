@@ -31,6 +31,7 @@ from iceg.feature_map import FeatureMap, MapReference
 from iceg.features import extract
 from iceg.loop_closure import LoopCloser, LoopClosureStats, innovation_chi2
 from iceg.matching import MatchBounds
+from iceg.matching._kernels import points_explained
 from iceg.matching.matcher import (
     REASON_DEGENERATE,
     REASON_FEW_INLIERS,
@@ -39,6 +40,7 @@ from iceg.matching.matcher import (
 )
 from iceg.matching.peers import make_matcher
 from iceg.matching.plicp import PlIcpMatcher
+from iceg.matching.refine import grid_points
 from iceg.odometry_calibration import OdometryCalibrator
 from iceg.results import SlamResult
 from iceg.scan_store import ScanStore
@@ -513,10 +515,11 @@ class Slam:
         """``(P, 2)`` float64 scan points of the ``recent`` nodes in the frame of the last of
         them (current estimates), metres."""
         _, poses = self.graph.estimates_of(recent)
+        relative = se2.between(poses[-1], poses)
         return np.concatenate(
             [
-                se2.transform_points(se2.between(poses[-1], pose), self._points_of(int(i)))
-                for i, pose in zip(recent, poses, strict=True)
+                se2.transform_points(pose, self._points_of(i))
+                for i, pose in zip(recent.tolist(), relative, strict=True)
             ]
         )
 
@@ -840,15 +843,19 @@ def points_prefer_prediction(
     if reference_xy.shape[0] == 0 or points_xy.shape[0] == 0:
         return ""
     # scipy on first use, not with this module (most of a cold start; see chi2_3dof)
-    from scipy.spatial import cKDTree
     from scipy.special import bdtrc
 
-    tree = cKDTree(reference_xy)
-    at_pose = np.isfinite(
-        tree.query(se2.transform_points(pose, points_xy), distance_upper_bound=gate_m)[0]
-    )
-    at_prediction = np.isfinite(
-        tree.query(se2.transform_points(prediction, points_xy), distance_upper_bound=gate_m)[0]
+    ref = np.ascontiguousarray(reference_xy, dtype=np.float64)
+    origin, n_cells, key, order = grid_points(ref, gate_m)
+    at_pose, at_prediction = points_explained(
+        np.ascontiguousarray(points_xy, dtype=np.float64),
+        np.stack([np.asarray(pose, dtype=np.float64), np.asarray(prediction, dtype=np.float64)]),
+        ref,
+        key,
+        order,
+        origin,
+        n_cells,
+        gate_m,
     )
     only_prediction = int(np.count_nonzero(at_prediction & ~at_pose))
     only_pose = int(np.count_nonzero(at_pose & ~at_prediction))

@@ -978,3 +978,62 @@ def kernel_density(d: np.ndarray, w: np.ndarray, kernel: float) -> np.ndarray:
     for a in range(n):
         dens[order[a]] = acc[a]
     return dens
+
+
+@njit(cache=True, nogil=True)
+def points_explained(
+    points: np.ndarray,
+    poses: np.ndarray,
+    ref_points: np.ndarray,
+    cell_key: np.ndarray,
+    cell_order: np.ndarray,
+    origin: np.ndarray,
+    n_cells: np.ndarray,
+    gate_m: float,
+) -> np.ndarray:
+    """Whether some reference point lies closer than ``gate_m`` to each point moved by each
+    pose (``slam.points_prefer_prediction``).
+
+    The reference points are gridded in cells of ``gate_m`` (keys ``ix * n_cells[1] + iy``
+    sorted, as :func:`~iceg.matching.refine.grid_points` builds them), so each moved point
+    scans the 3 x 3 cells around it (three runs of consecutive keys) and stops at the first
+    reference point within the gate.
+
+    Args:
+        points: ``(P, 2)`` float64 points in their own frame, metres.
+        poses: ``(K, 3)`` float64 poses of that frame in the reference frame.
+        ref_points: ``(R, 2)`` float64 reference points, reference frame.
+        cell_key, cell_order: ``(R,)`` int64 sorted cell keys and the point of each.
+        origin: ``(2,)`` float64 corner of cell ``(0, 0)``; ``n_cells`` ``(2,)`` int64.
+        gate_m: Distance gate and cell side, metres (> 0).
+
+    Returns:
+        ``(K, P)`` bool.
+    """
+    n_r = cell_key.shape[0]
+    nx, ny = n_cells[0], n_cells[1]
+    gate2 = gate_m * gate_m
+    out = np.zeros((poses.shape[0], points.shape[0]), dtype=np.bool_)
+    for k in range(poses.shape[0]):
+        c = math.cos(poses[k, 2])
+        s = math.sin(poses[k, 2])
+        for i in range(points.shape[0]):
+            qx = c * points[i, 0] - s * points[i, 1] + poses[k, 0]
+            qy = s * points[i, 0] + c * points[i, 1] + poses[k, 1]
+            fx = (qx - origin[0]) / gate_m
+            fy = (qy - origin[1]) / gate_m
+            if not (fx > -2.0 and fy > -2.0 and fx < nx + 1.0 and fy < ny + 1.0):
+                continue
+            ix = math.floor(fx)
+            iy = math.floor(fy)
+            lo_y, hi_y = max(iy - 1, 0), min(iy + 1, ny - 1)
+            for cx in range(max(ix - 1, 0), min(ix + 2, nx)):
+                m = np.searchsorted(cell_key, cx * ny + lo_y)
+                last = cx * ny + hi_y
+                while m < n_r and cell_key[m] <= last and not out[k, i]:
+                    j = cell_order[m]
+                    dx = qx - ref_points[j, 0]
+                    dy = qy - ref_points[j, 1]
+                    out[k, i] = dx * dx + dy * dy < gate2
+                    m += 1
+    return out

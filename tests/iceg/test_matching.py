@@ -39,6 +39,7 @@ from iceg.matching._kernels import (
     cloud_nearest,
     no_segment_grid,
     point_line_system,
+    points_explained,
     segment_grid,
 )
 from iceg.matching.config import CovarianceConfig
@@ -59,7 +60,7 @@ from iceg.matching.hypotheses import (
     vote,
 )
 from iceg.matching.matcher import walls_seen_through
-from iceg.matching.refine import build_cloud, effective_line_cov
+from iceg.matching.refine import build_cloud, effective_line_cov, grid_points
 from iceg.types import FeatureKind, ScanFeatures
 from iceg_common.errors import ConfigError, MatchingError
 from iceg_common.se2 import between, compose, inverse, transform_points
@@ -470,6 +471,23 @@ def test_cloud_nearest_equals_brute_force() -> None:
         want = np.where(d.min(axis=1) < gate, d.argmin(axis=1), -1)
         np.testing.assert_array_equal(cloud_nearest(pose, cloud, gate), want)
     assert np.count_nonzero(want >= 0) > 50
+
+
+def test_points_explained_equals_brute_force() -> None:
+    # The gridded existence test of slam.points_prefer_prediction gives, for every pose, the
+    # same points with a reference point closer than the gate as an exhaustive search,
+    # including points that fall outside the grid.
+    rng = np.random.default_rng(9)
+    ref = rng.uniform(-3.0, 3.0, (400, 2))
+    pts = rng.uniform(-4.0, 4.0, (300, 2))
+    poses = np.array([[0.2, -0.1, 0.3], [0.0, 0.0, 0.0], [-1.0, 2.5, -2.0]])
+    for gate in (0.3, 0.1):
+        origin, n_cells, key, order = grid_points(ref, gate)
+        got = points_explained(pts, poses, ref, key, order, origin, n_cells, gate)
+        for k, pose in enumerate(poses):
+            d = np.linalg.norm(transform_points(pose, pts)[:, None, :] - ref[None], axis=2)
+            np.testing.assert_array_equal(got[k], d.min(axis=1) < gate)
+        assert 20 < np.count_nonzero(got) < got.size - 20
 
 
 def test_hand_made_scenes_accuracy_and_calibration() -> None:
