@@ -883,6 +883,11 @@ def gauss_newton_phase(
     return pose, sigma, gate, it
 
 
+#: Widening of a segment's angular span (radians) in :func:`ray_wall_check`: far above the
+#: rounding of the bearings (~1e-16 rad), so no beam the exact test accepts is left out.
+SPAN_MARGIN_RAD = 1e-6
+
+
 @njit(cache=True, nogil=True)
 def ray_wall_check(
     ep: np.ndarray,
@@ -895,27 +900,52 @@ def ray_wall_check(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Cast segments ``ep`` (M, 2, 2) along beams (bearing, range) from the origin; see
     ``matcher._ray_check``. Returns ``(M,)`` float64 arrays: each segment's wall length seen
-    through and confirmed (metres)."""
+    through and confirmed (metres).
+
+    ``bearing`` is ascending. A ray from the origin meets a segment only at a bearing inside
+    the segment's angular span (under pi), so each segment is tested only against the beams
+    of its span widened by :data:`SPAN_MARGIN_RAD`; segments are taken in order and a beam
+    keeps the first nearest, as a test of every beam against every segment would."""
+    n_b = bearing.shape[0]
     see = np.zeros(ep.shape[0])
     cons = np.zeros(ep.shape[0])
-    for b in range(bearing.shape[0]):
-        dx = math.cos(bearing[b])
-        dy = math.sin(bearing[b])
-        best = np.inf
-        bk = -1
-        for k in range(ep.shape[0]):
-            ax = ep[k, 0, 0]
-            ay = ep[k, 0, 1]
-            ex = ep[k, 1, 0] - ax
-            ey = ep[k, 1, 1] - ay
-            den = dx * ey - dy * ex
-            if abs(den) <= 1e-12:
-                continue
-            t = (ax * ey - ay * ex) / den
-            u = (ax * dy - ay * dx) / den
-            if t > 0.0 and 0.0 <= u <= 1.0 and t < best:
-                best = t
-                bk = k
+    cos_b = np.cos(bearing)
+    sin_b = np.sin(bearing)
+    best_t = np.full(n_b, np.inf)
+    best_k = np.full(n_b, -1, dtype=np.int64)
+    for k in range(ep.shape[0]):
+        ax = ep[k, 0, 0]
+        ay = ep[k, 0, 1]
+        ex = ep[k, 1, 0] - ax
+        ey = ep[k, 1, 1] - ay
+        b0 = math.atan2(ay, ax)
+        b1 = math.atan2(ep[k, 1, 1], ep[k, 1, 0])
+        lo = min(b0, b1)
+        hi = max(b0, b1)
+        if hi - lo < math.pi - SPAN_MARGIN_RAD:
+            spans = ((lo - SPAN_MARGIN_RAD, hi + SPAN_MARGIN_RAD), (np.inf, np.inf))
+        elif hi - lo > math.pi + SPAN_MARGIN_RAD:  # across the bearing +-pi
+            spans = ((-np.inf, lo + SPAN_MARGIN_RAD), (hi - SPAN_MARGIN_RAD, np.inf))
+        else:  # (nearly) through the origin: every beam
+            spans = ((-np.inf, np.inf), (np.inf, np.inf))
+        for s_lo, s_hi in spans:
+            first = np.searchsorted(bearing, s_lo)
+            for b in range(first, np.searchsorted(bearing, s_hi, "right")):
+                dx = cos_b[b]
+                dy = sin_b[b]
+                den = dx * ey - dy * ex
+                if abs(den) <= 1e-12:
+                    continue
+                t = (ax * ey - ay * ex) / den
+                u = (ax * dy - ay * dx) / den
+                if t > 0.0 and 0.0 <= u <= 1.0 and t < best_t[b]:
+                    best_t[b] = t
+                    best_k[b] = k
+    for b in range(n_b):
+        dx = cos_b[b]
+        dy = sin_b[b]
+        best = best_t[b]
+        bk = best_k[b]
         if bk < 0 or best >= range_max_m - tol_m:
             continue
         ex = ep[bk, 1, 0] - ep[bk, 0, 0]
