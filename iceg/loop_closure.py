@@ -372,7 +372,8 @@ class _Poses:
 
     def __init__(self, graph: PoseGraph) -> None:
         self._graph = graph
-        self._cache: dict[int, FloatArray] = {}
+        self._cache = np.zeros((graph.n_nodes, 3))  # row = node id, valid where _known
+        self._known = np.zeros(graph.n_nodes, dtype=bool)
         self._full: FloatArray | None = None
 
     def use_full(self, poses: FloatArray) -> None:
@@ -384,11 +385,12 @@ class _Poses:
         ids = np.asarray(node_ids, dtype=np.int64).reshape(-1)
         if self._full is not None:
             return self._full[ids]
-        missing = [n for n in ids.tolist() if n not in self._cache]
-        if missing:
+        missing = ids[~self._known[ids]]
+        if missing.shape[0]:
             got, poses = self._graph.estimates_of(missing)
-            self._cache.update(zip(got.tolist(), poses, strict=True))
-        return np.array([self._cache[n] for n in ids.tolist()]).reshape(-1, 3)
+            self._cache[got] = poses
+            self._known[got] = True
+        return self._cache[ids]
 
     def table(self, node_ids: IntArray) -> tuple[IntArray, FloatArray]:
         """``(ids (k,), poses (k, 3))`` of the sorted unique ``node_ids`` (a pose table)."""
