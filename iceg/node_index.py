@@ -79,16 +79,27 @@ class NodeGrid:
             raise ValueError("NodeGrid.add: positions must be finite")
         if ids.size == 0:
             return
+        # The last position given for a repeated id wins.
+        _, last = np.unique(ids[::-1], return_index=True)
+        keep = ids.shape[0] - 1 - last
+        ids, pts = ids[keep], pts[keep]
         self._reserve(int(ids.max()) + 1)
+        for n in ids[~np.isnan(self._xy[ids, 0])].tolist():  # moved nodes
+            self._remove(n)
+        self._xy[ids] = pts
+        self._count += ids.shape[0]
+        # One dict step per cell: the nodes grouped by cell key.
         keys = np.floor(pts / self.cell_m).astype(np.int64)
-        for n, (cx, cy), p in zip(ids.tolist(), keys.tolist(), pts, strict=True):
-            if not np.isnan(self._xy[n, 0]):
-                self._remove(n)
-            self._cells.setdefault((cx, cy), []).append(n)
-            self._xy[n] = p
-            self._count += 1
-        self._lo = np.minimum(self._lo, pts.min(axis=0))
-        self._hi = np.maximum(self._hi, pts.max(axis=0))
+        order = np.lexsort((keys[:, 1], keys[:, 0]))
+        keys, ids = keys[order], ids[order]
+        starts = np.flatnonzero(np.any(np.diff(keys, axis=0) != 0, axis=1)) + 1
+        bounds = [0, *starts.tolist(), ids.shape[0]]
+        cells = keys[bounds[:-1]].tolist()
+        grouped = ids.tolist()
+        for (cx, cy), a, b in zip(cells, bounds[:-1], bounds[1:], strict=True):
+            self._cells.setdefault((cx, cy), []).extend(grouped[a:b])
+        self._lo = np.minimum(self._lo, [pts[:, 0].min(), pts[:, 1].min()])
+        self._hi = np.maximum(self._hi, [pts[:, 0].max(), pts[:, 1].max()])
 
     def query(self, center_xy: ArrayLike, radius_m: float) -> IntArray:
         """Ids of the nodes whose indexed position is within ``radius_m`` of ``center_xy``

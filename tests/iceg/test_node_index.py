@@ -32,10 +32,14 @@ def test_query_equals_brute_force(
     half = xy.shape[0] // 2
     grid.add(np.arange(half), xy[:half])  # in two batches, as nodes arrive
     grid.add(np.arange(half, xy.shape[0]), xy[half:])
-    for n, x, y in moves:  # re-indexing a node moves it
-        if n < xy.shape[0]:
-            xy[n] = (x, y)
-            grid.add([n], [[x, y]])
+    moves = [(n, x, y) for n, x, y in moves if n < xy.shape[0]]
+    for n, x, y in moves[:3]:  # re-indexing a node moves it
+        xy[n] = (x, y)
+        grid.add([n], [[x, y]])
+    for n, x, y in moves[3:]:  # ... also in a batch, where the last of a repeated id wins
+        xy[n] = (x, y)
+    if moves[3:]:
+        grid.add([n for n, _, _ in moves[3:]], [[x, y] for _, x, y in moves[3:]])
     c = np.array(center)
     d2 = ((xy - c) ** 2).sum(axis=1)
     np.testing.assert_array_equal(grid.query(c, radius), np.flatnonzero(d2 <= radius * radius))
