@@ -325,6 +325,8 @@ _C = TypeVar("_C", bound="_Columns")
 
 #: Initial row capacity of a growing column container (:class:`_Columns`).
 _MIN_CAPACITY = 64
+#: Above this many kept blocks, :meth:`_Columns.drop` gathers the kept rows by a mask.
+_MAX_DROP_BLOCKS = 32
 
 
 @dataclass
@@ -369,6 +371,35 @@ class _Columns:
     def take(self: _C, rows: IntArray | BoolArray) -> _C:
         """A copy holding the selected rows (indices or a mask)."""
         return type(self)(**{f.name: getattr(self, f.name)[rows] for f in fields(self)})
+
+    def drop(self: _C, rows: IntArray) -> _C:
+        """A copy without ``rows`` (indices), the others in order, with this container's
+        spare capacity (the next :meth:`append` does not reallocate). A few dropped rows cost
+        a block copy between each two, not a gather of every row."""
+        n = len(self)
+        gone = np.unique(np.asarray(rows, dtype=np.int64))
+        kept = n - gone.shape[0]
+        blocks = list(zip([0, *(gone + 1).tolist()], [*gone.tolist(), n], strict=True))
+        mask = None
+        if len(blocks) > _MAX_DROP_BLOCKS:
+            mask = np.ones(n, dtype=bool)
+            mask[gone] = False
+        cap = max(self._cap, kept)
+        bufs: dict[str, np.ndarray] = {}
+        for f in fields(self):
+            col = getattr(self, f.name)
+            buf = np.empty((cap, *col.shape[1:]), dtype=col.dtype)
+            if mask is not None:
+                buf[:kept] = col[mask]
+            else:
+                at = 0
+                for a, b in blocks:
+                    buf[at : at + b - a] = col[a:b]
+                    at += b - a
+            bufs[f.name] = buf
+        out = type(self)(**{k: buf[:kept] for k, buf in bufs.items()})
+        out._bufs, out._cap = bufs, cap
+        return out
 
 
 @dataclass
@@ -1059,9 +1090,7 @@ class FeatureMap:
     def _merge(self, merge_rows: IntArray) -> IntArray:
         """Remove duplicate landmarks (merged into a matched one); return their ids."""
         merged_ids = self._lm.id[merge_rows].copy()
-        keep = np.ones(len(self), dtype=bool)
-        keep[merge_rows] = False
-        self._lm = self._lm.take(keep)
+        self._lm = self._lm.drop(merge_rows)
         self.n_merged += int(merge_rows.shape[0])
         return merged_ids
 
@@ -1382,7 +1411,7 @@ class FeatureMap:
                 reason=np.where(stale[d], PRUNED_VALIDITY, PRUNED_RATIO).astype(np.int64),
             )
         )
-        self._lm = lm.take(~drop)
+        self._lm = lm.drop(d)
         log.debug("pruned %d landmarks at %.2f s", d.shape[0], stamp)
         return self._pruned[-1].ids
 

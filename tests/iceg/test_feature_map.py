@@ -13,7 +13,13 @@ import numpy as np
 import pytest
 
 from frontends.simulate import box_world, office_world, simulate
-from iceg.feature_map import PRUNED_VALIDITY, FeatureMap, FeatureMapConfig, PrunedLandmarks
+from iceg.feature_map import (
+    PRUNED_VALIDITY,
+    FeatureMap,
+    FeatureMapConfig,
+    PrunedLandmarks,
+    _Points,
+)
 from iceg.features import extract
 from iceg.matching import IceMatcher, MatchBounds
 from iceg.types import FeatureKind, MatchResult
@@ -333,3 +339,24 @@ def test_walls_the_newest_scan_sees_through_are_dropped_from_a_reference(removed
     left = transform_points(poses[1], kept.features.seg_endpoints.reshape(-1, 2)).reshape(-1, 2, 2)
     np.testing.assert_array_equal(left, walls[~on_box])
     assert kept.features.ids is ref.features.ids  # landmarks untouched
+
+
+@pytest.mark.parametrize("n_drop", [0, 1, 3, 40])
+def test_dropping_rows_keeps_the_others_in_order_and_the_spare_capacity(n_drop: int) -> None:
+    # Dropping landmark rows (merged, pruned) gives the rows a mask would keep, in order,
+    # whether copied block by block (few rows) or gathered (many); the container keeps its
+    # capacity, so appending after it writes into the same buffers.
+    rng = np.random.default_rng(n_drop)
+    cols = _Points(np.arange(100, dtype=np.int64), rng.normal(size=(100, 2)))
+    cols.append(_Points(np.arange(100, 150, dtype=np.int64), rng.normal(size=(50, 2))))
+    gone = rng.choice(150, n_drop, replace=False)
+    keep = np.ones(150, dtype=bool)
+    keep[gone] = False
+    out = cols.drop(gone)
+    np.testing.assert_array_equal(out.node, cols.node[keep])
+    np.testing.assert_array_equal(out.xy, cols.xy[keep])
+    assert out._cap == cols._cap >= 150
+    buffer = out._bufs["xy"]
+    out.append(_Points(np.array([7], dtype=np.int64), np.array([[1.5, -2.5]])))
+    assert out._bufs["xy"] is buffer and len(out) == 151 - n_drop
+    np.testing.assert_array_equal(out.xy[-1], [1.5, -2.5])
