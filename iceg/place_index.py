@@ -23,6 +23,7 @@ global ICE match and a consistency check (:mod:`iceg.loop_closure`).
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 
 import numpy as np
@@ -69,6 +70,16 @@ def _soft_histogram(values: FloatArray, n_bins: int, max_value: float) -> FloatA
     return hist / norm if norm > 0 else hist
 
 
+@functools.lru_cache(maxsize=256)
+def _pairs(n: int) -> tuple[IntArray, IntArray]:
+    """Indices ``(i, j)`` of every pair ``i < j`` of ``n`` items (``np.triu_indices``, built
+    once per count: it costs more than the descriptor's arithmetic), read-only."""
+    i, j = np.triu_indices(n, k=1)
+    i.flags.writeable = False
+    j.flags.writeable = False
+    return i, j
+
+
 def place_descriptor(features: ScanFeatures, config: PlaceIndexConfig | None = None) -> FloatArray:
     """Rotation-invariant descriptor of one keyframe.
 
@@ -86,7 +97,7 @@ def place_descriptor(features: ScanFeatures, config: PlaceIndexConfig | None = N
     cfg = config or PlaceIndexConfig()
     r_max = float(features.range_max_m)
     xy = np.asarray(features.xy, dtype=np.float64).reshape(-1, 2)
-    i, j = np.triu_indices(xy.shape[0], k=1)
+    i, j = _pairs(xy.shape[0])
     pair = _soft_histogram(np.hypot(*(xy[i] - xy[j]).T), cfg.pair_bins, 2.0 * r_max)
     pts = np.asarray(features.points_xy, dtype=np.float64).reshape(-1, 2)
     ranges = _soft_histogram(np.hypot(pts[:, 0], pts[:, 1]), cfg.range_bins, r_max)
