@@ -146,14 +146,28 @@ _EMPTY_ROWS = _Rows(np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
 @dataclass(frozen=True, eq=False)
 class _PointRows:
     """Point-to-line rows at the refined pose: segment of each used point (-1: none), the
-    associated mask, residuals (m), Jacobians ``(N, 3)`` and the points in the reference
-    frame ``(N, 2)``."""
+    associated mask and residuals (m); their Jacobians ``(N, 3)`` and the points in the
+    reference frame ``(N, 2)`` are computed on first use (only a covariance reads them)."""
 
     idx: IntArray
     sel: NDArray[np.bool_]
     r: FloatArray
-    jac: FloatArray
-    q: FloatArray
+    pose: FloatArray  # (3,) the refined pose
+    points: FloatArray  # (N, 2) the associated points, new frame
+    normal: FloatArray  # (N, 2) unit normals of their segments
+
+    @functools.cached_property
+    def _rotated(self) -> FloatArray:
+        return self.points @ rot(self.pose[2]).T
+
+    @functools.cached_property
+    def jac(self) -> FloatArray:
+        rp, nrm = self._rotated, self.normal
+        return np.column_stack([nrm[:, 0], nrm[:, 1], nrm[:, 1] * rp[:, 0] - nrm[:, 0] * rp[:, 1]])
+
+    @functools.cached_property
+    def q(self) -> FloatArray:
+        return self._rotated + self.pose[:2]
 
 
 @dataclass(frozen=True, eq=False)
@@ -553,10 +567,10 @@ def _final_point_rows(
         pose, problem.points, problem.lines, gate, sigma, problem.kernel_settings
     )
     sel = idx >= 0
-    rp = problem.points.xy[sel] @ rot(pose[2]).T
-    nrm = problem.segs.normal[idx[sel]]
-    jac = np.column_stack([nrm[:, 0], nrm[:, 1], nrm[:, 1] * rp[:, 0] - nrm[:, 0] * rp[:, 1]])
-    return hess, _PointRows(idx, sel, res[sel], jac, rp + pose[:2]), sigma
+    rows = _PointRows(
+        idx, sel, res[sel], pose.copy(), problem.points.xy[sel], problem.segs.normal[idx[sel]]
+    )
+    return hess, rows, sigma
 
 
 def _final_system(
