@@ -31,7 +31,6 @@ from iceg.feature_map import FeatureMap, MapReference
 from iceg.features import extract
 from iceg.loop_closure import LoopCloser, LoopClosureStats, innovation_chi2
 from iceg.matching import MatchBounds
-from iceg.matching._kernels import points_explained
 from iceg.matching.matcher import (
     REASON_DEGENERATE,
     REASON_FEW_INLIERS,
@@ -40,7 +39,7 @@ from iceg.matching.matcher import (
 )
 from iceg.matching.peers import make_matcher
 from iceg.matching.plicp import PlIcpMatcher
-from iceg.matching.refine import grid_points
+from iceg.matching.refine import points_within
 from iceg.odometry_calibration import OdometryCalibrator
 from iceg.results import SlamResult
 from iceg.scan_store import ScanStore
@@ -845,17 +844,8 @@ def points_prefer_prediction(
     # scipy on first use, not with this module (most of a cold start; see chi2_3dof)
     from scipy.special import bdtrc
 
-    ref = np.ascontiguousarray(reference_xy, dtype=np.float64)
-    origin, n_cells, key, order = grid_points(ref, gate_m)
-    at_pose, at_prediction = points_explained(
-        np.ascontiguousarray(points_xy, dtype=np.float64),
-        np.stack([np.asarray(pose, dtype=np.float64), np.asarray(prediction, dtype=np.float64)]),
-        ref,
-        key,
-        order,
-        origin,
-        n_cells,
-        gate_m,
+    at_pose, at_prediction = points_within(
+        points_xy, np.stack([pose, prediction]), reference_xy, gate_m
     )
     only_prediction = int(np.count_nonzero(at_prediction & ~at_pose))
     only_pose = int(np.count_nonzero(at_pose & ~at_prediction))

@@ -51,6 +51,7 @@ from iceg.matching._kernels import (
     gauss_newton_phase,
     lattice_point_cost,
     point_line_system,
+    points_explained,
     segment_grid,
 )
 from iceg.matching.geometry import EOW, FeatureGeometry, SegmentSet, rot
@@ -321,6 +322,36 @@ def build_cloud(
         n_cells,
         key,
         order,
+    )
+
+
+def points_within(
+    points_xy: FloatArray, poses: FloatArray, reference_xy: FloatArray, gate_m: float
+) -> NDArray[np.bool_]:
+    """Whether a reference point lies closer than ``gate_m`` to each point, moved by each
+    pose: the reference gridded in cells of the gate (:func:`grid_points`), each moved point
+    scanning the 3 x 3 cells around it (:func:`~iceg.matching._kernels.points_explained`).
+
+    Args:
+        points_xy: ``(P, 2)`` float64 points in their own frame, metres.
+        poses: ``(K, 3)`` float64 poses of that frame in the reference frame.
+        reference_xy: ``(R, 2)`` float64 reference points, ``R >= 1``, metres.
+        gate_m: Distance gate, metres (> 0).
+
+    Returns:
+        ``(K, P)`` bool.
+    """
+    ref = np.ascontiguousarray(reference_xy, dtype=np.float64)
+    origin, n_cells, key, order = grid_points(ref, gate_m)
+    return points_explained(  # type: ignore[no-any-return]
+        np.ascontiguousarray(points_xy, dtype=np.float64),
+        np.ascontiguousarray(poses, dtype=np.float64),
+        ref,
+        key,
+        order,
+        origin,
+        n_cells,
+        gate_m,
     )
 
 

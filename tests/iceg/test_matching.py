@@ -39,7 +39,6 @@ from iceg.matching._kernels import (
     cloud_nearest,
     no_segment_grid,
     point_line_system,
-    points_explained,
     ray_wall_check,
     segment_grid,
 )
@@ -61,7 +60,7 @@ from iceg.matching.hypotheses import (
     vote,
 )
 from iceg.matching.matcher import MAX_INCIDENCE_DEG, walls_seen_through
-from iceg.matching.refine import build_cloud, effective_line_cov, grid_points
+from iceg.matching.refine import build_cloud, effective_line_cov, points_within
 from iceg.types import FeatureKind, ScanFeatures
 from iceg_common.errors import ConfigError, MatchingError
 from iceg_common.se2 import between, compose, inverse, transform_points
@@ -474,7 +473,7 @@ def test_cloud_nearest_equals_brute_force() -> None:
     assert np.count_nonzero(want >= 0) > 50
 
 
-def test_points_explained_equals_brute_force() -> None:
+def test_points_within_equals_brute_force() -> None:
     # The gridded existence test of slam.points_prefer_prediction gives, for every pose, the
     # same points with a reference point closer than the gate as an exhaustive search,
     # including points that fall outside the grid.
@@ -483,8 +482,7 @@ def test_points_explained_equals_brute_force() -> None:
     pts = rng.uniform(-4.0, 4.0, (300, 2))
     poses = np.array([[0.2, -0.1, 0.3], [0.0, 0.0, 0.0], [-1.0, 2.5, -2.0]])
     for gate in (0.3, 0.1):
-        origin, n_cells, key, order = grid_points(ref, gate)
-        got = points_explained(pts, poses, ref, key, order, origin, n_cells, gate)
+        got = points_within(pts, poses, ref, gate)
         for k, pose in enumerate(poses):
             d = np.linalg.norm(transform_points(pose, pts)[:, None, :] - ref[None], axis=2)
             np.testing.assert_array_equal(got[k], d.min(axis=1) < gate)
