@@ -883,34 +883,24 @@ def gauss_newton_phase(
     return pose, sigma, gate, it
 
 
-#: Widening of a segment's angular span (radians) in :func:`ray_wall_check`: far above the
+#: Widening of a segment's angular span (radians) in :func:`nearest_walls`: far above the
 #: rounding of the bearings (~1e-16 rad), so no beam the exact test accepts is left out.
 SPAN_MARGIN_RAD = 1e-6
 
 
 @njit(cache=True, nogil=True)
-def ray_wall_check(
-    ep: np.ndarray,
-    bearing: np.ndarray,
-    ranges: np.ndarray,
-    spacing: float,
-    range_max_m: float,
-    tol_m: float,
-    cos_max_incidence: float,
+def nearest_walls(
+    ep: np.ndarray, bearing: np.ndarray, cos_b: np.ndarray, sin_b: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Cast segments ``ep`` (M, 2, 2) along beams (bearing, range) from the origin; see
-    ``matcher._ray_check``. Returns ``(M,)`` float64 arrays: each segment's wall length seen
-    through and confirmed (metres).
+    """The nearest segment of ``ep`` (M, 2, 2) each beam from the origin meets: ``(B,)``
+    float64 distance along the beam (inf: none) and ``(B,)`` int64 segment (-1: none), the
+    first one in segment order among equally near ones.
 
-    ``bearing`` is ascending. A ray from the origin meets a segment only at a bearing inside
-    the segment's angular span (under pi), so each segment is tested only against the beams
-    of its span widened by :data:`SPAN_MARGIN_RAD`; segments are taken in order and a beam
-    keeps the first nearest, as a test of every beam against every segment would."""
+    ``bearing`` ``(B,)`` is ascending (``cos_b``, ``sin_b`` its cosines and sines). A ray
+    from the origin meets a segment only at a bearing inside the segment's angular span
+    (under pi), so each segment is tested only against the beams of its span widened by
+    :data:`SPAN_MARGIN_RAD`, in segment order: the same answer as testing every pair."""
     n_b = bearing.shape[0]
-    see = np.zeros(ep.shape[0])
-    cons = np.zeros(ep.shape[0])
-    cos_b = np.cos(bearing)
-    sin_b = np.sin(bearing)
     best_t = np.full(n_b, np.inf)
     best_k = np.full(n_b, -1, dtype=np.int64)
     for k in range(ep.shape[0]):
@@ -941,6 +931,29 @@ def ray_wall_check(
                 if t > 0.0 and 0.0 <= u <= 1.0 and t < best_t[b]:
                     best_t[b] = t
                     best_k[b] = k
+    return best_t, best_k
+
+
+@njit(cache=True, nogil=True)
+def ray_wall_check(
+    ep: np.ndarray,
+    bearing: np.ndarray,
+    ranges: np.ndarray,
+    spacing: float,
+    range_max_m: float,
+    tol_m: float,
+    cos_max_incidence: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Cast segments ``ep`` (M, 2, 2) along beams (bearing ascending, range) from the
+    origin; see ``matcher._ray_check``. Returns ``(M,)`` float64 arrays: each segment's wall
+    length seen through and confirmed (metres), each beam counting on its nearest segment
+    (:func:`nearest_walls`)."""
+    n_b = bearing.shape[0]
+    see = np.zeros(ep.shape[0])
+    cons = np.zeros(ep.shape[0])
+    cos_b = np.cos(bearing)
+    sin_b = np.sin(bearing)
+    best_t, best_k = nearest_walls(ep, bearing, cos_b, sin_b)
     for b in range(n_b):
         dx = cos_b[b]
         dy = sin_b[b]

@@ -37,9 +37,9 @@ from iceg.matching._kernels import (
     SegmentPoints,
     associate,
     cloud_nearest,
+    nearest_walls,
     no_segment_grid,
     point_line_system,
-    ray_wall_check,
     segment_grid,
 )
 from iceg.matching.config import CovarianceConfig
@@ -59,7 +59,7 @@ from iceg.matching.hypotheses import (
     pair_codes,
     vote,
 )
-from iceg.matching.matcher import MAX_INCIDENCE_DEG, walls_seen_through
+from iceg.matching.matcher import walls_seen_through
 from iceg.matching.refine import build_cloud, effective_line_cov, points_within
 from iceg.types import FeatureKind, ScanFeatures
 from iceg_common.errors import ConfigError, MatchingError
@@ -883,54 +883,28 @@ def test_walls_seen_through_measures_each_wall_against_the_beams() -> None:
     assert confirmed == pytest.approx([0.0, 1.0], abs=0.03)
 
 
-def _ray_wall_check_every_pair(
-    ep: np.ndarray, bearing: np.ndarray, ranges: np.ndarray, spacing: float, tol: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """The ray check by testing every beam against every segment (no span pruning)."""
-    see, cons = np.zeros(ep.shape[0]), np.zeros(ep.shape[0])
-    cos_max = math.cos(math.radians(MAX_INCIDENCE_DEG))
-    for b, beam in enumerate(bearing):
-        dx, dy = math.cos(beam), math.sin(beam)
-        best, bk = math.inf, -1
-        for k, ((ax, ay), (bx, by)) in enumerate(ep):
-            ex, ey = bx - ax, by - ay
-            den = dx * ey - dy * ex
-            if abs(den) <= 1e-12:
-                continue
-            t, u = (ax * ey - ay * ex) / den, (ax * dy - ay * dx) / den
-            if t > 0.0 and 0.0 <= u <= 1.0 and t < best:
-                best, bk = t, k
-        if bk < 0 or best >= 80.0 - tol:
-            continue
-        ex, ey = ep[bk, 1] - ep[bk, 0]
-        cos_inc = abs(dx * ey - dy * ex) / math.hypot(ex, ey)
-        if cos_inc <= cos_max:
-            continue
-        cover = best * spacing / max(cos_inc, 1e-3)
-        if ranges[b] > best + tol:
-            see[bk] += cover
-        elif abs(ranges[b] - best) <= tol:
-            cons[bk] += cover
-    return see, cons
-
-
-def test_ray_wall_check_equals_every_beam_against_every_segment() -> None:
+def test_nearest_walls_equals_every_beam_against_every_segment() -> None:
     # The span pruning of the free-space check changes no result: random walls all around
-    # the sensor (some across the bearing +-pi behind it, one through the origin) cast
-    # along a full circle of beams give the same lengths as the test of every pair.
+    # the sensor (some across the bearing +-pi behind it, one through the origin) give each
+    # beam of a full circle the nearest wall that the test of every (beam, wall) pair gives.
     rng = np.random.default_rng(12)
     bearing = np.sort(rng.uniform(-math.pi, math.pi, 720))
-    ranges = rng.uniform(0.5, 8.0, bearing.shape[0])
     centre = rng.uniform(-6.0, 6.0, (40, 2))
     half = rng.uniform(0.2, 3.0, (40, 1)) * np.column_stack(
         [np.cos(a := rng.uniform(0, math.pi, 40)), np.sin(a)]
     )
     centre[0] = 0.0  # a wall through the origin (every beam is tested against it)
     ep = np.ascontiguousarray(np.stack([centre - half, centre + half], axis=1))
-    spacing = 2 * math.pi / bearing.shape[0]
-    cos_max = math.cos(math.radians(MAX_INCIDENCE_DEG))
-    see, cons = ray_wall_check(ep, bearing, ranges, spacing, 80.0, 0.3, cos_max)
-    want_see, want_cons = _ray_wall_check_every_pair(ep, bearing, ranges, spacing, 0.3)
-    np.testing.assert_array_equal(see, want_see)
-    np.testing.assert_array_equal(cons, want_cons)
-    assert np.count_nonzero(see) >= 5 and np.count_nonzero(cons) >= 3  # both outcomes occur
+    dx, dy = np.cos(bearing)[:, None], np.sin(bearing)[:, None]
+    a, e = ep[None, :, 0], ep[None, :, 1] - ep[None, :, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        den = dx * e[..., 1] - dy * e[..., 0]
+        t = (a[..., 0] * e[..., 1] - a[..., 1] * e[..., 0]) / den
+        u = (a[..., 0] * dy - a[..., 1] * dx) / den
+    hit = (np.abs(den) > 1e-12) & (t > 0.0) & (u >= 0.0) & (u <= 1.0)
+    dist = np.where(hit, t, np.inf)
+    want_k = np.where(hit.any(axis=1), dist.argmin(axis=1), -1)  # argmin: the first
+    got_t, got_k = nearest_walls(ep, bearing, np.cos(bearing), np.sin(bearing))
+    np.testing.assert_array_equal(got_k, want_k)
+    np.testing.assert_allclose(got_t, dist.min(axis=1), rtol=1e-12)
+    assert np.count_nonzero(got_k >= 0) > 500 and np.unique(got_k).shape[0] >= 5
