@@ -1,6 +1,7 @@
 """Compiled kernels of the matcher (numba): the Gauss-Newton loop of the refinement with its
 normal equations (point-to-line GLS rows, feature-pair rows, off-segment PL-ICP rows), the
-correlation's feature pairing, the covariance lattice cost and the free-space ray check.
+correlation's feature pairing, the covariance lattice cost, the free-space ray check, the
+prediction start's kernel density and the gridded point query of the contradiction test.
 
 numpy builds (points x segments) temporaries and spends most of its time in call overhead
 for scans of a few hundred points; these loops do the arithmetic without temporaries.
