@@ -335,13 +335,15 @@ def points_within(
     Args:
         points_xy: ``(P, 2)`` float64 points in their own frame, metres.
         poses: ``(K, 3)`` float64 poses of that frame in the reference frame.
-        reference_xy: ``(R, 2)`` float64 reference points, ``R >= 1``, metres.
+        reference_xy: ``(R, 2)`` float64 reference points, reference frame, metres.
         gate_m: Distance gate, metres (> 0).
 
     Returns:
-        ``(K, P)`` bool.
+        ``(K, P)`` bool (all False without reference points). Raises nothing.
     """
-    ref = np.ascontiguousarray(reference_xy, dtype=np.float64)
+    ref = np.ascontiguousarray(reference_xy, dtype=np.float64).reshape(-1, 2)
+    if ref.shape[0] == 0:
+        return np.zeros((np.shape(poses)[0], np.shape(points_xy)[0]), dtype=bool)
     origin, n_cells, key, order = grid_points(ref, gate_m)
     return points_explained(  # type: ignore[no-any-return]
         np.ascontiguousarray(points_xy, dtype=np.float64),
