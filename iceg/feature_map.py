@@ -949,9 +949,7 @@ class FeatureMap:
             ``(k,)`` int64 sorted node ids.
         """
         want = np.unique(np.asarray(node_ids, dtype=np.int64).reshape(-1))
-        lm = self._lm
-        chosen = np.isin(lm.anchor, want) | np.isin(lm.last_node, want)
-        return np.union1d(want, lm.anchor[chosen])
+        return np.union1d(want, self._lm.anchor[self._chosen(want)])
 
     def update_pose_nodes(self, node_id: int, reference: MapReference | None) -> IntArray:
         """The nodes whose poses :meth:`update` reads for the new node ``node_id`` matched
@@ -962,14 +960,8 @@ class FeatureMap:
         Returns:
             ``(k,)`` int64 sorted node ids.
         """
-        lm = self._lm
-        if self.config.bookkeeping_recent_nodes is None:
-            anchors = lm.anchor
-        else:
-            part = lm.last_node >= int(node_id) - self.config.bookkeeping_recent_nodes
-            if reference is not None:
-                part |= np.isin(lm.id, reference.landmark_ids)
-            anchors = lm.anchor[part]
+        ref_ids = None if reference is None else reference.landmark_ids
+        anchors = self._lm.anchor[self._taking_part(int(node_id), ref_ids)]
         return np.union1d(np.array([int(node_id)], dtype=np.int64), anchors)
 
     def _reference_landmarks(
@@ -977,11 +969,31 @@ class FeatureMap:
     ) -> LandmarkView:
         """Landmarks anchored to or last matched from ``want``, in the frame ``frame``."""
         lm = self._lm
-        apos, afound = _lookup(ids, lm.anchor)
-        chosen = np.isin(lm.anchor, want) | np.isin(lm.last_node, want)
-        sel = np.flatnonzero(chosen & afound)
-        rel = between(frame, poses[apos[sel]]) if sel.shape[0] else np.zeros((0, 3))
+        chosen = self._chosen(want)
+        apos, afound = _lookup(ids, lm.anchor[chosen])
+        sel = chosen[afound]
+        rel = between(frame, poses[apos[afound]]) if sel.shape[0] else np.zeros((0, 3))
         return lm.take(sel).in_frame(rel)
+
+    def _chosen(self, want: IntArray) -> IntArray:
+        """Ascending rows of the landmarks anchored to or last matched from the nodes
+        ``want`` (sorted unique ids)."""
+        lm = self._lm
+        return np.flatnonzero(np.isin(lm.anchor, want) | np.isin(lm.last_node, want))
+
+    def _taking_part(self, node_id: int, reference_ids: IntArray | None) -> IntArray:
+        """Ascending rows of the landmarks taking part in the bookkeeping of the new node
+        ``node_id``: all, or with ``bookkeeping_recent_nodes`` those last matched (or
+        created) from the recent nodes and those of the reference (ids
+        ``reference_ids``)."""
+        lm = self._lm
+        if self.config.bookkeeping_recent_nodes is None:
+            return np.arange(len(lm), dtype=np.int64)
+        part = lm.last_node >= node_id - self.config.bookkeeping_recent_nodes
+        if reference_ids is not None:
+            pos, found = _lookup(lm.id, reference_ids)  # ids ascending: no scan of every row
+            part[pos[found]] = True
+        return np.flatnonzero(part)
 
     def _reference_points(
         self, ids: IntArray, poses: FloatArray, want: IntArray, frame: FloatArray, ssel: IntArray
@@ -1187,7 +1199,7 @@ class FeatureMap:
     ) -> _Near:
         """Every landmark whose anchor has a pose (restricted to the reference's and recently
         matched ones by ``bookkeeping_recent_nodes``), in the new node's frame."""
-        cfg, lm = self.config, self._lm
+        lm = self._lm
         if node_poses is not None:
             tab_ids, tab_poses = _node_pose_table(node_poses)
         else:
@@ -1199,13 +1211,11 @@ class FeatureMap:
             new_pose = np.asarray(node_pose, dtype=np.float64).reshape(3)
         else:
             new_pose = compose(reference.frame_pose, match.pose)
-        apos, afound = _lookup(tab_ids, lm.anchor)
-        if cfg.bookkeeping_recent_nodes is not None:
-            recent = lm.last_node >= node_id - cfg.bookkeeping_recent_nodes
-            afound &= recent | np.isin(lm.id, reference.landmark_ids)
-        rows = np.flatnonzero(afound)
+        part = self._taking_part(node_id, reference.landmark_ids)
+        apos, afound = _lookup(tab_ids, lm.anchor[part])
+        rows = part[afound]
         anchor_in_new = (
-            between(new_pose, tab_poses[apos[rows]]) if rows.shape[0] else np.zeros((0, 3))
+            between(new_pose, tab_poses[apos[afound]]) if rows.shape[0] else np.zeros((0, 3))
         )
         xy_new = (
             np.einsum("nab,nb->na", rotation_matrix(anchor_in_new[:, 2]), lm.xy[rows])
