@@ -63,6 +63,7 @@ _MISSING_KEY = re.compile(r"key\s+\"?(\d+)\"?.*does not exist")
 
 #: Codes of :attr:`PoseGraph.steps`.
 STEP_UPDATE, STEP_DELTA, STEP_BATCH, STEP_BATCH_GAUSSIAN_LOOPS = 0, 1, 2, 3
+STEP_BATCH_CORRECTION = 4
 
 
 class FactorKind(str, Enum):
@@ -364,7 +365,11 @@ class PoseGraph:
         return stats
 
     def optimize_batch(
-        self, max_iterations: int = 100, *, loop_closure_kernels: bool = True
+        self,
+        max_iterations: int = 100,
+        *,
+        loop_closure_kernels: bool = True,
+        correction: bool = False,
     ) -> BatchStats:
         """Levenberg–Marquardt over every factor ever added, from the current estimate.
 
@@ -384,6 +389,9 @@ class PoseGraph:
                 Gaussian noise model, their robust kernel left out (every other factor, and
                 iSAM2 rebuilt afterwards, keeps its kernel). A run's final refinement over
                 the loop closures it accepted (``iceg.slam.Slam.finish``).
+            correction: a mid-run solve after a large correction (``iceg.slam``): it stops at
+                ``config.correction_relative_error_tol`` instead of
+                ``config.batch_relative_error_tol`` (iSAM2 goes on from its result).
 
         Returns:
             Iterations and errors (:class:`BatchStats`).
@@ -396,11 +404,15 @@ class PoseGraph:
         self._check_connected(self._pending_nodes)
         values = self._current_values()
         code = STEP_BATCH if loop_closure_kernels else STEP_BATCH_GAUSSIAN_LOOPS
+        if correction:
+            code = STEP_BATCH_CORRECTION
         self._steps.append((code, int(max_iterations), len(self._records)))
         graph = self._full_graph(gaussian_loops=not loop_closure_kernels)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(int(max_iterations))
-        params.setRelativeErrorTol(self.config.batch_relative_error_tol)
+        cfg = self.config
+        tol = cfg.correction_relative_error_tol if correction else cfg.batch_relative_error_tol
+        params.setRelativeErrorTol(tol)
         params.setAbsoluteErrorTol(1e-12)  # error units; far below any meaningful change
         params.setDiagonalDamping(self.config.batch_diagonal_damping)
         error_before = graph.error(values)
@@ -680,8 +692,9 @@ class PoseGraph:
         the first read of an iSAM2 estimate after an update (gtsam solves its delta lazily,
         so when it is read changes later floating point); ``(STEP_BATCH, max_iterations,
         factors)`` an :meth:`optimize_batch` (``STEP_BATCH_GAUSSIAN_LOOPS`` one without the
-        loop closures' kernels). Replaying the same node and factor additions
-        with these calls (``iceg.session.replay_graph``) gives the same iSAM2 state bit for bit.
+        loop closures' kernels, ``STEP_BATCH_CORRECTION`` a ``correction`` solve). Replaying
+        the same node and factor additions with these calls (``iceg.session.replay_graph``)
+        gives the same iSAM2 state bit for bit.
         """
         return tuple(self._steps)
 

@@ -61,7 +61,13 @@ from numpy.typing import NDArray
 from frontends import LaserScan, open_log
 from graph import FactorKind, FactorRecord, GraphConfig, PoseGraph
 from graph.g2o import write_g2o_file
-from graph.pose_graph import STEP_BATCH, STEP_BATCH_GAUSSIAN_LOOPS, STEP_DELTA, STEP_UPDATE
+from graph.pose_graph import (
+    STEP_BATCH,
+    STEP_BATCH_CORRECTION,
+    STEP_BATCH_GAUSSIAN_LOOPS,
+    STEP_DELTA,
+    STEP_UPDATE,
+)
 from iceg.config import IcegConfig, config_from_yaml
 from iceg.feature_map import FeatureMap
 from iceg.loop_closure import LoopClosure, LoopClosureStats
@@ -203,13 +209,20 @@ def replay_graph(
         if last >= 0 and steps[last][0] in (STEP_BATCH, STEP_BATCH_GAUSSIAN_LOOPS):
             steps = steps[:last]
     ids, init, recs = a["g_node_ids"], a["g_node_initial"], factor_records(a)
+    # A batch step does not log its node count: every node it saw was linked by one of its
+    # factors, so its nodes are the prefix (in order of addition) up to the last they name.
+    position = {int(n): k for k, n in enumerate(ids.tolist())}
+    last_named = np.maximum.accumulate(
+        [max(position.get(r.i, 0), position.get(r.i if r.j is None else r.j, 0)) for r in recs]
+        or [0]
+    )
     graph = PoseGraph(config, auto_prior=False)
     nn = nf = 0
     for code, n_a, n_b in steps:
         if code == STEP_DELTA:
             graph.read_delta()
             continue
-        upto_nodes = n_a if code == STEP_UPDATE else len(ids)
+        upto_nodes = n_a if code == STEP_UPDATE else int(last_named[n_b - 1]) + 1 if n_b else nn
         if upto_nodes > len(ids) or n_b > len(recs):
             raise SessionError(f"solver log step {(code, n_a, n_b)} beyond the saved graph")
         for k in range(nn, upto_nodes):
@@ -220,7 +233,11 @@ def replay_graph(
         if code == STEP_UPDATE:
             graph.update()
         else:
-            graph.optimize_batch(n_a, loop_closure_kernels=code == STEP_BATCH)
+            graph.optimize_batch(
+                n_a,
+                loop_closure_kernels=code != STEP_BATCH_GAUSSIAN_LOOPS,
+                correction=code == STEP_BATCH_CORRECTION,
+            )
     return graph
 
 

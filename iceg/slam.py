@@ -605,7 +605,7 @@ class Slam:
             # A global closure can move the estimate by tens of metres and degrees: a batch
             # Levenberg-Marquardt from the current estimate converges where iSAM2's
             # incremental relinearisation would take many updates (it is rebuilt after).
-            self.graph.optimize_batch()
+            self.graph.optimize_batch(correction=True)
         else:
             self.graph.update()
 

@@ -11,7 +11,7 @@ import pytest
 from scipy.optimize import brentq, least_squares
 
 from graph import FactorKind, GraphConfig, PoseGraph
-from graph.pose_graph import STEP_BATCH, STEP_BATCH_GAUSSIAN_LOOPS
+from graph.pose_graph import STEP_BATCH, STEP_BATCH_CORRECTION, STEP_BATCH_GAUSSIAN_LOOPS
 from iceg_common.errors import GraphError
 from iceg_common.se2 import between, compose, wrap_angle
 
@@ -202,6 +202,57 @@ def test_optimize_batch_includes_buffered_nodes() -> None:
     # variances share the 0.3 m discrepancy equally: each step 1.075 m (least squares)
     np.testing.assert_allclose(g.estimates()[1][:, 0], [0.0, 1.075, 2.15, 3.225], atol=1e-6)
     assert g.n_pending == (0, 0)
+
+
+def _ring(config: GraphConfig | None = None) -> tuple[PoseGraph, list, np.ndarray]:
+    """60 nodes on a 10 m circle, odometry with noise (seeded), initial values drifting
+    0.03 rad a step, one loop closure back to node 0; updated once. Returns the graph, its
+    factors ``(i, j, z, sigmas)`` and node 0's pose."""
+    n, sig = 60, np.array([0.03, 0.03, 0.01])
+    ang = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    truth = np.stack([10.0 * np.cos(ang), 10.0 * np.sin(ang), ang + np.pi / 2], axis=1)
+    noise = np.random.default_rng(4).normal(0.0, sig, (n, 3))
+    g = PoseGraph(config)
+    g.add_node(0, truth[0])
+    factors, est = [], truth[0].copy()
+    for k in range(1, n):
+        z = between(truth[k - 1], truth[k]) + noise[k]
+        est = compose(est, z + np.array([0.0, 0.0, 0.03]))
+        g.add_node(k, est)
+        g.add_between(k - 1, k, z, np.diag(sig**2))
+        factors.append((k - 1, k, z, sig))
+    z = between(truth[n - 1], truth[0])
+    g.add_between(n - 1, 0, z, np.diag(sig**2), kind="loop_closure")
+    factors.append((n - 1, 0, z, sig))
+    g.update()
+    return g, factors, truth[0]
+
+
+def test_a_correction_solve_stops_at_its_own_looser_tolerance() -> None:
+    # Truth: scipy least squares on the whitened residuals Log(z^-1 (x_i^-1 x_j)) with node 0
+    # fixed (the graph's prior). The default batch (relative tolerance 1e-10) reaches it; a
+    # correction solve (a mid-run re-solve after global closures) stops at
+    # correction_relative_error_tol, 1e-3 here: one iteration fewer, within 0.1 mm of it.
+    g, factors, x0 = _ring()
+
+    def residuals(flat: np.ndarray) -> np.ndarray:
+        x = np.vstack([x0, flat.reshape(-1, 3)])
+        return np.concatenate([_log(between(z, between(x[i], x[j]))) / s for i, j, z, s in factors])
+
+    start = g.estimates()[1][1:].ravel()
+    ref = least_squares(residuals, start, xtol=1e-15, ftol=1e-15, gtol=1e-15).x.reshape(-1, 3)
+
+    def off(graph: PoseGraph) -> np.ndarray:
+        d = graph.estimates()[1][1:] - ref
+        return np.abs(np.column_stack([d[:, :2], wrap_angle(d[:, 2])]))
+
+    tight = g.optimize_batch()
+    assert off(g).max() < 1e-7
+    loose, _, _ = _ring(GraphConfig(correction_relative_error_tol=1e-3))
+    stats = loose.optimize_batch(correction=True)
+    assert stats.converged and stats.iterations == tight.iterations - 1
+    assert 1e-7 < off(loose).max() < 1e-4
+    assert loose.steps[-1][0] == STEP_BATCH_CORRECTION
 
 
 @pytest.mark.parametrize(
