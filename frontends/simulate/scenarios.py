@@ -15,6 +15,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from frontends.simulate.odometry import ACCURATE_ODOMETRY, OdometryModel
+from frontends.simulate.raycast import LaserModel
 from frontends.simulate.run import SimulatedRun, simulate
 from frontends.simulate.trajectory import DEFAULT_SPEED_MPS, default_trajectory
 from frontends.simulate.worlds import (
@@ -47,11 +48,12 @@ class Scenario:
     speed_mps: float = DEFAULT_SPEED_MPS
     description: str = ""
 
-    def simulate(self, seed: int = 0) -> SimulatedRun:
-        """Drive the world's default route (SICK LMS200 laser, 5 Hz) with this odometry."""
+    def simulate(self, seed: int = 0, laser: LaserModel | None = None) -> SimulatedRun:
+        """Drive the world's default route at 5 Hz with this odometry and ``laser`` (default:
+        the SICK LMS200 of :class:`LaserModel`)."""
         world = self.world()
         trajectory = default_trajectory(world, speed_mps=self.speed_mps)
-        return simulate(world, trajectory, odometry=self.odometry, seed=seed)
+        return simulate(world, trajectory, laser=laser, odometry=self.odometry, seed=seed)
 
 
 #: Scenarios by name.
@@ -95,8 +97,9 @@ SCENARIOS: dict[str, Scenario] = {
 }
 
 
-def simulate_scenario(name: str, seed: int = 0) -> SimulatedRun:
-    """Simulate the scenario ``name`` (a key of :data:`SCENARIOS`) with ``seed``.
+def simulate_scenario(name: str, seed: int = 0, laser: LaserModel | None = None) -> SimulatedRun:
+    """Simulate the scenario ``name`` (a key of :data:`SCENARIOS`) with ``seed`` and ``laser``
+    (default: the SICK LMS200 of :class:`LaserModel`).
 
     Raises:
         ConfigError: unknown name.
@@ -107,4 +110,4 @@ def simulate_scenario(name: str, seed: int = 0) -> SimulatedRun:
         raise ConfigError(
             f"unknown scenario {name!r}; choose one of {', '.join(sorted(SCENARIOS))}"
         ) from None
-    return scenario.simulate(seed)
+    return scenario.simulate(seed, laser)

@@ -32,6 +32,13 @@ class FeatureConfig(BaseModel):
         "adaptive breakpoint threshold (Borges & Aldon 2004) and the point variance of the "
         "maximum-likelihood line fit (Pfister et al. 2003).",
     )
+    line_variance_from_residuals: bool = Field(
+        default=False,
+        description="Scale each scan's line covariances by the a-posteriori variance factor "
+        "of its line fits (the weighted squared residuals per degree of freedom, floored at "
+        "1; iceg.features.lines.fit_lines): a scanner noisier than sigma_range_m, or walls "
+        "that are not straight, make every line and feature as uncertain as the scan shows.",
+    )
     sigma_bearing_deg: float = Field(
         default=0.01,
         ge=0.0,

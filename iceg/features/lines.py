@@ -44,6 +44,7 @@ def fit_lines(
     seg_point_range: IntArray,
     sigma_range_m: float,
     sigma_bearing_rad: float,
+    variance_from_residuals: bool = False,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Fit a line ``(alpha, rho)`` with its covariance to each segment's points.
 
@@ -58,6 +59,14 @@ def fit_lines(
     offset at ``c`` has ``1 / sum w_i``, they are uncorrelated, and ``d rho / d alpha =
     (-sin alpha, cos alpha)·c``.
 
+    With ``variance_from_residuals`` the covariances are scaled by the scan's a-posteriori
+    variance factor (the variance of unit weight of least squares, e.g. Koch 1999 §3.2):
+    ``s0² = sum_i w_i d_i² / sum_m (n_m - 2)`` over all segments (``d_i`` a point's distance
+    to its fitted line, ``n_m`` a segment's points), floored at 1. Where the scanner is
+    noisier than ``sigma_range_m`` says, or its walls are not straight, the residuals say so
+    and every line (and the features built from them) is as uncertain as the scan shows;
+    the configured noise remains the floor.
+
     Args:
         points_xy: ``(P, 2)`` float64 valid beam endpoints, metres, robot frame.
         ranges_m: ``(P,)`` float64 their ranges, metres.
@@ -66,6 +75,8 @@ def fit_lines(
             points, in increasing order and not overlapping.
         sigma_range_m: Range noise standard deviation, metres.
         sigma_bearing_rad: Bearing noise standard deviation, radians.
+        variance_from_residuals: Scale the covariances by the variance factor ``max(1,
+            s0²)`` (above).
 
     Returns:
         ``lines`` ``(M, 2)`` float64 ``(alpha_rad, rho_m)`` with ``rho >= 0`` and ``alpha`` in
@@ -89,6 +100,11 @@ def fit_lines(
     t_along = -(x - mx[seg_of]) * sa[seg_of] + (y - my[seg_of]) * ca[seg_of]
     stt = np.add.reduceat(w * t_along * t_along, offsets)
     cov = _line_covariance(1.0 / stt, 1.0 / sw, -sa * mx + ca * my)
+    if variance_from_residuals:
+        dist_i = x * ca[seg_of] + y * sa[seg_of] - rho[seg_of]
+        dof = int(np.sum(np.maximum(seg_point_range[:, 1] - seg_point_range[:, 0] - 2, 0)))
+        if dof > 0:
+            cov *= max(1.0, float(np.sum(w * dist_i * dist_i)) / dof)
     # Endpoints: first and last points projected onto the line.
     ends = points_xy[np.stack([seg_point_range[:, 0], seg_point_range[:, 1] - 1], axis=1)]
     normal = np.stack([ca, sa], axis=1)

@@ -120,6 +120,7 @@ def line_segments(beams: BeamPoints, cfg: FeatureConfig) -> Segments:
         seg_range,
         cfg.sigma_range_m,
         math.radians(cfg.sigma_bearing_deg),
+        cfg.line_variance_from_residuals,
     )
     keep = norm(endpoints[:, 1] - endpoints[:, 0]) >= cfg.min_segment_length_m
     seg_range, lines = seg_range[keep], lines[keep]

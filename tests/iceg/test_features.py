@@ -295,6 +295,44 @@ def test_fit_lines_exact_points_hand_computed() -> None:
     assert np.all(np.linalg.eigvalsh(cov) > 0.0)
 
 
+def test_line_variance_factor_from_residuals() -> None:
+    # Two walls seen through 3 cm range noise while the fit assumes 1 cm: the fitted
+    # (alpha, rho) errors against the true lines, normalized by the covariance, are
+    # chi-square with 2 degrees of freedom (mean 2) only when the covariance is scaled by
+    # the scan's a-posteriori variance factor (about 9 here); without it the mean is about
+    # 9 times too large. Exact points give a factor of 0, floored at 1: covariance unchanged.
+    rng = np.random.default_rng(5)
+    truths = [(0.0, 3.0), (math.pi / 2, 1.5)]  # x = 3 and y = 1.5, normal angle and offset
+    bearing_sets = [np.radians(np.arange(-30.0, 20.0, 1.0)), np.radians(np.arange(40.0, 80.0))]
+    nees: dict[bool, list[float]] = {False: [], True: []}
+    for _ in range(300):
+        pts, rng_m, dirs = [], [], []
+        for (alpha, rho), bearing in zip(truths, bearing_sets, strict=True):
+            u = np.stack([np.cos(bearing), np.sin(bearing)], axis=1)
+            r = rho / (u @ [math.cos(alpha), math.sin(alpha)]) + rng.normal(0.0, 0.03, len(u))
+            pts.append(u * r[:, None])
+            rng_m.append(r)
+            dirs.append(u)
+        n0 = len(bearing_sets[0])
+        seg = np.array([[0, n0], [n0, n0 + len(bearing_sets[1])]])
+        args = (np.concatenate(pts), np.concatenate(rng_m), np.concatenate(dirs), seg, 0.01, 0.0)
+        for scaled in (False, True):
+            lines, cov, _ = fit_lines(*args, variance_from_residuals=scaled)
+            for k, (alpha, rho) in enumerate(truths):
+                e = np.array([(lines[k, 0] - alpha + math.pi) % (2 * math.pi) - math.pi, 0.0])
+                e[1] = lines[k, 1] - rho
+                nees[scaled].append(float(e @ np.linalg.solve(cov[k], e)))
+    assert 1.6 <= float(np.mean(nees[True])) <= 2.5
+    assert float(np.mean(nees[False])) > 12.0
+    xs = np.linspace(0.5, 2.5, 9)
+    pts = np.stack([xs, 3.0 - xs], axis=1)
+    ranges = np.linalg.norm(pts, axis=1)
+    exact = (pts, ranges, pts / ranges[:, None], np.array([[0, 9]]), 0.01, 0.0)
+    np.testing.assert_array_equal(
+        fit_lines(*exact, variance_from_residuals=True)[1], fit_lines(*exact)[1]
+    )
+
+
 def test_l_corner_noise_free_exact() -> None:
     # Two walls meeting at (4, 3) at 90°, robot at the origin facing +x. Hand geometry:
     # the corner is (4, 3), its edges point along -x and -y, the opening is 90°.
