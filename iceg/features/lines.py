@@ -60,7 +60,7 @@ def fit_lines(
     (-sin alpha, cos alpha)·c``.
 
     With ``variance_from_residuals`` the covariances are scaled by the scan's a-posteriori
-    variance factor (the variance of unit weight of least squares, e.g. Koch 1999 §3.2):
+    variance factor (the estimated variance of unit weight of a least-squares adjustment):
     ``s0² = sum_i w_i d_i² / sum_m (n_m - 2)`` over all segments (``d_i`` a point's distance
     to its fitted line, ``n_m`` a segment's points), floored at 1. Where the scanner is
     noisier than ``sigma_range_m`` says, or its walls are not straight, the residuals say so
