@@ -264,3 +264,22 @@ def test_scenarios_registered_and_deterministic() -> None:
     np.testing.assert_array_equal(a.scans[7].ranges_m, b.scans[7].ranges_m)
     with pytest.raises(ConfigError, match="unknown scenario"):
         simulate_scenario("moon")
+
+
+def test_a_scenario_driven_with_another_laser() -> None:
+    # The same route and odometry seen through a 270-degree, 0.25-degree, 30 m scanner: its
+    # bearings span 270 degrees in 1081 beams; from the first pose (10, 1), on the axis of
+    # the 2 m wide corridor, the beams at -90 and +90 degrees meet the walls at 1 m (within
+    # 5 sigmas of the 1 cm noise), and the beam straight ahead, 30 m to the corridor's end,
+    # returns nothing.
+    utm = LaserModel(n_beams=1081, fov_deg=270.0, range_max_m=30.0)
+    default = simulate_scenario("corridor", seed=2)
+    run = simulate_scenario("corridor", seed=2, laser=utm)
+    np.testing.assert_array_equal(run.odom_poses, default.odom_poses)
+    np.testing.assert_array_equal(run.true_poses[0], [10.0, 1.0, 0.0])
+    scan = run.scans[0]
+    assert default.scans[0].n_beams == 181 and scan.n_beams == 1081
+    assert math.degrees(scan.angles_rad[-1] - scan.angles_rad[0]) == pytest.approx(270.0)
+    np.testing.assert_allclose(np.degrees(scan.angles_rad[[180, 900]]), [-90.0, 90.0])
+    np.testing.assert_allclose(scan.ranges_m[[180, 900]], 1.0, atol=0.05)
+    assert scan.ranges_m[540] >= scan.range_max_m == 30.0
