@@ -391,30 +391,37 @@ class PoseGraph:
                 the loop closures it accepted (``iceg.slam.Slam.finish``).
             correction: a mid-run solve after a large correction (``iceg.slam``): it stops at
                 ``config.correction_relative_error_tol`` instead of
-                ``config.batch_relative_error_tol`` (iSAM2 goes on from its result).
+                ``config.batch_relative_error_tol`` (iSAM2 goes on from its result). Keeps
+                the loop closures' kernels.
 
         Returns:
             Iterations and errors (:class:`BatchStats`).
 
         Raises:
-            GraphError: empty graph, a node without factor, or a gtsam failure (naming the node).
+            GraphError: empty graph, a node without factor, a gtsam failure (naming the node),
+                or ``correction`` without ``loop_closure_kernels`` (the solver log has no step
+                for that pair, so a session could not replay it).
         """
+        if correction and not loop_closure_kernels:
+            raise GraphError("optimize_batch: a correction solve keeps the loop-closure kernels")
         if not self._initial:
             raise GraphError("optimize_batch: the graph has no node")
         self._check_connected(self._pending_nodes)
         values = self._current_values()
-        code = STEP_BATCH if loop_closure_kernels else STEP_BATCH_GAUSSIAN_LOOPS
+        cfg = self.config
         if correction:
-            code = STEP_BATCH_CORRECTION
+            code, tol = STEP_BATCH_CORRECTION, cfg.correction_relative_error_tol
+        elif loop_closure_kernels:
+            code, tol = STEP_BATCH, cfg.batch_relative_error_tol
+        else:
+            code, tol = STEP_BATCH_GAUSSIAN_LOOPS, cfg.batch_relative_error_tol
         self._steps.append((code, int(max_iterations), len(self._records)))
         graph = self._full_graph(gaussian_loops=not loop_closure_kernels)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(int(max_iterations))
-        cfg = self.config
-        tol = cfg.correction_relative_error_tol if correction else cfg.batch_relative_error_tol
         params.setRelativeErrorTol(tol)
         params.setAbsoluteErrorTol(1e-12)  # error units; far below any meaningful change
-        params.setDiagonalDamping(self.config.batch_diagonal_damping)
+        params.setDiagonalDamping(cfg.batch_diagonal_damping)
         error_before = graph.error(values)
         while True:
             params.setLinearSolverType("MULTIFRONTAL_QR" if self._qr else "MULTIFRONTAL_CHOLESKY")

@@ -212,17 +212,17 @@ def replay_graph(
     # A batch step does not log its node count: every node it saw was linked by one of its
     # factors, so its nodes are the prefix (in order of addition) up to the last they name.
     position = {int(n): k for k, n in enumerate(ids.tolist())}
-    last_named = np.maximum.accumulate(
-        [max(position.get(r.i, 0), position.get(r.i if r.j is None else r.j, 0)) for r in recs]
-        or [0]
-    )
+    named = [max(position.get(r.i, 0), 0 if r.j is None else position.get(r.j, 0)) for r in recs]
+    last_named = np.maximum.accumulate(named or [0])
     graph = PoseGraph(config, auto_prior=False)
     nn = nf = 0
     for code, n_a, n_b in steps:
         if code == STEP_DELTA:
             graph.read_delta()
             continue
-        upto_nodes = n_a if code == STEP_UPDATE else int(last_named[n_b - 1]) + 1 if n_b else nn
+        # (a step beyond the saved factors is refused just below)
+        batch_nodes = int(last_named[min(n_b, len(recs)) - 1]) + 1 if n_b else nn
+        upto_nodes = n_a if code == STEP_UPDATE else batch_nodes
         if upto_nodes > len(ids) or n_b > len(recs):
             raise SessionError(f"solver log step {(code, n_a, n_b)} beyond the saved graph")
         for k in range(nn, upto_nodes):

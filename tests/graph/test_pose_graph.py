@@ -253,6 +253,8 @@ def test_a_correction_solve_stops_at_its_own_looser_tolerance() -> None:
     assert stats.converged and stats.iterations == tight.iterations - 1
     assert 1e-7 < off(loose).max() < 1e-4
     assert loose.steps[-1][0] == STEP_BATCH_CORRECTION
+    with pytest.raises(GraphError, match="keeps the loop-closure kernels"):
+        loose.optimize_batch(correction=True, loop_closure_kernels=False)
 
 
 @pytest.mark.parametrize(

@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 
 from frontends.simulate import office_world, simulate
+from graph import GraphConfig, PoseGraph
+from graph.pose_graph import STEP_BATCH_CORRECTION
 from iceg import session
 from iceg.config import config_from_dict
 from iceg.pipeline import run_log
@@ -160,9 +162,6 @@ def test_the_solver_log_replays_a_correction_solve_bit_for_bit() -> None:
     # A mid-run correction solve (optimize_batch(correction=True), its own tolerance) is logged
     # as its own step; replaying the log rebuilds the same estimates bit for bit, and an
     # update after it gives the same iSAM2 state in both.
-    from graph import GraphConfig, PoseGraph
-    from graph.pose_graph import STEP_BATCH_CORRECTION
-
     cov = np.diag([1e-3, 1e-3, 1e-4])
     g = PoseGraph()
     for k in range(8):
