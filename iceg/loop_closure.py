@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from graph import FactorKind, PoseGraph
@@ -338,7 +338,7 @@ def pcm_chi2(
     return float(error @ np.linalg.solve(cov, error))
 
 
-def chain_covariance(poses: FloatArray, step_covs: FloatArray | Sequence[FloatArray]) -> FloatArray:
+def chain_covariance(poses: FloatArray, step_covs: ArrayLike) -> FloatArray:
     """Covariance of the pose of the last of a chain of nodes in the frame of the first.
 
     Dead reckoning along the sequential factors: ``C_{k+1} = Ad(Δ⁻¹) C_k Ad(Δ⁻¹)ᵀ + Σ_k``
