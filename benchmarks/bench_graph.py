@@ -4,7 +4,11 @@ Two runs, each fed node by node with one ``update()`` per node and the default G
 
 1. M3500b (``../shared/data/g2o/input_M3500b_g2o.g2o``, 3500 nodes, 5453 edges), through
    ``graph.replay.replay_node_by_node``;
-2. a simulated Manhattan world of 10,000 nodes (``graph.simulate.simulate_manhattan``).
+2. a simulated Manhattan world of 10,000 nodes (``graph.simulate.simulate_manhattan``);
+3. with ``--chain N``: a chain of N nodes without loop closures (dead reckoning along a
+   straight corridor, two between factors per step as the pipeline adds them), printing the
+   mean ``update()`` time per 1000 nodes. Nothing in a chain grows but the tree itself, so a
+   growing time per update is the solver's own per-update cost in the size of the graph.
 
 For each: median, 99th percentile and maximum wall time of ``update()`` per node, the total,
 the time of ``optimize_batch()`` started from the incremental estimate (offline refinement),
@@ -149,11 +153,42 @@ def bench_simulated(n_nodes: int) -> None:
     )
 
 
+def bench_chain(n_nodes: int) -> None:
+    """Incremental run on a loop-free chain: mean update time per block of 1000 nodes."""
+    from graph import PoseGraph
+    from iceg_common.se2 import compose
+
+    rng = np.random.default_rng(0)
+    step_cov = np.diag([0.01, 0.01, 0.002]) ** 2
+    graph = PoseGraph()
+    graph.add_node(0, np.zeros(3))
+    pose = np.zeros(3)
+    per_block: list[float] = []
+    block_s = 0.0
+    for k in range(1, n_nodes):
+        z = np.array([0.1, 0.0, 0.0]) + rng.normal(0.0, [0.005, 0.005, 0.002])
+        pose = compose(pose, z)
+        graph.add_node(k, pose)
+        graph.add_between(k - 1, k, z, step_cov)
+        graph.add_between(k - 1, k, z + rng.normal(0.0, [0.01, 0.0, 0.0]), step_cov)
+        start = time.perf_counter()
+        graph.update()
+        block_s += time.perf_counter() - start
+        if k % 1000 == 0:
+            per_block.append(block_s)
+            block_s = 0.0
+    print(
+        f"Chain without loop closures: {n_nodes} nodes ({graph.factorization}); mean update() "
+        "per block of 1000 nodes, ms: " + ", ".join(f"{t:.3f}" for t in per_block)
+    )
+
+
 def main() -> None:
-    """Parse arguments, run both benchmarks, print the figures."""
+    """Parse arguments, run the benchmarks, print the figures."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--nodes", type=int, default=10_000, help="simulated run size")
     parser.add_argument("--skip-m3500", action="store_true", help="only the simulated run")
+    parser.add_argument("--chain", type=int, default=0, help="also a loop-free chain this long")
     args = parser.parse_args()
     from graph import GraphConfig
 
@@ -170,6 +205,8 @@ def main() -> None:
     else:
         print(f"M3500b skipped: {m3500} is absent")
     bench_simulated(args.nodes)
+    if args.chain:
+        bench_chain(args.chain)
 
 
 if __name__ == "__main__":

@@ -16,7 +16,13 @@ subprocess and prints:
 Every generated scan owns fresh range and bearing arrays (nothing is shared with the source
 log), so what the pipeline keeps is what the measurement sees.
 
-Run: ``python benchmarks/bench_scaling.py [--sizes 2000,10000,50000] [--log path.clf]``
+``--source corridor`` runs an exploring log instead: the simulated long corridor with door
+recesses (``frontends.simulate.long_corridor_world``, accurate odometry, 0.1 m per scan)
+made as long as the log, so no place is seen twice; what still grows there is what grows
+with the number of nodes, not with the passes through a place.
+
+Run: ``python benchmarks/bench_scaling.py [--sizes 2000,10000,50000] [--log path.clf]
+[--source csail|corridor]``
 """
 
 from __future__ import annotations
@@ -81,12 +87,29 @@ def back_and_forth(scans: Sequence, n: int) -> Iterator:
         forward = not forward
 
 
-def run_one(n: int, log: Path, grid: bool) -> dict:
+def exploring_corridor(n: int) -> list:
+    """``n`` scans driven along a simulated corridor of ``0.1 n`` metres (seed 0)."""
+    from frontends.simulate import simulate
+    from frontends.simulate.odometry import ACCURATE_ODOMETRY
+    from frontends.simulate.trajectory import DEFAULT_RATE_HZ, DEFAULT_SPEED_MPS
+    from frontends.simulate.worlds import long_corridor_world
+
+    step_m = DEFAULT_SPEED_MPS / DEFAULT_RATE_HZ
+    world = long_corridor_world(length_m=n * step_m + 3.0)
+    return simulate(world, odometry=ACCURATE_ODOMETRY, seed=0).scans[:n]
+
+
+def run_one(n: int, log: Path, grid: bool, source_name: str = "csail") -> dict:
     """Run the pipeline over ``n`` scans in this process; return the figures."""
     from frontends import open_log
     from iceg.slam import Slam
 
-    source = list(open_log(log))
+    if source_name == "corridor":
+        source = exploring_corridor(n)
+        scans = iter(source)
+    else:
+        source = list(open_log(log))
+        scans = back_and_forth(source, n)
     rss_start = peak_rss_mb()
     slam = Slam()
     blocks: list[float] = []
@@ -96,7 +119,7 @@ def run_one(n: int, log: Path, grid: bool) -> dict:
     stages_before: dict[str, float] = {}
     t_block = time.perf_counter()
     t_start = t_block
-    for k, scan in enumerate(back_and_forth(source, n), start=1):
+    for k, scan in enumerate(scans, start=1):
         slam.process(scan)
         if k % BLOCK == 0 or k == n:
             now = time.perf_counter()
@@ -176,16 +199,23 @@ def main() -> None:
     ap.add_argument("--sizes", default="2000,10000,50000", help="comma-separated scan counts")
     ap.add_argument("--log", type=Path, default=DATA, help="source CARMEN log")
     ap.add_argument("--no-grid", action="store_true", help="skip the occupancy grid")
+    ap.add_argument(
+        "--source",
+        choices=("csail", "corridor"),
+        default="csail",
+        help="csail: the log driven back and forth; corridor: a simulated exploring corridor",
+    )
     ap.add_argument("--child", type=int, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if not args.log.exists():
         sys.exit(f"{args.log}: not found (the MIT CSAIL log lives in ../shared/data)")
     if args.child is not None:
-        print(json.dumps(run_one(args.child, args.log, not args.no_grid)))
+        print(json.dumps(run_one(args.child, args.log, not args.no_grid, args.source)))
         return
     summary = []
     for n in (int(s) for s in args.sizes.split(",")):
         cmd = [sys.executable, __file__, "--child", str(n), "--log", str(args.log)]
+        cmd += ["--source", args.source]
         if args.no_grid:
             cmd.append("--no-grid")
         out = subprocess.run(cmd, check=True, stdout=subprocess.PIPE, text=True).stdout
