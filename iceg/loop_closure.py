@@ -751,8 +751,11 @@ class LoopCloser:
         """
         lc = self.config
         self.stats.global_searches += 1
+
         # Places within the radius are the local search's: the global one adds the rest.
-        far = np.setdiff1d(np.arange(s.n_older, dtype=np.int64), s.inside, assume_unique=True)
+        def far(ids: IntArray) -> NDArray[np.bool_]:
+            return (ids < s.n_older) & ~np.isin(ids, s.inside, kind="table")
+
         query = place_descriptor(features, lc.place_index)
         places = self.places.query(query, far, lc.global_candidates, lc.reference_nodes)
         verified = [c for c in (self._verify_global(s, features, p) for p in places) if c]

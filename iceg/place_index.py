@@ -24,7 +24,7 @@ global ICE match and a consistency check (:mod:`iceg.loop_closure`).
 from __future__ import annotations
 
 import functools
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -34,6 +34,7 @@ from iceg.types import ScanFeatures
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+BoolArray = NDArray[np.bool_]
 
 
 class PlaceIndexConfig(BaseModel):
@@ -123,7 +124,7 @@ class PlaceIndex:
         self.config = config or PlaceIndexConfig()
         self._dim = self.config.pair_bins + self.config.range_bins
         self._rows = np.zeros((0, self._dim))
-        self._ids: list[int] = []
+        self._ids = np.zeros(0, dtype=np.int64)  # row -> node id; capacity of _rows
         self._n = 0
 
     def __len__(self) -> int:
@@ -139,14 +140,16 @@ class PlaceIndex:
         if d.shape[0] != self._dim:
             raise ValueError(f"descriptor has {d.shape[0]} entries, expected {self._dim}")
         if self._n == self._rows.shape[0]:
-            self._rows = np.vstack([self._rows, np.zeros((max(64, self._n), self._dim))])
+            grow = max(64, self._n)
+            self._rows = np.vstack([self._rows, np.zeros((grow, self._dim))])
+            self._ids = np.concatenate([self._ids, np.zeros(grow, dtype=np.int64)])
         self._rows[self._n] = d
-        self._ids.append(int(node_id))
+        self._ids[self._n] = int(node_id)
         self._n += 1
 
     def export_state(self) -> dict[str, np.ndarray]:
         """``{"rows": (n, D) descriptors, "ids": (n,) node ids}`` (saved sessions)."""
-        return {"rows": self._rows[: self._n].copy(), "ids": np.array(self._ids, np.int64)}
+        return {"rows": self._rows[: self._n].copy(), "ids": self._ids[: self._n].copy()}
 
     def restore_state(self, state: dict[str, np.ndarray]) -> None:
         """Replace the contents by :meth:`export_state` arrays (same later queries).
@@ -160,23 +163,33 @@ class PlaceIndex:
             cap += max(64, cap)
         self._rows = np.zeros((cap, self._dim))
         self._rows[: rows.shape[0]] = rows
-        self._ids = [int(v) for v in state["ids"]]
+        self._ids = np.zeros(cap, dtype=np.int64)
+        self._ids[: rows.shape[0]] = np.asarray(state["ids"], dtype=np.int64).reshape(-1)
         self._n = rows.shape[0]
 
     def similarity(self, descriptor: FloatArray) -> tuple[IntArray, FloatArray]:
         """Cosine similarity of ``descriptor`` to every stored one: ``(node_ids (N,),
         similarity (N,))`` in insertion order."""
         sim = self._rows[: self._n] @ np.asarray(descriptor, dtype=np.float64).reshape(-1)
-        return np.asarray(self._ids, dtype=np.int64), sim
+        return self._ids[: self._n].copy(), sim
 
     def query(
-        self, descriptor: FloatArray, eligible: Sequence[int] | IntArray, k: int, separation: int
+        self,
+        descriptor: FloatArray,
+        eligible: Sequence[int] | IntArray | Callable[[IntArray], BoolArray],
+        k: int,
+        separation: int,
     ) -> list[int]:
         """The ``k`` most similar eligible nodes, from distinct places.
 
+        Greedy over the nodes by decreasing similarity (ties in insertion order); only the
+        most similar are sorted (a prefix doubled until ``k`` places are found), so a query
+        costs O(N) vectorized work plus O(m log m) for the m nodes looked at.
+
         Args:
             descriptor: ``(D,)`` query descriptor.
-            eligible: Node ids that may be returned (e.g. old enough along the path).
+            eligible: Node ids that may be returned (e.g. old enough along the path), or a
+                vectorized test: given the ``(N,)`` int64 node ids, a ``(N,)`` bool mask.
             k: Most results.
             separation: Results are more than this many node ids apart (non-maximum
                 suppression: one result per stretch of path).
@@ -185,15 +198,28 @@ class PlaceIndex:
             Node ids, most similar first (fewer than ``k`` when few are eligible).
         """
         ids, sim = self.similarity(descriptor)
-        keep = np.isin(ids, np.asarray(eligible, dtype=np.int64))
+        if callable(eligible):
+            keep = np.asarray(eligible(ids), dtype=bool)
+        else:
+            keep = np.isin(ids, np.asarray(eligible, dtype=np.int64))
         ids, sim = ids[keep], sim[keep]
-        chosen: list[int] = []
-        for n in ids[np.argsort(-sim, kind="stable")]:
-            if all(abs(int(n) - c) > separation for c in chosen):
-                chosen.append(int(n))
-                if len(chosen) == k:
-                    break
-        return chosen
+        m = 8 * k
+        while True:
+            if m >= ids.shape[0]:
+                top = np.argsort(-sim, kind="stable")
+            else:  # every node at least as similar as the m-th, ties included, in order
+                kth = np.partition(sim, ids.shape[0] - m)[ids.shape[0] - m]
+                few = np.flatnonzero(sim >= kth)
+                top = few[np.argsort(-sim[few], kind="stable")]
+            chosen: list[int] = []
+            for n in ids[top].tolist():
+                if all(abs(n - c) > separation for c in chosen):
+                    chosen.append(n)
+                    if len(chosen) == k:
+                        return chosen
+            if top.shape[0] == ids.shape[0]:
+                return chosen
+            m *= 2
 
 
 __all__ = ["PlaceIndex", "PlaceIndexConfig", "place_descriptor"]
