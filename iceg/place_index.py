@@ -203,7 +203,7 @@ class PlaceIndex:
         else:
             keep = np.isin(ids, np.asarray(eligible, dtype=np.int64))
         ids, sim = ids[keep], sim[keep]
-        m = 8 * k
+        m = max(8 * k, 1)
         while True:
             if m >= ids.shape[0]:
                 top = np.argsort(-sim, kind="stable")
