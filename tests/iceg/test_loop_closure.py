@@ -214,6 +214,27 @@ def test_chain_covariance_of_two_unit_steps_by_hand() -> None:
     assert not chain_covariance(poses[:1], []).any()
 
 
+def test_chain_covariance_equals_the_step_by_step_recursion() -> None:
+    # The closed form against its definition, C_{k+1} = Ad(D^-1) C_k Ad(D^-1)^T + S_k, on a
+    # 500-step random chain far from the origin (large lever arms).
+    rng = np.random.default_rng(3)
+    steps = np.column_stack(
+        [rng.uniform(0.0, 1.0, 500), rng.normal(0.0, 0.1, 500), rng.normal(0.0, 0.2, 500)]
+    )
+    poses = [np.array([50.0, -30.0, 1.0])]
+    for step in steps:
+        poses.append(se2.compose(poses[-1], step))
+    chain = np.array(poses)
+    a = rng.normal(size=(500, 3, 3))
+    covs = np.einsum("kij,klj->kil", a, a) * 1e-4
+    expected = np.zeros((3, 3))
+    for k, step_cov in enumerate(covs):
+        ad = se2.adjoint(se2.inverse(se2.between(chain[k], chain[k + 1])))
+        expected = ad @ expected @ ad.T + step_cov
+    got = chain_covariance(chain, covs)
+    np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
+
+
 def _identical_rooms_world() -> World:
     """A 2 m corridor (``y`` 0-2) along six identical 6 m x 4 m rooms, each with its door at
     the same place: every stretch of corridor looks like the one 6 m further on."""
