@@ -408,31 +408,11 @@ class PoseGraph:
             raise GraphError("optimize_batch: the graph has no node")
         self._check_connected(self._pending_nodes)
         values = self._current_values()
-        cfg = self.config
-        if correction:
-            code, tol = STEP_BATCH_CORRECTION, cfg.correction_relative_error_tol
-        elif loop_closure_kernels:
-            code, tol = STEP_BATCH, cfg.batch_relative_error_tol
-        else:
-            code, tol = STEP_BATCH_GAUSSIAN_LOOPS, cfg.batch_relative_error_tol
+        code, tol = self._batch_step(correction, loop_closure_kernels)
         self._steps.append((code, int(max_iterations), len(self._records)))
         graph = self._full_graph(gaussian_loops=not loop_closure_kernels)
-        params = gtsam.LevenbergMarquardtParams()
-        params.setMaxIterations(int(max_iterations))
-        params.setRelativeErrorTol(tol)
-        params.setAbsoluteErrorTol(1e-12)  # error units; far below any meaningful change
-        params.setDiagonalDamping(cfg.batch_diagonal_damping)
         error_before = graph.error(values)
-        while True:
-            params.setLinearSolverType("MULTIFRONTAL_QR" if self._qr else "MULTIFRONTAL_CHOLESKY")
-            try:
-                optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-                result = optimizer.optimize()
-                break
-            except _GTSAM_ERRORS as exc:
-                if not self._switch_to_qr(exc):
-                    raise self._wrap(exc, "batch Levenberg–Marquardt") from exc
-        iterations = int(optimizer.iterations())
+        result, iterations = self._levenberg_marquardt(graph, values, int(max_iterations), tol)
         converged = iterations < max_iterations
         stats = BatchStats(iterations, error_before, graph.error(result), converged)
         if not stats.converged:
@@ -446,6 +426,42 @@ class PoseGraph:
         self._served = result
         self._drop_estimates()
         return stats
+
+    def _batch_step(self, correction: bool, loop_closure_kernels: bool) -> tuple[int, float]:
+        """The solver-log step code and the relative error tolerance of a batch solve."""
+        cfg = self.config
+        if correction:
+            return STEP_BATCH_CORRECTION, cfg.correction_relative_error_tol
+        if loop_closure_kernels:
+            return STEP_BATCH, cfg.batch_relative_error_tol
+        return STEP_BATCH_GAUSSIAN_LOOPS, cfg.batch_relative_error_tol
+
+    def _levenberg_marquardt(
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        max_iterations: int,
+        relative_error_tol: float,
+    ) -> tuple[gtsam.Values, int]:
+        """gtsam's Levenberg–Marquardt from ``values``: ``(result, iterations)``. With the
+        'auto' factorization a Cholesky failure switches the graph to QR and solves again.
+
+        Raises:
+            GraphError: a gtsam failure QR does not cure.
+        """
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(max_iterations)
+        params.setRelativeErrorTol(relative_error_tol)
+        params.setAbsoluteErrorTol(1e-12)  # error units; far below any meaningful change
+        params.setDiagonalDamping(self.config.batch_diagonal_damping)
+        while True:
+            params.setLinearSolverType("MULTIFRONTAL_QR" if self._qr else "MULTIFRONTAL_CHOLESKY")
+            try:
+                optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+                return optimizer.optimize(), int(optimizer.iterations())
+            except _GTSAM_ERRORS as exc:
+                if not self._switch_to_qr(exc):
+                    raise self._wrap(exc, "batch Levenberg–Marquardt") from exc
 
     # ------------------------------------------------------------------ reading results
 
