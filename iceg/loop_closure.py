@@ -5,7 +5,9 @@ the landmarks of older places near its estimate (docs/design.md "Loop closure").
 accepted when its innovation passes a chi-square gate under the node's marginal covariance plus the
 match covariance, or when two closures that failed the gate imply the same correction
 (pairwise consistency after Olson 2009, "Recognizing places using spectrally clustered local
-matches", reduced to pairs). :class:`LoopCloser` only decides; the pipeline
+matches", reduced to pairs). A closure that the odometry between its two nodes contradicts
+(over a path short enough for a first-order test) is ruled out first, whatever the marginal
+says. :class:`LoopCloser` only decides; the pipeline
 (:mod:`iceg.slam`) adds the accepted closures to the pose graph as factors.
 
 Global search (issue 11): the local search cannot reach a place farther than
@@ -33,7 +35,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from graph import FactorKind, PoseGraph
+from graph import FactorKind, OdometryNoiseConfig, PoseGraph
 from iceg.feature_map import FeatureMap
 from iceg.matching import MatchBounds, Matcher
 from iceg.node_index import NodeGrid
@@ -56,6 +58,12 @@ _INDEX_CELL_M = 4.0
 #: positions, and the index is rebuilt from all estimates once the accepted corrections may
 #: have moved a node by half of it (the other half absorbs iSAM2's small re-estimates).
 _INDEX_MARGIN_M = 2.0
+
+#: The odometry test of a loop closure (:meth:`LoopCloser._contradicts_odometry`) runs only
+#: while the odometry chain's heading standard deviation is at most this (rad, about 11°):
+#: the small-angle regime where a first-order covariance of the composed pose holds
+#: (sin and cos within 0.7 % and 2 % of their linearisations).
+_ODOMETRY_TEST_MAX_HEADING_SIGMA_RAD = 0.2
 
 #: First radius (m) of the search for the old nodes nearest a candidate (doubled until the
 #: ``reference_nodes`` nearest are certain).
@@ -179,7 +187,9 @@ class LoopClosureStats:
 
     ``attempts`` counts local matches only; ``global_searches`` / ``global_attempts`` the
     appearance searches and their global matches, ``global_accepted`` the accepted closures
-    they found and ``rejected_ambiguous`` verified global matches dropped as aliased.
+    they found and ``rejected_ambiguous`` verified global matches dropped as aliased;
+    ``rejected_odometry`` matches that the odometry between their two nodes rules out
+    (:meth:`LoopCloser._contradicts_odometry`).
     """
 
     searches: int = 0
@@ -191,6 +201,7 @@ class LoopClosureStats:
     global_attempts: int = 0
     global_accepted: int = 0
     rejected_ambiguous: int = 0
+    rejected_odometry: int = 0
 
     def as_dict(self) -> dict[str, int]:
         """Plain dict for JSON output."""
@@ -361,13 +372,61 @@ def chain_covariance(poses: FloatArray, step_covs: ArrayLike) -> FloatArray:
     covs = np.asarray(step_covs, dtype=np.float64).reshape(-1, 3, 3)
     if covs.shape[0] == 0:
         return np.zeros((3, 3))
+    ad = _adjoints_to_last(poses)
+    return np.einsum("kij,kjl,kml->im", ad, covs, ad)
+
+
+def odometry_bias_covariance(
+    poses: FloatArray, scale_sigma: float, heading_drift_sigma_rad_per_m: float
+) -> FloatArray:
+    """Covariance that a systematic odometry error adds to a chain's relative pose.
+
+    :func:`chain_covariance` treats every step's error as independent, so it grows with the
+    square root of the path; an uncalibrated odometry errs the same way at every step (a
+    wheel radius, a wheel base), which grows linearly with the path and bends it. Two such
+    errors, zero-mean Gaussian and shared by every step of the chain: a scale error ``s``
+    (each step's translation times ``1 + s``) and a heading drift ``d`` (each step's
+    rotation plus ``d`` times its length). To first order the last node moves by
+    ``J_s s + J_d d`` (tangent at the last node) with
+    ``J_s = Σ_k Ad(M_k) [R_kᵀ t_k, 0]`` and ``J_d = Σ_k Ad(M_k) [0, 0, |t_k|]`` (step
+    ``k = (R_k, t_k)``, ``M_k`` as in :func:`chain_covariance`). The odometry motion model of
+    Thrun, Burgard & Fox, *Probabilistic Robotics* (2005), §5.4, read as a calibration error
+    rather than noise.
+
+    Args:
+        poses: ``(n, 3)`` estimates of the chain's nodes, in order, map frame.
+        scale_sigma: Standard deviation of ``s`` (m per m).
+        heading_drift_sigma_rad_per_m: Standard deviation of ``d`` (rad per m).
+
+    Returns:
+        ``(3, 3)`` covariance ``σ_s² J_s J_sᵀ + σ_d² J_d J_dᵀ``, m² and rad² (zeros for a
+        single node).
+    """
+    if poses.shape[0] < 2:
+        return np.zeros((3, 3))
+    ad = _adjoints_to_last(poses)
+    steps = se2.between(poses[:-1], poses[1:])
+    c, s = np.cos(steps[:, 2]), np.sin(steps[:, 2])
+    xi_scale = np.stack(
+        [c * steps[:, 0] + s * steps[:, 1], -s * steps[:, 0] + c * steps[:, 1]], axis=1
+    )
+    j_scale = np.einsum("kij,kj->i", ad[:, :, :2], xi_scale)
+    j_drift = ad[:, :, 2].T @ np.hypot(steps[:, 0], steps[:, 1])
+    return scale_sigma**2 * np.outer(j_scale, j_scale) + heading_drift_sigma_rad_per_m**2 * (
+        np.outer(j_drift, j_drift)
+    )
+
+
+def _adjoints_to_last(poses: FloatArray) -> FloatArray:
+    """``(n - 1, 3, 3)`` adjoints ``Ad(M_k)``, ``M_k = X_last⁻¹ ∘ X_{k+1}``: they carry a
+    perturbation of step ``k`` (tangent at its later node) to the tangent at the last node."""
     m = se2.between(poses[-1], poses[1:])
     c, s = np.cos(m[:, 2]), np.sin(m[:, 2])
     ad = np.zeros((m.shape[0], 3, 3))
     ad[:, 0, 0], ad[:, 0, 1], ad[:, 0, 2] = c, -s, m[:, 1]
     ad[:, 1, 0], ad[:, 1, 1], ad[:, 1, 2] = s, c, -m[:, 0]
     ad[:, 2, 2] = 1.0
-    return np.einsum("kij,kjl,kml->im", ad, covs, ad)
+    return ad
 
 
 class _Poses:
@@ -445,12 +504,19 @@ class LoopCloser:
         config: Loop-closure settings.
         matcher: The ICE matcher used for loop-closure matches.
         feature_map: The map whose landmarks form each place's reference.
+        odometry_noise: The odometry noise model; its per-distance sigmas bound a systematic
+            odometry error in the odometry test (:meth:`_contradicts_odometry`).
     """
 
     def __init__(
-        self, config: LoopClosureConfig, matcher: Matcher, feature_map: FeatureMap
+        self,
+        config: LoopClosureConfig,
+        matcher: Matcher,
+        feature_map: FeatureMap,
+        odometry_noise: OdometryNoiseConfig | None = None,
     ) -> None:
         self.config = config
+        self.odometry_noise = odometry_noise or OdometryNoiseConfig()
         self.matcher = matcher
         self.feature_map = feature_map
         self.stats = LoopClosureStats()
@@ -458,6 +524,9 @@ class LoopCloser:
         self.places = PlaceIndex(config.place_index)
         # Row i: fused information of the sequential factors i -> i+1 (zero: none yet).
         self._step_info = np.zeros((0, 3, 3))
+        # Row i: the odometry factor i -> i+1, measured step and covariance (NaN: none).
+        self._odom_step = np.zeros((0, 3))
+        self._odom_cov = np.zeros((0, 3, 3))
         self._factors_seen = 0
         self.nodes = NodeGrid(_INDEX_CELL_M)
         self._indexed_to = 0  # nodes 0.._indexed_to-1 are in self.nodes
@@ -491,7 +560,8 @@ class LoopCloser:
         the current estimate (``cov_xy`` from the current node's marginal, capped at
         ``max_search_radius_m``); up to ``max_candidates`` of the nearest, from distinct
         places, are matched against the landmarks of the ``reference_nodes`` old nodes
-        nearest each candidate, and the best-correlated match is kept. It is accepted (robust
+        nearest each candidate, and the best-correlated match is kept. Unless the odometry
+        rules it out (:meth:`_contradicts_odometry`), it is accepted (robust
         kernel) when it passes the chi-square gate (:func:`innovation_chi2`), or together with
         held closures it agrees with (no kernel; :meth:`_agreeing`: held local closures that
         agree, else a clique of ``global_min_group`` with held global ones); otherwise it is
@@ -691,6 +761,8 @@ class LoopCloser:
             implied=se2.compose(s.poses[best.candidate], result.pose),
         )
         rounded = np.round(innovation, _LOG_DECIMALS)
+        if self._contradicts_odometry(closure):
+            return None
         if d2 <= lc.consistency_chi2:
             logger.debug(
                 "loop closure %d->%d accepted: innovation %s, chi2 %.1f, correlation %.2f",
@@ -743,7 +815,8 @@ class LoopCloser:
         (:class:`~iceg.place_index.PlaceIndex`, one per ``reference_nodes`` stretch) are each
         verified by a global ICE match against their reference. When two verified places
         contradict each other (:meth:`_unique`) the scene is aliased and all are dropped.
-        The best-correlated survivor is accepted (robust kernel) if it passes the chi-square
+        Unless the odometry rules it out (:meth:`_contradicts_odometry`), the
+        best-correlated survivor is accepted (robust kernel) if it passes the chi-square
         gate against the estimate; otherwise it needs ``global_min_group - 1`` held closures
         consistent with it and with each other under :func:`pcm_chi2` (old nodes
         ``agreement_min_separation_m`` apart along the path); the group enters without kernel
@@ -769,6 +842,8 @@ class LoopCloser:
             )
             return None
         closure = max(verified, key=lambda c: c.correlation)
+        if self._contradicts_odometry(closure):
+            return None
         prediction = se2.between(s.poses[closure.node_from], s.poses[s.node_id])
         _, d2 = innovation_chi2(prediction, closure.measured, s.marginal, closure.cov)
         if d2 <= lc.consistency_chi2:
@@ -830,6 +905,62 @@ class LoopCloser:
 
     # ------------------------------------------------------------------ consistency
 
+    def _contradicts_odometry(self, closure: LoopClosure) -> bool:
+        """Whether the distance the odometry measured between the closure's two nodes rules
+        it out.
+
+        The current node's marginal, which the chi-square gate uses, grows with the whole
+        log: after kilometres of exploration it admits a place a few metres back that looks
+        the same (a corridor's repeating doors). The wheels measured how far the robot went
+        between the two nodes, independently of the scan matching. With ``t`` the odometry's
+        displacement from the old node to the current one (the odometry factors composed,
+        old node's frame) and ``u = t / |t|``, the closure is ruled out when the component
+        along ``u`` of its own displacement differs from ``|t|`` by more than
+        ``sqrt(consistency_chi2)`` standard deviations: ``uᵀ C u`` from the odometry chain's
+        covariance (:func:`chain_covariance` of the odometry factors' covariances plus
+        :func:`odometry_bias_covariance`, a systematic error of the size of the noise model's
+        per-distance sigmas) and the match covariance. Ruled-out closures are not held for
+        agreement.
+
+        Only the distance along the way is tested: a heading from wheels is what slips (MIT
+        CSAIL's odometry turns 19° off the model's 5 % per radian within 57 nodes), a distance
+        along a short path is not. And only where the first-order covariance holds: the
+        chain's heading standard deviation (its steps' heading variances plus the systematic
+        drift over its length) at most :data:`_ODOMETRY_TEST_MAX_HEADING_SIGMA_RAD`; over a
+        longer or turning path the odometry's error is no longer Gaussian in the pose.
+        Skipped too where a step has no odometry factor.
+        """
+        lo, hi = closure.node_from, closure.node_to
+        noise = self.odometry_noise
+        steps = self._odom_step[lo:hi]
+        covs = self._odom_cov[lo:hi]
+        path_m = float(np.hypot(steps[:, 0], steps[:, 1]).sum())
+        heading_var = covs[:, 2, 2].sum() + (noise.sigma_theta_per_distance_rad_per_m * path_m) ** 2
+        if not heading_var <= _ODOMETRY_TEST_MAX_HEADING_SIGMA_RAD**2:  # also NaN: a gap
+            return False
+        chain = se2.accumulate(steps)
+        distance_m = float(np.hypot(chain[-1, 0], chain[-1, 1]))
+        if distance_m == 0.0:
+            return False
+        cov = chain_covariance(chain, covs) + odometry_bias_covariance(
+            chain, noise.sigma_xy_per_distance_m_per_m, noise.sigma_theta_per_distance_rad_per_m
+        )
+        u_old = chain[-1, :2] / distance_m  # old node's frame
+        # the chain's end and the match are perturbed in their own frames (tangent spaces)
+        u_end = se2.rotation_matrix(chain[-1, 2]).T @ u_old
+        u_match = se2.rotation_matrix(closure.measured[2]).T @ u_old
+        var = u_end @ cov[:2, :2] @ u_end + u_match @ closure.cov[:2, :2] @ u_match
+        error_m = float(u_old @ closure.measured[:2]) - distance_m
+        if error_m**2 <= self.config.consistency_chi2 * var:
+            return False
+        self.stats.rejected_odometry += 1
+        logger.debug(
+            "loop closure %d->%d ruled out by the odometry between them: %.3f m along the "
+            "odometry's %.3f m, sigma %.3f m",
+            *(lo, hi, error_m + distance_m, distance_m, np.sqrt(var)),
+        )
+        return True
+
     def _agree(
         self, a: LoopClosure, b: LoopClosure, poses: _Poses, path_m: Sequence[float]
     ) -> bool:
@@ -857,18 +988,22 @@ class LoopCloser:
 
     def _sync_steps(self, graph: PoseGraph) -> None:
         """Fuse the information of new sequential factors (``i -> i+1``: odometry, scan
-        match) into the per-step information used by :func:`chain_covariance`."""
+        match) into the per-step information used by :func:`chain_covariance`, and keep each
+        step's odometry factor for :meth:`_contradicts_odometry`."""
         factors = graph.factors
         n = graph.n_nodes
         if self._step_info.shape[0] < n:
-            grown = np.zeros((max(n, 2 * self._step_info.shape[0]), 3, 3))
-            grown[: self._step_info.shape[0]] = self._step_info
-            self._step_info = grown
+            size = max(n, 2 * self._step_info.shape[0])
+            self._step_info = _grown(self._step_info, size, 0.0)
+            self._odom_step = _grown(self._odom_step, size, np.nan)
+            self._odom_cov = _grown(self._odom_cov, size, np.nan)
         for f in factors[self._factors_seen :]:
             if f.kind is FactorKind.LOOP_CLOSURE:
                 self._closures_seen += 1
             elif f.j == f.i + 1:
                 self._step_info[f.i] += np.linalg.inv(f.cov)
+                if f.kind is FactorKind.ODOMETRY:
+                    self._odom_step[f.i], self._odom_cov[f.i] = f.measured, f.cov
         self._factors_seen = len(factors)
         if self._closures_seen > self._closures_own:  # closures added by someone else
             self._closures_own = self._closures_seen
@@ -928,6 +1063,13 @@ def nearest_k(dist: FloatArray, k: int) -> IntArray:
     kth = np.partition(dist, k - 1)[k - 1]
     few = np.flatnonzero(dist <= kth)
     return few[np.argsort(dist[few], kind="stable")[:k]]
+
+
+def _grown(a: NDArray[np.float64], size: int, fill: float) -> NDArray[np.float64]:
+    """``a`` with rows up to ``size``, the new rows set to ``fill``."""
+    out = np.full((size, *a.shape[1:]), fill)
+    out[: a.shape[0]] = a
+    return out
 
 
 def _ends(c: LoopClosure) -> tuple[int, int]:

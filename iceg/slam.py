@@ -197,7 +197,9 @@ class Slam:
         self.point_matcher = PlIcpMatcher(self.config.matching)
         self._node_points: dict[int, FloatArray] = {}  # recent nodes' scan points (cache)
         self.feature_map = FeatureMap(self.config.feature_map)
-        self.loop_closer = LoopCloser(self.config.loop_closure, self.matcher, self.feature_map)
+        self.loop_closer = LoopCloser(
+            self.config.loop_closure, self.matcher, self.feature_map, self.config.odometry_noise
+        )
         self.odometry_calibrator = OdometryCalibrator(self.config.odometry_calibration)
         self.timer = StageTimer()
         self._s = SlamState()
@@ -229,7 +231,9 @@ class Slam:
         slam = cls(config)
         slam.graph = graph
         slam.feature_map = feature_map
-        slam.loop_closer = LoopCloser(config.loop_closure, slam.matcher, feature_map)
+        slam.loop_closer = LoopCloser(
+            config.loop_closure, slam.matcher, feature_map, config.odometry_noise
+        )
         if loop_stats is not None:
             slam.loop_closer.stats = loop_stats
         slam._s = state

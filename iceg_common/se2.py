@@ -43,6 +43,19 @@ def between(a: ArrayLike, b: ArrayLike) -> FloatArray:
     return compose(inverse(a), b)
 
 
+def accumulate(steps: ArrayLike) -> FloatArray:
+    """Poses ``(n + 1, 3)`` of a chain of ``n`` relative steps ``(n, 3)`` composed in order from
+    the identity: row ``k`` is ``steps[0] ∘ ... ∘ steps[k-1]`` (row 0 the identity). Headings
+    are summed, not wrapped."""
+    d = np.asarray(steps, dtype=np.float64).reshape(-1, 3)
+    theta = np.concatenate([[0.0], np.cumsum(d[:, 2])])
+    c, s = np.cos(theta[:-1]), np.sin(theta[:-1])
+    xy = np.zeros((d.shape[0] + 1, 2))
+    xy[1:, 0] = np.cumsum(c * d[:, 0] - s * d[:, 1])
+    xy[1:, 1] = np.cumsum(s * d[:, 0] + c * d[:, 1])
+    return np.column_stack([xy, theta])
+
+
 def transform_points(pose: ArrayLike, points_xy: ArrayLike) -> FloatArray:
     """Map points ``(K, 2)`` from the frame of ``pose`` (3,) into its parent frame."""
     p = np.asarray(pose, dtype=np.float64)

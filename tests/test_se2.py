@@ -39,3 +39,17 @@ def test_wrap_angle_hand_values() -> None:
     np.testing.assert_allclose(
         se2.wrap_angle([np.pi, 3 * np.pi / 2, -np.pi]), [-np.pi, -np.pi / 2, -np.pi]
     )
+
+
+def test_accumulate_equals_composing_step_by_step() -> None:
+    rng = np.random.default_rng(5)
+    steps = np.column_stack(
+        [rng.uniform(0, 1, 200), rng.normal(0, 0.2, 200), rng.normal(0, 0.5, 200)]
+    )
+    poses = [np.zeros(3)]
+    for step in steps:
+        poses.append(se2.compose(poses[-1], step))
+    got = se2.accumulate(steps)
+    assert got.shape == (201, 3)
+    np.testing.assert_allclose(got[:, :2], np.array(poses)[:, :2], atol=1e-12)
+    np.testing.assert_allclose(se2.wrap_angle(got[:, 2] - np.array(poses)[:, 2]), 0, atol=1e-12)

@@ -33,6 +33,7 @@ from iceg.loop_closure import (
     closures_agree,
     innovation_chi2,
     nearest_k,
+    odometry_bias_covariance,
     pcm_chi2,
 )
 from iceg.slam import Slam
@@ -233,6 +234,119 @@ def test_chain_covariance_equals_the_step_by_step_recursion() -> None:
         expected = ad @ expected @ ad.T + step_cov
     got = chain_covariance(chain, covs)
     np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
+
+
+def test_odometry_bias_covariance_by_hand_and_by_finite_differences() -> None:
+    # Two 1 m steps along x: a scale error s moves the end by (2 s, 0, 0); a heading drift d
+    # turns each step by d, so the end is at (1 + cos d, sin d, 2 d) ~ (2, d, 2 d): (0, d, 2 d)
+    # in its own frame.
+    poses = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    j_s, j_d = np.array([2.0, 0, 0]), np.array([0.0, 1, 2])
+    expected = 0.02**2 * np.outer(j_s, j_s) + 0.01**2 * np.outer(j_d, j_d)
+    np.testing.assert_allclose(odometry_bias_covariance(poses, 0.02, 0.01), expected, atol=1e-15)
+    # A random turning chain: the Jacobians against central differences of the composition.
+    rng = np.random.default_rng(7)
+    steps = np.column_stack(
+        [rng.uniform(0.0, 0.5, 300), rng.normal(0.0, 0.05, 300), rng.normal(0.0, 0.1, 300)]
+    )
+    lengths = np.hypot(steps[:, 0], steps[:, 1])
+    chain = se2.compose(np.array([5.0, -3.0, 0.7]), se2.accumulate(steps))
+    nominal_end = se2.accumulate(steps)[-1]
+
+    def end_moved(scale: float, drift: float) -> np.ndarray:
+        moved = steps.copy()
+        moved[:, :2] *= 1.0 + scale
+        moved[:, 2] += drift * lengths
+        return se2.between(nominal_end, se2.accumulate(moved)[-1])
+
+    eps = 1e-6
+    j_s = (end_moved(eps, 0) - end_moved(-eps, 0)) / (2 * eps)
+    j_d = (end_moved(0, eps) - end_moved(0, -eps)) / (2 * eps)
+    expected = 0.02**2 * np.outer(j_s, j_s) + 0.01**2 * np.outer(j_d, j_d)
+    got = odometry_bias_covariance(chain, 0.02, 0.01)
+    np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-9 * np.abs(expected).max())
+    assert not odometry_bias_covariance(chain[:1], 0.02, 0.01).any()
+
+
+def _odometry_chain_closer(steps: np.ndarray) -> LoopCloser:
+    """A loop closer that has seen a pose graph of odometry factors along ``steps``
+    (default noise model)."""
+    from graph import PoseGraph, odometry_covariance
+    from iceg.feature_map import FeatureMap
+    from iceg.matching import IceMatcher
+
+    graph = PoseGraph()
+    poses = se2.accumulate(steps)
+    graph.add_node(0, poses[0])
+    graph.add_prior(0, poses[0], np.diag([1e-6, 1e-6, 1e-8]))
+    for k, step in enumerate(steps):
+        graph.add_node(k + 1, poses[k + 1])
+        graph.add_between(k, k + 1, step, odometry_covariance(step), FactorKind.ODOMETRY)
+    closer = LoopCloser(LoopClosureConfig(), IceMatcher(), FeatureMap())
+    closer._sync_steps(graph)
+    return closer
+
+
+def test_odometry_rules_out_a_closure_it_contradicts_over_a_short_path() -> None:
+    # 66 steps of 0.15 m straight ahead (a 10 m stretch of corridor). Default noise model:
+    # the chain's heading sigma is 0.15 rad (0.58 deg per step, 0.5 deg/m of drift over 9.9
+    # m), so the test applies. A closure that puts the last node 0.1 m from the first (a
+    # look-alike door 10 m back) is ruled out; the odometry's own 9.9 m, or 9.7 m (2 % short,
+    # one sigma of the systematic scale error), are not.
+    steps = np.tile([0.15, 0.0, 0.0], (66, 1))
+    closer = _odometry_chain_closer(steps)
+    match_cov = np.diag([1e-4, 1e-4, 1e-5])
+    for x_m, ruled_out in ((0.1, True), (9.9, False), (9.7, False)):
+        closure = LoopClosure(0, 66, np.array([x_m, 0.0, 0.0]), match_cov, 0.9, np.zeros(3))
+        assert closer._contradicts_odometry(closure) is ruled_out, x_m
+    assert closer.stats.rejected_odometry == 1
+
+
+def test_odometry_test_is_skipped_beyond_the_small_angle_regime() -> None:
+    # 300 steps of 0.15 m (45 m): heading sigma 0.42 rad, where a first-order covariance
+    # of the composed pose no longer holds: no closure is ruled out, however far off.
+    steps = np.tile([0.15, 0.0, 0.0], (300, 1))
+    closer = _odometry_chain_closer(steps)
+    closure = LoopClosure(0, 300, np.zeros(3), np.eye(3) * 1e-4, 0.9, np.zeros(3))
+    assert closer._contradicts_odometry(closure) is False
+
+
+def test_the_odometry_rules_out_only_false_closures_under_a_wide_marginal() -> None:
+    # The start of the long corridor with accurate odometry, its first node given a 30 m / 3
+    # deg prior: a stand-in for kilometres of exploration, whose marginal is so wide that
+    # the chi-square gate passes look-alike places a few metres back (the recesses repeat).
+    # Every closure the odometry rules out is false (> 1 m off the truth), and without the
+    # test the run accepted 21 false closures (12 are ruled out here; the rest span paths
+    # beyond the test's small-angle regime, docs/design.md "Loop closure").
+    from frontends.simulate.odometry import ACCURATE_ODOMETRY
+    from frontends.simulate.worlds import long_corridor_world
+    from graph import GraphConfig
+
+    run = simulate(long_corridor_world(), odometry=ACCURATE_ODOMETRY, seed=0)
+    slam = Slam(IcegConfig(graph=GraphConfig(prior_sigma_xy_m=30.0, prior_sigma_theta_deg=3.0)))
+    ruled_out: list[LoopClosure] = []
+    test = LoopCloser._contradicts_odometry
+
+    def recording(self: LoopCloser, closure: LoopClosure) -> bool:
+        out = test(self, closure)
+        if out:
+            ruled_out.append(closure)
+        return out
+
+    LoopCloser._contradicts_odometry = recording  # type: ignore[method-assign]
+    try:
+        for scan in run.scans[:600]:
+            slam.process(scan)
+    finally:
+        LoopCloser._contradicts_odometry = test  # type: ignore[method-assign]
+    scan_of = slam._s.node_scan_index
+    assert len(ruled_out) >= 10
+    for c in ruled_out:
+        truth = se2.between(
+            run.true_poses[scan_of[c.node_from]], run.true_poses[scan_of[c.node_to]]
+        )
+        err = se2.between(truth, c.measured)
+        assert math.hypot(err[0], err[1]) > 1.0, (c.node_from, c.node_to, err)
 
 
 def _identical_rooms_world() -> World:
