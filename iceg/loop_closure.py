@@ -760,9 +760,9 @@ class LoopCloser:
             result.correlation,
             implied=se2.compose(s.poses[best.candidate], result.pose),
         )
-        rounded = np.round(innovation, _LOG_DECIMALS)
         if self._contradicts_odometry(closure):
             return None
+        rounded = np.round(innovation, _LOG_DECIMALS)
         if d2 <= lc.consistency_chi2:
             logger.debug(
                 "loop closure %d->%d accepted: innovation %s, chi2 %.1f, correlation %.2f",
