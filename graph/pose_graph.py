@@ -39,6 +39,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from graph.config import GraphConfig
 from graph.g2o import load_g2o, write_g2o_file
+from iceg_common import se2
 from iceg_common.errors import GraphError
 
 logger = logging.getLogger(__name__)
@@ -597,6 +598,41 @@ class PoseGraph:
             cov = np.asarray(self._isam.marginalCovariance(n), dtype=np.float64)
         except _GTSAM_ERRORS as exc:
             raise self._wrap(exc, ctx) from exc
+        return 0.5 * (cov + cov.T)
+
+    def relative_covariance(self, i: int, j: int) -> FloatArray:
+        """Covariance of the relative pose ``estimate(i)^-1 ∘ estimate(j)`` from the joint
+        marginal of the two nodes in iSAM2's Bayes tree (``jointMarginalCovariance``).
+
+        With right perturbations ``X_i Exp(a)``, ``X_j Exp(b)`` the relative pose moves by
+        ``b - A a``, ``A = Ad((X_i^-1 X_j)^-1)``, so ``C = Σ_jj + A Σ_ii Aᵀ - A Σ_ij - Σ_ji Aᵀ``.
+        Unlike either node's marginal, it does not grow with the uncertainty the two nodes
+        share (the first node's prior, the heading error of everything before them).
+
+        Returns:
+            ``(3, 3)`` float64, tangent space of the relative pose, ``(x, y, theta)``, m² /
+            rad².
+
+        Raises:
+            GraphError: unknown node, a node not yet through :meth:`update`, ``i == j``, or
+                the last update failed.
+        """
+        ctx = f"relative_covariance({i!r}, {j!r})"
+        a, b = self._existing(i, ctx), self._existing(j, ctx)
+        if a == b:
+            raise GraphError(f"{ctx}: the two nodes must differ")
+        if self._isam is None:
+            raise GraphError(f"{ctx}: the last update failed; fix the graph and call update()")
+        for n in (a, b):
+            if n not in self._in_isam:
+                raise GraphError(f"{ctx}: node {n} has not been through update() yet")
+        try:
+            joint = self._isam.jointMarginalCovariance([a, b])
+            s_ii, s_jj, s_ij = (np.asarray(joint.at(*k)) for k in ((a, a), (b, b), (a, b)))
+        except _GTSAM_ERRORS as exc:
+            raise self._wrap(exc, ctx) from exc
+        adj = se2.adjoint(se2.between(self.estimate(b), self.estimate(a)))
+        cov = s_jj + adj @ s_ii @ adj.T - adj @ s_ij - s_ij.T @ adj.T
         return 0.5 * (cov + cov.T)
 
     def residual_errors(self) -> dict[str, float]:

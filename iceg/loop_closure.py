@@ -7,7 +7,8 @@ match covariance, or when two closures that failed the gate imply the same corre
 (pairwise consistency after Olson 2009, "Recognizing places using spectrally clustered local
 matches", reduced to pairs). A closure that the odometry between its two nodes contradicts
 (over a path short enough for a first-order test) is ruled out first, whatever the marginal
-says. :class:`LoopCloser` only decides; the pipeline
+says, and a global closure is gated under the relative covariance of its two nodes.
+:class:`LoopCloser` only decides; the pipeline
 (:mod:`iceg.slam`) adds the accepted closures to the pose graph as factors.
 
 Global search (issue 11): the local search cannot reach a place farther than
@@ -581,7 +582,8 @@ class LoopCloser:
             The closures to add as factors, or ``None``.
 
         Raises:
-            GraphError: the graph cannot give the current node's marginal covariance.
+            GraphError: the graph cannot give the current node's marginal covariance (or a
+                global closure's relative covariance).
         """
         n_older = self._n_older(node_id, path_m)
         if n_older == 0:
@@ -597,7 +599,7 @@ class LoopCloser:
         best = self._best_match(search, features)
         accepted = self._decide(search, best, graph, path_m) if best is not None else None
         if accepted is None and self._global_due(capped):
-            accepted = self._global(search, features, path_m)
+            accepted = self._global(search, features, graph, path_m)
         if accepted is not None:
             self._note_correction(accepted, poses)
         return accepted
@@ -806,7 +808,7 @@ class LoopCloser:
     # ------------------------------------------------------------------ global search
 
     def _global(
-        self, s: _Search, features: ScanFeatures, path_m: Sequence[float]
+        self, s: _Search, features: ScanFeatures, graph: PoseGraph, path_m: Sequence[float]
     ) -> AcceptedClosures | None:
         """Appearance-based search, independent of the estimate.
 
@@ -817,10 +819,14 @@ class LoopCloser:
         contradict each other (:meth:`_unique`) the scene is aliased and all are dropped.
         Unless the odometry rules it out (:meth:`_contradicts_odometry`), the
         best-correlated survivor is accepted (robust kernel) if it passes the chi-square
-        gate against the estimate; otherwise it needs ``global_min_group - 1`` held closures
-        consistent with it and with each other under :func:`pcm_chi2` (old nodes
-        ``agreement_min_separation_m`` apart along the path); the group enters without kernel
-        as a large correction. Else it is held for ``global_window_nodes`` nodes.
+        gate against the estimate under the exact relative covariance of its two nodes
+        (:meth:`graph.PoseGraph.relative_covariance`; an appearance match has no spatial
+        prior, and the current node's marginal grows with everything before the old node:
+        on a long log it admits look-alikes anywhere); otherwise it needs
+        ``global_min_group - 1`` held closures consistent with it and with each other under
+        :func:`pcm_chi2` (old nodes ``agreement_min_separation_m`` apart along the path); the
+        group enters without kernel as a large correction. Else it is held for
+        ``global_window_nodes`` nodes.
         """
         lc = self.config
         self.stats.global_searches += 1
@@ -845,7 +851,8 @@ class LoopCloser:
         if self._contradicts_odometry(closure):
             return None
         prediction = se2.between(s.poses[closure.node_from], s.poses[s.node_id])
-        _, d2 = innovation_chi2(prediction, closure.measured, s.marginal, closure.cov)
+        relative = graph.relative_covariance(closure.node_from, s.node_id)
+        _, d2 = innovation_chi2(prediction, closure.measured, relative, closure.cov)
         if d2 <= lc.consistency_chi2:
             logger.debug("global loop closure %d->%d accepted: chi2 %.1f", *_ends(closure), d2)
             return self._accept([closure], lc.robust_kernel)

@@ -91,3 +91,33 @@ def test_single_factor_marginal_is_the_factor_covariance_in_the_body_frame() -> 
     p0 = np.diag([cfg.prior_sigma_xy_m**2] * 2 + [cfg.prior_sigma_theta_rad**2])
     a = adjoint(inverse(z))
     np.testing.assert_allclose(g.marginal_covariance(1), a @ p0 @ a.T + q, rtol=1e-6, atol=1e-12)
+
+
+def test_relative_covariance_is_the_chain_between_the_nodes_whatever_the_prior() -> None:
+    # An odometry chain whose first node has a 30 m / 3 deg prior: each node's marginal carries
+    # that uncertainty, the relative pose of two nodes does not. Its covariance is the
+    # propagation of the steps between them from zero (the chain's own truth, above); in the
+    # reverse order it is that covariance moved to the inverse's tangent space.
+    rng = np.random.default_rng(11)
+    deltas = np.column_stack(
+        [rng.uniform(0.2, 1.5, 39), rng.uniform(-0.3, 0.3, 39), rng.uniform(-0.8, 0.8, 39)]
+    )
+    g = PoseGraph(GraphConfig(prior_sigma_xy_m=30.0, prior_sigma_theta_deg=3.0))
+    pose = np.array([3.0, -2.0, 1.0])
+    g.add_node(0, pose)
+    for k, d in enumerate(deltas):
+        pose = compose(pose, d)
+        g.add_node(k + 1, pose)
+        g.add_between(k, k + 1, d, _random_spd(rng))
+    g.update()
+    covs = [r.cov for r in g.factors if r.j is not None]
+    p = np.zeros((3, 3))
+    for d, q in zip(deltas[10:30], covs[10:30], strict=True):
+        a = adjoint(inverse(d))
+        p = a @ p @ a.T + q
+    got = g.relative_covariance(10, 30)
+    np.testing.assert_allclose(got, p, rtol=1e-4, atol=1e-9)
+    assert g.marginal_covariance(30)[0, 0] > 100.0 * p[0, 0]
+    rel = compose(inverse(g.estimate(10)), g.estimate(30))
+    back = adjoint(rel) @ p @ adjoint(rel).T
+    np.testing.assert_allclose(g.relative_covariance(30, 10), back, rtol=1e-4, atol=1e-9)
