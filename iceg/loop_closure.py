@@ -819,10 +819,10 @@ class LoopCloser:
         contradict each other (:meth:`_unique`) the scene is aliased and all are dropped.
         Unless the odometry rules it out (:meth:`_contradicts_odometry`), the
         best-correlated survivor is accepted (robust kernel) if it passes the chi-square
-        gate against the estimate under the exact relative covariance of its two nodes
-        (:meth:`graph.PoseGraph.relative_covariance`; an appearance match has no spatial
-        prior, and the current node's marginal grows with everything before the old node:
-        on a long log it admits look-alikes anywhere); otherwise it needs
+        gate against the estimate under the current node's marginal and under the exact
+        relative covariance of its two nodes (:meth:`graph.PoseGraph.relative_covariance`;
+        an appearance match has no spatial prior, and the marginal grows with everything
+        before the old node: on a long log it admits look-alikes anywhere); otherwise it needs
         ``global_min_group - 1`` held closures consistent with it and with each other under
         :func:`pcm_chi2` (old nodes ``agreement_min_separation_m`` apart along the path); the
         group enters without kernel as a large correction. Else it is held for
@@ -851,8 +851,12 @@ class LoopCloser:
         if self._contradicts_odometry(closure):
             return None
         prediction = se2.between(s.poses[closure.node_from], s.poses[s.node_id])
-        relative = graph.relative_covariance(closure.node_from, s.node_id)
-        _, d2 = innovation_chi2(prediction, closure.measured, relative, closure.cov)
+        _, d2 = innovation_chi2(prediction, closure.measured, s.marginal, closure.cov)
+        if d2 <= lc.consistency_chi2:
+            # and under the two nodes' relative covariance (its joint marginal costs a walk
+            # through the Bayes tree: only for a closure the marginal would let through)
+            relative = graph.relative_covariance(closure.node_from, s.node_id)
+            d2 = max(d2, innovation_chi2(prediction, closure.measured, relative, closure.cov)[1])
         if d2 <= lc.consistency_chi2:
             logger.debug("global loop closure %d->%d accepted: chi2 %.1f", *_ends(closure), d2)
             return self._accept([closure], lc.robust_kernel)
