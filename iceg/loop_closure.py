@@ -517,7 +517,9 @@ class LoopCloser:
         odometry_noise: OdometryNoiseConfig | None = None,
     ) -> None:
         self.config = config
-        self.odometry_noise = odometry_noise or OdometryNoiseConfig()
+        self.odometry_noise = (
+            odometry_noise if odometry_noise is not None else OdometryNoiseConfig()
+        )
         self.matcher = matcher
         self.feature_map = feature_map
         self.stats = LoopClosureStats()
