@@ -30,6 +30,7 @@ import bisect
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import partial
 from typing import Literal
 
 import numpy as np
@@ -190,7 +191,8 @@ class LoopClosureStats:
     appearance searches and their global matches, ``global_accepted`` the accepted closures
     they found and ``rejected_ambiguous`` verified global matches dropped as aliased;
     ``rejected_odometry`` matches that the odometry between their two nodes rules out
-    (:meth:`LoopCloser._contradicts_odometry`).
+    (:meth:`LoopCloser._contradicts_odometry`), ``rejected_accepted`` those that contradict a
+    closure accepted shortly before (:meth:`LoopCloser._contradicts_accepted`).
     """
 
     searches: int = 0
@@ -203,6 +205,7 @@ class LoopClosureStats:
     global_accepted: int = 0
     rejected_ambiguous: int = 0
     rejected_odometry: int = 0
+    rejected_accepted: int = 0
 
     def as_dict(self) -> dict[str, int]:
         """Plain dict for JSON output."""
@@ -524,6 +527,7 @@ class LoopCloser:
         self.feature_map = feature_map
         self.stats = LoopClosureStats()
         self.pending: list[LoopClosure] = []
+        self._accepted: list[LoopClosure] = []  # accepted within global_window_nodes
         self.places = PlaceIndex(config.place_index)
         # Row i: fused information of the sequential factors i -> i+1 (zero: none yet).
         self._step_info = np.zeros((0, 3, 3))
@@ -764,7 +768,7 @@ class LoopCloser:
             result.correlation,
             implied=se2.compose(s.poses[best.candidate], result.pose),
         )
-        if self._contradicts_odometry(closure):
+        if self._contradicts_odometry(closure) or self._contradicts_accepted(closure, s.poses):
             return None
         rounded = np.round(innovation, _LOG_DECIMALS)
         if d2 <= lc.consistency_chi2:
@@ -850,7 +854,7 @@ class LoopCloser:
             )
             return None
         closure = max(verified, key=lambda c: c.correlation)
-        if self._contradicts_odometry(closure):
+        if self._contradicts_odometry(closure) or self._contradicts_accepted(closure, s.poses):
             return None
         prediction = se2.between(s.poses[closure.node_from], s.poses[s.node_id])
         _, d2 = innovation_chi2(prediction, closure.measured, s.marginal, closure.cov)
@@ -944,20 +948,13 @@ class LoopCloser:
         Skipped too where a step has no odometry factor.
         """
         lo, hi = closure.node_from, closure.node_to
-        noise = self.odometry_noise
-        steps = self._odom_step[lo:hi]
-        covs = self._odom_cov[lo:hi]
-        path_m = float(np.hypot(steps[:, 0], steps[:, 1]).sum())
-        heading_var = covs[:, 2, 2].sum() + (noise.sigma_theta_per_distance_rad_per_m * path_m) ** 2
-        if not heading_var <= _ODOMETRY_TEST_MAX_HEADING_SIGMA_RAD**2:  # also NaN: a gap
+        odometry = self._odometry_chain(lo, hi)
+        if odometry is None:
             return False
-        chain = se2.accumulate(steps)
+        chain, cov = odometry
         distance_m = float(np.hypot(chain[-1, 0], chain[-1, 1]))
         if distance_m == 0.0:
             return False
-        cov = chain_covariance(chain, covs) + odometry_bias_covariance(
-            chain, noise.sigma_xy_per_distance_m_per_m, noise.sigma_theta_per_distance_rad_per_m
-        )
         u_old = chain[-1, :2] / distance_m  # old node's frame
         # the chain's end and the match are perturbed in their own frames (tangent spaces)
         u_end = se2.rotation_matrix(chain[-1, 2]).T @ u_old
@@ -973,6 +970,85 @@ class LoopCloser:
             *(lo, hi, error_m + distance_m, distance_m, np.sqrt(var)),
         )
         return True
+
+    def _odometry_chain(self, lo: int, hi: int) -> tuple[FloatArray, FloatArray] | None:
+        """The odometry from node ``lo`` to node ``hi > lo``: ``(chain (n, 3), cov (3, 3))``,
+        the poses of nodes ``lo..hi`` in the frame of ``lo`` (the odometry factors composed)
+        and the covariance of the last (tangent space at ``hi``): :func:`chain_covariance` of
+        the factors' covariances plus :func:`odometry_bias_covariance` (a systematic error of
+        the size of the noise model's per-distance sigmas). ``None`` where a step has no
+        odometry factor, or beyond the first-order regime: the chain's heading standard
+        deviation (its steps' heading variances plus the systematic drift over its length)
+        above :data:`_ODOMETRY_TEST_MAX_HEADING_SIGMA_RAD`."""
+        noise = self.odometry_noise
+        steps = self._odom_step[lo:hi]
+        covs = self._odom_cov[lo:hi]
+        path_m = float(np.hypot(steps[:, 0], steps[:, 1]).sum())
+        heading_var = covs[:, 2, 2].sum() + (noise.sigma_theta_per_distance_rad_per_m * path_m) ** 2
+        if not heading_var <= _ODOMETRY_TEST_MAX_HEADING_SIGMA_RAD**2:  # also NaN: a gap
+            return None
+        chain = se2.accumulate(steps)
+        cov = chain_covariance(chain, covs) + odometry_bias_covariance(
+            chain, noise.sigma_xy_per_distance_m_per_m, noise.sigma_theta_per_distance_rad_per_m
+        )
+        return chain, cov
+
+    def _contradicts_accepted(self, closure: LoopClosure, poses: _Poses) -> bool:
+        """Whether the closure contradicts a closure accepted shortly before it.
+
+        An accepted closure enters with a robust kernel: drawn from far beyond its own
+        covariance, it barely moves the estimate until the final refinement, so the
+        marginal stays as wide as before and a second, wrong match to the same place a few
+        nodes later passes the gate just as well (ACES: two closures to node 192, 3 nodes
+        apart, 0.9 m and 12° apart from each other). The accepted set must stay pairwise
+        consistent (PCM, Mangelson et al. 2018): the closure is ruled out when its cycle with
+        an accepted closure (:func:`pcm_chi2`; both new nodes and both old nodes within
+        ``global_window_nodes``) exceeds ``consistency_chi2`` under both short chains that
+        connect them: the fused sequential factors (estimates) and the odometry alone
+        (:meth:`_odometry_chain`). Either sensor can be wrong over a few metres (a corridor
+        match that slid, wheels that slipped in a turn), both at once rarely: a chain that
+        is missing or beyond the first-order regime vetoes nothing. Ruled-out closures are
+        not held for agreement.
+        """
+        window = self.config.global_window_nodes
+        for a in self._accepted:
+            if (
+                closure.node_to - a.node_to > window
+                or abs(closure.node_from - a.node_from) > window
+            ):
+                continue
+            d2 = np.inf
+            for relative in (partial(self._relative, poses=poses), self._odometry_relative):
+                old = relative(a.node_from, closure.node_from)
+                new = relative(a.node_to, closure.node_to)
+                if old is None or new is None:
+                    d2 = 0.0
+                    break
+                d2 = min(d2, pcm_chi2(a, closure, old, new))
+            if d2 > self.config.consistency_chi2:
+                self.stats.rejected_accepted += 1
+                logger.debug(
+                    "loop closure %d->%d ruled out by the accepted %d->%d: cycle chi2 %.1f",
+                    *(_ends(closure), *_ends(a), d2),
+                )
+                return True
+        return False
+
+    def _odometry_relative(self, u: int, v: int) -> tuple[FloatArray, FloatArray] | None:
+        """Pose of node ``v`` in the frame of node ``u`` by the odometry alone and its
+        covariance, tangent at ``v`` (as :meth:`_relative`); ``None`` where
+        :meth:`_odometry_chain` has none."""
+        if u == v:
+            return np.zeros(3), np.zeros((3, 3))
+        odometry = self._odometry_chain(min(u, v), max(u, v))
+        if odometry is None:
+            return None
+        chain, cov = odometry
+        t = chain[-1]
+        if u < v:
+            return t, cov
+        ad = se2.adjoint(t)
+        return se2.inverse(t), ad @ cov @ ad.T
 
     def _agree(
         self, a: LoopClosure, b: LoopClosure, poses: _Poses, path_m: Sequence[float]
@@ -1063,6 +1139,10 @@ class LoopCloser:
         large_correction: bool = False,
     ) -> AcceptedClosures:
         self.stats.accepted += len(closures)
+        window = self.config.global_window_nodes
+        newest = closures[-1].node_to
+        self._accepted = [c for c in self._accepted if newest - c.node_to <= window]
+        self._accepted += closures
         self.stats.global_accepted += sum(c.is_global for c in closures)
         return AcceptedClosures(tuple(closures), kernel, large_correction)
 

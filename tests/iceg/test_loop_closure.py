@@ -22,7 +22,7 @@ from frontends.simulate import (
     synthetic_odometry,
     trajectory_from_waypoints,
 )
-from graph import FactorKind
+from graph import FactorKind, PoseGraph
 from iceg.config import IcegConfig
 from iceg.evaluation import position_errors
 from iceg.loop_closure import (
@@ -268,15 +268,17 @@ def test_odometry_bias_covariance_by_hand_and_by_finite_differences() -> None:
     assert not odometry_bias_covariance(chain[:1], 0.02, 0.01).any()
 
 
-def _odometry_chain_closer(steps: np.ndarray) -> LoopCloser:
-    """A loop closer that has seen a pose graph of odometry factors along ``steps``
-    (default noise model)."""
-    from graph import PoseGraph, odometry_covariance
+def _odometry_chain_graph(
+    steps: np.ndarray, estimates: np.ndarray | None = None
+) -> tuple[LoopCloser, PoseGraph]:
+    """A pose graph of odometry factors along ``steps`` (default noise model), its nodes'
+    estimates at ``estimates`` (default: the odometry), and a loop closer that has seen it."""
+    from graph import odometry_covariance
     from iceg.feature_map import FeatureMap
     from iceg.matching import IceMatcher
 
     graph = PoseGraph()
-    poses = se2.accumulate(steps)
+    poses = se2.accumulate(steps) if estimates is None else estimates
     graph.add_node(0, poses[0])
     graph.add_prior(0, poses[0], np.diag([1e-6, 1e-6, 1e-8]))
     for k, step in enumerate(steps):
@@ -284,7 +286,11 @@ def _odometry_chain_closer(steps: np.ndarray) -> LoopCloser:
         graph.add_between(k, k + 1, step, odometry_covariance(step), FactorKind.ODOMETRY)
     closer = LoopCloser(LoopClosureConfig(), IceMatcher(), FeatureMap())
     closer._sync_steps(graph)
-    return closer
+    return closer, graph
+
+
+def _odometry_chain_closer(steps: np.ndarray) -> LoopCloser:
+    return _odometry_chain_graph(steps)[0]
 
 
 def test_odometry_rules_out_a_closure_it_contradicts_over_a_short_path() -> None:
@@ -309,6 +315,42 @@ def test_odometry_test_is_skipped_beyond_the_small_angle_regime() -> None:
     closer = _odometry_chain_closer(steps)
     closure = LoopClosure(0, 300, np.zeros(3), np.eye(3) * 1e-4, 0.9, np.zeros(3))
     assert closer._contradicts_odometry(closure) is False
+
+
+def test_a_closure_that_contradicts_an_accepted_one_is_ruled_out() -> None:
+    # 80 steps of 0.15 m straight ahead. A closure 5 -> 70 is accepted (the truth). Three
+    # nodes later a match to the same old node puts node 73 0.9 m and 12 deg off the truth
+    # (ACES with the variance factor, 192 -> 351 then 192 -> 354): the cycle through the
+    # accepted closure and the 3-step chain 70 -> 73 contradicts it under both the fused
+    # sequential factors and the odometry alone. The true closure passes. Where the
+    # estimates between 70 and 73 turned as the wrong closure says (the fused chain agrees
+    # with it), the odometry alone does not veto it.
+    from iceg.loop_closure import _Poses
+
+    steps = np.tile([0.15, 0.0, 0.0], (80, 1))
+    closer, graph = _odometry_chain_graph(steps)
+    truth = se2.accumulate(steps)
+    match_cov = np.diag([1e-4, 1e-4, 1e-5])
+
+    def closure(node_to: int, off: np.ndarray) -> LoopClosure:
+        measured = se2.compose(se2.between(truth[5], truth[node_to]), off)
+        return LoopClosure(5, node_to, measured, match_cov, 0.9, np.zeros(3))
+
+    closer._accept([closure(70, np.zeros(3))], "cauchy")
+    wrong = closure(73, np.array([-0.6, 0.6, np.radians(12.0)]))
+    poses = _Poses(graph)
+    assert closer._contradicts_accepted(closure(73, np.zeros(3)), poses) is False
+    assert closer._contradicts_accepted(wrong, poses) is True
+    assert closer.stats.rejected_accepted == 1
+
+    # the estimates from node 71 on carried by a jump that puts node 73 where `wrong` says
+    jump = se2.between(truth[70], se2.compose(truth[5], wrong.measured))
+    jump = se2.compose(jump, se2.inverse(se2.between(truth[70], truth[73])))
+    bent = truth.copy()
+    bent[71:] = se2.compose(se2.compose(truth[70], jump), se2.between(truth[70], truth[71:]))
+    closer, graph = _odometry_chain_graph(steps, estimates=bent)
+    closer._accept([closure(70, np.zeros(3))], "cauchy")
+    assert closer._contradicts_accepted(wrong, _Poses(graph)) is False
 
 
 def test_a_wide_marginal_admits_no_false_closure(monkeypatch: pytest.MonkeyPatch) -> None:
