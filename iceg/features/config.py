@@ -33,7 +33,7 @@ class FeatureConfig(BaseModel):
         "maximum-likelihood line fit (Pfister et al. 2003).",
     )
     line_variance_from_residuals: bool = Field(
-        default=False,
+        default=True,
         description="Scale each scan's line covariances by the a-posteriori variance factor "
         "of its line fits (the weighted squared residuals per degree of freedom, floored at "
         "1; iceg.features.lines.fit_lines): a scanner noisier than sigma_range_m, or walls "
