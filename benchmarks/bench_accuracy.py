@@ -23,7 +23,9 @@ office_biased, long_corridor, two_loop, outdoor; exact truth), MIT CSAIL with it
 odometry and with a synthetic 0.4 deg/m heading drift added on top of it (relations), and
 the corrected ACES / csail.log / csail-corrected logs with synthetic biased odometry (1 %
 scale error, 0.4 deg/m heading drift, default white noise; reference = corrected poses;
-``frontends.simulate.synthetic_odometry``). Real logs come from ``../shared/data`` (or
+``frontends.simulate.synthetic_odometry``), and the RC car bag (``rc_car_mocap``: a 360°
+lidar in a motion-capture arena, laser only, scored against the motion capture; another car
+drives beside it). Real logs come from ``../shared/data`` (or
 ``$ICEG_SHARED_DATA``); a case whose file is absent is reported as skipped.
 
 Each row is one call of :func:`run_case`, reusable by a batch runner; and the whole benchmark
@@ -48,7 +50,7 @@ import os
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -148,6 +150,25 @@ def _corrected(relative: str, restamp_hz: float | None) -> Callable[[int], CaseI
     return build
 
 
+#: The RC car bag: laser only, scored against the motion capture's ``map -> ego_pose`` in
+#: ``/tf`` (read as the bag's odometry, then dropped); the laser is not linked in tf (the
+#: recording's launch file put it 0.12 m behind ``ego_pose``).
+RC_CAR_BAG = "rosbag/rc-car-mocap-ros1/overtakes.bag"
+RC_CAR_READER: dict[str, Any] = {
+    "odom_frame": "map",
+    "base_frame": "ego_pose",
+    "laser_frame_offset": [-0.12, 0.0, 0.0],
+    "outside_odometry": "drop",
+}
+
+
+def _rc_car(seed: int) -> CaseInput:
+    scans = list(open_log(_shared(RC_CAR_BAG), **RC_CAR_READER))
+    reference = np.array([s.odom_pose for s in scans], dtype=np.float64)
+    scans = [replace(s, odom_pose=None) for s in scans]
+    return CaseInput(scans, reference, None, "RC car, 360° lidar, no odometry, mocap truth")
+
+
 #: Benchmark cases by name.
 CASES: dict[str, Callable[..., CaseInput]] = {
     **{name: _sim_case(name) for name in SCENARIOS},
@@ -157,6 +178,7 @@ CASES: dict[str, Callable[..., CaseInput]] = {
     "csail_log_synth": _corrected("mit-csail/csail.log", None),
     # csail-corrected prints its stamps as 1.13486e+09 (2 distinct values): re-stamp at 1 Hz.
     "csail_corrected_synth": _corrected("mit-csail/csail-corrected.log.gz", 1.0),
+    "rc_car_mocap": _rc_car,
 }
 
 
@@ -192,6 +214,10 @@ def _false_loop_closures(result: SlamResult, reference: FloatArray) -> int:
     return n_false
 
 
+def _odom_or_nan(scan: LaserScan) -> FloatArray:
+    return np.full(3, np.nan) if scan.odom_pose is None else np.asarray(scan.odom_pose)
+
+
 def _reference_metrics(
     result: SlamResult, odom: FloatArray, online: FloatArray, ref: FloatArray
 ) -> dict[str, Any]:
@@ -201,7 +227,7 @@ def _reference_metrics(
         "online_max_m": float(np.hypot(*(online[:, :2] - ref[:, :2]).T).max()),
         "ate_m": position_errors(result.poses, ref).rmse_m,
         "end_m": float(np.hypot(*(result.poses[-1, :2] - ref[-1, :2]))),
-        "odom_ate_m": position_errors(odom, ref).rmse_m,
+        "odom_ate_m": position_errors(odom, ref).rmse_m if np.isfinite(odom).all() else math.nan,
         "odom_end_m": float(np.hypot(*(odom[-1, :2] - ref[-1, :2]))),
         "length_ratio": _path_length(result.node_poses) / ref_len if ref_len > 0 else math.nan,
         "lc_false": _false_loop_closures(result, ref),
@@ -271,7 +297,7 @@ def run_case(
     online = np.array([slam.process(scan) for scan in scans], dtype=np.float64)
     result = slam.finish()
     seconds = time.perf_counter() - t0
-    odom = np.array([s.odom_pose for s in scans], dtype=np.float64)
+    odom = np.array([_odom_or_nan(s) for s in scans], dtype=np.float64)
     row: dict[str, Any] = {
         "name": name,
         "description": case.description,
@@ -357,6 +383,14 @@ def _spec_log(name: str) -> dict[str, Any]:
         "csail_log_synth": ("mit-csail/csail.log", None),
         "csail_corrected_synth": ("mit-csail/csail-corrected.log.gz", 1.0),
     }
+    if name == "rc_car_mocap":
+        return {
+            "name": name,
+            "path": str(DATA / RC_CAR_BAG),
+            "reader_options": RC_CAR_READER,
+            "reference": "log_odometry",
+            "laser_only": True,
+        }
     if name == "csail_raw":
         return {"name": name, **csail, **rel}
     if name == "csail_raw_drift":

@@ -10,6 +10,7 @@ A spec (YAML) lists logs and configurations::
         relations: data/mit-csail.relations
         reference: ref.tum              # TUM trajectory, or log_odometry
         max_scans: 500
+        reader_options: {stamps: refuse} # keyword options of frontends.open_log
         synthetic_odometry: {scale_error: 0.01, heading_drift_deg_per_m: 0.4}
     config: {slam: {batch_refinement: false}}   # base overrides (or a YAML file name)
     grid:                               # dotted keys and value lists: their product
@@ -44,7 +45,14 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from iceg.batch_report import BatchReport, write_report
 from iceg.batch_run import (
@@ -99,6 +107,23 @@ class LogEntry(BaseModel):
     )
     max_scans: int | None = Field(default=None, gt=0)
     synthetic_odometry: SyntheticOdometryModel | None = None
+    reader_options: dict[str, Any] = Field(
+        default_factory=dict,
+        description="Keyword options of frontends.open_log for this log (e.g. a bag's "
+        "odom_frame, base_frame, laser_frame_offset).",
+    )
+    laser_only: bool = Field(
+        default=False,
+        description="Run without the log's odometry (laser only). With reference: "
+        "log_odometry the reference is the odometry read first: e.g. motion-capture poses "
+        "in a bag's /tf, read with reader_options odom_frame and base_frame.",
+    )
+
+    @model_validator(mode="after")
+    def _one_odometry(self) -> LogEntry:
+        if self.laser_only and self.synthetic_odometry is not None:
+            raise ValueError("laser_only and synthetic_odometry exclude each other")
+        return self
 
     @property
     def label(self) -> str:
@@ -276,6 +301,8 @@ def _task(
         "reference": _resolve(entry.reference, spec_dir),
         "max_scans": entry.max_scans,
         "odometry": None if odo is None else SyntheticOdometrySpec(**odo.model_dump()),
+        "reader_options": dict(entry.reader_options),
+        "laser_only": entry.laser_only,
         "timeout_s": spec.timeout_s,
         "outputs": spec.outputs,
     }

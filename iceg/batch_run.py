@@ -16,7 +16,7 @@ import shutil
 import time
 import traceback
 import warnings
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -84,6 +84,9 @@ class RunTask:
         reference: TUM reference trajectory, :data:`LOG_ODOMETRY`, or None.
         max_scans: Use only the first scans.
         odometry: Synthetic odometry replacing the log's, or None.
+        reader_options: Keyword options of :func:`frontends.open_log`.
+        laser_only: Drop the log's odometry (after a :data:`LOG_ODOMETRY` reference is
+            taken from it).
         timeout_s: Time budget of the run (checked after every scan), or None.
         outputs: ``"full"`` (result files in ``output/``) or ``"metrics"`` (``run.json`` only).
     """
@@ -100,6 +103,8 @@ class RunTask:
     reference: str | None = None
     max_scans: int | None = None
     odometry: SyntheticOdometrySpec | None = None
+    reader_options: dict[str, Any] = field(default_factory=dict)
+    laser_only: bool = False
     timeout_s: float | None = None
     outputs: Literal["full", "metrics"] = "full"
 
@@ -126,7 +131,7 @@ def load_input(task: RunTask) -> _Input:
         run = simulate_scenario(task.source[len(SIM_PREFIX) :], seed)
         data = _Input(list(run.scans), np.asarray(run.true_poses, dtype=np.float64))
     else:
-        scans = list(open_log(_existing(task.source)))
+        scans = list(open_log(_existing(task.source), **task.reader_options))
         data = _Input(scans)
     if not data.scans:
         raise LogFormatError(f"{task.source}: the log holds no laser scans")
@@ -143,6 +148,8 @@ def load_input(task: RunTask) -> _Input:
             data.reference = np.asarray(synth.reference_poses, dtype=np.float64)
     elif task.reference == LOG_ODOMETRY:
         data.reference = np.array([s.odom_pose for s in data.scans], dtype=np.float64)
+    if task.laser_only:
+        data.scans = [replace(s, odom_pose=None) for s in data.scans]
     if task.reference not in (None, LOG_ODOMETRY):
         data.reference = _tum_reference(task.reference, data.scans)
     if task.relations is not None:

@@ -87,6 +87,9 @@ def test_the_benchmark_is_one_batch_spec(bench: ModuleType, tmp_path: Path) -> N
     synth = tasks["csail_corrected_synth"]
     assert synth.reference == "log_odometry" and synth.odometry is not None
     assert synth.odometry.restamp_hz == 1.0 and synth.odometry.scale_error == 0.01
+    rc_car = tasks["rc_car_mocap"]
+    assert rc_car.laser_only and rc_car.reference == "log_odometry" and rc_car.seed is None
+    assert rc_car.reader_options == bench.RC_CAR_READER
     assert all(t.max_scans == bench.QUICK_SCANS for t in tasks.values())
     assert all(t.config == {} for t in tasks.values())  # the default configuration
 

@@ -7,17 +7,20 @@ import math
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from frontends import open_log
 from frontends.carmen import write_carmen
 from frontends.simulate import corridor_world, office_world, simulate
 from frontends.tum import write_tum
 from iceg.batch import apply_overrides, expand, pending, run_batch, spec_from_dict, variants
 from iceg.batch_report import write_report
-from iceg.batch_run import execute_run, read_row
+from iceg.batch_run import execute_run, load_input, read_row
 from iceg.cli import app
 from iceg_common.errors import ConfigError
+from tests.conftest import shared_file
 
 #: Scans per log of the Ray test (small: 8 runs on 2 workers well under a minute).
 N_SCANS = 40
@@ -101,6 +104,30 @@ def test_synthetic_odometry_makes_a_file_log_random(tmp_path: Path) -> None:
     assert [t.seed for t in tasks] == [0, 1]
     assert tasks[0].odometry is not None and tasks[0].odometry.scale_error == 0.01
     assert tasks[0].reference == "log_odometry"
+
+
+def test_a_laser_only_run_is_scored_against_the_odometry_it_drops(tmp_path: Path) -> None:
+    # The RC car bag: its /tf map -> ego_pose is the motion capture. Read as the odometry
+    # (reader options), taken as the reference, then dropped: the run is laser only.
+    bag = shared_file("rosbag/rc-car-mocap-ros1/overtakes.bag")
+    options = {
+        "odom_frame": "map",
+        "base_frame": "ego_pose",
+        "laser_frame_offset": [-0.12, 0.0, 0.0],
+        "outside_odometry": "drop",
+    }
+    entry = {"path": str(bag), "reader_options": options, "laser_only": True}
+    spec = spec_from_dict({"logs": [{**entry, "reference": "log_odometry"}]})
+    (task,) = expand(spec, tmp_path, tmp_path)
+    assert task.seed is None and task.reader_options == options
+    data = load_input(task)
+    mocap = list(open_log(bag, **options))
+    assert len(data.scans) == len(mocap) == 338  # the first scan precedes the motion capture
+    assert all(s.odom_pose is None for s in data.scans)
+    assert data.reference is not None
+    np.testing.assert_array_equal(data.reference, [s.odom_pose for s in mocap])
+    with pytest.raises(ConfigError, match="laser_only and synthetic_odometry"):
+        spec_from_dict({"logs": [{**entry, "synthetic_odometry": {}}]})
 
 
 def test_overrides_are_nested_and_validated(tmp_path: Path) -> None:
