@@ -13,7 +13,7 @@ says, and a global closure is gated under the relative covariance of its two nod
 
 Global search (issue 11): the local search cannot reach a place farther than
 ``max_search_radius_m`` from the estimate. Since the ICE matcher needs no prediction, every
-``global_every_n_searches``-th search (and every search whose radius is capped) also takes
+``global_every_n_searches``-th search also takes
 the places most similar in appearance (:mod:`iceg.place_index`, over all older keyframes,
 independent of the estimate) and verifies each with a global ICE match
 (:meth:`MatchBounds.global_`, the matcher's strict evidence thresholds). A global closure
@@ -156,8 +156,9 @@ class LoopClosureConfig(BaseModel):
     global_every_n_searches: int = Field(
         default=5,
         ge=1,
-        description="A global search runs every this many searches, and at every search "
-        "whose radius is capped at max_search_radius_m.",
+        description="A global search runs every this many searches, whether or not the local "
+        "radius is capped at max_search_radius_m (that radius comes from the current node's "
+        "marginal, which grows with the whole log, not with the distance to any old place).",
     )
     global_candidates: int = Field(
         default=3, ge=1, description="Most similar places verified by a global ICE match."
@@ -574,8 +575,8 @@ class LoopCloser:
         agree, else a clique of ``global_min_group`` with held global ones); otherwise it is
         held.
 
-        Global search (when nothing was accepted, every ``global_every_n_searches``-th search
-        and whenever the radius is capped): see :meth:`_global`.
+        Global search (when nothing was accepted, every ``global_every_n_searches``-th
+        search): see :meth:`_global`.
 
         Args:
             node_id: The current node (already through ``graph.update()``, and observed).
@@ -597,14 +598,14 @@ class LoopCloser:
         self.stats.searches += 1
         self._sync_steps(graph)
         marginal = graph.marginal_covariance(node_id)
-        radius, capped = self._radius(marginal)
+        radius = self._radius(marginal)
         poses = _Poses(graph)
         self._sync_index(graph, poses)
         inside = self._inside(node_id, poses, n_older, radius)
         search = _Search(node_id, poses, n_older, marginal, radius, inside)
         best = self._best_match(search, features)
         accepted = self._decide(search, best, graph, path_m) if best is not None else None
-        if accepted is None and self._global_due(capped):
+        if accepted is None and self._global_due():
             accepted = self._global(search, features, graph, path_m)
         if accepted is not None:
             self._note_correction(accepted, poses)
@@ -677,18 +678,15 @@ class LoopCloser:
         keep = np.flatnonzero(dist <= radius)
         return ids[keep[np.argsort(dist[keep], kind="stable")]]
 
-    def _radius(self, marginal: FloatArray) -> tuple[float, bool]:
-        """The local search radius and whether the cap cut it."""
+    def _radius(self, marginal: FloatArray) -> float:
+        """The local search radius (m)."""
         lc = self.config
         sigma_xy = float(np.sqrt(max(np.linalg.eigvalsh(marginal[:2, :2]).max(), 0.0)))
-        radius = lc.search_radius_m + lc.search_n_sigma * sigma_xy
-        return min(radius, lc.max_search_radius_m), radius > lc.max_search_radius_m
+        return min(lc.search_radius_m + lc.search_n_sigma * sigma_xy, lc.max_search_radius_m)
 
-    def _global_due(self, capped: bool) -> bool:
+    def _global_due(self) -> bool:
         lc = self.config
-        return lc.global_search and (
-            capped or self.stats.searches % lc.global_every_n_searches == 0
-        )
+        return lc.global_search and self.stats.searches % lc.global_every_n_searches == 0
 
     def _candidates(self, s: _Search) -> list[int]:
         """Up to ``max_candidates`` nearest old nodes within the radius, from distinct places

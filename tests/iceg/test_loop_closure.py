@@ -367,7 +367,14 @@ def test_a_wide_marginal_admits_no_false_closure(monkeypatch: pytest.MonkeyPatch
     from graph import GraphConfig
 
     run = simulate(long_corridor_world(), odometry=ACCURATE_ODOMETRY, seed=0)
-    slam = Slam(IcegConfig(graph=GraphConfig(prior_sigma_xy_m=30.0, prior_sigma_theta_deg=3.0)))
+    # A global search at every search (as when the capped radius triggered one): the most
+    # look-alike candidates the run can meet.
+    slam = Slam(
+        IcegConfig(
+            graph=GraphConfig(prior_sigma_xy_m=30.0, prior_sigma_theta_deg=3.0),
+            loop_closure=LoopClosureConfig(global_every_n_searches=1),
+        )
+    )
     ruled_out: list[LoopClosure] = []
     test = LoopCloser._contradicts_odometry
 
