@@ -13,11 +13,10 @@ says, and a global closure is gated under the relative covariance of its two nod
 
 Global search (issue 11): the local search cannot reach a place farther than
 ``max_search_radius_m`` from the estimate. Since the ICE matcher needs no prediction, every
-``global_every_n_searches``-th search also takes
-the places most similar in appearance (:mod:`iceg.place_index`, over all older keyframes,
-independent of the estimate) and verifies each with a global ICE match
-(:meth:`MatchBounds.global_`, the matcher's strict evidence thresholds). A global closure
-far from the estimate is accepted only with a second one it is consistent with under the
+``global_every_n_searches``-th search also takes the places most similar in appearance
+(:mod:`iceg.place_index`, over all older keyframes, independent of the estimate) and verifies
+each with a global ICE match (:meth:`MatchBounds.global_`, the matcher's strict evidence
+thresholds). A global closure far from the estimate is accepted only with a second one it is consistent with under the
 covariances of the cycle the two form (:func:`pcm_chi2`, pairwise consistency maximisation
 after Mangelson et al. 2018, "Pairwise Consistent Measurement Set Maximization for Robust
 Multi-robot Map Merging", with groups of two), and a query whose verified places contradict
