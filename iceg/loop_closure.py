@@ -16,11 +16,12 @@ Global search (issue 11): the local search cannot reach a place farther than
 ``global_every_n_searches``-th search also takes the places most similar in appearance
 (:mod:`iceg.place_index`, over all older keyframes, independent of the estimate) and verifies
 each with a global ICE match (:meth:`MatchBounds.global_`, the matcher's strict evidence
-thresholds). A global closure far from the estimate is accepted only with a second one it is consistent with under the
-covariances of the cycle the two form (:func:`pcm_chi2`, pairwise consistency maximisation
-after Mangelson et al. 2018, "Pairwise Consistent Measurement Set Maximization for Robust
-Multi-robot Map Merging", with groups of two), and a query whose verified places contradict
-each other (perceptual aliasing) is dropped (the uniqueness test of Olson 2009).
+thresholds). A global closure far from the estimate is accepted only with a second one it is
+consistent with under the covariances of the cycle the two form (:func:`pcm_chi2`, pairwise
+consistency maximisation after Mangelson et al. 2018, "Pairwise Consistent Measurement Set
+Maximization for Robust Multi-robot Map Merging", with groups of two), and a query whose
+verified places contradict each other (perceptual aliasing) is dropped (the uniqueness test of
+Olson 2009).
 """
 
 from __future__ import annotations
