@@ -1027,7 +1027,7 @@ class LoopCloser:
                 self.stats.rejected_accepted += 1
                 logger.debug(
                     "loop closure %d->%d ruled out by the accepted %d->%d: cycle chi2 %.1f",
-                    *(_ends(closure), *_ends(a), d2),
+                    *(*_ends(closure), *_ends(a), d2),
                 )
                 return True
         return False
@@ -1042,11 +1042,7 @@ class LoopCloser:
         if odometry is None:
             return None
         chain, cov = odometry
-        t = chain[-1]
-        if u < v:
-            return t, cov
-        ad = se2.adjoint(t)
-        return se2.inverse(t), ad @ cov @ ad.T
+        return _seen_from(chain[-1], cov, u < v)
 
     def _agree(
         self, a: LoopClosure, b: LoopClosure, poses: _Poses, path_m: Sequence[float]
@@ -1105,11 +1101,7 @@ class LoopCloser:
         if hi > self._step_info.shape[0] or not info.any(axis=(1, 2)).all():
             return None
         cov = chain_covariance(poses[lo : hi + 1], np.linalg.inv(info))
-        t = se2.between(poses[lo], poses[hi])
-        if u <= v:
-            return t, cov
-        ad = se2.adjoint(t)  # inverse: X^-1 with tangent Exp(-Ad(X) xi)
-        return se2.inverse(t), ad @ cov @ ad.T
+        return _seen_from(se2.between(poses[lo], poses[hi]), cov, u <= v)
 
     # ------------------------------------------------------------------ bookkeeping
 
@@ -1161,6 +1153,17 @@ def _grown(a: NDArray[np.float64], size: int, fill: float) -> NDArray[np.float64
     out = np.full((size, *a.shape[1:]), fill)
     out[: a.shape[0]] = a
     return out
+
+
+def _seen_from(t: FloatArray, cov: FloatArray, forward: bool) -> tuple[FloatArray, FloatArray]:
+    """A chain's relative pose ``t`` ``(3,)`` (later node in the earlier one's frame) with its
+    covariance ``(3, 3)`` (tangent at the later node), as seen from the later node when not
+    ``forward``: ``t⁻¹`` with covariance ``Ad(t) C Ad(t)ᵀ`` (tangent at the earlier node;
+    ``X⁻¹`` of ``X Exp(xi)`` is ``X⁻¹ Exp(-Ad(X) xi)``)."""
+    if forward:
+        return t, cov
+    ad = se2.adjoint(t)
+    return se2.inverse(t), ad @ cov @ ad.T
 
 
 def _ends(c: LoopClosure) -> tuple[int, int]:

@@ -4,6 +4,7 @@ simulator's ground truth, and on ACES (a real log) against its corrected poses."
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import replace
 
@@ -317,7 +318,9 @@ def test_odometry_test_is_skipped_beyond_the_small_angle_regime() -> None:
     assert closer._contradicts_odometry(closure) is False
 
 
-def test_a_closure_that_contradicts_an_accepted_one_is_ruled_out() -> None:
+def test_a_closure_that_contradicts_an_accepted_one_is_ruled_out(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
     # 80 steps of 0.15 m straight ahead. A closure 5 -> 70 is accepted (the truth). Three
     # nodes later a match to the same old node puts node 73 0.9 m and 12 deg off the truth
     # (ACES with the variance factor, 192 -> 351 then 192 -> 354): the cycle through the
@@ -340,8 +343,10 @@ def test_a_closure_that_contradicts_an_accepted_one_is_ruled_out() -> None:
     wrong = closure(73, np.array([-0.6, 0.6, np.radians(12.0)]))
     poses = _Poses(graph)
     assert closer._contradicts_accepted(closure(73, np.zeros(3)), poses) is False
-    assert closer._contradicts_accepted(wrong, poses) is True
+    with caplog.at_level(logging.DEBUG, logger="iceg.loop_closure"):
+        assert closer._contradicts_accepted(wrong, poses) is True
     assert closer.stats.rejected_accepted == 1
+    assert "loop closure 5->73 ruled out by the accepted 5->70" in caplog.text
 
     # the estimates from node 71 on carried by a jump that puts node 73 where `wrong` says
     jump = se2.between(truth[70], se2.compose(truth[5], wrong.measured))
