@@ -309,8 +309,8 @@ def _densify(
                 t = se2.compose(p.pose, se2.inverse(poses[row]))
                 out_list.append(InterClosure(int(ids_b[row]), p, t))
                 break
-    # The run's loop closer searches without bounds where the local radius is capped; here,
-    # as in its global search, such closures enter only as a mutually consistent group
+    # The run's loop closer also searches without bounds (its global search); here, as
+    # there, such closures enter only as a mutually consistent group
     # (pairwise consistency of their implied B-to-A corrections, :func:`_consistent`),
     # larger than any rival group.
     group, rival = _consistent(wide, st)
