@@ -609,6 +609,10 @@ class PoseGraph:
         Unlike either node's marginal, it does not grow with the uncertainty the two nodes
         share (the first node's prior, the heading error of everything before them).
 
+        Args:
+            i: The first node's id (the frame of the relative pose).
+            j: The second node's id.
+
         Returns:
             ``(3, 3)`` float64, tangent space of the relative pose, ``(x, y, theta)``, m² /
             rad².

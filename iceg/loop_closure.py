@@ -6,10 +6,11 @@ accepted when its innovation passes a chi-square gate under the node's marginal 
 match covariance, or when two closures that failed the gate imply the same correction
 (pairwise consistency after Olson 2009, "Recognizing places using spectrally clustered local
 matches", reduced to pairs). A closure that the odometry between its two nodes contradicts
-(over a path short enough for a first-order test) is ruled out first, whatever the marginal
-says, and a global closure is gated under the relative covariance of its two nodes.
-:class:`LoopCloser` only decides; the pipeline
-(:mod:`iceg.slam`) adds the accepted closures to the pose graph as factors.
+(over a path short enough for a first-order test), or that contradicts a closure accepted
+shortly before (its PCM cycle under both the fused and the odometry chains), is ruled out
+first, whatever the marginal says, and a global closure is gated under the relative
+covariance of its two nodes. :class:`LoopCloser` only decides; the pipeline (:mod:`iceg.slam`)
+adds the accepted closures to the pose graph as factors.
 
 Global search (issue 11): the local search cannot reach a place farther than
 ``max_search_radius_m`` from the estimate. Since the ICE matcher needs no prediction, every

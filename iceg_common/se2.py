@@ -44,9 +44,10 @@ def between(a: ArrayLike, b: ArrayLike) -> FloatArray:
 
 
 def accumulate(steps: ArrayLike) -> FloatArray:
-    """Poses ``(n + 1, 3)`` of a chain of ``n`` relative steps ``(n, 3)`` composed in order from
-    the identity: row ``k`` is ``steps[0] ∘ ... ∘ steps[k-1]`` (row 0 the identity). Headings
-    are summed, not wrapped."""
+    """Poses ``(n + 1, 3)`` float64 of a chain of ``n`` relative steps ``(n, 3)`` composed in
+    order from the identity, ``[x_m, y_m, theta_rad]`` in the frame of the chain's first pose:
+    row ``k`` is ``steps[0] ∘ ... ∘ steps[k-1]`` (row 0 the identity). Headings are summed,
+    not wrapped."""
     d = np.asarray(steps, dtype=np.float64).reshape(-1, 3)
     theta = np.concatenate([[0.0], np.cumsum(d[:, 2])])
     c, s = np.cos(theta[:-1]), np.sin(theta[:-1])
