@@ -365,6 +365,54 @@ class PoseGraph:
         self._served = None
         return stats
 
+    def solve_pending(self) -> None:
+        """Estimate the buffered nodes without an iSAM2 update: their MAP estimate given every
+        node already in iSAM2, held at its current estimate.
+
+        Gauss–Newton (gtsam, to convergence) on the buffered factors alone, with each older node
+        they name fixed by a prior of 1e-6 m / rad; the result becomes the buffered nodes'
+        initial values, which :meth:`estimate` returns for them and :meth:`update` inserts into
+        iSAM2. For nodes appended to a chain (a keyframe and its odometry and scan-match
+        factors) this is the estimate an iSAM2 update would give them, less the corrections the
+        update would also bring to older nodes (one more Gauss–Newton step). It costs what the
+        buffer holds, where an iSAM2 update in gtsam 4.3 costs O(N) (docs/design.md, "Long
+        logs"), so a long run calls it between updates (``SlamConfig.isam2_defer_from_nodes``).
+
+        Does nothing with an empty buffer, before the first update or after a failed one. A
+        gtsam failure on the small problem leaves the initial values as they were (logged at
+        debug level): the next :meth:`update` meets and reports the same problem.
+        """
+        if not self._pending_nodes or self._isam is None or not self._in_isam:
+            return
+        pending = set(self._pending_nodes)
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        held: set[int] = set()
+        for idx in self._pending_factors:
+            record = self._records[idx]
+            graph.add(self._gfactors[idx])
+            held.update(k for k in (record.i, record.j) if k is not None and k not in pending)
+        hold = gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)
+        for n in sorted(held):
+            pose = _pose2(self.estimate(n))
+            values.insert(n, pose)
+            graph.add(gtsam.PriorFactorPose2(n, pose, hold))
+        for n in self._pending_nodes:
+            values.insert(n, _pose2(self._initial[n]))
+        params = gtsam.GaussNewtonParams()
+        params.setMaxIterations(10)
+        params.setRelativeErrorTol(1e-10)
+        params.setLinearSolverType("MULTIFRONTAL_QR" if self._qr else "MULTIFRONTAL_CHOLESKY")
+        try:
+            result = gtsam.GaussNewtonOptimizer(graph, values, params).optimize()
+        except _GTSAM_ERRORS as exc:
+            logger.debug("solve_pending: %s; the buffered nodes keep their initial values", exc)
+            return
+        self._estimates = None
+        for n in self._pending_nodes:
+            self._initial[n] = np.array(_xyt(result.atPose2(n)), dtype=np.float64)
+            self._pose_cache.pop(n, None)
+
     def optimize_batch(
         self,
         max_iterations: int = 100,

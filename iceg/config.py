@@ -118,6 +118,15 @@ class SlamConfig(BaseModel):
         description="Run batch Levenberg–Marquardt over the whole graph after the run, with "
         "the accepted loop closures as Gaussian factors (no robust kernel).",
     )
+    isam2_defer_from_nodes: int | None = Field(
+        default=10_000,
+        ge=1,
+        description="From this many nodes on, iSAM2 is updated only at every "
+        "loop_closure.every_n_nodes-th keyframe (those that search for loop closures); the "
+        "keyframes in between take their estimate given the graph "
+        "(PoseGraph.solve_pending). An iSAM2 update costs O(N) in gtsam 4.3 (docs/design.md, "
+        "'Long logs'). None: an update at every keyframe.",
+    )
     workers: int = Field(
         default=0,
         ge=0,

@@ -4,7 +4,8 @@ ended, for continuing, localizing, merging and editing (issue 15).
 Layout of a session folder (``<run output>/session/``, format ``iceg-session`` version 1)::
 
     manifest.json      format, version, counts, the logs the scans come from (absolute and
-                       relative paths), loop and match statistics; written last
+                       relative paths), loop and match statistics, ``online_factors`` (the
+                       factors before the final refinement); written last
     state.npz          every array below (numpy ``.npz``, read with allow_pickle=False)
     graph.g2o          the pose graph at the saved (batch-refined) estimates, factor kinds,
                        robust kernels and priors as ``# ICEG_*`` lines (graph.g2o)
@@ -188,26 +189,37 @@ def _add_factor(graph: PoseGraph, r: FactorRecord) -> None:
 
 
 def replay_graph(
-    a: Mapping[str, np.ndarray], config: GraphConfig, *, skip_final_batch: bool = True
+    a: Mapping[str, np.ndarray],
+    config: GraphConfig,
+    *,
+    skip_final_batch: bool = True,
+    online_factors: int | None = None,
 ) -> PoseGraph:
     """Rebuild a graph by replaying its solver call log (``g_steps``): the same nodes, factors
-    and calls in the same order, hence the same iSAM2 state bit for bit.
+    and calls in the same order, hence the same iSAM2 state bit for bit. Nodes and factors
+    saved after the last call (the keyframes between deferred updates of a long run,
+    ``SlamConfig.isam2_defer_from_nodes``) are buffered again for the next
+    :meth:`~graph.PoseGraph.update`.
 
     Args:
         a: ``g_*`` arrays (:func:`graph_arrays`).
         config: the graph settings of the saved run.
         skip_final_batch: leave out a batch refinement that ended the log (the run's
             ``finish()``), so that the graph continues as the uninterrupted run would.
+        online_factors: with a final batch left out, the number of factors before it
+            (:attr:`iceg.slam.Slam.online_factors`): those after the last call up to it are
+            buffered again; ``None`` (older sessions): none are.
 
     Raises:
         SessionError: the log refers to more nodes or factors than saved.
         GraphError: gtsam failed on the replayed calls.
     """
     steps = [tuple(int(v) for v in s) for s in a["g_steps"]]
+    trimmed = False
     if skip_final_batch:
         last = max((k for k, s in enumerate(steps) if s[0] != STEP_DELTA), default=-1)
         if last >= 0 and steps[last][0] in (STEP_BATCH, STEP_BATCH_GAUSSIAN_LOOPS):
-            steps = steps[:last]
+            steps, trimmed = steps[:last], True
     ids, init, recs = a["g_node_ids"], a["g_node_initial"], factor_records(a)
     # A batch step does not log its node count: every node it saw was linked by one of its
     # factors, so its nodes are the prefix (in order of addition) up to the last they name.
@@ -238,6 +250,16 @@ def replay_graph(
                 loop_closure_kernels=code != STEP_BATCH_GAUSSIAN_LOOPS,
                 correction=code == STEP_BATCH_CORRECTION,
             )
+    # Nodes and factors after the last call were buffered for the next update (a run saved
+    # between the deferred iSAM2 updates of a long log): buffer them again, without the
+    # factors of a final refinement left out.
+    end = len(recs)
+    if trimmed:
+        end = nf if online_factors is None else online_factors
+    for k in range(nn, len(ids)):
+        graph.add_node(int(ids[k]), init[k])
+    for r in recs[nf:end]:
+        _add_factor(graph, r)
     return graph
 
 
@@ -639,7 +661,12 @@ def load(path: str | os.PathLike[str], *, scans: Sequence[LaserScan] | None = No
         ):
             raise SessionError(f"{session.path}: the scans given are not the session's scans")
     a = session.arrays
-    graph = replay_graph(a, session.config.graph, skip_final_batch=not session.edited)
+    graph = replay_graph(
+        a,
+        session.config.graph,
+        skip_final_batch=not session.edited,
+        online_factors=session.manifest.get("online_factors"),
+    )
     stats = LoopClosureStats(**session.manifest.get("loop_closures", {}))
     slam = Slam.from_state(
         session.config,
@@ -678,6 +705,7 @@ def save(slam: Slam, folder: str | os.PathLike[str]) -> Path:
         "match_failures": dict(s.match_failures),
         "point_fallbacks": dict(s.point_fallbacks),
         "stage_seconds": {k: round(v, 6) for k, v in slam.timer.seconds.items()},
+        "online_factors": slam.online_factors,
     }
     write_folder(out, arrays, slam.config, logs, extra)
     return out

@@ -204,11 +204,18 @@ class Slam:
         self.timer = StageTimer()
         self._s = SlamState()
         self._result: SlamResult | None = None
+        self._online_factors: int | None = None  # factors before the final refinement
 
     @property
     def loop_stats(self) -> LoopClosureStats:
         """Loop-closure statistics of the run so far."""
         return self.loop_closer.stats
+
+    @property
+    def online_factors(self) -> int:
+        """Number of factors the scans added, i.e. all but those of :meth:`finish`'s final
+        refinement (a session continues from these)."""
+        return self.graph.n_factors if self._online_factors is None else self._online_factors
 
     # ------------------------------------------------------------------ state (sessions)
 
@@ -377,7 +384,10 @@ class Slam:
         self._remember_points(new_id, feats)
         self.loop_closer.observe(new_id, feats)
         t0 = self.timer.add("graph_build", t0)
-        self.graph.update()
+        if self._isam2_due(new_id):
+            self.graph.update()
+        else:
+            self.graph.solve_pending()
         t0 = self.timer.add("isam2", t0)
         if self.loop_closer.due(new_id):
             self._close_loops(new_id, feats)
@@ -385,6 +395,14 @@ class Slam:
         self._update_map(new_id, feats, scan, local)
         self.timer.add("feature_map", t0)
         return self.graph.estimate(new_id)
+
+    def _isam2_due(self, node_id: int) -> bool:
+        """Whether this keyframe updates iSAM2: always below ``isam2_defer_from_nodes`` nodes,
+        beyond only every ``loop_closure.every_n_nodes`` (the keyframes that may search)."""
+        defer_from = self.config.slam.isam2_defer_from_nodes
+        if defer_from is None or self.graph.n_nodes < defer_from:
+            return True
+        return node_id % self.config.loop_closure.every_n_nodes == 0
 
     def _check_order(self, scan: LaserScan) -> None:
         if self._s.scans and scan.stamp_s < self._s.scans.stamp_s(-1):
@@ -756,6 +774,7 @@ class Slam:
         """
         if self._result is not None:
             return self._result
+        self._online_factors = self.graph.n_factors
         t0 = time.perf_counter()
         if self.config.slam.batch_refinement and self._s.node_odom:
             added = self._rematch_unmatched_keyframes()

@@ -11,7 +11,12 @@ import pytest
 from scipy.optimize import brentq, least_squares
 
 from graph import FactorKind, GraphConfig, PoseGraph
-from graph.pose_graph import STEP_BATCH, STEP_BATCH_CORRECTION, STEP_BATCH_GAUSSIAN_LOOPS
+from graph.pose_graph import (
+    STEP_BATCH,
+    STEP_BATCH_CORRECTION,
+    STEP_BATCH_GAUSSIAN_LOOPS,
+    STEP_UPDATE,
+)
 from iceg_common.errors import GraphError
 from iceg_common.se2 import between, compose, wrap_angle
 
@@ -64,6 +69,33 @@ def test_two_full_covariance_measurements_fuse_to_the_weighted_mean() -> None:
     assert errors["odometry"] == pytest.approx(0.5 * e1 @ w1 @ e1, rel=1e-6)
     assert errors["scan_match"] == pytest.approx(0.5 * e2 @ w2 @ e2, rel=1e-6)
     assert errors["prior"] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_solve_pending_gives_a_buffered_node_its_estimate_without_an_update() -> None:
+    # The same two measurements as above, node 1 buffered after node 0 went through iSAM2:
+    # its estimate given node 0 is the information-weighted mean, without an iSAM2 update;
+    # the update that follows starts there and keeps it.
+    s1 = np.array([[0.02, 0.01, 0.0], [0.01, 0.03, 0.0], [0.0, 0.0, 1e-12]])
+    s2 = np.diag([0.01, 0.04, 1e-12])
+    z1, z2 = np.array([1.0, 0.2, 0.0]), np.array([1.3, -0.1, 0.0])
+    x0 = np.array([2.0, 1.0, 0.7])
+    g = PoseGraph()
+    g.add_node(0, x0)
+    g.update()
+    g.add_node(1, compose(x0, z1))
+    g.add_between(0, 1, z1, s1, kind="odometry")
+    g.add_between(0, 1, z2, s2, kind=FactorKind.SCAN_MATCH)
+    g.solve_pending()
+
+    w1, w2 = np.linalg.inv(s1[:2, :2]), np.linalg.inv(s2[:2, :2])
+    t = np.linalg.solve(w1 + w2, w1 @ z1[:2] + w2 @ z2[:2])
+    np.testing.assert_allclose(between(x0, g.estimate(1)), [*t, 0.0], atol=1e-9)
+    np.testing.assert_array_equal(g.initial_pose(1), g.estimate(1))
+    assert [s[0] for s in g.steps].count(STEP_UPDATE) == 1 and g.n_pending == (1, 2)
+    solved = g.estimate(1)
+    g.update()
+    np.testing.assert_allclose(g.estimate(1), solved, atol=1e-9)
+    np.testing.assert_allclose(g.estimate(0), x0, atol=1e-9)
 
 
 def test_between_convention_matches_an_independent_least_squares() -> None:

@@ -83,6 +83,33 @@ def test_split_run_with_odometry_calibration_is_bit_identical(office_scans, tmp_
     assert np.array_equal(second.finish().poses, w.poses)
 
 
+def test_split_run_between_deferred_isam2_updates_is_bit_identical(office_scans, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    # A long run updates iSAM2 at every third keyframe only (here from the first node on):
+    # saved while keyframes wait for the next update, the session buffers them again.
+    config = config_from_dict({"slam": {"isam2_defer_from_nodes": 1}})
+    whole = Slam(config)
+    for scan in office_scans:
+        whole.process(scan)
+    w = whole.finish()
+    first = Slam(config)
+    k = 97
+    for scan in office_scans[:k]:
+        first.process(scan)
+    while first.graph.n_pending[0] == 0:
+        first.process(office_scans[k])
+        k += 1
+    buffered = first.graph.n_pending
+    first.finish()
+    session.save(first, tmp_path / "s")
+    second = session.load(tmp_path / "s")
+    assert second.graph.n_pending == buffered
+    for scan in office_scans[k:]:
+        second.process(scan)
+    split = second.finish()
+    assert np.array_equal(split.poses, w.poses)
+    assert split.graph.steps == w.graph.steps
+
+
 def test_session_files_are_documented_formats_without_pickle(whole, tmp_path) -> None:  # type: ignore[no-untyped-def]
     folder = session.save(whole.slam, tmp_path / "s")
     assert sorted(p.name for p in folder.iterdir()) == sorted(session.SESSION_FILES)

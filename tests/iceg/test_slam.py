@@ -18,6 +18,7 @@ from frontends.simulate import (
     simulate,
 )
 from graph import FactorKind
+from graph.pose_graph import STEP_UPDATE
 from iceg.config import IcegConfig, SlamConfig
 from iceg.evaluation import position_errors
 from iceg.pipeline import run_scans
@@ -60,6 +61,23 @@ def test_every_scan_gets_a_pose_and_non_nodes_follow_odometry(office_run) -> Non
     odom = position_errors(office_run.odom_poses, office_run.true_poses, align=False).mean_m
     assert position_errors(online, office_run.true_poses, align=False).mean_m < 0.05 < odom
     assert position_errors(result.poses, office_run.true_poses, align=False).mean_m < 0.03
+
+
+def test_deferred_isam2_updates_keep_the_estimate_and_update_every_third_keyframe(
+    office_run,
+) -> None:  # type: ignore[no-untyped-def]
+    # SlamConfig.isam2_defer_from_nodes (a long log's O(N) iSAM2 updates), here from the
+    # first node: keyframes between searches take their estimate given the graph.
+    slam = Slam(IcegConfig(slam=SlamConfig(isam2_defer_from_nodes=1)))
+    online = np.array([slam.process(scan) for scan in office_run.scans])
+    result = slam.finish()
+    n_nodes = len(result.node_ids)
+    updates = [s[0] for s in result.graph.steps].count(STEP_UPDATE)
+    assert updates <= n_nodes // 3 + result.loop_closures.accepted + 2 < n_nodes
+    truth = office_run.true_poses
+    odom = position_errors(office_run.odom_poses, truth, align=False).mean_m
+    assert position_errors(online, truth, align=False).mean_m < 0.05 < odom
+    assert position_errors(result.poses, truth, align=False).mean_m < 0.03
 
 
 def test_same_input_gives_bit_identical_output(office_run) -> None:  # type: ignore[no-untyped-def]
