@@ -377,6 +377,8 @@ class PoseGraph:
         update would also bring to older nodes (one more Gauss–Newton step). It costs what the
         buffer holds, where an iSAM2 update in gtsam 4.3 costs O(N) (docs/design.md, "Long
         logs"), so a long run calls it between updates (``SlamConfig.isam2_defer_from_nodes``).
+        :meth:`marginal_covariance` and :meth:`relative_covariance` then answer for buffered
+        nodes too.
 
         Does nothing with an empty buffer, before the first update or after a failed one. A
         gtsam failure on the small problem leaves the initial values as they were (logged at
@@ -384,6 +386,24 @@ class PoseGraph:
         """
         if not self._pending_nodes or self._isam is None or not self._in_isam:
             return
+        graph, values, _ = self._buffered_problem()
+        params = gtsam.GaussNewtonParams()
+        params.setMaxIterations(10)
+        params.setRelativeErrorTol(1e-10)
+        params.setLinearSolverType("MULTIFRONTAL_QR" if self._qr else "MULTIFRONTAL_CHOLESKY")
+        try:
+            result = gtsam.GaussNewtonOptimizer(graph, values, params).optimize()
+        except _GTSAM_ERRORS as exc:
+            logger.debug("solve_pending: %s; the buffered nodes keep their initial values", exc)
+            return
+        self._estimates = None
+        for n in self._pending_nodes:
+            self._initial[n] = np.array(_xyt(result.atPose2(n)), dtype=np.float64)
+            self._pose_cache.pop(n, None)
+
+    def _buffered_problem(self) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, list[int]]:
+        """The buffered factors, each older node they name held at its estimate (a prior of
+        1e-6 m / rad), and the values: ``(graph, values, held node ids)``."""
         pending = set(self._pending_nodes)
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
@@ -399,19 +419,25 @@ class PoseGraph:
             graph.add(gtsam.PriorFactorPose2(n, pose, hold))
         for n in self._pending_nodes:
             values.insert(n, _pose2(self._initial[n]))
-        params = gtsam.GaussNewtonParams()
-        params.setMaxIterations(10)
-        params.setRelativeErrorTol(1e-10)
-        params.setLinearSolverType("MULTIFRONTAL_QR" if self._qr else "MULTIFRONTAL_CHOLESKY")
+        return graph, values, sorted(held)
+
+    def _given_anchor(self, node: int, ctx: str) -> tuple[int, gtsam.Marginals]:
+        """For buffered nodes hanging from one node in iSAM2 (the anchor): the anchor and the
+        marginals of the buffered problem, i.e. their covariances given the anchor.
+
+        Raises:
+            GraphError: the buffered factors name no node in iSAM2 or more than one.
+        """
+        graph, values, held = self._buffered_problem()
+        if len(held) != 1:
+            raise GraphError(
+                f"{ctx}: node {node} has not been through update() yet and the buffered "
+                f"factors hang from {len(held)} nodes in iSAM2, not one; call update()"
+            )
         try:
-            result = gtsam.GaussNewtonOptimizer(graph, values, params).optimize()
+            return held[0], gtsam.Marginals(graph, values)
         except _GTSAM_ERRORS as exc:
-            logger.debug("solve_pending: %s; the buffered nodes keep their initial values", exc)
-            return
-        self._estimates = None
-        for n in self._pending_nodes:
-            self._initial[n] = np.array(_xyt(result.atPose2(n)), dtype=np.float64)
-            self._pose_cache.pop(n, None)
+            raise self._wrap(exc, ctx) from exc
 
     def optimize_batch(
         self,
@@ -628,20 +654,29 @@ class PoseGraph:
         After :meth:`optimize_batch` it is the batch marginal (iSAM2 is re-linearized at the
         batch result).
 
+        A node buffered since the last update (:meth:`solve_pending`) whose buffered factors
+        hang from one node ``c`` in iSAM2 (a chain of keyframes): ``A P_c Aᵀ + C``, with ``C``
+        its covariance given ``c`` and ``A = Ad(d^-1)``, ``d`` the relative pose ``c -> node``
+        (right perturbations): iSAM2's marginal once it is updated, to first order.
+
         Returns:
             ``(3, 3)`` float64 ``P`` with ``pose = estimate ∘ Exp(xi)``, ``xi ~ N(0, P)``: the
             tangent space of the pose (its body frame), ``(x, y, theta)`` order, m² / rad².
 
         Raises:
-            GraphError: unknown node, node not yet through :meth:`update`, or the last update
-                failed.
+            GraphError: unknown node, a buffered node not hanging from one node in iSAM2, or
+                the last update failed.
         """
         ctx = f"marginal_covariance({node_id!r})"
         n = self._existing(node_id, ctx)
         if self._isam is None:
             raise GraphError(f"{ctx}: the last update failed; fix the graph and call update()")
         if n not in self._in_isam:
-            raise GraphError(f"{ctx}: node {n} has not been through update() yet")
+            # X_n = X_c d Exp(e), e given the anchor c: P_n = A P_c Aᵀ + C_n, A = Ad(d^-1)
+            anchor, given = self._given_anchor(n, ctx)
+            adj = se2.adjoint(se2.between(self.estimate(n), self.estimate(anchor)))
+            cov = adj @ self.marginal_covariance(anchor) @ adj.T + given.marginalCovariance(n)
+            return 0.5 * (cov + cov.T)
         try:
             cov = np.asarray(self._isam.marginalCovariance(n), dtype=np.float64)
         except _GTSAM_ERRORS as exc:
@@ -666,8 +701,9 @@ class PoseGraph:
             rad².
 
         Raises:
-            GraphError: unknown node, a node not yet through :meth:`update`, ``i == j``, or
-                the last update failed.
+            GraphError: unknown node, a buffered node not hanging from one node in iSAM2
+                (:meth:`marginal_covariance` says how buffered nodes are answered), ``i == j``,
+                or the last update failed.
         """
         ctx = f"relative_covariance({i!r}, {j!r})"
         a, b = self._existing(i, ctx), self._existing(j, ctx)
@@ -675,19 +711,42 @@ class PoseGraph:
             raise GraphError(f"{ctx}: the two nodes must differ")
         if self._isam is None:
             raise GraphError(f"{ctx}: the last update failed; fix the graph and call update()")
-        for n in (a, b):
-            if n not in self._in_isam:
-                raise GraphError(f"{ctx}: node {n} has not been through update() yet")
+        if a not in self._in_isam or b not in self._in_isam:
+            return self._relative_buffered(a, b, ctx)
         try:
             joint = self._isam.jointMarginalCovariance([a, b])
-            s_ii, s_jj, s_ij = (np.asarray(joint.at(*k)) for k in ((a, a), (b, b), (a, b)))
             # the joint caches shortcut marginals in the cliques it walked; left there they
             # made every later update slower (iSAM2 2.9 -> 4.6 s on 10k corridor scans)
             self._isam.deleteCachedShortcuts()
         except _GTSAM_ERRORS as exc:
             raise self._wrap(exc, ctx) from exc
+        return self._relative_from_joint(a, b, joint)
+
+    def _relative_from_joint(self, a: int, b: int, joint: gtsam.JointMarginal) -> FloatArray:
+        """The covariance of :meth:`relative_covariance` from a joint marginal of the two."""
+        s_ii, s_jj, s_ij = (np.asarray(joint.at(*k)) for k in ((a, a), (b, b), (a, b)))
         adj = se2.adjoint(se2.between(self.estimate(b), self.estimate(a)))
         cov = s_jj + adj @ s_ii @ adj.T - adj @ s_ij - s_ij.T @ adj.T
+        return 0.5 * (cov + cov.T)
+
+    def _relative_buffered(self, a: int, b: int, ctx: str) -> FloatArray:
+        """:meth:`relative_covariance` with a buffered node (:meth:`solve_pending`), from the
+        buffered nodes' covariances given their anchor ``c`` in iSAM2: ``X_b = X_c d Exp(e)``."""
+        if b in self._in_isam:  # only a is buffered: the relative pose b -> a, inverted
+            adj = se2.adjoint(se2.between(self.estimate(b), self.estimate(a)))
+            cov = adj @ self._relative_buffered(b, a, ctx) @ adj.T
+            return 0.5 * (cov + cov.T)
+        anchor, given = self._given_anchor(b, ctx)
+        if a not in self._in_isam:  # both buffered: the anchor's own error cancels
+            try:
+                joint = given.jointMarginalCovariance([a, b])
+            except _GTSAM_ERRORS as exc:
+                raise self._wrap(exc, ctx) from exc
+            return self._relative_from_joint(a, b, joint)
+        cov = given.marginalCovariance(b)
+        if a != anchor:  # the relative pose a -> c, carried on through d
+            adj = se2.adjoint(se2.between(self.estimate(b), self.estimate(anchor)))
+            cov = cov + adj @ self.relative_covariance(a, anchor) @ adj.T
         return 0.5 * (cov + cov.T)
 
     def residual_errors(self) -> dict[str, float]:

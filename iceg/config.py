@@ -121,11 +121,12 @@ class SlamConfig(BaseModel):
     isam2_defer_from_nodes: int | None = Field(
         default=10_000,
         ge=1,
-        description="From this many nodes on, iSAM2 is updated only at every "
-        "loop_closure.every_n_nodes-th keyframe (those that search for loop closures); the "
-        "keyframes in between take their estimate given the graph "
-        "(PoseGraph.solve_pending). An iSAM2 update costs O(N) in gtsam 4.3 (docs/design.md, "
-        "'Long logs'). None: an update at every keyframe.",
+        description="From this many nodes on, iSAM2 is updated once k * "
+        "loop_closure.every_n_nodes keyframes wait, k the multiple of this the graph has "
+        "reached, and after accepted loop closures; the keyframes in between take their "
+        "estimate and covariance given the graph (PoseGraph.solve_pending). An iSAM2 update "
+        "costs O(N) in gtsam 4.3 (docs/design.md, 'Long logs'). None: an update at every "
+        "keyframe.",
     )
     workers: int = Field(
         default=0,

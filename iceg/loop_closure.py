@@ -580,7 +580,8 @@ class LoopCloser:
         search): see :meth:`_global`.
 
         Args:
-            node_id: The current node (already through ``graph.update()``, and observed).
+            node_id: The current node (through ``graph.update()`` or ``graph.solve_pending()``,
+                and observed).
             features: Its scan's ICE features, robot frame.
             graph: The pose graph (estimates, marginals and the sequential factors' covariances
                 are read, nothing is added).

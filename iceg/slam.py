@@ -384,7 +384,7 @@ class Slam:
         self._remember_points(new_id, feats)
         self.loop_closer.observe(new_id, feats)
         t0 = self.timer.add("graph_build", t0)
-        if self._isam2_due(new_id):
+        if self._isam2_due():
             self.graph.update()
         else:
             self.graph.solve_pending()
@@ -396,13 +396,16 @@ class Slam:
         self.timer.add("feature_map", t0)
         return self.graph.estimate(new_id)
 
-    def _isam2_due(self, node_id: int) -> bool:
+    def _isam2_due(self) -> bool:
         """Whether this keyframe updates iSAM2: always below ``isam2_defer_from_nodes`` nodes,
-        beyond only every ``loop_closure.every_n_nodes`` (the keyframes that may search)."""
+        beyond once ``k * loop_closure.every_n_nodes`` keyframes wait, ``k`` the multiple of
+        ``isam2_defer_from_nodes`` the graph has reached. An update costs O(N) in gtsam 4.3,
+        so this bounds its cost per keyframe (docs/design.md, "Long logs")."""
         defer_from = self.config.slam.isam2_defer_from_nodes
-        if defer_from is None or self.graph.n_nodes < defer_from:
+        n = self.graph.n_nodes
+        if defer_from is None or n < defer_from:
             return True
-        return node_id % self.config.loop_closure.every_n_nodes == 0
+        return self.graph.n_pending[0] >= (n // defer_from) * self.config.loop_closure.every_n_nodes
 
     def _check_order(self, scan: LaserScan) -> None:
         if self._s.scans and scan.stamp_s < self._s.scans.stamp_s(-1):

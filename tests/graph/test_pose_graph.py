@@ -98,6 +98,25 @@ def test_solve_pending_gives_a_buffered_node_its_estimate_without_an_update() ->
     np.testing.assert_allclose(g.estimate(0), x0, atol=1e-9)
 
 
+def test_buffered_nodes_have_the_marginals_iSAM2_gives_them_after_the_update() -> None:
+    # Nodes 6 and 7 buffered after a chain in iSAM2, each with odometry and a second, weaker
+    # measurement from the node before; their marginal and relative covariances given the
+    # anchor (node 5) must be those iSAM2 reports once updated (leaves inform nothing older).
+    g = _chain(6)
+    g.update()
+    for k in (6, 7):
+        g.add_node(k, [float(k), 0.02, 0.01])
+        g.add_between(k - 1, k, [1.0, 0.0, 0.0], COV)
+        g.add_between(k - 1, k, [1.05, 0.03, 0.01], 4.0 * COV, kind=FactorKind.SCAN_MATCH)
+    g.solve_pending()
+    pairs = [(2, 7), (5, 7), (6, 7), (7, 2), (7, 6)]
+    buffered = [g.marginal_covariance(7), *(g.relative_covariance(i, j) for i, j in pairs)]
+    g.update()
+    in_isam = [g.marginal_covariance(7), *(g.relative_covariance(i, j) for i, j in pairs)]
+    for got, want in zip(buffered, in_isam, strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-12)
+
+
 def test_between_convention_matches_an_independent_least_squares() -> None:
     # Truth: scipy least squares on the residuals written from the documented convention,
     # r_k = chol(S_k^-1)^T Log(z_k^-1 ∘ x0^-1 ∘ x1), with iceg_common SE(2) and a numpy Log.
