@@ -772,6 +772,12 @@ class PoseGraph:
         """Every factor's record, in insertion order (read-only)."""
         return tuple(self._records)
 
+    def factors_from(self, start: int) -> tuple[FactorRecord, ...]:
+        """The records of the factors added from index ``start`` on (``factors[start:]``
+        without building the whole tuple: O(new factors), for callers that follow the graph
+        as it grows)."""
+        return tuple(self._records[start:])
+
     @property
     def n_factors(self) -> int:
         """Number of factors, priors included."""

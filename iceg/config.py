@@ -119,7 +119,7 @@ class SlamConfig(BaseModel):
         "the accepted loop closures as Gaussian factors (no robust kernel).",
     )
     isam2_defer_from_nodes: int | None = Field(
-        default=10_000,
+        default=5000,
         ge=1,
         description="From this many nodes on, iSAM2 is updated once k * "
         "loop_closure.every_n_nodes keyframes wait, k the multiple of this the graph has "

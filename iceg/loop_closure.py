@@ -460,6 +460,11 @@ class _Poses:
         if self._full is not None:
             return self._full[ids]
         missing = ids[~self._known[ids]]
+        if 8 * missing.shape[0] > self._known.shape[0]:
+            # a long stretch (a chain between distant places): one read of the full table
+            # costs less than reading so many nodes one by one (same values, bit for bit)
+            self.use_full(self._graph.estimates()[1])
+            return self.rows(ids)
         if missing.shape[0]:
             got, poses = self._graph.estimates_of(missing)
             self._cache[got] = poses
@@ -1075,21 +1080,21 @@ class LoopCloser:
         """Fuse the information of new sequential factors (``i -> i+1``: odometry, scan
         match) into the per-step information used by :func:`chain_covariance`, and keep each
         step's odometry factor for :meth:`_contradicts_odometry`."""
-        factors = graph.factors
+        new = graph.factors_from(self._factors_seen)
         n = graph.n_nodes
         if self._step_info.shape[0] < n:
             size = max(n, 2 * self._step_info.shape[0])
             self._step_info = _grown(self._step_info, size, 0.0)
             self._odom_step = _grown(self._odom_step, size, np.nan)
             self._odom_cov = _grown(self._odom_cov, size, np.nan)
-        for f in factors[self._factors_seen :]:
+        for f in new:
             if f.kind is FactorKind.LOOP_CLOSURE:
                 self._closures_seen += 1
             elif f.j == f.i + 1:
                 self._step_info[f.i] += np.linalg.inv(f.cov)
                 if f.kind is FactorKind.ODOMETRY:
                     self._odom_step[f.i], self._odom_cov[f.i] = f.measured, f.cov
-        self._factors_seen = len(factors)
+        self._factors_seen = graph.n_factors
         if self._closures_seen > self._closures_own:  # closures added by someone else
             self._closures_own = self._closures_seen
             self._moved_m = np.inf

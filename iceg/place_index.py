@@ -29,6 +29,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
+from threadpoolctl import ThreadpoolController
 
 from iceg.types import ScanFeatures
 
@@ -69,6 +70,12 @@ def _soft_histogram(values: FloatArray, n_bins: int, max_value: float) -> FloatA
     np.add.at(hist, hi, w_hi)
     norm = float(np.linalg.norm(hist))
     return hist / norm if norm > 0 else hist
+
+
+@functools.cache
+def _blas() -> ThreadpoolController:
+    """The process's thread pools (threadpoolctl), inspected once."""
+    return ThreadpoolController()
 
 
 @functools.lru_cache(maxsize=256)
@@ -170,7 +177,11 @@ class PlaceIndex:
     def similarity(self, descriptor: FloatArray) -> tuple[IntArray, FloatArray]:
         """Cosine similarity of ``descriptor`` to every stored one: ``(node_ids (N,),
         similarity (N,))`` in insertion order."""
-        sim = self._rows[: self._n] @ np.asarray(descriptor, dtype=np.float64).reshape(-1)
+        # On one BLAS thread: the same product bit for bit (each similarity is one dot
+        # product), and no OpenBLAS threads left spinning on the other core after each call
+        # (docs/design.md, "Long logs").
+        with _blas().limit(limits=1, user_api="blas"):
+            sim = self._rows[: self._n] @ np.asarray(descriptor, dtype=np.float64).reshape(-1)
         return self._ids[: self._n].copy(), sim
 
     def query(
