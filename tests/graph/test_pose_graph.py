@@ -42,60 +42,60 @@ def _log(p: np.ndarray) -> np.ndarray:
     return np.array([*(v_inv @ p[:2]), th])
 
 
+# Node 0 at X0; two measurements of node 1 in node 0's frame with zero rotation and a heading
+# variance of 1e-12 rad², which pins the relative heading to 0 (within 1e-12 rad) and leaves a
+# linear problem in the translation: t* = (S1^-1 + S2^-1)^-1 (S1^-1 z1 + S2^-1 z2), the
+# information-weighted mean. Hand-computable, gtsam-free.
+S1 = np.array([[0.02, 0.01, 0.0], [0.01, 0.03, 0.0], [0.0, 0.0, 1e-12]])
+S2 = np.diag([0.01, 0.04, 1e-12])
+Z1, Z2 = np.array([1.0, 0.2, 0.0]), np.array([1.3, -0.1, 0.0])
+X0 = np.array([2.0, 1.0, 0.7])
+W1, W2 = np.linalg.inv(S1[:2, :2]), np.linalg.inv(S2[:2, :2])
+T_FUSED = np.linalg.solve(W1 + W2, W1 @ Z1[:2] + W2 @ Z2[:2])
+
+
+def _two_measurements(g: PoseGraph) -> None:
+    """Node 1 and its two measurements from node 0 (above)."""
+    g.add_node(1, compose(X0, Z1))
+    g.add_between(0, 1, Z1, S1, kind="odometry")
+    g.add_between(0, 1, Z2, S2, kind=FactorKind.SCAN_MATCH)
+
+
 def test_two_full_covariance_measurements_fuse_to_the_weighted_mean() -> None:
-    # Node 0 sits at (2, 1, 0.7) (prior at its initial pose). Two measurements of node 1 in
-    # node 0's frame with zero rotation and a heading variance of 1e-12 rad², which pins the
-    # relative heading to 0 (within 1e-12 rad) and leaves a linear problem in the translation:
-    # t* = (S1^-1 + S2^-1)^-1 (S1^-1 z1 + S2^-1 z2), the information-weighted mean; each
-    # factor's error is 0.5 (t* - z_k)^T S_k^-1 (t* - z_k). Hand-computable, gtsam-free.
-    s1 = np.array([[0.02, 0.01, 0.0], [0.01, 0.03, 0.0], [0.0, 0.0, 1e-12]])
-    s2 = np.diag([0.01, 0.04, 1e-12])
-    z1, z2 = np.array([1.0, 0.2, 0.0]), np.array([1.3, -0.1, 0.0])
-    x0 = np.array([2.0, 1.0, 0.7])
+    # Prior on node 0 at its initial pose; each factor's error is 0.5 (t* - z_k)^T S_k^-1
+    # (t* - z_k).
     g = PoseGraph()
-    g.add_node(0, x0)
-    g.add_node(1, compose(x0, z1))
-    g.add_between(0, 1, z1, s1, kind="odometry")
-    g.add_between(0, 1, z2, s2, kind=FactorKind.SCAN_MATCH)
+    g.add_node(0, X0)
+    _two_measurements(g)
     g.update()
     g.update()
 
-    w1, w2 = np.linalg.inv(s1[:2, :2]), np.linalg.inv(s2[:2, :2])
-    t = np.linalg.solve(w1 + w2, w1 @ z1[:2] + w2 @ z2[:2])
-    np.testing.assert_allclose(g.estimate(0), x0, atol=1e-9)
-    np.testing.assert_allclose(between(g.estimate(0), g.estimate(1)), [*t, 0.0], atol=1e-9)
+    np.testing.assert_allclose(g.estimate(0), X0, atol=1e-9)
+    np.testing.assert_allclose(between(g.estimate(0), g.estimate(1)), [*T_FUSED, 0.0], atol=1e-9)
     errors = g.residual_errors()
-    e1, e2 = t - z1[:2], t - z2[:2]
-    assert errors["odometry"] == pytest.approx(0.5 * e1 @ w1 @ e1, rel=1e-6)
-    assert errors["scan_match"] == pytest.approx(0.5 * e2 @ w2 @ e2, rel=1e-6)
+    e1, e2 = T_FUSED - Z1[:2], T_FUSED - Z2[:2]
+    assert errors["odometry"] == pytest.approx(0.5 * e1 @ W1 @ e1, rel=1e-6)
+    assert errors["scan_match"] == pytest.approx(0.5 * e2 @ W2 @ e2, rel=1e-6)
     assert errors["prior"] == pytest.approx(0.0, abs=1e-12)
 
 
 def test_solve_pending_gives_a_buffered_node_its_estimate_without_an_update() -> None:
-    # The same two measurements as above, node 1 buffered after node 0 went through iSAM2:
-    # its estimate given node 0 is the information-weighted mean, without an iSAM2 update;
-    # the update that follows starts there and keeps it.
-    s1 = np.array([[0.02, 0.01, 0.0], [0.01, 0.03, 0.0], [0.0, 0.0, 1e-12]])
-    s2 = np.diag([0.01, 0.04, 1e-12])
-    z1, z2 = np.array([1.0, 0.2, 0.0]), np.array([1.3, -0.1, 0.0])
-    x0 = np.array([2.0, 1.0, 0.7])
+    # The same two measurements, node 1 buffered after node 0 went through iSAM2: its
+    # estimate given node 0 is the information-weighted mean, without an iSAM2 update; the
+    # update that follows starts there and keeps it.
     g = PoseGraph()
-    g.add_node(0, x0)
+    g.add_node(0, X0)
     g.update()
-    g.add_node(1, compose(x0, z1))
-    g.add_between(0, 1, z1, s1, kind="odometry")
-    g.add_between(0, 1, z2, s2, kind=FactorKind.SCAN_MATCH)
+    _two_measurements(g)
     g.solve_pending()
 
-    w1, w2 = np.linalg.inv(s1[:2, :2]), np.linalg.inv(s2[:2, :2])
-    t = np.linalg.solve(w1 + w2, w1 @ z1[:2] + w2 @ z2[:2])
-    np.testing.assert_allclose(between(x0, g.estimate(1)), [*t, 0.0], atol=1e-9)
+    np.testing.assert_allclose(between(X0, g.estimate(1)), [*T_FUSED, 0.0], atol=1e-9)
     np.testing.assert_array_equal(g.initial_pose(1), g.estimate(1))
     assert [s[0] for s in g.steps].count(STEP_UPDATE) == 1 and g.n_pending == (1, 2)
     solved = g.estimate(1)
     g.update()
     np.testing.assert_allclose(g.estimate(1), solved, atol=1e-9)
-    np.testing.assert_allclose(g.estimate(0), x0, atol=1e-9)
+    np.testing.assert_allclose(g.estimate(0), X0, atol=1e-9)
 
 
 def test_buffered_nodes_have_the_marginals_iSAM2_gives_them_after_the_update() -> None:
