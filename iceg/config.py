@@ -122,11 +122,11 @@ class SlamConfig(BaseModel):
         default=5000,
         ge=1,
         description="From this many nodes on, iSAM2 is updated once k * "
-        "loop_closure.every_n_nodes keyframes wait, k the number of half multiples of this "
-        "the graph has reached, and after accepted loop closures; the keyframes in between "
-        "take their estimate and covariance given the graph (PoseGraph.solve_pending). An "
-        "iSAM2 update costs O(N) in gtsam 4.3 (docs/design.md, 'Long logs'). None: an update "
-        "at every keyframe.",
+        "loop_closure.every_n_nodes keyframes wait, k the multiple of this the graph has "
+        "reached, and after accepted loop closures; the keyframes in between take their "
+        "estimate and covariance given the graph (PoseGraph.solve_pending). An iSAM2 update "
+        "costs O(N) in gtsam 4.3 (docs/design.md, 'Long logs'). None: an update at every "
+        "keyframe.",
     )
     workers: int = Field(
         default=0,

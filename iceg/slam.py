@@ -398,16 +398,14 @@ class Slam:
 
     def _isam2_due(self) -> bool:
         """Whether this keyframe updates iSAM2: always below ``isam2_defer_from_nodes`` nodes,
-        beyond once ``k * loop_closure.every_n_nodes`` keyframes wait, ``k`` the number of
-        half multiples of ``isam2_defer_from_nodes`` the graph has reached. An update walks
-        all N nodes in gtsam 4.3, so this bounds the walk per keyframe to about
-        ``isam2_defer_from_nodes / (2 * every_n_nodes)`` nodes (docs/design.md, "Long logs")."""
+        beyond once ``k * loop_closure.every_n_nodes`` keyframes wait, ``k`` the multiple of
+        ``isam2_defer_from_nodes`` the graph has reached. An update costs O(N) in gtsam 4.3,
+        so this bounds its cost per keyframe (docs/design.md, "Long logs")."""
         defer_from = self.config.slam.isam2_defer_from_nodes
         n = self.graph.n_nodes
         if defer_from is None or n < defer_from:
             return True
-        k = (2 * n) // defer_from
-        return self.graph.n_pending[0] >= k * self.config.loop_closure.every_n_nodes
+        return self.graph.n_pending[0] >= (n // defer_from) * self.config.loop_closure.every_n_nodes
 
     def _check_order(self, scan: LaserScan) -> None:
         if self._s.scans and scan.stamp_s < self._s.scans.stamp_s(-1):

@@ -65,7 +65,7 @@ def test_every_scan_gets_a_pose_and_non_nodes_follow_odometry(office_run) -> Non
 
 def test_deferred_isam2_updates_keep_the_estimate(office_run) -> None:  # type: ignore[no-untyped-def]
     # SlamConfig.isam2_defer_from_nodes (a long log's O(N) iSAM2 updates), here from 60 nodes:
-    # iSAM2 updates once k * 3 keyframes wait (k = 2 * nodes // 60) or a closure is accepted;
+    # iSAM2 updates once k * 3 keyframes wait (k = nodes // 60) or a loop closure is accepted;
     # the keyframes in between, searches included, take estimate and covariance given the graph.
     slam = Slam(IcegConfig(slam=SlamConfig(isam2_defer_from_nodes=60)))
     online = np.array([slam.process(scan) for scan in office_run.scans])
