@@ -21,8 +21,16 @@ recesses (``frontends.simulate.long_corridor_world``, accurate odometry, 0.1 m p
 made as long as the log, so no place is seen twice; what still grows there is what grows
 with the number of nodes, not with the passes through a place.
 
-Run: ``python benchmarks/bench_scaling.py [--sizes 2000,10000,50000] [--log path.clf]
-[--source csail|corridor]``
+The summary ends with issue 12's criterion (time per 1000 scans flat within 20 %): per size
+the mean wall and CPU seconds per 1000 scans over the whole blocks after the first, and their
+largest over smallest across sizes; with ``--repeats R`` every size runs R times (sizes
+interleaved) and the median over its runs counts, since one 1000-scan block moves by about
+10 % between two runs on this machine (the 2k size has one such block). Within the largest
+run, the last ten blocks over the first ten show growth with the log's length free of that
+run-to-run spread.
+
+Run: ``python benchmarks/bench_scaling.py [--sizes 2000,10000,50000] [--repeats R]
+[--log path.clf] [--source csail|corridor] [--no-grid]``
 """
 
 from __future__ import annotations
@@ -194,6 +202,59 @@ def report(fig: dict) -> None:
     print("  stages (s): " + ", ".join(f"{s} {v:.1f}" for s, v in fig["stages_s"].items()))
 
 
+def _steady_blocks(fig: dict) -> tuple[list[float], list[float]]:
+    """Wall and CPU seconds of the whole blocks after the first (which includes JIT
+    compilation and the empty map's first scans)."""
+    last = (fig["n"] - 1) % BLOCK + 1
+    whole = slice(1, len(fig["blocks_s"]) - (1 if last < BLOCK else 0))
+    return fig["blocks_s"][whole], fig["cpu_blocks_s"][whole]
+
+
+def print_summary(summary: Sequence[dict]) -> None:
+    """The table over runs and the issue-12 flatness figures: per size the median over its
+    runs of the mean time per 1000 scans (whole blocks after the first), their largest over
+    smallest, and within the largest run its last ten blocks over its first ten."""
+    print("\nsummary (s per 1000 scans; blocks after the first, which includes JIT compilation)")
+    print(
+        "  size   wall first/last/mean   CPU first/last/mean   CPU max/min   peak RSS MB, per 1000"
+    )
+    steady: dict[int, list[tuple[float, float]]] = {}
+    for fig in summary:
+        k = fig["n"] / BLOCK
+        last = (fig["n"] - 1) % BLOCK + 1
+        b = fig["blocks_s"]
+        c = fig["cpu_blocks_s"]
+        wall, cpu = _steady_blocks(fig)
+        spread = max(cpu) / min(cpu) if cpu else float("nan")
+        print(
+            f"  {fig['n']:6d}  {b[0]:6.1f} {b[-1] * BLOCK / last:6.1f} {fig['process_s'] / k:6.1f}"
+            f"   {c[0]:6.1f} {c[-1] * BLOCK / last:6.1f} {sum(c) / k:6.1f}   {spread:8.2f}"
+            f"      {fig['rss_peak_mb']:6.0f}, {_grown(fig) / k:5.1f} above start"
+        )
+        if wall:
+            steady.setdefault(fig["n"], []).append((float(np.mean(wall)), float(np.mean(cpu))))
+    if len(steady) > 1:
+        print(
+            "\nflatness across sizes (issue 12: within 20 %): per size, the median over its runs "
+            "of the mean s per 1000 scans over the whole blocks after the first"
+        )
+        for col, name in enumerate(("wall", "CPU ")):
+            per_size = {n: [r[col] for r in runs] for n, runs in steady.items()}
+            med = np.array([np.median(v) for v in per_size.values()])
+            runs = "; ".join(
+                f"{n}: " + ", ".join(f"{v:.2f}" for v in vals) for n, vals in per_size.items()
+            )
+            print(f"  {name} {runs}; largest / smallest median {med.max() / med.min():.2f}")
+    largest = max(summary, key=lambda f: f["n"], default=None)
+    if largest is not None and len(_steady_blocks(largest)[0]) >= 20:
+        wall, cpu = _steady_blocks(largest)
+        print(
+            f"  within the {largest['n']}-scan run, last 10 blocks / first 10 after the first: "
+            f"wall {np.mean(wall[-10:]) / np.mean(wall[:10]):.2f}, "
+            f"CPU {np.mean(cpu[-10:]) / np.mean(cpu[:10]):.2f}"
+        )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="2000,10000,50000", help="comma-separated scan counts")
@@ -205,6 +266,12 @@ def main() -> None:
         default="csail",
         help="csail: the log driven back and forth; corridor: a simulated exploring corridor",
     )
+    ap.add_argument(
+        "--repeats",
+        type=int,
+        default=1,
+        help="runs of each size (sizes interleaved), to average out the machine's spread",
+    )
     ap.add_argument("--child", type=int, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if not args.log.exists():
@@ -213,7 +280,8 @@ def main() -> None:
         print(json.dumps(run_one(args.child, args.log, not args.no_grid, args.source)))
         return
     summary = []
-    for n in (int(s) for s in args.sizes.split(",")):
+    sizes = [int(s) for s in args.sizes.split(",")]
+    for n in sizes * max(1, args.repeats):
         cmd = [sys.executable, __file__, "--child", str(n), "--log", str(args.log)]
         cmd += ["--source", args.source]
         if args.no_grid:
@@ -223,22 +291,7 @@ def main() -> None:
         report(fig)
         summary.append(fig)
         sys.stdout.flush()
-    print("\nsummary (s per 1000 scans; blocks after the first, which includes JIT compilation)")
-    print(
-        "  size   wall first/last/mean   CPU first/last/mean   CPU max/min   peak RSS MB, per 1000"
-    )
-    for fig in summary:
-        k = fig["n"] / BLOCK
-        last = (fig["n"] - 1) % BLOCK + 1
-        b = fig["blocks_s"]
-        c = fig["cpu_blocks_s"]
-        full = c[1 : len(c) - (1 if last < BLOCK else 0)]  # whole blocks after the first
-        spread = max(full) / min(full) if full else float("nan")
-        print(
-            f"  {fig['n']:6d}  {b[0]:6.1f} {b[-1] * BLOCK / last:6.1f} {fig['process_s'] / k:6.1f}"
-            f"   {c[0]:6.1f} {c[-1] * BLOCK / last:6.1f} {sum(c) / k:6.1f}   {spread:8.2f}"
-            f"      {fig['rss_peak_mb']:6.0f}, {_grown(fig) / k:5.1f} above start"
-        )
+    print_summary(summary)
 
 
 if __name__ == "__main__":
