@@ -24,10 +24,10 @@ with the number of nodes, not with the passes through a place.
 The summary ends with issue 12's criterion (time per 1000 scans flat within 20 %): per size
 the mean wall and CPU seconds per 1000 scans over the whole blocks after the first, and their
 largest over smallest across sizes; with ``--repeats R`` every size runs R times (sizes
-interleaved) and the median over its runs counts, since one 1000-scan block moves by about
-10 % between two runs on this machine (the 2k size has one such block). Within the largest
-run, the last ten blocks over the first ten show growth with the log's length free of that
-run-to-run spread.
+interleaved) and the median over its runs counts, since one 1000-scan block moves by up to
+20 % between two runs on this machine (the 2k size has one such block). Within each run of
+the largest size, the last ten blocks over the first ten show growth with the log's length
+free of that run-to-run spread.
 
 Run: ``python benchmarks/bench_scaling.py [--sizes 2000,10000,50000] [--repeats R]
 [--log path.clf] [--source csail|corridor] [--no-grid]``
