@@ -196,9 +196,10 @@ def _scan_match_fraction(result: SlamResult) -> float:
     return len(matched) / (n_nodes - 1) if n_nodes > 1 else math.nan
 
 
-def _false_loop_closures(result: SlamResult, reference: FloatArray) -> int:
+def false_loop_closures(result: SlamResult, reference: FloatArray) -> int:
     """Accepted loop closures whose measurement differs from the reference relative pose by
-    more than ``FALSE_LC_TRANS_M`` or ``FALSE_LC_ROT_DEG``."""
+    more than ``FALSE_LC_TRANS_M`` or ``FALSE_LC_ROT_DEG`` (``reference``: ``(S, 3)`` poses
+    of the result's scans, map frame; ``bench_scaling.py --check-closures`` uses it too)."""
     scan_of = dict(zip(result.node_ids.tolist(), result.node_scan_index.tolist(), strict=True))
     n_false = 0
     for f in result.factors:
@@ -230,7 +231,7 @@ def _reference_metrics(
         "odom_ate_m": position_errors(odom, ref).rmse_m if np.isfinite(odom).all() else math.nan,
         "odom_end_m": float(np.hypot(*(odom[-1, :2] - ref[-1, :2]))),
         "length_ratio": _path_length(result.node_poses) / ref_len if ref_len > 0 else math.nan,
-        "lc_false": _false_loop_closures(result, ref),
+        "lc_false": false_loop_closures(result, ref),
     }
 
 

@@ -29,8 +29,13 @@ interleaved) and the median over its runs counts, since one 1000-scan block move
 the largest size, the last ten blocks over the first ten show growth with the log's length
 free of that run-to-run spread.
 
+``--check-closures`` (the CSAIL source) scores, after the timed run, every accepted loop
+closure against the relative pose of its two source scans in a single pass through the log
+(two copies of one scan are the same pose) and prints how many are off by more than 0.3 m or
+3 degrees (``bench_accuracy.false_loop_closures``).
+
 Run: ``python benchmarks/bench_scaling.py [--sizes 2000,10000,50000] [--repeats R]
-[--log path.clf] [--source csail|corridor] [--no-grid]``
+[--log path.clf] [--source csail|corridor] [--no-grid] [--check-closures]``
 """
 
 from __future__ import annotations
@@ -43,11 +48,15 @@ import sys
 import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "mit-csail" / "mit-csail.clf"
 BLOCK = 1000
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
 
 
 def peak_rss_mb() -> float:
@@ -55,44 +64,56 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def back_and_forth(scans: Sequence, n: int) -> Iterator:
-    """``n`` scans: ``scans`` forward, backward, forward, ... with increasing stamps.
+def back_and_forth_plan(stamps: NDArray[np.float64], n: int) -> tuple[IntArray, FloatArray]:
+    """The source scan and the stamp (s) of each of ``n`` scans driven forward, backward,
+    forward, ... through a log with ``stamps`` ``(m,)`` (s, non-decreasing): ``(n,)`` int64
+    indices into the log and ``(n,)`` float64 increasing stamps.
 
     The turnaround scan is not repeated; the stamp step across a turnaround is the log's
-    median step. Each yielded scan is a new :class:`frontends.LaserScan` with its own arrays.
+    median step.
     """
-    from frontends import LaserScan
-
-    stamps = np.array([s.stamp_s for s in scans])
+    m = stamps.shape[0]
     step = float(np.median(np.diff(stamps)))
-    base = stamps[0]
-    k = 0
+    index: list[int] = []
+    stamp: list[float] = []
+    base = float(stamps[0])
     forward = True
-    while True:
-        order: Sequence[int] = range(len(scans)) if forward else range(len(scans) - 1, -1, -1)
-        if k > 0:
+    while len(index) < n:
+        order: Sequence[int] = range(m) if forward else range(m - 1, -1, -1)
+        if index:
             order = order[1:]
         t0 = base
         for i in order:
-            s = scans[i]
             rel = (stamps[i] - stamps[0]) if forward else (stamps[-1] - stamps[i])
-            stamp = t0 + rel
-            base = stamp
-            yield LaserScan(
-                stamp_s=float(stamp),
-                ranges_m=np.array(s.ranges_m, dtype=np.float64),
-                angles_rad=np.array(s.angles_rad, dtype=np.float64),
-                range_min_m=s.range_min_m,
-                range_max_m=s.range_max_m,
-                odom_pose=None if s.odom_pose is None else np.array(s.odom_pose),
-                laser_offset=np.array(s.laser_offset),
-                source=s.source,
-            )
-            k += 1
-            if k >= n:
-                return
+            base = float(t0 + rel)
+            index.append(i)
+            stamp.append(base)
+            if len(index) >= n:
+                break
         base += step
         forward = not forward
+    return np.array(index, dtype=np.int64), np.array(stamp, dtype=np.float64)
+
+
+def back_and_forth(scans: Sequence, n: int) -> Iterator:
+    """``n`` scans: ``scans`` forward, backward, forward, ... with increasing stamps
+    (:func:`back_and_forth_plan`). Each yielded scan is a new :class:`frontends.LaserScan`
+    with its own arrays."""
+    from frontends import LaserScan
+
+    index, stamps = back_and_forth_plan(np.array([s.stamp_s for s in scans]), n)
+    for i, stamp in zip(index.tolist(), stamps.tolist(), strict=True):
+        s = scans[i]
+        yield LaserScan(
+            stamp_s=stamp,
+            ranges_m=np.array(s.ranges_m, dtype=np.float64),
+            angles_rad=np.array(s.angles_rad, dtype=np.float64),
+            range_min_m=s.range_min_m,
+            range_max_m=s.range_max_m,
+            odom_pose=None if s.odom_pose is None else np.array(s.odom_pose),
+            laser_offset=np.array(s.laser_offset),
+            source=s.source,
+        )
 
 
 def exploring_corridor(n: int) -> list:
@@ -107,8 +128,15 @@ def exploring_corridor(n: int) -> list:
     return simulate(world, odometry=ACCURATE_ODOMETRY, seed=0).scans[:n]
 
 
-def run_one(n: int, log: Path, grid: bool, source_name: str = "csail") -> dict:
-    """Run the pipeline over ``n`` scans in this process; return the figures."""
+def run_one(
+    n: int, log: Path, grid: bool, source_name: str = "csail", check_closures: bool = False
+) -> dict:
+    """Run the pipeline over ``n`` scans in this process; return the figures. With
+    ``check_closures`` (the CSAIL source), after the timed run: the accepted loop closures
+    whose measurement is off by more than ``bench_accuracy.FALSE_LC_TRANS_M`` or
+    ``FALSE_LC_ROT_DEG`` from the relative pose of their two source scans in a single pass
+    through the log (its own run, relation error about 3 cm; two copies of the same scan
+    are the same pose)."""
     from frontends import open_log
     from iceg.slam import Slam
 
@@ -148,6 +176,8 @@ def run_one(n: int, log: Path, grid: bool, source_name: str = "csail") -> dict:
                 file=sys.stderr,
                 flush=True,
             )
+    # the CSAIL log (small) is kept for the closure check; a simulated log is let go
+    kept = source if check_closures and source_name != "corridor" else None
     del source
     t0 = time.perf_counter()
     result = slam.finish()
@@ -158,7 +188,7 @@ def run_one(n: int, log: Path, grid: bool, source_name: str = "csail") -> dict:
         t0 = time.perf_counter()
         result.render_map()
         t_grid = time.perf_counter() - t0
-    return {
+    fig = {
         "n": n,
         "blocks_s": blocks,
         "cpu_blocks_s": cpu_blocks,
@@ -173,6 +203,22 @@ def run_one(n: int, log: Path, grid: bool, source_name: str = "csail") -> dict:
         "loop_closures": result.loop_closures.accepted,
         "stages_s": dict(sorted(result.stage_seconds.items(), key=lambda kv: -kv[1])),
     }
+    # after the timing: a second run of the whole log
+    fig["lc_false"] = None if kept is None else _false_against_single_pass(result, kept, n)
+    return fig
+
+
+def _false_against_single_pass(result: Any, source: Sequence, n: int) -> int:
+    """Loop closures of a back-and-forth run off the single pass through ``source``."""
+    from bench_accuracy import false_loop_closures
+
+    from iceg.slam import Slam
+
+    single = Slam()
+    for scan in source:
+        single.process(scan)
+    index, _ = back_and_forth_plan(np.array([s.stamp_s for s in source]), n)
+    return false_loop_closures(result, single.finish().poses[index])
 
 
 def _grown(fig: dict) -> float:
@@ -184,6 +230,8 @@ def report(fig: dict) -> None:
     n = fig["n"]
     k = n / BLOCK
     print(f"\n== {n} scans: {fig['nodes']} nodes, {fig['loop_closures']} loop closures")
+    if fig.get("lc_false") is not None:
+        print(f"  loop closures off the single pass by more than 0.3 m or 3 deg: {fig['lc_false']}")
     print("  block (scans)   wall (s)  CPU (s)  wall s/1000  CPU s/1000  peak RSS after (MB)")
     rows = zip(fig["blocks_s"], fig["cpu_blocks_s"], fig["rss_blocks_mb"], strict=True)
     for i, (t, c, r) in enumerate(rows):
@@ -273,12 +321,18 @@ def main() -> None:
         default=1,
         help="runs of each size (sizes interleaved), to average out the machine's spread",
     )
+    ap.add_argument(
+        "--check-closures",
+        action="store_true",
+        help="csail: count loop closures off the single pass through the log (after timing)",
+    )
     ap.add_argument("--child", type=int, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if not args.log.exists():
         sys.exit(f"{args.log}: not found (the MIT CSAIL log lives in ../shared/data)")
     if args.child is not None:
-        print(json.dumps(run_one(args.child, args.log, not args.no_grid, args.source)))
+        fig = run_one(args.child, args.log, not args.no_grid, args.source, args.check_closures)
+        print(json.dumps(fig))
         return
     summary = []
     sizes = [int(s) for s in args.sizes.split(",")]
@@ -287,6 +341,8 @@ def main() -> None:
         cmd += ["--source", args.source]
         if args.no_grid:
             cmd.append("--no-grid")
+        if args.check_closures:
+            cmd.append("--check-closures")
         out = subprocess.run(cmd, check=True, stdout=subprocess.PIPE, text=True).stdout
         fig = json.loads(out.strip().splitlines()[-1])
         report(fig)

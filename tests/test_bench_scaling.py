@@ -1,0 +1,59 @@
+"""Tests of the scaling benchmark's log (benchmarks/bench_scaling.py): the back-and-forth
+plan against hand-computed indices and stamps, and the flatness summary on made-up blocks."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_scaling.py"
+
+
+@pytest.fixture(scope="module")
+def bench() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("bench_scaling", BENCH)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["bench_scaling"] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_back_and_forth_plan_turns_around_without_repeating_the_turnaround_scan(
+    bench: ModuleType,
+) -> None:
+    # A log of 3 scans at 0, 1, 3 s (median step 1.5 s): forward, backward, forward.
+    index, stamps = bench.back_and_forth_plan(np.array([0.0, 1.0, 3.0]), 7)
+    assert index.tolist() == [0, 1, 2, 1, 0, 1, 2]
+    # backward pass from 3 + 1.5: scan 1 is 2 s before the end, scan 0 3 s; then forward
+    # from 7.5 + 1.5 with scan 1 at 1 s and scan 2 at 3 s into the log
+    assert stamps.tolist() == [0.0, 1.0, 3.0, 6.5, 7.5, 10.0, 12.0]
+
+
+def test_summary_prints_the_median_over_runs_and_the_within_run_ratio(
+    bench: ModuleType, capsys: pytest.CaptureFixture[str]
+) -> None:
+    def fig(n: int, blocks: list[float]) -> dict:
+        return {
+            "n": n,
+            "blocks_s": blocks,
+            "cpu_blocks_s": blocks,
+            "process_s": sum(blocks),
+            "rss_peak_mb": 300.0,
+            "rss_start_mb": 100.0,
+        }
+
+    # 2k: one steady block each run (8 and 10 s: median 9); 25k: 24 steady blocks, the
+    # first ten at 9 s, the last ten at 11.6 s (mean 10.083)
+    late = [9.0] * 14 + [11.6] * 10
+    runs = [fig(2000, [20.0, 8.0]), fig(25000, [20.0, *late]), fig(2000, [20.0, 10.0])]
+    bench.print_summary(runs)
+    out = capsys.readouterr().out
+    assert "2000: 8.00, 10.00" in out
+    assert "largest / smallest median 1.12" in out  # (9 * 14 + 11.6 * 10) / 24 / 9 = 1.120
+    assert "last 10 blocks / first 10 after the first: wall 1.29, CPU 1.29" in out  # 11.6 / 9
