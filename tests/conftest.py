@@ -1,9 +1,13 @@
-"""Shared test fixtures: the location of ``../shared/data`` and a skip helper."""
+"""Shared test fixtures: the location of ``../shared/data``, a skip helper and a loader of
+the benchmark scripts (``benchmarks/`` is no package)."""
 
 from __future__ import annotations
 
+import importlib.util
 import os
+import sys
 from pathlib import Path
+from types import ModuleType
 
 import matplotlib
 import pytest
@@ -20,6 +24,18 @@ def shared_file(relative: str) -> Path:
     if not path.is_file():
         pytest.skip(f"benchmark data {path} is absent (it lives in ../shared/data beside the repo)")
     return path
+
+
+def load_benchmark(name: str) -> ModuleType:
+    """The module ``benchmarks/<name>.py``, imported under ``name`` (so a benchmark that
+    imports a sibling, e.g. ``bench_scaling`` importing ``bench_accuracy``, finds it once
+    that one is loaded too)."""
+    spec = importlib.util.spec_from_file_location(name, REPO / "benchmarks" / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
 
 
 @pytest.fixture(scope="session")

@@ -3,9 +3,7 @@ closures against a known truth, the scan-match fraction, and one quick row end t
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
 from pathlib import Path
 from types import ModuleType, SimpleNamespace
 
@@ -14,18 +12,12 @@ import pytest
 
 from graph import FactorKind, FactorRecord
 from iceg_common.se2 import between, compose
-
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_accuracy.py"
+from tests.conftest import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("bench_accuracy", BENCH)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["bench_accuracy"] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("bench_accuracy")
 
 
 def _factor(index: int, kind: FactorKind, i: int, j: int, measured: np.ndarray) -> FactorRecord:
