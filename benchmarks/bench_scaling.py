@@ -48,10 +48,13 @@ import sys
 import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    from iceg.results import SlamResult
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "mit-csail" / "mit-csail.clf"
 BLOCK = 1000
@@ -64,7 +67,7 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def back_and_forth_plan(stamps: NDArray[np.float64], n: int) -> tuple[IntArray, FloatArray]:
+def back_and_forth_plan(stamps: FloatArray, n: int) -> tuple[IntArray, FloatArray]:
     """The source scan and the stamp (s) of each of ``n`` scans driven forward, backward,
     forward, ... through a log with ``stamps`` ``(m,)`` (s, non-decreasing): ``(n,)`` int64
     indices into the log and ``(n,)`` float64 increasing stamps.
@@ -208,7 +211,7 @@ def run_one(
     return fig
 
 
-def _false_against_single_pass(result: Any, source: Sequence, n: int) -> int:
+def _false_against_single_pass(result: SlamResult, source: Sequence, n: int) -> int:
     """Loop closures of a back-and-forth run off the single pass through ``source``."""
     from bench_accuracy import false_loop_closures
 
