@@ -462,8 +462,11 @@ class PoseGraph:
             max_iterations: iteration cap; hitting it is logged as a warning.
             loop_closure_kernels: ``False``: loop-closure factors enter this solve with their
                 Gaussian noise model, their robust kernel left out (every other factor, and
-                iSAM2 rebuilt afterwards, keeps its kernel). A run's final refinement over
-                the loop closures it accepted (``iceg.slam.Slam.finish``).
+                iSAM2 rebuilt afterwards, keeps its kernel); then the closures the rest of the
+                graph contradicts at that optimum (:meth:`_contradicted_loops`) get their
+                kernel back and the solve goes on from it (the iterations add up, the errors
+                are those of the first graph before and of the last after). A run's final
+                refinement over the loop closures it accepted (``iceg.slam.Slam.finish``).
             correction: a mid-run solve after a large correction (``iceg.slam``): it stops at
                 ``config.correction_relative_error_tol`` instead of
                 ``config.batch_relative_error_tol`` (iSAM2 goes on from its result). Keeps
@@ -489,6 +492,15 @@ class PoseGraph:
         error_before = graph.error(values)
         result, iterations = self._levenberg_marquardt(graph, values, int(max_iterations), tol)
         converged = iterations < max_iterations
+        if not loop_closure_kernels:
+            # the closures the rest of the Gaussian optimum contradicts keep their kernel
+            self._reseed(result)
+            kept = self._contradicted_loops(result)
+            if kept:
+                graph = self._full_graph(gaussian_loops=True, keep_kernels=kept)
+                result, again = self._levenberg_marquardt(graph, result, int(max_iterations), tol)
+                converged = converged and again < max_iterations
+                iterations += again
         stats = BatchStats(iterations, error_before, graph.error(result), converged)
         if not stats.converged:
             logger.warning(
@@ -937,17 +949,73 @@ class PoseGraph:
             self._factors_of[j].append(index)
         return record
 
-    def _full_graph(self, gaussian_loops: bool = False) -> gtsam.NonlinearFactorGraph:
-        """Every factor; with ``gaussian_loops`` the robust loop closures as Gaussian ones."""
+    def _full_graph(
+        self, gaussian_loops: bool = False, keep_kernels: frozenset[int] = frozenset()
+    ) -> gtsam.NonlinearFactorGraph:
+        """Every factor; with ``gaussian_loops`` the robust loop closures as Gaussian ones,
+        but those whose index is in ``keep_kernels``."""
         graph = gtsam.NonlinearFactorGraph()
         for record, factor in zip(self._records, self._gfactors, strict=True):
             j = record.j
             loop = record.kind is FactorKind.LOOP_CLOSURE and record.robust is not None
-            if gaussian_loops and loop and j is not None:
+            if gaussian_loops and loop and j is not None and record.index not in keep_kernels:
                 model = self._gaussian(np.asarray(record.cov), "loop closure")
                 factor = gtsam.BetweenFactorPose2(record.i, j, _pose2(record.measured), model)
             graph.add(factor)
         return graph
+
+    def _contradicted_loops(self, values: gtsam.Values) -> frozenset[int]:
+        """Indices of the robust loop closures the rest of the graph contradicts at ``values``
+        (the estimate iSAM2 was rebuilt at), which keep their kernel in a final refinement.
+
+        A closure ``z`` between nodes ``i`` and ``j`` with residual ``e = z^-1 ∘ X_i^-1 X_j``
+        is contradicted when ``eᵀ (C + Σ)⁻¹ e > config.final_closure_consistency_chi2``, with
+        ``Σ`` its covariance and ``C`` the covariance of ``X_i^-1 X_j`` given every factor but
+        it: the relative covariance of the joint marginal (:meth:`relative_covariance`, iSAM2)
+        with the closure's own information taken out, ``C = (C_all⁻¹ - w Σ⁻¹)⁻¹`` (its factor
+        is linear in the relative pose to first order; ``w`` its kernel's weight at the
+        residual). A leave-one-out test of the closure against the rest of the graph, after
+        the chi-square test of pairwise consistency (Mangelson et al. 2018, PCM) with the
+        whole graph as the other measurement. A closure within the gate under ``Σ`` alone,
+        one that is all that constrains its relative pose (``C`` not positive definite) and
+        one whose relative covariance cannot be read (no iSAM2, a node not in it) is not
+        contradicted."""
+        gate = self.config.final_closure_consistency_chi2
+        if gate is None or self._isam is None:
+            return frozenset()
+        kept: list[int] = []
+        for r in self._records:
+            if r.kind is not FactorKind.LOOP_CLOSURE or r.robust is None or r.j is None:
+                continue
+            rel = values.atPose2(r.i).between(values.atPose2(r.j))
+            e = se2.between(r.measured, np.array([rel.x(), rel.y(), rel.theta()]))
+            info = np.linalg.inv(r.cov)
+            d2 = float(e @ info @ e)
+            if d2 <= gate:
+                continue
+            try:
+                info_all = np.linalg.inv(self.relative_covariance(r.i, r.j))
+            except (GraphError, np.linalg.LinAlgError):
+                continue
+            info_rest = info_all - _kernel_weight(r, d2) * info
+            if np.linalg.eigvalsh(0.5 * (info_rest + info_rest.T))[0] <= 0.0:
+                continue
+            d2_rest = float(e @ np.linalg.solve(np.linalg.inv(info_rest) + r.cov, e))
+            if d2_rest > gate:
+                logger.debug(
+                    "loop closure %d->%d keeps its kernel: chi2 %.1f against the rest of the graph",
+                    r.i,
+                    r.j,
+                    d2_rest,
+                )
+                kept.append(r.index)
+        if kept:
+            logger.info(
+                "final refinement: %d loop closures the rest of the graph contradicts keep "
+                "their kernel",
+                len(kept),
+            )
+        return frozenset(kept)
 
     def _current_values(self) -> gtsam.Values:
         """Estimate of every node as gtsam Values (served, iSAM2 or seed, then initial)."""
@@ -1131,3 +1199,14 @@ class PoseGraph:
             return gtsam.noiseModel.Gaussian.Covariance(cov)
         except _GTSAM_ERRORS as exc:
             raise GraphError(f"{ctx}: gtsam rejected the covariance: {exc}") from exc
+
+
+def _kernel_weight(record: FactorRecord, d2: float) -> float:
+    """The weight of a robust factor's information at whitened squared residual ``d2``
+    (iteratively reweighted least squares, as gtsam's ``mEstimator::weight``): Huber
+    ``min(1, k / r)``, Cauchy ``1 / (1 + r² / k²)``, ``r = sqrt(d2)``."""
+    huber = record.robust == "huber"
+    k = record.robust_k if record.robust_k is not None else HUBER_K_95 if huber else CAUCHY_K_95
+    if huber:
+        return min(1.0, k / float(np.sqrt(d2))) if d2 > 0.0 else 1.0
+    return 1.0 / (1.0 + d2 / k**2)

@@ -471,3 +471,31 @@ def test_batch_without_loop_closure_kernels_solves_the_gaussian_problem() -> Non
     np.testing.assert_allclose(g.estimate(1), [*t, 0.0], atol=1e-6)
     assert [s[0] for s in g.steps][-2:] == [STEP_BATCH, STEP_BATCH_GAUSSIAN_LOOPS]
     assert g.factors[-1].robust == "cauchy"  # the factor itself keeps its kernel
+
+
+@pytest.mark.parametrize("gate", [16.27, None])
+def test_final_refinement_keeps_the_kernel_of_a_closure_the_rest_contradicts(
+    gate: float | None,
+) -> None:
+    # As above, but the odometry is tight (sigma 0.01 m) and the Cauchy closure says 3 m
+    # where it says 1 m: 200 sigmas of the closure, and as many of the rest of the graph
+    # (leave-one-out chi-square 4 / (1e-4 + 1e-4) = 2e4 > 16.27). With the gate the final
+    # refinement keeps its kernel and lands on the robust balance (brentq, as above); without
+    # it (None) on the information-weighted mean, x = 2.
+    s = np.diag([1e-4, 1e-4, 1e-12])
+    z1, z2 = np.array([1.0, 0.0, 0.0]), np.array([3.0, 0.0, 0.0])
+    g = PoseGraph(GraphConfig(final_closure_consistency_chi2=gate))
+    g.add_node(0, [0.0, 0.0, 0.0])
+    g.add_node(1, z1)
+    g.add_between(0, 1, z1, s, kind="odometry")
+    g.add_between(0, 1, z2, s, kind="loop_closure", robust="cauchy", robust_k=1.0)
+    g.optimize_batch()
+
+    def balance(x: float) -> float:
+        r = (z2[0] - x) / 0.01
+        return (x - z1[0]) / 1e-4 - r / (1.0 + r * r) / 0.01
+
+    robust_x = brentq(balance, z1[0], z2[0])
+    g.optimize_batch(loop_closure_kernels=False)
+    expected = robust_x if gate is not None else 2.0
+    np.testing.assert_allclose(g.estimate(1), [expected, 0.0, 0.0], atol=1e-6)
