@@ -473,29 +473,38 @@ def test_batch_without_loop_closure_kernels_solves_the_gaussian_problem() -> Non
     assert g.factors[-1].robust == "cauchy"  # the factor itself keeps its kernel
 
 
+@pytest.mark.parametrize("kernel", ["cauchy", "huber"])
 @pytest.mark.parametrize("gate", [16.27, None])
 def test_final_refinement_keeps_the_kernel_of_a_closure_the_rest_contradicts(
-    gate: float | None,
+    gate: float | None, kernel: str
 ) -> None:
-    # As above, but the odometry is tight (sigma 0.01 m) and the Cauchy closure says 3 m
-    # where it says 1 m: 200 sigmas of the closure, and as many of the rest of the graph
-    # (leave-one-out chi-square 4 / (1e-4 + 1e-4) = 2e4 > 16.27). With the gate the final
-    # refinement keeps its kernel and lands on the robust balance (brentq, as above); without
-    # it (None) on the information-weighted mean, x = 2.
-    s = np.diag([1e-4, 1e-4, 1e-12])
-    z1, z2 = np.array([1.0, 0.0, 0.0]), np.array([3.0, 0.0, 0.0])
+    # As above, with odometry sigma 0.02 m (variance 4e-4) and a robust closure (variance
+    # 1e-4) that says 2 m where the odometry says 1 m. The Gaussian optimum is the
+    # information-weighted mean x = 1.8, where the closure is 20 sigmas off (chi-square 400).
+    # Its relative covariance there (iSAM2, robust weight w at 400) holds 2500 + w * 1e4 of
+    # information; without the closure's share, 2500: leave-one-out chi-square
+    # 0.2^2 / (4e-4 + 1e-4) = 80 > 16.27. (Taking out the closure's full information instead
+    # would leave a negative rest, and the closure would pass.) With the gate the final
+    # refinement keeps the kernel and lands on the robust balance (x - 1) / 4e-4 =
+    # psi(r) / 0.01, r = (2 - x) / 0.01: Cauchy (k = 1) psi(r) = r / (1 + r^2), a root
+    # (brentq, as above); Huber psi(r) = k = 1.345 beyond k, so x = 1 + 4e-4 * 134.5 by hand.
+    # Without the gate (None) the closure is Gaussian: x = 1.8.
+    s_odometry = np.diag([4e-4, 4e-4, 1e-12])
+    s_closure = np.diag([1e-4, 1e-4, 1e-12])
+    z1, z2 = np.array([1.0, 0.0, 0.0]), np.array([2.0, 0.0, 0.0])
+    k = 1.0 if kernel == "cauchy" else 1.345
     g = PoseGraph(GraphConfig(final_closure_consistency_chi2=gate))
     g.add_node(0, [0.0, 0.0, 0.0])
     g.add_node(1, z1)
-    g.add_between(0, 1, z1, s, kind="odometry")
-    g.add_between(0, 1, z2, s, kind="loop_closure", robust="cauchy", robust_k=1.0)
+    g.add_between(0, 1, z1, s_odometry, kind="odometry")
+    g.add_between(0, 1, z2, s_closure, kind="loop_closure", robust=kernel, robust_k=k)
     g.optimize_batch()
 
     def balance(x: float) -> float:
         r = (z2[0] - x) / 0.01
-        return (x - z1[0]) / 1e-4 - r / (1.0 + r * r) / 0.01
+        return (x - z1[0]) / 4e-4 - r / (1.0 + r * r) / 0.01
 
-    robust_x = brentq(balance, z1[0], z2[0])
+    robust_x = brentq(balance, z1[0], z2[0]) if kernel == "cauchy" else z1[0] + 4e-4 * k / 0.01
     g.optimize_batch(loop_closure_kernels=False)
-    expected = robust_x if gate is not None else 2.0
+    expected = robust_x if gate is not None else 1.8
     np.testing.assert_allclose(g.estimate(1), [expected, 0.0, 0.0], atol=1e-6)
