@@ -492,10 +492,13 @@ class PoseGraph:
         error_before = graph.error(values)
         result, iterations = self._levenberg_marquardt(graph, values, int(max_iterations), tol)
         converged = iterations < max_iterations
-        if not loop_closure_kernels:
+        rebuilt = False  # iSAM2 already rebuilt at ``result``
+        if not loop_closure_kernels and self.config.final_closure_consistency_chi2 is not None:
             # the closures the rest of the Gaussian optimum contradicts keep their kernel
+            # (iSAM2 rebuilt at that optimum gives their relative covariances)
             self._reseed(result)
             kept = self._contradicted_loops(result)
+            rebuilt = not kept
             if kept:
                 graph = self._full_graph(gaussian_loops=True, keep_kernels=kept)
                 result, again = self._levenberg_marquardt(graph, result, int(max_iterations), tol)
@@ -509,7 +512,8 @@ class PoseGraph:
                 stats.error_before,
                 stats.error_after,
             )
-        self._reseed(result)
+        if not rebuilt:
+            self._reseed(result)
         self._served = result
         self._drop_estimates()
         return stats
@@ -981,7 +985,7 @@ class PoseGraph:
         one whose relative covariance cannot be read (no iSAM2, a node not in it) is not
         contradicted."""
         gate = self.config.final_closure_consistency_chi2
-        if gate is None or self._isam is None:
+        if gate is None or self._isam is None:  # no test, or no marginals to test with
             return frozenset()
         kept: list[int] = []
         for r in self._records:
