@@ -978,9 +978,9 @@ class PoseGraph:
         it: the relative covariance of the joint marginal (:meth:`relative_covariance`, iSAM2)
         with the closure's own information taken out, ``C = (C_all⁻¹ - w Σ⁻¹)⁻¹`` (its factor
         is linear in the relative pose to first order; ``w`` its kernel's weight at the
-        residual). A leave-one-out test of the closure against the rest of the graph, after
-        the chi-square test of pairwise consistency (Mangelson et al. 2018, PCM) with the
-        whole graph as the other measurement. A closure within the gate under ``Σ`` alone,
+        residual). A leave-one-out test of the closure against the rest of the graph,
+        modelled on the chi-square test of pairwise consistency (Mangelson et al. 2018, PCM)
+        with the whole graph as the other measurement. A closure within the gate under ``Σ`` alone,
         one that is all that constrains its relative pose (``C`` not positive definite) and
         one whose relative covariance cannot be read (no iSAM2, a node not in it) is not
         contradicted."""
