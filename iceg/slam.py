@@ -18,7 +18,7 @@ import logging
 import time
 from collections import defaultdict
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -375,6 +375,8 @@ class Slam:
         feats = self._features(scan, features)
         t0 = self.timer.add("features", t0)
         local = self._match_local(feats, motion, last, self._s.segment_start)
+        if not local.result.success:
+            local = self._match_from_node_before(feats, motion, last, local)
         if local.ice_failure:
             counts = self._s.point_fallbacks if local.result.success else self._s.match_failures
             counts[local.ice_failure] += 1
@@ -512,6 +514,42 @@ class Slam:
                 return _LocalMatch(reference, fallback, last_pose, category)
             return _LocalMatch(reference, result, last_pose, category)
         return _LocalMatch(reference, result, last_pose)
+
+    def _match_from_node_before(
+        self, feats: ScanFeatures, motion: _Motion, last: int, failed: _LocalMatch
+    ) -> _LocalMatch:
+        """The local match again, predicted through the node before the last: that node's
+        estimate composed with the odometry from it to the scan, in the last node's frame.
+        Where the last node's match moved it far from its odometry (a reading that jumped
+        ahead and then stalled, a heading that lags in a turn), the odometry from the last
+        node carries the same error into the next prediction, while from the node before it
+        cancels. Tried only when the local match ``failed`` and that prediction lies beyond
+        the first search's bounds (``match_max_translation_m``, ``match_max_rotation_deg``)
+        of the odometry's; the first result is kept unless this one succeeds. It needs
+        measured odometry from the node before to the scan without a break (a break always
+        makes its scan a node); the step between the two nodes is the raw odometry (with
+        ``odometry_calibration`` on, only a search's starting point)."""
+        s, cfg = self._s, self.config.slam
+        before = last - 1
+        if (
+            before < s.segment_start
+            or not motion.measured
+            or motion.odometry_break
+            or not s.node_odom_measured[before]
+            or not s.node_odom_measured[last]
+            or s.scans[s.node_scan_index[last]].odom_break
+        ):
+            return failed
+        _, poses = self.graph.estimates_of([before, last])
+        odometry = se2.compose(se2.between(s.node_odom[before], s.node_odom[last]), motion.delta)
+        predicted = se2.between(poses[1], se2.compose(poses[0], odometry))
+        gap = se2.between(motion.delta, predicted)
+        if np.hypot(gap[0], gap[1]) <= cfg.match_max_translation_m and abs(gap[2]) <= np.radians(
+            cfg.match_max_rotation_deg
+        ):
+            return failed  # the first search covered it
+        second = self._match_local(feats, replace(motion, delta=predicted), last, s.segment_start)
+        return second if second.result.success else failed
 
     def _point_match(
         self,
