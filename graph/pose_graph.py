@@ -301,9 +301,7 @@ class PoseGraph:
             k = float(default if robust_k is None else robust_k)
             if not (np.isfinite(k) and k > 0.0):
                 raise GraphError(f"{ctx}: robust_k must be a positive number, got {robust_k!r}")
-            m_est = gtsam.noiseModel.mEstimator
-            estimator = m_est.Huber.Create(k) if robust == "huber" else m_est.Cauchy.Create(k)
-            model = gtsam.noiseModel.Robust.Create(estimator, model)
+            model = gtsam.noiseModel.Robust.Create(_m_estimator(robust, k), model)
         factor = gtsam.BetweenFactorPose2(a, b, _pose2(z), model)
         return self._record(factor, k_kind, a, b, z, c, robust, k)
 
@@ -1001,7 +999,9 @@ class PoseGraph:
                 info_all = np.linalg.inv(self.relative_covariance(r.i, r.j))
             except (GraphError, np.linalg.LinAlgError):
                 continue
-            info_rest = info_all - _kernel_weight(r, d2) * info
+            # the kernel's weight at the residual (IRLS, gtsam's mEstimator::weight)
+            weight = _m_estimator(r.robust, r.robust_k).weight(float(np.sqrt(d2)))
+            info_rest = info_all - weight * info
             if np.linalg.eigvalsh(0.5 * (info_rest + info_rest.T))[0] <= 0.0:
                 continue
             d2_rest = float(e @ np.linalg.solve(np.linalg.inv(info_rest) + r.cov, e))
@@ -1205,12 +1205,13 @@ class PoseGraph:
             raise GraphError(f"{ctx}: gtsam rejected the covariance: {exc}") from exc
 
 
-def _kernel_weight(record: FactorRecord, d2: float) -> float:
-    """The weight of a robust factor's information at whitened squared residual ``d2``
-    (iteratively reweighted least squares, as gtsam's ``mEstimator::weight``): Huber
-    ``min(1, k / r)``, Cauchy ``1 / (1 + r² / k²)``, ``r = sqrt(d2)``."""
-    huber = record.robust == "huber"
-    k = record.robust_k if record.robust_k is not None else HUBER_K_95 if huber else CAUCHY_K_95
-    if huber:
-        return min(1.0, k / float(np.sqrt(d2))) if d2 > 0.0 else 1.0
-    return 1.0 / (1.0 + d2 / k**2)
+def _m_estimator(
+    robust: str, k: float | None
+) -> gtsam.noiseModel.mEstimator.Huber | gtsam.noiseModel.mEstimator.Cauchy:
+    """gtsam's M-estimator of a kernel name (``"huber"`` or ``"cauchy"``) and width ``k``
+    (standard deviations; None: its 95 %-efficiency value, :data:`HUBER_K_95`,
+    :data:`CAUCHY_K_95`)."""
+    m_est = gtsam.noiseModel.mEstimator
+    if robust == "huber":
+        return m_est.Huber.Create(HUBER_K_95 if k is None else k)
+    return m_est.Cauchy.Create(CAUCHY_K_95 if k is None else k)
