@@ -715,10 +715,13 @@ class LoopCloser:
             + self.config.search_n_sigma * rotation_sigma,
         )
 
-    def _reference(self, s: _Search, candidate: int) -> ScanFeatures:
-        """The landmarks of the old nodes nearest the candidate (any pass through the place),
-        in the candidate's frame."""
-        window = self._window(s, candidate)
+    def _reference(
+        self, s: _Search, candidate: int, window: IntArray | None = None
+    ) -> ScanFeatures:
+        """The landmarks of the old nodes nearest the candidate (any pass through the place;
+        ``window``, when given, is :meth:`_window` of it), in the candidate's frame."""
+        if window is None:
+            window = self._window(s, candidate)
         table = s.poses.table(self.feature_map.reference_pose_nodes(window))
         return self.feature_map.reference(table, window, s.poses[candidate]).features
 
@@ -737,13 +740,21 @@ class LoopCloser:
             radius *= 2.0
 
     def _best_match(self, s: _Search, features: ScanFeatures) -> _Best | None:
-        """Match each candidate place; keep the best-correlated acceptable match."""
+        """Match each candidate place; keep the best-correlated acceptable match. A candidate
+        whose reference window is one already matched in this search is skipped
+        (:func:`_same_place`)."""
         bounds = self._bounds(s)
         best: _Best | None = None
+        matched: list[IntArray] = []  # the windows of the places matched so far
         for candidate in self._candidates(s):
+            window = self._window(s, candidate)
+            if any(_same_place(window, other) for other in matched):
+                continue
+            matched.append(window)
             prediction = se2.between(s.poses[candidate], s.poses[s.node_id])
             self.stats.attempts += 1
-            result = self.matcher.match(features, self._reference(s, candidate), prediction, bounds)
+            reference = self._reference(s, candidate, window)
+            result = self.matcher.match(features, reference, prediction, bounds)
             if not usable_match(result, self.config):
                 self.stats.rejected_match += 1
                 logger.debug(
@@ -1153,6 +1164,14 @@ def nearest_k(dist: FloatArray, k: int) -> IntArray:
     kth = np.partition(dist, k - 1)[k - 1]
     few = np.flatnonzero(dist <= kth)
     return few[np.argsort(dist[few], kind="stable")[:k]]
+
+
+def _same_place(window: IntArray, other: IntArray) -> bool:
+    """Whether two candidates' reference windows (:meth:`LoopCloser._window`, ``(k,)`` node
+    ids, nearest first) are the same nodes: candidates from several passes through one place.
+    Their references are then the same landmarks, and a second match would measure the scan
+    against them again (the same map-frame pose, or the same failure)."""
+    return window.shape == other.shape and bool(np.array_equal(np.sort(window), np.sort(other)))
 
 
 def _grown(a: NDArray[np.float64], size: int, fill: float) -> NDArray[np.float64]:

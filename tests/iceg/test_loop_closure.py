@@ -17,6 +17,7 @@ from frontends import open_log
 from frontends.simulate import (
     OdometryModel,
     World,
+    long_corridor_world,
     office_world,
     simulate,
     simulate_scenario,
@@ -164,6 +165,52 @@ def test_simulated_loop_closes_with_closures_that_match_the_truth(office_slam) -
         # Closures link old places to new nodes, at least min_node_gap apart.
         assert f.j - f.i >= LoopClosureConfig().min_node_gap
         assert f.robust in (None, LoopClosureConfig().robust_kernel)
+
+
+def test_a_place_is_matched_once_per_search_and_the_skipped_match_would_agree(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # Up, down and up a corridor: from the third pass on, the nearest candidates of a search
+    # come from several passes through the same place, and their reference windows (the old
+    # nodes nearest each, from any pass) are the same nodes. Matching every candidate anyway
+    # shows what skipping the repeats loses: nothing (both fail, or both put the node at
+    # the same map-frame pose); and the search itself matches each window once.
+    run = simulate(
+        long_corridor_world(length_m=30.0),
+        trajectory_from_waypoints([[1.0, 1.0], [29.0, 1.0], [1.0, 1.0], [29.0, 1.0]]),
+        seed=0,
+    )
+    best_match = LoopCloser._best_match
+    outcomes: list[tuple[np.ndarray | None, np.ndarray | None]] = []  # (first, repeat)
+    distinct = 0
+
+    def every_candidate(self: LoopCloser, s, features):  # type: ignore[no-untyped-def]
+        nonlocal distinct
+        first: dict[tuple[int, ...], np.ndarray | None] = {}
+        for candidate in self._candidates(s):
+            window = self._window(s, candidate)
+            prediction = se2.between(s.poses[candidate], s.poses[s.node_id])
+            reference = self._reference(s, candidate, window)
+            result = self.matcher.match(features, reference, prediction, self._bounds(s))
+            implied = se2.compose(s.poses[candidate], result.pose) if result.success else None
+            key = tuple(sorted(window.tolist()))
+            if key in first:
+                outcomes.append((first[key], implied))
+            else:
+                first[key] = implied
+        distinct += len(first)
+        return best_match(self, s, features)
+
+    monkeypatch.setattr(LoopCloser, "_best_match", every_candidate)
+    slam = Slam(IcegConfig())
+    for scan in run.scans:
+        slam.process(scan)
+    assert any(a is not None for a, _ in outcomes), "no repeated place was matched"
+    for a, b in outcomes:
+        assert (a is None) == (b is None)
+        if a is not None and b is not None:
+            np.testing.assert_allclose(se2.between(a, b), 0.0, atol=1e-6)
+    assert slam.loop_stats.attempts == distinct < distinct + len(outcomes)
 
 
 # ---------------------------------------------------------------------- global loop closure
