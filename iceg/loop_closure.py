@@ -1033,6 +1033,8 @@ class LoopCloser:
                 or abs(closure.node_from - a.node_from) > window
             ):
                 continue
+            # the smaller cycle chi2 of the two chains decides: the second chain is only
+            # read when the first one's is beyond the gate
             d2 = np.inf
             for relative in (partial(self._relative, poses=poses), self._odometry_relative):
                 old = relative(a.node_from, closure.node_from)
@@ -1041,6 +1043,8 @@ class LoopCloser:
                     d2 = 0.0
                     break
                 d2 = min(d2, pcm_chi2(a, closure, old, new))
+                if d2 <= self.config.consistency_chi2:
+                    break
             if d2 > self.config.consistency_chi2:
                 self.stats.rejected_accepted += 1
                 logger.debug(
