@@ -783,7 +783,11 @@ def _chunk_beams(
     keep = np.flatnonzero(traced)
     s = scan_of_beam[keep]
     bearing = laser[s, 2] + angles[keep]
-    end = laser[s, :2] + length[keep, None] * np.stack([np.cos(bearing), np.sin(bearing)], 1)
+    length = length[keep]
+    # column by column: the same values as on (K, 2) arrays, without their temporaries
+    end = np.empty((keep.shape[0], 2))
+    np.add(laser[s, 0], length * np.cos(bearing), out=end[:, 0])
+    np.add(laser[s, 1], length * np.sin(bearing), out=end[:, 1])
     hit = is_hit[keep]
     if frame is None:
         empty = np.zeros((0, 2))
@@ -796,7 +800,10 @@ def _chunk_beams(
     # the grid's edges (the bounds contain every point): the compiled loops do not check them.
     upper = np.nextafter(np.array([w, h], dtype=np.float64), 0.0)
     origin_g = np.clip((laser[:, :2] - frame.origin) / res, 0.0, upper)
-    end_g = np.clip((end - frame.origin) / res, 0.0, upper)
+    end_g = np.empty_like(end)
+    for axis in (0, 1):
+        cells = np.subtract(end[:, axis], frame.origin[axis], out=end_g[:, axis])
+        np.clip(np.divide(cells, res, out=cells), 0.0, upper[axis], out=cells)
     return _ChunkBeams(end, laser[:, :2], hit, _Beams(scan_start, origin_g, end_g, hit))
 
 
