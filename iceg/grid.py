@@ -22,9 +22,11 @@ Traversal Algorithm for Ray Tracing", Eurographics 1987; the binary map of the I
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, NamedTuple
@@ -36,6 +38,7 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from frontends.scan import LaserScan
+from iceg.features.prefetch import auto_workers
 from iceg_common.atomic import atomic_path, atomic_write
 from iceg_common.errors import GridError
 from iceg_common.se2 import compose
@@ -146,6 +149,13 @@ class GridConfig(BaseModel):
         "'binary': the paper's binary map (§IV, Fig. 3-4): a cell is occupied if beams ended "
         "in it in at least one scan and in at least as many scans as rays passed through it, "
         "free if rays passed through it in more scans than beams ended in it, else unknown.",
+    )
+    threads: int = Field(
+        default=0,
+        ge=0,
+        description="Threads tracing the beams, each over its own band of rows (every cell "
+        "is updated by one thread, in scan order, so the map is identical with any number). "
+        "0: 2 when a core is idle (load average), else 1.",
     )
     max_cells: int = Field(
         default=25_000_000,
@@ -836,21 +846,44 @@ def _trace_tiled(
     order = np.cumsum(tile_mask.reshape(-1)).reshape(tile_mask.shape) - 1
     grid = _tiled_grid(frame, np.where(tile_mask, order, -1), cfg)
     model = InverseSensorModel(cfg.l_occ, cfg.l_free, cfg.l_min, cfg.l_max)
+    bands = _row_bands(tile_mask, cfg.threads or auto_workers())
     missing = 0
-    for a, b in spans:
-        missing += _trace_scans(
-            *walk(a, b),
-            grid.tile_index,
-            TILE_SHIFT,
-            model,
-            grid.log_odds.reshape(-1),
-            grid.hits.reshape(-1),
-            grid.misses.reshape(-1),
-        )
+    with ThreadPoolExecutor(len(bands)) as pool:
+        for a, b in spans:
+            beams = walk(a, b)
+            stamp = np.full(grid.log_odds.size, -1, dtype=np.int64)  # shared: disjoint cells
+
+            def trace(band: tuple[int, int], beams: _Beams = beams, stamp: NDArray = stamp) -> int:
+                return int(
+                    _trace_scans(
+                        *beams,
+                        grid.tile_index,
+                        TILE_SHIFT,
+                        *band,
+                        model,
+                        grid.log_odds.reshape(-1),
+                        grid.hits.reshape(-1),
+                        grid.misses.reshape(-1),
+                        stamp,
+                    )
+                )
+
+            missing += sum(pool.map(trace, bands))
     if missing:
         logger.debug("tile walk missed %d cell visits; marking tiles cell by cell", missing)
         return None
     return grid
+
+
+def _row_bands(tile_mask: NDArray[np.bool_], n: int) -> list[tuple[int, int]]:
+    """Up to ``n`` bands ``[first, stop)`` of tile rows covering every row, each holding about
+    the same number of the tiles the beams cross (``tile_mask`` ``(rows, cols)``), for
+    :func:`_trace_scans` threads."""
+    rows = tile_mask.shape[0]
+    per_row = np.cumsum(tile_mask.sum(axis=1))
+    cuts = np.searchsorted(per_row, per_row[-1] * np.arange(1, n) / n, side="right")
+    edges = np.unique(np.concatenate([[0], cuts, [rows]]))
+    return list(itertools.pairwise(edges.tolist()))
 
 
 def _binarize(grid: OccupancyGrid | TiledGrid, cfg: GridConfig) -> None:
@@ -964,20 +997,26 @@ def _trace_scans(
     is_hit: NDArray[np.bool_],
     tile_index: NDArray[np.int64],
     tile_shift: int,
+    band_first: int,
+    band_stop: int,
     model: InverseSensorModel,
     log_odds: NDArray[np.float32],
     hits: NDArray[np.int32],
     misses: NDArray[np.int32],
+    stamp: NDArray[np.int64],
 ) -> int:  # pragma: no cover - compiled
-    """Trace every beam of every scan through the tiled grid (in place); return the number
-    of cell visits that found no storage (0 unless the tile marking missed a tile).
+    """Trace every beam of every scan through the tiled grid (in place), updating only the
+    cells in tile rows ``band_first <= row < band_stop``; return the number of those cell
+    visits that found no storage (0 unless the tile marking missed a tile). Threads on
+    disjoint bands share the arrays: each cell is updated by one of them, in scan order.
 
     Coordinates are continuous cell units ``(x - ox) / res`` (column) and ``(y - oy) / res``
     (row). Beams of scan ``s`` are ``scan_start[s]:scan_start[s+1]``. Storage is tiled: cell
     ``(row, col)`` lives in tile ``tile_index[row // T, col // T]`` (``T = 2**tile_shift``;
-    every tile a beam crosses is allocated, see :func:`_mark_tiles`). A per-cell stamp holds
-    ``2 s + 1`` once scan ``s`` hit the cell and ``2 s`` once it marked it free, so each cell
-    is updated at most once per scan, hits first (they take precedence). Cells along a beam
+    every tile a beam crosses is allocated, see :func:`_mark_tiles`). A per-cell ``stamp``
+    (``-1`` initially) holds ``2 s + 1`` once scan ``s`` hit the cell and ``2 s`` once it
+    marked it free, so each cell is updated at most once per scan, hits first (they take
+    precedence). Cells along a beam
     are enumerated exactly (every cell the segment crosses) by the Amanatides & Woo (1987)
     traversal, stepping exactly ``|dcol| + |drow|`` times so it ends in the endpoint cell.
     """
@@ -985,15 +1024,15 @@ def _trace_scans(
     mask = (1 << tile_shift) - 1
     missing = 0
     n_scans = scan_start.shape[0] - 1
-    stamp = np.full(log_odds.shape[0], -1, dtype=np.int64)
     for s in range(n_scans):
         b0 = scan_start[s]
         b1 = scan_start[s + 1]
         hit_mark = 2 * s + 1
         free_mark = 2 * s
         for b in range(b0, b1):
-            if is_hit[b]:
-                c = _cell(tile_index, tile_shift, math.floor(end_g[b, 0]), math.floor(end_g[b, 1]))
+            row = math.floor(end_g[b, 1])
+            if is_hit[b] and band_first <= row >> tile_shift < band_stop:
+                c = _cell(tile_index, tile_shift, math.floor(end_g[b, 0]), row)
                 if c < 0:
                     missing += 1
                 elif stamp[c] != hit_mark:
@@ -1010,6 +1049,11 @@ def _trace_scans(
             y1 = end_g[b, 1]
             ix_end = math.floor(x1)
             iy_end = math.floor(y1)
+            if (
+                max(iy0, iy_end) >> tile_shift < band_first
+                or min(iy0, iy_end) >> tile_shift >= band_stop
+            ):
+                continue  # the beam's rows (from iy0 to iy_end) miss the band
             dx = x1 - x0
             dy = y1 - y0
             step_x, t_delta_x, t_max_x = _axis_start(x0, ix0, dx)
@@ -1021,13 +1065,17 @@ def _trace_scans(
             tile_row = -1
             tile_col = -1
             base = -1
+            in_band = False
             for k in range(last_free + 1):
                 if iy >> tile_shift != tile_row or ix >> tile_shift != tile_col:
                     tile_row = iy >> tile_shift
                     tile_col = ix >> tile_shift
+                    in_band = band_first <= tile_row < band_stop
                     base = tile_index[tile_row, tile_col] << (2 * tile_shift)
                 c = base + ((iy & mask) << tile_shift) + (ix & mask)
-                if base < 0:
+                if not in_band:
+                    pass
+                elif base < 0:
                     missing += 1
                 elif stamp[c] < free_mark:
                     stamp[c] = free_mark

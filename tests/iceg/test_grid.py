@@ -27,6 +27,7 @@ from scipy import ndimage
 from frontends import open_log
 from frontends.scan import LaserScan
 from frontends.simulate import World, office_world, ray_ranges, rectangle, simulate
+from iceg import grid as grid_module
 from iceg import plot
 from iceg.grid import (
     GridConfig,
@@ -34,10 +35,13 @@ from iceg.grid import (
     OccupancyGrid,
     render,
     render_ranges,
+    render_tiled,
+    render_tiled_chunks,
     write_map_server,
     write_npz,
     write_png,
 )
+from iceg.scan_store import ScanStore
 from iceg_common.se2 import compose
 from tests.conftest import shared_file
 
@@ -340,6 +344,27 @@ def test_render_scans_and_render_ranges_agree(office_run) -> None:
     )
     assert np.array_equal(g1.log_odds, g2.log_odds)
     np.testing.assert_allclose(g1.origin_xy, g2.origin_xy)
+
+
+def test_the_map_is_identical_with_any_number_of_threads(office_run) -> None:
+    # Each thread traces every beam through its own band of tile rows (GridConfig.threads),
+    # so each cell is updated by one thread, in scan order: the same bits as one thread,
+    # clamping and the once-per-scan rule included, in one pass and chunk by chunk.
+    scans, poses = office_run.scans, office_run.true_poses
+    store = ScanStore(scans)
+    for cfg in (GridConfig(), GridConfig(mode="binary", no_return_clear_m=3.0)):
+        one = render_tiled(scans, poses, cfg.model_copy(update={"threads": 1}))
+        assert len(grid_module._row_bands(one.tile_index >= 0, 3)) == 3  # three real bands
+        for threads in (2, 3, 7):
+            many = cfg.model_copy(update={"threads": threads})
+            for g in (
+                render_tiled(scans, poses, many),
+                render_tiled_chunks(poses, store.beam_chunk, many, chunk_scans=100),
+            ):
+                np.testing.assert_array_equal(g.tile_index, one.tile_index)
+                np.testing.assert_array_equal(g.log_odds, one.log_odds)
+                np.testing.assert_array_equal(g.hits, one.hits)
+                np.testing.assert_array_equal(g.misses, one.misses)
 
 
 # ---------------------------------------------------------------------------------------------
