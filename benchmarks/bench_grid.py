@@ -6,6 +6,9 @@ steady-state render time (median and best of 5) for ``range_max_m`` 30 m (the de
 the sensor's full range, and, for comparison, a pure-numpy variant (rays sampled every half
 cell, ``np.unique`` per scan, same per-scan once-per-cell rule) on the first 200 scans.
 
+The steady-state renders run with one thread and with two (``GridConfig.threads``: each
+traces the beams through its own band of rows; the map is the same bit for bit).
+
 Also prints the storage of the sparse tiled grid (``render_tiled``) against the dense one.
 Odometry poses are used (timing only; the map is not meaningful). Target: <= 1.5 s.
 
@@ -102,8 +105,10 @@ def main() -> None:
     print(f"numba compile time without cache: {time.perf_counter() - t0:.3f} s")
 
     for label, c in [
-        ("range_max_m=30 (default)", cfg),
-        ("range_max_m=None (80 m)", GridConfig(range_max_m=None)),
+        ("range_max_m=30 (default), 1 thread", cfg.model_copy(update={"threads": 1})),
+        ("range_max_m=30 (default), 2 threads", cfg.model_copy(update={"threads": 2})),
+        ("range_max_m=None (80 m), 1 thread", GridConfig(range_max_m=None, threads=1)),
+        ("range_max_m=None (80 m), 2 threads", GridConfig(range_max_m=None, threads=2)),
     ]:
         times = timed(lambda c=c: render(scans, poses, c), 5)
         g = render(scans, poses, c)
