@@ -22,6 +22,7 @@ Traversal Algorithm for Ray Tracing", Eurographics 1987; the binary map of the I
 
 from __future__ import annotations
 
+import functools
 import itertools
 import logging
 import math
@@ -703,8 +704,11 @@ def _render_chunks(
     """Render in passes over chunks of whole scans: bounds, tiles, then tracing.
 
     Each pass rebuilds a chunk's beams (:func:`_chunk_beams`), so the per-beam work arrays
-    live for one chunk only; the bounds are the min/max over chunks and the tracer processes
-    the scans in order, so the cells are the same as in one pass over all beams.
+    live for one or two chunks at a time; the bounds are the min/max over chunks and the
+    tracer processes the scans in order, so the cells are the same as in one pass over all
+    beams. The passes reuse what they can of one chunk: the bounds pass keeps its last
+    chunk's beams for the tile pass, which runs from the last chunk to the first (marking
+    tiles does not depend on the order), so the tracer starts on the chunk it walked last.
     """
     n = poses.shape[0]
     spans = [(lo, min(lo + chunk_scans, n)) for lo in range(0, n, max(1, chunk_scans))]
@@ -712,16 +716,21 @@ def _render_chunks(
     hi_xy = np.full(2, -np.inf)
     n_traced = n_hits = 0
     for a, b in spans:
-        beams = _chunk_beams(poses[a:b], chunks(a, b), cfg, None)
+        beams = _chunk_beams(poses[a:b], chunks(a, b), cfg)
         pts = np.concatenate([beams.end, beams.laser_xy, poses[a:b, :2]])
         lo_xy = np.minimum(lo_xy, pts.min(axis=0))
         hi_xy = np.maximum(hi_xy, pts.max(axis=0))
         n_traced += beams.end.shape[0]
         n_hits += int(np.count_nonzero(beams.is_hit))
     frame = _frame(np.stack([lo_xy, hi_xy]), cfg)
+    kept: dict[tuple[int, int], _ChunkBeams] = {spans[-1]: beams}
 
+    @functools.lru_cache(maxsize=1)
     def walk(a: int, b: int) -> _Beams:
-        return _chunk_beams(poses[a:b], chunks(a, b), cfg, frame).grid
+        world = kept.pop((a, b), None)
+        if world is None:
+            world = _chunk_beams(poses[a:b], chunks(a, b), cfg)
+        return _grid_beams(world, frame, cfg.resolution_m)
 
     grid = _trace_tiled(frame, spans, walk, cfg, exact=False)
     if grid is None:  # the tile walk missed a tile a cell walk reaches: walk cell by cell
@@ -760,21 +769,17 @@ ChunkReader = Callable[[int, int], BeamChunk]
 
 
 class _ChunkBeams(NamedTuple):
-    """One chunk's traced beams: world endpoints and laser positions, and (with a frame)
-    the tracer's input."""
+    """One chunk's traced beams in the world (the tracer's input before the grid frame)."""
 
-    end: FloatArray  # (K, 2) world
-    laser_xy: FloatArray  # (n, 2) world
+    end: FloatArray  # (K, 2) endpoints
+    laser_xy: FloatArray  # (n, 2) laser positions
+    scan_start: NDArray[np.int64]  # (n + 1,) beams of scan s: scan_start[s]:scan_start[s + 1]
     is_hit: NDArray[np.bool_]  # (K,)
-    grid: _Beams
 
 
-def _chunk_beams(
-    poses: FloatArray, chunk: BeamChunk, cfg: GridConfig, frame: _Frame | None
-) -> _ChunkBeams:
+def _chunk_beams(poses: FloatArray, chunk: BeamChunk, cfg: GridConfig) -> _ChunkBeams:
     """The beams of one chunk to trace (hits, and no-returns cleared up to
-    ``no_return_clear_m``): world endpoints and, given the grid frame, continuous cell
-    coordinates."""
+    ``no_return_clear_m``) in the world: endpoints and laser positions."""
     n = poses.shape[0]
     ranges, angles = chunk.ranges_m, chunk.angles_rad
     scan_of_beam = np.repeat(np.arange(n), chunk.beam_counts)
@@ -798,23 +803,23 @@ def _chunk_beams(
     end = np.empty((keep.shape[0], 2))
     np.add(laser[s, 0], length * np.cos(bearing), out=end[:, 0])
     np.add(laser[s, 1], length * np.sin(bearing), out=end[:, 1])
-    hit = is_hit[keep]
-    if frame is None:
-        empty = np.zeros((0, 2))
-        return _ChunkBeams(end, laser[:, :2], hit, _Beams(np.zeros(1, np.int64), empty, empty, hit))
-    h, w = frame.shape
     scan_start = np.zeros(n + 1, dtype=np.int64)
     np.cumsum(np.bincount(s, minlength=n), out=scan_start[1:])
-    res = cfg.resolution_m
-    # Continuous cell coordinates (col, row). The clip only absorbs floating-point rounding at
-    # the grid's edges (the bounds contain every point): the compiled loops do not check them.
+    return _ChunkBeams(end, laser[:, :2], scan_start, is_hit[keep])
+
+
+def _grid_beams(beams: _ChunkBeams, frame: _Frame, res: float) -> _Beams:
+    """A chunk's beams in the continuous cell coordinates ``(col, row)`` of ``frame``. The
+    clip only absorbs floating-point rounding at the grid's edges (the bounds contain every
+    point): the compiled loops do not check them."""
+    h, w = frame.shape
     upper = np.nextafter(np.array([w, h], dtype=np.float64), 0.0)
-    origin_g = np.clip((laser[:, :2] - frame.origin) / res, 0.0, upper)
-    end_g = np.empty_like(end)
+    origin_g = np.clip((beams.laser_xy - frame.origin) / res, 0.0, upper)
+    end_g = np.empty_like(beams.end)
     for axis in (0, 1):
-        cells = np.subtract(end[:, axis], frame.origin[axis], out=end_g[:, axis])
+        cells = np.subtract(beams.end[:, axis], frame.origin[axis], out=end_g[:, axis])
         np.clip(np.divide(cells, res, out=cells), 0.0, upper[axis], out=cells)
-    return _ChunkBeams(end, laser[:, :2], hit, _Beams(scan_start, origin_g, end_g, hit))
+    return _Beams(beams.scan_start, origin_g, end_g, beams.is_hit)
 
 
 class _Beams(NamedTuple):
@@ -840,17 +845,18 @@ def _trace_tiled(
     h, w = frame.shape
     tile_mask = np.zeros((-(-h // TILE_SIZE), -(-w // TILE_SIZE)), dtype=np.bool_)
     unit = 0 if exact else TILE_SHIFT
-    for a, b in spans:
+    for a, b in reversed(spans):  # the tracer then starts on the chunk walked last
         beams = walk(a, b)
         _mark_tiles(beams.scan_start, beams.origin_g, beams.end_g, unit, TILE_SHIFT, tile_mask)
     order = np.cumsum(tile_mask.reshape(-1)).reshape(tile_mask.shape) - 1
     grid = _tiled_grid(frame, np.where(tile_mask, order, -1), cfg)
     model = InverseSensorModel(cfg.l_occ, cfg.l_free, cfg.l_min, cfg.l_max)
-    bands = _row_bands(tile_mask, cfg.threads or auto_workers())
+    threads = cfg.threads or auto_workers()
     missing = 0
-    with ThreadPoolExecutor(len(bands)) as pool:
+    with ThreadPoolExecutor(threads) as pool:
         for a, b in spans:
             beams = walk(a, b)
+            bands = _row_bands(beams, threads, tile_mask.shape[0])
             stamp = np.full(grid.log_odds.size, -1, dtype=np.int64)  # shared: disjoint cells
 
             def trace(band: tuple[int, int], beams: _Beams = beams, stamp: NDArray = stamp) -> int:
@@ -875,12 +881,14 @@ def _trace_tiled(
     return grid
 
 
-def _row_bands(tile_mask: NDArray[np.bool_], n: int) -> list[tuple[int, int]]:
-    """Up to ``n`` bands ``[first, stop)`` of tile rows covering every row, each holding about
-    the same number of the tiles the beams cross (``tile_mask`` ``(rows, cols)``), for
-    :func:`_trace_scans` threads."""
-    rows = tile_mask.shape[0]
-    per_row = np.cumsum(tile_mask.sum(axis=1))
+def _row_bands(beams: _Beams, n: int, rows: int) -> list[tuple[int, int]]:
+    """Up to ``n`` bands ``[first, stop)`` of the ``rows`` tile rows, covering them all, each
+    holding about the same number of the beams' endpoints (a stand-in for the cells they
+    cross), for :func:`_trace_scans` threads."""
+    if n <= 1:
+        return [(0, rows)]
+    ends = np.bincount(beams.end_g[:, 1].astype(np.int64) >> TILE_SHIFT, minlength=rows)
+    per_row = np.cumsum(ends)
     cuts = np.searchsorted(per_row, per_row[-1] * np.arange(1, n) / n, side="right")
     edges = np.unique(np.concatenate([[0], cuts, [rows]]))
     return list(itertools.pairwise(edges.tolist()))
