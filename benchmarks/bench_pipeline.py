@@ -23,6 +23,9 @@ compare CPU times of runs made back to back. With ``--profile`` the CSAIL run is
 pyinstrument instead (wall figures then include the profiler's overhead): the HTML goes to
 the printed path and the five largest self-time costs are listed.
 
+``--workers N`` sets both ``slam.workers`` and ``grid.threads`` (each picks by the load
+average when left at 0).
+
 Run: ``python benchmarks/bench_pipeline.py [--profile [HTML]] [--no-demo] [--no-cold]
 [--workers N] [path/to/mit-csail.clf [path/to/relations]]``
 """
@@ -134,6 +137,9 @@ def _config(workers: int | None) -> Any:
     cfg = IcegConfig()
     if workers is not None and "workers" in type(cfg.slam).model_fields:
         cfg = cfg.model_copy(update={"slam": cfg.slam.model_copy(update={"workers": workers})})
+    if workers is not None and "threads" in type(cfg.grid).model_fields:
+        # the grid's threads too, rather than a choice by the load average of the moment
+        cfg = cfg.model_copy(update={"grid": cfg.grid.model_copy(update={"threads": workers})})
     return cfg
 
 
