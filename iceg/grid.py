@@ -1024,9 +1024,9 @@ def _trace_scans(
     every tile a beam crosses is allocated, see :func:`_mark_tiles`). A per-cell ``stamp``
     (``-1`` initially) holds ``2 s + 1`` once scan ``s`` hit the cell and ``2 s`` once it
     marked it free, so each cell is updated at most once per scan, hits first (they take
-    precedence). Cells along a beam
-    are enumerated exactly (every cell the segment crosses) by the Amanatides & Woo (1987)
-    traversal, stepping exactly ``|dcol| + |drow|`` times so it ends in the endpoint cell.
+    precedence). Cells along a beam are enumerated exactly (every cell the segment crosses)
+    by the Amanatides & Woo (1987) traversal, stepping exactly ``|dcol| + |drow|`` times so
+    it ends in the endpoint cell.
     """
     l_occ, l_free, l_min, l_max = model
     mask = (1 << tile_shift) - 1

@@ -1175,7 +1175,7 @@ def _same_place(window: IntArray, other: IntArray) -> bool:
     ids, nearest first) are the same nodes: candidates from several passes through one place.
     Their references are then the same landmarks, and a second match would measure the scan
     against them again (the same map-frame pose, or the same failure)."""
-    return window.shape == other.shape and bool(np.array_equal(np.sort(window), np.sort(other)))
+    return bool(np.array_equal(np.sort(window), np.sort(other)))
 
 
 def _grown(a: NDArray[np.float64], size: int, fill: float) -> NDArray[np.float64]:

@@ -354,11 +354,14 @@ def test_the_map_is_identical_with_any_number_of_threads(
     # clamping and the once-per-scan rule included, in one pass and chunk by chunk.
     scans, poses = office_run.scans, office_run.true_poses
     store = ScanStore(scans)
-    bands: list[list[tuple[int, int]]] = []
+    bands: list[list[tuple[int, int]]] = []  # the bands of every traced chunk
     row_bands = grid_module._row_bands
-    monkeypatch.setattr(
-        grid_module, "_row_bands", lambda *a: bands.append(row_bands(*a)) or bands[-1]
-    )
+
+    def recorded(*args):  # type: ignore[no-untyped-def]
+        bands.append(row_bands(*args))
+        return bands[-1]
+
+    monkeypatch.setattr(grid_module, "_row_bands", recorded)
     for cfg in (GridConfig(), GridConfig(mode="binary", no_return_clear_m=3.0)):
         one = render_tiled(scans, poses, cfg.model_copy(update={"threads": 1}))
         for threads in (2, 3, 7):
