@@ -31,7 +31,6 @@ import bisect
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
-from functools import partial
 from typing import Literal
 
 import numpy as np
@@ -346,13 +345,27 @@ def pcm_chi2(
     Raises:
         numpy.linalg.LinAlgError: the summed covariance is singular.
     """
-    t_old, c_old = old_chain
-    t_new, c_new = new_chain
+    (t_old, c_old), (t_new, c_new) = old_chain, new_chain
+    return float(_cycle_chi2(a.measured, a.cov, b, t_old, c_old, t_new, c_new))
+
+
+def _cycle_chi2(
+    z_a: FloatArray,
+    cov_a: FloatArray,
+    b: LoopClosure,
+    t_old: FloatArray,
+    c_old: FloatArray,
+    t_new: FloatArray,
+    c_new: FloatArray,
+) -> FloatArray:
+    """:func:`pcm_chi2` of closures ``a`` (measurements ``z_a`` ``(..., 3)``, covariances
+    ``cov_a`` ``(..., 3, 3)``) with one closure ``b``, and their chains (``(..., 3)`` poses,
+    ``(..., 3, 3)`` covariances): ``d2`` ``(...)``."""
     ad_b = se2.adjoint(se2.inverse(b.measured))
     ad_new = se2.adjoint(se2.inverse(t_new))
-    cov = ad_b @ c_old @ ad_b.T + b.cov + ad_new @ a.cov @ ad_new.T + c_new
-    error = se2.between(se2.compose(a.measured, t_new), se2.compose(t_old, b.measured))
-    return float(error @ np.linalg.solve(cov, error))
+    cov = ad_b @ c_old @ ad_b.T + b.cov + ad_new @ cov_a @ np.swapaxes(ad_new, -1, -2) + c_new
+    error = se2.between(se2.compose(z_a, t_new), se2.compose(t_old, b.measured))
+    return np.einsum("...i,...i->...", error, np.linalg.solve(cov, error[..., None])[..., 0])
 
 
 def chain_covariance(poses: FloatArray, step_covs: ArrayLike) -> FloatArray:
@@ -426,13 +439,13 @@ def odometry_bias_covariance(
 def _adjoints_to_last(poses: FloatArray) -> FloatArray:
     """``(n - 1, 3, 3)`` adjoints ``Ad(M_k)``, ``M_k = X_last⁻¹ ∘ X_{k+1}``: they carry a
     perturbation of step ``k`` (tangent at its later node) to the tangent at the last node."""
-    m = se2.between(poses[-1], poses[1:])
-    c, s = np.cos(m[:, 2]), np.sin(m[:, 2])
-    ad = np.zeros((m.shape[0], 3, 3))
-    ad[:, 0, 0], ad[:, 0, 1], ad[:, 0, 2] = c, -s, m[:, 1]
-    ad[:, 1, 0], ad[:, 1, 1], ad[:, 1, 2] = s, c, -m[:, 0]
-    ad[:, 2, 2] = 1.0
-    return ad
+    return _adjoints(poses[-1], poses[1:])
+
+
+def _adjoints(frame: FloatArray, poses: FloatArray) -> FloatArray:
+    """``(n, 3, 3)`` adjoints of ``frame⁻¹ ∘ poses[i]`` (``frame`` ``(3,)``, ``poses``
+    ``(n, 3)``): they carry a tangent vector at ``poses[i]`` to the tangent at ``frame``."""
+    return se2.adjoint(se2.between(frame, poses))
 
 
 class _Poses:
@@ -1026,30 +1039,47 @@ class LoopCloser:
         is missing or beyond the first-order regime vetoes nothing. Ruled-out closures are
         not held for agreement.
         """
-        window = self.config.global_window_nodes
-        for a in self._accepted:
-            if (
-                closure.node_to - a.node_to > window
-                or abs(closure.node_from - a.node_from) > window
-            ):
+        lc = self.config
+        near = [
+            a
+            for a in self._accepted
+            if closure.node_to - a.node_to <= lc.global_window_nodes
+            and abs(closure.node_from - a.node_from) <= lc.global_window_nodes
+        ]
+        if not near:
+            return False
+        ok_old, t_old, c_old = self._relatives_to(
+            np.array([a.node_from for a in near]), closure.node_from, poses
+        )
+        ok_new, t_new, c_new = self._relatives_to(
+            np.array([a.node_to for a in near]), closure.node_to, poses
+        )
+        # a step without a sequential factor: no chain, no veto
+        ok = ok_old & ok_new
+        d2 = np.zeros(len(near))
+        d2[ok] = _cycle_chi2(
+            np.array([a.measured for a in near])[ok],
+            np.array([a.cov for a in near])[ok],
+            closure,
+            t_old[ok],
+            c_old[ok],
+            t_new[ok],
+            c_new[ok],
+        )
+        for i in np.flatnonzero(d2 > lc.consistency_chi2).tolist():
+            # the smaller cycle chi2 of the two chains decides: the odometry's is only
+            # read when the estimates' is beyond the gate
+            a = near[i]
+            old = self._odometry_relative(a.node_from, closure.node_from)
+            new = self._odometry_relative(a.node_to, closure.node_to)
+            if old is None or new is None:
                 continue
-            # the smaller cycle chi2 of the two chains decides: the second chain is only
-            # read when the first one's is beyond the gate
-            d2 = np.inf
-            for relative in (partial(self._relative, poses=poses), self._odometry_relative):
-                old = relative(a.node_from, closure.node_from)
-                new = relative(a.node_to, closure.node_to)
-                if old is None or new is None:
-                    d2 = 0.0
-                    break
-                d2 = min(d2, pcm_chi2(a, closure, old, new))
-                if d2 <= self.config.consistency_chi2:
-                    break
-            if d2 > self.config.consistency_chi2:
+            chi2 = min(d2[i], pcm_chi2(a, closure, old, new))
+            if chi2 > lc.consistency_chi2:
                 self.stats.rejected_accepted += 1
                 logger.debug(
                     "loop closure %d->%d ruled out by the accepted %d->%d: cycle chi2 %.1f",
-                    *(*_ends(closure), *_ends(a), d2),
+                    *(*_ends(closure), *_ends(a), chi2),
                 )
                 return True
         return False
@@ -1117,13 +1147,55 @@ class LoopCloser:
     def _relative(self, u: int, v: int, poses: _Poses) -> tuple[FloatArray, FloatArray] | None:
         """Pose of node ``v`` in the frame of node ``u`` (estimates) and its dead-reckoning
         covariance along the sequential factors, tangent at ``v``; ``None`` if a step has no
-        sequential factor."""
-        lo, hi = min(u, v), max(u, v)
-        info = self._step_info[lo:hi]
-        if hi > self._step_info.shape[0] or not info.any(axis=(1, 2)).all():
-            return None
-        cov = chain_covariance(poses[lo : hi + 1], np.linalg.inv(info))
-        return _seen_from(se2.between(poses[lo], poses[hi]), cov, u <= v)
+        sequential factor (:meth:`_relatives_to` of one node)."""
+        ok, t, cov = self._relatives_to(np.array([u]), v, poses)
+        return (t[0], cov[0]) if ok[0] else None
+
+    def _relatives_to(
+        self, us: IntArray, v: int, poses: _Poses
+    ) -> tuple[NDArray[np.bool_], FloatArray, FloatArray]:
+        """:meth:`_relative` from each of several nodes to one node, in one pass.
+
+        :func:`chain_covariance` of the chain between ``u`` and ``v``, seen from ``v``
+        (through :func:`_seen_from` when ``u > v``), is ``Σ_k Ad(X_v⁻¹ X_{k+1}) Σ_k
+        Ad(X_v⁻¹ X_{k+1})ᵀ`` over the steps ``k -> k+1`` between them, on either side of
+        ``v``: the terms are computed once, and each node's covariance is their cumulative
+        sum outwards from ``v``.
+
+        Args:
+            us: ``(m,)`` node ids.
+            v: The common node.
+            poses: The search's estimates.
+
+        Returns:
+            ``ok`` ``(m,)`` bool: every step between ``us[i]`` and ``v`` has a sequential
+            factor; ``t`` ``(m, 3)``: the pose of ``v`` in the frame of ``us[i]``; ``cov``
+            ``(m, 3, 3)``: its covariance, tangent at ``v`` (m², rad²). Rows where ``ok``
+            is False are undefined.
+        """
+        us = np.asarray(us, dtype=np.int64)
+        lo, hi = min(int(us.min()), v), max(int(us.max()), v)
+        x = poses[lo : hi + 1]
+        info = np.zeros((hi - lo, 3, 3))
+        known = max(0, min(hi, self._step_info.shape[0]) - lo)
+        info[:known] = self._step_info[lo : lo + known]
+        valid = np.asarray(info.any(axis=(1, 2)))
+        gaps = np.asarray(~valid, dtype=np.int64)
+        step_cov = np.zeros_like(info)
+        step_cov[valid] = np.linalg.inv(info[valid])
+        ad = _adjoints(x[v - lo], x[1:])
+        terms = np.einsum("kij,kjl,kml->kim", ad, step_cov, ad)
+        # row j of each side: the steps from v out to j + 1 steps away
+        before = np.cumsum(terms[: v - lo][::-1], axis=0)
+        after = np.cumsum(terms[v - lo :], axis=0)
+        gaps_before = np.cumsum(gaps[: v - lo][::-1])
+        gaps_after = np.cumsum(gaps[v - lo :])
+        cov = np.zeros((us.shape[0], 3, 3))
+        ok = np.ones(us.shape[0], dtype=bool)
+        below, above = us < v, us > v
+        cov[below], ok[below] = before[v - 1 - us[below]], gaps_before[v - 1 - us[below]] == 0
+        cov[above], ok[above] = after[us[above] - 1 - v], gaps_after[us[above] - 1 - v] == 0
+        return ok, se2.between(x[us - lo], x[v - lo]), cov
 
     # ------------------------------------------------------------------ bookkeeping
 

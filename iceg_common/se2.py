@@ -79,11 +79,16 @@ def rotation_matrix(theta_rad: ArrayLike) -> FloatArray:
 
 
 def adjoint(pose: ArrayLike) -> FloatArray:
-    """Adjoint ``(3, 3)`` of a pose, mapping a tangent vector ``(x, y, theta)`` in the
-    pose's own frame to the parent frame: ``Ad = [[R, [y, -x]^T], [0, 0, 1]]``.
+    """Adjoint ``(..., 3, 3)`` of poses ``(..., 3)``, mapping a tangent vector
+    ``(x, y, theta)`` in the pose's own frame to the parent frame:
+    ``Ad = [[R, [y, -x]^T], [0, 0, 1]]``.
 
     Used to move a covariance between frames: ``cov_parent = Ad cov_child Ad^T``.
     """
-    x, y, t = np.asarray(pose, dtype=np.float64)
-    c, s = np.cos(t), np.sin(t)
-    return np.array([[c, -s, y], [s, c, -x], [0.0, 0.0, 1.0]])
+    p = np.asarray(pose, dtype=np.float64)
+    c, s = np.cos(p[..., 2]), np.sin(p[..., 2])
+    out = np.zeros((*p.shape[:-1], 3, 3))
+    out[..., 0, 0], out[..., 0, 1], out[..., 0, 2] = c, -s, p[..., 1]
+    out[..., 1, 0], out[..., 1, 1], out[..., 1, 2] = s, c, -p[..., 0]
+    out[..., 2, 2] = 1.0
+    return out

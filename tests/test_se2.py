@@ -35,6 +35,17 @@ def test_adjoint_matches_gtsam(a: np.ndarray) -> None:
     np.testing.assert_allclose(se2.adjoint(a), gtsam.Pose2(*a).AdjointMap(), atol=1e-12)
 
 
+def test_adjoint_of_a_batch_is_each_pose_s_adjoint() -> None:
+    rng = np.random.default_rng(2)
+    batch = np.column_stack([rng.normal(0, 20, (4, 5, 2)).reshape(-1, 2), rng.normal(0, 2, 20)])
+    batch = batch.reshape(4, 5, 3)
+    got = se2.adjoint(batch)
+    assert got.shape == (4, 5, 3, 3)
+    for i, j in np.ndindex(4, 5):
+        expected = gtsam.Pose2(*batch[i, j]).AdjointMap()
+        np.testing.assert_allclose(got[i, j], expected, atol=1e-12)
+
+
 def test_wrap_angle_hand_values() -> None:
     np.testing.assert_allclose(
         se2.wrap_angle([np.pi, 3 * np.pi / 2, -np.pi]), [-np.pi, -np.pi / 2, -np.pi]

@@ -284,6 +284,45 @@ def test_chain_covariance_equals_the_step_by_step_recursion() -> None:
     np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
 
 
+def test_chains_to_one_node_equal_each_chain_alone() -> None:
+    # LoopCloser._relatives_to sums each step's term once, outwards from the common node,
+    # for nodes on both sides of it; each chain alone is chain_covariance of the steps
+    # between the two nodes, tangent at the later one, then seen from v (Ad(t) C Ad(t)^T
+    # when v is the earlier). A step without a sequential factor breaks every chain across
+    # it, and nodes beyond the last step have no chain.
+    from iceg.feature_map import FeatureMap
+    from iceg.matching import IceMatcher
+
+    rng = np.random.default_rng(11)
+    n = 120
+    steps = np.column_stack(
+        [rng.uniform(0.0, 0.8, n - 1), rng.normal(0.0, 0.1, n - 1), rng.normal(0.0, 0.2, n - 1)]
+    )
+    poses = se2.accumulate(steps) + np.array([40.0, -25.0, 0.0])
+    a = rng.normal(size=(n - 1, 3, 3))
+    info = np.einsum("kij,klj->kil", a, a) * 1e4 + np.eye(3)
+    info[17] = 0.0  # a gap: no sequential factor 17 -> 18
+    closer = LoopCloser(LoopClosureConfig(), IceMatcher(), FeatureMap())
+    closer._step_info = info[: n - 6]  # steps 114 -> 115 and on are not known yet
+    us = np.array([0, 10, 17, 18, 25, 60, 61, 62, 80, 113, 114, 119])
+    v = 61
+    ok, t, cov = closer._relatives_to(us, v, poses)
+    for i, u in enumerate(us.tolist()):
+        lo, hi = min(u, v), max(u, v)
+        assert ok[i] == (not lo <= 17 < hi and hi <= n - 6), u
+        if not ok[i]:
+            continue
+        chain = chain_covariance(poses[lo : hi + 1], np.linalg.inv(info[lo:hi]))
+        pose = se2.between(poses[lo], poses[hi])
+        if u > v:
+            ad = se2.adjoint(pose)
+            pose, chain = se2.inverse(pose), ad @ chain @ ad.T
+        np.testing.assert_allclose(t[i], pose, atol=1e-12)
+        np.testing.assert_allclose(cov[i], chain, rtol=1e-10, atol=1e-12 * np.abs(chain).max())
+        assert closer._relative(u, v, poses) is not None
+    assert closer._relative(17, v, poses) is None
+
+
 def test_odometry_bias_covariance_by_hand_and_by_finite_differences() -> None:
     # Two 1 m steps along x: a scale error s moves the end by (2 s, 0, 0); a heading drift d
     # turns each step by d, so the end is at (1 + cos d, sin d, 2 d) ~ (2, d, 2 d): (0, d, 2 d)
