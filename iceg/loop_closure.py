@@ -391,7 +391,7 @@ def chain_covariance(poses: FloatArray, step_covs: ArrayLike) -> FloatArray:
     covs = np.asarray(step_covs, dtype=np.float64).reshape(-1, 3, 3)
     if covs.shape[0] == 0:
         return np.zeros((3, 3))
-    ad = _adjoints_to_last(poses)
+    ad = _adjoints(poses[-1], poses[1:])
     return np.einsum("kij,kjl,kml->im", ad, covs, ad)
 
 
@@ -423,7 +423,7 @@ def odometry_bias_covariance(
     """
     if poses.shape[0] < 2:
         return np.zeros((3, 3))
-    ad = _adjoints_to_last(poses)
+    ad = _adjoints(poses[-1], poses[1:])
     steps = se2.between(poses[:-1], poses[1:])
     c, s = np.cos(steps[:, 2]), np.sin(steps[:, 2])
     xi_scale = np.stack(
@@ -436,15 +436,12 @@ def odometry_bias_covariance(
     )
 
 
-def _adjoints_to_last(poses: FloatArray) -> FloatArray:
-    """``(n - 1, 3, 3)`` adjoints ``Ad(M_k)``, ``M_k = X_last⁻¹ ∘ X_{k+1}``: they carry a
-    perturbation of step ``k`` (tangent at its later node) to the tangent at the last node."""
-    return _adjoints(poses[-1], poses[1:])
-
-
 def _adjoints(frame: FloatArray, poses: FloatArray) -> FloatArray:
     """``(n, 3, 3)`` adjoints of ``frame⁻¹ ∘ poses[i]`` (``frame`` ``(3,)``, ``poses``
-    ``(n, 3)``): they carry a tangent vector at ``poses[i]`` to the tangent at ``frame``."""
+    ``(n, 3)``): they carry a tangent vector at ``poses[i]`` to the tangent at ``frame``. With
+    ``frame`` the last node of a chain and ``poses`` its nodes after the first, ``Ad(M_k)``,
+    ``M_k = X_last⁻¹ ∘ X_{k+1}``, carries a perturbation of step ``k`` (tangent at its later
+    node) to the tangent at the last node."""
     return se2.adjoint(se2.between(frame, poses))
 
 
