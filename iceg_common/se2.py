@@ -7,6 +7,8 @@ wrapped to ``[-pi, pi)``.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -19,8 +21,27 @@ def wrap_angle(theta_rad: ArrayLike) -> FloatArray:
     return (t + np.pi) % (2.0 * np.pi) - np.pi
 
 
+def _one_pose(a: object) -> bool:
+    """Whether ``a`` is a single finite-heading ``(3,)`` float64 pose: the scalar path below
+    serves it with ``math`` (libm's sin and cos, Python's float modulo: the same values as the
+    numpy expressions, bit for bit, at a tenth of the call cost; ``math`` raises on an
+    infinite angle where numpy gives NaN, so those take the numpy path)."""
+    return (
+        type(a) is np.ndarray and a.shape == (3,) and a.dtype == np.float64 and math.isfinite(a[2])
+    )
+
+
+def _wrap(t: float) -> float:
+    return (t + math.pi) % (2.0 * math.pi) - math.pi
+
+
 def compose(a: ArrayLike, b: ArrayLike) -> FloatArray:
     """``a ∘ b`` for poses of shape ``(..., 3)`` (broadcasting); returns ``(..., 3)``."""
+    if _one_pose(a) and _one_pose(b):
+        ax, ay, at = a.tolist()  # type: ignore[union-attr]
+        bx, by, bt = b.tolist()  # type: ignore[union-attr]
+        c, s = math.cos(at), math.sin(at)
+        return np.array([ax + c * bx - s * by, ay + s * bx + c * by, _wrap(at + bt)])
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
@@ -31,6 +52,10 @@ def compose(a: ArrayLike, b: ArrayLike) -> FloatArray:
 
 def inverse(a: ArrayLike) -> FloatArray:
     """Inverse pose ``a^-1`` for shape ``(..., 3)``."""
+    if _one_pose(a):
+        x, y, t = a.tolist()  # type: ignore[union-attr]
+        c, s = math.cos(t), math.sin(t)
+        return np.array([-(c * x + s * y), -(-s * x + c * y), _wrap(-t)])
     a = np.asarray(a, dtype=np.float64)
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
     x = -(c * a[..., 0] + s * a[..., 1])
