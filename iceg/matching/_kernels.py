@@ -1,7 +1,8 @@
 """Compiled kernels of the matcher (numba): the Gauss-Newton loop of the refinement with its
 normal equations (point-to-line GLS rows, feature-pair rows, off-segment PL-ICP rows), the
-correlation's feature pairing, the covariance lattice cost, the free-space ray check, the
-prediction start's kernel density and the gridded point query of the contradiction test.
+correlation's feature pairing, visibility count and terms, the covariance lattice cost, the
+free-space ray check, the prediction start's kernel density and the gridded point query of
+the contradiction test.
 
 numpy builds (points x segments) temporaries and spends most of its time in call overhead
 for scans of a few hundred points; these loops do the arithmetic without temporaries.
@@ -751,6 +752,184 @@ def pair_nearest(
                 dist[h, i] = np.nan
                 angle[h, i] = np.nan
     return match, dist, angle
+
+
+#: numpy's pairwise summation: blocks up to this long are summed with eight accumulators.
+_PW_BLOCKSIZE = 128
+
+
+@njit(cache=True, nogil=True)
+def _block_sum(a: np.ndarray, lo: int, n: int) -> float:
+    """numpy's sum of a block of at most :data:`_PW_BLOCKSIZE` terms (see
+    :func:`pairwise_sum`)."""
+    if n < 8:
+        res = -0.0
+        for i in range(lo, lo + n):
+            res += a[i]
+        return res
+    r = a[lo : lo + 8].copy()
+    i = 8
+    while i < n - n % 8:
+        for k in range(8):
+            r[k] += a[lo + i + k]
+        i += 8
+    res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+    while i < n:
+        res += a[lo + i]
+        i += 1
+    return res
+
+
+@njit(cache=True, nogil=True)
+def pairwise_sum(a: np.ndarray, lo: int, n: int) -> float:
+    """Sum of ``a[lo:lo + n]`` (float64) in the order numpy's ``add.reduce`` takes along a
+    contiguous axis (``pairwise_sum`` in numpy's ``loops_utils.h.src``: under 8 terms one
+    by one from -0.0, up to 128 in eight interleaved partial sums, beyond that the sum of
+    the two halves, the first a multiple of 8 long), so a kernel's sum has the bits of
+    ``np.sum`` over the same values. The halving runs on an explicit stack: numba's cache
+    cannot load a recursive function (the process crashes)."""
+    if n <= _PW_BLOCKSIZE:
+        return _block_sum(a, lo, n)
+    todo_lo = np.empty(192, dtype=np.int64)  # 64 halvings at most, three entries each
+    todo_n = np.empty(192, dtype=np.int64)
+    todo_join = np.empty(192, dtype=np.bool_)
+    sums = np.empty(192)
+    top, n_sums = 1, 0
+    todo_lo[0], todo_n[0], todo_join[0] = lo, n, False
+    while top:
+        top -= 1
+        at, m = todo_lo[top], todo_n[top]
+        if todo_join[top]:  # both halves summed: left + right
+            sums[n_sums - 2] = sums[n_sums - 2] + sums[n_sums - 1]
+            n_sums -= 1
+        elif m <= _PW_BLOCKSIZE:
+            sums[n_sums] = _block_sum(a, at, m)
+            n_sums += 1
+        else:
+            half = m // 2
+            half -= half % 8
+            todo_lo[top], todo_n[top], todo_join[top] = at, m, True
+            todo_lo[top + 1], todo_n[top + 1], todo_join[top + 1] = at + half, m - half, False
+            todo_lo[top + 2], todo_n[top + 2], todo_join[top + 2] = at, half, False
+            top += 3
+    return sums[0]
+
+
+@njit(cache=True, nogil=True)
+def visible_counts(
+    poses: np.ndarray,
+    ref_xy: np.ndarray,
+    bearing: np.ndarray,
+    ranges: np.ndarray,
+    spacing: float,
+    max_gap_rad: float,
+    range_max_m: float,
+    occlusion_tolerance_m: float,
+) -> np.ndarray:
+    """How many reference features the new scan could see from each pose (the count term of
+    ``correlation.correlate``): inside the new scan's field of view (its first and last
+    bearings widened by ``spacing``) and range, and not occluded (the return nearest in
+    bearing, when within ``max_gap_rad``, is not shorter than the feature's distance minus
+    the tolerance).
+
+    Args:
+        poses: ``(H, 3)`` float64 poses of the new scan in the reference frame.
+        ref_xy: ``(K, 2)`` float64 reference features, reference frame, metres.
+        bearing, ranges: ``(B,)`` float64 the new scan's polar profile, bearings ascending
+            (``geometry.PolarProfile``), ``B >= 1``.
+
+    Returns:
+        ``(H,)`` int64 counts.
+    """
+    n_b = bearing.shape[0]
+    lo = bearing[0] - spacing
+    hi = bearing[n_b - 1] + spacing
+    out = np.zeros(poses.shape[0], dtype=np.int64)
+    for h in range(poses.shape[0]):
+        c = math.cos(poses[h, 2])
+        s = math.sin(poses[h, 2])
+        for k in range(ref_xy.shape[0]):
+            rx = ref_xy[k, 0] - poses[h, 0]
+            ry = ref_xy[k, 1] - poses[h, 1]
+            lx = c * rx + s * ry
+            ly = -s * rx + c * ry
+            b = math.atan2(ly, lx)
+            d = math.hypot(lx, ly)
+            if not (b >= lo and b <= hi and d < range_max_m):
+                continue
+            q = np.searchsorted(bearing, b)
+            k0 = max(q - 1, 0)
+            k1 = min(q, n_b - 1)
+            d0 = abs(b - bearing[k0])
+            d1 = abs(bearing[k1] - b)
+            nearest, gap = (k0, d0) if d0 <= d1 else (k1, d1)
+            if gap <= max_gap_rad and ranges[nearest] < d - occlusion_tolerance_m:
+                continue  # occluded
+            out[h] += 1
+    return out
+
+
+@njit(cache=True, nogil=True)
+def correlation_terms(
+    match: np.ndarray,
+    dist: np.ndarray,
+    angle: np.ndarray,
+    new_importance: np.ndarray,
+    ref_importance: np.ndarray,
+    n_visible: np.ndarray,
+    gate_distance_m: float,
+    gate_angle_rad: float,
+    weights: tuple[float, float, float, float],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The four terms of paper eq. 1 and their weighted mean from a pairing (see
+    ``correlation.correlate``; sums in numpy's order, so the values are those of the numpy
+    expressions bit for bit).
+
+    Args:
+        match, dist, angle: ``(H, K_new)`` from :func:`pair_nearest`.
+        new_importance, ref_importance: ``(K_new,)``, ``(K_ref,)`` float64 ``fImp`` of each
+            feature's distance from its frame's origin (eq. 3); ``K_new >= 1``.
+        n_visible: ``(H,)`` int64 from :func:`visible_counts`.
+        weights: ``(w_dis, w_ang, w_count, w_acc)``.
+
+    Returns:
+        ``(score, dis, ang, count, acc)`` ``(H,)`` float64 and ``n_matched`` ``(H,)`` int64.
+    """
+    h_n, kn = match.shape
+    wd, wa, wc, wacc = weights
+    w_total = wd + wa + wc + wacc
+    sq = new_importance * new_importance
+    all_new = pairwise_sum(sq, 0, kn)
+    w = np.empty(kn)
+    wdis = np.empty(kn)
+    wang = np.empty(kn)
+    score = np.empty(h_n)
+    dis = np.zeros(h_n)
+    ang = np.zeros(h_n)
+    count = np.empty(h_n)
+    acc = np.empty(h_n)
+    n_matched = np.zeros(h_n, dtype=np.int64)
+    for h in range(h_n):
+        for i in range(kn):
+            j = match[h, i]
+            if j >= 0:
+                w[i] = new_importance[i] * ref_importance[j]
+                wdis[i] = w[i] * (1.0 - dist[h, i] / gate_distance_m)
+                wang[i] = w[i] * (1.0 - angle[h, i] / gate_angle_rad)
+                n_matched[h] += 1
+            else:
+                w[i] = 0.0
+                wdis[i] = 0.0
+                wang[i] = 0.0
+        sw = pairwise_sum(w, 0, kn)
+        if sw > 0:
+            dis[h] = pairwise_sum(wdis, 0, kn) / sw
+            ang[h] = pairwise_sum(wang, 0, kn) / sw
+        denom = max(1, min(kn, n_visible[h]))
+        count[h] = min(max(n_matched[h] / denom, 0.0), 1.0)
+        acc[h] = min(max(sw / all_new, 0.0), 1.0)
+        score[h] = (wd * dis[h] + wa * ang[h] + wc * count[h] + wacc * acc[h]) / w_total
+    return score, dis, ang, count, acc, n_matched
 
 
 @njit(cache=True, nogil=True)

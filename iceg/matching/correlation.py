@@ -9,9 +9,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from iceg.matching._kernels import pair_nearest
+from iceg.matching._kernels import correlation_terms, pair_nearest, visible_counts
 from iceg.matching.config import CorrelationConfig
-from iceg.matching.geometry import FeatureGeometry, PolarProfile, rot
+from iceg.matching.geometry import MAX_GAP_BEAMS, FeatureGeometry, PolarProfile
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -45,36 +45,6 @@ class Correlation:
     match: IntArray
     n_matched: IntArray
     n_visible: IntArray
-
-
-def visible_reference(
-    poses: FloatArray,
-    gr: FeatureGeometry,
-    profile: PolarProfile,
-    range_max_m: float,
-    occlusion_tolerance_m: float,
-) -> NDArray[np.bool_]:
-    """Which reference features the new scan could see from each hypothesised pose: inside
-    the new scan's field of view and range, and not occluded (no pair of new beams around
-    its bearing is shorter than its distance minus the tolerance). docs/design.md "Feature map and
-    time-validity"; used by the count term of eq. 1.
-
-    Returns:
-        ``(H, K_ref)`` bool.
-    """
-    h = poses.shape[0]
-    if gr.n == 0 or profile.bearing.shape[0] == 0:
-        return np.zeros((h, gr.n), dtype=bool)
-    r = rot(poses[:, 2])  # (H, 2, 2)
-    rel = gr.xy[None, :, :] - poses[:, None, :2]  # (H, K, 2)
-    local = np.einsum("hba,hkb->hka", r, rel)  # R^T rel
-    bearing = np.arctan2(local[..., 1], local[..., 0])
-    dist = np.hypot(local[..., 0], local[..., 1])
-    lo = profile.bearing[0] - profile.spacing
-    hi = profile.bearing[-1] + profile.spacing
-    rng = profile.lookup(bearing)
-    occluded = rng < dist - occlusion_tolerance_m  # NaN -> False
-    return (bearing >= lo) & (bearing <= hi) & (dist < range_max_m) & ~occluded
 
 
 @dataclass(frozen=True)
@@ -186,13 +156,22 @@ def correlate(
         A :class:`Correlation`.
     """
     h = poses.shape[0]
-    if pairing_only:
+    if pairing_only or gr.n == 0 or profile.bearing.shape[0] == 0:
         n_visible = np.zeros(h, dtype=np.int64)
     else:
-        visible = visible_reference(
-            poses, gr, profile, settings.range_max_m, settings.occlusion_tolerance_m
+        # Visible: inside the new scan's field of view and range and not occluded (no
+        # return near its bearing shorter than its distance minus the tolerance);
+        # docs/design.md "Feature map and time-validity".
+        n_visible = visible_counts(
+            poses,
+            gr.xy,
+            profile.bearing,
+            profile.range,
+            profile.spacing,
+            MAX_GAP_BEAMS * profile.spacing,
+            settings.range_max_m,
+            settings.occlusion_tolerance_m,
         )
-        n_visible = visible.sum(axis=1).astype(np.int64)
     if gn.n == 0 or gr.n == 0:
         return _empty(h, gn.n, n_visible)
     match, dbest, a_best = pair_features(poses, gn, gr, codes, settings)
@@ -215,25 +194,13 @@ def _eq1(
     settings: CorrelationSettings,
 ) -> Correlation:
     """The four terms of eq. 1 and their weighted mean from the pairing (see
-    :func:`correlate`)."""
+    :func:`correlate`; :func:`~iceg.matching._kernels.correlation_terms`)."""
     st = settings
-    matched = match >= 0
-    j = np.where(matched, match, 0)
     fn = fimp(gn.dist, st.fimp_near, st.fimp_far, st.fimp_range_m)  # (Kn,)
     fr = fimp(gr.dist, st.fimp_near, st.fimp_far, st.fimp_range_m)  # (Kr,)
-    w = np.where(matched, fn[None, :] * fr[j], 0.0)
-    sw = w.sum(axis=1)
-    safe = np.where(sw > 0, sw, 1.0)
-    d_term = np.where(matched, 1.0 - np.where(matched, dbest, 0.0) / st.gate_distance_m, 0.0)
-    a_term = np.where(matched, 1.0 - np.where(matched, a_best, 0.0) / st.gate_angle_rad, 0.0)
-    dis = np.where(sw > 0, (w * d_term).sum(axis=1) / safe, 0.0)
-    ang = np.where(sw > 0, (w * a_term).sum(axis=1) / safe, 0.0)
-    n_matched = matched.sum(axis=1).astype(np.int64)
-    denom = np.maximum(1, np.minimum(gn.n, n_visible))
-    count = np.clip(n_matched / denom, 0.0, 1.0)
-    acc = np.clip(sw / np.sum(fn * fn), 0.0, 1.0)
-    wd, wa, wc, wacc = st.weights
-    score = (wd * dis + wa * ang + wc * count + wacc * acc) / (wd + wa + wc + wacc)
+    score, dis, ang, count, acc, n_matched = correlation_terms(
+        match, dbest, a_best, fn, fr, n_visible, st.gate_distance_m, st.gate_angle_rad, st.weights
+    )
     return Correlation(score, dis, ang, count, acc, match, n_matched, n_visible)
 
 

@@ -39,11 +39,12 @@ from iceg.matching._kernels import (
     cloud_nearest,
     nearest_walls,
     no_segment_grid,
+    pairwise_sum,
     point_line_system,
     segment_grid,
 )
 from iceg.matching.config import CovarianceConfig
-from iceg.matching.correlation import CorrelationSettings, correlate, fimp
+from iceg.matching.correlation import CorrelationSettings, correlate, fimp, pair_features
 from iceg.matching.geometry import (
     EOW,
     PolarProfile,
@@ -326,6 +327,90 @@ def test_correlation_of_an_exact_alignment() -> None:
     off = kw((truth + np.array([1.0, 0, 0]))[None], gn, gr, codes, prof)
     assert off.n_matched[0] == 0
     assert off.score[0] == pytest.approx(0.0)
+
+
+def _numpy_correlation(
+    poses: np.ndarray, gn, gr, match, dbest, a_best, prof: PolarProfile, s: CorrelationSettings
+) -> tuple[np.ndarray, ...]:
+    """Paper eq. 1-3 (docs/design.md step 7) written as numpy expressions over (H, K)
+    arrays: the reference the compiled correlation must equal bit for bit."""
+    c, si = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    r = np.stack([np.stack([c, -si], -1), np.stack([si, c], -1)], -2)  # (H, 2, 2)
+    local = np.einsum("hba,hkb->hka", r, gr.xy[None] - poses[:, None, :2])
+    bearing = np.arctan2(local[..., 1], local[..., 0])
+    dist = np.hypot(local[..., 0], local[..., 1])
+    rng = prof.lookup(bearing)
+    visible = (
+        (bearing >= prof.bearing[0] - prof.spacing)
+        & (bearing <= prof.bearing[-1] + prof.spacing)
+        & (dist < s.range_max_m)
+        & ~(rng < dist - s.occlusion_tolerance_m)
+    )
+    n_visible = visible.sum(axis=1)
+    matched = match >= 0
+    fn = fimp(gn.dist, s.fimp_near, s.fimp_far, s.fimp_range_m)
+    fr = fimp(gr.dist, s.fimp_near, s.fimp_far, s.fimp_range_m)
+    w = np.where(matched, fn[None, :] * fr[np.where(matched, match, 0)], 0.0)
+    sw = w.sum(axis=1)
+    safe = np.where(sw > 0, sw, 1.0)
+    d_term = np.where(matched, 1.0 - np.where(matched, dbest, 0.0) / s.gate_distance_m, 0.0)
+    a_term = np.where(matched, 1.0 - np.where(matched, a_best, 0.0) / s.gate_angle_rad, 0.0)
+    dis = np.where(sw > 0, (w * d_term).sum(axis=1) / safe, 0.0)
+    ang = np.where(sw > 0, (w * a_term).sum(axis=1) / safe, 0.0)
+    n_matched = matched.sum(axis=1)
+    count = np.clip(n_matched / np.maximum(1, np.minimum(gn.n, n_visible)), 0.0, 1.0)
+    acc = np.clip(sw / np.sum(fn * fn), 0.0, 1.0)
+    wd, wa, wc, wacc = s.weights
+    score = (wd * dis + wa * ang + wc * count + wacc * acc) / (wd + wa + wc + wacc)
+    return score, dis, ang, count, acc, n_matched, n_visible
+
+
+@pytest.mark.parametrize("n_new", [5, 40, 150])
+def test_correlation_equals_the_numpy_expressions_bit_for_bit(n_new: int) -> None:
+    # Random features in a 20 m square around the scanner, a reference made of the same
+    # features moved by a pose plus clutter, a scan profile of points on a ring with gaps;
+    # hypotheses around the truth. 150 new features take numpy's recursive summation path.
+    rng = np.random.default_rng(n_new)
+    kinds = rng.choice([FeatureKind.CORNER, FeatureKind.EOW, FeatureKind.INTERSECTION], n_new)
+    xy = rng.uniform(-10, 10, (n_new, 2))
+    d0 = rng.uniform(-np.pi, np.pi, n_new)
+    d1 = d0 + rng.uniform(0.5, 2.5, n_new)
+    dirs = np.stack(
+        [np.stack([np.cos(d0), np.sin(d0)], -1), np.stack([np.cos(d1), np.sin(d1)], -1)], 1
+    )
+    dirs[kinds == FeatureKind.EOW, 1] = np.nan
+    dirs[kinds == FeatureKind.INTERSECTION] = np.nan
+    new = point_features(kinds.tolist(), xy.tolist(), dirs.tolist())
+    truth = np.array([0.4, -0.3, 0.2])
+    ref = transform_features(new, truth)
+    gn, gr = feature_geometry(new), feature_geometry(ref)
+    codes = pair_codes(gn, gr, True, math.radians(12))
+    bearing = np.linspace(-2.0, 2.0, 400)
+    ranges = rng.uniform(2.0, 15.0, 400)
+    keep = rng.uniform(0, 1, 400) > 0.1  # gaps of missing returns
+    pts = np.column_stack([np.cos(bearing), np.sin(bearing)])[keep] * ranges[keep, None]
+    prof = PolarProfile.from_points(pts, 20.0)
+    settings = CorrelationSettings(
+        0.4, math.radians(15), 0.65, 0.1, 20.0, 20.0, 0.25, (0.4, 0.2, 0.2, 0.6)
+    )
+    poses = truth + np.column_stack([rng.normal(0, 0.15, (30, 2)), rng.normal(0, 0.05, 30)])
+    got = correlate(poses, gn, gr, codes, prof, settings)
+    assert got.n_matched.max() > 0 and got.n_visible.max() > 0
+    assert (got.n_visible < gr.n).any()  # some features hidden or outside the view
+    match, dist, angle = pair_features(poses, gn, gr, codes, settings)
+    want = _numpy_correlation(poses, gn, gr, match, dist, angle, prof, settings)
+    have = (got.score, got.dis, got.ang, got.count, got.acc, got.n_matched, got.n_visible)
+    for a, b in zip(have, want, strict=True):
+        assert np.array_equal(a, b)
+
+
+def test_pairwise_sum_is_numpy_s_summation_order() -> None:
+    rng = np.random.default_rng(4)
+    for n in [*range(0, 40), 127, 128, 129, 300, 1000]:
+        x = rng.normal(0, 1, n) * 10.0 ** rng.uniform(-6, 6, n)
+        assert pairwise_sum(x, 0, n) == np.sum(x)
+        if n > 3:
+            assert pairwise_sum(x, 2, n - 3) == np.sum(x[2:-1])
 
 
 @settings(max_examples=50, deadline=None)
