@@ -32,6 +32,7 @@ from iceg.matching import transform_lines
 from iceg.matching.geometry import PolarProfile
 from iceg.matching.matcher import walls_seen_through
 from iceg.types import FeatureKind, MatchResult, ScanFeatures
+from iceg.visibility import expected_landmarks
 from iceg_common.errors import FeatureMapError
 from iceg_common.se2 import between, compose, inverse, rotation_matrix
 
@@ -573,23 +574,6 @@ class _BeamProfile:
         else:
             spacing = _FALLBACK_SPACING_RAD
         return cls(b, r, spacing, None)
-
-    def to_sensor(self, pts: FloatArray) -> FloatArray:
-        """Robot-frame points ``(..., 2)`` in the frame the bearings are measured in."""
-        if self.sensor_pose is None:
-            return pts
-        off = self.sensor_pose
-        return np.einsum("ba,nkb->nka", rotation_matrix(off[2]), pts - off[:2])
-
-    def clear(self, bearing: FloatArray, dist: FloatArray, tolerance_m: float) -> BoolArray:
-        """Whether both beams around each ``bearing`` reach at least ``dist - tolerance_m``
-        (no occluder in front) with no gap of missing beams between them."""
-        nb = self.bearing.shape[0]
-        k = np.clip(np.searchsorted(self.bearing, bearing), 1, nb - 1)
-        gap = (self.bearing[k] - self.bearing[k - 1]) > _MAX_GAP_BEAMS * self.spacing_rad
-        with np.errstate(invalid="ignore"):
-            reach = np.fmin(self.range_m[k - 1], self.range_m[k]) >= dist - tolerance_m
-        return reach & ~gap
 
 
 @dataclass(frozen=True, eq=False)
@@ -1352,44 +1336,25 @@ class FeatureMap:
         )
         if profile.bearing.shape[0] == 0:
             return np.zeros(n, dtype=bool)
-        r = rotation_matrix(anchor_in_new[:, 2])
-        t = anchor_in_new[:, :2]
-        visible = self._in_view(_move_points(r, t, lm.support[rows]), profile)
-        wp = _move_points(r, t, lm.wall_p[rows])
-        wd = np.einsum("nab,nkb->nka", r, lm.wall_d[rows])
-        return visible & self._walls_seen(rows, wp, wd)
-
-    def _in_view(self, sup: FloatArray, profile: _BeamProfile) -> BoolArray:
-        """Whether every support point ``(n, 3, 2)`` (robot frame; NaN: none) is inside the
-        field of view and ``expected_max_range_m`` and not occluded."""
         cfg = self.config
-        has = np.all(np.isfinite(sup), axis=2)  # (n, 3)
-        pts = profile.to_sensor(sup)
-        bearing = np.arctan2(pts[..., 1], pts[..., 0])
-        dist = np.hypot(pts[..., 0], pts[..., 1])
-        margin = math.radians(cfg.fov_margin_deg)
-        lo, hi = profile.bearing[0], profile.bearing[-1]
-        in_fov = (bearing >= lo + margin) & (bearing <= hi - margin)
-        in_range = dist <= cfg.expected_max_range_m
-        ok_point = in_fov & in_range & profile.clear(bearing, dist, cfg.occlusion_tolerance_m)
-        return np.all(ok_point | ~has, axis=1) & np.any(has, axis=1)
-
-    def _walls_seen(self, rows: IntArray, wp: FloatArray, wd: FloatArray) -> BoolArray:
-        """Each wall (points ``wp``, directions ``wd``, ``(n, 2, 2)`` new frame) seen from the
-        same side as before and not at grazing incidence; an Intersection needs both of its
-        walls, a Corner shows as an EOW when only one faces the sensor (paper §III-C2)."""
-        lm = self._lm
-        side = _side_of_walls(wp, wd)
-        with np.errstate(invalid="ignore"):
-            ray = wp / np.maximum(np.hypot(wp[..., 0], wp[..., 1]), _MIN_NORM)[..., None]
-            sin_inc = np.abs(ray[..., 0] * wd[..., 1] - ray[..., 1] * wd[..., 0])
-            wall_ok = (side == lm.wall_side[rows]) & (
-                sin_inc >= math.sin(math.radians(self.config.min_incidence_deg))
-            )
-        has_wall = np.isfinite(lm.wall_side[rows])
-        all_seen = np.all(wall_ok | ~has_wall, axis=1) & np.any(has_wall, axis=1)
-        any_seen = np.any(wall_ok & has_wall, axis=1)
-        return np.where(lm.kind[rows] == INTERSECTION, all_seen, any_seen)
+        return expected_landmarks(  # type: ignore[no-any-return]
+            rows,
+            anchor_in_new,
+            lm.support,
+            lm.wall_p,
+            lm.wall_d,
+            lm.wall_side,
+            lm.kind,
+            INTERSECTION,
+            profile.bearing,
+            profile.range_m,
+            _MAX_GAP_BEAMS * profile.spacing_rad,
+            profile.sensor_pose if profile.sensor_pose is not None else np.zeros(0),
+            math.radians(cfg.fov_margin_deg),
+            cfg.expected_max_range_m,
+            cfg.occlusion_tolerance_m,
+            math.sin(math.radians(cfg.min_incidence_deg)),
+        )
 
     # ------------------------------------------------------------------ pruning
     def _prune(self, stamp: float) -> IntArray:

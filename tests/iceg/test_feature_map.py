@@ -23,6 +23,7 @@ from iceg.feature_map import (
 from iceg.features import extract
 from iceg.matching import IceMatcher, MatchBounds
 from iceg.types import FeatureKind, MatchResult
+from iceg.visibility import expected_landmarks
 from iceg_common.errors import FeatureMapError
 from iceg_common.se2 import between, transform_points
 from tests.iceg.test_matching import hand_scan, point_features, room_walls
@@ -360,3 +361,76 @@ def test_dropping_rows_keeps_the_others_in_order_and_the_spare_capacity(n_drop: 
     out.append(_Points(np.array([7], dtype=np.int64), np.array([[1.5, -2.5]])))
     assert out._bufs["xy"] is buffer and len(out) == 151 - n_drop
     np.testing.assert_array_equal(out.xy[-1], [1.5, -2.5])
+
+
+def _numpy_expected(
+    rows, anchor_in_new, support, wall_p, wall_d, wall_side, kind,
+    bearing, range_m, spacing, sensor_pose, margin, max_range, tol, sin_min,
+):  # fmt: skip
+    """The visibility test written as numpy expressions over ``(n, k, 2)`` arrays: the
+    reference the compiled :func:`iceg.visibility.expected_landmarks` must equal bit for
+    bit."""
+
+    def rot(t: np.ndarray) -> np.ndarray:
+        c, s = np.cos(t), np.sin(t)
+        return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+
+    r, t = rot(anchor_in_new[:, 2]), anchor_in_new[:, :2]
+    sup = np.einsum("nab,nkb->nka", r, support[rows]) + t[:, None, :]
+    has = np.all(np.isfinite(sup), axis=2)
+    pts = sup
+    if sensor_pose is not None:
+        pts = np.einsum("ba,nkb->nka", rot(np.array(sensor_pose[2])), sup - sensor_pose[:2])
+    b = np.arctan2(pts[..., 1], pts[..., 0])
+    dist = np.hypot(pts[..., 0], pts[..., 1])
+    k = np.clip(np.searchsorted(bearing, b), 1, bearing.shape[0] - 1)
+    gap = (bearing[k] - bearing[k - 1]) > 1.6 * spacing
+    with np.errstate(invalid="ignore"):
+        clear = (np.fmin(range_m[k - 1], range_m[k]) >= dist - tol) & ~gap
+    ok = (b >= bearing[0] + margin) & (b <= bearing[-1] - margin) & (dist <= max_range) & clear
+    visible = np.all(ok | ~has, axis=1) & np.any(has, axis=1)
+    wp = np.einsum("nab,nkb->nka", r, wall_p[rows]) + t[:, None, :]
+    wd = np.einsum("nab,nkb->nka", r, wall_d[rows])
+    with np.errstate(invalid="ignore"):
+        side = np.sign(wd[..., 1] * wp[..., 0] - wd[..., 0] * wp[..., 1])
+        ray = wp / np.maximum(np.hypot(wp[..., 0], wp[..., 1]), 1e-9)[..., None]
+        sin_inc = np.abs(ray[..., 0] * wd[..., 1] - ray[..., 1] * wd[..., 0])
+        wall_ok = (side == wall_side[rows]) & (sin_inc >= sin_min)
+    has_wall = np.isfinite(wall_side[rows])
+    all_seen = np.all(wall_ok | ~has_wall, axis=1) & np.any(has_wall, axis=1)
+    any_seen = np.any(wall_ok & has_wall, axis=1)
+    return visible & np.where(kind[rows] == int(FeatureKind.INTERSECTION), all_seen, any_seen)
+
+
+@pytest.mark.parametrize("offset", [None, (0.12, -0.03, 0.05)])
+def test_expected_landmarks_equal_the_numpy_expressions_bit_for_bit(offset) -> None:
+    # Random landmarks around a 270-degree scan with occluders, invalid (0) and max-range
+    # (inf) beams and a gap of missing beams; support points and walls partly missing.
+    rng = np.random.default_rng(11)
+    n_lm = 3000
+    anchor_in_new = np.column_stack([rng.uniform(-3, 3, (n_lm, 2)), rng.uniform(-4, 4, n_lm)])
+    support = rng.uniform(-6, 6, (n_lm, 3, 2))
+    support[rng.uniform(size=(n_lm, 3)) < 0.5] = np.nan
+    wall_p = rng.uniform(-8, 8, (n_lm, 2, 2))
+    ang = rng.uniform(-np.pi, np.pi, (n_lm, 2))
+    wall_d = np.stack([np.cos(ang), np.sin(ang)], -1)
+    wall_side = rng.choice([-1.0, 1.0, np.nan], (n_lm, 2))
+    kind = rng.choice([int(k) for k in FeatureKind], n_lm).astype(np.int64)
+    bearing = np.linspace(-2.35, 2.35, 540)
+    bearing = np.delete(bearing, np.s_[200:215])  # missing beams
+    range_m = rng.uniform(3.0, 25.0, bearing.shape[0])
+    range_m[rng.uniform(size=bearing.shape[0]) < 0.02] = 0.0
+    range_m[rng.uniform(size=bearing.shape[0]) < 0.5] = np.inf
+    spacing = float(np.median(np.diff(bearing)))
+    sensor = None if offset is None else np.array(offset)
+    rows = rng.permutation(n_lm)[: n_lm // 2]
+    args = (rows, anchor_in_new[rows], support, wall_p, wall_d, wall_side, kind)
+    got = expected_landmarks(
+        *args, int(FeatureKind.INTERSECTION), bearing, range_m, 1.6 * spacing,
+        np.zeros(0) if sensor is None else sensor, 0.05, 10.0, 0.2, math.sin(math.radians(15)),
+    )  # fmt: skip
+    want = _numpy_expected(
+        *args, bearing, range_m, spacing, sensor, 0.05, 10.0, 0.2, math.sin(math.radians(15))
+    )
+    assert 0.1 < want.mean() < 0.9, want.mean()  # both answers occur
+    assert np.array_equal(got, want)

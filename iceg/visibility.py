@@ -1,0 +1,153 @@
+"""Which landmarks a scan should see: the compiled test behind the feature map's
+time-validity counters (paper §III-C3; docs/design.md "Feature map and time-validity").
+
+A landmark is **expected** in a scan when every support point it has lies inside the scan's
+field of view (less a margin) and the expected range and is not occluded (both beams around
+its bearing reach at least its distance less a tolerance, with no gap of missing beams
+between them), and its walls are seen from the side they were seen from before and not at
+grazing incidence: both walls for an Intersection, one for a Corner or an EOW (a Corner
+whose other wall faces away shows as an EOW, paper §III-C2).
+
+One loop per landmark instead of some forty numpy calls over ``(n, 3, 2)`` temporaries; the
+arithmetic is that of the numpy expressions it replaced, term for term, so the answers are
+the same bit for bit (``tests/iceg/test_feature_map.py``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True)
+def _sign(v: float) -> float:
+    """``np.sign`` of a float (NaN stays NaN)."""
+    if v > 0.0:
+        return 1.0
+    if v < 0.0:
+        return -1.0
+    return v  # 0.0, -0.0 or NaN
+
+
+@njit(cache=True, nogil=True)
+def _clear(
+    b: float,
+    dist: float,
+    bearing: np.ndarray,
+    range_m: np.ndarray,
+    max_gap_rad: float,
+    tolerance_m: float,
+) -> bool:
+    """Both beams around bearing ``b`` reach ``dist - tolerance_m`` and no gap lies between
+    them (``bearing`` ascending, ``range_m`` their ranges; one beam: it and the last)."""
+    nb = bearing.shape[0]
+    k = min(max(np.searchsorted(bearing, b), 1), nb - 1)
+    if bearing[k] - bearing[k - 1] > max_gap_rad:
+        return False
+    r0, r1 = range_m[k - 1], range_m[k]
+    near = r1 if math.isnan(r0) else (r0 if math.isnan(r1) else min(r0, r1))  # np.fmin
+    return near >= dist - tolerance_m
+
+
+@njit(cache=True, nogil=True)
+def expected_landmarks(
+    rows: np.ndarray,
+    anchor_in_new: np.ndarray,
+    support: np.ndarray,
+    wall_p: np.ndarray,
+    wall_d: np.ndarray,
+    wall_side: np.ndarray,
+    kind: np.ndarray,
+    intersection_kind: int,
+    bearing: np.ndarray,
+    range_m: np.ndarray,
+    max_gap_rad: float,
+    sensor_pose: np.ndarray,
+    fov_margin_rad: float,
+    expected_max_range_m: float,
+    occlusion_tolerance_m: float,
+    sin_min_incidence: float,
+) -> np.ndarray:
+    """Which of the landmarks ``rows`` a scan should see (see the module docstring).
+
+    Args:
+        rows: ``(n,)`` int64 landmark rows into the per-landmark arrays below.
+        anchor_in_new: ``(n, 3)`` float64 each landmark's anchor pose in the scan's robot
+            frame ``[x_m, y_m, theta_rad]``.
+        support: ``(L, 3, 2)`` float64 support points, anchor frame, metres (NaN: none).
+        wall_p, wall_d: ``(L, 2, 2)`` float64 a point on each wall and its direction, anchor
+            frame (NaN: no wall).
+        wall_side: ``(L, 2)`` float64 side (+1 / -1) each wall was seen from (NaN: none).
+        kind: ``(L,)`` int64 feature kinds; ``intersection_kind`` the Intersection's.
+        bearing, range_m: ``(B,)`` float64 the scan's beams by ascending bearing (sensor
+            frame, radians) and their ranges (metres; 0 blocks the view, inf does not),
+            ``B >= 1``.
+        max_gap_rad: Bearing step beyond which two neighbouring beams leave a gap.
+        sensor_pose: ``(3,)`` float64 laser pose in the robot frame, or ``(0,)`` when the
+            bearings are seen from the robot frame's origin.
+        fov_margin_rad, expected_max_range_m, occlusion_tolerance_m: Field-of-view margin,
+            range and occlusion allowance.
+        sin_min_incidence: Sine of the smallest incidence at which a wall counts as seen.
+
+    Returns:
+        ``(n,)`` bool.
+    """
+    n = rows.shape[0]
+    out = np.zeros(n, dtype=np.bool_)
+    lo = bearing[0] + fov_margin_rad
+    hi = bearing[bearing.shape[0] - 1] - fov_margin_rad
+    offset = sensor_pose.shape[0] == 3
+    cs, ss = (math.cos(sensor_pose[2]), math.sin(sensor_pose[2])) if offset else (1.0, 0.0)
+    for i in range(n):
+        row = rows[i]
+        c, s = math.cos(anchor_in_new[i, 2]), math.sin(anchor_in_new[i, 2])
+        tx, ty = anchor_in_new[i, 0], anchor_in_new[i, 1]
+        any_point = False
+        visible = True
+        for k in range(3):
+            px, py = support[row, k, 0], support[row, k, 1]
+            x = c * px + -s * py + tx
+            y = s * px + c * py + ty
+            if not (math.isfinite(x) and math.isfinite(y)):
+                continue
+            any_point = True
+            if offset:
+                dx, dy = x - sensor_pose[0], y - sensor_pose[1]
+                x, y = cs * dx + ss * dy, -ss * dx + cs * dy
+            b = math.atan2(y, x)
+            d = math.hypot(x, y)
+            if not (
+                b >= lo
+                and b <= hi
+                and d <= expected_max_range_m
+                and _clear(b, d, bearing, range_m, max_gap_rad, occlusion_tolerance_m)
+            ):
+                visible = False
+                break
+        if not (visible and any_point):
+            continue
+        n_walls, n_seen = 0, 0
+        for k in range(2):
+            side_before = wall_side[row, k]
+            if not math.isfinite(side_before):
+                continue
+            n_walls += 1
+            qx, qy = wall_p[row, k, 0], wall_p[row, k, 1]
+            ux, uy = wall_d[row, k, 0], wall_d[row, k, 1]
+            px = c * qx + -s * qy + tx
+            py = s * qx + c * qy + ty
+            dx = c * ux + -s * uy
+            dy = s * ux + c * uy
+            norm = math.hypot(px, py)
+            if norm < 1e-9:  # np.maximum(norm, 1e-9), NaN kept
+                norm = 1e-9
+            sin_inc = abs(px / norm * dy - py / norm * dx)
+            if _sign(dy * px - dx * py) == side_before and sin_inc >= sin_min_incidence:
+                n_seen += 1
+        if kind[row] == intersection_kind:
+            out[i] = n_walls > 0 and n_seen == n_walls
+        else:
+            out[i] = n_seen > 0
+    return out
