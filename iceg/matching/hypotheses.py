@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from iceg.matching._kernels import kernel_density
+from iceg.matching._kernels import density_peak
 from iceg.matching.config import MatchBounds
 from iceg.matching.geometry import CORNER, INTERSECTION, FeatureGeometry, rot
 from iceg_common.se2 import wrap_angle
@@ -370,10 +370,10 @@ def segment_rotation(
     d, w = d[keep], w[keep]
     if d.shape[0] == 0:
         return None
-    dens = kernel_density(np.ascontiguousarray(d), np.ascontiguousarray(w), kernel_rad)
-    dens[np.abs(d) > max_dev_rad] = -np.inf
-    k = int(np.argmax(dens))
-    if not np.isfinite(dens[k]) or dens[k] < min_support_m:
+    k, peak = density_peak(
+        np.ascontiguousarray(d), np.ascontiguousarray(w), kernel_rad, max_dev_rad
+    )
+    if k < 0 or not peak >= min_support_m:
         return None
     # Mean of the pairs within one kernel width of the peak.
     near = np.abs(d - d[k]) <= kernel_rad

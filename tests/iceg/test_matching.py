@@ -37,6 +37,7 @@ from iceg.matching._kernels import (
     SegmentPoints,
     associate,
     cloud_nearest,
+    density_peak,
     nearest_walls,
     no_segment_grid,
     pairwise_sum,
@@ -402,6 +403,55 @@ def test_correlation_equals_the_numpy_expressions_bit_for_bit(n_new: int) -> Non
     have = (got.score, got.dis, got.ang, got.count, got.acc, got.n_matched, got.n_visible)
     for a, b in zip(have, want, strict=True):
         assert np.array_equal(a, b)
+
+
+def _every_density(d: np.ndarray, w: np.ndarray, kernel: float) -> np.ndarray:
+    """Kernel density at every sample by one pass over the sorted pairs within 12 kernel
+    widths, each pair's term added to both samples (the smaller index first): the values the
+    branch and bound of :func:`density_peak` must reproduce bit for bit."""
+    order = np.argsort(d, kind="mergesort")
+    ds, ws = d[order].tolist(), w[order].tolist()
+    acc = list(ws)
+    for a in range(len(ds)):
+        for b in range(a + 1, len(ds)):
+            diff = ds[b] - ds[a]
+            if diff > 12.0 * kernel:
+                break
+            z = diff / kernel
+            g = math.exp(-0.5 * z * z)
+            acc[a] += ws[b] * g
+            acc[b] += ws[a] * g
+    dens = np.empty(len(ds))
+    dens[order] = acc
+    return dens
+
+
+@pytest.mark.parametrize("case", ["uniform", "two walls", "ties", "narrow"])
+def test_density_peak_is_the_argmax_of_every_density(case: str) -> None:
+    rng = np.random.default_rng(len(case))
+    kernel = math.radians(1.0)
+    for _ in range(20):
+        n = int(rng.integers(1, 400))
+        if case == "uniform":
+            d = rng.uniform(-0.6, 0.6, n)
+        elif case == "two walls":  # most pairs near 0 and near 90 degrees, as in a building
+            d = np.where(rng.uniform(size=n) < 0.7, 0.0, 1.5) + rng.normal(0, 0.01, n)
+        elif case == "ties":  # repeated values and weights: the first in the order of d wins
+            d = np.repeat(rng.uniform(-0.3, 0.3, max(1, n // 4)), 4)
+        else:
+            d = rng.normal(0, 0.002, n)
+        w = np.repeat(rng.uniform(0.1, 3.0, max(1, n // 4)), 4)[: d.shape[0]]
+        if case != "ties":
+            w = rng.uniform(0.0, 3.0, d.shape[0])
+        max_abs = float(rng.uniform(0.05, 1.6))
+        dens = _every_density(d, w, kernel)
+        dens[np.abs(d) > max_abs] = -np.inf
+        k, peak = density_peak(d, w, kernel, max_abs)
+        if np.isfinite(dens).any():
+            assert (k, peak) == (int(np.argmax(dens)), float(dens.max()))
+        else:
+            assert k == -1
+    assert density_peak(np.zeros(0), np.zeros(0), kernel, 1.0)[0] == -1
 
 
 def test_pairwise_sum_is_numpy_s_summation_order() -> None:
