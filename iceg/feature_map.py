@@ -639,9 +639,11 @@ def _lookup(table_ids: IntArray, query: IntArray) -> tuple[IntArray, BoolArray]:
     return pos, table_ids[pos] == query
 
 
-def _geometry(
-    features: ScanFeatures, offset_m: float
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+#: ``(support, wall_p, wall_d, wall_side)`` of :func:`_geometry`.
+_VisibilityGeometry = tuple[FloatArray, FloatArray, FloatArray, FloatArray]
+
+
+def _geometry(features: ScanFeatures, offset_m: float) -> _VisibilityGeometry:
     """Visibility geometry of each feature in its scan's frame (NaN-padded).
 
     Returns:
@@ -739,6 +741,8 @@ class FeatureMap:
         self._last_stamp_s = 0.0
         self._token = object()  # identifies the references this map built
         self._pruned: list[PrunedLandmarks] = []
+        # The last scan's visibility geometry (_geometry), read twice per update.
+        self._geometry_memo: tuple[ScanFeatures, _VisibilityGeometry] | None = None
 
     # ------------------------------------------------------------------ inspection
     def __len__(self) -> int:
@@ -963,7 +967,7 @@ class FeatureMap:
         """Ascending rows of the landmarks anchored to or last matched from the nodes
         ``want`` (sorted unique ids)."""
         lm = self._lm
-        return np.flatnonzero(np.isin(lm.anchor, want) | np.isin(lm.last_node, want))
+        return np.flatnonzero(_lookup(want, lm.anchor)[1] | _lookup(want, lm.last_node)[1])
 
     def _taking_part(self, node_id: int, reference_ids: IntArray | None) -> IntArray:
         """Ascending rows of the landmarks taking part in the bookkeeping of the new node
@@ -1118,9 +1122,7 @@ class FeatureMap:
         n = rows.shape[0]
         ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
         self._next_id += n
-        support, wall_p, wall_d, wall_side = (
-            a[rows] for a in _geometry(features, self.config.support_offset_m)
-        )
+        support, wall_p, wall_d, wall_side = (a[rows] for a in self._geometry_of(features))
         self._lm.append(
             _Landmarks(
                 id=ids,
@@ -1270,6 +1272,18 @@ class FeatureMap:
         if rep.shape[0]:
             self._replace(features, pair_row[rep], pair_new[rep], new_in_anchor[rep])
 
+    def _geometry_of(self, features: ScanFeatures) -> _VisibilityGeometry:
+        """:func:`_geometry` of a scan's features, computed once per features object (an
+        update's replacements and its new landmarks both read it; features are never
+        modified after extraction)."""
+        memo = self._geometry_memo
+        if memo is None or memo[0] is not features:
+            memo = self._geometry_memo = (
+                features,
+                _geometry(features, self.config.support_offset_m),
+            )
+        return memo[1]
+
     def _replace(self, features: ScanFeatures, rr: IntArray, fi: IntArray, na: FloatArray) -> None:
         """Landmark rows ``rr`` take new features ``fi``, whose node sits at ``na`` ``(n, 3)``
         in each anchor's frame."""
@@ -1280,7 +1294,7 @@ class FeatureMap:
         lm.dirs[rr] = np.einsum("nab,nkb->nka", r, features.directions[fi])
         lm.opening[rr] = features.opening_rad[fi]
         lm.kind[rr] = features.kind[fi]
-        sup, wp, wd, _ = (a[fi] for a in _geometry(features, self.config.support_offset_m))
+        sup, wp, wd, _ = (a[fi] for a in self._geometry_of(features))
         lm.support[rr] = _move_points(r, na[:, :2], sup)
         lm.wall_p[rr] = _move_points(r, na[:, :2], wp)
         lm.wall_d[rr] = np.einsum("nab,nkb->nka", r, wd)
