@@ -620,20 +620,22 @@ class PoseGraph:
             if bool(np.all(ok)):
                 return ids, all_poses[pos].copy()
         cache, initial = self._pose_cache, self._initial
-        # Straight from iSAM2 when it serves the estimates (the common case), else as
-        # estimate() reads them.
+        # Straight from iSAM2 when it serves the estimates (the common case; its nodes are
+        # all in ``initial``), else as estimate() reads them.
         isam = self._isam if self._served is None else None
+        in_isam = self._in_isam if isam is not None else set()
         rows = []
         for n in ids.tolist():
             pose = cache.get(n)
             if pose is None:
-                if n not in initial:
-                    self._existing(n, f"estimate({n!r})")  # raises
-                if isam is not None and n in self._in_isam:
-                    self._note_delta_read()
-                    p = isam.calculateEstimatePose2(n)
+                if n in in_isam:
+                    if not self._delta_read:
+                        self._note_delta_read()
+                    p = isam.calculateEstimatePose2(n)  # type: ignore[union-attr]
                     pose = (p.x(), p.y(), p.theta())
                 else:
+                    if n not in initial:
+                        self._existing(n, f"estimate({n!r})")  # raises
                     pose = self._read_pose(n)
                 cache[n] = pose
             rows.append(pose)

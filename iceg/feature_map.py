@@ -635,7 +635,7 @@ def _lookup(table_ids: IntArray, query: IntArray) -> tuple[IntArray, BoolArray]:
     """Positions of ``query`` in the sorted ``table_ids`` and whether each was found."""
     if table_ids.shape[0] == 0:
         return np.zeros(query.shape, dtype=np.int64), np.zeros(query.shape, dtype=bool)
-    pos = np.clip(np.searchsorted(table_ids, query), 0, table_ids.shape[0] - 1)
+    pos = np.minimum(np.searchsorted(table_ids, query), table_ids.shape[0] - 1)  # >= 0
     return pos, table_ids[pos] == query
 
 

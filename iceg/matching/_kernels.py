@@ -97,6 +97,17 @@ def _segment_distance2(px: float, py: float, ax: float, ay: float, bx: float, by
 
 
 @njit(cache=True, nogil=True)
+def nearest_segment_distance(p: np.ndarray, endpoints: np.ndarray) -> float:
+    """Distance (metres) from point ``p`` ``(2,)`` to the nearest of the segments
+    ``endpoints`` ``(M, 2, 2)`` (inf when there are none)."""
+    best = np.inf
+    for m in range(endpoints.shape[0]):
+        a, b = endpoints[m, 0], endpoints[m, 1]
+        best = min(best, _segment_distance2(p[0], p[1], a[0], a[1], b[0], b[1]))
+    return math.sqrt(best)
+
+
+@njit(cache=True, nogil=True)
 def _grid_cells(
     a: np.ndarray, u: np.ndarray, length: np.ndarray, reach: float, origin: np.ndarray,
     cell_m: float, n_cells: np.ndarray, out_key: np.ndarray, out_seg: np.ndarray,

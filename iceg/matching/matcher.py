@@ -18,7 +18,13 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from iceg.matching._kernels import PointCloud, PosePrior, SegmentPoints, ray_wall_check
+from iceg.matching._kernels import (
+    PointCloud,
+    PosePrior,
+    SegmentPoints,
+    nearest_segment_distance,
+    ray_wall_check,
+)
 from iceg.matching.config import MatchBounds, MatchingConfig
 from iceg.matching.correlation import Correlation, CorrelationModel, CorrelationSettings
 from iceg.matching.geometry import (
@@ -243,18 +249,6 @@ def _is_one_scan(points_xy: FloatArray) -> bool:
     d = np.diff(np.arctan2(points_xy[:, 1], points_xy[:, 0]))
     back = d < -_BEARING_BACKSTEP_RAD
     return int(back.sum()) == 0 or (int(back.sum()) == 1 and float(d[back][0]) < -math.pi)
-
-
-def _segment_distance(p: FloatArray, endpoints: FloatArray) -> float:
-    """Distance (metres) from point ``p`` (2,) to the nearest of segments ``(M, 2, 2)``."""
-    if endpoints.shape[0] == 0:
-        return math.inf
-    a = endpoints[:, 0]
-    e = endpoints[:, 1] - a
-    l2 = np.maximum(np.einsum("ma,ma->m", e, e), 1e-12)
-    t = np.clip(np.einsum("ma,ma->m", p - a, e) / l2, 0.0, 1.0)
-    d = p - (a + t[:, None] * e)
-    return float(np.sqrt(np.einsum("ma,ma->m", d, d).min()))
 
 
 def _lengths(endpoints: FloatArray) -> FloatArray:
@@ -609,8 +603,8 @@ class IceMatcher:
                 "the other scan sees free space"
             )
         clear = min(
-            _segment_distance(pose[:2], ctx.reference.seg_endpoints),
-            _segment_distance(inverse(pose)[:2], ctx.features.seg_endpoints),
+            nearest_segment_distance(pose[:2], ctx.reference.seg_endpoints),
+            nearest_segment_distance(inverse(pose)[:2], ctx.features.seg_endpoints),
         )
         if clear < v.robot_clearance_m:
             return (

@@ -38,6 +38,7 @@ from iceg.matching._kernels import (
     associate,
     cloud_nearest,
     density_peak,
+    nearest_segment_distance,
     nearest_walls,
     no_segment_grid,
     pairwise_sum,
@@ -452,6 +453,15 @@ def test_density_peak_is_the_argmax_of_every_density(case: str) -> None:
         else:
             assert k == -1
     assert density_peak(np.zeros(0), np.zeros(0), kernel, 1.0)[0] == -1
+
+
+def test_nearest_segment_distance_hand_values() -> None:
+    segs = np.array([[[-1.0, 0.0], [1.0, 0.0]], [[3.0, 1.0], [3.0, 5.0]]])
+    assert nearest_segment_distance(np.array([0.5, 1.0]), segs) == 1.0  # above the first
+    assert nearest_segment_distance(np.array([2.0, 0.0]), segs) == 1.0  # beyond its end
+    assert nearest_segment_distance(np.array([4.0, 3.0]), segs) == 1.0  # beside the second
+    assert nearest_segment_distance(np.array([4.0, 9.0]), segs) == math.hypot(1.0, 4.0)
+    assert nearest_segment_distance(np.zeros(2), np.zeros((0, 2, 2))) == math.inf
 
 
 def test_pairwise_sum_is_numpy_s_summation_order() -> None:
