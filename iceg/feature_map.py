@@ -531,7 +531,8 @@ def _state_array(
 
 @dataclass(frozen=True, eq=False)
 class _BeamProfile:
-    """A scan's ranges sorted by bearing, the one bearing-to-range lookup of visibility.
+    """A scan's ranges sorted by bearing: what the visibility test
+    (:func:`iceg.visibility.expected_landmarks`) looks landmarks up in.
 
     Attributes:
         bearing: ``(B,)`` float64 ascending bearings, radians, sensor frame.

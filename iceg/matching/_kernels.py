@@ -1173,6 +1173,105 @@ def ray_wall_check(
 DENSITY_WINDOW_WIDTHS = 12.0
 
 
+@njit(cache=True, nogil=True)
+def _wrap(t: float) -> float:
+    return (t + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@njit(cache=True, nogil=True)
+def vote_clusters(
+    poses: np.ndarray, cell_m: float, n_t: int, cell_t: float, max_clusters: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Cluster hypotheses on an ``(x, y, theta)`` grid: the most-voted local maxima first
+    (see ``hypotheses.vote``; the arithmetic and the sums' order of its numpy formulation).
+
+    Args:
+        poses: ``(N, 3)`` float64 finite hypotheses, ``N >= 1``.
+        cell_m: Cell side in x and y, metres; ``n_t`` cells of ``cell_t`` radians in theta.
+        max_clusters: Most clusters returned.
+
+    Returns:
+        ``(C, 3)`` float64 cluster centres and ``(C,)`` int64 votes.
+    """
+    n = poses.shape[0]
+    kx = np.empty(n, dtype=np.int64)
+    ky = np.empty(n, dtype=np.int64)
+    kt = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        kx[i] = math.floor(poses[i, 0] / cell_m)
+        ky[i] = math.floor(poses[i, 1] / cell_m)
+        kt[i] = math.floor((_wrap(poses[i, 2]) + math.pi) / cell_t) % n_t
+    x0, y0 = kx.min() - 1, ky.min() - 1
+    nx = kx.max() - x0 + 2
+    ny = ky.max() - y0 + 2
+    keys = ((kx - x0) * ny + (ky - y0)) * n_t + kt
+    keys.sort()
+    ukeys = np.empty(n, dtype=np.int64)
+    counts = np.zeros(n, dtype=np.int64)
+    u = 0
+    for i in range(n):
+        if u == 0 or keys[i] != ukeys[u - 1]:
+            ukeys[u] = keys[i]
+            u += 1
+        counts[u - 1] += 1
+    ukeys, counts = ukeys[:u], counts[:u]
+    ut = ukeys % n_t
+    uy = (ukeys // n_t) % ny + y0
+    ux = ukeys // (n_t * ny) + x0
+    dts = (-1, 0, 1) if n_t >= 3 else (0, 0, 0)
+    # Neighbour cells of each cell (3 x 3 x 3, theta periodic): their slot, -1 when empty.
+    neighbours = np.full((u, 27), -1, dtype=np.int64)
+    nsum = np.zeros(u, dtype=np.int64)
+    for c in range(u):
+        k = 0
+        for a in (-1, 0, 1):
+            for b in (-1, 0, 1):
+                for m in range(3 if n_t >= 3 else 1):
+                    cx, cy = ux[c] + a, uy[c] + b
+                    if 0 <= cx - x0 < nx and 0 <= cy - y0 < ny:
+                        key = ((cx - x0) * ny + (cy - y0)) * n_t + (ut[c] + dts[m]) % n_t
+                        pos = min(np.searchsorted(ukeys, key), u - 1)
+                        if ukeys[pos] == key:
+                            neighbours[c, k] = pos
+                            nsum[c] += counts[pos]
+                    k += 1
+    score = np.empty(u)
+    for c in range(u):
+        score[c] = nsum[c] + 1e-3 * counts[c] - 1e-9 * c
+    is_max = np.zeros(u, dtype=np.bool_)
+    for c in range(u):
+        best = -np.inf
+        for k in range(27):
+            if neighbours[c, k] >= 0:
+                best = max(best, score[neighbours[c, k]])
+        is_max[c] = score[c] >= best
+    peaks = np.flatnonzero(is_max)
+    peaks = peaks[np.argsort(-score[peaks], kind="mergesort")][:max_clusters]
+    out = np.empty((peaks.shape[0], 3))
+    wx = np.empty(n)
+    wy = np.empty(n)
+    wt = np.empty(n)
+    for p in range(peaks.shape[0]):
+        c = peaks[p]
+        centre_t = (ut[c] + 0.5) * cell_t - math.pi
+        cnt = 0.0
+        for i in range(n):
+            member = (
+                abs(kx[i] - ux[c]) <= 1
+                and abs(ky[i] - uy[c]) <= 1
+                and ((kt[i] - ut[c] + 1) % n_t <= 2 or n_t < 3)
+            )
+            w = 1.0 if member else 0.0
+            cnt += w
+            wx[i] = w * poses[i, 0]
+            wy[i] = w * poses[i, 1]
+            wt[i] = w * _wrap(poses[i, 2] - centre_t)
+        out[p, 0] = pairwise_sum(wx, 0, n) / cnt
+        out[p, 1] = pairwise_sum(wy, 0, n) / cnt
+        out[p, 2] = _wrap(centre_t + pairwise_sum(wt, 0, n) / cnt)
+    return out, nsum[peaks]
+
+
 #: Relative slack of a bin's density bound in :func:`density_peak`: far above the rounding
 #: of the sums (~1e-13 relative for a few thousand terms), so no sample the exact density
 #: would make the peak is ever skipped.

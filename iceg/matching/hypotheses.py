@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from iceg.matching._kernels import density_peak
+from iceg.matching._kernels import density_peak, vote_clusters
 from iceg.matching.config import MatchBounds
 from iceg.matching.geometry import CORNER, INTERSECTION, FeatureGeometry, rot
 from iceg_common.se2 import wrap_angle
@@ -276,63 +276,12 @@ def vote(poses: FloatArray, cell_m: float, cell_rad: float, max_clusters: int) -
         cell_rad: Cell size in theta, radians (rounded so that it divides 2 pi).
         max_clusters: Most clusters returned.
     """
-    n = poses.shape[0]
-    if n == 0:
+    if poses.shape[0] == 0:
         return Clusters(np.zeros((0, 3)), np.zeros(0, dtype=np.int64))
     n_t = max(1, round(2.0 * math.pi / cell_rad))
-    cell_t = 2.0 * math.pi / n_t
-    kx = np.floor(poses[:, 0] / cell_m).astype(np.int64)
-    ky = np.floor(poses[:, 1] / cell_m).astype(np.int64)
-    kt = np.floor((wrap_angle(poses[:, 2]) + math.pi) / cell_t).astype(np.int64) % n_t
-    x0, y0 = kx.min() - 1, ky.min() - 1
-    nx = int(kx.max() - x0 + 2)
-    ny = int(ky.max() - y0 + 2)
-
-    def encode(ax: IntArray, ay: IntArray, at: IntArray) -> IntArray:
-        return ((ax - x0) * ny + (ay - y0)) * n_t + (at % n_t)
-
-    keys = encode(kx, ky, kt)
-    ukeys, counts = np.unique(keys, return_counts=True)
-    ut = ukeys % n_t
-    uy = (ukeys // n_t) % ny + y0
-    ux = ukeys // (n_t * ny) + x0
-    offs = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)])
-    if n_t < 3:
-        offs = offs[offs[:, 2] == 0]
-    nkeys = encode(
-        ux[None, :] + offs[:, 0:1], uy[None, :] + offs[:, 1:2], ut[None, :] + offs[:, 2:3]
-    )  # (27, U)
-    nkeys = np.where(
-        (ux[None, :] + offs[:, 0:1] - x0 >= 0)
-        & (ux[None, :] + offs[:, 0:1] - x0 < nx)
-        & (uy[None, :] + offs[:, 1:2] - y0 >= 0)
-        & (uy[None, :] + offs[:, 1:2] - y0 < ny),
-        nkeys,
-        -1,
-    )
-    pos = np.minimum(np.searchsorted(ukeys, nkeys), ukeys.shape[0] - 1)  # 0..U: clip to U-1
-    found = ukeys[pos] == nkeys
-    nsum = np.where(found, counts[pos], 0).sum(axis=0)  # (U,)
-    u = ukeys.shape[0]
-    score = nsum + 1e-3 * counts - 1e-9 * np.arange(u)
-    nscore = np.where(found, score[pos], -np.inf)
-    is_max = score >= nscore.max(axis=0)
-    peaks = np.flatnonzero(is_max)
-    peaks = peaks[np.argsort(-score[peaks], kind="stable")][:max_clusters]
-    # Members of each peak's neighbourhood: (C, N) masks.
-    hx, hy, ht = kx[None, :], ky[None, :], kt[None, :]
-    px, py, pt = ux[peaks, None], uy[peaks, None], ut[peaks, None]
-    dt = (ht - pt + 1) % n_t
-    member = (np.abs(hx - px) <= 1) & (np.abs(hy - py) <= 1) & ((dt <= 2) | (n_t < 3))
-    w = member.astype(np.float64)
-    cnt = w.sum(axis=1)
-    centre_t = (pt[:, 0] + 0.5) * cell_t - math.pi
-    dth = wrap_angle(poses[None, :, 2] - centre_t[:, None])
-    out = np.empty((peaks.shape[0], 3))
-    out[:, 0] = (w * poses[None, :, 0]).sum(axis=1) / cnt
-    out[:, 1] = (w * poses[None, :, 1]).sum(axis=1) / cnt
-    out[:, 2] = wrap_angle(centre_t + (w * dth).sum(axis=1) / cnt)
-    return Clusters(out, nsum[peaks].astype(np.int64))
+    pts = np.ascontiguousarray(poses, dtype=np.float64)
+    centres, votes = vote_clusters(pts, cell_m, n_t, 2.0 * math.pi / n_t, max_clusters)
+    return Clusters(centres, votes)
 
 
 def segment_rotation(

@@ -66,7 +66,7 @@ from iceg.matching.matcher import walls_seen_through
 from iceg.matching.refine import build_cloud, effective_line_cov, points_within
 from iceg.types import FeatureKind, ScanFeatures
 from iceg_common.errors import ConfigError, MatchingError
-from iceg_common.se2 import between, compose, inverse, transform_points
+from iceg_common.se2 import between, compose, inverse, transform_points, wrap_angle
 from tests.conftest import shared_file
 
 SIGMA_M = 0.01  # range noise of the hand-made scans, metres
@@ -274,6 +274,83 @@ def test_two_intersection_pairs_fix_the_transform() -> None:
         gn, gr, np.array([0, 1]), np.array([0, 1]), np.zeros(3), 0.1, 0.5, 100
     )
     np.testing.assert_allclose(hyp, truth[None], atol=1e-12)
+
+
+def _numpy_vote(
+    poses: np.ndarray, cell_m: float, cell_rad: float, max_clusters: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Hypothesis voting (paper §III-C3) written as numpy expressions over all cells at
+    once: the reference the compiled :func:`vote` must equal bit for bit."""
+    n = poses.shape[0]
+    if n == 0:
+        return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+    n_t = max(1, round(2.0 * math.pi / cell_rad))
+    cell_t = 2.0 * math.pi / n_t
+    kx = np.floor(poses[:, 0] / cell_m).astype(np.int64)
+    ky = np.floor(poses[:, 1] / cell_m).astype(np.int64)
+    kt = np.floor((wrap_angle(poses[:, 2]) + math.pi) / cell_t).astype(np.int64) % n_t
+    x0, y0 = kx.min() - 1, ky.min() - 1
+    nx = int(kx.max() - x0 + 2)
+    ny = int(ky.max() - y0 + 2)
+
+    def encode(ax: np.ndarray, ay: np.ndarray, at: np.ndarray) -> np.ndarray:
+        return ((ax - x0) * ny + (ay - y0)) * n_t + (at % n_t)
+
+    keys = encode(kx, ky, kt)
+    ukeys, counts = np.unique(keys, return_counts=True)
+    ut = ukeys % n_t
+    uy = (ukeys // n_t) % ny + y0
+    ux = ukeys // (n_t * ny) + x0
+    offs = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)])
+    if n_t < 3:
+        offs = offs[offs[:, 2] == 0]
+    nkeys = encode(
+        ux[None, :] + offs[:, 0:1], uy[None, :] + offs[:, 1:2], ut[None, :] + offs[:, 2:3]
+    )  # (27, U)
+    nkeys = np.where(
+        (ux[None, :] + offs[:, 0:1] - x0 >= 0)
+        & (ux[None, :] + offs[:, 0:1] - x0 < nx)
+        & (uy[None, :] + offs[:, 1:2] - y0 >= 0)
+        & (uy[None, :] + offs[:, 1:2] - y0 < ny),
+        nkeys,
+        -1,
+    )
+    pos = np.minimum(np.searchsorted(ukeys, nkeys), ukeys.shape[0] - 1)  # 0..U: clip to U-1
+    found = ukeys[pos] == nkeys
+    nsum = np.where(found, counts[pos], 0).sum(axis=0)  # (U,)
+    u = ukeys.shape[0]
+    score = nsum + 1e-3 * counts - 1e-9 * np.arange(u)
+    nscore = np.where(found, score[pos], -np.inf)
+    is_max = score >= nscore.max(axis=0)
+    peaks = np.flatnonzero(is_max)
+    peaks = peaks[np.argsort(-score[peaks], kind="stable")][:max_clusters]
+    # Members of each peak's neighbourhood: (C, N) masks.
+    hx, hy, ht = kx[None, :], ky[None, :], kt[None, :]
+    px, py, pt = ux[peaks, None], uy[peaks, None], ut[peaks, None]
+    dt = (ht - pt + 1) % n_t
+    member = (np.abs(hx - px) <= 1) & (np.abs(hy - py) <= 1) & ((dt <= 2) | (n_t < 3))
+    w = member.astype(np.float64)
+    cnt = w.sum(axis=1)
+    centre_t = (pt[:, 0] + 0.5) * cell_t - math.pi
+    dth = wrap_angle(poses[None, :, 2] - centre_t[:, None])
+    out = np.empty((peaks.shape[0], 3))
+    out[:, 0] = (w * poses[None, :, 0]).sum(axis=1) / cnt
+    out[:, 1] = (w * poses[None, :, 1]).sum(axis=1) / cnt
+    out[:, 2] = wrap_angle(centre_t + (w * dth).sum(axis=1) / cnt)
+    return out, nsum[peaks].astype(np.int64)
+
+
+@pytest.mark.parametrize("cell_deg", [3.0, 200.0])  # 200 degrees: fewer than 3 theta cells
+def test_vote_equals_the_numpy_expressions_bit_for_bit(cell_deg: float) -> None:
+    rng = np.random.default_rng(int(cell_deg))
+    for n in [1, 2, 7, 40, 300, 1500]:
+        centres = rng.uniform(-3, 3, (4, 3))
+        pick = rng.integers(0, 4, n)
+        poses = centres[pick] + rng.normal(0, [0.05, 0.05, 0.03], (n, 3))
+        poses[: n // 3] = rng.uniform(-4, 4, (n // 3, 3))  # scattered ones
+        got = vote(poses, 0.15, math.radians(cell_deg), 5)
+        want = _numpy_vote(poses, 0.15, math.radians(cell_deg), 5)
+        assert np.array_equal(got.poses, want[0]) and np.array_equal(got.votes, want[1])
 
 
 def test_vote_returns_the_most_voted_cluster_first() -> None:
