@@ -535,7 +535,7 @@ def render_tiled_chunks(
     The per-beam work arrays (endpoints, cell coordinates, masks: about 100 bytes a beam)
     exist for one chunk at a time, so a long log's grid pass adds a constant to the memory
     of the run instead of a multiple of its beams. Each chunk is read three times (bounds,
-    tiles, tracing).
+    tiles, tracing), except the first and the last, read once.
 
     Args:
         poses: ``(N, 3)`` robot poses, world frame, one per scan.
@@ -704,30 +704,36 @@ def _render_chunks(
     """Render in passes over chunks of whole scans: bounds, tiles, then tracing.
 
     Each pass rebuilds a chunk's beams (:func:`_chunk_beams`), so the per-beam work arrays
-    live for one or two chunks at a time; the bounds are the min/max over chunks and the
-    tracer processes the scans in order, so the cells are the same as in one pass over all
-    beams. The passes reuse what they can of one chunk: the bounds pass keeps its last
-    chunk's beams for the tile pass, which runs from the last chunk to the first (marking
-    tiles does not depend on the order), so the tracer starts on the chunk it walked last.
+    live for a few chunks at a time; the bounds are the min/max over chunks and the tracer
+    processes the scans in order, so the cells are the same as in one pass over all beams.
+    The passes reuse what they can: the bounds pass keeps the first and the last chunk's
+    beams (endpoints in the world, ~17 bytes a beam), the tile pass runs from the last chunk
+    to the first (marking tiles does not depend on the order), so the tracer starts on the
+    chunk it walked last and ends on a kept one. A log of one or two chunks is read once.
     """
     n = poses.shape[0]
     spans = [(lo, min(lo + chunk_scans, n)) for lo in range(0, n, max(1, chunk_scans))]
     lo_xy = np.full(2, np.inf)
     hi_xy = np.full(2, -np.inf)
     n_traced = n_hits = 0
+    # The first and last chunks' beams stay (the tile pass ends on the first, the tracing
+    # starts there and ends on the last): two chunks of endpoints, a constant.
+    kept: dict[tuple[int, int], _ChunkBeams] = {}
     for a, b in spans:
         beams = _chunk_beams(poses[a:b], chunks(a, b), cfg)
-        pts = np.concatenate([beams.end, beams.laser_xy, poses[a:b, :2]])
-        lo_xy = np.minimum(lo_xy, pts.min(axis=0))
-        hi_xy = np.maximum(hi_xy, pts.max(axis=0))
+        if (a, b) in (spans[0], spans[-1]):
+            kept[(a, b)] = beams
+        for pts in (beams.end, beams.laser_xy, poses[a:b, :2]):
+            if pts.shape[0]:  # column by column: numpy reduces (K, 2) along axis 0 slowly
+                lo_xy = np.minimum(lo_xy, [pts[:, 0].min(), pts[:, 1].min()])
+                hi_xy = np.maximum(hi_xy, [pts[:, 0].max(), pts[:, 1].max()])
         n_traced += beams.end.shape[0]
         n_hits += int(np.count_nonzero(beams.is_hit))
     frame = _frame(np.stack([lo_xy, hi_xy]), cfg)
-    kept: dict[tuple[int, int], _ChunkBeams] = {spans[-1]: beams}
 
     @functools.lru_cache(maxsize=1)
     def walk(a: int, b: int) -> _Beams:
-        world = kept.pop((a, b), None)
+        world = kept.get((a, b))
         if world is None:
             world = _chunk_beams(poses[a:b], chunks(a, b), cfg)
         return _grid_beams(world, frame, cfg.resolution_m)
