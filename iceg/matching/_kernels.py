@@ -1,8 +1,8 @@
 """Compiled kernels of the matcher (numba): the Gauss-Newton loop of the refinement with its
 normal equations (point-to-line GLS rows, feature-pair rows, off-segment PL-ICP rows), the
-correlation's feature pairing, visibility count and terms, the covariance lattice cost, the
-free-space ray check, the prediction start's kernel density and the gridded point query of
-the contradiction test.
+correlation's feature pairing, visibility count and terms, the hypotheses' vote, the
+covariance lattice cost, the free-space ray check, the prediction start's kernel-density peak
+and the gridded point query of the contradiction test.
 
 numpy builds (points x segments) temporaries and spends most of its time in call overhead
 for scans of a few hundred points; these loops do the arithmetic without temporaries.
@@ -665,9 +665,14 @@ def cloud_system(
 
 
 @njit(cache=True, nogil=True)
+def _wrap(t: float) -> float:
+    """An angle wrapped to ``[-pi, pi)`` (``se2.wrap_angle``'s arithmetic)."""
+    return (t + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@njit(cache=True, nogil=True)
 def _absw(x: float) -> float:
-    y = (x + math.pi) % (2.0 * math.pi) - math.pi
-    return abs(y)
+    return abs(_wrap(x))
 
 
 @njit(cache=True, nogil=True)
@@ -848,6 +853,11 @@ def visible_counts(
         ref_xy: ``(K, 2)`` float64 reference features, reference frame, metres.
         bearing, ranges: ``(B,)`` float64 the new scan's polar profile, bearings ascending
             (``geometry.PolarProfile``), ``B >= 1``.
+        spacing: The profile's beam spacing, radians (widens the field of view).
+        max_gap_rad: Largest bearing distance to the nearest return that still judges
+            occlusion, radians.
+        range_max_m, occlusion_tolerance_m: The new scan's reliable range and the
+            occlusion allowance, metres.
 
     Returns:
         ``(H,)`` int64 counts.
@@ -1171,11 +1181,6 @@ def ray_wall_check(
 #: Kernel density terms beyond this many kernel widths are dropped: ``exp(-0.5 * 12**2)``
 #: is below 1e-31, under half an ulp of any partial sum (each starts at its own weight).
 DENSITY_WINDOW_WIDTHS = 12.0
-
-
-@njit(cache=True, nogil=True)
-def _wrap(t: float) -> float:
-    return (t + math.pi) % (2.0 * math.pi) - math.pi
 
 
 @njit(cache=True, nogil=True)

@@ -195,27 +195,6 @@ class PolarProfile:
             spacing = math.radians(1.0)
         return cls(b, r, spacing, float(range_max_m))
 
-    def lookup(self, bearing: FloatArray, max_gap_beams: float = MAX_GAP_BEAMS) -> FloatArray:
-        """Range of the return nearest in bearing, NaN where no return lies within
-        ``max_gap_beams`` beam spacings (outside the field of view or a gap of invalid
-        beams). Any shape."""
-        q = np.asarray(bearing, dtype=np.float64)
-        out = np.full(q.shape, np.nan)
-        n = self.bearing.shape[0]
-        if n == 0:
-            return out
-        k = np.searchsorted(self.bearing, q)
-        # searchsorted gives 0..n: the bracketing indices, clipped (np.clip costs more).
-        k0 = np.maximum(k - 1, 0)
-        k1 = np.minimum(k, n - 1)
-        d0 = np.abs(q - self.bearing[k0])
-        d1 = np.abs(self.bearing[k1] - q)
-        kk = np.where(d0 <= d1, k0, k1)
-        dd = np.minimum(d0, d1)
-        ok = dd <= max_gap_beams * self.spacing
-        out[ok] = self.range[kk[ok]]
-        return out
-
 
 def point_segment_index(features: ScanFeatures) -> IntArray:
     """``(P,)`` int64: the segment each point of ``features.points_xy`` belongs to (-1 if

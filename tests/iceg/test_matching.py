@@ -418,7 +418,12 @@ def _numpy_correlation(
     local = np.einsum("hba,hkb->hka", r, gr.xy[None] - poses[:, None, :2])
     bearing = np.arctan2(local[..., 1], local[..., 0])
     dist = np.hypot(local[..., 0], local[..., 1])
-    rng = prof.lookup(bearing)
+    # the range of the return nearest in bearing, NaN beyond 1.6 beam spacings
+    k = np.searchsorted(prof.bearing, bearing)
+    k0, k1 = np.maximum(k - 1, 0), np.minimum(k, prof.bearing.shape[0] - 1)
+    d0, d1 = np.abs(bearing - prof.bearing[k0]), np.abs(prof.bearing[k1] - bearing)
+    near = np.where(d0 <= d1, k0, k1)
+    rng = np.where(np.minimum(d0, d1) <= 1.6 * prof.spacing, prof.range[near], np.nan)
     visible = (
         (bearing >= prof.bearing[0] - prof.spacing)
         & (bearing <= prof.bearing[-1] + prof.spacing)
