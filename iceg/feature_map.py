@@ -28,6 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from frontends.scan import LaserScan
+from iceg.landmark_association import nearest_free_pairs, within_gate_of_any
 from iceg.matching import transform_lines
 from iceg.matching.geometry import PolarProfile
 from iceg.matching.matcher import walls_seen_through
@@ -1230,20 +1231,14 @@ class FeatureMap:
     ) -> tuple[IntArray, IntArray]:
         """Add geometric pairs: each unpaired new feature with the nearest unpaired landmark
         within ``association_gate_m`` (one feature per landmark)."""
-        free_n = np.setdiff1d(np.arange(features.n_features), pair_new)
-        free_s = np.setdiff1d(np.arange(near.rows.shape[0]), near.slot[pair_row])
-        if not (free_n.shape[0] and free_s.shape[0]):
-            return pair_new, pair_row
-        d = np.linalg.norm(features.xy[free_n][:, None, :] - near.xy_new[free_s][None], axis=2)
-        jbest = np.argmin(d, axis=1)
-        good = d[np.arange(free_n.shape[0]), jbest] <= self.config.association_gate_m
-        cand_n = free_n[good]
-        cand_s = free_s[jbest[good]]
-        _, first = np.unique(cand_s, return_index=True)  # one feature per landmark
-        return (
-            np.concatenate([pair_new, cand_n[first]]),
-            np.concatenate([pair_row, near.rows[cand_s[first]]]),
+        feature_paired = np.zeros(features.n_features, dtype=bool)
+        feature_paired[pair_new] = True
+        slot_paired = np.zeros(near.rows.shape[0], dtype=bool)
+        slot_paired[near.slot[pair_row]] = True
+        new_f, new_s = nearest_free_pairs(
+            features.xy, feature_paired, near.xy_new, slot_paired, self.config.association_gate_m
         )
+        return np.concatenate([pair_new, new_f]), np.concatenate([pair_row, near.rows[new_s]])
 
     def _duplicates(
         self, features: ScanFeatures, near: _Near, pair_new: IntArray, pair_row: IntArray
@@ -1252,8 +1247,9 @@ class FeatureMap:
         feature anchored to another node; they merge into the paired one."""
         if not (pair_new.shape[0] and near.rows.shape[0]):
             return np.zeros(0, dtype=np.int64)
-        dd = np.linalg.norm(features.xy[pair_new][:, None, :] - near.xy_new[None], axis=2)
-        close = np.any(dd <= self.config.association_gate_m, axis=0)
+        close = within_gate_of_any(
+            features.xy, pair_new, near.xy_new, self.config.association_gate_m
+        )
         close[near.slot[pair_row]] = False
         return near.rows[close]
 

@@ -21,6 +21,7 @@ from iceg.feature_map import (
     _Points,
 )
 from iceg.features import extract
+from iceg.landmark_association import nearest_free_pairs, within_gate_of_any
 from iceg.matching import IceMatcher, MatchBounds
 from iceg.types import FeatureKind, MatchResult
 from iceg.visibility import expected_landmarks
@@ -434,3 +435,34 @@ def test_expected_landmarks_equal_the_numpy_expressions_bit_for_bit(offset) -> N
     )
     assert 0.1 < want.mean() < 0.9, want.mean()  # both answers occur
     assert np.array_equal(got, want)
+
+
+def test_association_kernels_equal_the_numpy_expressions() -> None:
+    # Features and landmarks scattered over a few metres (gate 0.3 m): some features pair,
+    # some landmarks are wanted by two features, ties in distance occur (repeated points).
+    rng = np.random.default_rng(5)
+    for _ in range(50):
+        k, n = int(rng.integers(0, 30)), int(rng.integers(0, 40))
+        feature_xy = np.round(rng.uniform(0, 3, (k, 2)), 1)
+        landmark_xy = np.round(rng.uniform(0, 3, (n, 2)), 1)
+        paired_f = rng.uniform(size=k) < 0.3
+        paired_l = rng.uniform(size=n) < 0.3
+        # numpy: the unpaired features' nearest unpaired landmark, one feature per landmark
+        free_n, free_s = np.flatnonzero(~paired_f), np.flatnonzero(~paired_l)
+        want_f, want_l = np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+        if free_n.shape[0] and free_s.shape[0]:
+            d = np.linalg.norm(feature_xy[free_n][:, None, :] - landmark_xy[free_s][None], axis=2)
+            jbest = np.argmin(d, axis=1)
+            good = d[np.arange(free_n.shape[0]), jbest] <= 0.3
+            cand_n, cand_s = free_n[good], free_s[jbest[good]]
+            _, first = np.unique(cand_s, return_index=True)
+            want_f, want_l = cand_n[first], cand_s[first]
+        got_f, got_l = nearest_free_pairs(feature_xy, paired_f, landmark_xy, paired_l, 0.3)
+        assert np.array_equal(got_f, want_f) and np.array_equal(got_l, want_l)
+        # numpy: landmarks within the gate of any of the paired features
+        paired = np.flatnonzero(paired_f)
+        want = np.zeros(n, dtype=bool)
+        if paired.shape[0] and n:
+            dd = np.linalg.norm(feature_xy[paired][:, None, :] - landmark_xy[None], axis=2)
+            want = np.any(dd <= 0.3, axis=0)
+        assert np.array_equal(within_gate_of_any(feature_xy, paired, landmark_xy, 0.3), want)
