@@ -448,20 +448,21 @@ class _Landmarks(_Columns):
     first_miss_s: FloatArray  # (L,) first expected miss since the last match (NaN: none)
     last_node: IntArray  # (L,) node that last matched (or created) it
 
-    def in_frame(self, frame_from_anchor: FloatArray) -> LandmarkView:
-        """These landmarks in another frame, given each anchor's pose ``(L, 3)`` there."""
+    def in_frame(self, rows: IntArray, frame_from_anchor: FloatArray) -> LandmarkView:
+        """The landmarks ``rows`` ``(L,)`` in another frame, given each one's anchor pose
+        ``(L, 3)`` there (copies of the rows: only the fields of the view are gathered)."""
         r = rotation_matrix(frame_from_anchor[:, 2])
         return LandmarkView(
-            ids=self.id,
-            anchor=self.anchor,
-            kind=self.kind,
-            xy=np.einsum("nab,nb->na", r, self.xy) + frame_from_anchor[:, :2],
-            cov=r @ self.cov @ np.swapaxes(r, 1, 2),
-            directions=np.einsum("nab,nkb->nka", r, self.dirs),
-            opening_rad=self.opening,
-            n_expected=self.n_expected,
-            n_matched=self.n_matched,
-            last_matched_s=self.last_matched_s,
+            ids=self.id[rows],
+            anchor=self.anchor[rows],
+            kind=self.kind[rows],
+            xy=np.einsum("nab,nb->na", r, self.xy[rows]) + frame_from_anchor[:, :2],
+            cov=r @ self.cov[rows] @ np.swapaxes(r, 1, 2),
+            directions=np.einsum("nab,nkb->nka", r, self.dirs[rows]),
+            opening_rad=self.opening[rows],
+            n_expected=self.n_expected[rows],
+            n_matched=self.n_matched[rows],
+            last_matched_s=self.last_matched_s[rows],
         )
 
 
@@ -483,11 +484,15 @@ class _Segments(_Columns):
     cov: FloatArray  # (M, 2, 2) covariance of (alpha, rho)
     pr: IntArray  # (M, 2) point range in the node's own points (-1: none kept)
 
-    def in_frame(self, frame_from_node: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Endpoints ``(M, 2, 2)``, lines ``(M, 2)`` and their covariances ``(M, 2, 2)`` in
-        another frame, given each node's pose ``(M, 3)`` there."""
-        ep = _move_points(rotation_matrix(frame_from_node[:, 2]), frame_from_node[:, :2], self.ep)
-        lines, cov = transform_lines(self.lines, self.cov, frame_from_node)
+    def in_frame(
+        self, rows: IntArray, frame_from_node: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Endpoints ``(M, 2, 2)``, lines ``(M, 2)`` and their covariances ``(M, 2, 2)`` of
+        the segments ``rows`` ``(M,)`` in another frame, given each one's node pose ``(M, 3)``
+        there."""
+        rot = rotation_matrix(frame_from_node[:, 2])
+        ep = _move_points(rot, frame_from_node[:, :2], self.ep[rows])
+        lines, cov = transform_lines(self.lines[rows], self.cov[rows], frame_from_node)
         return ep, lines, cov
 
 
@@ -850,7 +855,7 @@ class FeatureMap:
         ids, poses = _node_pose_table(node_poses)
         pos, found = _lookup(ids, self._lm.anchor)
         sel = np.flatnonzero(found)
-        return self._lm.take(sel).in_frame(poses[pos[sel]])
+        return self._lm.in_frame(sel, poses[pos[sel]])
 
     def world_segments(self, node_poses: NodePoses) -> tuple[FloatArray, IntArray]:
         """Every stored segment (wall) of the nodes that have a pose, in the frame of
@@ -869,7 +874,7 @@ class FeatureMap:
         ids, poses = _node_pose_table(node_poses)
         pos, found = _lookup(ids, self._seg.node)
         sel = np.flatnonzero(found)
-        endpoints, _, _ = self._seg.take(sel).in_frame(poses[pos[sel]])
+        endpoints, _, _ = self._seg.in_frame(sel, poses[pos[sel]])
         return endpoints, self._seg.node[sel]
 
     # ------------------------------------------------------------------ reference
@@ -910,7 +915,7 @@ class FeatureMap:
         ssel = _block_rows(self._seg_rows, want_posed)
         spos, _ = _lookup(ids, self._seg.node[ssel])
         srel = between(frame, poses[spos]) if ssel.shape[0] else np.zeros((0, 3))
-        ep, lines, lcov = self._seg.take(ssel).in_frame(srel)
+        ep, lines, lcov = self._seg.in_frame(ssel, srel)
         points, seg_pr = self._reference_points(ids, poses, want_posed, frame, ssel)
         features = ScanFeatures(
             points_xy=points,
@@ -963,7 +968,7 @@ class FeatureMap:
         apos, afound = _lookup(ids, lm.anchor[chosen])
         sel = chosen[afound]
         rel = between(frame, poses[apos[afound]]) if sel.shape[0] else np.zeros((0, 3))
-        return lm.take(sel).in_frame(rel)
+        return lm.in_frame(sel, rel)
 
     def _chosen(self, want: IntArray) -> IntArray:
         """Ascending rows of the landmarks anchored to or last matched from the nodes

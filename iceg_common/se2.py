@@ -42,6 +42,17 @@ def compose(a: ArrayLike, b: ArrayLike) -> FloatArray:
         bx, by, bt = b.tolist()  # type: ignore[union-attr]
         c, s = math.cos(at), math.sin(at)
         return np.array([ax + c * bx - s * by, ay + s * bx + c * by, _wrap(at + bt)])
+    if _one_pose(a) and type(b) is np.ndarray and b.ndim == 2 and b.shape[1] == 3:
+        # One pose and a batch (relative poses of many nodes): the same expressions with the
+        # first pose's numbers as floats, without numpy's 0-d steps.
+        ax, ay, at = a.tolist()  # type: ignore[union-attr]
+        c, s = math.cos(at), math.sin(at)
+        b = b.astype(np.float64, copy=False)
+        out = np.empty(b.shape)
+        out[:, 0] = ax + c * b[:, 0] - s * b[:, 1]
+        out[:, 1] = ay + s * b[:, 0] + c * b[:, 1]
+        out[:, 2] = (at + b[:, 2] + np.pi) % (2.0 * np.pi) - np.pi
+        return out
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
@@ -86,7 +97,8 @@ def transform_points(pose: ArrayLike, points_xy: ArrayLike) -> FloatArray:
     """Map points ``(K, 2)`` from the frame of ``pose`` (3,) into its parent frame."""
     p = np.asarray(pose, dtype=np.float64)
     pts = np.asarray(points_xy, dtype=np.float64)
-    c, s = np.cos(p[2]), np.sin(p[2])
+    t = float(p[2])
+    c, s = (math.cos(t), math.sin(t)) if math.isfinite(t) else (np.cos(t), np.sin(t))
     rot = np.array([[c, -s], [s, c]])
     return pts @ rot.T + p[:2]
 

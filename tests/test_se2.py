@@ -58,6 +58,14 @@ def test_one_pose_equals_the_same_pose_in_a_batch_bit_for_bit() -> None:
         one = np.array([f(x, y) for x, y in zip(a, b, strict=True)])
         assert np.array_equal(one, batch)
     assert np.array_equal(np.array([se2.inverse(x) for x in a]), se2.inverse(a))
+    # one pose against a batch (its own path) is the batch against the pose repeated
+    for x in a[:20]:
+        for f in (se2.compose, se2.between):
+            assert np.array_equal(f(x, b), f(np.tile(x, (b.shape[0], 1)), b))
+    points = rng.normal(0, 10, (50, 2))
+    for x in a[:20]:
+        expected = points @ se2.rotation_matrix(x[2]).T + x[:2]
+        assert np.array_equal(se2.transform_points(x, points), expected)
     # math raises on an infinite angle where numpy gives NaN: the same NaN either way
     with np.errstate(invalid="ignore"):
         assert np.isnan(se2.inverse(np.array([1.0, 2.0, np.inf]))).all()
