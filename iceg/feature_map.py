@@ -19,9 +19,10 @@ from __future__ import annotations
 
 import logging
 import math
+import weakref
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
-from typing import ClassVar, TypeVar
+from typing import ClassVar, NamedTuple, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -282,7 +283,9 @@ class MapReference:
         """``(K,)`` int64 landmark id of each reference feature."""
         return self.features.ids
 
-    def without_walls_seen_through(self, points_xy: FloatArray, tolerance_m: float) -> MapReference:
+    def without_walls_seen_through(
+        self, points_xy: FloatArray, tolerance_m: float, profile: PolarProfile | None = None
+    ) -> MapReference:
         """This reference without the walls that a scan taken at its frame sees through more
         than it confirms (``iceg.matching.matcher.walls_seen_through``): a door that opened,
         a person who walked on. The wall is gone, and a new scan that sees past it would
@@ -295,6 +298,9 @@ class MapReference:
                 reference frame: the scan of the node at ``frame_pose``, whose pose the
                 reference's walls are placed against.
             tolerance_m: A beam sees through a wall when it reaches this far beyond it.
+            profile: ``PolarProfile.from_points(points_xy, r)`` if the caller has it (the
+                scan's matching profile, ``iceg.matching.matcher.scan_derived``); used when
+                ``r`` is this reference's ``range_max_m``, else computed here.
 
         Returns:
             The reference without those walls (``self`` when none is dropped).
@@ -302,7 +308,8 @@ class MapReference:
         f = self.features
         if f.seg_endpoints.shape[0] == 0 or points_xy.shape[0] < 3:
             return self
-        profile = PolarProfile.from_points(points_xy, float(f.range_max_m))
+        if profile is None or profile.range_max_m != float(f.range_max_m):
+            profile = PolarProfile.from_points(points_xy, float(f.range_max_m))
         see, confirmed = walls_seen_through(f.seg_endpoints, profile, tolerance_m)
         keep = see <= confirmed
         if keep.all():
@@ -676,6 +683,46 @@ def _geometry(features: ScanFeatures, offset_m: float) -> _VisibilityGeometry:
     wall_d[direct] = d[direct]
     _intersection_geometry(features, offset_m, support, wall_p, wall_d)
     return support, wall_p, wall_d, _side_of_walls(wall_p, wall_d)
+
+
+class VisibilityInputs(NamedTuple):
+    """What the map update's visibility test reads of a new scan alone (pose-independent;
+    computed ahead in a feature worker by :mod:`iceg.scan_products`).
+
+    Attributes:
+        support_offset_m: The ``FeatureMapConfig.support_offset_m`` of ``geometry``.
+        geometry: The features' visibility geometry (see :func:`_geometry`).
+        beams: The scan's beams by bearing (:meth:`_BeamProfile.of_scan`).
+    """
+
+    support_offset_m: float
+    geometry: _VisibilityGeometry
+    beams: _BeamProfile
+
+
+def visibility_inputs(
+    features: ScanFeatures, scan: LaserScan, support_offset_m: float
+) -> VisibilityInputs:
+    """The :class:`VisibilityInputs` of a scan and its features, as an update computes them."""
+    return VisibilityInputs(
+        support_offset_m, _geometry(features, support_offset_m), _BeamProfile.of_scan(scan)
+    )
+
+
+#: Visibility inputs computed ahead (:func:`remember_visibility_inputs`), by features object,
+#: with the scan object they belong to (dropped with the features).
+_AHEAD: weakref.WeakKeyDictionary[ScanFeatures, tuple[LaserScan, VisibilityInputs]] = (
+    weakref.WeakKeyDictionary()
+)
+
+
+def remember_visibility_inputs(
+    features: ScanFeatures, scan: LaserScan, inputs: VisibilityInputs
+) -> None:
+    """Let an update of ``features`` with ``scan`` use ``inputs``, which
+    :func:`visibility_inputs` computed for them (or for copies of them, bit for bit: a
+    worker's), instead of computing them again."""
+    _AHEAD[features] = (scan, inputs)
 
 
 def _intersection_geometry(
@@ -1278,6 +1325,9 @@ class FeatureMap:
         """:func:`_geometry` of a scan's features, computed once per features object (an
         update's replacements and its new landmarks both read it; features are never
         modified after extraction)."""
+        ahead = _AHEAD.get(features)
+        if ahead is not None and ahead[1].support_offset_m == self.config.support_offset_m:
+            return ahead[1].geometry
         memo = self._geometry_memo
         if memo is None or memo[0] is not features:
             memo = self._geometry_memo = (
@@ -1345,11 +1395,13 @@ class FeatureMap:
         n = rows.shape[0]
         if n == 0:
             return np.zeros(0, dtype=bool)
-        profile = (
-            _BeamProfile.of_scan(scan)
-            if scan is not None
-            else _BeamProfile.of_points(features.points_xy)
-        )
+        ahead = _AHEAD.get(features)
+        if scan is None:
+            profile = _BeamProfile.of_points(features.points_xy)
+        elif ahead is not None and ahead[0] is scan:
+            profile = ahead[1].beams
+        else:
+            profile = _BeamProfile.of_scan(scan)
         if profile.bearing.shape[0] == 0:
             return np.zeros(n, dtype=bool)
         cfg = self.config

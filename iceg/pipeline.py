@@ -20,6 +20,7 @@ from iceg.config import IcegConfig
 from iceg.evaluation import position_errors, relation_errors
 from iceg.features.prefetch import FeaturePrefetcher, auto_workers
 from iceg.results import SlamResult
+from iceg.scan_products import ScanPrecompute
 from iceg.scan_store import ScanStore
 from iceg.slam import Slam
 from iceg_common.errors import EvaluationError, LogFormatError
@@ -39,7 +40,8 @@ def run_scans(
     """Run SLAM over scans in order and return the finished result.
 
     With ``config.slam.workers`` > 1 (0: :func:`~iceg.features.prefetch.auto_workers`) the
-    features of upcoming scans are extracted in worker processes
+    features of upcoming scans, and what the run derives from them alone
+    (:mod:`iceg.scan_products`), are computed in worker processes
     (:class:`~iceg.features.prefetch.FeaturePrefetcher`); the result is the same.
 
     Raises:
@@ -52,7 +54,8 @@ def run_scans(
 
         scans = tqdm(scans, total=total, unit="scan", desc="iceg")
     workers = slam.config.slam.workers or auto_workers()
-    with FeaturePrefetcher(slam.config.features, workers) as prefetch:
+    precompute = ScanPrecompute(slam.config)
+    with FeaturePrefetcher(slam.config.features, workers, precompute=precompute) as prefetch:
         for scan, features in prefetch.scans(scans):
             slam.process(scan, features=features)
             n += 1

@@ -24,6 +24,7 @@ global ICE match and a consistency check (:mod:`iceg.loop_closure`).
 from __future__ import annotations
 
 import functools
+import weakref
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -103,6 +104,9 @@ def place_descriptor(features: ScanFeatures, config: PlaceIndexConfig | None = N
         rotated; its first block is also unchanged under a translation.
     """
     cfg = config or PlaceIndexConfig()
+    ahead = _AHEAD.get(features)
+    if ahead is not None and ahead[0] == cfg:
+        return ahead[1]
     r_max = float(features.range_max_m)
     xy = np.asarray(features.xy, dtype=np.float64).reshape(-1, 2)
     i, j = _pairs(xy.shape[0])
@@ -112,6 +116,22 @@ def place_descriptor(features: ScanFeatures, config: PlaceIndexConfig | None = N
     desc = np.concatenate([pair, cfg.range_weight * ranges])
     norm = float(np.linalg.norm(desc))
     return desc / norm if norm > 0 else desc
+
+
+#: Descriptors computed ahead (:func:`remember_place_descriptor`), by features object (dropped
+#: with the features), with the configuration they were computed with.
+_AHEAD: weakref.WeakKeyDictionary[ScanFeatures, tuple[PlaceIndexConfig, FloatArray]] = (
+    weakref.WeakKeyDictionary()
+)
+
+
+def remember_place_descriptor(
+    features: ScanFeatures, config: PlaceIndexConfig, descriptor: FloatArray
+) -> None:
+    """Let :func:`place_descriptor` of ``features`` with ``config`` return ``descriptor``,
+    which it computed for them (or for a copy of them, bit for bit: a feature worker's,
+    :mod:`iceg.scan_products`)."""
+    _AHEAD[features] = (config, descriptor)
 
 
 class PlaceIndex:

@@ -31,11 +31,13 @@ from iceg.feature_map import FeatureMap, MapReference
 from iceg.features import extract
 from iceg.loop_closure import LoopCloser, LoopClosureStats, innovation_chi2
 from iceg.matching import MatchBounds
+from iceg.matching.geometry import PolarProfile
 from iceg.matching.matcher import (
     REASON_DEGENERATE,
     REASON_FEW_INLIERS,
     REASON_LOW_CORRELATION,
     REASON_NO_CANDIDATES,
+    scan_derived,
 )
 from iceg.matching.peers import make_matcher
 from iceg.matching.plicp import PlIcpMatcher
@@ -196,6 +198,7 @@ class Slam:
         self.matcher = make_matcher(self.config.matching)
         self.point_matcher = PlIcpMatcher(self.config.matching)
         self._node_points: dict[int, FloatArray] = {}  # recent nodes' scan points (cache)
+        self._last_features: tuple[int, ScanFeatures] | None = None  # newest node, features
         self.feature_map = FeatureMap(self.config.feature_map)
         self.loop_closer = LoopCloser(
             self.config.loop_closure, self.matcher, self.feature_map, self.config.odometry_noise
@@ -486,7 +489,9 @@ class Slam:
             # The last node's scan is the newest view of the place; its pose comes from a
             # match against these walls, so a wall it sees through is gone.
             reference = reference.without_walls_seen_through(
-                self._points_of(last), self.config.matching.validation.see_through_tolerance_m
+                self._points_of(last),
+                self.config.matching.validation.see_through_tolerance_m,
+                self._matching_profile(last),
             )
         bounds = MatchBounds.local(cfg.match_max_translation_m, cfg.match_max_rotation_deg)
         result = self.matcher.match(feats, reference.features, motion.delta, bounds)
@@ -589,10 +594,20 @@ class Slam:
         """Keep the new node's scan points for :meth:`_point_match`; forget those of nodes
         that left the local map."""
         self._node_points[node_id] = feats.points_xy
+        self._last_features = (node_id, feats)
         for old in [
             i for i in self._node_points if i <= node_id - self.config.slam.local_map_nodes
         ]:
             del self._node_points[old]
+
+    def _matching_profile(self, node_id: int) -> PolarProfile | None:
+        """The polar profile of ``node_id``'s scan points that its ICE match computed
+        (:func:`~iceg.matching.matcher.scan_derived`), when it is the newest node and the
+        matcher is ICE; else None."""
+        if self._last_features is None or self.config.matching.method != "ice":
+            return None
+        node, feats = self._last_features
+        return scan_derived(feats).profile if node == node_id else None
 
     def _points_of(self, node_id: int) -> FloatArray:
         """``(P, 2)`` float64 scan points of a node, its frame (features' ``points_xy``;

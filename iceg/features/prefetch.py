@@ -16,7 +16,9 @@ thread did, and cost more than the extraction it saved). A forked worker starts 
 the package loaded and never re-runs the user's ``__main__`` script, which ``spawn`` and
 ``forkserver`` would (a script without an ``if __name__ == "__main__"`` guard would run
 twice). The workers only extract features (numpy and numba: no gtsam, no threads of the
-parent), which is what makes forking a process that may hold other threads safe here.
+parent), which is what makes forking a process that may hold other threads safe here. With
+a :class:`Precompute` they also compute what the run derives from a scan and its features
+alone (:mod:`iceg.scan_products`), which the calling process adopts with the features.
 Scans go out in batches (one wake-up of a worker per few scans), never more than
 ``LOOKAHEAD_PER_WORKER`` unfinished per worker, and workers run at a lower priority
 (``WORKER_NICENESS``): on a busy machine they take spare CPU only, and the main process
@@ -31,10 +33,12 @@ import multiprocessing
 import os
 import signal
 import sys
+import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
-from multiprocessing.connection import Connection
+from multiprocessing.connection import Connection, wait
 from multiprocessing.process import BaseProcess
+from typing import Any, Protocol, TypeVar
 
 from frontends.scan import LaserScan
 from iceg.features.config import FeatureConfig
@@ -55,17 +59,36 @@ WORKER_NICENESS = 10
 FeaturesOf = Callable[[], ScanFeatures]
 
 
+_P = TypeVar("_P")
+
+
+class Precompute(Protocol[_P]):
+    """Pose-independent products of a scan and its features, computed in a worker right
+    after the features (:meth:`compute`, any picklable value) and handed over in the calling
+    process with them (:meth:`adopt`). ``compute`` must be a pure function of its inputs, so
+    that the run is the same whether a product comes from a worker or not."""
+
+    def compute(self, scan: LaserScan, features: ScanFeatures) -> _P: ...
+
+    def adopt(self, scan: LaserScan, features: ScanFeatures, products: _P) -> None: ...
+
+
+#: A worker's result for one scan: its features (None: extraction failed) and products (None:
+#: none asked, or their computation failed).
+_Result = tuple[ScanFeatures | None, object]
+
+
 class _Inbox:
     """Results arrived from the workers, by scan index; those below ``floor`` (scans already
     handed out) are dropped on arrival."""
 
     def __init__(self) -> None:
-        self.results: dict[int, ScanFeatures | None] = {}
+        self.results: dict[int, _Result] = {}
         self.floor = 0
 
-    def put(self, index: int, feats: ScanFeatures | None) -> None:
+    def put(self, index: int, feats: ScanFeatures | None, products: object = None) -> None:
         if index >= self.floor:
-            self.results[index] = feats
+            self.results[index] = (feats, products)
 
     def advance(self, floor: int) -> None:
         self.floor = floor
@@ -78,12 +101,14 @@ class _Worker:
     calling sides of the workers started before (the child closes its copies of them, so
     that every worker sees the end of its pipe when the calling process exits)."""
 
-    def __init__(self, config: FeatureConfig, others: list[Connection]) -> None:
+    def __init__(
+        self, config: FeatureConfig, precompute: Precompute[Any] | None, others: list[Connection]
+    ) -> None:
         ctx = multiprocessing.get_context("fork")
         self.conn, child = ctx.Pipe(duplex=True)
         self.proc: BaseProcess = ctx.Process(
             target=_serve,
-            args=(child, [self.conn, *others], os.getpid(), config),
+            args=(child, [self.conn, *others], os.getpid(), config, precompute),
             daemon=True,
             name="iceg-features",
         )
@@ -131,9 +156,19 @@ class _Worker:
             self.alive = False
 
     def close(self) -> None:
+        """Ask the worker to exit and wait for it (terminated after ``JOIN_TIMEOUT_S``).
+        Its results still in flight are read and dropped meanwhile: a worker blocked on a
+        full pipe would never read the request."""
         with contextlib.suppress(OSError, ValueError):
             self.conn.send(None)
-        self.proc.join(JOIN_TIMEOUT_S)
+        deadline = time.monotonic() + JOIN_TIMEOUT_S
+        with contextlib.suppress(EOFError, OSError):
+            while (left := deadline - time.monotonic()) > 0:
+                ready = wait([self.conn, self.proc.sentinel], left)
+                if self.proc.sentinel in ready or not ready:
+                    break
+                self.conn.recv()
+        self.proc.join(max(0.0, deadline - time.monotonic()))
         if self.proc.is_alive():
             self.proc.terminate()
             self.proc.join(JOIN_TIMEOUT_S)
@@ -141,10 +176,15 @@ class _Worker:
 
 
 def _serve(
-    conn: Connection, inherited: list[Connection], parent_pid: int, config: FeatureConfig
+    conn: Connection,
+    inherited: list[Connection],
+    parent_pid: int,
+    config: FeatureConfig,
+    precompute: Precompute[Any] | None,
 ) -> None:
-    """Worker loop: batches ``[(index, scan), ...]`` in, one ``(index, features or None)``
-    out per scan; None, the end of the pipe or the parent's exit stops it."""
+    """Worker loop: batches ``[(index, scan), ...]`` in, one ``(index, features or None,
+    products or None)`` out per scan; None, the end of the pipe or the parent's exit stops
+    it."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle
     with contextlib.suppress(OSError):
         # Spare CPU only: on a busy machine the worker must not take the main process's
@@ -167,8 +207,14 @@ def _serve(
                 feats: ScanFeatures | None = extract(scan, config)
             except Exception:  # the calling process recomputes it and raises it there
                 feats = None
+            products = None
+            if precompute is not None and feats is not None:
+                try:
+                    products = precompute.compute(scan, feats)
+                except Exception:  # the calling process computes them when it reads them
+                    products = None
             try:
-                conn.send((index, feats))
+                conn.send((index, feats, products))
             except (OSError, ValueError):  # the calling process is gone
                 return
 
@@ -205,6 +251,8 @@ class FeaturePrefetcher:
             process only (no worker).
         wait: Wait for a worker's result rather than extracting in the calling process
             when it has not arrived (for tests).
+        precompute: Products the workers also compute for each scan, adopted in the calling
+            process with the features (:class:`Precompute`; None: features only).
 
     Attributes:
         hits: Features taken from a worker so far.
@@ -212,10 +260,17 @@ class FeaturePrefetcher:
             behind or failed).
     """
 
-    def __init__(self, config: FeatureConfig, workers: int, wait: bool = False) -> None:
+    def __init__(
+        self,
+        config: FeatureConfig,
+        workers: int,
+        wait: bool = False,
+        precompute: Precompute[Any] | None = None,
+    ) -> None:
         self.config = config
         self.workers = max(1, int(workers))
         self.wait = wait
+        self.precompute = precompute
         self.hits = 0
         self.misses = 0
         self._pool: list[_Worker] = []
@@ -225,7 +280,8 @@ class FeaturePrefetcher:
         if self.workers > 1 and sys.platform == "linux":
             try:
                 for _ in range(self.workers - 1):
-                    self._pool.append(_Worker(self.config, [w.conn for w in self._pool]))
+                    others = [w.conn for w in self._pool]
+                    self._pool.append(_Worker(self.config, self.precompute, others))
             except OSError as exc:
                 log.warning("feature prefetch off (%s); extracting here", exc)
                 self.__exit__()
@@ -289,9 +345,11 @@ class FeaturePrefetcher:
                 worker.wait_for(index, self._inbox)
             else:
                 worker.drain(self._inbox)
-            got = self._inbox.results.get(index)
+            got, products = self._inbox.results.get(index, (None, None))
             if got is not None:
                 self.hits += 1
+                if products is not None and self.precompute is not None:
+                    self.precompute.adopt(scan, got, products)
                 return got
             # Not arrived (the worker is behind) or failed: the same computation here (an
             # error is then raised in this process).

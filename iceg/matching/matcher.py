@@ -193,17 +193,29 @@ _DERIVED: weakref.WeakKeyDictionary[ScanFeatures, ScanDerived] = weakref.WeakKey
 def scan_derived(features: ScanFeatures) -> ScanDerived:
     """The pose-independent quantities of a new scan's features, computed once per
     features object (a keyframe is matched locally and then against loop-closure
-    candidates). ``ScanFeatures`` are never modified after extraction, so the cached values
-    are exactly those a fresh computation would give."""
+    candidates), or ahead by :func:`remember_scan_derived`. ``ScanFeatures`` are never
+    modified after extraction, so the cached values are exactly those a fresh computation
+    would give."""
     got = _DERIVED.get(features)
     if got is None:
-        got = ScanDerived(
-            feature_geometry(features),
-            PolarProfile.from_points(features.points_xy, float(features.range_max_m)),
-            point_segment_index(features),
-        )
-        _DERIVED[features] = got
+        got = _DERIVED[features] = compute_scan_derived(features)
     return got
+
+
+def compute_scan_derived(features: ScanFeatures) -> ScanDerived:
+    """What :func:`scan_derived` caches, computed afresh (e.g. in a feature worker,
+    :mod:`iceg.scan_products`)."""
+    return ScanDerived(
+        feature_geometry(features),
+        PolarProfile.from_points(features.points_xy, float(features.range_max_m)),
+        point_segment_index(features),
+    )
+
+
+def remember_scan_derived(features: ScanFeatures, derived: ScanDerived) -> None:
+    """Let :func:`scan_derived` serve ``derived``, which :func:`compute_scan_derived`
+    computed for these features (or for a copy of them, bit for bit: a worker's)."""
+    _DERIVED[features] = derived
 
 
 #: A reference's feature geometry and polar profile (None: its points are not one scan).

@@ -23,6 +23,8 @@ from iceg.feature_map import (
 from iceg.features import extract
 from iceg.landmark_association import nearest_free_pairs, within_gate_of_any
 from iceg.matching import IceMatcher, MatchBounds
+from iceg.matching.geometry import PolarProfile
+from iceg.matching.matcher import walls_seen_through
 from iceg.types import FeatureKind, MatchResult
 from iceg.visibility import expected_landmarks
 from iceg_common.errors import FeatureMapError
@@ -341,6 +343,17 @@ def test_walls_the_newest_scan_sees_through_are_dropped_from_a_reference(removed
     left = transform_points(poses[1], kept.features.seg_endpoints.reshape(-1, 2)).reshape(-1, 2, 2)
     np.testing.assert_array_equal(left, walls[~on_box])
     assert kept.features.ids is ref.features.ids  # landmarks untouched
+    # The matcher's profile of the same points gives the same walls; one of another range
+    # (which would judge other walls) is not used.
+    right = PolarProfile.from_points(feats[1].points_xy, ref.features.range_max_m)
+    wrong = PolarProfile.from_points(feats[1].points_xy, 3.0)
+    ep = ref.features.seg_endpoints
+    assert not np.array_equal(
+        walls_seen_through(ep, right, 0.3), walls_seen_through(ep, wrong, 0.3)
+    )
+    for profile in (right, wrong):
+        given = ref.without_walls_seen_through(feats[1].points_xy, 0.3, profile)
+        np.testing.assert_array_equal(given.features.seg_endpoints, kept.features.seg_endpoints)
 
 
 @pytest.mark.parametrize("n_drop", [0, 1, 3, 40])

@@ -1,18 +1,21 @@
 """Feature prefetching in worker processes (issue 13): the result does not depend on the
-number of workers (features never depend on the pose), bit for bit. No timings here:
-speed is measured by ``benchmarks/bench_pipeline.py``."""
+number of workers (features, and the products computed beside them, never depend on the
+pose), bit for bit. No timings here: speed is measured by ``benchmarks/bench_pipeline.py``."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from frontends.scan import LaserScan
 from frontends.simulate import corridor_world, default_trajectory, simulate
 from iceg.config import IcegConfig
 from iceg.features import extract
 from iceg.features.prefetch import FeaturePrefetcher, auto_workers
 from iceg.pipeline import run_scans
+from iceg.scan_products import ScanPrecompute
 from iceg.slam import Slam
+from iceg.types import ScanFeatures
 
 
 def _config(workers: int) -> IcegConfig:
@@ -37,7 +40,10 @@ def test_trajectory_identical_with_one_and_two_workers(short_run) -> None:  # ty
 def test_trajectory_identical_when_every_feature_comes_from_a_worker(short_run) -> None:  # type: ignore[no-untyped-def]
     one = run_scans(short_run.scans, _config(1))
     slam = Slam(_config(2))
-    with FeaturePrefetcher(slam.config.features, workers=2, wait=True) as prefetch:
+    precompute = ScanPrecompute(slam.config)
+    with FeaturePrefetcher(
+        slam.config.features, workers=2, wait=True, precompute=precompute
+    ) as prefetch:
         for scan, features in prefetch.scans(short_run.scans):
             slam.process(scan, features=features)
     two = slam.finish()
@@ -70,3 +76,58 @@ def test_one_worker_has_no_pool(short_run) -> None:  # type: ignore[no-untyped-d
 
 def test_auto_workers_is_one_or_two() -> None:
     assert auto_workers() in (1, 2)
+
+
+def _leaves(value: object) -> list[object]:
+    """The arrays and numbers of a (nested) named tuple / dataclass of products, in order."""
+    if isinstance(value, np.ndarray) or (
+        not hasattr(value, "__dict__") and not isinstance(value, tuple)
+    ):
+        return [value]
+    items = value if isinstance(value, tuple) else vars(value).values()
+    return [leaf for item in items for leaf in _leaves(item)]
+
+
+def test_products_from_a_worker_equal_the_products_computed_here(short_run) -> None:  # type: ignore[no-untyped-def]
+    cfg = IcegConfig()
+    precompute = ScanPrecompute(cfg)
+    adopted: list[tuple[LaserScan, ScanFeatures, object]] = []
+
+    class Recording(ScanPrecompute):
+        def adopt(self, scan, features, products):  # type: ignore[no-untyped-def]
+            adopted.append((scan, features, products))
+            super().adopt(scan, features, products)
+
+    scans = short_run.scans[:20]
+    with FeaturePrefetcher(cfg.features, 2, wait=True, precompute=Recording(cfg)) as prefetch:
+        got = [features() for _, features in prefetch.scans(scans)]
+    assert [a[1] for a in adopted] == got  # adopted with the features handed out
+    for scan, _, products in adopted:
+        want = precompute.compute(scan, extract(scan, cfg.features))
+        leaves, want_leaves = _leaves(products), _leaves(want)
+        assert len(leaves) == len(want_leaves) > 10
+        for a, b in zip(leaves, want_leaves, strict=True):
+            if isinstance(b, np.ndarray):
+                assert a.dtype == b.dtype and a.tobytes() == b.tobytes()
+            else:
+                assert a == b or (a != a and b != b)  # NaN equals NaN here
+
+
+class _Bulky:
+    """Products of 4 MB a scan: a few fill the pipe, so a worker blocks on sending them."""
+
+    def compute(self, scan: LaserScan, features: ScanFeatures) -> np.ndarray:
+        return np.zeros(500_000)
+
+    def adopt(self, scan: LaserScan, features: ScanFeatures, products: np.ndarray) -> None:
+        pass
+
+
+def test_closing_reads_what_a_blocked_worker_still_sends(short_run) -> None:  # type: ignore[no-untyped-def]
+    # Nothing is read before the prefetcher closes: the worker is blocked on a full pipe
+    # and exits on its own (exit code 0) only if closing reads its results meanwhile; else
+    # it is terminated (exit code -SIGTERM).
+    with FeaturePrefetcher(IcegConfig().features, 2, precompute=_Bulky()) as prefetch:
+        next(iter(prefetch.scans(short_run.scans)))
+        workers = list(prefetch._pool)
+    assert [w.proc.exitcode for w in workers] == [0]
