@@ -620,14 +620,16 @@ class PoseGraph:
             if bool(np.all(ok)):
                 return ids, all_poses[pos].copy()
         cache, initial = self._pose_cache, self._initial
-        # Straight from iSAM2 when it serves the estimates (the common case; its nodes are
-        # all in ``initial``), else as estimate() reads them.
-        isam = self._isam if self._served is None else None
-        in_isam = self._in_isam if isam is not None else set()
-        rows = []
-        for n in ids.tolist():
-            pose = cache.get(n)
-            if pose is None:
+        nodes = ids.tolist()
+        rows = list(map(cache.get, nodes))
+        if None in rows:
+            # Straight from iSAM2 when it serves the estimates (the common case; its nodes
+            # are all in ``initial``), else as estimate() reads them.
+            isam = self._isam if self._served is None else None
+            in_isam = self._in_isam if isam is not None else set()
+            for k, n in enumerate(nodes):
+                if rows[k] is not None:
+                    continue
                 if n in in_isam:
                     if not self._delta_read:
                         self._note_delta_read()
@@ -637,8 +639,7 @@ class PoseGraph:
                     if n not in initial:
                         self._existing(n, f"estimate({n!r})")  # raises
                     pose = self._read_pose(n)
-                cache[n] = pose
-            rows.append(pose)
+                cache[n] = rows[k] = pose
         return ids, np.array(rows, dtype=np.float64).reshape(-1, 3)
 
     def _drop_estimates(self) -> None:

@@ -350,7 +350,7 @@ class _Columns:
     SPEC: ClassVar[dict[str, tuple[type, tuple[int, ...]]]] = {}
 
     def __post_init__(self) -> None:
-        self._bufs: dict[str, np.ndarray] = {f.name: getattr(self, f.name) for f in fields(self)}
+        self._bufs: dict[str, np.ndarray] = {name: getattr(self, name) for name in self.SPEC}
         self._cap = len(self)
 
     @classmethod
@@ -363,23 +363,28 @@ class _Columns:
 
     def append(self: _C, other: _C) -> None:
         """Append ``other``'s rows (cast to this container's dtypes)."""
-        n, m = len(self), len(other)
+        self.extend(len(other), **{name: getattr(other, name) for name in self.SPEC})
+
+    def extend(self, m: int, **columns: ArrayLike) -> None:
+        """Append ``m`` rows: each field's values, ``m`` rows of them or one value for every
+        row (cast to the field's dtype, as ``astype`` does)."""
+        n = len(self)
         if n + m > self._cap:
             cap = max(2 * self._cap, n + m, _MIN_CAPACITY)
-            for f in fields(self):
-                mine = getattr(self, f.name)
+            for name in self.SPEC:
+                mine = getattr(self, name)
                 buf = np.empty((cap, *mine.shape[1:]), dtype=mine.dtype)
                 buf[:n] = mine
-                self._bufs[f.name] = buf
+                self._bufs[name] = buf
             self._cap = cap
-        for f in fields(self):
-            buf = self._bufs[f.name]
-            buf[n : n + m] = getattr(other, f.name).astype(buf.dtype)
-            setattr(self, f.name, buf[: n + m])
+        for name in self.SPEC:
+            buf = self._bufs[name]
+            buf[n : n + m] = columns[name]
+            setattr(self, name, buf[: n + m])
 
     def take(self: _C, rows: IntArray | BoolArray) -> _C:
         """A copy holding the selected rows (indices or a mask)."""
-        return type(self)(**{f.name: getattr(self, f.name)[rows] for f in fields(self)})
+        return type(self)(**{name: getattr(self, name)[rows] for name in self.SPEC})
 
     def drop(self: _C, rows: IntArray) -> _C:
         """A copy without ``rows`` (indices), the others in order, with this container's
@@ -395,8 +400,8 @@ class _Columns:
             mask[gone] = False
         cap = max(self._cap, kept)
         bufs: dict[str, np.ndarray] = {}
-        for f in fields(self):
-            col = getattr(self, f.name)
+        for name in self.SPEC:
+            col = getattr(self, name)
             buf = np.empty((cap, *col.shape[1:]), dtype=col.dtype)
             if mask is not None:
                 buf[:kept] = col[mask]
@@ -405,7 +410,7 @@ class _Columns:
                 for a, b in blocks:
                     buf[at : at + b - a] = col[a:b]
                     at += b - a
-            bufs[f.name] = buf
+            bufs[name] = buf
         out = type(self)(**{k: buf[:kept] for k, buf in bufs.items()})
         out._bufs, out._cap = bufs, cap
         return out
@@ -1153,21 +1158,19 @@ class FeatureMap:
         keep = self.config.reference_points
         start = len(self._seg)
         self._seg_rows[node_id] = (start, start + m)
-        pr = np.asarray(features.seg_point_range, dtype=np.int64).reshape(m, 2)
-        self._seg.append(
-            _Segments(
-                node=np.full(m, node_id, dtype=np.int64),
-                ep=np.asarray(features.seg_endpoints, dtype=np.float64).reshape(m, 2, 2),
-                lines=np.asarray(features.seg_lines, dtype=np.float64).reshape(m, 2),
-                cov=np.asarray(features.seg_cov, dtype=np.float64).reshape(m, 2, 2),
-                pr=pr if keep else np.full((m, 2), -1, dtype=np.int64),
-            )
+        self._seg.extend(
+            m,
+            node=node_id,
+            ep=np.asarray(features.seg_endpoints, dtype=np.float64).reshape(m, 2, 2),
+            lines=np.asarray(features.seg_lines, dtype=np.float64).reshape(m, 2),
+            cov=np.asarray(features.seg_cov, dtype=np.float64).reshape(m, 2, 2),
+            pr=np.asarray(features.seg_point_range, dtype=np.int64).reshape(m, 2) if keep else -1,
         )
         if keep:
             pts = np.asarray(features.points_xy, dtype=np.float64).reshape(-1, 2)
             start = len(self._pts)
             self._pts_rows[node_id] = (start, start + pts.shape[0])
-            self._pts.append(_Points(np.full(pts.shape[0], node_id, dtype=np.int64), pts))
+            self._pts.extend(pts.shape[0], node=node_id, xy=pts)
 
     def _add_landmarks(
         self, node_id: int, features: ScanFeatures, mask: BoolArray, stamp: float
@@ -1177,27 +1180,26 @@ class FeatureMap:
         ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
         self._next_id += n
         support, wall_p, wall_d, wall_side = (a[rows] for a in self._geometry_of(features))
-        self._lm.append(
-            _Landmarks(
-                id=ids,
-                anchor=np.full(n, node_id, dtype=np.int64),
-                kind=np.asarray(features.kind, dtype=np.int64)[rows],
-                xy=features.xy[rows],
-                cov=features.cov[rows],
-                dirs=features.directions[rows],
-                opening=features.opening_rad[rows],
-                support=support,
-                wall_p=wall_p,
-                wall_d=wall_d,
-                wall_side=wall_side,
-                n_expected=np.zeros(n, dtype=np.int64),
-                n_matched=np.zeros(n, dtype=np.int64),
-                misses=np.zeros(n, dtype=np.int64),
-                created_s=np.full(n, stamp),
-                last_matched_s=np.full(n, stamp),
-                first_miss_s=np.full(n, np.nan),
-                last_node=np.full(n, node_id, dtype=np.int64),
-            )
+        self._lm.extend(
+            n,
+            id=ids,
+            anchor=node_id,
+            kind=np.asarray(features.kind, dtype=np.int64)[rows],
+            xy=features.xy[rows],
+            cov=features.cov[rows],
+            dirs=features.directions[rows],
+            opening=features.opening_rad[rows],
+            support=support,
+            wall_p=wall_p,
+            wall_d=wall_d,
+            wall_side=wall_side,
+            n_expected=0,
+            n_matched=0,
+            misses=0,
+            created_s=stamp,
+            last_matched_s=stamp,
+            first_miss_s=np.nan,
+            last_node=node_id,
         )
         return ids
 
