@@ -28,8 +28,9 @@ Olson 2009).
 from __future__ import annotations
 
 import bisect
+import functools
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -39,6 +40,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from graph import FactorKind, OdometryNoiseConfig, PoseGraph
 from iceg.feature_map import FeatureMap
+from iceg.match_pool import MatchJob, MatchPool
 from iceg.matching import MatchBounds, Matcher
 from iceg.node_index import NodeGrid
 from iceg.place_index import PlaceIndex, PlaceIndexConfig, place_descriptor
@@ -541,6 +543,8 @@ class LoopCloser:
             odometry_noise if odometry_noise is not None else OdometryNoiseConfig()
         )
         self.matcher = matcher
+        #: Runs a search's matches beside a helper process when set (by the pipeline).
+        self.match_pool: MatchPool | None = None
         self.feature_map = feature_map
         self.stats = LoopClosureStats()
         self.pending: list[LoopClosure] = []
@@ -754,17 +758,25 @@ class LoopCloser:
         whose reference window is one already matched in this search is skipped
         (:func:`_same_place`)."""
         bounds = self._bounds(s)
-        best: _Best | None = None
         matched: list[IntArray] = []  # the windows of the places matched so far
+        candidates: list[int] = []
+        predictions: list[FloatArray] = []
+        jobs: list[Callable[[], MatchJob]] = []
         for candidate in self._candidates(s):
             window = self._window(s, candidate)
             if any(_same_place(window, other) for other in matched):
                 continue
             matched.append(window)
             prediction = se2.between(s.poses[candidate], s.poses[s.node_id])
-            self.stats.attempts += 1
-            reference = self._reference(s, candidate, window)
-            result = self.matcher.match(features, reference, prediction, bounds)
+            candidates.append(candidate)
+            predictions.append(prediction)
+            jobs.append(
+                functools.partial(self._job, s, features, candidate, window, prediction, bounds)
+            )
+        self.stats.attempts += len(jobs)
+        best: _Best | None = None
+        results = self._match_all(jobs)
+        for candidate, prediction, result in zip(candidates, predictions, results, strict=True):
             if not usable_match(result, self.config):
                 self.stats.rejected_match += 1
                 logger.debug(
@@ -778,6 +790,19 @@ class LoopCloser:
             elif best is None or result.correlation > best.result.correlation:
                 best = _Best(candidate, prediction, result)
         return best
+
+    def _job(
+        self,
+        s: _Search,
+        features: ScanFeatures,
+        candidate: int,
+        window: IntArray | None,
+        prediction: FloatArray,
+        bounds: MatchBounds,
+    ) -> MatchJob:
+        """The match of ``features`` against the candidate's place (its reference built
+        now)."""
+        return MatchJob(features, self._reference(s, candidate, window), prediction, bounds)
 
     def _decide(
         self, s: _Search, best: _Best, graph: PoseGraph, path_m: Sequence[float]
@@ -869,7 +894,7 @@ class LoopCloser:
 
         query = place_descriptor(features, lc.place_index)
         places = self.places.query(query, far, lc.global_candidates, lc.reference_nodes)
-        verified = [c for c in (self._verify_global(s, features, p) for p in places) if c]
+        verified = self._verify_global(s, features, places)
         if not verified:
             return None
         if not self._unique(verified, s.poses):
@@ -919,21 +944,38 @@ class LoopCloser:
         return clique[::-1]
 
     def _verify_global(
-        self, s: _Search, features: ScanFeatures, candidate: int
-    ) -> LoopClosure | None:
-        """Global ICE match (no prediction used) of the scan against a candidate place."""
-        self.stats.global_attempts += 1
-        prediction = se2.between(s.poses[candidate], s.poses[s.node_id])
-        result = self.matcher.match(
-            features, self._reference(s, candidate), prediction, MatchBounds.global_()
-        )
-        if not usable_match(result, self.config):
-            self.stats.rejected_match += 1
-            return None
-        implied = se2.compose(s.poses[candidate], result.pose)
-        return LoopClosure(
-            candidate, s.node_id, result.pose, result.cov, result.correlation, implied, True
-        )
+        self, s: _Search, features: ScanFeatures, candidates: Sequence[int]
+    ) -> list[LoopClosure]:
+        """Global ICE match (no prediction used) of the scan against each candidate place;
+        the closures of the usable ones, in candidate order."""
+        self.stats.global_attempts += len(candidates)
+        bounds = MatchBounds.global_()
+        jobs = [
+            functools.partial(
+                self._job, s, features, c, None, se2.between(s.poses[c], s.poses[s.node_id]), bounds
+            )
+            for c in candidates
+        ]
+        verified = []
+        for candidate, result in zip(candidates, self._match_all(jobs), strict=True):
+            if not usable_match(result, self.config):
+                self.stats.rejected_match += 1
+                continue
+            implied = se2.compose(s.poses[candidate], result.pose)
+            verified.append(
+                LoopClosure(
+                    candidate, s.node_id, result.pose, result.cov, result.correlation, implied, True
+                )
+            )
+        return verified
+
+    def _match_all(self, jobs: Sequence[Callable[[], MatchJob]]) -> list[MatchResult]:
+        """The matches of one search (each job built when needed), in order: shared with the
+        run's helper process when :attr:`match_pool` is set
+        (:class:`~iceg.match_pool.MatchPool`; the same results)."""
+        if self.match_pool is not None:
+            return self.match_pool.map(jobs)
+        return [self.matcher.match(*job()) for job in jobs]
 
     def _unique(self, verified: list[LoopClosure], poses: _Poses) -> bool:
         """Whether every two verified places put the current node at the same pose (the

@@ -19,6 +19,7 @@ from frontends.scan import StampPolicy, StampReport
 from iceg.config import IcegConfig
 from iceg.evaluation import position_errors, relation_errors
 from iceg.features.prefetch import FeaturePrefetcher, auto_workers
+from iceg.match_pool import MatchPool
 from iceg.results import SlamResult
 from iceg.scan_products import ScanPrecompute
 from iceg.scan_store import ScanStore
@@ -42,7 +43,9 @@ def run_scans(
     With ``config.slam.workers`` > 1 (0: :func:`~iceg.features.prefetch.auto_workers`) the
     features of upcoming scans, and what the run derives from them alone
     (:mod:`iceg.scan_products`), are computed in worker processes
-    (:class:`~iceg.features.prefetch.FeaturePrefetcher`); the result is the same.
+    (:class:`~iceg.features.prefetch.FeaturePrefetcher`), and the loop-closure searches
+    share their candidate matches with a helper process (:class:`~iceg.match_pool.MatchPool`);
+    the result is the same.
 
     Raises:
         LogFormatError: there are no scans.
@@ -55,10 +58,17 @@ def run_scans(
         scans = tqdm(scans, total=total, unit="scan", desc="iceg")
     workers = slam.config.slam.workers or auto_workers()
     precompute = ScanPrecompute(slam.config)
-    with FeaturePrefetcher(slam.config.features, workers, precompute=precompute) as prefetch:
-        for scan, features in prefetch.scans(scans):
-            slam.process(scan, features=features)
-            n += 1
+    with (
+        MatchPool(slam.matcher, helper=workers > 1) as pool,
+        FeaturePrefetcher(slam.config.features, workers, precompute=precompute) as prefetch,
+    ):
+        slam.loop_closer.match_pool = pool
+        try:
+            for scan, features in prefetch.scans(scans):
+                slam.process(scan, features=features)
+                n += 1
+        finally:
+            slam.loop_closer.match_pool = None
     if n == 0:
         raise LogFormatError("the input holds no laser scans")
     return slam.finish()
