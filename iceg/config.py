@@ -132,9 +132,11 @@ class SlamConfig(BaseModel):
         default=0,
         ge=0,
         description="Processes of a whole run (iceg run): with 2 or more, ICE features of "
-        "upcoming scans are extracted in workers - 1 other processes while this one matches; "
-        "0 picks 2 when a core is idle (load average), else 1. The result is identical with "
-        "any number (features do not depend on the pose).",
+        "upcoming scans (and what the run derives from a scan alone) are computed in "
+        "workers - 1 other processes while this one matches, and the loop-closure searches "
+        "share their candidate matches with one helper process; 0 picks 2 when a core is "
+        "idle (load average), else 1. The result is identical with any number (features do "
+        "not depend on the pose, a match is a pure function of its inputs).",
     )
 
 

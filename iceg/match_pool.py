@@ -20,7 +20,6 @@ only; elsewhere every match runs in the calling process.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import multiprocessing
 import os
@@ -28,22 +27,18 @@ import signal
 import sys
 import time
 from collections.abc import Callable, Sequence
-from multiprocessing.connection import Connection, wait
+from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import numpy as np
 from numpy.typing import NDArray
 
+from iceg import forked
 from iceg.matching import MatchBounds, Matcher
 from iceg.types import MatchResult, ScanFeatures
 
 log = logging.getLogger(__name__)
-
-#: Seconds to wait for the helper to exit before it is terminated.
-JOIN_TIMEOUT_S = 2.0
-#: An idle helper checks this often (seconds) that its parent process still runs.
-PARENT_CHECK_S = 1.0
 
 
 class MatchJob(NamedTuple):
@@ -117,20 +112,7 @@ class MatchPool:
         if conn is None or proc is None:
             return
         log.debug("match helper: %d matches there, %d here", self.remote, self.local)
-        with contextlib.suppress(OSError, ValueError):
-            conn.send(None)
-        deadline = time.monotonic() + JOIN_TIMEOUT_S
-        with contextlib.suppress(EOFError, OSError):  # read what it still sends meanwhile
-            while (left := deadline - time.monotonic()) > 0:
-                ready = wait([conn, proc.sentinel], left)
-                if proc.sentinel in ready or not ready:
-                    break
-                conn.recv()
-        proc.join(max(0.0, deadline - time.monotonic()))
-        if proc.is_alive():
-            proc.terminate()
-            proc.join(JOIN_TIMEOUT_S)
-        conn.close()
+        forked.stop(conn, proc)
 
     def map(self, jobs: Sequence[Callable[[], MatchJob]]) -> list[MatchResult]:
         """The match of every job, in order (``matcher.match(*job())`` each). Each job is
@@ -152,16 +134,15 @@ class MatchPool:
         missing = set(remote)
         while missing:
             got = self._arrived(None if self.wait else patience_s)
-            if got is not None:
-                k, result = got
-                if k in missing:
-                    missing.discard(k)
-                    results[k] = result
-                    self.remote += 1
+            k = max(missing) if got is None else got[0]  # none in time: the last one here
+            if k not in missing:
                 continue
-            k = max(missing)  # not arrived in time: run the last one here
             missing.discard(k)
-            results[k] = self._here(built[k] or jobs[k]())
+            if got is not None and got[1] is not None:
+                results[k] = got[1]
+                self.remote += 1
+            else:  # not arrived in time, or failed there (its error is raised here)
+                results[k] = self._here(built[k] or jobs[k]())
         return [r for r in results if r is not None]
 
     def _here(self, job: MatchJob) -> MatchResult:
@@ -191,10 +172,10 @@ class MatchPool:
             sent.append(k)
         return sent
 
-    def _arrived(self, timeout_s: float | None) -> tuple[int, MatchResult] | None:
-        """A result of the current batch from the helper, if one arrives within
-        ``timeout_s`` (None: however long it takes; results of older batches and failed
-        matches are dropped)."""
+    def _arrived(self, timeout_s: float | None) -> tuple[int, MatchResult | None] | None:
+        """A result of the current batch from the helper (None for a match that failed
+        there), if one arrives within ``timeout_s`` (None: however long it takes; results
+        of older batches are dropped)."""
         conn = self._conn
         deadline = time.perf_counter() + (0.0 if timeout_s is None else timeout_s)
         try:
@@ -202,7 +183,7 @@ class MatchPool:
                 None if timeout_s is None else max(0.0, deadline - time.perf_counter())
             ):
                 batch, k, result = conn.recv()
-                if batch == self._batch and result is not None:
+                if batch == self._batch:
                     return k, result
         except (EOFError, OSError):
             self._conn = None
@@ -214,17 +195,8 @@ def _serve(conn: Connection, parent_end: Connection, parent_pid: int, matcher: M
     the end of the pipe or the parent's exit stops it."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle
     parent_end.close()
-    while True:
-        try:
-            while not conn.poll(PARENT_CHECK_S):
-                if os.getppid() != parent_pid:
-                    return
-            msg = conn.recv()
-        except Exception:  # the pipe ended or broke: the calling process is gone
-            return
-        if msg is None:
-            return
-        batch, k, job = msg
+    while (msg := forked.next_message(conn, parent_pid)) is not None:
+        batch, k, job = cast(tuple[int, int, MatchJob], msg)
         try:
             result: MatchResult | None = matcher.match(*job)
         except Exception:  # the calling process runs it again and raises it there

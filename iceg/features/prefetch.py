@@ -33,14 +33,14 @@ import multiprocessing
 import os
 import signal
 import sys
-import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
-from multiprocessing.connection import Connection, wait
+from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
-from typing import Any, Protocol, TypeVar
+from typing import Any, Protocol, TypeVar, cast
 
 from frontends.scan import LaserScan
+from iceg import forked
 from iceg.features.config import FeatureConfig
 from iceg.features.extract import extract
 from iceg.types import ScanFeatures
@@ -49,10 +49,6 @@ log = logging.getLogger(__name__)
 
 #: Scans sent ahead of the one being processed, per worker process.
 LOOKAHEAD_PER_WORKER = 8
-#: Seconds to wait for a worker to exit before it is terminated.
-JOIN_TIMEOUT_S = 2.0
-#: An idle worker checks this often (seconds) that its parent process still runs.
-PARENT_CHECK_S = 1.0
 #: Scheduling niceness added to a worker (it uses spare cores, not the main process's).
 WORKER_NICENESS = 10
 
@@ -156,23 +152,7 @@ class _Worker:
             self.alive = False
 
     def close(self) -> None:
-        """Ask the worker to exit and wait for it (terminated after ``JOIN_TIMEOUT_S``).
-        Its results still in flight are read and dropped meanwhile: a worker blocked on a
-        full pipe would never read the request."""
-        with contextlib.suppress(OSError, ValueError):
-            self.conn.send(None)
-        deadline = time.monotonic() + JOIN_TIMEOUT_S
-        with contextlib.suppress(EOFError, OSError):
-            while (left := deadline - time.monotonic()) > 0:
-                ready = wait([self.conn, self.proc.sentinel], left)
-                if self.proc.sentinel in ready or not ready:
-                    break
-                self.conn.recv()
-        self.proc.join(max(0.0, deadline - time.monotonic()))
-        if self.proc.is_alive():
-            self.proc.terminate()
-            self.proc.join(JOIN_TIMEOUT_S)
-        self.conn.close()
+        forked.stop(self.conn, self.proc)
 
 
 def _serve(
@@ -192,17 +172,8 @@ def _serve(
         os.nice(WORKER_NICENESS)
     for other in inherited:  # the parent's ends: never hold them open here
         other.close()
-    while True:
-        try:
-            while not conn.poll(PARENT_CHECK_S):
-                if os.getppid() != parent_pid:
-                    return
-            msg = conn.recv()
-        except Exception:  # the pipe ended or broke: the calling process is gone
-            return
-        if msg is None:
-            return
-        for index, scan in msg:
+    while (msg := forked.next_message(conn, parent_pid)) is not None:
+        for index, scan in cast(list[tuple[int, LaserScan]], msg):
             try:
                 feats: ScanFeatures | None = extract(scan, config)
             except Exception:  # the calling process recomputes it and raises it there

@@ -95,6 +95,31 @@ def test_matches_the_helper_has_not_returned_are_run_here(jobs: list[MatchJob]) 
     assert all(_same(a, b) for a, b in zip(first + second, want, strict=True))
 
 
+class _FailsInHelper(_SlowInHelper):
+    """Raises in any process but the one that made it."""
+
+    def match(
+        self,
+        features: ScanFeatures,
+        reference: ScanFeatures,
+        prediction: ArrayLike,
+        bounds: MatchBounds | None = None,
+    ) -> MatchResult:
+        if os.getpid() != self.home:
+            raise RuntimeError("only in the helper")
+        return IceMatcher.match(self, features, reference, prediction, bounds)
+
+
+def test_a_match_that_failed_in_the_helper_is_run_here(jobs: list[MatchJob]) -> None:
+    # Even when told to wait for the helper: its failure comes back, and the match runs here.
+    matcher = IceMatcher(MatchingConfig())
+    with MatchPool(_FailsInHelper(), wait=True) as pool:
+        got = pool.map(_thunks(jobs[:4]))
+    assert pool.remote == 0 and pool.local == 4
+    want = [matcher.match(*job) for job in jobs[:4]]
+    assert all(_same(a, b) for a, b in zip(got, want, strict=True))
+
+
 def test_without_a_helper_every_match_runs_here(jobs: list[MatchJob]) -> None:
     with MatchPool(IceMatcher(MatchingConfig()), helper=False) as pool:
         pool.map(_thunks(jobs[:4]))

@@ -1,0 +1,49 @@
+"""The two ends of a forked helper process's pipe, as the feature workers
+(:mod:`iceg.features.prefetch`) and the match helper (:mod:`iceg.match_pool`) use them: the
+helper waits for its next message while its parent lives, and the parent stops it without
+losing the pipe to a helper blocked on sending."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import time
+from multiprocessing.connection import Connection, wait
+from multiprocessing.process import BaseProcess
+
+#: An idle helper checks this often (seconds) that its parent process still runs.
+PARENT_CHECK_S = 1.0
+#: Seconds to wait for a helper to exit before it is terminated.
+JOIN_TIMEOUT_S = 2.0
+
+
+def next_message(conn: Connection, parent_pid: int) -> object | None:
+    """The helper's next message from its parent, or None when the parent has exited, the
+    pipe ended or broke (the helper should then return)."""
+    try:
+        while not conn.poll(PARENT_CHECK_S):
+            if os.getppid() != parent_pid:
+                return None
+        return conn.recv()
+    except Exception:  # the pipe ended or broke: the calling process is gone
+        return None
+
+
+def stop(conn: Connection, proc: BaseProcess) -> None:
+    """Ask a helper to exit (a None message) and wait for it, terminated after
+    ``JOIN_TIMEOUT_S``; close the parent's end. What it still sends meanwhile is read and
+    dropped: a helper blocked on a full pipe would never read the request."""
+    with contextlib.suppress(OSError, ValueError):
+        conn.send(None)
+    deadline = time.monotonic() + JOIN_TIMEOUT_S
+    with contextlib.suppress(EOFError, OSError):
+        while (left := deadline - time.monotonic()) > 0:
+            ready = wait([conn, proc.sentinel], left)
+            if proc.sentinel in ready or not ready:
+                break
+            conn.recv()
+    proc.join(max(0.0, deadline - time.monotonic()))
+    if proc.is_alive():
+        proc.terminate()
+        proc.join(JOIN_TIMEOUT_S)
+    conn.close()
