@@ -29,13 +29,17 @@ interleaved) and the median over its runs counts, since one 1000-scan block move
 the largest size, the last ten blocks over the first ten show growth with the log's length
 free of that run-to-run spread.
 
+``--workers 2`` runs each size as ``iceg run`` does on a machine with a free core: with the
+feature worker and the loop closer's match helper (:func:`iceg.pipeline.helper_processes`;
+the same result). CPU times are the main process's.
+
 ``--check-closures`` (the CSAIL source) scores, after the timed run, every accepted loop
 closure against the relative pose of its two source scans in a single pass through the log
 (two copies of one scan are the same pose) and prints how many are off by more than 0.3 m or
 3 degrees (``bench_accuracy.false_loop_closures``).
 
 Run: ``python benchmarks/bench_scaling.py [--sizes 2000,10000,50000] [--repeats R]
-[--log path.clf] [--source csail|corridor] [--no-grid] [--check-closures]``
+[--log path.clf] [--source csail|corridor] [--no-grid] [--check-closures] [--workers N]``
 """
 
 from __future__ import annotations
@@ -132,15 +136,22 @@ def exploring_corridor(n: int) -> list:
 
 
 def run_one(
-    n: int, log: Path, grid: bool, source_name: str = "csail", check_closures: bool = False
+    n: int,
+    log: Path,
+    grid: bool,
+    source_name: str = "csail",
+    check_closures: bool = False,
+    workers: int = 1,
 ) -> dict:
-    """Run the pipeline over ``n`` scans in this process; return the figures. With
+    """Run the pipeline over ``n`` scans in this process (with its helper processes when
+    ``workers`` > 1, :func:`iceg.pipeline.helper_processes`); return the figures. With
     ``check_closures`` (the CSAIL source), after the timed run: the accepted loop closures
     whose measurement is off by more than ``bench_accuracy.FALSE_LC_TRANS_M`` or
     ``FALSE_LC_ROT_DEG`` from the relative pose of their two source scans in a single pass
     through the log (its own run, relation error about 3 cm; two copies of the same scan
     are the same pose)."""
     from frontends import open_log
+    from iceg.pipeline import helper_processes
     from iceg.slam import Slam
 
     if source_name == "corridor":
@@ -158,27 +169,30 @@ def run_one(
     stages_before: dict[str, float] = {}
     t_block = time.perf_counter()
     t_start = t_block
-    for k, scan in enumerate(scans, start=1):
-        slam.process(scan)
-        if k % BLOCK == 0 or k == n:
-            now = time.perf_counter()
-            blocks.append(now - t_block)
-            cpu_blocks.append(time.process_time() - c_block)
-            rss_blocks.append(peak_rss_mb())
-            t_block, c_block = now, time.process_time()
-            stages = dict(slam.timer.seconds)
-            grown = {s: v - stages_before.get(s, 0.0) for s, v in stages.items()}
-            stages_before = stages
-            print(
-                f"  [{n}] scans {k}: block {blocks[-1]:.1f} s (CPU {cpu_blocks[-1]:.1f} s), "
-                f"peak RSS {rss_blocks[-1]:.0f} MB, nodes {slam.graph.n_nodes}, "
-                f"landmarks {len(slam.feature_map)}, global closures "
-                f"{slam.loop_stats.global_accepted}, node-index rebuilds "
-                f"{slam.loop_closer.index_rebuilds}; stage s: "
-                + ", ".join(f"{s} {v:.1f}" for s, v in sorted(grown.items(), key=lambda x: -x[1])),
-                file=sys.stderr,
-                flush=True,
-            )
+    with helper_processes(slam, workers) as prefetch:
+        for k, (scan, features) in enumerate(prefetch.scans(scans), start=1):
+            slam.process(scan, features=features)
+            if k % BLOCK == 0 or k == n:
+                now = time.perf_counter()
+                blocks.append(now - t_block)
+                cpu_blocks.append(time.process_time() - c_block)
+                rss_blocks.append(peak_rss_mb())
+                t_block, c_block = now, time.process_time()
+                stages = dict(slam.timer.seconds)
+                grown = {s: v - stages_before.get(s, 0.0) for s, v in stages.items()}
+                stages_before = stages
+                print(
+                    f"  [{n}] scans {k}: block {blocks[-1]:.1f} s (CPU {cpu_blocks[-1]:.1f} s), "
+                    f"peak RSS {rss_blocks[-1]:.0f} MB, nodes {slam.graph.n_nodes}, "
+                    f"landmarks {len(slam.feature_map)}, global closures "
+                    f"{slam.loop_stats.global_accepted}, node-index rebuilds "
+                    f"{slam.loop_closer.index_rebuilds}; stage s: "
+                    + ", ".join(
+                        f"{s} {v:.1f}" for s, v in sorted(grown.items(), key=lambda x: -x[1])
+                    ),
+                    file=sys.stderr,
+                    flush=True,
+                )
     # the CSAIL log (small) is kept for the closure check; a simulated log is let go
     kept = source if check_closures and source_name != "corridor" else None
     del source
@@ -329,19 +343,28 @@ def main() -> None:
         action="store_true",
         help="csail: count loop closures off the single pass through the log (after timing)",
     )
+    ap.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="processes of each run (as slam.workers): 2 adds the feature worker and the "
+        "loop closer's match helper (iceg.pipeline.helper_processes)",
+    )
     ap.add_argument("--child", type=int, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if not args.log.exists():
         sys.exit(f"{args.log}: not found (the MIT CSAIL log lives in ../shared/data)")
     if args.child is not None:
-        fig = run_one(args.child, args.log, not args.no_grid, args.source, args.check_closures)
+        fig = run_one(
+            args.child, args.log, not args.no_grid, args.source, args.check_closures, args.workers
+        )
         print(json.dumps(fig))
         return
     summary = []
     sizes = [int(s) for s in args.sizes.split(",")]
     for n in sizes * max(1, args.repeats):
         cmd = [sys.executable, __file__, "--child", str(n), "--log", str(args.log)]
-        cmd += ["--source", args.source]
+        cmd += ["--source", args.source, "--workers", str(args.workers)]
         if args.no_grid:
             cmd.append("--no-grid")
         if args.check_closures:

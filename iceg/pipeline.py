@@ -4,10 +4,11 @@ to an evaluated :class:`iceg.results.SlamResult`. Used by the CLI and by noteboo
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import stat
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -56,7 +57,22 @@ def run_scans(
         from tqdm.auto import tqdm  # lazy: tqdm.auto imports asyncio (a cold-start cost)
 
         scans = tqdm(scans, total=total, unit="scan", desc="iceg")
-    workers = slam.config.slam.workers or auto_workers()
+    with helper_processes(slam, slam.config.slam.workers or auto_workers()) as prefetch:
+        for scan, features in prefetch.scans(scans):
+            slam.process(scan, features=features)
+            n += 1
+    if n == 0:
+        raise LogFormatError("the input holds no laser scans")
+    return slam.finish()
+
+
+@contextlib.contextmanager
+def helper_processes(slam: Slam, workers: int) -> Iterator[FeaturePrefetcher]:
+    """The helper processes of a run of ``slam`` with ``workers`` processes in all (1: none):
+    the feature workers, which also compute the scans' pose-independent products
+    (:class:`~iceg.scan_products.ScanPrecompute`), and the loop closer's match helper
+    (:class:`~iceg.match_pool.MatchPool`). Yields the prefetcher whose ``scans`` feed
+    ``slam.process``; the helpers stop when the block ends."""
     precompute = ScanPrecompute(slam.config)
     with (
         MatchPool(slam.matcher, helper=workers > 1) as pool,
@@ -64,14 +80,9 @@ def run_scans(
     ):
         slam.loop_closer.match_pool = pool
         try:
-            for scan, features in prefetch.scans(scans):
-                slam.process(scan, features=features)
-                n += 1
+            yield prefetch
         finally:
             slam.loop_closer.match_pool = None
-    if n == 0:
-        raise LogFormatError("the input holds no laser scans")
-    return slam.finish()
 
 
 def check_relations_match(relations: Relations, stamps_s: np.ndarray) -> None:
