@@ -7,16 +7,16 @@ from __future__ import annotations
 import functools
 import os
 import time
+from typing import Any
 
 import numpy as np
 import pytest
-from numpy.typing import ArrayLike
 
 from frontends.simulate import corridor_world, default_trajectory, simulate
 from iceg.features import extract
 from iceg.match_pool import MatchJob, MatchPool
 from iceg.matching import IceMatcher, MatchBounds, MatchingConfig
-from iceg.types import MatchResult, ScanFeatures
+from iceg.types import MatchResult
 from iceg_common.se2 import between
 
 
@@ -63,23 +63,21 @@ def test_shared_matches_equal_the_matcher_s(jobs: list[MatchJob]) -> None:
     assert all(_same(a, b) for a, b in zip(got_all, want, strict=True))
 
 
-class _SlowInHelper(IceMatcher):
-    """Matches as IceMatcher, half a second slower in any process but the one that made it."""
+class _MisbehavesInHelper:
+    """IceMatcher's matches; in any other process than the one that made it (the helper),
+    half a second late (``slow``) or raising."""
 
-    def __init__(self) -> None:
-        super().__init__(MatchingConfig())
+    def __init__(self, slow: bool) -> None:
+        self.inner = IceMatcher(MatchingConfig())
         self.home = os.getpid()
+        self.slow = slow
 
-    def match(
-        self,
-        features: ScanFeatures,
-        reference: ScanFeatures,
-        prediction: ArrayLike,
-        bounds: MatchBounds | None = None,
-    ) -> MatchResult:
+    def match(self, *args: Any, **kwargs: Any) -> MatchResult:
         if os.getpid() != self.home:
+            if not self.slow:
+                raise RuntimeError("only in the helper")
             time.sleep(0.5)
-        return super().match(features, reference, prediction, bounds)
+        return self.inner.match(*args, **kwargs)
 
 
 def test_matches_the_helper_has_not_returned_are_run_here(jobs: list[MatchJob]) -> None:
@@ -87,7 +85,7 @@ def test_matches_the_helper_has_not_returned_are_run_here(jobs: list[MatchJob]) 
     # one of its own took, then runs the rest itself; the helper's late results are dropped
     # (the next map call sees them from an older batch).
     matcher = IceMatcher(MatchingConfig())
-    with MatchPool(_SlowInHelper()) as pool:
+    with MatchPool(_MisbehavesInHelper(slow=True)) as pool:
         first = pool.map(_thunks(jobs[:4]))
         second = pool.map(_thunks(jobs[4:8]))
     assert pool.remote == 0 and pool.local == 8
@@ -95,25 +93,10 @@ def test_matches_the_helper_has_not_returned_are_run_here(jobs: list[MatchJob]) 
     assert all(_same(a, b) for a, b in zip(first + second, want, strict=True))
 
 
-class _FailsInHelper(_SlowInHelper):
-    """Raises in any process but the one that made it."""
-
-    def match(
-        self,
-        features: ScanFeatures,
-        reference: ScanFeatures,
-        prediction: ArrayLike,
-        bounds: MatchBounds | None = None,
-    ) -> MatchResult:
-        if os.getpid() != self.home:
-            raise RuntimeError("only in the helper")
-        return IceMatcher.match(self, features, reference, prediction, bounds)
-
-
 def test_a_match_that_failed_in_the_helper_is_run_here(jobs: list[MatchJob]) -> None:
     # Even when told to wait for the helper: its failure comes back, and the match runs here.
     matcher = IceMatcher(MatchingConfig())
-    with MatchPool(_FailsInHelper(), wait=True) as pool:
+    with MatchPool(_MisbehavesInHelper(slow=False), wait=True) as pool:
         got = pool.map(_thunks(jobs[:4]))
     assert pool.remote == 0 and pool.local == 4
     want = [matcher.match(*job) for job in jobs[:4]]
