@@ -42,7 +42,15 @@ log = logging.getLogger(__name__)
 
 
 class MatchJob(NamedTuple):
-    """The arguments of one :meth:`~iceg.matching.Matcher.match` call."""
+    """The arguments of one :meth:`~iceg.matching.Matcher.match` call.
+
+    Attributes:
+        features: The new scan's features (robot frame).
+        reference: The place's features, segments and points (reference frame).
+        prediction: ``(3,)`` float64 predicted pose ``[x_m, y_m, theta_rad]`` of the new scan
+            in the reference frame.
+        bounds: Admissible motion around the prediction.
+    """
 
     features: ScanFeatures
     reference: ScanFeatures

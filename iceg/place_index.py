@@ -89,6 +89,13 @@ def _pairs(n: int) -> tuple[IntArray, IntArray]:
     return i, j
 
 
+#: Descriptors computed ahead (:func:`remember_place_descriptor`), by features object (dropped
+#: with the features), with the configuration they were computed with.
+_AHEAD: weakref.WeakKeyDictionary[ScanFeatures, tuple[PlaceIndexConfig, FloatArray]] = (
+    weakref.WeakKeyDictionary()
+)
+
+
 def place_descriptor(features: ScanFeatures, config: PlaceIndexConfig | None = None) -> FloatArray:
     """Rotation-invariant descriptor of one keyframe.
 
@@ -116,13 +123,6 @@ def place_descriptor(features: ScanFeatures, config: PlaceIndexConfig | None = N
     desc = np.concatenate([pair, cfg.range_weight * ranges])
     norm = float(np.linalg.norm(desc))
     return desc / norm if norm > 0 else desc
-
-
-#: Descriptors computed ahead (:func:`remember_place_descriptor`), by features object (dropped
-#: with the features), with the configuration they were computed with.
-_AHEAD: weakref.WeakKeyDictionary[ScanFeatures, tuple[PlaceIndexConfig, FloatArray]] = (
-    weakref.WeakKeyDictionary()
-)
 
 
 def remember_place_descriptor(
