@@ -79,7 +79,14 @@ def main() -> int:
     if not log.is_file():
         print(f"skipped: {log} is absent")
         return 0
-    work = args.work or Path(tempfile.mkdtemp(prefix="iceg-lifecycle-"))
+    if args.work is not None:
+        return report(args.work, log, rel_path)
+    with tempfile.TemporaryDirectory(prefix="iceg-lifecycle-") as tmp:
+        return report(Path(tmp), log, rel_path)
+
+
+def report(work: Path, log: Path, rel_path: Path) -> int:
+    """Run the five cases with their sessions in ``work`` and print the table."""
     rel = read_relations(rel_path)
     scans = list(open_log(log))
     k = len(scans) // 2
