@@ -336,6 +336,11 @@ _C = TypeVar("_C", bound="_Columns")
 _MIN_CAPACITY = 64
 #: Above this many kept blocks, :meth:`_Columns.drop` gathers the kept rows by a mask.
 _MAX_DROP_BLOCKS = 32
+#: From this many landmarks on, a reference finds its landmarks through the ids its nodes
+#: touched (:class:`_Touched`) instead of a pass over every landmark: the pass streams
+#: through the table, the index reads it at random, and on this machine they cost the same
+#: near 4000 landmarks (31 against 52 µs a call at 1500, 90 against 50 µs at 9000).
+_TOUCHED_FROM_LANDMARKS = 4096
 
 
 @dataclass
@@ -519,6 +524,17 @@ class _Points(_Columns):
 
     node: IntArray  # (P,)
     xy: FloatArray  # (P, 2)
+
+
+@dataclass
+class _Touched(_Columns):
+    """Every node's landmarks: the ids it created or matched, one block of rows per node (a
+    landmark's anchor and its last matching node both hold its id; a block may also hold
+    ids since matched from a later node, or merged and pruned)."""
+
+    SPEC: ClassVar[dict[str, tuple[type, tuple[int, ...]]]] = {"id": (np.int64, ())}
+
+    id: IntArray  # (T,) landmark id
 
 
 #: Dtype and trailing shape of each :class:`PrunedLandmarks` field.
@@ -790,9 +806,12 @@ class FeatureMap:
         self._lm = _Landmarks.empty()
         self._seg = _Segments.empty()
         self._pts = _Points.empty()
-        # Each node's segments and points are one contiguous block of rows: node -> [start, stop).
+        self._touched = _Touched.empty()
+        # Each node's segments, points and touched landmarks are one contiguous block of rows:
+        # node -> [start, stop).
         self._seg_rows: dict[int, tuple[int, int]] = {}
         self._pts_rows: dict[int, tuple[int, int]] = {}
+        self._touched_rows: dict[int, tuple[int, int]] = {}
         self._nodes: set[int] = set()
         self._next_id = 0
         self.n_merged = 0
@@ -888,6 +907,7 @@ class FeatureMap:
             )
         fmap._seg_rows = _node_blocks(fmap._seg.node)
         fmap._pts_rows = _node_blocks(fmap._pts.node)
+        fmap._index_touched()
         fmap._pruned = [PrunedLandmarks(**pruned)] if pruned["ids"].shape[0] else []
         fmap._nodes = {int(n) for n in nodes}
         fmap._next_id, fmap.n_merged = int(scalars[0]), int(scalars[1])
@@ -1024,9 +1044,38 @@ class FeatureMap:
 
     def _chosen(self, want: IntArray) -> IntArray:
         """Ascending rows of the landmarks anchored to or last matched from the nodes
-        ``want`` (sorted unique ids)."""
+        ``want`` (sorted unique ids). In a large map, among the landmarks those nodes touched
+        (:class:`_Touched`), so the cost is what the nodes hold, not what the map holds."""
+        lm, blocks, touched = self._lm, self._touched_rows, self._touched.id
+        if len(lm) < _TOUCHED_FROM_LANDMARKS:
+            return np.flatnonzero(_lookup(want, lm.anchor)[1] | _lookup(want, lm.last_node)[1])
+        spans = [blocks[n] for n in want.tolist() if n in blocks]
+        if not spans:
+            return np.zeros(0, dtype=np.int64)
+        pos, found = _lookup(lm.id, np.concatenate([touched[a:b] for a, b in spans]))
+        rows = pos[found]  # ids ascending with the rows
+        nodes = np.concatenate([lm.anchor[rows], lm.last_node[rows]])
+        keep = _lookup(want, nodes)[1].reshape(2, -1).any(axis=0)
+        return np.unique(rows[keep])
+
+    def _touch(self, node_id: int, landmark_ids: IntArray) -> None:
+        """Record the landmarks a new node created or matched (:class:`_Touched`)."""
+        start = len(self._touched)
+        self._touched_rows[node_id] = (start, start + landmark_ids.shape[0])
+        self._touched.extend(landmark_ids.shape[0], id=landmark_ids)
+
+    def _index_touched(self) -> None:
+        """Rebuild the :class:`_Touched` blocks from the landmarks' anchors and last
+        matching nodes (a map read back from its state)."""
         lm = self._lm
-        return np.flatnonzero(_lookup(want, lm.anchor)[1] | _lookup(want, lm.last_node)[1])
+        nodes = np.concatenate([lm.anchor, lm.last_node])
+        ids = np.concatenate([lm.id, lm.id])
+        order = np.lexsort((ids, nodes))
+        nodes, ids = nodes[order], ids[order]
+        pair_new = np.r_[True, (nodes[1:] != nodes[:-1]) | (ids[1:] != ids[:-1])]
+        self._touched = _Touched.empty()
+        self._touched.extend(int(pair_new.sum()), id=ids[pair_new])
+        self._touched_rows = _node_blocks(nodes[pair_new])
 
     def _taking_part(self, node_id: int, reference_ids: IntArray | None) -> IntArray:
         """Ascending rows of the landmarks taking part in the bookkeeping of the new node
@@ -1132,6 +1181,7 @@ class FeatureMap:
         merged_ids = self._merge(book.merge_rows) if book.merge_rows.shape[0] else empty
         self._store_segments(node_id, features)
         added = self._add_landmarks(node_id, features, book.new_mask, stamp)
+        self._touch(node_id, np.concatenate([book.matched_ids, added]))
         pruned = self._prune(stamp)
         self._nodes.add(node_id)
         self._range_max_m = float(features.range_max_m)

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from frontends.simulate import box_world, office_world, simulate
+from iceg import feature_map
 from iceg.feature_map import (
     PRUNED_VALIDITY,
     FeatureMap,
@@ -314,6 +315,40 @@ def test_reference_of_any_node_subset_equals_a_brute_force_selection() -> None:
     np.testing.assert_array_equal(a.seg_endpoints, b.seg_endpoints)
     np.testing.assert_array_equal(a.points_xy, b.points_xy)
     np.testing.assert_array_equal(a.seg_point_range, b.seg_point_range)
+
+
+@pytest.mark.parametrize("indexed", [True, False])
+@pytest.mark.parametrize("world", ["box", "office"])
+def test_reference_landmarks_equal_a_scan_of_every_landmark(
+    world: str, indexed: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A reference's landmarks are found through the ids each node created or matched (no
+    # scan of every landmark): along runs with matches, merges and pruning (the box world)
+    # or revisits (the office), and in the map rebuilt from its state, every window selects
+    # exactly the landmarks a scan of the whole table selects (anchored to or last matched
+    # from a window node). A small map takes the pass over every landmark; both ways agree.
+    monkeypatch.setattr(feature_map, "_TOUCHED_FROM_LANDMARKS", 0 if indexed else 10**9)
+    if world == "box":
+        fm, poses, _ = _run_map(box_world(), 3, FeatureMapConfig())
+        assert fm.pruned.ids.shape[0] > 0
+    else:
+        fm, poses, _ = _run_map(office_world(), 0, FeatureMapConfig())
+        assert len(fm) > 20
+    state = fm.export_state()
+    anchor, last, ids = state["lm_anchor"], state["lm_last_node"], state["lm_id"]
+    assert np.count_nonzero(anchor != last) > 0 and fm.n_merged > 0
+    again = FeatureMap.from_state(state)
+    rng = np.random.default_rng(2)
+    frame = np.array([0.5, -0.2, 0.3])
+    n = len(poses)
+    windows = [np.arange(n), *(rng.choice(n + 3, size=k, replace=False) for k in (1, 3, 9, 40))]
+    for want in windows:
+        expect = ids[np.isin(anchor, want) | np.isin(last, want)]
+        for m in (fm, again):
+            np.testing.assert_array_equal(m.reference(poses, want, frame).landmark_ids, expect)
+            np.testing.assert_array_equal(
+                m.reference_pose_nodes(want), np.union1d(want, anchor[np.isin(ids, expect)])
+            )
 
 
 @pytest.mark.parametrize("removed", [True, False])
