@@ -357,6 +357,7 @@ class _Columns:
     def __post_init__(self) -> None:
         self._bufs: dict[str, np.ndarray] = {name: getattr(self, name) for name in self.SPEC}
         self._cap = len(self)
+        self._owned = False  # the buffers are the constructor's arrays (never written)
 
     @classmethod
     def empty(cls: type[_C]) -> _C:
@@ -381,7 +382,7 @@ class _Columns:
                 buf = np.empty((cap, *mine.shape[1:]), dtype=mine.dtype)
                 buf[:n] = mine
                 self._bufs[name] = buf
-            self._cap = cap
+            self._cap, self._owned = cap, True
         for name in self.SPEC:
             buf = self._bufs[name]
             buf[n : n + m] = columns[name]
@@ -391,10 +392,15 @@ class _Columns:
         """A copy holding the selected rows (indices or a mask)."""
         return type(self)(**{name: getattr(self, name)[rows] for name in self.SPEC})
 
-    def drop(self: _C, rows: IntArray) -> _C:
-        """A copy without ``rows`` (indices), the others in order, with this container's
-        spare capacity (the next :meth:`append` does not reallocate). A few dropped rows cost
-        a block copy between each two, not a gather of every row."""
+    def drop(self, rows: IntArray) -> None:
+        """Remove ``rows`` (indices), the others kept in order, in place: the kept rows move
+        down within the container's buffers, so a drop allocates nothing (a fresh buffer of a
+        large table costs a page fault per page) and keeps the spare capacity. A few dropped
+        rows cost a block move between each two, not a gather of every row.
+
+        Column arrays read from the container before the drop are stale after it. Arrays
+        given to the constructor are never written: the first drop copies them.
+        """
         n = len(self)
         gone = np.unique(np.asarray(rows, dtype=np.int64))
         kept = n - gone.shape[0]
@@ -403,22 +409,23 @@ class _Columns:
         if len(blocks) > _MAX_DROP_BLOCKS:
             mask = np.ones(n, dtype=bool)
             mask[gone] = False
-        cap = max(self._cap, kept)
-        bufs: dict[str, np.ndarray] = {}
+        if not self._owned:
+            self._bufs = {name: getattr(self, name).copy() for name in self.SPEC}
+            self._cap, self._owned = n, True
         for name in self.SPEC:
             col = getattr(self, name)
-            buf = np.empty((cap, *col.shape[1:]), dtype=col.dtype)
+            buf = self._bufs[name]
             if mask is not None:
                 buf[:kept] = col[mask]
             else:
+                # A 1-D view, so numpy moves overlapping ranges itself (memmove), no temporary.
+                flat, width = buf.reshape(-1), math.prod(buf.shape[1:])
                 at = 0
                 for a, b in blocks:
-                    buf[at : at + b - a] = col[a:b]
+                    if at != a:
+                        flat[at * width : (at + b - a) * width] = flat[a * width : b * width]
                     at += b - a
-            bufs[name] = buf
-        out = type(self)(**{k: buf[:kept] for k, buf in bufs.items()})
-        out._bufs, out._cap = bufs, cap
-        return out
+            setattr(self, name, buf[:kept])
 
 
 @dataclass
@@ -1199,7 +1206,7 @@ class FeatureMap:
     def _merge(self, merge_rows: IntArray) -> IntArray:
         """Remove duplicate landmarks (merged into a matched one); return their ids."""
         merged_ids = self._lm.id[merge_rows].copy()
-        self._lm = self._lm.drop(merge_rows)
+        self._lm.drop(merge_rows)
         self.n_merged += int(merge_rows.shape[0])
         return merged_ids
 
@@ -1506,7 +1513,7 @@ class FeatureMap:
                 reason=np.where(stale[d], PRUNED_VALIDITY, PRUNED_RATIO).astype(np.int64),
             )
         )
-        self._lm = lm.drop(d)
+        lm.drop(d)
         log.debug("pruned %d landmarks at %.2f s", d.shape[0], stamp)
         return self._pruned[-1].ids
 

@@ -393,23 +393,35 @@ def test_walls_the_newest_scan_sees_through_are_dropped_from_a_reference(removed
 
 @pytest.mark.parametrize("n_drop", [0, 1, 3, 40])
 def test_dropping_rows_keeps_the_others_in_order_and_the_spare_capacity(n_drop: int) -> None:
-    # Dropping landmark rows (merged, pruned) gives the rows a mask would keep, in order,
-    # whether copied block by block (few rows) or gathered (many); the container keeps its
-    # capacity, so appending after it writes into the same buffers.
+    # Dropping landmark rows (merged, pruned) leaves the rows a mask would keep, in order,
+    # whether moved block by block within the buffers (few rows) or gathered (many); the
+    # container keeps its buffers and capacity, so appending after it writes into them.
     rng = np.random.default_rng(n_drop)
     cols = _Points(np.arange(100, dtype=np.int64), rng.normal(size=(100, 2)))
     cols.append(_Points(np.arange(100, 150, dtype=np.int64), rng.normal(size=(50, 2))))
     gone = rng.choice(150, n_drop, replace=False)
     keep = np.ones(150, dtype=bool)
     keep[gone] = False
-    out = cols.drop(gone)
-    np.testing.assert_array_equal(out.node, cols.node[keep])
-    np.testing.assert_array_equal(out.xy, cols.xy[keep])
-    assert out._cap == cols._cap >= 150
-    buffer = out._bufs["xy"]
-    out.append(_Points(np.array([7], dtype=np.int64), np.array([[1.5, -2.5]])))
-    assert out._bufs["xy"] is buffer and len(out) == 151 - n_drop
-    np.testing.assert_array_equal(out.xy[-1], [1.5, -2.5])
+    node, xy = cols.node[keep], cols.xy[keep]
+    buffer, cap = cols._bufs["xy"], cols._cap
+    cols.drop(gone)
+    np.testing.assert_array_equal(cols.node, node)
+    np.testing.assert_array_equal(cols.xy, xy)
+    assert cols._bufs["xy"] is buffer and cols._cap == cap >= 150
+    cols.append(_Points(np.array([7], dtype=np.int64), np.array([[1.5, -2.5]])))
+    assert cols._bufs["xy"] is buffer and len(cols) == 151 - n_drop
+    np.testing.assert_array_equal(cols.xy[-1], [1.5, -2.5])
+
+
+def test_dropping_rows_never_writes_the_arrays_a_container_was_made_of() -> None:
+    # A map read back from its state holds the state's arrays until it changes: a drop
+    # (pruning, merging) copies them first, so the caller's state stays as it was.
+    node, xy = np.arange(10, dtype=np.int64), np.arange(20.0).reshape(10, 2)
+    cols = _Points(node, xy)
+    cols.drop(np.array([0, 4]))
+    np.testing.assert_array_equal(node, np.arange(10))
+    np.testing.assert_array_equal(xy, np.arange(20.0).reshape(10, 2))
+    np.testing.assert_array_equal(cols.xy, xy[[1, 2, 3, 5, 6, 7, 8, 9]])
 
 
 def _numpy_expected(
