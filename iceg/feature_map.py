@@ -337,9 +337,10 @@ _MIN_CAPACITY = 64
 #: Above this many kept blocks, :meth:`_Columns.drop` gathers the kept rows by a mask.
 _MAX_DROP_BLOCKS = 32
 #: From this many landmarks on, a reference finds its landmarks through the ids its nodes
-#: touched (:class:`_Touched`) instead of a pass over every landmark: the pass streams
-#: through the table, the index reads it at random, and on this machine they cost the same
-#: near 4000 landmarks (31 against 52 µs a call at 1500, 90 against 50 µs at 9000).
+#: touched (:class:`_Touched`) instead of a pass over every landmark. The pass streams
+#: through the table, the index reads it at random: on MIT CSAIL (about 1500 landmarks) the
+#: pass costs 31 µs a call and the index 52; the index stays near 40 µs at any size, the
+#: pass grows to 88 µs at 3000 and 549 µs at 30000 (docs/design.md, "Landmarks by node").
 _TOUCHED_FROM_LANDMARKS = 4096
 
 
@@ -1079,10 +1080,10 @@ class FeatureMap:
         ids = np.concatenate([lm.id, lm.id])
         order = np.lexsort((ids, nodes))
         nodes, ids = nodes[order], ids[order]
-        pair_new = np.r_[True, (nodes[1:] != nodes[:-1]) | (ids[1:] != ids[:-1])]
+        distinct = np.r_[True, (nodes[1:] != nodes[:-1]) | (ids[1:] != ids[:-1])]
         self._touched = _Touched.empty()
-        self._touched.extend(int(pair_new.sum()), id=ids[pair_new])
-        self._touched_rows = _node_blocks(nodes[pair_new])
+        self._touched.extend(int(distinct.sum()), id=ids[distinct])
+        self._touched_rows = _node_blocks(nodes[distinct])
 
     def _taking_part(self, node_id: int, reference_ids: IntArray | None) -> IntArray:
         """Ascending rows of the landmarks taking part in the bookkeeping of the new node
