@@ -1054,13 +1054,11 @@ class FeatureMap:
         """Ascending rows of the landmarks anchored to or last matched from the nodes
         ``want`` (sorted unique ids). In a large map, among the landmarks those nodes touched
         (:class:`_Touched`), so the cost is what the nodes hold, not what the map holds."""
-        lm, blocks, touched = self._lm, self._touched_rows, self._touched.id
+        lm = self._lm
         if len(lm) < _TOUCHED_FROM_LANDMARKS:
             return np.flatnonzero(_lookup(want, lm.anchor)[1] | _lookup(want, lm.last_node)[1])
-        spans = [blocks[n] for n in want.tolist() if n in blocks]
-        if not spans:
-            return np.zeros(0, dtype=np.int64)
-        pos, found = _lookup(lm.id, np.concatenate([touched[a:b] for a, b in spans]))
+        touched = self._touched.id[_block_rows(self._touched_rows, want)]
+        pos, found = _lookup(lm.id, touched)
         rows = pos[found]  # ids ascending with the rows
         nodes = np.concatenate([lm.anchor[rows], lm.last_node[rows]])
         keep = _lookup(want, nodes)[1].reshape(2, -1).any(axis=0)
