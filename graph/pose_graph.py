@@ -193,6 +193,10 @@ class PoseGraph:
         # Estimates of single nodes read since the solver last changed them (update, batch,
         # rebuild); a new node changes no other node's estimate, so add_node keeps them.
         self._pose_cache: dict[int, tuple[float, float, float]] = {}
+        # The solver's own rows of the last full read (ids, poses; every node but the
+        # buffered ones), kept until the solver changes them: add_node and solve_pending
+        # change only buffered nodes, so the next full read takes these rows again.
+        self._solver_rows: tuple[NDArray[np.int64], FloatArray] | None = None
         self._ids: NDArray[np.int64] | None = None  # sorted node ids; dropped by add_node
 
     # ------------------------------------------------------------------ building the graph
@@ -619,8 +623,15 @@ class PoseGraph:
             ok = (pos < all_ids.shape[0]) & (all_ids[np.minimum(pos, all_ids.shape[0] - 1)] == ids)
             if bool(np.all(ok)):
                 return ids, all_poses[pos].copy()
+        out = np.empty((ids.shape[0], 3))
+        todo = np.ones(ids.shape[0], dtype=bool)
+        if self._solver_rows is not None:  # the solver's nodes, from its last full read
+            solver_ids, solver_poses = self._solver_rows
+            pos = np.minimum(np.searchsorted(solver_ids, ids), solver_ids.shape[0] - 1)
+            todo = solver_ids[pos] != ids
+            out[~todo] = solver_poses[pos[~todo]]
         cache, initial = self._pose_cache, self._initial
-        nodes = ids.tolist()
+        nodes = ids[todo].tolist()
         rows = list(map(cache.get, nodes))
         if None in rows:
             # Straight from iSAM2 when it serves the estimates (the common case; its nodes
@@ -640,12 +651,14 @@ class PoseGraph:
                         self._existing(n, f"estimate({n!r})")  # raises
                     pose = self._read_pose(n)
                 cache[n] = rows[k] = pose
-        return ids, np.array(rows, dtype=np.float64).reshape(-1, 3)
+        out[todo] = np.array(rows, dtype=np.float64).reshape(-1, 3)
+        return ids, out
 
     def _drop_estimates(self) -> None:
         """Forget every cached estimate (the solver state changed)."""
         self._estimates = None
         self._pose_cache.clear()
+        self._solver_rows = None
 
     def _sorted_ids(self) -> NDArray[np.int64]:
         """``(N,)`` int64 node ids, ascending (cached until the next :meth:`add_node`)."""
@@ -657,12 +670,36 @@ class PoseGraph:
         return self._ids
 
     def _read_estimates(self) -> tuple[NDArray[np.int64], FloatArray]:
-        values = self._current_values()
-        # Values hold exactly the nodes of _initial, in ascending key order.
+        """Every node's estimate (:meth:`estimates`): the solver's rows, from its last full
+        read while it has not changed them, and the buffered nodes' initial values, as
+        ``gtsam.utilities.extractPose2`` gives them (through a ``Pose2``)."""
         ids = self._sorted_ids().copy()
         if ids.size == 0:
             return ids, np.zeros((0, 3))
-        poses = np.asarray(gtsam.utilities.extractPose2(values), dtype=np.float64).reshape(-1, 3)
+        solver = self._solver_rows
+        if solver is None:
+            values = self._current_values()
+            # Values hold exactly the nodes of _initial, in ascending key order.
+            poses = np.asarray(gtsam.utilities.extractPose2(values), dtype=np.float64)
+            poses = poses.reshape(-1, 3)
+            solver_nodes = (
+                self._served.size()
+                if self._served is not None
+                else len(self._in_isam)
+                if self._isam is not None
+                else 0
+            )
+            held = np.ones(ids.shape[0], dtype=bool)
+            held[np.searchsorted(ids, sorted(self._pending_nodes))] = False
+            if solver_nodes and solver_nodes == int(held.sum()):
+                self._solver_rows = ids[held], poses[held]
+            return ids, poses
+        poses = np.empty((ids.shape[0], 3))
+        pending = sorted(self._pending_nodes)
+        held = np.ones(ids.shape[0], dtype=bool)
+        held[np.searchsorted(ids, pending)] = False
+        poses[held] = solver[1]
+        poses[~held] = [_xyt(_pose2(self._initial[n])) for n in pending]
         return ids, poses
 
     def marginal_covariance(self, node_id: int) -> FloatArray:

@@ -416,6 +416,60 @@ def test_cached_estimates_follow_every_change_and_are_copies() -> None:
     assert g.estimates()[0].tolist() == list(range(7))
 
 
+def test_full_reads_between_solver_changes_take_the_solver_rows_again(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # add_node and solve_pending change only buffered nodes: after a full read, the next
+    # full reads (and the node-by-node reads of iSAM2's nodes) take the solver's rows from
+    # it instead of reading gtsam again. The values stay those of gtsam: iSAM2's nodes as
+    # estimate() reads them one by one, a buffered node's row as its initial value through
+    # a Pose2 (extractPose2), its node-by-node read the initial value itself. Headings are
+    # not zero, so the two may differ in the last bit.
+    import gtsam
+
+    full_reads = 0
+    extract = gtsam.utilities.extractPose2
+
+    def counted(values: object) -> object:
+        nonlocal full_reads
+        full_reads += 1
+        return extract(values)
+
+    monkeypatch.setattr(gtsam.utilities, "extractPose2", counted)
+
+    def through_pose2(pose: np.ndarray) -> list[float]:
+        p = gtsam.Pose2(*pose.tolist())
+        return [p.x(), p.y(), p.theta()]
+
+    g = PoseGraph()
+    g.add_node(0, [0.0, 0.0, 0.2])
+    updates = 0
+    for k in range(1, 9):
+        g.add_node(k, compose(g.initial_pose(k - 1), [1.0, 0.05, 0.3]))
+        g.add_between(k - 1, k, [0.9, 0.1, 0.31], COV, kind="odometry")
+        buffered = 5 <= k <= 7
+        if buffered:
+            g.solve_pending()
+        else:
+            g.update()
+            updates += 1
+        in_isam = [n for n in range(k + 1) if not (buffered and n >= 5)]
+        pending = [n for n in range(k + 1) if n not in in_isam]
+        by_node = np.array([g.estimate(n) for n in in_isam])  # iSAM2, one node at a time
+        raw = np.array([g.initial_pose(n) for n in pending]).reshape(-1, 3)
+        row = np.array([through_pose2(g.initial_pose(n)) for n in pending]).reshape(-1, 3)
+        everything = np.arange(k + 1)[::-1]
+        for poses, buffered_rows in (
+            (g.estimates_of(everything)[1], raw),  # node by node
+            (g.estimates()[1], row),
+            (g.estimates_of(everything)[1], row),  # from the table
+        ):
+            np.testing.assert_array_equal(poses[in_isam], by_node)
+            np.testing.assert_array_equal(poses[pending], buffered_rows)
+    # one gtsam read per solver state: none after solve_pending or add_node
+    assert full_reads == updates == 5
+
+
 def test_huber_scan_match_factor_pulls_a_bounded_amount() -> None:
     # The slam.scan_match_kernel mechanism: accurate odometry z1 (sigma 0.01 m) and a wrong
     # scan match z2 0.3 m away (sigma 0.05 m, 6 sigmas), the relative heading pinned to 0.
