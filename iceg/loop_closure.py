@@ -76,6 +76,11 @@ _REFERENCE_RADIUS_M = 4.0
 #: More new nodes than this to index at once: read every estimate (one gtsam call).
 _INDEX_BULK = 512
 
+#: First distance (m) out to which the local search reads the old nodes near the estimate,
+#: doubled until it has its ``max_candidates`` places or reaches the search radius. A cost
+#: setting only: the candidates are those of a read out to the radius (:class:`_Nearby`).
+_FIRST_REACH_M = 0.5
+
 
 class LoopClosureConfig(BaseModel):
     """Loop-closure search among older nodes near the current estimate."""
@@ -494,6 +499,80 @@ class _Poses:
         return self.rows(np.array([int(key)]))[0]
 
 
+class _Nearby:
+    """Old nodes near a point by their distance on the current estimates, read as far as a
+    question needs.
+
+    The node index gives every old node (id below ``n_older``) whose indexed position lies
+    within ``reach_m`` plus the staleness margin of ``center``, ordered by that indexed
+    distance. The index's invariant (:meth:`LoopCloser._sync_index`) is that no estimate
+    lies farther than the margin from its indexed position, so every node within ``d`` of
+    the center is among those indexed within ``d`` plus the margin: only those are read.
+    The answers are those of reading every node the index returns (``d <= reach_m``).
+
+    Args:
+        nodes: The node index.
+        poses: The search's estimates.
+        center: ``(2,)`` map-frame point (m).
+        n_older: Only nodes ``0..n_older-1`` count.
+        reach_m: The farthest distance a question may ask about (m).
+    """
+
+    def __init__(
+        self, nodes: NodeGrid, poses: _Poses, center: FloatArray, n_older: int, reach_m: float
+    ) -> None:
+        ids = nodes.query(center, reach_m + _INDEX_MARGIN_M)  # ascending
+        ids = ids[ids < n_older]
+        indexed = np.hypot(*(nodes.position(ids) - center).T)
+        order = np.argsort(indexed, kind="stable")
+        self._ids, self._indexed = ids[order], indexed[order]
+        self._dist = np.full(ids.shape[0], np.nan)  # exact distances, NaN: not read yet
+        self._poses, self._center = poses, center
+        self.reach_m = reach_m
+
+    def __len__(self) -> int:
+        """Number of old nodes indexed within the reach plus the margin."""
+        return int(self._ids.shape[0])
+
+    def _distances(self, rows: slice | IntArray) -> FloatArray:
+        """Exact distances of the nodes at ``rows`` (indexed order), reading the unread."""
+        dist = self._dist[rows]
+        unread = np.isnan(dist)
+        if unread.any():
+            ids = self._ids[rows][unread]
+            dist[unread] = np.hypot(*(self._poses.rows(ids)[:, :2] - self._center).T)
+            self._dist[rows] = dist
+        return dist
+
+    def within(self, d: float) -> tuple[IntArray, FloatArray]:
+        """The nodes at most ``d`` (m, at most the reach) from the center, nearest first
+        (ties by id), and their distances: ``(ids (k,) int64, dist (k,) m)``."""
+        m = int(np.searchsorted(self._indexed, d + _INDEX_MARGIN_M, side="right"))
+        ids, dist = self._ids[:m], self._distances(slice(0, m))
+        keep = np.flatnonzero(dist <= d)
+        order = keep[np.lexsort((ids[keep], dist[keep]))]
+        return ids[order], dist[order]
+
+    def members(self, d: float) -> IntArray:
+        """The ids of the nodes at most ``d`` (m, at most the reach) from the center, in no
+        particular order: those indexed within ``d`` less the margin without a read, the
+        rest of the nodes indexed within ``d`` plus the margin by their exact distance."""
+        near = self._indexed <= d - _INDEX_MARGIN_M
+        band = np.flatnonzero(~near & (self._indexed <= d + _INDEX_MARGIN_M))
+        return np.concatenate([self._ids[near], self._ids[band[self._distances(band) <= d]]])
+
+    def nearest(self, k: int) -> tuple[IntArray, FloatArray]:
+        """The ``k`` nodes nearest the center (ties by id; all of them when fewer) and their
+        distances, as :meth:`within` orders them: right whenever the k-th lies within the
+        reach, or the index returned every old node."""
+        if len(self) == 0:
+            return self._ids, self._dist
+        # the first k read lie within d, so the k nearest do too
+        d = float(np.max(self._distances(slice(0, min(k, len(self))))))
+        ids, dist = self.within(d)
+        return ids[:k], dist[:k]
+
+
 @dataclass(frozen=True, eq=False)
 class _Search:
     """Inputs shared by the steps of one search (estimates at the search's start)."""
@@ -503,7 +582,7 @@ class _Search:
     n_older: int  # candidate pool: nodes 0..n_older-1 (old in node count and along the path)
     marginal: FloatArray  # (3, 3) current node
     radius_m: float
-    inside: IntArray  # old nodes within radius_m of the current estimate, nearest first
+    nearby: _Nearby  # old nodes near the current estimate, reaching radius_m
 
 
 @dataclass(frozen=True, eq=False)
@@ -622,8 +701,8 @@ class LoopCloser:
         radius = self._radius(marginal)
         poses = _Poses(graph)
         self._sync_index(graph, poses)
-        inside = self._inside(node_id, poses, n_older, radius)
-        search = _Search(node_id, poses, n_older, marginal, radius, inside)
+        nearby = _Nearby(self.nodes, poses, poses[node_id][:2], n_older, radius)
+        search = _Search(node_id, poses, n_older, marginal, radius, nearby)
         best = self._best_match(search, features)
         accepted = self._decide(search, best, graph, path_m) if best is not None else None
         if accepted is None and self._global_due():
@@ -684,21 +763,6 @@ class LoopCloser:
             d = se2.between(poses[c.node_to], c.implied)
             self._moved_m += float(np.hypot(d[0], d[1]) + abs(d[2]) * extent)
 
-    def _near(self, center: FloatArray, poses: _Poses, n_older: int, radius: float) -> tuple:
-        """Old nodes (ids below ``n_older``) near ``center`` ``(2,)``: ids ascending and their
-        exact distances (m) on the current estimates, for every old node within ``radius``
-        (and some beyond)."""
-        ids = self.nodes.query(center, radius + _INDEX_MARGIN_M)
-        ids = ids[ids < n_older]
-        dist = np.hypot(*(poses.rows(ids)[:, :2] - center).T)
-        return ids, dist
-
-    def _inside(self, node_id: int, poses: _Poses, n_older: int, radius: float) -> IntArray:
-        """Old nodes within ``radius`` of the current estimate, nearest first (ties by id)."""
-        ids, dist = self._near(poses[node_id][:2], poses, n_older, radius)
-        keep = np.flatnonzero(dist <= radius)
-        return ids[keep[np.argsort(dist[keep], kind="stable")]]
-
     def _radius(self, marginal: FloatArray) -> float:
         """The local search radius (m)."""
         lc = self.config
@@ -711,15 +775,21 @@ class LoopCloser:
 
     def _candidates(self, s: _Search) -> list[int]:
         """Up to ``max_candidates`` nearest old nodes within the radius, from distinct places
-        (more than ``reference_nodes`` nodes apart)."""
+        (more than ``reference_nodes`` nodes apart). The nodes are read nearest first out to
+        a distance doubled until the places are found or it reaches the radius: the greedy
+        over those is the greedy over every node within the radius."""
         lc = self.config
-        candidates: list[int] = []
-        for n in s.inside.tolist():
-            if all(abs(n - c) > lc.reference_nodes for c in candidates):
-                candidates.append(n)
-            if len(candidates) == lc.max_candidates:
-                break
-        return candidates
+        reach = min(_FIRST_REACH_M, s.radius_m)
+        while True:
+            candidates: list[int] = []
+            for n in s.nearby.within(reach)[0].tolist():
+                if all(abs(n - c) > lc.reference_nodes for c in candidates):
+                    candidates.append(n)
+                    if len(candidates) == lc.max_candidates:
+                        return candidates
+            if reach >= s.radius_m:
+                return candidates
+            reach = min(2.0 * reach, s.radius_m)
 
     def _bounds(self, s: _Search) -> MatchBounds:
         rotation_sigma = float(np.sqrt(max(s.marginal[2, 2], 0.0)))
@@ -744,14 +814,13 @@ class LoopCloser:
         index, on a radius doubled until the k-th nearest lies within it."""
         k = self.config.reference_nodes
         center = s.poses[candidate][:2]
-        radius = _REFERENCE_RADIUS_M
+        reach = _REFERENCE_RADIUS_M
         while True:
-            ids, dist = self._near(center, s.poses, s.n_older, radius)
-            if ids.shape[0] == s.n_older or (
-                ids.shape[0] >= k and np.partition(dist, k - 1)[k - 1] <= radius
-            ):
-                return ids[nearest_k(dist, k)]
-            radius *= 2.0
+            near = _Nearby(self.nodes, s.poses, center, s.n_older, reach)
+            ids, dist = near.nearest(k)
+            if len(near) == s.n_older or (ids.shape[0] == k and dist[-1] <= reach):
+                return ids
+            reach *= 2.0
 
     def _best_match(self, s: _Search, features: ScanFeatures) -> _Best | None:
         """Match each candidate place; keep the best-correlated acceptable match. A candidate
@@ -890,7 +959,8 @@ class LoopCloser:
 
         # Places within the radius are the local search's: the global one adds the rest.
         def far(ids: IntArray) -> NDArray[np.bool_]:
-            return (ids < s.n_older) & ~np.isin(ids, s.inside, kind="table")
+            inside = s.nearby.members(s.radius_m)
+            return (ids < s.n_older) & ~np.isin(ids, inside, kind="table")
 
         query = place_descriptor(features, lc.place_index)
         places = self.places.query(query, far, lc.global_candidates, lc.reference_nodes)
@@ -1270,17 +1340,6 @@ class LoopCloser:
         return AcceptedClosures(tuple(closures), kernel, large_correction)
 
 
-def nearest_k(dist: FloatArray, k: int) -> IntArray:
-    """Indices of the ``k`` smallest of ``dist`` ``(n,)`` (finite), nearest first, ties by
-    index: the first ``k`` of a stable argsort, in O(n + k log k) (only the entries up to the
-    k-th value are sorted). Returns ``(min(n, k),)`` int64."""
-    if dist.shape[0] <= k:
-        return np.argsort(dist, kind="stable")
-    kth = np.partition(dist, k - 1)[k - 1]
-    few = np.flatnonzero(dist <= kth)
-    return few[np.argsort(dist[few], kind="stable")[:k]]
-
-
 def _same_place(window: IntArray, other: IntArray) -> bool:
     """Whether two candidates' reference windows (:meth:`LoopCloser._window`, ``(k,)`` node
     ids, nearest first) are the same nodes: candidates from several passes through one place.
@@ -1320,6 +1379,5 @@ __all__ = [
     "chain_covariance",
     "closures_agree",
     "innovation_chi2",
-    "nearest_k",
     "pcm_chi2",
 ]

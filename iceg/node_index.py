@@ -17,6 +17,7 @@ Spatial Hashing for Collision Detection of Deformable Objects", VMV 2003.
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -116,15 +117,18 @@ class NodeGrid:
         hi = np.floor((c + r) / self.cell_m).astype(np.int64)
         n_cells = int((hi[0] - lo[0] + 1) * (hi[1] - lo[1] + 1))
         if n_cells > len(self._cells):  # a disc wider than the map: scan the cells
-            found = [n for ids in self._cells.values() for n in ids]
+            cells = list(self._cells.values())
         else:
-            found = [
-                n
+            get = self._cells.get
+            cells = [
+                cell
                 for cx in range(int(lo[0]), int(hi[0]) + 1)
                 for cy in range(int(lo[1]), int(hi[1]) + 1)
-                for n in self._cells.get((cx, cy), ())
+                if (cell := get((cx, cy))) is not None
             ]
-        ids = np.array(sorted(found), dtype=np.int64)
+        count = sum(map(len, cells))
+        ids = np.fromiter(itertools.chain.from_iterable(cells), dtype=np.int64, count=count)
+        ids.sort()
         d = self._xy[ids] - c
         return ids[d[:, 0] ** 2 + d[:, 1] ** 2 <= r * r]
 

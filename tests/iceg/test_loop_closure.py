@@ -10,8 +10,6 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 from frontends import open_log
 from frontends.simulate import (
@@ -34,7 +32,6 @@ from iceg.loop_closure import (
     chain_covariance,
     closures_agree,
     innovation_chi2,
-    nearest_k,
     odometry_bias_covariance,
     pcm_chi2,
 )
@@ -583,17 +580,6 @@ def test_final_estimate_satisfies_the_accepted_closures_on_aces() -> None:
     assert position_errors(result.poses, reference).rmse_m <= 0.3
 
 
-@settings(max_examples=200, deadline=None)
-@given(
-    st.lists(st.integers(0, 6), min_size=0, max_size=60),  # small range: many ties
-    st.integers(1, 12),
-)
-def test_nearest_k_equals_the_head_of_a_stable_argsort(values: list[int], k: int) -> None:
-    dist = np.asarray(values, dtype=np.float64) * 0.5
-    expect = np.argsort(dist, kind="stable")[:k]
-    np.testing.assert_array_equal(nearest_k(dist, k), expect)
-
-
 def test_node_index_gives_the_candidates_of_a_scan_of_every_node() -> None:
     """The search's node index (grid hash with a staleness margin) selects the same old
     nodes as a distance test over every estimate: those within the radius, nearest first,
@@ -601,7 +587,7 @@ def test_node_index_gives_the_candidates_of_a_scan_of_every_node() -> None:
     moved a little and the index was rebuilt."""
     from graph import PoseGraph
     from iceg.feature_map import FeatureMap
-    from iceg.loop_closure import _Poses, _Search
+    from iceg.loop_closure import _Nearby, _Poses, _Search
     from iceg.matching import IceMatcher
 
     rng = np.random.default_rng(3)
@@ -626,8 +612,19 @@ def test_node_index_gives_the_candidates_of_a_scan_of_every_node() -> None:
             d = np.hypot(*(every[:n_older, :2] - every[node, :2]).T)
             inside = np.flatnonzero(d <= radius)
             want = inside[np.argsort(d[inside], kind="stable")]
-            np.testing.assert_array_equal(closer._inside(node, poses, n_older, radius), want)
-            s = _Search(node, poses, n_older, np.eye(3), radius, want)
+            nearby = _Nearby(closer.nodes, poses, every[node, :2], n_older, radius)
+            for reach in (0.3, radius / 2, radius):  # as far as a question reads
+                got, dist = nearby.within(reach)
+                np.testing.assert_array_equal(got, want[d[want] <= reach])
+                np.testing.assert_array_equal(dist, d[got])
+            np.testing.assert_array_equal(np.sort(nearby.members(radius)), np.sort(want))
+            s = _Search(node, poses, n_older, np.eye(3), radius, nearby)
+            places: list[int] = []  # the greedy over every node within the radius
+            for n in want.tolist():
+                if len(places) < 3 and all(abs(n - c) > 10 for c in places):
+                    places.append(n)
+            assert closer._candidates(s) == places
             for cand in [*want[:3].tolist(), 0, 5]:
                 dc = np.hypot(*(every[:n_older, :2] - every[cand, :2]).T)
-                np.testing.assert_array_equal(closer._window(s, cand), nearest_k(dc, 10))
+                nearest = np.argsort(dc, kind="stable")[:10]
+                np.testing.assert_array_equal(closer._window(s, cand), nearest)
