@@ -670,14 +670,18 @@ class PoseGraph:
         return self._ids
 
     def _read_estimates(self) -> tuple[NDArray[np.int64], FloatArray]:
-        """Every node's estimate (:meth:`estimates`): the solver's rows, from its last full
-        read while it has not changed them, and the buffered nodes' initial values, as
-        ``gtsam.utilities.extractPose2`` gives them (through a ``Pose2``)."""
+        """Every node's estimate (:meth:`estimates`): the solver's rows (from its last full
+        read while it has not changed them) and the buffered nodes' initial values as they
+        are, the values :meth:`estimate` gives each node. (gtsam's rows of a buffered node
+        would be its initial value through a ``Pose2``, whose heading can differ in the last
+        bit: a run's results would then depend on whether it read one node or all.)"""
         ids = self._sorted_ids().copy()
         if ids.size == 0:
             return ids, np.zeros((0, 3))
-        solver = self._solver_rows
-        if solver is None:
+        pending = sorted(self._pending_nodes)
+        held = np.ones(ids.shape[0], dtype=bool)
+        held[np.searchsorted(ids, pending)] = False
+        if self._solver_rows is None:
             values = self._current_values()
             # Values hold exactly the nodes of _initial, in ascending key order.
             poses = np.asarray(gtsam.utilities.extractPose2(values), dtype=np.float64)
@@ -689,17 +693,13 @@ class PoseGraph:
                 if self._isam is not None
                 else 0
             )
-            held = np.ones(ids.shape[0], dtype=bool)
-            held[np.searchsorted(ids, sorted(self._pending_nodes))] = False
             if solver_nodes and solver_nodes == int(held.sum()):
                 self._solver_rows = ids[held], poses[held]
-            return ids, poses
-        poses = np.empty((ids.shape[0], 3))
-        pending = sorted(self._pending_nodes)
-        held = np.ones(ids.shape[0], dtype=bool)
-        held[np.searchsorted(ids, pending)] = False
-        poses[held] = solver[1]
-        poses[~held] = [_xyt(_pose2(self._initial[n])) for n in pending]
+        else:
+            poses = np.empty((ids.shape[0], 3))
+            poses[held] = self._solver_rows[1]
+        if pending:
+            poses[~held] = [self._initial[n] for n in pending]
         return ids, poses
 
     def marginal_covariance(self, node_id: int) -> FloatArray:
