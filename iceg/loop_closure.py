@@ -528,7 +528,6 @@ class _Nearby:
         self._ids, self._indexed = ids[order], indexed[order]
         self._dist = np.full(ids.shape[0], np.nan)  # exact distances, NaN: not read yet
         self._poses, self._center = poses, center
-        self.reach_m = reach_m
 
     def __len__(self) -> int:
         """Number of old nodes indexed within the reach plus the margin."""
