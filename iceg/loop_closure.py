@@ -552,6 +552,11 @@ class _Nearby:
         order = keep[np.lexsort((ids[keep], dist[keep]))]
         return ids[order], dist[order]
 
+    def read_all(self, d: float) -> bool:
+        """Whether :meth:`within` ``d`` reads every node the index returned (a larger
+        distance would read no more)."""
+        return bool(np.searchsorted(self._indexed, d + _INDEX_MARGIN_M, side="right") == len(self))
+
     def members(self, d: float) -> IntArray:
         """The ids of the nodes at most ``d`` (m, at most the reach) from the center, in no
         particular order: those indexed within ``d`` less the margin without a read, the
@@ -788,7 +793,8 @@ class LoopCloser:
                         return candidates
             if reach >= s.radius_m:
                 return candidates
-            reach = min(2.0 * reach, s.radius_m)
+            # nothing more to read: the rest of the radius costs one more pass
+            reach = s.radius_m if s.nearby.read_all(reach) else min(2.0 * reach, s.radius_m)
 
     def _bounds(self, s: _Search) -> MatchBounds:
         rotation_sigma = float(np.sqrt(max(s.marginal[2, 2], 0.0)))
