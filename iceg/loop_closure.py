@@ -546,7 +546,7 @@ class _Nearby:
     def within(self, d: float) -> tuple[IntArray, FloatArray]:
         """The nodes at most ``d`` (m, at most the reach) from the center, nearest first
         (ties by id), and their distances: ``(ids (k,) int64, dist (k,) m)``."""
-        m = int(np.searchsorted(self._indexed, d + _INDEX_MARGIN_M, side="right"))
+        m = self._reads(d)
         ids, dist = self._ids[:m], self._distances(slice(0, m))
         keep = np.flatnonzero(dist <= d)
         order = keep[np.lexsort((ids[keep], dist[keep]))]
@@ -555,7 +555,12 @@ class _Nearby:
     def read_all(self, d: float) -> bool:
         """Whether :meth:`within` ``d`` reads every node the index returned (a larger
         distance would read no more)."""
-        return bool(np.searchsorted(self._indexed, d + _INDEX_MARGIN_M, side="right") == len(self))
+        return self._reads(d) == len(self)
+
+    def _reads(self, d: float) -> int:
+        """How many nodes (a prefix in indexed order) :meth:`within` ``d`` reads: those
+        indexed within ``d`` plus the margin."""
+        return int(np.searchsorted(self._indexed, d + _INDEX_MARGIN_M, side="right"))
 
     def members(self, d: float) -> IntArray:
         """The ids of the nodes at most ``d`` (m, at most the reach) from the center, in no
