@@ -1454,3 +1454,107 @@ def points_explained(
                     out[k, i] = dx * dx + dy * dy < gate2
                     m += 1
     return out
+
+
+@njit(cache=True, nogil=True)
+def _aligned_translation(
+    theta: float, new_xy: np.ndarray, ref_xy: np.ndarray, a: int, b: int
+) -> tuple[float, float]:
+    """``ref_xy[b] - R(theta) new_xy[a]`` (the arithmetic of ``rot`` and the einsum it
+    replaces, bit for bit)."""
+    c, s = np.cos(theta), np.sin(theta)
+    nx, ny = new_xy[a, 0], new_xy[a, 1]
+    return ref_xy[b, 0] - (c * nx + (-s) * ny), ref_xy[b, 1] - (s * nx + c * ny)
+
+
+@njit(cache=True, nogil=True)
+def directed_poses(
+    i: np.ndarray,
+    j: np.ndarray,
+    codes: np.ndarray,
+    new_heading: np.ndarray,
+    new_edge: np.ndarray,
+    new_xy: np.ndarray,
+    ref_heading: np.ndarray,
+    ref_edge: np.ndarray,
+    ref_xy: np.ndarray,
+    same_code: int,
+    corner_eow_code: int,
+    eow_corner_code: int,
+) -> np.ndarray:
+    """One SE(2) hypothesis per directed pair (:func:`iceg.matching.hypotheses.
+    directed_hypotheses`): the pairs of ``same_code`` (heading against heading), then for
+    each of the two edges ``k`` those of ``corner_eow_code`` (reference edge 0 against new
+    edge ``k``) and of ``eow_corner_code`` (reference edge ``k`` against new edge 0), each
+    group in pair order; rotations wrapped to ``[-pi, pi)``, non-finite ones dropped.
+
+    Returns:
+        ``(N, 3)`` float64 poses ``[x_m, y_m, theta_rad]``.
+    """
+    m = i.shape[0]
+    code = np.empty(m, dtype=np.int64)
+    for p in range(m):
+        code[p] = codes[i[p], j[p]]
+    out = np.empty((3 * m, 3))
+    n = 0
+    for group in range(5):  # same; (corner-eow, eow-corner) for edge 0, then edge 1
+        want = same_code if group == 0 else corner_eow_code if group % 2 == 1 else eow_corner_code
+        k = 0 if group < 3 else 1
+        for p in range(m):
+            if code[p] != want:
+                continue
+            a, b = i[p], j[p]
+            if group == 0:
+                raw = ref_heading[b] - new_heading[a]
+            elif group % 2 == 1:
+                raw = ref_edge[b, 0] - new_edge[a, k]
+            else:
+                raw = ref_edge[b, k] - new_edge[a, 0]
+            theta = _wrap(raw)
+            if not np.isfinite(theta):
+                continue
+            tx, ty = _aligned_translation(theta, new_xy, ref_xy, a, b)
+            out[n, 0], out[n, 1], out[n, 2] = tx, ty, theta
+            n += 1
+    return out[:n].copy()
+
+
+@njit(cache=True, nogil=True)
+def intersection_pair_poses(
+    i: np.ndarray,
+    j: np.ndarray,
+    new_xy: np.ndarray,
+    ref_xy: np.ndarray,
+    tolerance_m: float,
+    min_baseline_m: float,
+) -> np.ndarray:
+    """Hypotheses from two Intersection pairs each (:func:`iceg.matching.hypotheses.
+    intersection_hypotheses`): pairs ``p < q`` in row-major order with distinct features on
+    both sides whose baselines have equal lengths (within ``tolerance_m``) of at least
+    ``min_baseline_m``; the rotation aligns the baselines, the translation is the mean of
+    the two pairs'.
+
+    Returns:
+        ``(N, 3)`` float64 poses ``[x_m, y_m, theta_rad]``.
+    """
+    m = i.shape[0]
+    out = np.empty((max(0, m * (m - 1) // 2), 3))
+    n = 0
+    for p in range(m):
+        for q in range(p + 1, m):
+            if i[p] == i[q] or j[p] == j[q]:
+                continue
+            vnx = new_xy[i[q], 0] - new_xy[i[p], 0]
+            vny = new_xy[i[q], 1] - new_xy[i[p], 1]
+            vrx = ref_xy[j[q], 0] - ref_xy[j[p], 0]
+            vry = ref_xy[j[q], 1] - ref_xy[j[p], 1]
+            dn = np.hypot(vnx, vny)
+            dr = np.hypot(vrx, vry)
+            if not (dn >= min_baseline_m and abs(dn - dr) <= tolerance_m):
+                continue
+            theta = _wrap(np.arctan2(vry, vrx) - np.arctan2(vny, vnx))
+            t1x, t1y = _aligned_translation(theta, new_xy, ref_xy, i[p], j[p])
+            t2x, t2y = _aligned_translation(theta, new_xy, ref_xy, i[q], j[q])
+            out[n, 0], out[n, 1], out[n, 2] = 0.5 * (t1x + t2x), 0.5 * (t1y + t2y), theta
+            n += 1
+    return out[:n].copy()

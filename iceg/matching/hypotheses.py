@@ -9,7 +9,12 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from iceg.matching._kernels import density_peak, vote_clusters
+from iceg.matching._kernels import (
+    density_peak,
+    directed_poses,
+    intersection_pair_poses,
+    vote_clusters,
+)
 from iceg.matching.config import MatchBounds
 from iceg.matching.geometry import CORNER, INTERSECTION, FeatureGeometry, rot
 from iceg_common.se2 import wrap_angle
@@ -137,29 +142,20 @@ def directed_hypotheses(
     Returns:
         ``(N, 3)`` float64 poses (unfiltered).
     """
-    c = codes[i, j]
-    same = c == SAME_DIRECTED
-    ce = c == CORNER_TO_EOW
-    ec = c == EOW_TO_CORNER
-    parts_i, parts_j, parts_t = [], [], []
-    parts_i.append(i[same])
-    parts_j.append(j[same])
-    parts_t.append(gr.heading[j[same]] - gn.heading[i[same]])
-    for k in (0, 1):
-        parts_i.append(i[ce])
-        parts_j.append(j[ce])
-        parts_t.append(gr.edge[j[ce], 0] - gn.edge[i[ce], k])
-        parts_i.append(i[ec])
-        parts_j.append(j[ec])
-        parts_t.append(gr.edge[j[ec], k] - gn.edge[i[ec], 0])
-    ii = np.concatenate(parts_i)
-    jj = np.concatenate(parts_j)
-    th = wrap_angle(np.concatenate(parts_t))
-    ok = np.isfinite(th)
-    ii, jj, th = ii[ok], jj[ok], th[ok]
-    r = rot(th)  # (N, 2, 2)
-    t = gr.xy[jj] - np.einsum("nab,nb->na", r, gn.xy[ii])
-    return np.column_stack([t, th])
+    return directed_poses(  # type: ignore[no-any-return]
+        np.ascontiguousarray(i, dtype=np.int64),
+        np.ascontiguousarray(j, dtype=np.int64),
+        np.ascontiguousarray(codes, dtype=np.int64),
+        gn.heading,
+        gn.edge,
+        gn.xy,
+        gr.heading,
+        gr.edge,
+        gr.xy,
+        SAME_DIRECTED,
+        CORNER_TO_EOW,
+        EOW_TO_CORNER,
+    )
 
 
 def intersection_hypotheses(
@@ -193,22 +189,14 @@ def intersection_hypotheses(
         d = np.hypot(*(pred - gr.xy[j]).T)
         keep = np.argsort(d, kind="stable")[:max_pairs]
         i, j = i[keep], j[keep]
-    p, q = np.triu_indices(i.shape[0], k=1)
-    ok = (i[p] != i[q]) & (j[p] != j[q])
-    p, q = p[ok], q[ok]
-    vn = gn.xy[i[q]] - gn.xy[i[p]]
-    vr = gr.xy[j[q]] - gr.xy[j[p]]
-    dn = np.hypot(vn[:, 0], vn[:, 1])
-    dr = np.hypot(vr[:, 0], vr[:, 1])
-    ok = (dn >= min_baseline_m) & (np.abs(dn - dr) <= tolerance_m)
-    p, q, vn, vr = p[ok], q[ok], vn[ok], vr[ok]
-    if p.shape[0] == 0:
-        return np.zeros((0, 3))
-    th = wrap_angle(np.arctan2(vr[:, 1], vr[:, 0]) - np.arctan2(vn[:, 1], vn[:, 0]))
-    r = rot(th)
-    t1 = gr.xy[j[p]] - np.einsum("nab,nb->na", r, gn.xy[i[p]])
-    t2 = gr.xy[j[q]] - np.einsum("nab,nb->na", r, gn.xy[i[q]])
-    return np.column_stack([0.5 * (t1 + t2), th])
+    return intersection_pair_poses(  # type: ignore[no-any-return]
+        np.ascontiguousarray(i, dtype=np.int64),
+        np.ascontiguousarray(j, dtype=np.int64),
+        gn.xy,
+        gr.xy,
+        tolerance_m,
+        min_baseline_m,
+    )
 
 
 def generate_hypotheses(

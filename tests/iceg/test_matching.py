@@ -49,14 +49,19 @@ from iceg.matching.config import CovarianceConfig
 from iceg.matching.correlation import CorrelationSettings, correlate, fimp, pair_features
 from iceg.matching.geometry import (
     EOW,
+    FeatureGeometry,
     PolarProfile,
     SegmentSet,
     associate_points,
     feature_geometry,
     point_segment_index,
+    rot,
     transform_features,
 )
 from iceg.matching.hypotheses import (
+    CORNER_TO_EOW,
+    EOW_TO_CORNER,
+    SAME_DIRECTED,
     directed_hypotheses,
     intersection_hypotheses,
     pair_codes,
@@ -274,6 +279,74 @@ def test_two_intersection_pairs_fix_the_transform() -> None:
         gn, gr, np.array([0, 1]), np.array([0, 1]), np.zeros(3), 0.1, 0.5, 100
     )
     np.testing.assert_allclose(hyp, truth[None], atol=1e-12)
+
+
+def _numpy_directed(gn, gr, i, j, codes):  # type: ignore[no-untyped-def]
+    """Directed-pair hypotheses (docs/design.md step 6) as the numpy expressions the compiled
+    :func:`directed_hypotheses` replaced: the reference it must equal bit for bit."""
+    c = codes[i, j]
+    same, ce, ec = c == SAME_DIRECTED, c == CORNER_TO_EOW, c == EOW_TO_CORNER
+    parts_i, parts_j, parts_t = [i[same]], [j[same]], [gr.heading[j[same]] - gn.heading[i[same]]]
+    for k in (0, 1):
+        parts_i += [i[ce], i[ec]]
+        parts_j += [j[ce], j[ec]]
+        parts_t += [gr.edge[j[ce], 0] - gn.edge[i[ce], k], gr.edge[j[ec], k] - gn.edge[i[ec], 0]]
+    ii, jj = np.concatenate(parts_i), np.concatenate(parts_j)
+    th = wrap_angle(np.concatenate(parts_t))
+    ok = np.isfinite(th)
+    ii, jj, th = ii[ok], jj[ok], th[ok]
+    t = gr.xy[jj] - np.einsum("nab,nb->na", rot(th), gn.xy[ii])
+    return np.column_stack([t, th])
+
+
+def _numpy_intersections(gn, gr, i, j, tolerance_m, min_baseline_m):  # type: ignore[no-untyped-def]
+    """Two-Intersection-pair hypotheses as the numpy expressions the compiled
+    :func:`intersection_hypotheses` replaced (after its pair cap)."""
+    p, q = np.triu_indices(i.shape[0], k=1)
+    ok = (i[p] != i[q]) & (j[p] != j[q])
+    p, q = p[ok], q[ok]
+    vn = gn.xy[i[q]] - gn.xy[i[p]]
+    vr = gr.xy[j[q]] - gr.xy[j[p]]
+    dn, dr = np.hypot(vn[:, 0], vn[:, 1]), np.hypot(vr[:, 0], vr[:, 1])
+    ok = (dn >= min_baseline_m) & (np.abs(dn - dr) <= tolerance_m)
+    p, q, vn, vr = p[ok], q[ok], vn[ok], vr[ok]
+    th = wrap_angle(np.arctan2(vr[:, 1], vr[:, 0]) - np.arctan2(vn[:, 1], vn[:, 0]))
+    r = rot(th)
+    t1 = gr.xy[j[p]] - np.einsum("nab,nb->na", r, gn.xy[i[p]])
+    t2 = gr.xy[j[q]] - np.einsum("nab,nb->na", r, gn.xy[i[q]])
+    return np.column_stack([0.5 * (t1 + t2), th]).reshape(-1, 3)
+
+
+def _random_geometry(rng: np.random.Generator, n: int) -> FeatureGeometry:
+    """Features of every kind at random, with the NaN headings, edges and openings each kind
+    has (an Intersection has no direction, an EOW one edge)."""
+    kind = rng.integers(0, 3, n)
+    edge = rng.uniform(-7.0, 7.0, (n, 2))
+    edge[kind == FeatureKind.EOW, 1] = np.nan
+    edge[kind == FeatureKind.INTERSECTION] = np.nan
+    heading = np.where(kind == FeatureKind.INTERSECTION, np.nan, rng.uniform(-7.0, 7.0, n))
+    xy = rng.normal(0.0, 8.0, (n, 2))
+    xy[rng.random(n) < 0.1] = xy[0]  # coincident features: zero-length baselines
+    opening = np.where(kind == FeatureKind.EOW, np.nan, rng.uniform(0.2, 3.0, n))
+    cov = np.tile(np.eye(2) * 1e-4, (n, 1, 1))
+    return FeatureGeometry(kind, xy, cov, heading, edge, opening, np.hypot(xy[:, 0], xy[:, 1]))
+
+
+def test_hypotheses_equal_the_numpy_expressions_bit_for_bit() -> None:
+    rng = np.random.default_rng(3)
+    n_poses = 0
+    for _ in range(200):
+        gn, gr = _random_geometry(rng, int(rng.integers(1, 40))), _random_geometry(rng, 60)
+        codes = pair_codes(gn, gr, bool(rng.integers(0, 2)), math.radians(10))
+        i, j = (a.astype(np.int64) for a in np.nonzero(rng.random(codes.shape) < 0.3))
+        got = directed_hypotheses(gn, gr, i, j, codes)
+        assert np.array_equal(got, _numpy_directed(gn, gr, i, j, codes))
+        inter = (gn.kind[i] == FeatureKind.INTERSECTION) & (gr.kind[j] == FeatureKind.INTERSECTION)
+        got = intersection_hypotheses(gn, gr, i, j, np.zeros(3), 0.3, 0.5, 10_000)
+        want = _numpy_intersections(gn, gr, i[inter], j[inter], 0.3, 0.5)
+        assert np.array_equal(got, want)
+        n_poses += got.shape[0]
+    assert n_poses > 1000  # the intersection pairs were not all filtered out
 
 
 def _numpy_vote(
