@@ -1579,19 +1579,14 @@ def sorted_cells(
         lo_x = min(lo_x, points[r, 0])
         lo_y = min(lo_y, points[r, 1])
     origin = np.array([lo_x, lo_y]) - cell_m
-    key = np.empty(n, dtype=np.int64)
     cx = np.empty(n, dtype=np.int64)
-    hi_x = hi_y = np.int64(0)
+    cy = np.empty(n, dtype=np.int64)
     for r in range(n):
         cx[r] = np.int64(np.floor((points[r, 0] - origin[0]) / cell_m))
-        key[r] = np.int64(np.floor((points[r, 1] - origin[1]) / cell_m))
-        hi_x = max(hi_x, cx[r]) if r else cx[r]
-        hi_y = max(hi_y, key[r]) if r else key[r]
-    n_cells = np.array([hi_x + 2, hi_y + 2], dtype=np.int64)
-    top = np.int64(0)
-    for r in range(n):
-        key[r] = cx[r] * n_cells[1] + key[r]
-        top = max(top, key[r])
+        cy[r] = np.int64(np.floor((points[r, 1] - origin[1]) / cell_m))
+    n_cells = np.array([cx.max() + 2, cy.max() + 2], dtype=np.int64)
+    key = cx * n_cells[1] + cy
+    top = key.max()
     order = np.arange(n, dtype=np.int64)
     spare = np.empty(n, dtype=np.int64)
     count = np.empty(257, dtype=np.int64)
@@ -1608,7 +1603,4 @@ def sorted_cells(
             count[digit] += 1
         order, spare = spare, order
         shift += 8
-    out_key = np.empty(n, dtype=np.int64)
-    for r in range(n):
-        out_key[r] = key[order[r]]
-    return origin, n_cells, out_key, order
+    return origin, n_cells, key[order], order
