@@ -1488,8 +1488,17 @@ def directed_poses(
     edge ``k``) and of ``eow_corner_code`` (reference edge ``k`` against new edge 0), each
     group in pair order; rotations wrapped to ``[-pi, pi)``, non-finite ones dropped.
 
+    Args:
+        i, j: ``(Q,)`` int64 new and reference feature index of each pair.
+        codes: ``(K_new, K_ref)`` int64 pair codes (``hypotheses.pair_codes``).
+        new_heading, ref_heading: ``(K,)`` float64 feature headings, radians (NaN: none).
+        new_edge, ref_edge: ``(K, 2)`` float64 edge direction angles, radians (NaN: none).
+        new_xy, ref_xy: ``(K, 2)`` float64 feature positions, metres, each scan's frame.
+        same_code, corner_eow_code, eow_corner_code: The three directed pair codes.
+
     Returns:
-        ``(N, 3)`` float64 poses ``[x_m, y_m, theta_rad]``.
+        ``(N, 3)`` float64 poses ``[x_m, y_m, theta_rad]`` of the new scan in the reference
+        frame.
     """
     m = i.shape[0]
     code = np.empty(m, dtype=np.int64)
@@ -1534,8 +1543,15 @@ def intersection_pair_poses(
     ``min_baseline_m``; the rotation aligns the baselines, the translation is the mean of
     the two pairs'.
 
+    Args:
+        i, j: ``(Q,)`` int64 new and reference Intersection index of each pair.
+        new_xy, ref_xy: ``(K, 2)`` float64 feature positions, metres, each scan's frame.
+        tolerance_m: Largest difference of the two baselines' lengths, metres.
+        min_baseline_m: Shortest baseline, metres.
+
     Returns:
-        ``(N, 3)`` float64 poses ``[x_m, y_m, theta_rad]``.
+        ``(N, 3)`` float64 poses ``[x_m, y_m, theta_rad]`` of the new scan in the reference
+        frame.
     """
     m = i.shape[0]
     out = np.empty((max(0, m * (m - 1) // 2), 3))
@@ -1568,6 +1584,10 @@ def sorted_cells(
     same arithmetic as its numpy expressions, and its stable sort by cell key as a
     least-significant-digit radix sort (stable, so the same order), in O(R) instead of
     O(R log R).
+
+    Args:
+        points: ``(R, 2)`` float64 finite points, metres, ``R >= 1``.
+        cell_m: Cell side, metres.
 
     Returns:
         ``origin`` ``(2,)`` float64, ``n_cells`` ``(2,)`` int64, the sorted keys ``(R,)``
