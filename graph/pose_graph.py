@@ -604,7 +604,9 @@ class PoseGraph:
 
     def estimates_of(self, node_ids: ArrayLike) -> tuple[NDArray[np.int64], FloatArray]:
         """Current estimates of some nodes: the same values as the rows of :meth:`estimates`,
-        read node by node (O(k), not O(N), when :meth:`estimates` is not cached).
+        the same bits as :meth:`estimate` of each node, read in one iSAM2 call for the nodes
+        not yet read in this state of the graph (O(k), not O(N), when :meth:`estimates` is
+        not cached).
 
         Args:
             node_ids: ``(k,)`` node ids (repeats allowed).
@@ -634,23 +636,25 @@ class PoseGraph:
         nodes = ids[todo].tolist()
         rows = list(map(cache.get, nodes))
         if None in rows:
+            missing = [k for k, row in enumerate(rows) if row is None]
             # Straight from iSAM2 when it serves the estimates (the common case; its nodes
-            # are all in ``initial``), else as estimate() reads them.
-            isam = self._isam if self._served is None else None
-            in_isam = self._in_isam if isam is not None else set()
-            for k, n in enumerate(nodes):
-                if rows[k] is not None:
-                    continue
-                if n in in_isam:
-                    if not self._delta_read:
-                        self._note_delta_read()
-                    p = isam.calculateEstimatePose2(n)  # type: ignore[union-attr]
-                    pose = (p.x(), p.y(), p.theta())
-                else:
+            # are all in ``initial``): one call for all of them, the same values as a call
+            # per node, else as estimate() reads them.
+            in_isam = self._in_isam if self._isam is not None and self._served is None else ()
+            solver = [k for k in missing if nodes[k] in in_isam]
+            if solver:
+                self._note_delta_read()
+                keys = [nodes[k] for k in solver]  # ascending, as the Values' rows
+                values = self._isam.calculateEstimate(keys)  # type: ignore[union-attr]
+                poses = gtsam.utilities.extractPose2(values).tolist()
+                for k, n, pose in zip(solver, keys, poses, strict=True):
+                    cache[n] = rows[k] = (pose[0], pose[1], pose[2])
+            for k in missing:
+                if rows[k] is None:
+                    n = nodes[k]
                     if n not in initial:
                         self._existing(n, f"estimate({n!r})")  # raises
-                    pose = self._read_pose(n)
-                cache[n] = rows[k] = pose
+                    cache[n] = rows[k] = self._read_pose(n)
         out[todo] = np.array(rows, dtype=np.float64).reshape(-1, 3)
         return ids, out
 

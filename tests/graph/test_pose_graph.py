@@ -416,6 +416,38 @@ def test_cached_estimates_follow_every_change_and_are_copies() -> None:
     assert g.estimates()[0].tolist() == list(range(7))
 
 
+def test_estimates_of_reads_many_nodes_at_once_with_the_bits_of_one_at_a_time() -> None:
+    # estimates_of asks iSAM2 for every node it has not cached in one call
+    # (calculateEstimate(keys)); each value must be the one calculateEstimatePose2 gives that
+    # node alone, after relinearizing updates with a loop closure and curved headings.
+    def build() -> PoseGraph:
+        rng = np.random.default_rng(3)
+        g = PoseGraph()
+        g.add_node(0, [0.0, 0.0, 0.4])
+        for k in range(1, 40):
+            step = np.array([0.8, 0.1, 0.17]) + rng.normal(0.0, [0.05, 0.05, 0.02])
+            g.add_node(k, compose(g.initial_pose(k - 1), step))
+            g.add_between(k - 1, k, step + np.array([0.03, -0.02, 0.01]), COV, kind="odometry")
+            if k % 7 == 0:
+                g.update()
+        g.add_between(
+            3, 38, between(g.initial_pose(3), g.initial_pose(38)), COV, kind="loop_closure"
+        )
+        g.update()
+        g.update()
+        return g
+
+    batched, alone = build(), build()
+    some = np.array([38, 5, 17, 0, 21])
+    batched.estimate(17)  # one of them cached first
+    ids, poses = batched.estimates_of(some)
+    np.testing.assert_array_equal(poses, np.array([alone.estimate(int(n)) for n in ids]))
+    everything = np.arange(40)
+    np.testing.assert_array_equal(
+        batched.estimates_of(everything)[1], np.array([alone.estimate(int(n)) for n in everything])
+    )
+
+
 def test_full_reads_between_solver_changes_take_the_solver_rows_again(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
