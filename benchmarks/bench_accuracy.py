@@ -62,11 +62,11 @@ from frontends.relations import Relations, read_relations
 from frontends.simulate import SCENARIOS, OdometryModel, simulate_scenario, synthetic_odometry
 from frontends.simulate.raycast import LaserModel
 from graph import FactorKind
+from iceg.batch_run import false_loop_closures
 from iceg.config import IcegConfig, config_from_yaml
 from iceg.evaluation import position_errors, relation_errors
 from iceg.results import SlamResult
 from iceg.slam import Slam
-from iceg_common import se2
 
 FloatArray = NDArray[np.float64]
 
@@ -75,9 +75,6 @@ DATA = Path(
 )
 #: Scans per case with ``--quick``.
 QUICK_SCANS = 300
-#: A loop closure is false if its measurement is off the truth by more than this.
-FALSE_LC_TRANS_M = 0.3
-FALSE_LC_ROT_DEG = 3.0
 RELATION_TOLERANCE_S = 1e-3
 #: Synthetic odometry for the corrected logs, and the drift added to CSAIL's raw odometry.
 SYNTH_BIASED = OdometryModel.biased(scale_error=0.01, heading_drift_deg_per_m=0.4)
@@ -194,25 +191,6 @@ def _scan_match_fraction(result: SlamResult) -> float:
     n_nodes = int(result.node_ids.shape[0])
     matched = {f.j for f in result.factors if f.kind == FactorKind.SCAN_MATCH}
     return len(matched) / (n_nodes - 1) if n_nodes > 1 else math.nan
-
-
-def false_loop_closures(result: SlamResult, reference: FloatArray) -> int:
-    """Accepted loop closures whose measurement differs from the reference relative pose by
-    more than ``FALSE_LC_TRANS_M`` or ``FALSE_LC_ROT_DEG`` (``reference``: ``(S, 3)`` poses
-    of the result's scans, map frame; ``bench_scaling.py --check-closures`` uses it too)."""
-    scan_of = dict(zip(result.node_ids.tolist(), result.node_scan_index.tolist(), strict=True))
-    n_false = 0
-    for f in result.factors:
-        if f.kind != FactorKind.LOOP_CLOSURE or f.j is None:
-            continue
-        truth = se2.between(reference[scan_of[f.i]], reference[scan_of[f.j]])
-        err = se2.compose(se2.inverse(truth), f.measured)
-        if (
-            math.hypot(err[0], err[1]) > FALSE_LC_TRANS_M
-            or abs(math.degrees(err[2])) > FALSE_LC_ROT_DEG
-        ):
-            n_false += 1
-    return n_false
 
 
 def _odom_or_nan(scan: LaserScan) -> FloatArray:

@@ -36,7 +36,7 @@ the same result). CPU times are the main process's.
 ``--check-closures`` (the CSAIL source) scores, after the timed run, every accepted loop
 closure against the relative pose of its two source scans in a single pass through the log
 (two copies of one scan are the same pose) and prints how many are off by more than 0.3 m or
-3 degrees (``bench_accuracy.false_loop_closures``).
+3 degrees (``iceg.batch_run.false_loop_closures``).
 
 Run: ``python benchmarks/bench_scaling.py [--sizes 2000,10000,50000] [--repeats R]
 [--log path.clf] [--source csail|corridor] [--no-grid] [--check-closures] [--workers N]``
@@ -146,7 +146,7 @@ def run_one(
     """Run the pipeline over ``n`` scans in this process (with its helper processes when
     ``workers`` > 1, :func:`iceg.pipeline.helper_processes`); return the figures. With
     ``check_closures`` (the CSAIL source), after the timed run: the accepted loop closures
-    whose measurement is off by more than ``bench_accuracy.FALSE_LC_TRANS_M`` or
+    whose measurement is off by more than ``iceg.batch_run.FALSE_LC_TRANS_M`` or
     ``FALSE_LC_ROT_DEG`` from the relative pose of their two source scans in a single pass
     through the log (its own run, relation error about 3 cm; two copies of the same scan
     are the same pose)."""
@@ -227,8 +227,7 @@ def run_one(
 
 def _false_against_single_pass(result: SlamResult, source: Sequence, n: int) -> int:
     """Loop closures of a back-and-forth run off the single pass through ``source``."""
-    from bench_accuracy import false_loop_closures
-
+    from iceg.batch_run import false_loop_closures
     from iceg.slam import Slam
 
     single = Slam()

@@ -296,17 +296,22 @@ def _reference_metrics(result: SlamResult, data: _Input, online: FloatArray) -> 
         "ate_m": position_errors(result.poses[ok], ref[ok]).rmse_m,
         "end_m": float(np.hypot(*(result.poses[ok][-1, :2] - ref[ok][-1, :2]))),
         "online_max_m": float(np.hypot(*(online[ok, :2] - ref[ok, :2]).T).max()),
-        "lc_false": _false_loop_closures(result, ref),
+        "lc_false": false_loop_closures(result, ref),
     }
     if np.all(np.isfinite(odom)):
         out["odom_ate_m"] = position_errors(odom[ok], ref[ok]).rmse_m
     return out
 
 
-def _false_loop_closures(result: SlamResult, reference: FloatArray) -> int:
-    """Accepted loop closures whose measurement is off the reference relative pose by more
-    than :data:`FALSE_LC_TRANS_M` or :data:`FALSE_LC_ROT_DEG` (unknown reference: not
-    counted)."""
+def false_loop_closures(result: SlamResult, reference: FloatArray) -> int:
+    """Accepted loop closures whose measurement is off the reference relative pose of their
+    two scans by more than :data:`FALSE_LC_TRANS_M` or :data:`FALSE_LC_ROT_DEG`.
+
+    Args:
+        result: A finished run (its loop-closure factors and the scan of each node).
+        reference: ``(S, 3)`` float64 reference pose ``[x_m, y_m, theta_rad]`` of each of
+            the run's scans, map frame; a closure with a non-finite end is not counted.
+    """
     scan_of = dict(zip(result.node_ids.tolist(), result.node_scan_index.tolist(), strict=True))
     n_false = 0
     for f in result.factors:
