@@ -12,8 +12,8 @@ subprocess and prints:
 - the time per stage (the pipeline's own stage timer),
 - the peak RSS (``resource.getrusage`` ``ru_maxrss``) after each block, after the final step
   and after the grid, and the peak RSS per 1000 scans: above the process's start, and above
-  the first block's peak per 1000 scans after it (the first block loads the compiled kernels,
-  a one-time 90 MB; the time figures leave it out for the same reason).
+  the first block's peak per 1000 scans after it (the first block holds one-time costs, about
+  85 MB, most of it the compiled kernels; the time figures leave it out for the same reason).
 
 Every generated scan owns fresh range and bearing arrays (nothing is shared with the source
 log), so what the pipeline keeps is what the measurement sees.
@@ -247,9 +247,9 @@ def _grown(fig: dict) -> float:
 
 def _grown_per_k_after_first(fig: dict) -> float:
     """Peak RSS (final step and grid included) above the peak after the first block, per 1000
-    scans after it (MB): the memory each scan adds, without the first block's one-time cost
-    (the compiled kernels loaded at the first scan and the first loop-closure search, about
-    90 MB), as the time figures leave the first block out. NaN for a single block."""
+    scans after it (MB): the memory each scan adds, without the first block's one-time costs
+    (about 85 MB on MIT CSAIL, most of it the compiled kernels loaded at the first scan), as
+    the time figures leave the first block out. NaN for a single block."""
     if fig["n"] <= BLOCK:
         return float("nan")
     return float(fig["rss_peak_mb"] - fig["rss_blocks_mb"][0]) / ((fig["n"] - BLOCK) / BLOCK)
