@@ -201,6 +201,14 @@ def run(
     odom_frame: OdomFrameOption = None,
     base_frame: BaseFrameOption = None,
     laser_frame_offset: LaserOffsetOption = None,
+    odometry_time_offset: Annotated[
+        float,
+        typer.Option(
+            help="Read each scan's odometry at its stamp plus this many seconds (negative: "
+            "the scans were measured before their stamps). A run measures it: "
+            "metrics.json, odometry_time_offset.",
+        ),
+    ] = 0.0,
     continue_: Annotated[
         Path | None,
         typer.Option(
@@ -220,10 +228,15 @@ def run(
     LOG may be a CARMEN log or a ROS 1 / ROS 2 bag (.bag, .db3, .mcap or a bag folder).
     """
     from iceg.results import check_output_dir
+    from iceg_common.errors import ConfigError
 
     cfg = _load_config(config)
     if out is not None:
         check_output_dir(out)
+    if odometry_time_offset != 0.0 and (continue_ is not None or log is None):
+        raise ConfigError(
+            "--odometry-time-offset applies to a log run, not to --continue or the demo"
+        )
     reader_options = _bag_options(
         scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset
     )
@@ -242,6 +255,7 @@ def run(
                 out_dir,
                 saved.append,
                 cont,
+                odometry_time_offset,
             ),
             lambda: _on_interrupt(out_dir, saved, remove_empty=out is None),
         )
@@ -265,6 +279,7 @@ def _run_and_save(
     out_dir: Path,
     on_saved: Callable[[str], None],
     cont: tuple[Path, tuple[float, float, float] | None] | None = None,
+    odometry_time_offset_s: float = 0.0,
 ) -> SlamResult:
     from iceg.pipeline import run_log, run_simulated_demo
 
@@ -280,6 +295,7 @@ def _run_and_save(
             progress=progress,
             stamps=stamps,
             reader_options=reader_options,
+            odometry_time_offset_s=odometry_time_offset_s,
         )
     result.save(out_dir, on_saved=on_saved)
     return result

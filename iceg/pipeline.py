@@ -15,12 +15,14 @@ from typing import Any
 import numpy as np
 
 from frontends import LaserScan, open_log
+from frontends.odometry_shift import shift_odometry
 from frontends.relations import Relations, match_stamps, read_relations
 from frontends.scan import StampPolicy, StampReport
 from iceg.config import IcegConfig
 from iceg.evaluation import position_errors, relation_errors
 from iceg.features.prefetch import FeaturePrefetcher, auto_workers
 from iceg.match_pool import MatchPool
+from iceg.odometry_timing import odometry_time_offset
 from iceg.results import SlamResult
 from iceg.scan_products import ScanPrecompute
 from iceg.scan_store import ScanStore
@@ -107,6 +109,7 @@ def run_log(
     progress: bool = False,
     stamps: StampPolicy = "sort",
     reader_options: Mapping[str, Any] | None = None,
+    odometry_time_offset_s: float = 0.0,
 ) -> SlamResult:
     """Run SLAM over a log file and, if given, score it with a ``.relations`` file.
 
@@ -114,17 +117,24 @@ def run_log(
     (``"sort"``: reorder out-of-order scans, ``"refuse"``: fail at the first one, naming
     ``file:line``); the policy and what the reader found (out-of-order and duplicate stamps,
     odometry breaks) are in ``result.metrics["stamps"]``. ``reader_options`` go to
-    :func:`frontends.open_log` (e.g. ``scan_topic`` for ROS bags).
+    :func:`frontends.open_log` (e.g. ``scan_topic`` for ROS bags). Each scan's odometry is
+    read at its stamp plus ``odometry_time_offset_s``
+    (:func:`~frontends.odometry_shift.shift_odometry`); ``result.metrics
+    ["odometry_time_offset"]`` holds that value and the offset the run's matches measure
+    (:func:`~iceg.odometry_timing.odometry_time_offset`), with a warning when the
+    measured one is significant.
 
     Raises:
         LogFormatError: missing, unreadable or empty log, disordered timestamps under
             ``"refuse"``, malformed relations.
         EvaluationError: the relations match no scan of the log.
+        ConfigError: a non-finite ``odometry_time_offset_s``.
     """
     check_log_file(Path(path))
     reader = open_log(path, stamps=stamps, **(reader_options or {}))
     rel = read_relations(relations) if relations is not None else None
-    scans = ScanStore(reader)  # compact: no LaserScan object per scan held during the run
+    # compact: no LaserScan object per scan held during the run
+    scans = ScanStore(shift_odometry(reader, odometry_time_offset_s))
     if not scans:
         raise LogFormatError(f"{path}: the log holds no laser scans")
     if rel is not None:
@@ -134,12 +144,37 @@ def run_log(
     result.metrics["stamps"] = (
         report.as_dict() if isinstance(report, StampReport) else {"policy": stamps}
     )
+    result.metrics["odometry_time_offset"] = _time_offset_metrics(
+        path, odometry_time_offset_s, result
+    )
     if rel is not None:
         summary, _ = relation_errors(
             result.stamps_s, result.poses, rel.stamps_s, rel.deltas, RELATION_TOLERANCE_S
         )
         result.metrics["relations"] = summary.as_dict()
     return result
+
+
+def _time_offset_metrics(path: str | Path, applied_s: float, result: SlamResult) -> dict[str, Any]:
+    """The applied odometry time offset and the one the run measures (warned when
+    significant: the odometry and the scans disagree on when the robot turned)."""
+    measured = odometry_time_offset(result)
+    if measured is not None and measured.significant:
+        logger.warning(
+            "%s: the scans' rotations match the odometry %+.2f s from their stamps (mean "
+            "heading error per step %.2f -> %.2f deg over %d steps); run again with "
+            "--odometry-time-offset %.2f",
+            path,
+            measured.offset_s,
+            measured.heading_error_at_zero_deg,
+            measured.heading_error_at_offset_deg,
+            measured.steps,
+            applied_s + measured.offset_s,
+        )
+    return {
+        "applied_s": applied_s,
+        "measured": None if measured is None else measured.as_dict(),
+    }
 
 
 def check_log_file(path: Path) -> None:

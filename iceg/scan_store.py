@@ -173,6 +173,13 @@ class ScanStore(Sequence[LaserScan]):
         return self._head["stamp_s"][: self._n].copy()
 
     @property
+    def odometry(self) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+        """Copies of every scan's stamp ``(N,)`` (s), odometry pose ``(N, 3)`` float64
+        ``[x_m, y_m, theta_rad]`` (NaN rows: no odometry) and odometry break flag ``(N,)``."""
+        h, n = self._head, self._n
+        return h["stamp_s"][:n].copy(), h["odom"][:n].copy(), h["odom_break"][:n].copy()
+
+    @property
     def nbytes(self) -> int:
         """Bytes held by the arrays (capacity included)."""
         return int(

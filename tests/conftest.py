@@ -19,9 +19,10 @@ SHARED_DATA = Path(os.environ.get("ICEG_SHARED_DATA", REPO.parent / "shared" / "
 
 
 def shared_file(relative: str) -> Path:
-    """Path of a file under ``../shared/data``; skips the test with a reason if absent."""
+    """Path of a file (or a ROS 2 bag folder) under ``../shared/data``; skips the test with a
+    reason if absent."""
     path = SHARED_DATA / relative
-    if not path.is_file():
+    if not path.exists():
         pytest.skip(f"benchmark data {path} is absent (it lives in ../shared/data beside the repo)")
     return path
 

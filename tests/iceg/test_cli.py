@@ -329,3 +329,27 @@ def test_odometry_jump_is_a_break_and_stays_out_of_the_trajectory(tmp_path: Path
     truth = simulate(office_world(), seed=1).true_poses[:20]
     _, poses = read_tum(out / "trajectory.tum")
     assert np.max(np.hypot(*(poses[:, :2] - truth[:, :2]).T)) < 0.1
+
+
+def test_odometry_time_offset_is_applied_and_recorded(tmp_path: Path) -> None:
+    bag = shared_file("rosbag/turtlebot3-gazebo-ros2")
+    out = tmp_path / "o"
+    args = ["run", str(bag), "--odometry-time-offset", "-0.05", "--out", str(out)]
+    result = runner.invoke(app, [*args, "--no-progress"])
+    assert result.exit_code == 0, result.output
+    recorded = json.loads((out / "metrics.json").read_text())["odometry_time_offset"]
+    assert recorded["applied_s"] == -0.05
+    assert recorded["measured"]["steps"] > 0
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["--odometry-time-offset", "0.1"], "applies to a log run"),  # the demo
+        (["LOG", "--odometry-time-offset", "nan"], "finite"),
+    ],
+)
+def test_bad_odometry_time_offset(tmp_path: Path, args: list[str], needle: str) -> None:
+    bag = shared_file("rosbag/turtlebot3-gazebo-ros2")
+    args = [str(bag) if a == "LOG" else a for a in args]
+    _assert_one_line_error(["run", *args], tmp_path / "o", needle)

@@ -1,0 +1,113 @@
+"""The laser-odometry time offset measured from matched rotations (iceg.odometry_timing)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+
+from graph import FactorKind
+from iceg.config import IcegConfig
+from iceg.odometry_timing import (
+    OFFSET_RESOLUTION_S,
+    _signed_rank_p,
+    estimate_odometry_time_offset,
+    odometry_time_offset,
+)
+from iceg.pipeline import run_log
+from iceg.results import SlamResult
+from tests.conftest import shared_file
+
+
+def _heading(t: np.ndarray) -> np.ndarray:
+    """A robot that turns back and forth (rad)."""
+    return 1.5 * np.sin(0.7 * t) + 0.2 * t
+
+
+def _synthetic(latency_s: float, noise_deg: float = 0.2, seed: int = 0) -> dict[str, Any]:
+    """Scans measured at ``tau``, stamped ``tau + latency_s``, with the odometry read at
+    the stamp; the matched turn between consecutive keyframes is the true one plus noise."""
+    rng = np.random.default_rng(seed)
+    tau = np.arange(0.0, 60.0, 0.05)
+    stamps = tau + latency_s
+    keyframes = np.arange(0, tau.shape[0], 4)
+    turn = np.diff(_heading(tau[keyframes])) + np.radians(noise_deg) * rng.standard_normal(
+        keyframes.shape[0] - 1
+    )
+    return {
+        "stamps_s": stamps,
+        "odom_heading_rad": np.angle(np.exp(1j * _heading(stamps))),  # wrapped, as logged
+        "segment": np.zeros(tau.shape[0], dtype=np.int64),
+        "step_from": keyframes[:-1],
+        "step_to": keyframes[1:],
+        "step_turn_rad": turn,
+    }
+
+
+@pytest.mark.parametrize("latency_s", [0.12, 0.2, -0.07])
+def test_recovers_a_known_latency(latency_s: float) -> None:
+    est = estimate_odometry_time_offset(**_synthetic(latency_s))
+    assert est is not None
+    assert est.offset_s == pytest.approx(-latency_s, abs=OFFSET_RESOLUTION_S)
+    assert est.significant
+    assert est.heading_error_at_offset_deg < est.heading_error_at_zero_deg
+
+
+def test_no_latency_gives_zero_and_no_warning() -> None:
+    est = estimate_odometry_time_offset(**_synthetic(0.0))
+    assert est is not None
+    assert abs(est.offset_s) <= OFFSET_RESOLUTION_S
+    assert not est.significant
+
+
+def test_steps_across_a_segment_or_without_odometry_are_left_out() -> None:
+    data = _synthetic(0.1)
+    n = data["stamps_s"].shape[0]
+    data["segment"] = np.where(np.arange(n) < n // 2, 0, 1)
+    data["segment"][:40] = -1  # the first two seconds without odometry
+    est = estimate_odometry_time_offset(**data)
+    assert est is not None
+    a, b, seg = data["step_from"], data["step_to"], data["segment"]
+    stamps, lo = data["stamps_s"], 0.5  # MAX_OFFSET_S: shifted times stay in the segment
+    inside = [
+        (seg[i] >= 0 and seg[i] == seg[j])
+        and stamps[i] - lo >= stamps[seg == seg[i]][0]
+        and stamps[j] + lo <= stamps[seg == seg[i]][-1]
+        for i, j in zip(a.tolist(), b.tolist(), strict=True)
+    ]
+    assert est.steps == sum(inside)
+    assert est.offset_s == pytest.approx(-0.1, abs=OFFSET_RESOLUTION_S)
+    data["segment"][:] = -1
+    assert estimate_odometry_time_offset(**data) is None
+
+
+def test_signed_rank_p_value_by_hand() -> None:
+    # |gains| ranked 0.5 -> 1, 1 -> 2, 2 -> 3, 3 -> 4; W+ = 2 + 3 + 4 = 9, n = 4:
+    # mean 5, sd sqrt(4 * 5 * 9 / 24) = sqrt(7.5); p = Phi(-(9 - 5) / sqrt(7.5)) = 0.07206
+    assert _signed_rank_p(np.array([1.0, 2.0, -0.5, 3.0, 0.0])) == pytest.approx(0.07206, abs=1e-5)
+    assert _signed_rank_p(np.zeros(3)) == 1.0
+
+
+def test_a_simulated_robot_has_no_latency() -> None:
+    """The Gazebo TurtleBot 3 bag stamps scans and odometry with the simulation's clock."""
+    result = run_log(shared_file("rosbag/turtlebot3-gazebo-ros2"), IcegConfig())
+    measured = result.metrics["odometry_time_offset"]["measured"]
+    assert measured["offset_s"] == 0.0 and not measured["significant"]
+
+
+def test_the_measured_latency_of_a_real_robot_makes_its_scans_match() -> None:
+    """The TurtleBot 4 bag's scans match its odometry about 0.1 s before their stamps; read
+    there, more keyframes get a scan-match factor and the run measures no offset left."""
+    cfg = IcegConfig.model_validate({"slam": {"workers": 1}})
+    first = run_log(shared_file("rosbag/turtlebot4-ros2"), cfg)
+    est = odometry_time_offset(first)
+    assert est is not None and est.significant and est.offset_s < 0
+    again = run_log(shared_file("rosbag/turtlebot4-ros2"), cfg, odometry_time_offset_s=est.offset_s)
+    left = again.metrics["odometry_time_offset"]
+
+    def matched(result: SlamResult) -> int:
+        return sum(f.kind == FactorKind.SCAN_MATCH for f in result.factors)
+
+    assert matched(again) > 1.5 * matched(first)
+    assert left["applied_s"] == est.offset_s and not left["measured"]["significant"]
