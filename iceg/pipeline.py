@@ -162,8 +162,8 @@ def _time_offset_metrics(path: str | Path, applied_s: float, result: SlamResult)
     if measured is not None and measured.significant:
         logger.warning(
             "%s: the scans' rotations match the odometry %+.2f s from their stamps (mean "
-            "heading error per step %.2f -> %.2f deg over %d steps); run again with "
-            "--odometry-time-offset %.2f",
+            "heading error per step %.2f -> %.2f deg over %d steps); to read it there, "
+            "pass --odometry-time-offset %.2f",
             path,
             measured.offset_s,
             measured.heading_error_at_zero_deg,

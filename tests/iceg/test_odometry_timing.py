@@ -7,6 +7,8 @@ from typing import Any
 import numpy as np
 import pytest
 
+from frontends.odometry_shift import shift_odometry
+from frontends.simulate.scenarios import simulate_scenario
 from graph import FactorKind
 from iceg.config import IcegConfig
 from iceg.odometry_timing import (
@@ -17,6 +19,7 @@ from iceg.odometry_timing import (
 )
 from iceg.pipeline import run_log
 from iceg.results import SlamResult
+from iceg.slam import Slam
 from tests.conftest import shared_file
 
 
@@ -111,3 +114,15 @@ def test_the_measured_latency_of_a_real_robot_makes_its_scans_match() -> None:
 
     assert matched(again) > 1.5 * matched(first)
     assert left["applied_s"] == est.offset_s and not left["measured"]["significant"]
+
+
+def test_a_latency_injected_into_a_simulated_run_is_measured() -> None:
+    """The simulated office run with its odometry read 0.1 s after each scan was taken: the
+    run's matched rotations put it back at -0.1 s."""
+    run = simulate_scenario("office", seed=0)
+    slam = Slam(IcegConfig.model_validate({"slam": {"workers": 1}}))
+    for scan in shift_odometry(run.scans, 0.1):
+        slam.process(scan)
+    est = odometry_time_offset(slam.finish())
+    assert est is not None and est.significant
+    assert est.offset_s == pytest.approx(-0.1, abs=OFFSET_RESOLUTION_S)
