@@ -16,7 +16,6 @@ estimate (``metrics["odometry_time_offset"]``); :func:`frontends.odometry_shift.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -24,9 +23,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graph import FactorKind
+from iceg.scan_store import ScanStore
 
 if TYPE_CHECKING:
-    from frontends.scan import LaserScan
     from iceg.results import SlamResult
 
 FloatArray = NDArray[np.float64]
@@ -167,7 +166,9 @@ def odometry_time_offset(result: SlamResult) -> TimeOffsetEstimate | None:
     consecutive keyframes joined by a scan-match factor, their rotation from the optimized
     poses, against the odometry of the run's scans. None without such steps (no odometry,
     a laser-only run, every match failed)."""
-    stamps, odom, breaks = _odometry_of(result.scans)
+    scans = result.scans
+    store = scans if isinstance(scans, ScanStore) else ScanStore(scans)
+    stamps, odom, breaks = store.odometry
     if stamps.shape[0] == 0:
         return None
     has = ~np.isnan(odom[:, 2])
@@ -183,17 +184,3 @@ def odometry_time_offset(result: SlamResult) -> TimeOffsetEstimate | None:
     return estimate_odometry_time_offset(
         stamps, odom[:, 2], segment, scan_of[k - 1], scan_of[k], poses[k, 2] - poses[k - 1, 2]
     )
-
-
-def _odometry_of(scans: Sequence[LaserScan]) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
-    """Stamps ``(N,)``, odometry ``(N, 3)`` (NaN rows: none) and odometry breaks ``(N,)`` of
-    the run's scans."""
-    odometry = getattr(scans, "odometry", None)
-    if odometry is not None:  # a ScanStore: its arrays, no LaserScan objects
-        return odometry  # type: ignore[no-any-return]
-    stamps = np.array([s.stamp_s for s in scans], dtype=np.float64)
-    odom = np.array(
-        [np.full(3, np.nan) if s.odom_pose is None else s.odom_pose for s in scans],
-        dtype=np.float64,
-    ).reshape(-1, 3)
-    return stamps, odom, np.array([s.odom_break for s in scans], dtype=bool)

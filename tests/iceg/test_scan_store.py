@@ -134,3 +134,17 @@ def test_chunked_grid_equals_one_pass_and_chunks_slice_the_beams() -> None:
             np.testing.assert_array_equal(chunked.log_odds, one.log_odds)
             np.testing.assert_array_equal(chunked.hits, one.hits)
             np.testing.assert_array_equal(chunked.misses, one.misses)
+
+
+def test_odometry_arrays() -> None:
+    def scan(t: float, pose: list[float] | None, odom_break: bool = False) -> LaserScan:
+        odom = None if pose is None else np.array(pose)
+        return LaserScan(t, np.ones(2), np.array([0.0, 0.1]), 0.1, 5.0, odom, odom_break=odom_break)
+
+    store = ScanStore(
+        [scan(0.5, [1.0, 2.0, 0.3]), scan(0.7, None), scan(0.9, [4.0, 5.0, -1.0], True)]
+    )
+    stamps, odom, breaks = store.odometry
+    assert stamps.tolist() == [0.5, 0.7, 0.9]
+    np.testing.assert_array_equal(odom, [[1.0, 2.0, 0.3], [np.nan] * 3, [4.0, 5.0, -1.0]])
+    assert breaks.tolist() == [False, False, True]
