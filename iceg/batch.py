@@ -12,6 +12,8 @@ A spec (YAML) lists logs and configurations::
         max_scans: 500
         reader_options: {stamps: refuse} # keyword options of frontends.open_log
         synthetic_odometry: {scale_error: 0.01, heading_drift_deg_per_m: 0.4}
+      - path: data/turtlebot4           # a ROS 2 bag folder
+        odometry_time_offset_s: -0.1    # odometry read 0.1 s before each scan's stamp
     config: {slam: {batch_refinement: false}}   # base overrides (or a YAML file name)
     grid:                               # dotted keys and value lists: their product
       matching.method: [ice, plicp]
@@ -118,11 +120,24 @@ class LogEntry(BaseModel):
         "log_odometry the reference is the odometry read first: e.g. motion-capture poses "
         "in a bag's /tf, read with reader_options odom_frame and base_frame.",
     )
+    odometry_time_offset_s: float = Field(
+        default=0.0,
+        allow_inf_nan=False,
+        description="Read each scan's odometry at its stamp plus this many seconds "
+        "(frontends.odometry_shift.shift_odometry; iceg run --odometry-time-offset).",
+    )
 
     @model_validator(mode="after")
     def _one_odometry(self) -> LogEntry:
         if self.laser_only and self.synthetic_odometry is not None:
             raise ValueError("laser_only and synthetic_odometry exclude each other")
+        if self.odometry_time_offset_s and (
+            self.laser_only or self.synthetic_odometry is not None or self.reference == LOG_ODOMETRY
+        ):
+            raise ValueError(
+                "odometry_time_offset_s shifts the log's own odometry: not with laser_only, "
+                "synthetic_odometry or reference: log_odometry"
+            )
         return self
 
     @property
@@ -303,6 +318,7 @@ def _task(
         "odometry": None if odo is None else SyntheticOdometrySpec(**odo.model_dump()),
         "reader_options": dict(entry.reader_options),
         "laser_only": entry.laser_only,
+        "odometry_time_offset_s": entry.odometry_time_offset_s,
         "timeout_s": spec.timeout_s,
         "outputs": spec.outputs,
     }

@@ -16,6 +16,7 @@ import shutil
 import time
 import traceback
 import warnings
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -24,12 +25,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from frontends import LaserScan, open_log
+from frontends.odometry_shift import shift_odometry
 from frontends.relations import Relations, match_stamps, read_relations
 from frontends.simulate import OdometryModel, simulate_scenario, synthetic_odometry
 from frontends.tum import read_tum
 from graph import FactorKind
 from iceg.config import config_from_dict
 from iceg.evaluation import position_errors, relation_errors
+from iceg.odometry_timing import odometry_time_offset
 from iceg.results import SlamResult
 from iceg.slam import Slam
 from iceg_common import se2
@@ -87,6 +90,8 @@ class RunTask:
         reader_options: Keyword options of :func:`frontends.open_log`.
         laser_only: Drop the log's odometry (after a :data:`LOG_ODOMETRY` reference is
             taken from it).
+        odometry_time_offset_s: Read each scan's odometry at its stamp plus this
+            (:func:`~frontends.odometry_shift.shift_odometry`; 0: as logged).
         timeout_s: Time budget of the run (checked after every scan), or None.
         outputs: ``"full"`` (result files in ``output/``) or ``"metrics"`` (``run.json`` only).
     """
@@ -105,6 +110,7 @@ class RunTask:
     odometry: SyntheticOdometrySpec | None = None
     reader_options: dict[str, Any] = field(default_factory=dict)
     laser_only: bool = False
+    odometry_time_offset_s: float = 0.0
     timeout_s: float | None = None
     outputs: Literal["full", "metrics"] = "full"
 
@@ -129,10 +135,11 @@ def load_input(task: RunTask) -> _Input:
     seed = 0 if task.seed is None else task.seed
     if task.source.startswith(SIM_PREFIX):
         run = simulate_scenario(task.source[len(SIM_PREFIX) :], seed)
-        data = _Input(list(run.scans), np.asarray(run.true_poses, dtype=np.float64))
+        scans: Iterable[LaserScan] = run.scans
+        reference = np.asarray(run.true_poses, dtype=np.float64)
     else:
-        scans = list(open_log(_existing(task.source), **task.reader_options))
-        data = _Input(scans)
+        scans, reference = open_log(_existing(task.source), **task.reader_options), None
+    data = _Input(list(shift_odometry(scans, task.odometry_time_offset_s)), reference)
     if not data.scans:
         raise LogFormatError(f"{task.source}: the log holds no laser scans")
     if task.max_scans is not None:
@@ -260,7 +267,8 @@ def run_metrics(result: SlamResult, data: _Input, online: FloatArray) -> dict[st
     factor), ``match_failures`` (failed local matches), ``lc_accepted``; with relations
     ``rel_trans_m``, ``rel_rot_deg``, ``rel_matched`` (Kümmerle et al. 2009); with a
     reference ``ate_m`` (RMSE after SE(2) alignment), ``end_m``, ``online_max_m``,
-    ``odom_ate_m`` and ``lc_false``."""
+    ``odom_ate_m`` and ``lc_false``; with odometry ``odom_time_offset_s`` and its
+    ``odom_time_offset_p`` (:func:`~iceg.odometry_timing.odometry_time_offset`)."""
     n_nodes = int(result.node_ids.shape[0])
     matched = {f.j for f in result.factors if f.kind == FactorKind.SCAN_MATCH}
     out: dict[str, Any] = {
@@ -270,6 +278,9 @@ def run_metrics(result: SlamResult, data: _Input, online: FloatArray) -> dict[st
         "match_failures": int(sum(result.match_failures.values())),
         "lc_accepted": int(result.loop_closures.accepted),
     }
+    timing = odometry_time_offset(result)
+    if timing is not None:
+        out |= {"odom_time_offset_s": timing.offset_s, "odom_time_offset_p": timing.p_value}
     if data.relations is not None:
         rel = data.relations
         est, _ = relation_errors(

@@ -130,6 +130,26 @@ def test_a_laser_only_run_is_scored_against_the_odometry_it_drops(tmp_path: Path
         spec_from_dict({"logs": [{**entry, "synthetic_odometry": {}}]})
 
 
+def test_an_odometry_time_offset_is_applied_and_measured(tmp_path: Path) -> None:
+    # The simulated office world with its odometry read 0.1 s after each scan was taken:
+    # the row measures -0.1 s; the offset is part of the run's key.
+    logs = [
+        {"path": "sim:office", "name": "late", "odometry_time_offset_s": 0.1},
+        {"path": "sim:office", "name": "on_time"},
+    ]
+    late, on_time = expand(spec_from_dict({"logs": logs}), tmp_path, tmp_path)
+    assert late.odometry_time_offset_s == 0.1 and late.key != on_time.key
+    rows = {t.log_name: execute_run(t) for t in (late, on_time)}
+    assert rows["late"]["metrics"]["odom_time_offset_s"] == pytest.approx(-0.1, abs=0.01)
+    assert rows["late"]["metrics"]["odom_time_offset_p"] < 0.01
+    assert abs(rows["on_time"]["metrics"]["odom_time_offset_s"]) <= 0.01
+    for bad in ({"laser_only": True}, {"synthetic_odometry": {}}, {"reference": "log_odometry"}):
+        with pytest.raises(ConfigError, match="odometry_time_offset_s shifts"):
+            spec_from_dict({"logs": [{"path": "a.clf", "odometry_time_offset_s": -0.1, **bad}]})
+    with pytest.raises(ConfigError, match="odometry_time_offset_s"):
+        spec_from_dict({"logs": [{"path": "a.clf", "odometry_time_offset_s": "nan"}]})
+
+
 def test_overrides_are_nested_and_validated(tmp_path: Path) -> None:
     assert apply_overrides({"slam": {"a": 1}}, {"slam.b": 2, "grid.c": 3}) == {
         "slam": {"a": 1, "b": 2},
