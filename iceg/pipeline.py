@@ -119,10 +119,10 @@ def run_log(
     odometry breaks) are in ``result.metrics["stamps"]``. ``reader_options`` go to
     :func:`frontends.open_log` (e.g. ``scan_topic`` for ROS bags). Each scan's odometry is
     read at its stamp plus ``odometry_time_offset_s``
-    (:func:`~frontends.odometry_shift.shift_odometry`); ``result.metrics
-    ["odometry_time_offset"]`` holds that value and the offset the run's matches measure
-    (:func:`~iceg.odometry_timing.odometry_time_offset`), with a warning when the
-    measured one is significant.
+    (:func:`~frontends.odometry_shift.shift_odometry`);
+    ``result.metrics["odometry_time_offset"]`` holds that value and the offset the run's
+    matches measure (:func:`~iceg.odometry_timing.odometry_time_offset`), with a warning
+    when the measured one is significant.
 
     Raises:
         LogFormatError: missing, unreadable or empty log, disordered timestamps under
