@@ -33,6 +33,7 @@ from graph import FactorKind
 from iceg.config import config_from_dict
 from iceg.evaluation import position_errors, relation_errors
 from iceg.odometry_timing import odometry_time_offset
+from iceg.pipeline import check_log_file
 from iceg.results import SlamResult
 from iceg.slam import Slam
 from iceg_common import se2
@@ -138,7 +139,8 @@ def load_input(task: RunTask) -> _Input:
         scans: Iterable[LaserScan] = run.scans
         reference = np.asarray(run.true_poses, dtype=np.float64)
     else:
-        scans, reference = open_log(_existing(task.source), **task.reader_options), None
+        check_log_file(Path(task.source))  # a file, or a ROS 2 bag folder
+        scans, reference = open_log(task.source, **task.reader_options), None
     data = _Input(list(shift_odometry(scans, task.odometry_time_offset_s)), reference)
     if not data.scans:
         raise LogFormatError(f"{task.source}: the log holds no laser scans")

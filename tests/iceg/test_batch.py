@@ -150,6 +150,14 @@ def test_an_odometry_time_offset_is_applied_and_measured(tmp_path: Path) -> None
         spec_from_dict({"logs": [{"path": "a.clf", "odometry_time_offset_s": "nan"}]})
 
 
+def test_a_ros2_bag_folder_is_a_log(tmp_path: Path) -> None:
+    bag = shared_file("rosbag/turtlebot3-gazebo-ros2")
+    (task,) = expand(spec_from_dict({"logs": [str(bag)], "outputs": "metrics"}), tmp_path, tmp_path)
+    row = execute_run(task)
+    assert row["status"] == "ok", row["error"]
+    assert row["metrics"]["scans"] == len(list(open_log(bag)))
+
+
 def test_overrides_are_nested_and_validated(tmp_path: Path) -> None:
     assert apply_overrides({"slam": {"a": 1}}, {"slam.b": 2, "grid.c": 3}) == {
         "slam": {"a": 1, "b": 2},
