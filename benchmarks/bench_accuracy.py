@@ -14,6 +14,10 @@ reports, in one table:
 - ``len ratio``: path length of the estimated keyframe poses over that of the reference at
   the same scans (1.0 = right length; issue 11 failure 1 is a ratio of about 0.988);
 - ``sm/kf``: fraction of keyframes (after the first) that got a scan-match factor;
+- ``odo dt s``: the time offset between the scans and the odometry that fits the run's
+  matched rotations best (:func:`iceg.odometry_timing.odometry_time_offset`; negative: the
+  scans were taken before their stamps), significant or not: its p-value is in the JSON
+  rows (``odom_time_offset_p``);
 - ``LC acc`` / ``LC false``: loop closures accepted, and those whose measured relative pose
   differs from the true one by more than 0.3 m or 3 deg (only where a reference exists);
 - ``time s``: SLAM wall time (all scans plus ``finish``).
@@ -25,7 +29,9 @@ the corrected ACES / csail.log / csail-corrected logs with synthetic biased odom
 scale error, 0.4 deg/m heading drift, default white noise; reference = corrected poses;
 ``frontends.simulate.synthetic_odometry``), and the RC car bag (``rc_car_mocap``: a 360°
 lidar in a motion-capture arena, laser only, scored against the motion capture; another car
-drives beside it). Real logs come from ``../shared/data`` (or
+drives beside it), and two real bags with their own odometry and no reference
+(``turtlebot4``, ``neato``: the scan-match fraction and the time offset only). Real logs
+come from ``../shared/data`` (or
 ``$ICEG_SHARED_DATA``); a case whose file is absent is reported as skipped.
 
 Each row is one call of :func:`run_case`, reusable by a batch runner; and the whole benchmark
@@ -65,6 +71,7 @@ from graph import FactorKind
 from iceg.batch_run import false_loop_closures
 from iceg.config import IcegConfig, config_from_yaml
 from iceg.evaluation import position_errors, relation_errors
+from iceg.odometry_timing import odometry_time_offset
 from iceg.results import SlamResult
 from iceg.slam import Slam
 
@@ -112,7 +119,7 @@ class CaseInput:
 
 def _shared(relative: str) -> Path:
     path = DATA / relative
-    if not path.is_file():
+    if not path.exists():
         raise CaseSkipped(f"{path} is absent")
     return path
 
@@ -166,6 +173,26 @@ def _rc_car(seed: int) -> CaseInput:
     return CaseInput(scans, reference, None, "RC car, 360° lidar, no odometry, mocap truth")
 
 
+#: Real bags with their own odometry and no reference (their rows: the scan-match fraction
+#: and the odometry time offset the run measures), by case name: path and reader options.
+BAGS: dict[str, tuple[str, dict[str, Any], str]] = {
+    "turtlebot4": ("rosbag/turtlebot4-ros2", {}, "TurtleBot 4, 360° RPLIDAR mounted at 90°"),
+    "neato": (
+        "rosbag/neato-ros1/neato-obstacle-avoid.bag",
+        {"scan_topic": "/scan"},
+        "Neato, 360° lidar, 33 % valid beams",
+    ),
+}
+
+
+def _bag(name: str) -> Callable[[int], CaseInput]:
+    def build(seed: int) -> CaseInput:
+        relative, options, description = BAGS[name]
+        return CaseInput(list(open_log(_shared(relative), **options)), None, None, description)
+
+    return build
+
+
 #: Benchmark cases by name.
 CASES: dict[str, Callable[..., CaseInput]] = {
     **{name: _sim_case(name) for name in SCENARIOS},
@@ -176,6 +203,7 @@ CASES: dict[str, Callable[..., CaseInput]] = {
     # csail-corrected prints its stamps as 1.13486e+09 (2 distinct values): re-stamp at 1 Hz.
     "csail_corrected_synth": _corrected("mit-csail/csail-corrected.log.gz", 1.0),
     "rc_car_mocap": _rc_car,
+    **{name: _bag(name) for name in BAGS},
 }
 
 
@@ -286,6 +314,10 @@ def run_case(
         "lc_accepted": int(result.loop_closures.accepted),
         "sm_per_kf": _scan_match_fraction(result),
     }
+    timing = odometry_time_offset(result)
+    if timing is not None:
+        row["odom_time_offset_s"] = timing.offset_s
+        row["odom_time_offset_p"] = timing.p_value
     if case.reference is not None:
         row |= _reference_metrics(result, odom, online, case.reference[:n])
     if case.relations is not None:
@@ -310,6 +342,7 @@ _COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("odom_end_m", "odo end", "{:.3f}"),
     ("length_ratio", "len ratio", "{:.4f}"),
     ("sm_per_kf", "sm/kf", "{:.3f}"),
+    ("odom_time_offset_s", "odo dt s", "{:+.2f}"),
     ("lc_accepted", "LC acc", "{:d}"),
     ("lc_false", "LC false", "{:d}"),
     ("seconds", "time s", "{:.1f}"),
@@ -362,6 +395,9 @@ def _spec_log(name: str) -> dict[str, Any]:
         "csail_log_synth": ("mit-csail/csail.log", None),
         "csail_corrected_synth": ("mit-csail/csail-corrected.log.gz", 1.0),
     }
+    if name in BAGS:
+        relative, options, _ = BAGS[name]
+        return {"name": name, "path": str(DATA / relative), "reader_options": options}
     if name == "rc_car_mocap":
         return {
             "name": name,

@@ -82,6 +82,9 @@ def test_the_benchmark_is_one_batch_spec(bench: ModuleType, tmp_path: Path) -> N
     rc_car = tasks["rc_car_mocap"]
     assert rc_car.laser_only and rc_car.reference == "log_odometry" and rc_car.seed is None
     assert rc_car.reader_options == bench.RC_CAR_READER
+    neato = tasks["neato"]
+    assert neato.reader_options == {"scan_topic": "/scan"} and neato.reference is None
+    assert tasks["turtlebot4"].source.endswith("turtlebot4-ros2")
     assert all(t.max_scans == bench.QUICK_SCANS for t in tasks.values())
     assert all(t.config == {} for t in tasks.values())  # the default configuration
 
