@@ -269,8 +269,10 @@ def run_metrics(result: SlamResult, data: _Input, online: FloatArray) -> dict[st
     factor), ``match_failures`` (failed local matches), ``lc_accepted``; with relations
     ``rel_trans_m``, ``rel_rot_deg``, ``rel_matched`` (Kümmerle et al. 2009); with a
     reference ``ate_m`` (RMSE after SE(2) alignment), ``end_m``, ``online_max_m``,
-    ``odom_ate_m`` and ``lc_false``; with odometry ``odom_time_offset_s`` and its
-    ``odom_time_offset_p`` (:func:`~iceg.odometry_timing.odometry_time_offset`)."""
+    ``odom_ate_m`` and ``lc_false``; with odometry the time offset its matches show
+    (:func:`~iceg.odometry_timing.odometry_time_offset`): ``odom_time_offset_s`` where
+    significant (else NaN), the best fit ``odom_time_offset_best_s`` and its
+    ``odom_time_offset_p``."""
     n_nodes = int(result.node_ids.shape[0])
     matched = {f.j for f in result.factors if f.kind == FactorKind.SCAN_MATCH}
     out: dict[str, Any] = {
@@ -282,7 +284,11 @@ def run_metrics(result: SlamResult, data: _Input, online: FloatArray) -> dict[st
     }
     timing = odometry_time_offset(result)
     if timing is not None:
-        out |= {"odom_time_offset_s": timing.offset_s, "odom_time_offset_p": timing.p_value}
+        out |= {
+            "odom_time_offset_s": timing.offset_s if timing.significant else math.nan,
+            "odom_time_offset_best_s": timing.offset_s,
+            "odom_time_offset_p": timing.p_value,
+        }
     if data.relations is not None:
         rel = data.relations
         est, _ = relation_errors(
