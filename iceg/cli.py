@@ -169,6 +169,14 @@ LaserOffsetOption = Annotated[
     str | None,
     typer.Option(help="ROS bag: laser pose in the base frame 'X_M,Y_M,YAW_DEG' (not tf)."),
 ]
+OdometryTimeOffsetOption = Annotated[
+    float,
+    typer.Option(
+        help="Read each scan's odometry at its stamp plus this many seconds (negative: the "
+        "scans were measured before their stamps). A run measures it: metrics.json, "
+        "odometry_time_offset.",
+    ),
+]
 
 
 @app.command()
@@ -201,14 +209,7 @@ def run(
     odom_frame: OdomFrameOption = None,
     base_frame: BaseFrameOption = None,
     laser_frame_offset: LaserOffsetOption = None,
-    odometry_time_offset: Annotated[
-        float,
-        typer.Option(
-            help="Read each scan's odometry at its stamp plus this many seconds (negative: "
-            "the scans were measured before their stamps). A run measures it: "
-            "metrics.json, odometry_time_offset.",
-        ),
-    ] = 0.0,
+    odometry_time_offset: OdometryTimeOffsetOption = 0.0,
     continue_: Annotated[
         Path | None,
         typer.Option(
@@ -228,15 +229,11 @@ def run(
     LOG may be a CARMEN log or a ROS 1 / ROS 2 bag (.bag, .db3, .mcap or a bag folder).
     """
     from iceg.results import check_output_dir
-    from iceg_common.errors import ConfigError
 
     cfg = _load_config(config)
     if out is not None:
         check_output_dir(out)
-    if odometry_time_offset != 0.0 and (continue_ is not None or log is None):
-        raise ConfigError(
-            "--odometry-time-offset applies to a log run, not to --continue or the demo"
-        )
+    _check_log_run_option(odometry_time_offset != 0.0, log is not None and continue_ is None)
     reader_options = _bag_options(
         scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset
     )
@@ -267,6 +264,20 @@ def run(
         _link_latest(out_dir)
     typer.echo(f"iceg run: {log if log is not None else 'built-in simulated office world'}")
     _print_table(_summary_rows(result, out_dir))
+
+
+def _check_log_run_option(given: bool, log_run: bool) -> None:
+    """``--odometry-time-offset`` reads a log's odometry: a plain log run only.
+
+    Raises:
+        ConfigError: it is given for the demo or with ``--continue``.
+    """
+    from iceg_common.errors import ConfigError
+
+    if given and not log_run:
+        raise ConfigError(
+            "--odometry-time-offset applies to a log run, not to --continue or the demo"
+        )
 
 
 def _run_and_save(
