@@ -20,6 +20,7 @@ import numpy as np
 
 from frontends.scan import LaserScan
 from iceg_common.errors import ConfigError
+from iceg_common.se2 import wrap_angle
 
 
 def shift_odometry(scans: Iterable[LaserScan], offset_s: float) -> Iterator[LaserScan]:
@@ -82,7 +83,6 @@ def _shifted(scan: LaserScan, samples: deque[LaserScan], offset_s: float) -> Las
     pa = np.asarray(a.odom_pose, dtype=np.float64)
     pb = np.asarray(b.odom_pose, dtype=np.float64)
     f = (t - a.stamp_s) / (b.stamp_s - a.stamp_s)
-    turn = (pb[2] - pa[2] + math.pi) % (2.0 * math.pi) - math.pi
-    heading = (pa[2] + f * turn + math.pi) % (2.0 * math.pi) - math.pi
+    heading = wrap_angle(pa[2] + f * wrap_angle(pb[2] - pa[2]))
     pose = np.array([pa[0] + f * (pb[0] - pa[0]), pa[1] + f * (pb[1] - pa[1]), heading])
     return replace(scan, odom_pose=pose)

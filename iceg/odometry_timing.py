@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 
 from graph import FactorKind
 from iceg.scan_store import ScanStore
+from iceg_common.se2 import wrap_angle
 
 if TYPE_CHECKING:
     from iceg.results import SlamResult
@@ -128,7 +129,7 @@ def estimate_odometry_time_offset(
             change = np.interp(stamps[b[mine]] + d, t, heading) - np.interp(
                 stamps[a[mine]] + d, t, heading
             )
-            errors[k, mine] = np.abs((turn[mine] - change + math.pi) % (2.0 * math.pi) - math.pi)
+            errors[k, mine] = np.abs(wrap_angle(turn[mine] - change))
     used = ~np.isnan(errors[0])
     if not used.any():
         return None
