@@ -284,8 +284,10 @@ def run_case(
         ``lc_accepted``, ``sm_per_kf`` and, where a reference exists, ``ate_m`` (RMSE after
         SE(2) alignment), ``end_m``, ``online_max_m``, ``odom_ate_m``, ``odom_end_m``,
         ``length_ratio``, ``lc_false``; with relations ``rel_trans_m``, ``rel_rot_deg``,
-        ``odom_rel_trans_m``, ``odom_rel_rot_deg``. A case
-        whose input is absent returns ``{"name", "skipped": reason}``.
+        ``odom_rel_trans_m``, ``odom_rel_rot_deg``; with odometry ``odom_time_offset_s``
+        (the measured offset where significant, else None), ``odom_time_offset_best_s`` and
+        ``odom_time_offset_p``. A case whose input is absent returns
+        ``{"name", "skipped": reason}``.
 
     Raises:
         KeyError: unknown case name.
