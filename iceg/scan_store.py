@@ -3,9 +3,14 @@
 
 A run keeps every input scan for the occupancy grid and for sessions. As Python objects a
 361-beam scan costs about 7 KB (two float64 arrays, a dataclass, a pose array, an offset array,
-a source string); here it costs its ranges (float64, exact) and a header of about 100 bytes:
-the beam bearings are stored once per distinct bearing array (a log has one or a few), and
-the source ``"path:line"`` as an index into a table of paths and the line number.
+a source string); here it costs its ranges in the narrowest of :data:`RANGE_ENCODINGS` that
+gives back every float64 bit (a CARMEN log's ranges, printed with two decimals, as int16
+centimetres: 722 bytes for 361 beams; a ROS bag's float32 ranges as float32) and a header of
+about 100 bytes: the beam bearings are stored once per distinct bearing array (a log has one or
+a few), and the source ``"path:line"`` as an index into a table of paths and the line number.
+The encoded ranges fill fixed-size blocks (:data:`BLOCK_BYTES`) that are never copied: a
+growing store allocates one more block, so its memory grows by the scans it holds, without the
+transient copy of a buffer that doubles.
 
 :meth:`ScanStore.__getitem__` rebuilds a scan equal to the one appended, value for value
 (same ranges, bearings, poses, source), so :func:`iceg.session.scan_hash` and the grid see
@@ -14,6 +19,7 @@ exactly what the pipeline saw.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Iterable, Iterator, Sequence
 from typing import overload
 
@@ -26,8 +32,21 @@ from iceg.grid import BeamChunk
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-#: Initial capacity (scans) of the header arrays; beams start at this times 512.
+#: Initial capacity (scans) of the header arrays.
 _MIN_SCANS = 256
+
+#: Size of one block of encoded ranges (bytes); a scan larger than this gets a block of its own.
+BLOCK_BYTES = 1 << 22
+
+#: Encodings of a scan's ranges, tried in order: ``(dtype, scale)``, stored as
+#: ``round(range * scale)`` for an integer dtype (decoded as ``stored / scale``), as the
+#: value for a float dtype. The first whose decoding gives back every float64 bit is used.
+RANGE_ENCODINGS: tuple[tuple[type, float], ...] = (
+    (np.int16, 100.0),  # centimetres up to 327 m: CARMEN ranges printed with two decimals
+    (np.int32, 1000.0),  # millimetres: three decimals
+    (np.float32, 1.0),  # a ROS bag's ranges, or a simulator's in float32
+    (np.float64, 1.0),  # anything else
+)
 
 #: Header columns: name -> (dtype, trailing shape).
 _HEADER: dict[str, tuple[type, tuple[int, ...]]] = {
@@ -38,7 +57,9 @@ _HEADER: dict[str, tuple[type, tuple[int, ...]]] = {
     "has_odom": (np.bool_, ()),
     "offset": (np.float64, (3,)),
     "odom_break": (np.bool_, ()),
-    "beam_start": (np.int64, ()),
+    "block": (np.int64, ()),  # index of the block holding the encoded ranges
+    "byte_offset": (np.int64, ()),  # where they start in the block
+    "encoding": (np.int8, ()),  # index into RANGE_ENCODINGS
     "n_beams": (np.int64, ()),
     "angles": (np.int64, ()),  # index into the table of bearing arrays
     "source": (np.int64, ()),  # index into the table of source prefixes
@@ -57,10 +78,10 @@ def _split_line(source: str) -> tuple[str, int]:
 class ScanStore(Sequence[LaserScan]):
     """An append-only sequence of laser scans held as flat arrays.
 
-    Ranges of all scans are one float64 array ``(total beams,)``; per scan a header row
-    (stamp, range limits, odometry, laser offset, odometry break, beam slice, indices of its
-    bearing array and source). Indexing returns a new :class:`LaserScan` with the stored
-    values (its arrays are copies).
+    Ranges are encoded losslessly (:data:`RANGE_ENCODINGS`) into fixed-size blocks; per scan
+    a header row (stamp, range limits, odometry, laser offset, odometry break, where its
+    ranges are and how they are encoded, indices of its bearing array and source). Indexing
+    returns a new :class:`LaserScan` with the stored values, bit for bit (its arrays are new).
 
     Args:
         scans: Scans to start with, in order.
@@ -68,11 +89,11 @@ class ScanStore(Sequence[LaserScan]):
 
     def __init__(self, scans: Iterable[LaserScan] = ()) -> None:
         self._n = 0
-        self._n_beams = 0
         self._head: dict[str, np.ndarray] = {
             k: np.zeros((_MIN_SCANS, *sh), dtype=dt) for k, (dt, sh) in _HEADER.items()
         }
-        self._ranges = np.zeros(_MIN_SCANS * 512)
+        self._blocks: list[NDArray[np.uint8]] = []
+        self._used = 0  # bytes used in the last block
         self._angle_table: list[FloatArray] = []
         self._source_table: list[str] = []
         self._source_index: dict[str, int] = {}
@@ -85,10 +106,10 @@ class ScanStore(Sequence[LaserScan]):
         n, b = self._n, int(scan.ranges_m.shape[0])
         if n == self._head["stamp_s"].shape[0]:
             self._head = {k: _grown(v, 2 * n) for k, v in self._head.items()}
-        if self._n_beams + b > self._ranges.shape[0]:
-            self._ranges = _grown(self._ranges, max(2 * self._ranges.shape[0], self._n_beams + b))
-        self._ranges[self._n_beams : self._n_beams + b] = scan.ranges_m
+        encoding, encoded = _encode(np.asarray(scan.ranges_m, dtype=np.float64))
         h = self._head
+        h["block"][n], h["byte_offset"][n] = self._put(encoded)
+        h["encoding"][n] = encoding
         h["stamp_s"][n] = scan.stamp_s
         h["range_min_m"][n] = scan.range_min_m
         h["range_max_m"][n] = scan.range_max_m
@@ -96,7 +117,6 @@ class ScanStore(Sequence[LaserScan]):
         h["odom"][n] = np.nan if scan.odom_pose is None else scan.odom_pose
         h["offset"][n] = scan.laser_offset
         h["odom_break"][n] = scan.odom_break
-        h["beam_start"][n] = self._n_beams
         h["n_beams"][n] = b
         h["angles"][n] = self._angles_index(np.asarray(scan.angles_rad, dtype=np.float64))
         prefix, line = _split_line(scan.source)
@@ -105,7 +125,30 @@ class ScanStore(Sequence[LaserScan]):
             self._source_table.append(prefix)
         h["line"][n] = line
         self._n += 1
-        self._n_beams += b
+
+    def _put(self, encoded: np.ndarray) -> tuple[int, int]:
+        """Copy ``encoded`` into the blocks, aligned to its item size; return (block, offset)."""
+        size = encoded.nbytes
+        offset = -(-self._used // encoded.itemsize) * encoded.itemsize
+        if not self._blocks or offset + size > self._blocks[-1].shape[0]:
+            self._blocks.append(np.empty(max(BLOCK_BYTES, size), dtype=np.uint8))
+            offset = 0
+        self._blocks[-1][offset : offset + size] = encoded.view(np.uint8)
+        self._used = offset + size
+        return len(self._blocks) - 1, offset
+
+    def _ranges(self, k: int, count: int | None = None) -> FloatArray:
+        """The ``count`` ranges (default: scan ``k``'s) stored from scan ``k``'s on in its
+        block, decoded with its encoding (a new float64 array)."""
+        h = self._head
+        dtype, scale = RANGE_ENCODINGS[int(h["encoding"][k])]
+        stored: np.ndarray = np.frombuffer(
+            self._blocks[int(h["block"][k])],
+            dtype=dtype,
+            count=int(h["n_beams"][k]) if count is None else count,
+            offset=int(h["byte_offset"][k]),
+        )
+        return _decode(stored, scale)
 
     def _angles_index(self, angles: FloatArray) -> int:
         """Index of an equal bearing array in the table (the last one used is tried first)."""
@@ -145,12 +188,11 @@ class ScanStore(Sequence[LaserScan]):
 
     def _scan(self, k: int) -> LaserScan:
         h = self._head
-        start, b = int(h["beam_start"][k]), int(h["n_beams"][k])
         line = int(h["line"][k])
         prefix = self._source_table[int(h["source"][k])]
         return LaserScan(
             stamp_s=float(h["stamp_s"][k]),
-            ranges_m=self._ranges[start : start + b].copy(),
+            ranges_m=self._ranges(k),
             angles_rad=self._angle_table[int(h["angles"][k])].copy(),
             range_min_m=float(h["range_min_m"][k]),
             range_max_m=float(h["range_max_m"][k]),
@@ -181,9 +223,10 @@ class ScanStore(Sequence[LaserScan]):
 
     @property
     def nbytes(self) -> int:
-        """Bytes held by the arrays (capacity included)."""
+        """Bytes held by the arrays (capacity included: the last block's free bytes are
+        allocated but not touched, so they are not resident)."""
         return int(
-            self._ranges.nbytes
+            sum(b.nbytes for b in self._blocks)
             + sum(v.nbytes for v in self._head.values())
             + sum(a.nbytes for a in self._angle_table)
         )
@@ -217,21 +260,61 @@ class ScanStore(Sequence[LaserScan]):
             raise IndexError(f"scans [{lo}, {hi}) outside a store of {self._n} scans")
         h = self._head
         counts = h["n_beams"][lo:hi].copy()
-        starts = h["beam_start"][lo:hi]
-        b0 = int(starts[0]) if hi > lo else 0
-        b1 = int(starts[-1] + counts[-1]) if hi > lo else 0
-        ranges = self._ranges[b0:b1].copy()
-        angles = np.empty(b1 - b0)
+        starts = np.concatenate([[0], np.cumsum(counts)])
+        ranges = np.empty(int(starts[-1]))
+        for a, b in self._runs(lo, hi):
+            first, end = int(starts[a - lo]), int(starts[b - lo])
+            ranges[first:end] = self._ranges(a, end - first)
+        angles = np.empty(int(starts[-1]))
         which = h["angles"][lo:hi]
         for k, table in enumerate(self._angle_table):
             sel = np.flatnonzero(which == k)
             if sel.shape[0] == 0:
                 continue
-            idx = (starts[sel, None] - b0 + np.arange(table.shape[0])).reshape(-1)
+            idx = (starts[sel, None] + np.arange(table.shape[0])).reshape(-1)
             angles[idx] = np.tile(table, sel.shape[0])
         rmin = np.repeat(h["range_min_m"][lo:hi], counts)
         rmax = np.repeat(h["range_max_m"][lo:hi], counts)
         return BeamChunk(h["offset"][lo:hi].copy(), counts, ranges, angles, rmin, rmax)
+
+    def _runs(self, lo: int, hi: int) -> list[tuple[int, int]]:
+        """Scans ``[lo, hi)`` as runs ``[a, b)`` whose encoded ranges lie back to back in one
+        block with one encoding, so each run decodes in one call."""
+        if hi <= lo:
+            return []
+        h = self._head
+        block, offset, enc = h["block"][lo:hi], h["byte_offset"][lo:hi], h["encoding"][lo:hi]
+        item = np.array([np.dtype(d).itemsize for d, _ in RANGE_ENCODINGS])[enc]
+        end = offset + item * h["n_beams"][lo:hi]
+        joined = (block[1:] == block[:-1]) & (enc[1:] == enc[:-1]) & (offset[1:] == end[:-1])
+        cuts = np.concatenate([[lo], lo + 1 + np.flatnonzero(~joined), [hi]]).tolist()
+        return list(itertools.pairwise(cuts))
+
+
+def _encode(ranges: FloatArray) -> tuple[int, np.ndarray]:
+    """The first of :data:`RANGE_ENCODINGS` that gives back every bit of ``ranges``:
+    ``(index, encoded array)``."""
+    bits = ranges.view(np.int64)
+    with np.errstate(invalid="ignore", over="ignore"):
+        for k, (dtype, scale) in enumerate(RANGE_ENCODINGS[:-1]):
+            if np.issubdtype(dtype, np.integer):
+                scaled = np.rint(ranges * scale)
+                info = np.iinfo(dtype)
+                if not np.all((scaled >= info.min) & (scaled <= info.max)):  # NaN fails too
+                    continue
+                encoded: np.ndarray = scaled.astype(dtype)
+            else:
+                encoded = ranges.astype(dtype)
+            if np.array_equal(_decode(encoded, scale).view(np.int64), bits):
+                return k, encoded
+    return len(RANGE_ENCODINGS) - 1, ranges.copy()
+
+
+def _decode(stored: np.ndarray, scale: float) -> FloatArray:
+    """Float64 ranges from their encoding (a new array)."""
+    if np.issubdtype(stored.dtype, np.integer):
+        return stored.astype(np.float64) / scale
+    return stored.astype(np.float64)
 
 
 def _grown(a: np.ndarray, rows: int) -> np.ndarray:

@@ -73,7 +73,7 @@ from iceg.config import IcegConfig, config_from_yaml
 from iceg.feature_map import FeatureMap
 from iceg.loop_closure import LoopClosure, LoopClosureStats
 from iceg.scan_store import ScanStore
-from iceg.slam import Slam, SlamState, _ScanRecord
+from iceg.slam import ScanRecords, Slam, SlamState
 from iceg_common import se2
 from iceg_common.atomic import atomic_write
 from iceg_common.errors import IcegError, SessionError
@@ -412,12 +412,12 @@ def _read_log(session: Session, li: int) -> dict[str, LaserScan]:
 
 def _slam_arrays(slam: Slam) -> dict[str, np.ndarray]:
     s = slam.export_state()
-    recs = s.records
+    stamps, nodes, deltas = s.records.arrays()
     pend = slam.loop_closer.pending
     return {
-        "s_stamp": np.array([r.stamp_s for r in recs], dtype=np.float64),
-        "s_node": np.array([r.node_id for r in recs], dtype=np.int64),
-        "s_delta": np.array([r.delta_from_node for r in recs]).reshape(-1, 3),
+        "s_stamp": stamps,
+        "s_node": nodes,
+        "s_delta": deltas,
         "n_scan": np.array(s.node_scan_index, dtype=np.int64),
         "n_odom": np.array(s.node_odom).reshape(-1, 3),
         "n_odom_measured": np.array(s.node_odom_measured, dtype=bool),
@@ -442,10 +442,7 @@ def _slam_state(session: Session, a: Mapping[str, np.ndarray], scans: list[Laser
     corr = a["g_correlation"]
     return SlamState(
         scans=ScanStore(scans),
-        records=[
-            _ScanRecord(float(t), int(n), d.copy())
-            for t, n, d in zip(a["s_stamp"], a["s_node"], a["s_delta"], strict=True)
-        ],
+        records=ScanRecords(a["s_stamp"], a["s_node"], a["s_delta"]),
         node_scan_index=[int(v) for v in a["n_scan"]],
         node_odom=[p.copy() for p in a["n_odom"]],
         node_odom_measured=[bool(v) for v in a["n_odom_measured"]],

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from frontends import LaserScan
 from graph import FactorKind, PoseGraph, odometry_covariance
@@ -52,6 +52,7 @@ from iceg_common.errors import GraphError, ScanError
 logger = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
 
 #: A weak match direction agrees with the prediction when their difference is within this
 #: many standard deviations of the joint noise (a 3-sigma consistency test).
@@ -121,11 +122,54 @@ class StageTimer:
         return now
 
 
-@dataclass
-class _ScanRecord:
-    stamp_s: float
-    node_id: int
-    delta_from_node: FloatArray  # odometry delta from the node's scan to this scan
+class ScanRecords:
+    """Where each processed scan's pose comes from, one row per scan in columns (no Python
+    object per scan): its stamp, the node it hangs from and the odometry delta from that
+    node's scan to it (a node's own row has the zero delta); the trajectory is
+    ``estimate(node) ∘ delta`` (docs/design.md "Data flow of one scan").
+
+    Args:
+        stamps_s: ``(N,)`` float64 stamps (s).
+        node_ids: ``(N,)`` int64 node ids.
+        deltas: ``(N, 3)`` float64 ``[dx_m, dy_m, dtheta_rad]`` in the node's frame.
+    """
+
+    def __init__(
+        self,
+        stamps_s: ArrayLike = (),
+        node_ids: ArrayLike = (),
+        deltas: ArrayLike = (),
+    ) -> None:
+        stamps = np.asarray(stamps_s, dtype=np.float64).reshape(-1)
+        n = stamps.shape[0]
+        cap = max(n, 256)
+        self._stamp = np.zeros(cap)
+        self._node = np.zeros(cap, dtype=np.int64)
+        self._delta = np.zeros((cap, 3))
+        self._stamp[:n] = stamps
+        self._node[:n] = np.asarray(node_ids, dtype=np.int64).reshape(n)
+        self._delta[:n] = np.asarray(deltas, dtype=np.float64).reshape(n, 3)
+        self._n = n
+
+    def __len__(self) -> int:
+        return self._n
+
+    def append(self, stamp_s: float, node_id: int, delta: ArrayLike | None = None) -> None:
+        """One more scan; ``delta`` ``None``: the node's own scan (zero delta)."""
+        if self._n == self._stamp.shape[0]:
+            self._stamp = np.concatenate([self._stamp, np.zeros_like(self._stamp)])
+            self._node = np.concatenate([self._node, np.zeros_like(self._node)])
+            self._delta = np.concatenate([self._delta, np.zeros_like(self._delta)])
+        k = self._n
+        self._stamp[k] = stamp_s
+        self._node[k] = node_id
+        self._delta[k] = 0.0 if delta is None else delta
+        self._n += 1
+
+    def arrays(self) -> tuple[FloatArray, IntArray, FloatArray]:
+        """Copies of the columns: stamps ``(N,)`` s, node ids ``(N,)``, deltas ``(N, 3)``."""
+        n = self._n
+        return self._stamp[:n].copy(), self._node[:n].copy(), self._delta[:n].copy()
 
 
 @dataclass(frozen=True, eq=False)
@@ -160,7 +204,7 @@ class SlamState:
     """
 
     scans: ScanStore = field(default_factory=ScanStore)
-    records: list[_ScanRecord] = field(default_factory=list)
+    records: ScanRecords = field(default_factory=ScanRecords)
     node_scan_index: list[int] = field(default_factory=list)
     node_odom: list[FloatArray] = field(default_factory=list)
     node_odom_measured: list[bool] = field(default_factory=list)  # False: predicted odom
@@ -279,7 +323,7 @@ class Slam:
         self._check_order(scan)
         feats = extract(scan, self.config.features)
         for early, delta in zip(before, self._track_backwards(scan, feats, before), strict=True):
-            self._s.records.append(_ScanRecord(early.stamp_s, len(self._s.node_odom), delta))
+            self._s.records.append(early.stamp_s, len(self._s.node_odom), delta)
         anchor_pose = self.graph.estimate(anchor)
         self._s.scans.append(scan)
         new_id = self._add_node(
@@ -360,7 +404,7 @@ class Slam:
         last = len(self._s.node_odom) - 1
         motion = self._motion(scan, odom, last)
         if not motion.is_keyframe:
-            self._s.records.append(_ScanRecord(scan.stamp_s, last, motion.delta))
+            self._s.records.append(scan.stamp_s, last, motion.delta)
             return se2.compose(self.graph.estimate(last), motion.delta)
         return self._process_keyframe(scan, motion, last, t0, features)
 
@@ -741,7 +785,7 @@ class Slam:
         s.node_path_m.append((s.node_path_m[-1] if s.node_path_m else 0.0) + step_m)
         s.node_odom.append(odom)
         s.node_scan_index.append(len(s.scans) - 1)
-        s.records.append(_ScanRecord(scan.stamp_s, node_id, np.zeros(3)))
+        s.records.append(scan.stamp_s, node_id)
         self.graph.add_node(node_id, initial)
         return node_id
 
@@ -814,10 +858,7 @@ class Slam:
         odometry delta from the node's scan (docs/design.md "Data flow of one scan").
         """
         _, poses = self.graph.estimates()
-        recs = self._s.records
-        stamps = np.array([r.stamp_s for r in recs])
-        node = np.array([r.node_id for r in recs], dtype=np.int64)
-        delta = np.array([r.delta_from_node for r in recs]).reshape(-1, 3)
+        stamps, node, delta = self._s.records.arrays()
         return stamps, se2.compose(poses[node], delta)
 
     def finish(self) -> SlamResult:

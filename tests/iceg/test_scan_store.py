@@ -9,14 +9,16 @@ from hypothesis import strategies as st
 
 from frontends import LaserScan
 from frontends.simulate import office_world, simulate
+from iceg import scan_store
 from iceg.grid import GridConfig, render_tiled, render_tiled_beams, render_tiled_chunks
-from iceg.scan_store import ScanStore
+from iceg.scan_store import RANGE_ENCODINGS, ScanStore
 
 
 def _same(a: LaserScan, b: LaserScan) -> bool:
     return (
         a.stamp_s == b.stamp_s
-        and np.array_equal(a.ranges_m, b.ranges_m, equal_nan=True)
+        and a.ranges_m.dtype == b.ranges_m.dtype == np.float64
+        and np.array_equal(a.ranges_m.view(np.int64), b.ranges_m.view(np.int64))  # every bit
         and np.array_equal(a.angles_rad, b.angles_rad)
         and a.range_min_m == b.range_min_m
         and a.range_max_m == b.range_max_m
@@ -48,7 +50,16 @@ def _scans(draw: st.DrawFn) -> list[LaserScan]:
         ranges = np.array(
             draw(
                 st.lists(
-                    st.one_of(st.floats(0, 100), st.just(float("nan")), st.just(float("inf"))),
+                    st.one_of(
+                        st.floats(0, 100),
+                        st.just(float("nan")),
+                        st.just(float("inf")),
+                        st.just(-0.0),
+                        # printed with two or three decimals (a CARMEN log), or float32 (a bag)
+                        st.integers(0, 40000).map(lambda c: c / 100.0),
+                        st.integers(-(2**31), 2**31 - 1).map(lambda m: m / 1000.0),
+                        st.floats(0, 100, width=32),
+                    ),
                     min_size=len(angles),
                     max_size=len(angles),
                 )
@@ -148,3 +159,57 @@ def test_odometry_arrays() -> None:
     assert stamps.tolist() == [0.5, 0.7, 0.9]
     np.testing.assert_array_equal(odom, [[1.0, 2.0, 0.3], [np.nan] * 3, [4.0, 5.0, -1.0]])
     assert breaks.tolist() == [False, False, True]
+
+
+def _ranges_scan(ranges: np.ndarray) -> LaserScan:
+    angles = np.linspace(-1.0, 1.0, ranges.shape[0])
+    return LaserScan(0.0, ranges, angles, 0.0, 500.0, None)
+
+
+def test_each_scan_takes_the_narrowest_exact_encoding() -> None:
+    """Hand-picked ranges: two decimals fit int16 centimetres, three decimals (or beyond
+    327.67 m) int32 millimetres, float32 values float32, the rest float64; each decodes to
+    the same bits."""
+    cases = {
+        "int16": np.array([1.4, 81.91, 0.0, 327.67, 0.01]),
+        "int32": np.array([1.405, 81.91, 327.68, 2e6]),
+        "float32": np.array([np.float32(0.1), np.float32(3.3), np.inf, np.nan]),
+        "float64": np.array([0.1 + 1e-12, 1.0]),
+    }
+    names = [np.dtype(d).name for d, _ in RANGE_ENCODINGS]
+    for expected, ranges in cases.items():
+        store = ScanStore([_ranges_scan(ranges)])
+        assert names[int(store._head["encoding"][0])] == expected
+        got = store[0].ranges_m
+        assert np.array_equal(got.view(np.int64), ranges.view(np.int64))
+    # -0.0 is not +0.0: it cannot be an integer count of centimetres
+    store = ScanStore([_ranges_scan(np.array([-0.0, 1.0]))])
+    assert names[int(store._head["encoding"][0])] == "float32"
+    assert np.signbit(store[0].ranges_m[0])
+
+
+def test_a_carmen_log_costs_two_bytes_a_beam_and_blocks_are_never_copied(monkeypatch) -> None:
+    """Ranges printed with two decimals take 2 bytes a beam; a store over several blocks
+    (and a scan larger than a block) gives back every scan and the same flattened beams."""
+    monkeypatch.setattr(scan_store, "BLOCK_BYTES", 1000)
+    rng = np.random.default_rng(0)
+    scans = [_ranges_scan(np.round(rng.uniform(0.1, 80.0, 361), 2)) for _ in range(30)]
+    scans.insert(7, _ranges_scan(rng.uniform(0.1, 80.0, 400)))  # float64, 3200 bytes
+    scans.insert(9, _ranges_scan(rng.uniform(0.1, 80.0, 3).astype(np.float32).astype(float)))
+    store = ScanStore(scans)
+    assert len(store._blocks) > 10
+    blocks = list(store._blocks)
+    store.append(scans[0])
+    assert all(a is b for a, b in zip(blocks, store._blocks, strict=False))  # none copied
+    scans.append(scans[0])
+    for a, b in zip(store, scans, strict=True):
+        assert np.array_equal(a.ranges_m.view(np.int64), b.ranges_m.view(np.int64))
+    flat = np.concatenate([s.ranges_m for s in scans])
+    np.testing.assert_array_equal(store.beams()[1], flat)
+    starts = np.concatenate([[0], np.cumsum([s.ranges_m.shape[0] for s in scans])])
+    for lo, hi in [(0, 5), (6, 11), (8, 10), (30, 33), (3, 3)]:
+        chunk = store.beam_chunk(lo, hi).ranges_m
+        np.testing.assert_array_equal(chunk, flat[starts[lo] : starts[hi]])
+    monkeypatch.setattr(scan_store, "BLOCK_BYTES", 1 << 22)
+    carmen = ScanStore(_ranges_scan(s.ranges_m) for s in scans if s.ranges_m.shape[0] == 361)
+    assert carmen._used == 2 * 361 * len(carmen)

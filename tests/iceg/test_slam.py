@@ -25,6 +25,7 @@ from iceg.evaluation import position_errors
 from iceg.pipeline import run_scans
 from iceg.slam import (
     CONSISTENCY_PROBABILITY,
+    ScanRecords,
     Slam,
     chi2_3dof,
     consistent_with_prediction,
@@ -476,3 +477,26 @@ def test_tracking_recovers_from_odometry_that_jumped_ahead_and_stalled() -> None
     truth = se2.between(forward[0], forward[-1])  # scan 700 -> scan 900
     e = se2.between(truth, se2.between(backward[-1], backward[0]))
     assert np.hypot(e[0], e[1]) < 0.6 and abs(np.degrees(e[2])) < 3.0, e
+
+
+def test_scan_records_hold_every_row_past_their_capacity() -> None:
+    """Rows appended past the initial capacity (256) and rows given to the constructor come
+    back as written; a node's own row has the zero delta."""
+    rng = np.random.default_rng(3)
+    stamps, nodes, deltas = (
+        rng.uniform(0, 9, 700),
+        rng.integers(0, 99, 700),
+        rng.normal(size=(700, 3)),
+    )
+    records = ScanRecords()
+    for k in range(700):
+        records.append(float(stamps[k]), int(nodes[k]), None if k % 5 == 0 else deltas[k])
+    deltas[::5] = 0.0
+    got = records.arrays()
+    assert len(records) == 700
+    np.testing.assert_array_equal(got[0], stamps)
+    np.testing.assert_array_equal(got[1], nodes)
+    np.testing.assert_array_equal(got[2], deltas)
+    again = ScanRecords(*got)
+    again.append(10.0, 5, np.ones(3))
+    np.testing.assert_array_equal(again.arrays()[2], np.vstack([deltas, np.ones(3)]))
