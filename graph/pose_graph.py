@@ -478,9 +478,10 @@ class PoseGraph:
             Iterations and errors (:class:`BatchStats`).
 
         Raises:
-            GraphError: empty graph, a node without factor, a gtsam failure (naming the node),
-                or ``correction`` without ``loop_closure_kernels`` (the solver log has no step
-                for that pair, so a session could not replay it).
+            GraphError: empty graph, a node without factor, a gtsam failure (naming the node;
+                the next :meth:`update` then rebuilds iSAM2 from every factor at the estimates
+                before the solve), or ``correction`` without ``loop_closure_kernels`` (the
+                solver log has no step for that pair, so a session could not replay it).
         """
         if correction and not loop_closure_kernels:
             raise GraphError("optimize_batch: a correction solve keeps the loop-closure kernels")
@@ -488,6 +489,9 @@ class PoseGraph:
             raise GraphError("optimize_batch: the graph has no node")
         self._check_connected(self._pending_nodes)
         values = self._current_values()
+        # iSAM2 is rebuilt at the solve's result, never read before: free it now, so the
+        # solve's own memory (as large again on a long log) does not come on top of it.
+        self._release_isam(values)
         code, tol = self._batch_step(correction, loop_closure_kernels)
         self._steps.append((code, int(max_iterations), len(self._records)))
         graph = self._full_graph(gaussian_loops=not loop_closure_kernels)
@@ -1103,6 +1107,15 @@ class PoseGraph:
             except _GTSAM_ERRORS:
                 logger.warning("iSAM2 linearization point unreadable after a failed update")
         self._seed = seed
+        self._isam = None
+        self._in_isam.clear()
+        self._drop_estimates()
+
+    def _release_isam(self, values: gtsam.Values) -> None:
+        """Drop iSAM2 and its memory, keeping ``values`` (every node's current estimate) as
+        the seed: until the next rebuild the estimates read the same, and after a failure
+        the next :meth:`update` rebuilds iSAM2 from every factor at them."""
+        self._seed = gtsam.Values(values)
         self._isam = None
         self._in_isam.clear()
         self._drop_estimates()

@@ -177,6 +177,18 @@ OdometryTimeOffsetOption = Annotated[
         "odometry_time_offset.",
     ),
 ]
+ContinueOption = Annotated[
+    Path | None,
+    typer.Option(
+        "--continue",
+        help="Extend this saved session (its config is used): the log's first scan is "
+        "placed in its map by global ICE matching.",
+    ),
+]
+InitialPoseOption = Annotated[
+    tuple[float, float, float] | None,
+    typer.Option(help="With --continue: first scan's pose in the map, X_M Y_M THETA_DEG."),
+]
 
 
 @app.command()
@@ -210,18 +222,8 @@ def run(
     base_frame: BaseFrameOption = None,
     laser_frame_offset: LaserOffsetOption = None,
     odometry_time_offset: OdometryTimeOffsetOption = 0.0,
-    continue_: Annotated[
-        Path | None,
-        typer.Option(
-            "--continue",
-            help="Extend this saved session (its config is used): the log's first scan is "
-            "placed in its map by global ICE matching.",
-        ),
-    ] = None,
-    initial_pose: Annotated[
-        tuple[float, float, float] | None,
-        typer.Option(help="With --continue: first scan's pose in the map, X_M Y_M THETA_DEG."),
-    ] = None,
+    continue_: ContinueOption = None,
+    initial_pose: InitialPoseOption = None,
 ) -> None:
     """Optimize a laser log end to end: trajectory, pose graph, map and metrics.
 

@@ -245,6 +245,43 @@ def test_batch_result_is_served_then_incremental_continues_from_it() -> None:
     np.testing.assert_allclose(after[4], compose(batch[3], z), atol=1e-7)
 
 
+def test_a_batch_solve_frees_isam2_first_and_a_failed_one_rebuilds_it_at_the_estimates(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The batch solve runs without the iSAM2 it replaces (its memory is not held twice on a
+    long log). When the solve fails, the estimates read as before it, and the next update
+    rebuilds iSAM2 from every factor at them: an update from the optimum stays there."""
+    g = _chain(5)
+    g.add_between(0, 4, [4.2, 0.0, 0.0], COV, kind="loop_closure")
+    g.update()
+    assert g._isam is not None
+    seen: list[bool] = []
+    solve = PoseGraph._levenberg_marquardt
+
+    def spy(self, *args):  # type: ignore[no-untyped-def]
+        seen.append(self._isam is None)
+        return solve(self, *args)
+
+    monkeypatch.setattr(PoseGraph, "_levenberg_marquardt", spy)
+    g.optimize_batch()
+    assert seen == [True]
+    _, optimum = g.estimates()
+
+    def fail(self, *args):  # type: ignore[no-untyped-def]
+        raise GraphError("batch Levenberg–Marquardt: simulated failure")
+
+    monkeypatch.setattr(PoseGraph, "_levenberg_marquardt", fail)
+    with pytest.raises(GraphError, match="simulated failure"):
+        g.optimize_batch()
+    _, after_failure = g.estimates()
+    np.testing.assert_array_equal(after_failure, optimum)
+    stats = g.update()
+    assert stats.reseeded and stats.new_factors == g.n_factors == 6  # with the prior
+    np.testing.assert_allclose(g.estimates()[1], optimum, atol=1e-9)
+    # by hand: the 0.2 m the closure adds is shared by the five equal steps of the cycle
+    np.testing.assert_allclose(optimum, [[1.04 * k, 0.0, 0.0] for k in range(5)], atol=1e-9)
+
+
 def test_optimize_batch_includes_buffered_nodes() -> None:
     g = _chain(4)  # never updated
     g.add_between(0, 3, [3.3, 0.0, 0.0], COV, kind="loop_closure")
