@@ -507,6 +507,7 @@ class PoseGraph:
             rebuilt = not kept
             if kept:
                 graph = self._full_graph(gaussian_loops=True, keep_kernels=kept)
+                self._release_isam(result)
                 result, again = self._levenberg_marquardt(graph, result, int(max_iterations), tol)
                 converged = converged and again < max_iterations
                 iterations += again
@@ -1121,7 +1122,9 @@ class PoseGraph:
         self._drop_estimates()
 
     def _reseed(self, values: gtsam.Values) -> UpdateStats:
-        """Rebuild iSAM2 from every factor, linearized at ``values``; clears the buffer."""
+        """Rebuild iSAM2 from every factor, linearized at ``values``; clears the buffer. The
+        old iSAM2 is dropped first, so the two are never held at once."""
+        self._isam = None
         while True:
             isam = self._new_isam()
             try:
