@@ -512,13 +512,7 @@ class PoseGraph:
                 converged = converged and again < max_iterations
                 iterations += again
         stats = BatchStats(iterations, error_before, graph.error(result), converged)
-        if not stats.converged:
-            logger.warning(
-                "optimize_batch: no convergence in %d iterations (error %.6g -> %.6g)",
-                max_iterations,
-                stats.error_before,
-                stats.error_after,
-            )
+        _warn_if_not_converged(stats, max_iterations)
         if not rebuilt:
             self._reseed(result)
         self._served = result
@@ -1263,6 +1257,17 @@ class PoseGraph:
             return gtsam.noiseModel.Gaussian.Covariance(cov)
         except _GTSAM_ERRORS as exc:
             raise GraphError(f"{ctx}: gtsam rejected the covariance: {exc}") from exc
+
+
+def _warn_if_not_converged(stats: BatchStats, max_iterations: int) -> None:
+    """Log a warning when a batch solve stopped at its iteration cap."""
+    if not stats.converged:
+        logger.warning(
+            "optimize_batch: no convergence in %d iterations (error %.6g -> %.6g)",
+            max_iterations,
+            stats.error_before,
+            stats.error_after,
+        )
 
 
 def _m_estimator(
