@@ -95,6 +95,7 @@ _UNKNOWN_REASON = "unknown"
 
 __all__ = [
     "LoopClosureStats",
+    "ScanRecords",
     "Slam",
     "SlamState",
     "StageTimer",
