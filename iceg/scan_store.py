@@ -223,8 +223,8 @@ class ScanStore(Sequence[LaserScan]):
 
     @property
     def nbytes(self) -> int:
-        """Bytes held by the arrays (capacity included: the last block's free bytes are
-        allocated but not touched, so they are not resident)."""
+        """Bytes held by the arrays, capacity included (the last block's unused bytes are
+        allocated, but a fresh block's pages become resident only once written)."""
         return int(
             sum(b.nbytes for b in self._blocks)
             + sum(v.nbytes for v in self._head.values())
