@@ -30,7 +30,8 @@ across sizes; with ``--repeats R`` every size runs R times (sizes
 interleaved) and the median over its runs counts, since one 1000-scan block moves by up to
 20 % between two runs on this machine (the 2k size has one such block). Within each run of
 the largest size, the last ten blocks over the first ten show growth with the log's length
-free of that run-to-run spread.
+free of that run-to-run spread, and the same two means per stage of the pipeline's timer
+show which stages the growth is in.
 
 ``--workers 2`` runs each size as ``iceg run`` does on a machine with a free core: with the
 feature worker and the loop closer's match helper (:func:`iceg.pipeline.helper_processes`;
@@ -168,6 +169,7 @@ def run_one(
     blocks: list[float] = []
     cpu_blocks: list[float] = []
     rss_blocks: list[float] = []
+    stage_blocks: list[dict[str, float]] = []
     c_block = time.process_time()
     stages_before: dict[str, float] = {}
     t_block = time.perf_counter()
@@ -184,6 +186,7 @@ def run_one(
                 stages = dict(slam.timer.seconds)
                 grown = {s: v - stages_before.get(s, 0.0) for s, v in stages.items()}
                 stages_before = stages
+                stage_blocks.append(grown)
                 print(
                     f"  [{n}] scans {k}: block {blocks[-1]:.1f} s (CPU {cpu_blocks[-1]:.1f} s), "
                     f"peak RSS {rss_blocks[-1]:.0f} MB, nodes {slam.graph.n_nodes}, "
@@ -213,6 +216,7 @@ def run_one(
         "blocks_s": blocks,
         "cpu_blocks_s": cpu_blocks,
         "rss_blocks_mb": rss_blocks,
+        "stage_blocks_s": stage_blocks,
         "process_s": time.perf_counter() - t_start - t_finish - (0.0 if not grid else t_grid),
         "finish_s": t_finish,
         "grid_s": t_grid,
@@ -338,6 +342,22 @@ def print_summary(summary: Sequence[dict]) -> None:
                 f"wall {np.mean(wall[-10:]) / np.mean(wall[:10]):.2f}, "
                 f"CPU {np.mean(cpu[-10:]) / np.mean(cpu[:10]):.2f}"
             )
+            print_stage_growth(fig, len(wall))
+
+
+def print_stage_growth(fig: dict, steady: int) -> None:
+    """Per stage of the pipeline's timer, the mean seconds per block over the first ten and
+    the last ten of the ``steady`` whole blocks after the first, and their difference: which
+    stages the growth along the log is in."""
+    blocks = fig["stage_blocks_s"][1 : 1 + steady]
+    first, last = blocks[:10], blocks[-10:]
+    stages = sorted({s for b in blocks for s in b})
+    mean_first = {s: float(np.mean([b.get(s, 0.0) for b in first])) for s in stages}
+    mean_last = {s: float(np.mean([b.get(s, 0.0) for b in last])) for s in stages}
+    print("    stage            first 10   last 10   difference  (s per block of 1000 scans)")
+    for s in sorted(stages, key=lambda s: mean_first[s] - mean_last[s]):
+        d = mean_last[s] - mean_first[s]
+        print(f"    {s:16s} {mean_first[s]:8.2f}  {mean_last[s]:8.2f}  {d:+10.2f}")
 
 
 def main() -> None:

@@ -40,6 +40,8 @@ def test_summary_prints_the_median_over_runs_and_the_within_run_ratio(
             "rss_peak_mb": rss_peak_mb,
             "rss_start_mb": 100.0,
             "rss_blocks_mb": [280.0] * len(blocks),
+            # each block: matching 5 s, iSAM2 the rest
+            "stage_blocks_s": [{"matching": 5.0, "isam2": b - 5.0} for b in blocks],
         }
 
     # 2k: one steady block each run (8 and 10 s: median 9); 25k: 24 steady blocks, the
@@ -54,3 +56,7 @@ def test_summary_prints_the_median_over_runs_and_the_within_run_ratio(
     assert "largest / smallest median 1.12" in out  # (9 * 14 + 11.6 * 10) / 24 / 9 = 1.120
     assert "MB   2000: 20.00, 20.00; 25000: 22.00; largest / smallest median 1.10" in out
     assert "last 10 blocks / first 10 after the first: wall 1.29, CPU 1.29" in out  # 11.6 / 9
+    # per stage over the same blocks: iSAM2 4 s -> 6.6 s, matching 5 s in both
+    rows = {line.split()[0]: line.split()[1:] for line in out.splitlines() if line[:4] == "    "}
+    assert rows["isam2"] == ["4.00", "6.60", "+2.60"]
+    assert rows["matching"] == ["5.00", "5.00", "+0.00"]
