@@ -1101,10 +1101,7 @@ class PoseGraph:
                         seed.insert(n, lin.atPose2(n))
             except _GTSAM_ERRORS:
                 logger.warning("iSAM2 linearization point unreadable after a failed update")
-        self._seed = seed
-        self._isam = None
-        self._in_isam.clear()
-        self._drop_estimates()
+        self._release_isam(seed)
 
     def _release_isam(self, values: gtsam.Values) -> None:
         """Drop iSAM2 and its memory, keeping ``values`` (every node's current estimate) as
@@ -1127,9 +1124,7 @@ class PoseGraph:
             except _GTSAM_ERRORS as exc:
                 if self._switch_to_qr(exc):
                     continue
-                self._seed = gtsam.Values(values)
-                self._isam = None
-                self._in_isam.clear()
+                self._release_isam(values)
                 raise self._wrap(exc, "iSAM2 rebuild") from exc
         self._isam = isam
         self._seed = None
