@@ -42,8 +42,12 @@ closure against the relative pose of its two source scans in a single pass throu
 (two copies of one scan are the same pose) and prints how many are off by more than 0.3 m or
 3 degrees (``iceg.batch_run.false_loop_closures``).
 
+``--no-reuse-nodes`` turns ``slam.reuse_nodes`` off (every keyframe a node, as before it):
+the back-and-forth log then adds a set of nodes and landmarks per pass.
+
 Run: ``python benchmarks/bench_scaling.py [--sizes 2000,10000,50000] [--repeats R]
-[--log path.clf] [--source csail|corridor] [--no-grid] [--check-closures] [--workers N]``
+[--log path.clf] [--source csail|corridor] [--no-grid] [--check-closures] [--workers N]
+[--no-reuse-nodes]``
 """
 
 from __future__ import annotations
@@ -146,6 +150,7 @@ def run_one(
     source_name: str = "csail",
     check_closures: bool = False,
     workers: int = 1,
+    reuse_nodes: bool = True,
 ) -> dict:
     """Run the pipeline over ``n`` scans in this process (with its helper processes when
     ``workers`` > 1, :func:`iceg.pipeline.helper_processes`); return the figures. With
@@ -155,6 +160,7 @@ def run_one(
     through the log (its own run, relation error about 3 cm; two copies of the same scan
     are the same pose)."""
     from frontends import open_log
+    from iceg.config import config_from_dict
     from iceg.pipeline import helper_processes
     from iceg.slam import Slam
 
@@ -165,7 +171,7 @@ def run_one(
         source = list(open_log(log))
         scans = back_and_forth(source, n)
     rss_start = peak_rss_mb()
-    slam = Slam()
+    slam = Slam(config_from_dict({"slam": {"reuse_nodes": reuse_nodes}}))
     blocks: list[float] = []
     cpu_blocks: list[float] = []
     rss_blocks: list[float] = []
@@ -190,7 +196,8 @@ def run_one(
                 print(
                     f"  [{n}] scans {k}: block {blocks[-1]:.1f} s (CPU {cpu_blocks[-1]:.1f} s), "
                     f"peak RSS {rss_blocks[-1]:.0f} MB, nodes {slam.graph.n_nodes}, "
-                    f"landmarks {len(slam.feature_map)}, global closures "
+                    f"landmarks {len(slam.feature_map)}, reused keyframes "
+                    f"{slam.export_state().reused_keyframes}, global closures "
                     f"{slam.loop_stats.global_accepted}, node-index rebuilds "
                     f"{slam.loop_closer.index_rebuilds}; stage s: "
                     + ", ".join(
@@ -225,6 +232,7 @@ def run_one(
         "rss_peak_mb": peak_rss_mb(),
         "nodes": len(result.node_ids),
         "loop_closures": result.loop_closures.accepted,
+        "reused_keyframes": slam.export_state().reused_keyframes,
         "stages_s": dict(sorted(result.stage_seconds.items(), key=lambda kv: -kv[1])),
     }
     # after the timing: a second run of the whole log
@@ -262,7 +270,10 @@ def _grown_per_k_after_first(fig: dict) -> float:
 def report(fig: dict) -> None:
     n = fig["n"]
     k = n / BLOCK
-    print(f"\n== {n} scans: {fig['nodes']} nodes, {fig['loop_closures']} loop closures")
+    print(
+        f"\n== {n} scans: {fig['nodes']} nodes, {fig['loop_closures']} loop closures, "
+        f"{fig.get('reused_keyframes', 0)} keyframes hung from old nodes"
+    )
     if fig.get("lc_false") is not None:
         print(f"  loop closures off the single pass by more than 0.3 m or 3 deg: {fig['lc_false']}")
     print("  block (scans)   wall (s)  CPU (s)  wall s/1000  CPU s/1000  peak RSS after (MB)")
@@ -389,13 +400,24 @@ def main() -> None:
         help="processes of each run (as slam.workers): 2 adds the feature worker and the "
         "loop closer's match helper (iceg.pipeline.helper_processes)",
     )
+    ap.add_argument(
+        "--no-reuse-nodes",
+        action="store_true",
+        help="slam.reuse_nodes off: every keyframe of a revisit adds a node (as before it)",
+    )
     ap.add_argument("--child", type=int, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if not args.log.exists():
         sys.exit(f"{args.log}: not found (the MIT CSAIL log lives in ../shared/data)")
     if args.child is not None:
         fig = run_one(
-            args.child, args.log, not args.no_grid, args.source, args.check_closures, args.workers
+            args.child,
+            args.log,
+            not args.no_grid,
+            args.source,
+            args.check_closures,
+            args.workers,
+            not args.no_reuse_nodes,
         )
         print(json.dumps(fig))
         return
@@ -408,6 +430,8 @@ def main() -> None:
             cmd.append("--no-grid")
         if args.check_closures:
             cmd.append("--check-closures")
+        if args.no_reuse_nodes:
+            cmd.append("--no-reuse-nodes")
         out = subprocess.run(cmd, check=True, stdout=subprocess.PIPE, text=True).stdout
         fig = json.loads(out.strip().splitlines()[-1])
         report(fig)

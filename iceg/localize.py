@@ -826,12 +826,18 @@ def _localize_in_session(
 
 def _frozen_slam(fixed: FixedMap) -> Slam:
     """The session loaded in memory with each of its nodes held by a prior at its saved
-    estimate (``graph.prior_sigma_*``, the gauge prior's sigmas): the frozen map."""
+    estimate (``graph.prior_sigma_*``, the gauge prior's sigmas): the frozen map. It adds a
+    node per keyframe (``slam.reuse_nodes`` off)."""
     from iceg import session as sess
 
     if fixed.session is None:
         raise GraphError("a frozen map needs a map read from a saved session")
     slam = sess.load(fixed.session.path)
+    # Every keyframe a node: the segment's statuses, covariances and kidnapping checks are
+    # read off its own nodes (a scan hanging from a map node would have none).
+    slam.config = slam.config.model_copy(
+        update={"slam": slam.config.slam.model_copy(update={"reuse_nodes": False})}
+    )
     ids, saved = slam.graph.estimates()
     g = slam.config.graph
     hold = np.diag([g.prior_sigma_xy_m**2] * 2 + [g.prior_sigma_theta_rad**2])

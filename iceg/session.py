@@ -73,7 +73,7 @@ from iceg.config import IcegConfig, config_from_yaml
 from iceg.feature_map import FeatureMap
 from iceg.loop_closure import LoopClosure, LoopClosureStats
 from iceg.scan_store import ScanStore
-from iceg.slam import ScanRecords, Slam, SlamState
+from iceg.slam import Anchor, ScanRecords, Slam, SlamState
 from iceg_common import se2
 from iceg_common.atomic import atomic_write
 from iceg_common.errors import IcegError, SessionError
@@ -429,6 +429,11 @@ def _slam_arrays(slam: Slam) -> dict[str, np.ndarray]:
         "lc_implied": np.array([c.implied for c in pend]).reshape(-1, 3),
         **{f"lc_places_{k}": v for k, v in slam.loop_closer.places.export_state().items()},
         "cal_state": slam.odometry_calibrator.export_state(),
+        # slam.reuse_nodes: the old node a revisit hangs from, the closure's old node the
+        # next keyframe tries, the keyframes that hung from old nodes
+        "reuse_anchor": (s.anchor.as_array() if s.anchor is not None else np.zeros(0)),
+        "reuse_from": (s.reuse_from.as_array() if s.reuse_from is not None else np.zeros(0)),
+        "reuse_count": np.array([s.reused_keyframes], dtype=np.int64),
     }
 
 
@@ -452,12 +457,21 @@ def _slam_state(session: Session, a: Mapping[str, np.ndarray], scans: list[Laser
         match_failures=defaultdict(int, session.manifest.get("match_failures", {})),
         point_fallbacks=defaultdict(int, session.manifest.get("point_fallbacks", {})),
         segment_start=segment_start(a),
+        # absent from sessions saved before slam.reuse_nodes: none
+        anchor=Anchor.from_array(anchor)
+        if (anchor := a.get("reuse_anchor")) is not None and anchor.size
+        else None,
+        reuse_from=Anchor.from_array(near)
+        if (near := a.get("reuse_from")) is not None and near.size
+        else None,
+        reused_keyframes=int(a["reuse_count"][0]) if "reuse_count" in a else 0,
     )
 
 
 def node_matched(a: Mapping[str, np.ndarray]) -> list[bool]:
     """Per node, whether it was placed by a match (:attr:`iceg.slam.SlamState.node_matched`):
-    a scan-match factor from the node before it, or no odometry factor into it (the first
+    a scan-match factor into it (from the node before it, or from the old node a revisit
+    hung from: ``slam.reuse_nodes``), or no odometry factor into it (the first
     node of a log, placed by :meth:`iceg.slam.Slam.start_segment` or fixed at the start).
 
     Args:
@@ -467,8 +481,7 @@ def node_matched(a: Mapping[str, np.ndarray]) -> list[bool]:
         One bool per entry of ``g_node_ids``, in its order.
     """
     kind, ij = a["g_kind"], a["g_ij"]
-    sequential = ij[:, 1] == ij[:, 0] + 1
-    scan_match = ij[(kind == FACTOR_KINDS.index(FactorKind.SCAN_MATCH)) & sequential, 1]
+    scan_match = ij[kind == FACTOR_KINDS.index(FactorKind.SCAN_MATCH), 1]
     odometry = ij[kind == FACTOR_KINDS.index(FactorKind.ODOMETRY), 1]
     ids = a["g_node_ids"]
     return (np.isin(ids, scan_match) | ~np.isin(ids, odometry)).tolist()
@@ -478,6 +491,7 @@ def segment_start(a: Mapping[str, np.ndarray]) -> int:
     """First node of the session's last log: the last node without an odometry factor from
     the node before it (:meth:`iceg.slam.Slam.start_segment`; 0 for a single run)."""
     odo = a["g_kind"] == FACTOR_KINDS.index(FactorKind.ODOMETRY)
+    odo &= a["g_ij"][:, 1] == a["g_ij"][:, 0] + 1  # not from an old node (slam.reuse_nodes)
     linked = set(a["g_ij"][odo, 1].tolist())
     starts = [int(n) for n in a["g_node_ids"].tolist() if n > 0 and n not in linked]
     return max(starts, default=0)

@@ -94,6 +94,7 @@ _POINT_FALLBACK_REASONS = frozenset(
 _UNKNOWN_REASON = "unknown"
 
 __all__ = [
+    "Anchor",
     "LoopClosureStats",
     "ScanRecords",
     "Slam",
@@ -197,6 +198,56 @@ class _LocalMatch:
     ice_failure: str = ""  # why the ICE match failed (reason category; "": it succeeded)
 
 
+@dataclass(frozen=True, eq=False)
+class Anchor:
+    """The old node a revisit hangs from (``slam.reuse_nodes``; docs/design.md, "Reused
+    nodes"): the scans after the anchoring scan take ``estimate(node) ∘ offset ∘ odometry``.
+
+    Attributes:
+        node: The old node.
+        offset: ``(3,)`` float64 pose of the anchoring scan in the node's frame
+            ``[x_m, y_m, theta_rad]`` (its match against the old place).
+        offset_cov: ``(3, 3)`` float64 covariance of ``offset`` (the match's), tangent space
+            at the scan (m², rad²).
+        odom: ``(3,)`` float64 odometry pose of the anchoring scan.
+        stamp_s: Its stamp (s).
+        path_m: The odometry path length at it (m).
+    """
+
+    node: int
+    offset: FloatArray
+    offset_cov: FloatArray
+    odom: FloatArray
+    stamp_s: float
+    path_m: float
+
+    def as_array(self) -> FloatArray:
+        """``(18,)`` float64: node, offset, odom, stamp, path, offset_cov row-major."""
+        head = [float(self.node), *self.offset, *self.odom, self.stamp_s, self.path_m]
+        return np.array([*head, *self.offset_cov.reshape(9)], dtype=np.float64)
+
+    @classmethod
+    def from_array(cls, a: ArrayLike) -> Anchor:
+        """The inverse of :meth:`as_array`."""
+        v = np.asarray(a, dtype=np.float64).reshape(18)
+        return cls(
+            int(v[0]), v[1:4].copy(), v[9:18].reshape(3, 3).copy(), v[4:7].copy(), v[7], v[8]
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class _Reuse:
+    """A keyframe's match against an old place (``slam.reuse_nodes``)."""
+
+    reference: MapReference
+    result: MatchResult
+    frame_pose: FloatArray  # (3,) estimate of the node the match is relative to
+    pose: FloatArray  # (3,) the scan's pose in that frame (the prediction where it failed)
+    cov: FloatArray  # (3, 3) its covariance given the match and the prediction
+    node: int | None = None  # the old node within one keyframe spacing of the match
+    offset: FloatArray | None = None  # (3,) the scan's pose in that node's frame
+
+
 @dataclass
 class SlamState:
     """Mutable per-run bookkeeping of :class:`Slam` (scans, nodes, match statistics).
@@ -217,8 +268,15 @@ class SlamState:
     match_failures: dict[str, int] = field(default_factory=lambda: defaultdict(int))
     # ICE failures (by reason category) whose scan got the point match's factor instead
     point_fallbacks: dict[str, int] = field(default_factory=lambda: defaultdict(int))
-    # first node of the current log (Slam.start_segment): the local map's oldest node
+    # first node of the current log (Slam.start_segment) or of the path after a revisit
+    # (slam.reuse_nodes): the local map's oldest node
     segment_start: int = 0
+    # slam.reuse_nodes: the old node the scans hang from while a revisit follows old nodes,
+    # and the newest node placed in an old node's frame (by a loop closure just accepted, or
+    # on leaving the old nodes), from which the next keyframe tries that old place
+    anchor: Anchor | None = None
+    reuse_from: Anchor | None = None
+    reused_keyframes: int = 0  # keyframes that hung from an old node instead of a new one
 
     def __post_init__(self) -> None:
         if not isinstance(self.scans, ScanStore):
@@ -341,6 +399,7 @@ class Slam:
         # are another trajectory, linked to this one only through the map (which may not yet
         # agree with itself where that log left a loop open).
         self._s.segment_start = new_id
+        self._s.anchor = self._s.reuse_from = None
         self.graph.update()
         # All its features become its own landmarks, as the first node of a run: the next
         # scans are matched against the landmarks of the recent nodes (this one), not against
@@ -403,6 +462,8 @@ class Slam:
         self._s.scans.append(scan)
         if not self._s.node_odom:
             return self._start(scan, odom, t0, features)
+        if self._s.anchor is not None:
+            return self._process_anchored(scan, odom, self._s.anchor, t0, features)
         last = len(self._s.node_odom) - 1
         motion = self._motion(scan, odom, last)
         if not motion.is_keyframe:
@@ -420,9 +481,26 @@ class Slam:
         t0: float,
         features: Callable[[], ScanFeatures] | None = None,
     ) -> FloatArray:
-        """A keyframe: features, local match, node and factors, iSAM2, loop closure, map."""
+        """A keyframe: features, local match, node and factors, iSAM2, loop closure, map.
+        Right after a loop closure (``slam.reuse_nodes``), first a match against the old
+        place: where it puts the scan at an old node, the scan hangs from that node."""
         feats = self._features(scan, features)
         t0 = self.timer.add("features", t0)
+        old, self._s.reuse_from = self._s.reuse_from, None
+        if old is not None and motion.measured and not motion.odometry_break:
+            # predicted from the last node's pose in the old node's frame (the closure's
+            # measurement), not from the estimates the closure has yet to pull together
+            predicted = self._anchored_motion(scan, motion.odom, old)
+            reuse = self._match_old_place(feats, old.node, predicted.delta, predicted.cov)
+            t0 = self.timer.add("matching", t0)
+            if reuse.node is not None:
+                return self._hang_from(scan, motion.odom, reuse, old.path_m)
+            logger.debug(
+                "keyframe at %.3f s stays a node at old node %d: %s",
+                scan.stamp_s,
+                old.node,
+                reuse.result.reason or "no old node within a keyframe spacing",
+            )
         local = self._match_local(feats, motion, last, self._s.segment_start)
         if not local.result.success:
             local = self._match_from_node_before(feats, motion, last, local)
@@ -432,19 +510,204 @@ class Slam:
         self._calibrate_odometry(local, motion)
         t0 = self.timer.add("matching", t0)
         new_id = self._add_keyframe(scan, motion, local, last)
-        self._remember_points(new_id, feats)
-        self.loop_closer.observe(new_id, feats)
+        self._after_node(new_id, feats, scan, local, t0)
+        return self.graph.estimate(new_id)
+
+    def _after_node(
+        self, node_id: int, feats: ScanFeatures, scan: LaserScan, local: _LocalMatch, t0: float
+    ) -> None:
+        """A new keyframe node's iSAM2 update (or buffered solve), loop-closure search and
+        feature-map update."""
+        self._remember_points(node_id, feats)
+        self.loop_closer.observe(node_id, feats)
         t0 = self.timer.add("graph_build", t0)
         if self._isam2_due():
             self.graph.update()
         else:
             self.graph.solve_pending()
         t0 = self.timer.add("isam2", t0)
-        if self.loop_closer.due(new_id):
-            self._close_loops(new_id, feats)
+        if self.loop_closer.due(node_id):
+            self._close_loops(node_id, feats)
             t0 = self.timer.add("loop_closure", t0)
-        self._update_map(new_id, feats, scan, local)
+        self._update_map(node_id, feats, scan, local)
         self.timer.add("feature_map", t0)
+
+    # ------------------------------------------------------------------ reused nodes
+
+    def _process_anchored(
+        self,
+        scan: LaserScan,
+        odom: FloatArray,
+        anchor: Anchor,
+        t0: float,
+        features: Callable[[], ScanFeatures] | None,
+    ) -> FloatArray:
+        """A scan while a revisit hangs from the old node ``anchor.node``: between keyframes
+        it takes the odometry from the anchoring scan; a keyframe is matched against the old
+        place and hangs from the old node nearest it, or becomes a node where the path
+        leaves the old nodes (:meth:`_leave_old_place`)."""
+        motion = self._anchored_motion(scan, odom, anchor)
+        if not motion.is_keyframe:
+            self._s.records.append(scan.stamp_s, anchor.node, motion.delta)
+            return se2.compose(self.graph.estimate(anchor.node), motion.delta)
+        feats = self._features(scan, features)
+        t0 = self.timer.add("features", t0)
+        reuse = self._match_old_place(feats, anchor.node, motion.delta, motion.cov)
+        t0 = self.timer.add("matching", t0)
+        if reuse.node is not None and motion.measured and not motion.odometry_break:
+            return self._hang_from(scan, odom, reuse, anchor.path_m)
+        return self._leave_old_place(scan, motion, anchor, feats, reuse, t0)
+
+    def _anchored_motion(self, scan: LaserScan, odom: FloatArray, anchor: Anchor) -> _Motion:
+        """The scan's pose in the anchor node's frame (``anchor.offset`` then the odometry
+        from the anchoring scan) with its covariance, and the keyframe decision (the
+        odometry since the anchoring scan, as :meth:`_motion` from a node). Without usable
+        odometry the scan is a keyframe predicted at the anchoring scan's pose."""
+        cfg = self.config.slam
+        if scan.odom_pose is None or scan.odom_break:
+            cov = np.diag(
+                [cfg.no_odometry_sigma_m**2] * 2 + [np.radians(cfg.no_odometry_sigma_deg) ** 2]
+            )
+            measured = scan.odom_pose is not None
+            return _Motion(odom, anchor.offset, anchor.offset_cov + cov, True, measured, measured)
+        raw = se2.between(anchor.odom, odom)
+        raw_cov = odometry_covariance(raw, self.config.odometry_noise)
+        delta, cov = raw, raw_cov
+        if self.config.odometry_calibration.enabled:
+            delta, cov = self.odometry_calibrator.correct(raw, raw_cov)
+        is_keyframe = bool(
+            np.hypot(delta[0], delta[1]) >= cfg.keyframe_distance_m
+            or abs(delta[2]) >= np.radians(cfg.keyframe_rotation_deg)
+            or scan.stamp_s - anchor.stamp_s >= cfg.keyframe_max_interval_s
+        )
+        # offset ∘ exp(a) ∘ delta ∘ exp(b) = offset ∘ delta ∘ exp(Ad(delta⁻¹) a + b)
+        ad = se2.adjoint(se2.inverse(delta))
+        full_cov = ad @ anchor.offset_cov @ ad.T + cov
+        return _Motion(
+            odom, se2.compose(anchor.offset, delta), full_cov, is_keyframe, raw=(raw, raw_cov)
+        )
+
+    def _match_old_place(
+        self, feats: ScanFeatures, node: int, prediction: FloatArray, prediction_cov: FloatArray
+    ) -> _Reuse:
+        """Match the keyframe against the landmarks of the old nodes around ``node`` (the
+        ``local_map_nodes`` nearest by id: its pass through the place), predicted at
+        ``prediction`` (its pose in ``node``'s frame, covariance ``prediction_cov``) within
+        the local match's bounds. Along directions the place leaves weak (a corridor) the
+        pose is the prediction's (:func:`remap_weak_directions`, as for a local match), and
+        its covariance fuses the two (information sum), so that a chain of keyframes
+        hanging from old nodes of a corridor keeps the odometry's length. The old node within
+        one keyframe spacing of the pose, the nearest, is the one it hangs from."""
+        cfg = self.config.slam
+        half = cfg.local_map_nodes // 2
+        window = np.arange(
+            max(0, node - half), min(self.graph.n_nodes, node + half + 1), dtype=np.int64
+        )
+        ids, poses = self.graph.estimates_of(self.feature_map.reference_pose_nodes(window))
+        frame = poses[np.searchsorted(ids, node)]
+        reference = self.feature_map.reference((ids, poses), window, frame)
+        bounds = MatchBounds.local(cfg.match_max_translation_m, cfg.match_max_rotation_deg)
+        result = self.matcher.match(feats, reference.features, prediction, bounds)
+        if not result.success:
+            return _Reuse(reference, result, frame, prediction, prediction_cov)
+        pose = remap_weak_directions(result.pose, result.cov, prediction, prediction_cov)
+        try:
+            cov = np.linalg.inv(np.linalg.inv(result.cov) + np.linalg.inv(prediction_cov))
+        except np.linalg.LinAlgError:
+            cov = result.cov
+        # the pose in the frame of each old node of the window
+        d = se2.between(se2.between(frame, poses[np.searchsorted(ids, window)]), pose)
+        dist = np.hypot(d[:, 0], d[:, 1])
+        near = (dist <= cfg.keyframe_distance_m) & (
+            np.abs(d[:, 2]) <= np.radians(cfg.keyframe_rotation_deg)
+        )
+        if not near.any() or not self._identifies_node(result.cov):
+            return _Reuse(reference, result, frame, pose, cov)
+        k = int(np.flatnonzero(near)[np.argmin(dist[near])])
+        return _Reuse(reference, result, frame, pose, cov, int(window[k]), d[k])
+
+    def _identifies_node(self, cov: FloatArray) -> bool:
+        """Whether a match with covariance ``cov`` tells which old node the scan is at: two
+        standard deviations within one keyframe spacing along every direction (in a
+        corridor the match does not say how far along it the scan is)."""
+        cfg = self.config.slam
+        sigma_xy = float(np.sqrt(max(np.linalg.eigvalsh(cov[:2, :2]).max(), 0.0)))
+        sigma_theta = float(np.sqrt(max(cov[2, 2], 0.0)))
+        return bool(
+            2.0 * sigma_xy <= cfg.keyframe_distance_m
+            and 2.0 * sigma_theta <= np.radians(cfg.keyframe_rotation_deg)
+        )
+
+    def _anchor_of(self, node: int, old: int, offset: FloatArray, cov: FloatArray) -> Anchor:
+        """Node ``node``'s scan placed at ``offset`` (covariance ``cov``) in the frame of
+        the old node ``old``."""
+        s = self._s
+        stamp = s.scans.stamp_s(s.node_scan_index[node])
+        return Anchor(old, offset, cov, s.node_odom[node], stamp, s.node_path_m[node])
+
+    def _hang_from(
+        self, scan: LaserScan, odom: FloatArray, reuse: _Reuse, path_m: float
+    ) -> FloatArray:
+        """The keyframe hangs from the old node ``reuse.node`` (no node, factor or
+        landmark); ``path_m``: the odometry path length at the scan the motion is from."""
+        assert reuse.node is not None and reuse.offset is not None
+        s = self._s
+        since = s.anchor.odom if s.anchor is not None else s.node_odom[-1]
+        step = se2.between(since, odom)
+        s.anchor = Anchor(
+            reuse.node,
+            reuse.offset,
+            reuse.cov,  # the same in the old node's frame: tangent space at the scan
+            np.asarray(odom, dtype=np.float64).copy(),
+            scan.stamp_s,
+            path_m + float(np.hypot(step[0], step[1])),
+        )
+        s.reused_keyframes += 1
+        s.records.append(scan.stamp_s, reuse.node, reuse.offset)
+        return se2.compose(reuse.frame_pose, reuse.pose)
+
+    def _leave_old_place(
+        self,
+        scan: LaserScan,
+        motion: _Motion,
+        anchor: Anchor,
+        feats: ScanFeatures,
+        reuse: _Reuse,
+        t0: float,
+    ) -> FloatArray:
+        """The path leaves the old nodes: the keyframe becomes a node linked to the anchor
+        node as a keyframe to the node before it: by the odometry since the anchoring scan
+        (after the anchor's offset) and by its match against the old place where that
+        succeeded. Its local map starts at it (as after :meth:`start_segment`); its features
+        meet the old place's landmarks."""
+        s = self._s
+        s.anchor = None
+        result = reuse.result
+        logger.debug(
+            "keyframe at %.3f s leaves old node %d: %s",
+            scan.stamp_s,
+            anchor.node,
+            "no old node within a keyframe spacing" if result.success else result.reason,
+        )
+        step = np.hypot(motion.raw[0][0], motion.raw[0][1]) if motion.raw is not None else 0.0
+        new_id = self._add_node(
+            scan,
+            motion.odom,
+            initial=se2.compose(reuse.frame_pose, reuse.pose),
+            odom_measured=motion.measured,
+            step_m=anchor.path_m + float(step) - s.node_path_m[-1],
+            matched=result.success,
+        )
+        # as a keyframe's factors from the node before it (_add_keyframe)
+        self._add_factor(FactorKind.ODOMETRY, anchor.node, new_id, motion.delta, motion.cov)
+        if result.success:
+            self._add_scan_match(anchor.node, new_id, result, motion.delta, motion.cov)
+        s.segment_start = new_id
+        local = _LocalMatch(reuse.reference, result, reuse.frame_pose)
+        self._after_node(new_id, feats, scan, local, t0)
+        if s.reuse_from is None:  # a brief departure (a person passing): the next keyframe
+            # tries the old place again
+            s.reuse_from = self._anchor_of(new_id, anchor.node, reuse.pose, reuse.cov)
         return self.graph.estimate(new_id)
 
     def _isam2_due(self) -> bool:
@@ -725,6 +988,9 @@ class Slam:
                 robust=accepted.robust_kernel,
                 robust_k=self.config.loop_closure.robust_k,
             )
+        if self.config.slam.reuse_nodes:
+            c = accepted.closures[-1]
+            self._s.reuse_from = self._anchor_of(c.node_to, c.node_from, c.measured, c.cov)
         if accepted.large_correction:
             # A global closure can move the estimate by tens of metres and degrees: a batch
             # Levenberg-Marquardt from the current estimate converges where iSAM2's

@@ -1,0 +1,111 @@
+"""Reused nodes (``slam.reuse_nodes``, a reduced pose graph): a revisit hangs from the old
+nodes instead of adding new ones, against the simulated truth; a session split while a
+revisit hangs from an old node continues bit for bit."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from frontends.simulate import office_world, simulate
+from graph import FactorKind
+from iceg import session
+from iceg.config import config_from_dict
+from iceg.evaluation import position_errors
+from iceg.results import SlamResult
+from iceg.slam import Anchor, Slam
+from iceg_common import se2
+
+REUSE = {"slam": {"reuse_nodes": True}}
+
+
+@pytest.fixture(scope="module")
+def two_laps():  # type: ignore[no-untyped-def]
+    """The office loop driven twice along the same true poses (1401 scans, 5 Hz)."""
+    world = office_world()
+    lap = simulate(world, seed=1).true_poses
+    return simulate(world, trajectory=np.concatenate([lap, lap[1:]]), seed=1), lap.shape[0]
+
+
+def _run(scans, config: dict) -> tuple[Slam, SlamResult]:  # type: ignore[no-untyped-def]
+    slam = Slam(config_from_dict(config))
+    for scan in scans:
+        slam.process(scan)
+    return slam, slam.finish()
+
+
+@pytest.fixture(scope="module")
+def reused(two_laps):  # type: ignore[no-untyped-def]
+    run, _ = two_laps
+    return _run(run.scans, REUSE)
+
+
+def test_the_second_lap_hangs_from_the_first_laps_nodes(two_laps, reused) -> None:  # type: ignore[no-untyped-def]
+    run, lap_scans = two_laps
+    slam, result = reused
+    first_lap_nodes = int(np.sum(result.node_scan_index < lap_scans))
+    second_lap_nodes = len(result.node_ids) - first_lap_nodes
+    # without reused nodes the second lap adds as many nodes as the first (about 500); with
+    # them most of its keyframes hang from the first lap's (where a match does not pin the
+    # pose to one keyframe spacing, e.g. along a bare wall, the keyframe is a node)
+    assert slam.export_state().reused_keyframes > 2 * second_lap_nodes
+    assert second_lap_nodes < 0.5 * first_lap_nodes
+    # every scan of the second lap still gets its pose, as close to the truth as the first's
+    first = position_errors(result.poses[:lap_scans], run.true_poses[:lap_scans])
+    second = position_errors(result.poses[lap_scans:], run.true_poses[lap_scans:])
+    assert first.rmse_m < 0.02
+    assert second.rmse_m < 0.02
+    assert second.max_m < 0.1
+
+
+def test_a_revisit_that_leaves_the_old_nodes_is_linked_to_them(two_laps, reused) -> None:  # type: ignore[no-untyped-def]
+    """A node that ends a revisit has no odometry factor from the node before it: it is
+    linked to the old node it hung from by its match (or by the odometry where that failed),
+    and the link agrees with the truth."""
+    run, _ = two_laps
+    _, result = reused
+    sequential = {f.j for f in result.factors if f.kind is FactorKind.ODOMETRY and f.j == f.i + 1}
+    leaving = [j for j in result.node_ids.tolist()[1:] if j not in sequential]
+    assert leaving, "the second lap never left the old nodes"
+    truth = run.true_poses[result.node_scan_index]
+    for j in leaving:
+        # the first factor into the node: the link, added before any loop-closure search
+        link = next(f for f in result.factors if f.j == j)
+        assert link.kind in (FactorKind.LOOP_CLOSURE, FactorKind.ODOMETRY)
+        assert link.i < j - 1
+        error = se2.between(se2.between(truth[link.i], truth[j]), link.measured)
+        assert np.hypot(error[0], error[1]) < 0.05
+        assert abs(np.degrees(error[2])) < 1.0
+
+
+def test_anchor_round_trips_through_its_array() -> None:
+    a = Anchor(7, np.array([0.1, -0.2, 0.03]), np.diag([1e-4, 2e-4, 3e-5]), np.ones(3), 4.5, 12.25)
+    b = Anchor.from_array(a.as_array())
+    assert (b.node, b.stamp_s, b.path_m) == (7, 4.5, 12.25)
+    for x, y in ((a.offset, b.offset), (a.offset_cov, b.offset_cov), (a.odom, b.odom)):
+        assert np.array_equal(x, y)
+
+
+def test_a_session_split_while_hanging_from_an_old_node_continues_bit_for_bit(  # type: ignore[no-untyped-def]
+    two_laps, reused, tmp_path
+) -> None:
+    run, lap_scans = two_laps
+    _, whole = reused
+    first = Slam(config_from_dict(REUSE))
+    k = lap_scans + 200
+    for scan in run.scans[:k]:
+        first.process(scan)
+    assert first.export_state().anchor is not None  # the split falls inside a revisit
+    first.finish()
+    session.save(first, tmp_path / "s")
+    second = session.load(tmp_path / "s")
+    assert second.export_state().anchor is not None
+    for scan in run.scans[k:]:
+        second.process(scan)
+    split = second.finish()
+    assert np.array_equal(split.poses, whole.poses)  # bit for bit, not approximately
+    assert np.array_equal(split.node_poses, whole.node_poses)
+    assert [(f.kind, f.i, f.j) for f in split.factors] == [
+        (f.kind, f.i, f.j) for f in whole.factors
+    ]
+    assert second.export_state().reused_keyframes == whole.slam.export_state().reused_keyframes
