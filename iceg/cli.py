@@ -117,11 +117,15 @@ def _print_table(rows: list[tuple[str, str]]) -> None:
         typer.echo(f"  {key:<{width}}  {value}")
 
 
+def _hung(reused: int) -> str:
+    return f" (and {reused} keyframes hung from old nodes)" if reused else ""
+
+
 def _summary_rows(result: SlamResult, out: Path) -> list[tuple[str, str]]:
     s = result.summary()
     rows = [
         ("scans", str(s["scans"])),
-        ("nodes", str(s["nodes"])),
+        ("nodes", str(s["nodes"]) + _hung(s["reused_keyframes"])),
         ("factors", ", ".join(f"{k} {v}" for k, v in sorted(s["factors"].items()))),
         (
             "loop closures",

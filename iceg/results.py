@@ -93,6 +93,8 @@ class SlamResult:
         match_failures: count of failed local matches per reason (no scan-match factor).
         point_fallbacks: count of failed local ICE matches per reason whose scan got a
             point-match factor instead (``slam.point_fallback``).
+        reused_keyframes: keyframes of revisits that hung from an old node instead of
+            becoming nodes (``slam.reuse_nodes``).
         stage_seconds: wall time per pipeline stage, seconds.
         feature_map: the final feature map (landmarks anchored to nodes).
         graph: the pose graph (marginals, g2o export).
@@ -120,6 +122,7 @@ class SlamResult:
     config: IcegConfig
     scans: Sequence[LaserScan] = ()
     point_fallbacks: dict[str, int] = field(default_factory=dict)
+    reused_keyframes: int = 0
     metrics: dict[str, Any] = field(default_factory=dict)
     slam: Slam | None = field(default=None, repr=False)
     _map: TiledGrid | None = field(default=None, init=False, repr=False)
@@ -140,6 +143,7 @@ class SlamResult:
         return {
             "scans": self.n_scans,
             "nodes": int(self.node_ids.shape[0]),
+            "reused_keyframes": self.reused_keyframes,
             "factors": self.factor_counts(),
             "loop_closures": self.loop_closures.as_dict(),
             "match_failures": self.match_failures,

@@ -6,7 +6,9 @@ match updates, when enabled); keyframe decision; ICE match against the feature m
 recent nodes; odometry and scan-match factors (covariance from the match); iSAM2 update;
 feature-map update with time-validity pruning; and, every few nodes, a loop-closure search
 among older nodes near the current estimate and, by appearance, among all older places
-(global loop closure). After the run an optional batch Levenberg–Marquardt refinement.
+(global loop closure). A revisit that retraces old nodes hangs from them instead of adding
+nodes (reduced pose graph, ``slam.reuse_nodes``). After the run an optional batch
+Levenberg–Marquardt refinement.
 
 The pipeline never reads files: it takes :class:`frontends.LaserScan` records.
 """
@@ -445,7 +447,8 @@ class Slam:
         the first odometry pose, or at the origin when the log has no odometry). Steps
         (docs/design.md "Data flow of one scan"): motion from odometry and keyframe decision; for a
         keyframe ICE features, local match, node and factors, iSAM2 update, loop-closure
-        search and feature-map update.
+        search and feature-map update. With ``slam.reuse_nodes``, a keyframe of a revisit
+        hangs from an old node instead (docs/design.md "Reused nodes").
 
         ``features``, when given, returns exactly ``extract(scan, config.features)`` (e.g.
         computed ahead by :class:`iceg.features.prefetch.FeaturePrefetcher`); it is called
@@ -1163,6 +1166,7 @@ class Slam:
             loop_closures=self.loop_stats,
             match_failures=dict(self._s.match_failures),
             point_fallbacks=dict(self._s.point_fallbacks),
+            reused_keyframes=self._s.reused_keyframes,
             stage_seconds=dict(self.timer.seconds),
             feature_map=self.feature_map,
             graph=self.graph,

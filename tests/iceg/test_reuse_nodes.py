@@ -49,6 +49,7 @@ def test_the_second_lap_hangs_from_the_first_laps_nodes(two_laps, reused) -> Non
     # them most of its keyframes hang from the first lap's (where a match does not pin the
     # pose to one keyframe spacing, e.g. along a bare wall, the keyframe is a node)
     assert slam.export_state().reused_keyframes > 2 * second_lap_nodes
+    assert result.summary()["reused_keyframes"] == slam.export_state().reused_keyframes
     assert second_lap_nodes < 0.5 * first_lap_nodes
     # every scan of the second lap still gets its pose, as close to the truth as the first's
     first = position_errors(result.poses[:lap_scans], run.true_poses[:lap_scans])
