@@ -1,6 +1,6 @@
 """Reused nodes (``slam.reuse_nodes``, a reduced pose graph): a revisit hangs from the old
 nodes instead of adding new ones, against the simulated truth; a session split while a
-revisit hangs from an old node continues bit for bit."""
+revisit hangs from an old node continues bit for bit, and two workers give the same run."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from graph import FactorKind
 from iceg import session
 from iceg.config import config_from_dict
 from iceg.evaluation import position_errors
+from iceg.pipeline import run_scans
 from iceg.results import SlamResult
 from iceg.slam import Anchor, Slam
 from iceg_common import se2
@@ -110,3 +111,11 @@ def test_a_session_split_while_hanging_from_an_old_node_continues_bit_for_bit(  
         (f.kind, f.i, f.j) for f in whole.factors
     ]
     assert second.export_state().reused_keyframes == whole.slam.export_state().reused_keyframes
+
+
+def test_two_workers_give_the_same_run_bit_for_bit(two_laps, reused) -> None:  # type: ignore[no-untyped-def]
+    run, _ = two_laps
+    _, one = reused
+    two = run_scans(run.scans, config_from_dict({"slam": {"reuse_nodes": True, "workers": 2}}))
+    assert two.reused_keyframes == one.reused_keyframes
+    assert two.poses.tobytes() == one.poses.tobytes()
