@@ -429,10 +429,10 @@ def _slam_arrays(slam: Slam) -> dict[str, np.ndarray]:
         "lc_implied": np.array([c.implied for c in pend]).reshape(-1, 3),
         **{f"lc_places_{k}": v for k, v in slam.loop_closer.places.export_state().items()},
         "cal_state": slam.odometry_calibrator.export_state(),
-        # slam.reuse_nodes: the old node a revisit hangs from, the closure's old node the
-        # next keyframe tries, the keyframes that hung from old nodes
-        "reuse_anchor": (s.anchor.as_array() if s.anchor is not None else np.zeros(0)),
-        "reuse_from": (s.reuse_from.as_array() if s.reuse_from is not None else np.zeros(0)),
+        # slam.reuse_nodes: the old node a revisit hangs from, the newest node placed in an
+        # old node's frame (the next keyframe tries that place), the keyframes hung so far
+        "reuse_anchor": _anchor_array(s.anchor),
+        "reuse_from": _anchor_array(s.reuse_from),
         "reuse_count": np.array([s.reused_keyframes], dtype=np.int64),
     }
 
@@ -457,15 +457,21 @@ def _slam_state(session: Session, a: Mapping[str, np.ndarray], scans: list[Laser
         match_failures=defaultdict(int, session.manifest.get("match_failures", {})),
         point_fallbacks=defaultdict(int, session.manifest.get("point_fallbacks", {})),
         segment_start=segment_start(a),
-        # absent from sessions saved before slam.reuse_nodes: none
-        anchor=Anchor.from_array(anchor)
-        if (anchor := a.get("reuse_anchor")) is not None and anchor.size
-        else None,
-        reuse_from=Anchor.from_array(near)
-        if (near := a.get("reuse_from")) is not None and near.size
-        else None,
+        anchor=_anchor_of(a, "reuse_anchor"),
+        reuse_from=_anchor_of(a, "reuse_from"),
         reused_keyframes=int(a["reuse_count"][0]) if "reuse_count" in a else 0,
     )
+
+
+def _anchor_array(anchor: Anchor | None) -> np.ndarray:
+    return anchor.as_array() if anchor is not None else np.zeros(0)
+
+
+def _anchor_of(a: Mapping[str, np.ndarray], key: str) -> Anchor | None:
+    """The anchor saved under ``key``; None when empty or absent (a session saved before
+    ``slam.reuse_nodes``)."""
+    v = a.get(key)
+    return Anchor.from_array(v) if v is not None and v.size else None
 
 
 def node_matched(a: Mapping[str, np.ndarray]) -> list[bool]:
@@ -488,8 +494,9 @@ def node_matched(a: Mapping[str, np.ndarray]) -> list[bool]:
 
 
 def segment_start(a: Mapping[str, np.ndarray]) -> int:
-    """First node of the session's last log: the last node without an odometry factor from
-    the node before it (:meth:`iceg.slam.Slam.start_segment`; 0 for a single run)."""
+    """First node of the session's last log, or of its path after a revisit left the old
+    nodes (``slam.reuse_nodes``): the last node without an odometry factor from the node
+    before it (:meth:`iceg.slam.Slam.start_segment`; 0 for a single run)."""
     odo = a["g_kind"] == FACTOR_KINDS.index(FactorKind.ODOMETRY)
     odo &= a["g_ij"][:, 1] == a["g_ij"][:, 0] + 1  # not from an old node (slam.reuse_nodes)
     linked = set(a["g_ij"][odo, 1].tolist())
