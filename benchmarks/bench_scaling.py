@@ -232,7 +232,7 @@ def run_one(
         "rss_peak_mb": peak_rss_mb(),
         "nodes": len(result.node_ids),
         "loop_closures": result.loop_closures.accepted,
-        "reused_keyframes": slam.export_state().reused_keyframes,
+        "reused_keyframes": result.reused_keyframes,
         "stages_s": dict(sorted(result.stage_seconds.items(), key=lambda kv: -kv[1])),
     }
     # after the timing: a second run of the whole log

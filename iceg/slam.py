@@ -497,7 +497,7 @@ class Slam:
             reuse = self._match_old_place(feats, old.node, predicted.delta, predicted.cov)
             t0 = self.timer.add("matching", t0)
             if reuse.node is not None:
-                return self._hang_from(scan, motion.odom, reuse, old.path_m)
+                return self._hang_from(scan, predicted, reuse, old)
             logger.debug(
                 "keyframe at %.3f s stays a node at old node %d: %s",
                 scan.stamp_s,
@@ -558,7 +558,7 @@ class Slam:
         reuse = self._match_old_place(feats, anchor.node, motion.delta, motion.cov)
         t0 = self.timer.add("matching", t0)
         if reuse.node is not None and motion.measured and not motion.odometry_break:
-            return self._hang_from(scan, odom, reuse, anchor.path_m)
+            return self._hang_from(scan, motion, reuse, anchor)
         return self._leave_old_place(scan, motion, anchor, feats, reuse, t0)
 
     def _anchored_motion(self, scan: LaserScan, odom: FloatArray, anchor: Anchor) -> _Motion:
@@ -649,21 +649,19 @@ class Slam:
         return Anchor(old, offset, cov, s.node_odom[node], stamp, s.node_path_m[node])
 
     def _hang_from(
-        self, scan: LaserScan, odom: FloatArray, reuse: _Reuse, path_m: float
+        self, scan: LaserScan, motion: _Motion, reuse: _Reuse, origin: Anchor
     ) -> FloatArray:
         """The keyframe hangs from the old node ``reuse.node`` (no node, factor or
-        landmark); ``path_m``: the odometry path length at the scan the motion is from."""
+        landmark); ``motion`` is its :meth:`_anchored_motion` from ``origin``."""
         assert reuse.node is not None and reuse.offset is not None
         s = self._s
-        since = s.anchor.odom if s.anchor is not None else s.node_odom[-1]
-        step = se2.between(since, odom)
         s.anchor = Anchor(
             reuse.node,
             reuse.offset,
             reuse.cov,  # the same in the old node's frame: tangent space at the scan
-            np.asarray(odom, dtype=np.float64).copy(),
+            np.asarray(motion.odom, dtype=np.float64).copy(),
             scan.stamp_s,
-            path_m + float(np.hypot(step[0], step[1])),
+            _path_m(origin, motion),
         )
         s.reused_keyframes += 1
         s.records.append(scan.stamp_s, reuse.node, reuse.offset)
@@ -692,13 +690,12 @@ class Slam:
             anchor.node,
             "no old node within a keyframe spacing" if result.success else result.reason,
         )
-        step = np.hypot(motion.raw[0][0], motion.raw[0][1]) if motion.raw is not None else 0.0
         new_id = self._add_node(
             scan,
             motion.odom,
             initial=se2.compose(reuse.frame_pose, reuse.pose),
             odom_measured=motion.measured,
-            step_m=anchor.path_m + float(step) - s.node_path_m[-1],
+            step_m=_path_m(anchor, motion) - s.node_path_m[-1],
             matched=result.success,
         )
         # as a keyframe's factors from the node before it (_add_keyframe)
@@ -1175,6 +1172,13 @@ class Slam:
             slam=self,
         )
         return self._result
+
+
+def _path_m(origin: Anchor, motion: _Motion) -> float:
+    """Odometry path length (m) at the scan of ``motion``, an :meth:`Slam._anchored_motion`
+    from ``origin`` (no odometry: none travelled)."""
+    step = 0.0 if motion.raw is None else float(np.hypot(motion.raw[0][0], motion.raw[0][1]))
+    return origin.path_m + step
 
 
 def consistent_with_prediction(
