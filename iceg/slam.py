@@ -495,7 +495,7 @@ class Slam:
             # measurement), not from the estimates the closure has yet to pull together
             predicted = self._anchored_motion(scan, motion.odom, old)
             reuse = self._match_old_place(feats, old.node, predicted.delta, predicted.cov)
-            t0 = self.timer.add("matching", t0)
+            t0 = self.timer.add("old_place", t0)
             if reuse.node is not None:
                 return self._hang_from(scan, predicted, reuse, old)
             logger.debug(
@@ -556,7 +556,7 @@ class Slam:
         feats = self._features(scan, features)
         t0 = self.timer.add("features", t0)
         reuse = self._match_old_place(feats, anchor.node, motion.delta, motion.cov)
-        t0 = self.timer.add("matching", t0)
+        t0 = self.timer.add("old_place", t0)
         if reuse.node is not None and motion.measured and not motion.odometry_break:
             return self._hang_from(scan, motion, reuse, anchor)
         return self._leave_old_place(scan, motion, anchor, feats, reuse, t0)
