@@ -712,10 +712,15 @@ class LoopCloser:
         self._sync_index(graph, poses)
         nearby = _Nearby(self.nodes, poses, poses[node_id][:2], n_older, radius)
         search = _Search(node_id, poses, n_older, marginal, radius, nearby)
-        best = self._best_match(search, features)
+        # A due global search's matches run in one batch with the local ones (issue 13: the
+        # helper process takes a share of both); their results are read only where nothing
+        # local is accepted, as if matched after it.
+        places = self._global_places(search, features) if self._global_due() else None
+        global_jobs = [] if places is None else self._global_jobs(search, features, places)
+        best, global_results = self._best_match(search, features, global_jobs)
         accepted = self._decide(search, best, graph, path_m) if best is not None else None
-        if accepted is None and self._global_due():
-            accepted = self._global(search, features, graph, path_m)
+        if accepted is None and places is not None:
+            accepted = self._global(search, places, global_results, graph, path_m)
         if accepted is not None:
             self._note_correction(accepted, poses)
         return accepted
@@ -832,10 +837,16 @@ class LoopCloser:
                 return ids
             reach *= 2.0
 
-    def _best_match(self, s: _Search, features: ScanFeatures) -> _Best | None:
+    def _best_match(
+        self,
+        s: _Search,
+        features: ScanFeatures,
+        other_jobs: Sequence[Callable[[], MatchJob]] = (),
+    ) -> tuple[_Best | None, list[MatchResult]]:
         """Match each candidate place; keep the best-correlated acceptable match. A candidate
         whose reference window is one already matched in this search is skipped
-        (:func:`_same_place`)."""
+        (:func:`_same_place`). ``other_jobs`` (the global search's) are matched in the same
+        batch, ahead of the local ones; their results are returned beside the best."""
         bounds = self._bounds(s)
         matched: list[IntArray] = []  # the windows of the places matched so far
         candidates: list[int] = []
@@ -854,7 +865,8 @@ class LoopCloser:
             )
         self.stats.attempts += len(jobs)
         best: _Best | None = None
-        results = self._match_all(jobs)
+        every = self._match_all([*other_jobs, *jobs])
+        other, results = every[: len(other_jobs)], every[len(other_jobs) :]
         for candidate, prediction, result in zip(candidates, predictions, results, strict=True):
             if not usable_match(result, self.config):
                 self.stats.rejected_match += 1
@@ -868,7 +880,7 @@ class LoopCloser:
                 )
             elif best is None or result.correlation > best.result.correlation:
                 best = _Best(candidate, prediction, result)
-        return best
+        return best, other
 
     def _job(
         self,
@@ -943,15 +955,43 @@ class LoopCloser:
 
     # ------------------------------------------------------------------ global search
 
+    def _global_places(self, s: _Search, features: ScanFeatures) -> list[int]:
+        """The ``global_candidates`` older places beyond the local radius (the local search
+        covers the rest) most similar to the current scan
+        (:class:`~iceg.place_index.PlaceIndex`, one per ``reference_nodes`` stretch)."""
+        lc = self.config
+
+        def far(ids: IntArray) -> NDArray[np.bool_]:
+            inside = s.nearby.members(s.radius_m)
+            return (ids < s.n_older) & ~np.isin(ids, inside, kind="table")
+
+        query = place_descriptor(features, lc.place_index)
+        return self.places.query(query, far, lc.global_candidates, lc.reference_nodes)
+
+    def _global_jobs(
+        self, s: _Search, features: ScanFeatures, places: Sequence[int]
+    ) -> list[Callable[[], MatchJob]]:
+        """The global ICE match (no prediction used) of the scan against each place."""
+        bounds = MatchBounds.global_()
+        return [
+            functools.partial(
+                self._job, s, features, c, None, se2.between(s.poses[c], s.poses[s.node_id]), bounds
+            )
+            for c in places
+        ]
+
     def _global(
-        self, s: _Search, features: ScanFeatures, graph: PoseGraph, path_m: Sequence[float]
+        self,
+        s: _Search,
+        places: Sequence[int],
+        results: Sequence[MatchResult],
+        graph: PoseGraph,
+        path_m: Sequence[float],
     ) -> AcceptedClosures | None:
         """Appearance-based search, independent of the estimate.
 
-        The ``global_candidates`` older places beyond the local radius (the local search
-        covers the rest) most similar to the current scan
-        (:class:`~iceg.place_index.PlaceIndex`, one per ``reference_nodes`` stretch) are each
-        verified by a global ICE match against their reference. When two verified places
+        The places of :meth:`_global_places` are each verified by their global match
+        (``results``, of :meth:`_global_jobs`). When two verified places
         contradict each other (:meth:`_unique`) the scene is aliased and all are dropped.
         Unless the odometry rules it out (:meth:`_contradicts_odometry`), the
         best-correlated survivor is accepted (robust kernel) if it passes the chi-square
@@ -966,15 +1006,7 @@ class LoopCloser:
         """
         lc = self.config
         self.stats.global_searches += 1
-
-        # Places within the radius are the local search's: the global one adds the rest.
-        def far(ids: IntArray) -> NDArray[np.bool_]:
-            inside = s.nearby.members(s.radius_m)
-            return (ids < s.n_older) & ~np.isin(ids, inside, kind="table")
-
-        query = place_descriptor(features, lc.place_index)
-        places = self.places.query(query, far, lc.global_candidates, lc.reference_nodes)
-        verified = self._verify_global(s, features, places)
+        verified = self._verify_global(s, places, results)
         if not verified:
             return None
         if not self._unique(verified, s.poses):
@@ -1024,20 +1056,13 @@ class LoopCloser:
         return clique[::-1]
 
     def _verify_global(
-        self, s: _Search, features: ScanFeatures, candidates: Sequence[int]
+        self, s: _Search, candidates: Sequence[int], results: Sequence[MatchResult]
     ) -> list[LoopClosure]:
-        """Global ICE match (no prediction used) of the scan against each candidate place;
-        the closures of the usable ones, in candidate order."""
+        """The closures of the candidate places whose global match (``results``) is usable,
+        in candidate order."""
         self.stats.global_attempts += len(candidates)
-        bounds = MatchBounds.global_()
-        jobs = [
-            functools.partial(
-                self._job, s, features, c, None, se2.between(s.poses[c], s.poses[s.node_id]), bounds
-            )
-            for c in candidates
-        ]
         verified = []
-        for candidate, result in zip(candidates, self._match_all(jobs), strict=True):
+        for candidate, result in zip(candidates, results, strict=True):
             if not usable_match(result, self.config):
                 self.stats.rejected_match += 1
                 continue

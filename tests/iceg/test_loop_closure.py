@@ -181,7 +181,7 @@ def test_a_place_is_matched_once_per_search_and_the_skipped_match_would_agree(
     outcomes: list[tuple[np.ndarray | None, np.ndarray | None]] = []  # (first, repeat)
     distinct = 0
 
-    def every_candidate(self: LoopCloser, s, features):  # type: ignore[no-untyped-def]
+    def every_candidate(self: LoopCloser, s, features, *global_jobs):  # type: ignore[no-untyped-def]
         nonlocal distinct
         first: dict[tuple[int, ...], np.ndarray | None] = {}
         for candidate in self._candidates(s):
@@ -196,7 +196,7 @@ def test_a_place_is_matched_once_per_search_and_the_skipped_match_would_agree(
             else:
                 first[key] = implied
         distinct += len(first)
-        return best_match(self, s, features)
+        return best_match(self, s, features, *global_jobs)
 
     monkeypatch.setattr(LoopCloser, "_best_match", every_candidate)
     # every pass adds its nodes (with reused nodes the later passes would hang from the first)
