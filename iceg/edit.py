@@ -109,7 +109,8 @@ def edit_and_optimize(
         optimum, ``g_steps`` the new graph's call log (it replays to the same state).
 
     Raises:
-        SessionError: an unknown factor or node, a prior removed, an ICE match that fails.
+        SessionError: an unknown factor or node, a prior removed, a loop closure removed
+            that a revisit's scans hang from (``slam.reuse_nodes``), an ICE match that fails.
         GraphError: a node left without factor, or gtsam failed.
     """
     a = dict(session.arrays)
@@ -131,9 +132,35 @@ def _remove_factors(a: dict[str, np.ndarray], remove: Sequence[int]) -> dict[str
             raise SessionError(f"--remove-factor {f}: the graph has factors 0..{n - 1}")
         if FACTOR_KINDS[int(a["g_kind"][f])] is FactorKind.PRIOR:
             raise SessionError(f"--remove-factor {f}: it is the prior that anchors the map")
+        _check_no_revisit_hangs_from(a, f)
     keep = np.ones(n, dtype=bool)
     keep[list(remove)] = False
     return {**a, **{k: a[k][keep] for k in FACTOR_ARRAYS}}
+
+
+def _check_no_revisit_hangs_from(a: dict[str, np.ndarray], f: int) -> None:
+    """Refuse to remove a loop closure into a node after which the run's scans hung from old
+    nodes (``slam.reuse_nodes``): they were placed in the old nodes' frames because of it, and
+    removing the factor leaves them there.
+
+    Raises:
+        SessionError: naming the configuration that makes a new run without that closure.
+    """
+    if FACTOR_KINDS[int(a["g_kind"][f])] is not FactorKind.LOOP_CLOSURE:
+        return
+    old, node = (int(v) for v in a["g_ij"][f])
+    scan_of = a["n_scan"]
+    first = int(scan_of[node]) + 1  # the scans after the node's, up to the next node's
+    last = int(scan_of[node + 1]) if node + 1 < scan_of.shape[0] else a["s_node"].shape[0]
+    hung = int(np.count_nonzero(a["s_node"][first:last] != node))
+    if hung:
+        raise SessionError(
+            f"--remove-factor {f}: the loop closure {old} -> {node} started a revisit whose "
+            f"{hung} scans after node {node} hang from old nodes (slam.reuse_nodes); removing "
+            "the factor would leave them there. Run the logs again without it: give the run "
+            f"a config with 'loop_closure: {{forbidden_closures: [[{old}, {node}]]}}' (a run "
+            f"is deterministic: the same nodes up to node {node})"
+        )
 
 
 def _closure_row(

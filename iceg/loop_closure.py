@@ -189,6 +189,15 @@ class LoopClosureConfig(BaseModel):
     robust_k: float = Field(
         default=1.0, gt=0, description="Kernel width in whitened units (sigmas)."
     )
+    forbidden_closures: list[tuple[int, int]] = Field(
+        default_factory=list,
+        description="Loop closures [old, new] not to make again: a wrong closure found in a "
+        "run's loop_closures.csv (columns node_i, node_j), for a new run of the same logs and "
+        "configuration (deterministic: its nodes up to the newer one are the same). At node "
+        "new, no candidate place whose reference shares a node with the old node's (the place "
+        "the closure matched) is matched; the search takes the next candidates. For a closure "
+        "that iceg optimize --remove-factor cannot undo (one a revisit hangs from).",
+    )
 
 
 @dataclass
@@ -638,6 +647,7 @@ class LoopCloser:
         self.pending: list[LoopClosure] = []
         self._accepted: list[LoopClosure] = []  # accepted within global_window_nodes
         self.places = PlaceIndex(config.place_index)
+        self._forbidden_pairs = {(int(i), int(j)) for i, j in config.forbidden_closures}
         # Row i: fused information of the sequential factors i -> i+1 (zero: none yet).
         self._step_info = np.zeros((0, 3, 3))
         # Row i: the odometry factor i -> i+1, measured step and covariance (NaN: none).
@@ -787,16 +797,19 @@ class LoopCloser:
         lc = self.config
         return lc.global_search and self.stats.searches % lc.global_every_n_searches == 0
 
-    def _candidates(self, s: _Search) -> list[int]:
+    def _candidates(self, s: _Search, banned: frozenset[int] = frozenset()) -> list[int]:
         """Up to ``max_candidates`` nearest old nodes within the radius, from distinct places
-        (more than ``reference_nodes`` nodes apart). The nodes are read nearest first out to
-        a distance doubled until the places are found or it reaches the radius: the greedy
-        over those is the greedy over every node within the radius."""
+        (more than ``reference_nodes`` nodes apart), none of the ``banned`` nodes. The nodes
+        are read nearest first out to a distance doubled until the places are found or it
+        reaches the radius: the greedy over those is the greedy over every node within the
+        radius."""
         lc = self.config
         reach = min(_FIRST_REACH_M, s.radius_m)
         while True:
             candidates: list[int] = []
             for n in s.nearby.within(reach)[0].tolist():
+                if n in banned:
+                    continue
                 if all(abs(n - c) > lc.reference_nodes for c in candidates):
                     candidates.append(n)
                     if len(candidates) == lc.max_candidates:
@@ -852,8 +865,11 @@ class LoopCloser:
         candidates: list[int] = []
         predictions: list[FloatArray] = []
         jobs: list[Callable[[], MatchJob]] = []
-        for candidate in self._candidates(s):
+        banned = self._forbidden_nodes(s)
+        for candidate in self._candidates(s, banned):
             window = self._window(s, candidate)
+            if banned.intersection(window.tolist()):
+                continue
             if any(_same_place(window, other) for other in matched):
                 continue
             matched.append(window)
@@ -961,12 +977,25 @@ class LoopCloser:
         (:class:`~iceg.place_index.PlaceIndex`, one per ``reference_nodes`` stretch)."""
         lc = self.config
 
+        banned = self._forbidden_nodes(s)
+
         def far(ids: IntArray) -> NDArray[np.bool_]:
             inside = s.nearby.members(s.radius_m)
+            if banned:
+                inside = np.concatenate([inside, np.fromiter(banned, np.int64, len(banned))])
             return (ids < s.n_older) & ~np.isin(ids, inside, kind="table")
 
         query = place_descriptor(features, lc.place_index)
-        return self.places.query(query, far, lc.global_candidates, lc.reference_nodes)
+        places = self.places.query(query, far, lc.global_candidates, lc.reference_nodes)
+        if not banned:
+            return places
+        return [c for c in places if not banned.intersection(self._window(s, c).tolist())]
+
+    def _forbidden_nodes(self, s: _Search) -> frozenset[int]:
+        """The old nodes of the places the user forbade this node to close with
+        (``config.forbidden_closures``): the reference window of each forbidden old node."""
+        olds = [i for i, j in self._forbidden_pairs if j == s.node_id and 0 <= i < s.n_older]
+        return frozenset(n for i in olds for n in self._window(s, i).tolist())
 
     def _global_jobs(
         self, s: _Search, features: ScanFeatures, places: Sequence[int]

@@ -119,3 +119,47 @@ def test_two_workers_give_the_same_run_bit_for_bit(two_laps, reused) -> None:  #
     two = run_scans(run.scans, config_from_dict({"slam": {"reuse_nodes": True, "workers": 2}}))
     assert two.reused_keyframes == one.reused_keyframes
     assert two.poses.tobytes() == one.poses.tobytes()
+
+
+def test_a_closure_a_revisit_hangs_from_is_forbidden_in_a_new_run_not_removed(  # type: ignore[no-untyped-def]
+    two_laps, reused, tmp_path
+) -> None:
+    """``iceg optimize --remove-factor`` cannot undo a closure that a revisit hangs from (the
+    hung scans stay in the old nodes' frames), so it refuses and names the configuration
+    that runs the logs again without it; that run is the same up to the closure's node, does
+    not match the place again there, and still follows the truth."""
+    from iceg.edit import edit_and_optimize
+    from iceg_common.errors import SessionError
+
+    run, _ = two_laps
+    slam, result = reused
+    session.save(slam, tmp_path / "s")
+    s = session.read(tmp_path / "s")
+    kinds = [session.FACTOR_KINDS[int(k)] for k in s.arrays["g_kind"]]
+    ij = s.arrays["g_ij"].tolist()
+    sequential = {
+        j for k, (i, j) in zip(kinds, ij, strict=True) if k is FactorKind.ODOMETRY and j == i + 1
+    }
+    leaving = [j for j in result.node_ids.tolist()[1:] if j not in sequential]
+    # the closure into the node before a revisit's first leaving node started the revisit
+    started = [
+        f
+        for f, (k, (i, j)) in enumerate(zip(kinds, ij, strict=True))
+        if k is FactorKind.LOOP_CLOSURE and j + 1 in leaving
+    ]
+    assert started, "no revisit began at a loop closure"
+    f = started[0]
+    old, node = ij[f]
+    with pytest.raises(SessionError, match=rf"forbidden_closures: \[\[{old}, {node}\]\]"):
+        edit_and_optimize(s, remove=[f])
+
+    _, rerun = _run(run.scans, {**REUSE, "loop_closure": {"forbidden_closures": [[old, node]]}})
+    # the factors added before the closure's search are the same, bit for bit
+    for a, b in zip(result.factors[:f], rerun.factors[:f], strict=True):
+        assert (a.kind, a.i, a.j, a.measured.tobytes()) == (b.kind, b.i, b.j, b.measured.tobytes())
+    # no closure at that node with the place the forbidden one matched (its old nodes)
+    assert not any(
+        c.kind is FactorKind.LOOP_CLOSURE and c.j == node and abs(c.i - old) <= 10
+        for c in rerun.factors
+    )
+    assert position_errors(rerun.poses, run.true_poses).rmse_m < 0.02
