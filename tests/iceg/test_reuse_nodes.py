@@ -163,3 +163,14 @@ def test_a_closure_a_revisit_hangs_from_is_forbidden_in_a_new_run_not_removed(  
         for c in rerun.factors
     )
     assert position_errors(rerun.poses, run.true_poses).rmse_m < 0.02
+
+
+def test_the_matching_stage_times_the_local_matches_only(reused) -> None:  # type: ignore[no-untyped-def]
+    # benchmarks/bench_pipeline.py pairs each local match's time with its reference's: a
+    # match against an old place is its own stage (it has no local-map reference)
+    slam, result = reused
+    sequential = {f.j for f in result.factors if f.kind is FactorKind.ODOMETRY and f.j == f.i + 1}
+    leaving = [j for j in result.node_ids.tolist()[1:] if j not in sequential]
+    samples = slam.timer.samples
+    assert len(samples["matching"]) == len(result.node_ids) - 1 - len(leaving)
+    assert len(samples["old_place"]) >= slam.export_state().reused_keyframes + len(leaving)
