@@ -7,12 +7,12 @@ reference, the prediction and the bounds. :meth:`MatchPool.submit` sends a searc
 to a forked helper process, which takes them from the front; :meth:`MatchPool.collect`
 returns their results, the calling process first running itself those the helper has not
 begun (from the back; a shared claim, so that no match runs twice). The calling process may
-do other work between the two (the SLAM tracks the next keyframe meanwhile), and
-:meth:`MatchPool.map` is the two at once. A match the helper began but has not returned
-within the longest match the calling process has run is run here too (the helper's late
-result is dropped): a helper starved of CPU costs little. Either process computes the same
-result from the same inputs, so the run is the same bit for bit whatever the timing and
-with or without a helper (``tests/iceg/test_match_pool.py``).
+do other work between the two, and :meth:`MatchPool.map` is the two at once. A match the
+helper began but has not returned within twice the mean time of the matches the calling
+process has run is run here too (the helper's late result is dropped): a helper starved of
+CPU costs little. Either process computes the same result from the same inputs, so the run
+is the same bit for bit whatever the timing and with or without a helper
+(``tests/iceg/test_match_pool.py``).
 
 The helper is forked at the first search with matches to share, when the calling process
 has loaded the matcher's compiled kernels, so it starts warm; it holds the matcher and its
@@ -64,9 +64,9 @@ class MatchJob(NamedTuple):
 #: Slots of the shared claim: the batch number, the next match the helper may take (from
 #: the front) and the end of those it may take (the calling process takes from the back).
 _BATCH, _FRONT, _BACK = 0, 1, 2
-#: How long the calling process waits for a match the helper began before it has run one
-#: itself (seconds; afterwards: the longest match it has run).
-_FIRST_PATIENCE_S = 0.1
+#: How long the calling process waits for a match the helper began, before it has run one
+#: itself (seconds; afterwards twice the mean time of the matches it has run).
+_FIRST_PATIENCE_S = 0.01
 
 
 class MatchBatch(NamedTuple):
@@ -113,7 +113,8 @@ class MatchPool:
         self._open = False  # inside the with-block
         self._started = False  # the helper was forked (or failed to be)
         self._batch = 0  # the last shared batch's number: a late result names an older one
-        self._longest_s = _FIRST_PATIENCE_S  # the longest match run here so far
+        self._n_here = 0  # matches run here so far
+        self._here_total_s = 0.0  # and their total time
 
     def __enter__(self) -> MatchPool:
         self._open = True
@@ -183,7 +184,7 @@ class MatchPool:
     def collect(self, batch: MatchBatch) -> list[MatchResult]:
         """The results of a :meth:`submit`, in order: the matches the helper has not begun
         are run here (from the last one back), then those it began are awaited, each for as
-        long as the longest match run here took, and run here when not back by then.
+        long as twice the mean match run here took, and run here when not back by then.
 
         Raises:
             Whatever the matcher raises (see :meth:`map`).
@@ -196,7 +197,7 @@ class MatchPool:
             results[k] = self._here(jobs[k]())
         missing = {k for k, r in enumerate(results) if r is None}
         while missing:
-            got = self._arrived(batch.number, None if self.wait else self._longest_s)
+            got = self._arrived(batch.number, None if self.wait else self._patience_s())
             k = max(missing) if got is None else got[0]  # none in time: the last one here
             if k not in missing:
                 continue
@@ -220,8 +221,14 @@ class MatchPool:
         self.local += 1
         t0 = time.perf_counter()
         result = self.matcher.match(*job)
-        self._longest_s = max(self._longest_s, time.perf_counter() - t0)
+        self._n_here += 1
+        self._here_total_s += time.perf_counter() - t0
         return result
+
+    def _patience_s(self) -> float:
+        """How long to wait for a match the helper began (see the module docstring)."""
+        n = self._n_here
+        return 2.0 * self._here_total_s / n if n else _FIRST_PATIENCE_S
 
     def _arrived(
         self, number: int, timeout_s: float | None
