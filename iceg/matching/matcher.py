@@ -403,7 +403,12 @@ class IceMatcher:
             MatchingError: inconsistent inputs (array shapes, a non-finite prediction).
         """
         pred = _checked_prediction(features, reference, prediction)
-        ctx = MatchContext(features, reference, pred, bounds or MatchBounds.global_(), self.config)
+        bounds = bounds or MatchBounds.global_()
+        too_few = self._too_few_features(features, reference, bounds)
+        if too_few:
+            log.debug("ICE match failed: %s", too_few)
+            return MatchResult.failed(pred, too_few)
+        ctx = MatchContext(features, reference, pred, bounds, self.config)
         starts = self._hypotheses(ctx)
         if starts.poses.shape[0] == 0:
             return ctx.fail(
@@ -415,6 +420,24 @@ class IceMatcher:
         corr0, chosen = self._correlation(ctx, starts)
         cands = self._refinement(ctx, starts, corr0, chosen)
         return self._decision(ctx, cands, starts.n_hypotheses)
+
+    def _too_few_features(
+        self, features: ScanFeatures, reference: ScanFeatures, bounds: MatchBounds
+    ) -> str:
+        """The failure reason of a strict match (global or wide bounds) that cannot pass
+        step 10's evidence check, or "": it needs ``min_matched_features_global`` feature
+        pairs, and the correlation pairs each new and each reference feature at most once,
+        so fewer features on either side fail whatever the hypotheses (a loop-closure
+        candidate seen past a corner, a scan of bare walls). Decided before any work."""
+        need = self.config.validation.min_matched_features_global
+        if not self.is_strict(self.config, bounds):
+            return ""
+        if min(features.n_features, reference.n_features) >= need:
+            return ""
+        return (
+            f"{REASON_NO_CANDIDATES}: {features.n_features} new and {reference.n_features} "
+            f"reference features, fewer than the {need} feature pairs a global match needs"
+        )
 
     # --- step 5-6: hypotheses -----------------------------------------------------------
     def _hypotheses(self, ctx: MatchContext) -> _Starts:

@@ -12,6 +12,7 @@ Truth comes from three places:
 from __future__ import annotations
 
 import functools
+import itertools
 import math
 
 import numpy as np
@@ -25,8 +26,11 @@ from frontends.relations import read_relations
 from frontends.simulate import (
     LaserModel,
     corridor_world,
+    default_trajectory,
+    long_corridor_world,
     office_world,
     ray_ranges,
+    simulate,
     simulate_pair,
 )
 from iceg.features import extract
@@ -861,6 +865,33 @@ def test_inputs_are_checked() -> None:
         MatchingConfig.model_validate({"refinement": {"gate_distance_m": 0.4}})
     with pytest.raises(ValidationError):
         MatchingConfig.model_validate({"lattice_steps": 5})  # the old flat key
+
+
+def test_a_strict_match_short_of_features_fails_as_the_full_match_does(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    # A global or wide-bounds match needs min_matched_features_global (2) feature pairs, and
+    # the correlation pairs each feature at most once: scans of a bare corridor with one
+    # feature fail before any work. The full match (the check switched off) fails too.
+    world = long_corridor_world(length_m=30.0)
+    run = simulate(world, trajectory=default_trajectory(world)[:200], seed=5)
+    feats = [extract(s) for s in run.scans[::4]]
+    poses = run.true_poses[::4]
+    few = [k for k, f in enumerate(feats) if f.n_features == 1]
+    many = [k for k, f in enumerate(feats) if f.n_features >= 3]
+    pairs = [(a, b) for a in few for b in many if abs(a - b) <= 4] + list(itertools.pairwise(few))
+    assert len(pairs) >= 5
+    bounds = (MatchBounds.global_(), MatchBounds.local(10.0, 30.0))
+    quick = IceMatcher()
+    assert all(quick.is_strict(quick.config, b) for b in bounds)
+    full = IceMatcher()
+    monkeypatch.setattr(full, "_too_few_features", lambda *args: "")
+    for a, b in pairs:
+        for new, ref in ((a, b), (b, a)):
+            for bound in bounds:
+                prediction = between(poses[ref], poses[new])
+                res = quick.match(feats[new], feats[ref], prediction, bound)
+                assert not res.success
+                assert res.reason.startswith("too few candidates: ")
+                assert not full.match(feats[new], feats[ref], prediction, bound).success
 
 
 def test_empty_reference_is_a_failure_with_reason() -> None:
