@@ -36,7 +36,13 @@ from iceg.matching.geometry import (
     point_segment_index,
     rot,
 )
-from iceg.matching.hypotheses import generate_hypotheses, pair_codes, segment_rotation, vote
+from iceg.matching.hypotheses import (
+    INCOMPATIBLE,
+    generate_hypotheses,
+    pair_codes,
+    segment_rotation,
+    vote,
+)
 from iceg.matching.refine import (
     Refined,
     RefineProblem,
@@ -403,12 +409,10 @@ class IceMatcher:
             MatchingError: inconsistent inputs (array shapes, a non-finite prediction).
         """
         pred = _checked_prediction(features, reference, prediction)
-        bounds = bounds or MatchBounds.global_()
-        too_few = self._too_few_features(features, reference, bounds)
+        ctx = MatchContext(features, reference, pred, bounds or MatchBounds.global_(), self.config)
+        too_few = self._too_few_pairs(ctx)
         if too_few:
-            log.debug("ICE match failed: %s", too_few)
-            return MatchResult.failed(pred, too_few)
-        ctx = MatchContext(features, reference, pred, bounds, self.config)
+            return ctx.fail(too_few, 0)
         starts = self._hypotheses(ctx)
         if starts.poses.shape[0] == 0:
             return ctx.fail(
@@ -421,22 +425,28 @@ class IceMatcher:
         cands = self._refinement(ctx, starts, corr0, chosen)
         return self._decision(ctx, cands, starts.n_hypotheses)
 
-    def _too_few_features(
-        self, features: ScanFeatures, reference: ScanFeatures, bounds: MatchBounds
-    ) -> str:
+    @staticmethod
+    def _too_few_pairs(ctx: MatchContext) -> str:
         """The failure reason of a strict match (global or wide bounds) that cannot pass
-        step 10's evidence check, or "": it needs ``min_matched_features_global`` feature
-        pairs, and the correlation pairs each new and each reference feature at most once,
-        so fewer features on either side fail whatever the hypotheses (a loop-closure
-        candidate seen past a corner, a scan of bare walls). Decided before any work."""
-        need = self.config.validation.min_matched_features_global
-        if not self.is_strict(self.config, bounds):
+        step 10's evidence check, or "". It needs ``min_matched_features_global`` feature
+        pairs, and the correlation pairs a new feature only with a reference feature of a
+        compatible type and opening (:func:`~iceg.matching.hypotheses.pair_codes`), each at
+        most once: fewer new features with a compatible reference feature, or fewer
+        reference features with a compatible new one, fail whatever the hypotheses (a
+        loop-closure candidate seen past a corner, a scan of bare walls). Decided before the
+        hypotheses."""
+        need = ctx.config.validation.min_matched_features_global
+        if not ctx.strict:
             return ""
-        if min(features.n_features, reference.n_features) >= need:
+        compatible = ctx.correlation.codes != INCOMPATIBLE
+        n_new = int(np.count_nonzero(compatible.any(axis=1)))
+        n_ref = int(np.count_nonzero(compatible.any(axis=0)))
+        if min(n_new, n_ref) >= need:
             return ""
         return (
-            f"{REASON_NO_CANDIDATES}: {features.n_features} new and {reference.n_features} "
-            f"reference features, fewer than the {need} feature pairs a global match needs"
+            f"{REASON_NO_CANDIDATES}: {n_new} of {ctx.new_geom.n} new and {n_ref} of "
+            f"{ctx.ref_geom.n} reference features have a compatible feature, fewer than the "
+            f"{need} feature pairs a global match needs"
         )
 
     # --- step 5-6: hypotheses -----------------------------------------------------------

@@ -883,7 +883,7 @@ def test_a_strict_match_short_of_features_fails_as_the_full_match_does(monkeypat
     quick = IceMatcher()
     assert all(quick.is_strict(quick.config, b) for b in bounds)
     full = IceMatcher()
-    monkeypatch.setattr(full, "_too_few_features", lambda *args: "")
+    monkeypatch.setattr(full, "_too_few_pairs", lambda *args: "")
     for a, b in pairs:
         for new, ref in ((a, b), (b, a)):
             for bound in bounds:
