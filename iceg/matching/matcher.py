@@ -435,9 +435,9 @@ class IceMatcher:
         reference features with a compatible new one, fail whatever the hypotheses (a
         loop-closure candidate seen past a corner, a scan of bare walls). Decided before the
         hypotheses."""
-        need = ctx.config.validation.min_matched_features_global
         if not ctx.strict:
             return ""
+        need = ctx.config.validation.min_matched_features_global
         compatible = ctx.correlation.codes != INCOMPATIBLE
         n_new = int(np.count_nonzero(compatible.any(axis=1)))
         n_ref = int(np.count_nonzero(compatible.any(axis=0)))

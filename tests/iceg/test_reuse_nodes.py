@@ -41,6 +41,12 @@ def reused(two_laps):  # type: ignore[no-untyped-def]
     return _run(run.scans, REUSE)
 
 
+def _leaving_nodes(result: SlamResult) -> list[int]:
+    """The nodes that end a revisit: no odometry factor from the node before them."""
+    sequential = {f.j for f in result.factors if f.kind is FactorKind.ODOMETRY and f.j == f.i + 1}
+    return [j for j in result.node_ids.tolist()[1:] if j not in sequential]
+
+
 def test_the_second_lap_hangs_from_the_first_laps_nodes(two_laps, reused) -> None:  # type: ignore[no-untyped-def]
     run, lap_scans = two_laps
     slam, result = reused
@@ -66,8 +72,7 @@ def test_a_revisit_that_leaves_the_old_nodes_is_linked_to_them(two_laps, reused)
     and the link agrees with the truth."""
     run, _ = two_laps
     _, result = reused
-    sequential = {f.j for f in result.factors if f.kind is FactorKind.ODOMETRY and f.j == f.i + 1}
-    leaving = [j for j in result.node_ids.tolist()[1:] if j not in sequential]
+    leaving = _leaving_nodes(result)
     assert leaving, "the second lap never left the old nodes"
     truth = run.true_poses[result.node_scan_index]
     for j in leaving:
@@ -134,32 +139,28 @@ def test_a_closure_a_revisit_hangs_from_is_forbidden_in_a_new_run_not_removed(  
     run, _ = two_laps
     slam, result = reused
     session.save(slam, tmp_path / "s")
-    s = session.read(tmp_path / "s")
-    kinds = [session.FACTOR_KINDS[int(k)] for k in s.arrays["g_kind"]]
-    ij = s.arrays["g_ij"].tolist()
-    sequential = {
-        j for k, (i, j) in zip(kinds, ij, strict=True) if k is FactorKind.ODOMETRY and j == i + 1
-    }
-    leaving = [j for j in result.node_ids.tolist()[1:] if j not in sequential]
+    leaving = _leaving_nodes(result)
     # the closure into the node before a revisit's first leaving node started the revisit
+    # (factor indices: the session's, loop_closures.csv column "factor")
     started = [
-        f
-        for f, (k, (i, j)) in enumerate(zip(kinds, ij, strict=True))
-        if k is FactorKind.LOOP_CLOSURE and j + 1 in leaving
+        k
+        for k, c in enumerate(result.factors)
+        if c.kind is FactorKind.LOOP_CLOSURE and c.j + 1 in leaving
     ]
     assert started, "no revisit began at a loop closure"
     f = started[0]
-    old, node = ij[f]
+    old, node = result.factors[f].i, result.factors[f].j
     with pytest.raises(SessionError, match=rf"forbidden_closures: \[\[{old}, {node}\]\]"):
-        edit_and_optimize(s, remove=[f])
+        edit_and_optimize(session.read(tmp_path / "s"), remove=[f])
 
     _, rerun = _run(run.scans, {**REUSE, "loop_closure": {"forbidden_closures": [[old, node]]}})
     # the factors added before the closure's search are the same, bit for bit
     for a, b in zip(result.factors[:f], rerun.factors[:f], strict=True):
         assert (a.kind, a.i, a.j, a.measured.tobytes()) == (b.kind, b.i, b.j, b.measured.tobytes())
     # no closure at that node with the place the forbidden one matched (its old nodes)
+    place = config_from_dict(REUSE).loop_closure.reference_nodes
     assert not any(
-        c.kind is FactorKind.LOOP_CLOSURE and c.j == node and abs(c.i - old) <= 10
+        c.kind is FactorKind.LOOP_CLOSURE and c.j == node and abs(c.i - old) <= place
         for c in rerun.factors
     )
     assert position_errors(rerun.poses, run.true_poses).rmse_m < 0.02
@@ -169,8 +170,7 @@ def test_the_matching_stage_times_the_local_matches_only(reused) -> None:  # typ
     # benchmarks/bench_pipeline.py pairs each local match's time with its reference's: a
     # match against an old place is its own stage (it has no local-map reference)
     slam, result = reused
-    sequential = {f.j for f in result.factors if f.kind is FactorKind.ODOMETRY and f.j == f.i + 1}
-    leaving = [j for j in result.node_ids.tolist()[1:] if j not in sequential]
+    leaving = _leaving_nodes(result)
     samples = slam.timer.samples
     assert len(samples["matching"]) == len(result.node_ids) - 1 - len(leaving)
     assert len(samples["old_place"]) >= slam.export_state().reused_keyframes + len(leaving)
