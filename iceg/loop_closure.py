@@ -974,9 +974,9 @@ class LoopCloser:
     def _global_places(self, s: _Search, features: ScanFeatures) -> list[int]:
         """The ``global_candidates`` older places beyond the local radius (the local search
         covers the rest) most similar to the current scan
-        (:class:`~iceg.place_index.PlaceIndex`, one per ``reference_nodes`` stretch)."""
+        (:class:`~iceg.place_index.PlaceIndex`, one per ``reference_nodes`` stretch), none
+        of them a place the user forbade this node to close with (:meth:`_forbidden_nodes`)."""
         lc = self.config
-
         banned = self._forbidden_nodes(s)
 
         def far(ids: IntArray) -> NDArray[np.bool_]:
