@@ -953,40 +953,230 @@ def correlation_terms(
     return score, dis, ang, count, acc, n_matched
 
 
+class LatticeSettings(NamedTuple):
+    """The covariance lattice's numbers (Olson 2009; ``refine._covariance``).
+
+    Attributes:
+        unit: ``(L, 3)`` float64 lattice of ``[-1, 1]^3`` (``steps`` points per axis).
+        sigmas: Half-width in standard deviations of the least-squares covariance along each
+            of its principal axes, capped at ``cap_m`` (translation, metres) and ``cap_rad``.
+        cap_m: Cap of the half-width in translation, metres.
+        cap_rad: Cap of the half-width in rotation, radians.
+        kappa: Weights ``exp(kappa (s - s_max))`` of the robust log-likelihood ``s``.
+        end_tol_m: A point beyond its segment's extent by more than this is an outlier.
+        cauchy_sigmas: Cauchy scale of every row, in its standard deviations.
+    """
+
+    unit: np.ndarray
+    sigmas: float
+    cap_m: float
+    cap_rad: float
+    kappa: float
+    end_tol_m: float
+    cauchy_sigmas: float
+
+
+class LatticePoints(NamedTuple):
+    """The point-to-line rows at the refined pose that the lattice evaluates.
+
+    Attributes:
+        pick: ``(m,)`` int64 the rows evaluated (evenly spread; their cost is scaled up to
+            all ``N``).
+        points: ``(N, 2)`` float64 the associated points, new frame, metres.
+        normal: ``(N, 2)`` float64 unit normal of each one's segment.
+        r: ``(N,)`` float64 point-to-line residuals at the refined pose, metres.
+        seg: ``(N,)`` int64 each one's reference segment.
+    """
+
+    pick: np.ndarray
+    points: np.ndarray
+    normal: np.ndarray
+    r: np.ndarray
+    seg: np.ndarray
+
+
+#: A running product of :func:`_log1p_into` is folded into its logarithm beyond this (far
+#: below overflow: a factor is ``1 + (r / c)^2`` of a gated residual).
+_PRODUCT_FOLD = 1e100
+
+
 @njit(cache=True, nogil=True)
-def lattice_point_cost(
+def _log1p_into(log_sum: float, product: float, x: float) -> tuple[float, float]:
+    """One term ``x >= 0`` of ``sum_i log1p(x_i)`` kept as ``log_sum + log(product)``: the
+    product ``prod_i (1 + x_i)`` folded into the sum of logarithms before it can overflow,
+    so a sum costs one logarithm per many terms instead of one per term (the lattice's
+    costs; the rounding of ``1 + x_i``, about 1e-16 absolute per term, is far below the
+    differences between lattice points). Start from ``(0.0, 1.0)``."""
+    product *= 1.0 + x
+    if product > _PRODUCT_FOLD:
+        return log_sum + math.log(product), 1.0
+    return log_sum, product
+
+
+@njit(cache=True, nogil=True)
+def _lattice_deltas(lik_cov: np.ndarray, s: LatticeSettings) -> np.ndarray:
+    """``(L, 3)`` lattice perturbations ``(x, y, theta)``: ``s.sigmas`` standard deviations
+    of ``lik_cov`` along its principal axes (capped); ``(0, 3)`` when ``lik_cov`` is not
+    positive definite."""
+    evals, evecs = np.linalg.eigh(0.5 * (lik_cov + lik_cov.T))
+    for j in range(3):
+        if not (math.isfinite(evals[j]) and evals[j] > 0.0):
+            return np.zeros((0, 3))
+    half = np.empty(3)
+    for j in range(3):
+        cap = 1.0 / math.sqrt(
+            (evecs[0, j] ** 2 + evecs[1, j] ** 2) / s.cap_m**2 + evecs[2, j] ** 2 / s.cap_rad**2
+        )
+        half[j] = min(s.sigmas * math.sqrt(evals[j]), cap)
+    n_l = s.unit.shape[0]
+    deltas = np.empty((n_l, 3))
+    for k in range(n_l):
+        g0 = s.unit[k, 0] * half[0]
+        g1 = s.unit[k, 1] * half[1]
+        g2 = s.unit[k, 2] * half[2]
+        for a in range(3):
+            deltas[k, a] = g0 * evecs[a, 0] + g1 * evecs[a, 1] + g2 * evecs[a, 2]
+    return deltas
+
+
+@njit(cache=True, nogil=True)
+def _lattice_point_cost(
     deltas: np.ndarray,
-    r0: np.ndarray,
-    jac: np.ndarray,
-    along0: np.ndarray,
-    jac_along: np.ndarray,
-    seg_len: np.ndarray,
+    pose: np.ndarray,
+    pts: LatticePoints,
+    segs: LineSegments,
     end_tol_m: float,
     gate_m: float,
     cauchy_c: float,
     sigma: float,
 ) -> np.ndarray:
-    """Robust cost (Cauchy, in units of sigma^2) of the point-to-line residuals at each
-    lattice perturbation (see ``refine._lattice_covariance``): residuals and along-segment
+    """Robust cost ``(L,)`` (Cauchy, in units of sigma^2) of the sampled point-to-line rows
+    at each lattice perturbation, scaled up to all rows: residuals and along-segment
     coordinates move linearly with the perturbation; a point beyond its segment's extent
     or beyond the gate costs as much as one at the gate."""
+    n = pts.pick.shape[0]
+    c, sn = math.cos(pose[2]), math.sin(pose[2])
+    r0 = np.empty(n)
+    jac = np.empty((n, 3))
+    along0 = np.empty(n)
+    jac_along = np.empty((n, 3))
+    seg_len = np.empty(n)
+    for i in range(n):
+        p = pts.pick[i]
+        m = pts.seg[p]
+        # the point in the reference frame, relative to the pose's origin
+        rx = c * pts.points[p, 0] - sn * pts.points[p, 1]
+        ry = sn * pts.points[p, 0] + c * pts.points[p, 1]
+        nx, ny = pts.normal[p, 0], pts.normal[p, 1]
+        ux, uy = segs.u[m, 0], segs.u[m, 1]
+        r0[i] = pts.r[p]
+        jac[i, 0], jac[i, 1], jac[i, 2] = nx, ny, ny * rx - nx * ry
+        along0[i] = (rx + pose[0] - segs.a[m, 0]) * ux + (ry + pose[1] - segs.a[m, 1]) * uy
+        jac_along[i, 0], jac_along[i, 1], jac_along[i, 2] = ux, uy, uy * rx - ux * ry
+        seg_len[i] = segs.length[m]
     n_l = deltas.shape[0]
-    n = r0.shape[0]
     out = np.zeros(n_l)
     c2 = cauchy_c * cauchy_c
     sat = 0.5 * c2 * math.log1p(gate_m * gate_m / c2)
+    scale = pts.r.shape[0] / n
     for k in range(n_l):
         dx, dy, dt = deltas[k, 0], deltas[k, 1], deltas[k, 2]
-        acc = 0.0
+        n_out = 0
+        log_sum, product = 0.0, 1.0
         for i in range(n):
             r = r0[i] + jac[i, 0] * dx + jac[i, 1] * dy + jac[i, 2] * dt
             a = along0[i] + jac_along[i, 0] * dx + jac_along[i, 1] * dy + jac_along[i, 2] * dt
             if a < -end_tol_m or a > seg_len[i] + end_tol_m or abs(r) > gate_m:
-                acc += sat
+                n_out += 1
             else:
-                acc += 0.5 * c2 * math.log1p(r * r / c2)
-        out[k] = acc / (sigma * sigma)
+                log_sum, product = _log1p_into(log_sum, product, r * r / c2)
+        inliers = log_sum + math.log(product)
+        out[k] = scale * ((n_out * sat + 0.5 * c2 * inliers) / (sigma * sigma))
     return out
+
+
+@njit(cache=True, nogil=True)
+def lattice_covariance(
+    cov_ls: np.ndarray,
+    pose: np.ndarray,
+    pts: LatticePoints,
+    segs: LineSegments,
+    rows_r: np.ndarray,
+    rows_jac: np.ndarray,
+    rows_var: np.ndarray,
+    gate_m: float,
+    sigma: float,
+    s: LatticeSettings,
+) -> np.ndarray:
+    """The correlation-landscape covariance of a refinement (Olson 2009, "Real-time
+    correlative scan matching"), floored by the least-squares one (:func:`psd_max`).
+
+    The second moment of ``exp(kappa (score - score_max))`` over a lattice of perturbations
+    (:func:`_lattice_deltas` of ``cov_ls``), the score being the robust log-likelihood of
+    the refinement with its final associations: the point-to-line rows ``pts`` (a point
+    that slides beyond its segment's extent counts as an outlier at the gate, so the
+    landscape is flat where the walls give no constraint) and the other rows (residual
+    ``rows_r`` (R,), Jacobian ``rows_jac`` (R, 3), variance ``rows_var`` (R,)).
+
+    Args:
+        cov_ls: ``(3, 3)`` float64 finite least-squares covariance of ``(x, y, theta)``,
+            reference frame.
+        pose: ``(3,)`` float64 the refined pose (new scan in the reference frame).
+        gate_m: The association gate, metres; ``sigma`` the point noise, metres.
+
+    Returns:
+        ``(3, 3)`` float64 covariance of ``(x, y, theta)``, reference frame: ``cov_ls``
+        itself when it is not positive definite.
+    """
+    deltas = _lattice_deltas(cov_ls, s)
+    n_l = deltas.shape[0]
+    if n_l == 0:
+        return cov_ls
+    cost = np.zeros(n_l)
+    if pts.r.shape[0] > 0:
+        cost += _lattice_point_cost(
+            deltas, pose, pts, segs, s.end_tol_m, gate_m, s.cauchy_sigmas * sigma, sigma
+        )
+    c = s.cauchy_sigmas
+    for k in range(n_l):
+        log_sum, product = 0.0, 1.0
+        for i in range(rows_r.shape[0]):
+            rf = (
+                rows_r[i]
+                + rows_jac[i, 0] * deltas[k, 0]
+                + rows_jac[i, 1] * deltas[k, 1]
+                + rows_jac[i, 2] * deltas[k, 2]
+            ) / math.sqrt(rows_var[i])
+            log_sum, product = _log1p_into(log_sum, product, (rf / c) ** 2)
+        cost[k] += 0.5 * c * c * (log_sum + math.log(product))
+    low = cost.min()
+    w = np.empty(n_l)
+    for k in range(n_l):
+        w[k] = math.exp(s.kappa * (low - cost[k]))
+    w /= w.sum()
+    lat = np.zeros((3, 3))
+    for k in range(n_l):
+        for a in range(3):
+            for b in range(3):
+                lat[a, b] += w[k] * deltas[k, a] * deltas[k, b]
+    return psd_max(cov_ls, lat)
+
+
+@njit(cache=True, nogil=True)
+def psd_max(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """A covariance that dominates both ``a`` and ``b`` (``(3, 3)`` float64, ``a`` positive
+    definite): in the frame whitened by ``a``, ``b``'s eigenvalues are raised to at least 1;
+    ``a`` itself when it is not positive definite."""
+    try:
+        lc = np.linalg.cholesky(a)
+    except Exception:  # not positive definite
+        return a
+    li = np.linalg.inv(lc)
+    m = li @ b @ li.T
+    evals, evecs = np.linalg.eigh(0.5 * (m + m.T))
+    d = np.maximum(evals, 1.0)
+    out = lc @ (evecs * d) @ evecs.T @ lc.T
+    return 0.5 * (out + out.T)
 
 
 @njit(cache=True, nogil=True)

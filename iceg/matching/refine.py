@@ -42,6 +42,8 @@ from numpy.typing import NDArray
 from iceg.matching._kernels import (
     GnPhase,
     GnSettings,
+    LatticePoints,
+    LatticeSettings,
     LineSegments,
     PairGeometry,
     PointCloud,
@@ -49,7 +51,7 @@ from iceg.matching._kernels import (
     SegmentPoints,
     cloud_nearest,
     gauss_newton_phase,
-    lattice_point_cost,
+    lattice_covariance,
     point_line_system,
     points_explained,
     segment_grid,
@@ -113,6 +115,18 @@ class RefineSettings:
             int(EOW),
         )
 
+    def lattice(self) -> LatticeSettings:
+        """The settings the compiled covariance lattice needs."""
+        return LatticeSettings(
+            _unit_lattice(self.lattice_steps),
+            float(self.lattice_sigmas),
+            float(self.lattice_cap_m),
+            float(self.lattice_cap_rad),
+            float(self.lattice_kappa),
+            float(self.end_tol_m),
+            float(self.cauchy_sigmas),
+        )
+
 
 class FeaturePairing(Protocol):
     """The correlation's feature pairing at a pose (see
@@ -125,10 +139,6 @@ class FeaturePairing(Protocol):
 
 def _cauchy_weight(r: FloatArray, c: float) -> FloatArray:
     return 1.0 / (1.0 + (r / c) ** 2)
-
-
-def _cauchy_cost(r: FloatArray, c: float) -> FloatArray:
-    return 0.5 * c * c * np.log1p((r / c) ** 2)
 
 
 @dataclass(frozen=True, eq=False)
@@ -148,28 +158,14 @@ _EMPTY_ROWS = _Rows(np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
 @dataclass(frozen=True, eq=False)
 class _PointRows:
     """Point-to-line rows at the refined pose: segment of each used point (-1: none), the
-    associated mask and residuals (m); their Jacobians ``(N, 3)`` and the points in the
-    reference frame ``(N, 2)`` are computed on first use (only a covariance reads them)."""
+    associated mask, and of the associated points their residuals ``(N,)`` (m), positions
+    ``(N, 2)`` (new frame, m) and their segments' unit normals ``(N, 2)``."""
 
     idx: IntArray
     sel: NDArray[np.bool_]
     r: FloatArray
-    pose: FloatArray  # (3,) the refined pose
-    points: FloatArray  # (N, 2) the associated points, new frame
-    normal: FloatArray  # (N, 2) unit normals of their segments
-
-    @functools.cached_property
-    def _rotated(self) -> FloatArray:
-        return self.points @ rot(self.pose[2]).T
-
-    @functools.cached_property
-    def jac(self) -> FloatArray:
-        rp, nrm = self._rotated, self.normal
-        return np.column_stack([nrm[:, 0], nrm[:, 1], nrm[:, 1] * rp[:, 0] - nrm[:, 0] * rp[:, 1]])
-
-    @functools.cached_property
-    def q(self) -> FloatArray:
-        return self._rotated + self.pose[:2]
+    points: FloatArray
+    normal: FloatArray
 
 
 @dataclass(frozen=True, eq=False)
@@ -228,6 +224,11 @@ class RefineProblem:
     def kernel_settings(self) -> GnSettings:
         """:meth:`RefineSettings.kernel` of ``settings``."""
         return self.settings.kernel()
+
+    @functools.cached_property
+    def lattice_settings(self) -> LatticeSettings:
+        """:meth:`RefineSettings.lattice` of ``settings``."""
+        return self.settings.lattice()
 
 
 @dataclass(frozen=True, eq=False)
@@ -603,9 +604,7 @@ def _final_point_rows(
         pose, problem.points, problem.lines, gate, sigma, problem.kernel_settings
     )
     sel = idx >= 0
-    rows = _PointRows(
-        idx, sel, res[sel], pose.copy(), problem.points.xy[sel], problem.segs.normal[idx[sel]]
-    )
+    rows = _PointRows(idx, sel, res[sel], problem.points.xy[sel], problem.segs.normal[idx[sel]])
     return hess, rows, sigma
 
 
@@ -650,18 +649,30 @@ def _covariance(
     gate: float,
 ) -> tuple[FloatArray, FloatArray]:
     """Least-squares covariance ``(hess + prior)^-1`` (infinite when singular) and the final
-    covariance: the lattice second moment (Olson 2009) floored by it (:func:`psd_max`)."""
+    covariance: the lattice second moment (Olson 2009) floored by it
+    (:func:`~iceg.matching._kernels.lattice_covariance`, at most ``LATTICE_POINTS``
+    point-to-line rows evaluated, evenly spread)."""
     a = hess + problem.prior.info
     try:
         a_inv = np.asarray(np.linalg.inv(a), dtype=np.float64)
     except np.linalg.LinAlgError:
         a_inv = np.full((3, 3), np.inf)
-    cov_ls = 0.5 * (a_inv + a_inv.T) if np.all(np.isfinite(a_inv)) else np.full((3, 3), np.inf)
-    cov = cov_ls
-    if np.all(np.isfinite(cov_ls)):
-        lat = _lattice_covariance(problem, pose, pr, rows, sigma, gate, a_inv)
-        if lat is not None:
-            cov = psd_max(cov_ls, lat)
+    if not np.all(np.isfinite(a_inv)):
+        return np.full((3, 3), np.inf), np.full((3, 3), np.inf)
+    cov_ls = 0.5 * (a_inv + a_inv.T)
+    points = LatticePoints(_lattice_pick(pr.r.shape[0]), pr.points, pr.normal, pr.r, pr.idx[pr.sel])
+    cov = lattice_covariance(
+        cov_ls,
+        pose,
+        points,
+        problem.lines,
+        rows.r,
+        np.ascontiguousarray(rows.jac),
+        rows.var,
+        gate,
+        sigma,
+        problem.lattice_settings,
+    )
     return cov_ls, cov
 
 
@@ -672,104 +683,13 @@ def _unit_lattice(steps: int) -> FloatArray:
     return np.stack(np.meshgrid(k, k, k, indexing="ij"), axis=-1).reshape(-1, 3)
 
 
-def _lattice_deltas(lik_cov: FloatArray, s: RefineSettings) -> FloatArray | None:
-    """``(L, 3)`` lattice perturbations ``(x, y, theta)``: ``lattice_sigmas`` standard
-    deviations of the likelihood covariance along its principal axes (capped),
-    ``lattice_steps`` points per axis; None when the covariance is not positive definite."""
-    evals, evecs = np.linalg.eigh(0.5 * (lik_cov + lik_cov.T))
-    if not np.all(np.isfinite(evals)) or np.any(evals <= 0):
-        return None
-    cap = 1.0 / np.sqrt(
-        (evecs[0] ** 2 + evecs[1] ** 2) / s.lattice_cap_m**2 + evecs[2] ** 2 / s.lattice_cap_rad**2
-    )
-    half = np.minimum(s.lattice_sigmas * np.sqrt(evals), cap)
-    g = _unit_lattice(s.lattice_steps) * half
-    return np.asarray(g @ evecs.T, dtype=np.float64)
-
-
-def _lattice_point_cost(
-    problem: RefineProblem,
-    pose: FloatArray,
-    pr: _PointRows,
-    deltas: FloatArray,
-    gate: float,
-    sigma: float,
-) -> FloatArray:
-    """Robust cost ``(L,)`` of the point-to-line rows on the lattice: at most
-    ``LATTICE_POINTS`` points, evenly spread, their cost scaled up to all."""
-    segs, s = problem.segs, problem.settings
-    n_all = pr.r.shape[0]
-    pick = np.linspace(0, n_all - 1, min(n_all, LATTICE_POINTS)).astype(np.int64)
-    q = pr.q[pick]
-    seg = pr.idx[pr.sel][pick]
-    u = segs.u[seg]
-    # Along-segment coordinate and its derivative.
-    along = np.einsum("na,na->n", q - segs.a[seg], u)
-    rq = q - pose[:2]
-    j_along = np.column_stack([u[:, 0], u[:, 1], u[:, 1] * rq[:, 0] - u[:, 0] * rq[:, 1]])
-    cost = lattice_point_cost(
-        deltas,
-        np.ascontiguousarray(pr.r[pick]),
-        np.ascontiguousarray(pr.jac[pick]),
-        along,
-        j_along,
-        np.ascontiguousarray(segs.length[seg]),
-        s.end_tol_m,
-        gate,
-        s.cauchy_sigmas * sigma,
-        sigma,
-    )
-    return np.asarray((n_all / pick.shape[0]) * cost, dtype=np.float64)
-
-
-def _lattice_covariance(
-    problem: RefineProblem,
-    pose: FloatArray,
-    pr: _PointRows,
-    rows: _Rows,
-    sigma: float,
-    gate: float,
-    lik_cov: FloatArray,
-) -> FloatArray | None:
-    """Second moment of ``exp(kappa (score - score_max))`` on a lattice of perturbations
-    (Olson 2009, "Real-time correlative scan matching"). The score is the robust
-    log-likelihood of the refinement with the final associations: a point that slides
-    beyond its segment's extent (plus tolerance) counts as an outlier at the gate, so the
-    landscape is flat where the walls give no constraint.
-
-    Returns:
-        ``(3, 3)`` covariance of ``(x, y, theta)`` in the reference frame, or None when
-        ``lik_cov`` is not positive definite.
-    """
-    s = problem.settings
-    deltas = _lattice_deltas(lik_cov, s)
-    if deltas is None:
-        return None
-    cost = np.zeros(deltas.shape[0])
-    if pr.r.shape[0] > 0:
-        cost += _lattice_point_cost(problem, pose, pr, deltas, gate, sigma)
-    if rows.r.shape[0] > 0:
-        rf = (rows.r[:, None] + rows.jac @ deltas.T) / np.sqrt(rows.var)[:, None]
-        cost += _cauchy_cost(rf, s.cauchy_sigmas).sum(axis=0)
-    score = -cost
-    w = np.exp(s.lattice_kappa * (score - score.max()))
-    w /= w.sum()
-    return np.asarray((deltas.T * w) @ deltas, dtype=np.float64)
-
-
-def psd_max(a: FloatArray, b: FloatArray) -> FloatArray:
-    """A covariance that dominates both ``a`` and ``b`` (``a`` positive definite): in the
-    frame whitened by ``a``, ``b``'s eigenvalues are raised to at least 1."""
-    try:
-        lc = np.linalg.cholesky(a)
-    except np.linalg.LinAlgError:
-        return a
-    li = np.linalg.inv(lc)
-    m = li @ b @ li.T
-    evals, evecs = np.linalg.eigh(0.5 * (m + m.T))
-    d = np.maximum(evals, 1.0)
-    out = lc @ (evecs * d) @ evecs.T @ lc.T
-    return 0.5 * (out + out.T)
+@functools.lru_cache(maxsize=256)
+def _lattice_pick(n_rows: int) -> IntArray:
+    """``(m,)`` int64 the rows of ``n_rows`` point-to-line rows the lattice evaluates: at
+    most ``LATTICE_POINTS``, evenly spread (read-only)."""
+    pick = np.linspace(0, n_rows - 1, min(n_rows, LATTICE_POINTS)).astype(np.int64)
+    pick.flags.writeable = False
+    return pick
 
 
 def bounds_prior_information(max_translation_m: float, max_rotation_rad: float) -> FloatArray:

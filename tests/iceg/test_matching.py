@@ -37,16 +37,20 @@ from iceg.features import extract
 from iceg.matching import IceMatcher, MatchBounds, MatchingConfig, transform_lines
 from iceg.matching._kernels import (
     GnSettings,
+    LatticePoints,
+    LatticeSettings,
     LineSegments,
     SegmentPoints,
     associate,
     cloud_nearest,
     density_peak,
+    lattice_covariance,
     nearest_segment_distance,
     nearest_walls,
     no_segment_grid,
     pairwise_sum,
     point_line_system,
+    psd_max,
     segment_grid,
 )
 from iceg.matching.config import CovarianceConfig
@@ -801,6 +805,136 @@ def test_grid_equals_the_numpy_expressions_bit_for_bit() -> None:
             got = grid_points(points, cell)
             for a, b in zip(got, (origin, n_cells, key[order], order), strict=True):
                 assert a.dtype == b.dtype and np.array_equal(a, b)
+
+
+def _lattice_reference(
+    cov_ls: np.ndarray,
+    pose: np.ndarray,
+    pts: LatticePoints,
+    segs: LineSegments,
+    rows: tuple[np.ndarray, np.ndarray, np.ndarray],
+    gate: float,
+    sigma: float,
+    s: LatticeSettings,
+) -> np.ndarray:
+    """Olson's lattice second moment written out in numpy, term by term (``math.log1p`` of
+    every row at every lattice point, ``math.fsum``), for the compiled kernel's test."""
+    evals, evecs = np.linalg.eigh(cov_ls)
+    cap = 1.0 / np.sqrt((evecs[0] ** 2 + evecs[1] ** 2) / s.cap_m**2 + evecs[2] ** 2 / s.cap_rad**2)
+    deltas = (s.unit * np.minimum(s.sigmas * np.sqrt(evals), cap)) @ evecs.T
+    c_pt = s.cauchy_sigmas * sigma
+    sat = 0.5 * c_pt**2 * math.log1p(gate**2 / c_pt**2)
+    cost = np.zeros(deltas.shape[0])
+    for k, d in enumerate(deltas):
+        terms = []
+        for p in pts.pick:
+            m = pts.seg[p]
+            q = transform_points(pose, pts.points[p][None])[0] - pose[:2]  # rotated point
+            n = pts.normal[p]
+            r = pts.r[p] + n @ d[:2] + (n[1] * q[0] - n[0] * q[1]) * d[2]
+            u = segs.u[m]
+            a = (q + pose[:2] - segs.a[m]) @ u + u @ d[:2] + (u[1] * q[0] - u[0] * q[1]) * d[2]
+            outside = a < -s.end_tol_m or a > segs.length[m] + s.end_tol_m or abs(r) > gate
+            terms.append(sat if outside else 0.5 * c_pt**2 * math.log1p(r * r / c_pt**2))
+        if terms:
+            cost[k] = pts.r.shape[0] / pts.pick.shape[0] * math.fsum(terms) / sigma**2
+        rf = (rows[0] + rows[1] @ d) / np.sqrt(rows[2])
+        c = s.cauchy_sigmas
+        cost[k] += math.fsum(0.5 * c * c * math.log1p((x / c) ** 2) for x in rf)
+    w = np.exp(s.kappa * (cost.min() - cost))
+    w /= w.sum()
+    lat = (deltas.T * w) @ deltas
+    # psd_max: the lattice moment's eigenvalues raised to at least 1 in the frame whitened
+    # by cov_ls
+    lc = np.linalg.cholesky(cov_ls)
+    li = np.linalg.inv(lc)
+    evals_w, evecs_w = np.linalg.eigh(li @ lat @ li.T)
+    return np.asarray(lc @ (evecs_w * np.maximum(evals_w, 1.0)) @ evecs_w.T @ lc.T)
+
+
+@pytest.mark.parametrize("n_points", [0, 7, 240])
+def test_lattice_covariance_equals_the_lattice_written_out(n_points: int) -> None:
+    # The compiled correlation-landscape covariance (one logarithm per many terms, Olson
+    # 2009) against the same lattice written out term by term: equal to rounding, with
+    # points inside and beyond their segments and the gate, and rows of every size.
+    rng = np.random.default_rng(n_points)
+    settings = LatticeSettings(
+        np.stack(np.meshgrid(*[np.linspace(-1.0, 1.0, 5)] * 3, indexing="ij"), -1).reshape(-1, 3),
+        3.0,
+        1.0,
+        math.radians(10.0),
+        1.0,
+        0.05,
+        3.0,
+    )
+    for _ in range(5):
+        m = 6
+        a = rng.uniform(-3.0, 3.0, (m, 2))
+        angle = rng.uniform(-np.pi, np.pi, m)
+        u = np.column_stack([np.cos(angle), np.sin(angle)])
+        length = rng.uniform(0.5, 4.0, m)
+        normal = np.column_stack([-u[:, 1], u[:, 0]])
+        segs = LineSegments(
+            a, u, length, normal, np.einsum("ma,ma->m", normal, a), np.zeros((m, 2, 2)),
+            no_segment_grid(),
+        )  # fmt: skip
+        seg = rng.integers(0, m, n_points)
+        pose = np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-np.pi, np.pi)])
+        # points near their segments (a few beyond an end), in the new scan's frame
+        along = rng.uniform(-0.3, 1.1, n_points) * length[seg]
+        world = a[seg] + along[:, None] * u[seg] + rng.normal(0, 0.02, (n_points, 1)) * normal[seg]
+        points = transform_points(inverse(pose), world)
+        r = np.einsum("na,na->n", world - a[seg], normal[seg])
+        pick = np.linspace(0, n_points - 1, min(n_points, 100)).astype(np.int64)
+        pts = LatticePoints(pick, points, normal[seg], r, seg)
+        n_rows = int(rng.integers(0, 30))
+        rows = (
+            rng.normal(0, 0.05, n_rows),
+            rng.normal(0, 1, (n_rows, 3)),
+            rng.uniform(1e-4, 1e-2, n_rows),
+        )
+        q = rng.normal(size=(3, 3))
+        cov_ls = q @ q.T * 1e-4 + np.diag([1e-4, 1e-4, 1e-5])
+        cov_ls = 0.5 * (cov_ls + cov_ls.T)
+        got = lattice_covariance(cov_ls, pose, pts, segs, *rows, 0.1, 0.02, settings)
+        want = _lattice_reference(cov_ls, pose, pts, segs, rows, 0.1, 0.02, settings)
+        np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-15 * np.abs(want).max())
+        # the floor: the result dominates the least-squares covariance
+        assert np.linalg.eigvalsh(got - cov_ls).min() >= -1e-12 * np.abs(cov_ls).max()
+
+
+def test_lattice_covariance_of_a_covariance_not_positive_definite_is_itself() -> None:
+    cov_ls = np.diag([1e-4, 0.0, 1e-5])
+    pts = LatticePoints(
+        np.zeros(0, np.int64),
+        np.zeros((0, 2)),
+        np.zeros((0, 2)),
+        np.zeros(0),
+        np.zeros(0, np.int64),
+    )
+    segs = LineSegments(
+        np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2)), np.zeros(0),
+        np.zeros((0, 2, 2)), no_segment_grid(),
+    )  # fmt: skip
+    unit = np.zeros((1, 3))
+    settings = LatticeSettings(unit, 3.0, 1.0, 0.2, 1.0, 0.05, 3.0)
+    got = lattice_covariance(cov_ls, np.zeros(3), pts, segs, np.zeros(0), np.zeros((0, 3)),
+                             np.zeros(0), 0.1, 0.02, settings)  # fmt: skip
+    np.testing.assert_array_equal(got, cov_ls)
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_psd_max_dominates_both_covariances(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    qa, qb = rng.normal(size=(3, 3)), rng.normal(size=(3, 3))
+    a = qa @ qa.T + 1e-3 * np.eye(3)
+    b = qb @ qb.T * 10.0 ** rng.uniform(-3, 3)
+    out = psd_max(a, b)
+    np.testing.assert_allclose(out, out.T, rtol=0, atol=0)
+    scale = np.abs(out).max()
+    assert np.linalg.eigvalsh(out - a).min() >= -1e-10 * scale
+    assert np.linalg.eigvalsh(out - b).min() >= -1e-10 * scale
 
 
 def test_points_within_equals_brute_force() -> None:
