@@ -31,6 +31,7 @@ from iceg.matching.refine import (
     _final_system,
     bounds_prior_information,
     build_cloud,
+    points_within,
     refine,
 )
 from iceg.types import MatchResult, ScanFeatures
@@ -177,15 +178,13 @@ def to_body(cov_ref: FloatArray, theta: float) -> FloatArray:
 
 
 def overlap(new_points: FloatArray, ref_points: FloatArray, pose: FloatArray) -> float:
-    """Fraction of the new points within :data:`INLIER_DISTANCE_M` of a reference point
-    when moved by ``pose``."""
-    from scipy.spatial import cKDTree
-
+    """Fraction of the new points closer than :data:`INLIER_DISTANCE_M` to a reference
+    point when moved by ``pose`` (:func:`~iceg.matching.refine.points_within`, the gridded
+    query of the contradiction test)."""
     if new_points.shape[0] == 0 or ref_points.shape[0] == 0:
         return 0.0
-    q = new_points @ rot(pose[2]).T + pose[:2]
-    d, _ = cKDTree(ref_points).query(q, distance_upper_bound=INLIER_DISTANCE_M)
-    return float(np.mean(np.isfinite(d)))
+    explained = points_within(new_points, np.asarray(pose)[None], ref_points, INLIER_DISTANCE_M)
+    return float(np.mean(explained[0]))
 
 
 def check_result(
