@@ -21,7 +21,7 @@ from iceg.matching.peers import (
     matrix_to_pose,
     pose_to_matrix,
 )
-from iceg.matching.plicp import PlIcpMatcher, reference_points
+from iceg.matching.plicp import INLIER_DISTANCE_M, PlIcpMatcher, overlap, reference_points
 from iceg.slam import Slam
 from iceg.types import ScanFeatures
 from iceg_common import se2
@@ -154,3 +154,17 @@ def test_plicp_drives_the_whole_pipeline() -> None:
     result = slam.finish()
     assert position_errors(result.poses, run.true_poses[:150]).rmse_m < 0.05
     assert sum(result.match_failures.values()) <= 2
+
+
+def test_point_overlap_counts_the_points_closer_than_the_inlier_distance() -> None:
+    # Points 0.5 m apart on a line, moved by a pose; the reference holds every point at its
+    # moved place, each one offset across the line by 0.0, 0.1, 0.2 or 0.3 m in turn: the
+    # first two offsets are within INLIER_DISTANCE_M (0.15 m), the others not (the nearest
+    # other reference point is farther), so half the points count.
+    assert INLIER_DISTANCE_M == 0.15
+    pose = np.array([1.0, -2.0, 0.7])
+    pts = np.column_stack([np.arange(40) * 0.5, np.zeros(40)])
+    offsets = np.tile([0.0, 0.1, 0.2, 0.3], 10)
+    ref = se2.transform_points(pose, pts + np.column_stack([np.zeros(40), offsets]))
+    assert overlap(pts, ref, pose) == 0.5
+    assert overlap(pts, ref[:0], pose) == 0.0
