@@ -30,13 +30,13 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from frontends.scan import LaserScan
 from iceg.landmark_association import nearest_free_pairs, within_gate_of_any
-from iceg.matching import transform_lines
+from iceg.landmark_frames import move_features, move_points, move_segments
 from iceg.matching.geometry import PolarProfile
 from iceg.matching.matcher import walls_seen_through
 from iceg.types import FeatureKind, MatchResult, ScanFeatures
 from iceg.visibility import expected_landmarks
 from iceg_common.errors import FeatureMapError
-from iceg_common.se2 import between, compose, inverse, rotation_matrix
+from iceg_common.se2 import between, compose, inverse
 
 log = logging.getLogger(__name__)
 
@@ -324,12 +324,6 @@ class MapReference:
         return replace(self, features=walls)
 
 
-def _move_points(r: FloatArray, t: FloatArray, pts: FloatArray) -> FloatArray:
-    """``(n, k, 2)`` points moved by rotations ``r`` ``(n, 2, 2)`` and translations ``t``
-    ``(n, 2)``."""
-    return np.einsum("nab,nkb->nka", r, pts) + t[:, None, :]
-
-
 _C = TypeVar("_C", bound="_Columns")
 
 #: Initial row capacity of a growing column container (:class:`_Columns`).
@@ -476,14 +470,14 @@ class _Landmarks(_Columns):
     def in_frame(self, rows: IntArray, frame_from_anchor: FloatArray) -> LandmarkView:
         """The landmarks ``rows`` ``(L,)`` in another frame, given each one's anchor pose
         ``(L, 3)`` there (copies of the rows: only the fields of the view are gathered)."""
-        r = rotation_matrix(frame_from_anchor[:, 2])
+        xy, cov, directions = move_features(rows, frame_from_anchor, self.xy, self.cov, self.dirs)
         return LandmarkView(
             ids=self.id[rows],
             anchor=self.anchor[rows],
             kind=self.kind[rows],
-            xy=np.einsum("nab,nb->na", r, self.xy[rows]) + frame_from_anchor[:, :2],
-            cov=r @ self.cov[rows] @ np.swapaxes(r, 1, 2),
-            directions=np.einsum("nab,nkb->nka", r, self.dirs[rows]),
+            xy=xy,
+            cov=cov,
+            directions=directions,
             opening_rad=self.opening[rows],
             n_expected=self.n_expected[rows],
             n_matched=self.n_matched[rows],
@@ -515,10 +509,7 @@ class _Segments(_Columns):
         """Endpoints ``(M, 2, 2)``, lines ``(M, 2)`` and their covariances ``(M, 2, 2)`` of
         the segments ``rows`` ``(M,)`` in another frame, given each one's node pose ``(M, 3)``
         there."""
-        rot = rotation_matrix(frame_from_node[:, 2])
-        ep = _move_points(rot, frame_from_node[:, :2], self.ep[rows])
-        lines, cov = transform_lines(self.lines[rows], self.cov[rows], frame_from_node)
-        return ep, lines, cov
+        return move_segments(rows, frame_from_node, self.ep, self.lines, self.cov)  # type: ignore[no-any-return]
 
 
 @dataclass
@@ -1110,7 +1101,7 @@ class FeatureMap:
         psel = _block_rows(self._pts_rows, want)
         ppos, _ = _lookup(ids, pt.node[psel])
         prel = between(frame, poses[ppos])
-        points = np.einsum("nab,nb->na", rotation_matrix(prel[:, 2]), pt.xy[psel]) + prel[:, :2]
+        points = move_points(prel, pt.xy[psel][:, None, :], True)[:, 0]
         # Each node's points are contiguous: shift its segments' ranges to its block.
         nodes_sel, first = np.unique(pt.node[psel], return_index=True)
         k = np.searchsorted(nodes_sel, sg.node[ssel])
@@ -1315,10 +1306,7 @@ class FeatureMap:
         anchor_in_new = (
             between(new_pose, tab_poses[apos[afound]]) if rows.shape[0] else np.zeros((0, 3))
         )
-        xy_new = (
-            np.einsum("nab,nb->na", rotation_matrix(anchor_in_new[:, 2]), lm.xy[rows])
-            + anchor_in_new[:, :2]
-        )
+        xy_new = move_points(anchor_in_new, lm.xy[rows][:, None, :], True)[:, 0]
         slot = np.full(len(self), -1, dtype=np.int64)
         slot[rows] = np.arange(rows.shape[0])
         return _Near(rows, anchor_in_new, xy_new, slot)
@@ -1398,16 +1386,15 @@ class FeatureMap:
         """Landmark rows ``rr`` take new features ``fi``, whose node sits at ``na`` ``(n, 3)``
         in each anchor's frame."""
         lm = self._lm
-        r = rotation_matrix(na[:, 2])
-        lm.xy[rr] = np.einsum("nab,nb->na", r, features.xy[fi]) + na[:, :2]
-        lm.cov[rr] = r @ features.cov[fi] @ np.swapaxes(r, 1, 2)
-        lm.dirs[rr] = np.einsum("nab,nkb->nka", r, features.directions[fi])
+        lm.xy[rr], lm.cov[rr], lm.dirs[rr] = move_features(
+            fi, na, features.xy, features.cov, features.directions
+        )
         lm.opening[rr] = features.opening_rad[fi]
         lm.kind[rr] = features.kind[fi]
         sup, wp, wd, _ = (a[fi] for a in self._geometry_of(features))
-        lm.support[rr] = _move_points(r, na[:, :2], sup)
-        lm.wall_p[rr] = _move_points(r, na[:, :2], wp)
-        lm.wall_d[rr] = np.einsum("nab,nkb->nka", r, wd)
+        lm.support[rr] = move_points(na, sup, True)
+        lm.wall_p[rr] = move_points(na, wp, True)
+        lm.wall_d[rr] = move_points(na, wd, False)
         # The side seen from the new node, expressed for the anchor-frame wall.
         o = na[:, None, :2]  # new node's origin in the anchor frame
         wpa, wda = lm.wall_p[rr], lm.wall_d[rr]

@@ -23,13 +23,14 @@ from iceg.feature_map import (
 )
 from iceg.features import extract
 from iceg.landmark_association import nearest_free_pairs, within_gate_of_any
-from iceg.matching import IceMatcher, MatchBounds
+from iceg.landmark_frames import move_features, move_points, move_segments
+from iceg.matching import IceMatcher, MatchBounds, transform_lines
 from iceg.matching.geometry import PolarProfile
 from iceg.matching.matcher import walls_seen_through
 from iceg.types import FeatureKind, MatchResult
 from iceg.visibility import expected_landmarks
 from iceg_common.errors import FeatureMapError
-from iceg_common.se2 import between, transform_points
+from iceg_common.se2 import between, rotation_matrix, transform_points
 from tests.iceg.test_matching import hand_scan, point_features, room_walls
 
 
@@ -526,3 +527,55 @@ def test_association_kernels_equal_the_numpy_expressions() -> None:
             dd = np.linalg.norm(feature_xy[paired][:, None, :] - landmark_xy[None], axis=2)
             want = np.any(dd <= 0.3, axis=0)
         assert np.array_equal(within_gate_of_any(feature_xy, paired, landmark_xy, 0.3), want)
+
+
+def test_moved_geometry_equals_the_numpy_expressions() -> None:
+    # The compiled frame changes of the feature map against the numpy expressions they
+    # replaced (R p + t, R C R^T, R d, transform_lines): equal to rounding, NaN directions
+    # kept NaN, lines that flip (rho < 0 after the move) included.
+    rng = np.random.default_rng(3)
+    n_all, n = 50, 30
+    rows = rng.choice(n_all, n, replace=False).astype(np.int64)
+    poses = np.column_stack([rng.uniform(-20, 20, (n, 2)), rng.uniform(-np.pi, np.pi, n)])
+    r = rotation_matrix(poses[:, 2])
+    xy = rng.uniform(-10, 10, (n_all, 2))
+    q = rng.normal(size=(n_all, 2, 2))
+    cov = q @ np.swapaxes(q, 1, 2) * 1e-3
+    dirs = rng.normal(size=(n_all, 2, 2))
+    dirs[::4] = np.nan  # Intersections: no directions
+    got = move_features(rows, poses, xy, cov, dirs)
+    want = (
+        np.einsum("nab,nb->na", r, xy[rows]) + poses[:, :2],
+        r @ cov[rows] @ np.swapaxes(r, 1, 2),
+        np.einsum("nab,nkb->nka", r, dirs[rows]),
+    )
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-13)
+    pts = rng.uniform(-10, 10, (n, 3, 2))
+    pts[::5, 2] = np.nan
+    np.testing.assert_allclose(
+        move_points(poses, pts, True),
+        np.einsum("nab,nkb->nka", r, pts) + poses[:, None, :2],
+        rtol=1e-13,
+        atol=1e-13,
+    )
+    np.testing.assert_allclose(
+        move_points(poses, pts, False), np.einsum("nab,nkb->nka", r, pts), rtol=1e-13, atol=1e-13
+    )
+    ep = rng.uniform(-10, 10, (n_all, 2, 2))
+    lines = np.column_stack([rng.uniform(-np.pi, np.pi, n_all), rng.uniform(0, 8, n_all)])
+    lcov = q @ np.swapaxes(q, 1, 2) * 1e-4
+    got_ep, got_lines, got_cov = move_segments(rows, poses, ep, lines, lcov)
+    want_lines, want_cov = transform_lines(lines[rows], lcov[rows], poses)
+    np.testing.assert_allclose(
+        got_ep, np.einsum("nab,nkb->nka", r, ep[rows]) + poses[:, None, :2], rtol=1e-13, atol=1e-13
+    )
+    np.testing.assert_allclose(got_lines, want_lines, rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(got_cov, want_cov, rtol=1e-12, atol=1e-16)
+    flipped = (
+        lines[rows, 1]
+        + np.cos(lines[rows, 0] + poses[:, 2]) * poses[:, 0]
+        + np.sin(lines[rows, 0] + poses[:, 2]) * poses[:, 1]
+        < 0
+    )
+    assert 5 < np.count_nonzero(flipped) < n - 5
