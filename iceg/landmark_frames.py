@@ -46,10 +46,12 @@ def move_features(
     out_xy = np.empty((n, 2))
     out_cov = np.empty((n, 2, 2))
     out_dirs = np.empty((n, k, 2))
+    th, c, s = np.nan, 1.0, 0.0
     for i in range(n):
         r = rows[i]
-        c = math.cos(poses[i, 2])
-        s = math.sin(poses[i, 2])
+        if poses[i, 2] != th:  # rows of one anchor share its pose
+            th = poses[i, 2]
+            c, s = math.cos(th), math.sin(th)
         out_xy[i, 0] = c * xy[r, 0] - s * xy[r, 1] + poses[i, 0]
         out_xy[i, 1] = s * xy[r, 0] + c * xy[r, 1] + poses[i, 1]
         # R C
@@ -75,9 +77,11 @@ def move_points(poses: np.ndarray, pts: np.ndarray, translate: bool) -> np.ndarr
     ``(n, k, 2)`` float64 in the target frame."""
     n, k = pts.shape[0], pts.shape[1]
     out = np.empty((n, k, 2))
+    th, c, s = np.nan, 1.0, 0.0
     for i in range(n):
-        c = math.cos(poses[i, 2])
-        s = math.sin(poses[i, 2])
+        if poses[i, 2] != th:  # rows of one frame share its pose
+            th = poses[i, 2]
+            c, s = math.cos(th), math.sin(th)
         tx = poses[i, 0] if translate else 0.0
         ty = poses[i, 1] if translate else 0.0
         for j in range(k):
@@ -113,11 +117,13 @@ def move_segments(
     out_ep = np.empty((n, 2, 2))
     out_lines = np.empty((n, 2))
     out_cov = np.empty((n, 2, 2))
+    th, c, s = np.nan, 1.0, 0.0
     for i in range(n):
         r = rows[i]
-        x, y, th = poses[i, 0], poses[i, 1], poses[i, 2]
-        c = math.cos(th)
-        s = math.sin(th)
+        x, y = poses[i, 0], poses[i, 1]
+        if poses[i, 2] != th:  # segments of one node share its pose
+            th = poses[i, 2]
+            c, s = math.cos(th), math.sin(th)
         for j in range(2):
             out_ep[i, j, 0] = c * endpoints[r, j, 0] - s * endpoints[r, j, 1] + x
             out_ep[i, j, 1] = s * endpoints[r, j, 0] + c * endpoints[r, j, 1] + y

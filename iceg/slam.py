@@ -32,6 +32,7 @@ from graph import FactorKind, PoseGraph, odometry_covariance
 from iceg.config import IcegConfig
 from iceg.feature_map import FeatureMap, MapReference
 from iceg.features import extract
+from iceg.landmark_frames import move_points
 from iceg.loop_closure import LoopCloser, LoopClosureStats, innovation_chi2
 from iceg.matching import MatchBounds
 from iceg.matching.geometry import PolarProfile
@@ -892,12 +893,9 @@ class Slam:
         them (current estimates), metres."""
         _, poses = self.graph.estimates_of(recent)
         relative = se2.between(poses[-1], poses)
-        return np.concatenate(
-            [
-                se2.transform_points(pose, self._points_of(i))
-                for i, pose in zip(recent.tolist(), relative, strict=True)
-            ]
-        )
+        points = [self._points_of(i) for i in recent.tolist()]
+        each = np.repeat(relative, [p.shape[0] for p in points], axis=0)
+        return move_points(each, np.concatenate(points)[:, None, :], True)[:, 0]  # type: ignore[no-any-return]
 
     def _remember_points(self, node_id: int, feats: ScanFeatures) -> None:
         """Keep the new node's scan points for :meth:`_point_match`; forget those of nodes
