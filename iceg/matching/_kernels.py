@@ -953,6 +953,75 @@ def correlation_terms(
     return score, dis, ang, count, acc, n_matched
 
 
+@njit(cache=True, nogil=True)
+def segment_arrays(
+    endpoints: np.ndarray, lines: np.ndarray, cov: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The fields of a :class:`~iceg.matching.geometry.SegmentSet` from segment endpoints
+    ``(M, 2, 2)``, Hessian lines ``(M, 2)`` ``(alpha_rad, rho_m)`` and their covariances
+    ``(M, 2, 2)`` (float64): first endpoints ``a`` ``(M, 2)``, unit directions ``u``,
+    lengths, unit normals ``(cos alpha, sin alpha)``, ``rho``, ``alpha`` and the covariances
+    with non-finite entries set to 0."""
+    m = endpoints.shape[0]
+    a = np.empty((m, 2))
+    u = np.empty((m, 2))
+    length = np.empty(m)
+    normal = np.empty((m, 2))
+    rho = np.empty(m)
+    alpha = np.empty(m)
+    out_cov = np.empty((m, 2, 2))
+    for j in range(m):
+        a[j, 0], a[j, 1] = endpoints[j, 0, 0], endpoints[j, 0, 1]
+        dx = endpoints[j, 1, 0] - a[j, 0]
+        dy = endpoints[j, 1, 1] - a[j, 1]
+        length[j] = math.hypot(dx, dy)
+        guard = max(length[j], 1e-12)
+        u[j, 0], u[j, 1] = dx / guard, dy / guard
+        alpha[j], rho[j] = lines[j, 0], lines[j, 1]
+        normal[j, 0], normal[j, 1] = math.cos(alpha[j]), math.sin(alpha[j])
+        for p in range(2):
+            for q in range(2):
+                c = cov[j, p, q]
+                out_cov[j, p, q] = c if math.isfinite(c) else 0.0
+    return a, u, length, normal, rho, alpha, out_cov
+
+
+@njit(cache=True, nogil=True)
+def line_covariances(
+    a: np.ndarray,
+    u: np.ndarray,
+    length: np.ndarray,
+    alpha: np.ndarray,
+    cov: np.ndarray,
+    wall_end_sigma_m: float,
+    min_length_m: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each reference line's effective ``(alpha, rho)`` covariance (``refine.
+    effective_line_cov``: the fit covariance ``cov`` plus the model error of a wall whose two
+    ends lie off the line by ``wall_end_sigma_m``, lengths floored at ``min_length_m``) and
+    its inverse, regularised by ``1e-12`` on the diagonal: ``(M, 2, 2)`` float64 each."""
+    m = a.shape[0]
+    line_cov = np.empty((m, 2, 2))
+    info = np.empty((m, 2, 2))
+    var_offset = 0.5 * wall_end_sigma_m**2
+    for j in range(m):
+        mx = a[j, 0] + 0.5 * length[j] * u[j, 0]
+        my = a[j, 1] + 0.5 * length[j] * u[j, 1]
+        k = -math.sin(alpha[j]) * mx + math.cos(alpha[j]) * my  # d rho / d alpha at the middle
+        var_angle = 2.0 * wall_end_sigma_m**2 / max(length[j], min_length_m) ** 2
+        c00 = cov[j, 0, 0] + var_angle
+        c01 = cov[j, 0, 1] + k * var_angle
+        c10 = cov[j, 1, 0] + k * var_angle
+        c11 = cov[j, 1, 1] + (var_offset + k * k * var_angle)
+        line_cov[j, 0, 0], line_cov[j, 0, 1] = c00, c01
+        line_cov[j, 1, 0], line_cov[j, 1, 1] = c10, c11
+        r00, r11 = c00 + 1e-12, c11 + 1e-12
+        det = r00 * r11 - c01 * c10
+        info[j, 0, 0], info[j, 0, 1] = r11 / det, -c01 / det
+        info[j, 1, 0], info[j, 1, 1] = -c10 / det, r00 / det
+    return line_cov, info
+
+
 class LatticeSettings(NamedTuple):
     """The covariance lattice's numbers (Olson 2009; ``refine._covariance``).
 

@@ -12,6 +12,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from iceg.matching._kernels import segment_arrays
 from iceg.types import FeatureKind, ScanFeatures
 from iceg_common.se2 import rotation_matrix as rot
 from iceg_common.se2 import wrap_angle
@@ -239,17 +240,13 @@ class SegmentSet:
     @classmethod
     def from_features(cls, features: ScanFeatures) -> SegmentSet:
         """Segments of a :class:`ScanFeatures` (any frame)."""
-        ep = np.asarray(features.seg_endpoints, dtype=np.float64).reshape(-1, 2, 2)
-        a = ep[:, 0]
-        d = ep[:, 1] - a
-        length = np.hypot(d[:, 0], d[:, 1])
-        u = d / np.maximum(length, 1e-12)[:, None]
-        alpha = np.asarray(features.seg_lines[:, 0], dtype=np.float64).reshape(-1)
-        rho = np.asarray(features.seg_lines[:, 1], dtype=np.float64).reshape(-1)
-        normal = np.stack([np.cos(alpha), np.sin(alpha)], axis=1)
-        cov = np.asarray(features.seg_cov, dtype=np.float64).reshape(-1, 2, 2)
-        cov = np.where(np.isfinite(cov), cov, 0.0)
-        return cls(a, u, length, normal, rho, alpha, cov)
+        return cls(
+            *segment_arrays(
+                np.asarray(features.seg_endpoints, dtype=np.float64).reshape(-1, 2, 2),
+                np.asarray(features.seg_lines, dtype=np.float64).reshape(-1, 2),
+                np.asarray(features.seg_cov, dtype=np.float64).reshape(-1, 2, 2),
+            )
+        )
 
     @property
     def n(self) -> int:

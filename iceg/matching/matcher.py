@@ -49,7 +49,7 @@ from iceg.matching.refine import (
     RefineSettings,
     bounds_prior_information,
     build_cloud,
-    effective_line_cov,
+    effective_line_info,
     empty_cloud,
     refine,
 )
@@ -570,7 +570,7 @@ class IceMatcher:
         point_alpha = features.seg_lines[pseg[on_seg], 0] if on_seg.shape[0] else np.zeros(0)
         segs = SegmentSet.from_features(ctx.reference)
         s = self._settings
-        line_cov = effective_line_cov(segs, s.wall_end_sigma_m)
+        _, line_info = effective_line_info(segs, s.wall_end_sigma_m)
         b = ctx.bounds
         prior = PosePrior(
             ctx.prediction, bounds_prior_information(b.max_translation_m, b.max_rotation_rad)
@@ -578,7 +578,7 @@ class IceMatcher:
         return RefineProblem(
             SegmentPoints(points, point_alpha),
             segs,
-            line_cov,
+            line_info,
             ctx.new_geom,
             ctx.ref_geom,
             ctx.correlation,

@@ -52,6 +52,7 @@ from iceg.matching._kernels import (
     cloud_nearest,
     gauss_newton_phase,
     lattice_covariance,
+    line_covariances,
     point_line_system,
     points_explained,
     segment_grid,
@@ -176,8 +177,8 @@ class RefineProblem:
         points: The new scan's points on new segments (new frame) and their segments'
             normal angles.
         segs: Reference segments (reference frame).
-        line_cov: ``(M, 2, 2)`` float64 covariance of each reference line ``(alpha, rho)``
-            (see :func:`effective_line_cov`).
+        line_info: ``(M, 2, 2)`` float64 information (inverse covariance) of each reference
+            line ``(alpha, rho)`` (see :func:`effective_line_info`).
         new_geom, ref_geom: New and reference feature geometry.
         pairing: The correlation's feature pairing (pairs at a pose).
         prior: The bounds' prior (mean: the prediction; information: uniform variance of
@@ -188,7 +189,7 @@ class RefineProblem:
 
     points: SegmentPoints
     segs: SegmentSet
-    line_cov: FloatArray
+    line_info: FloatArray
     new_geom: FeatureGeometry
     ref_geom: FeatureGeometry
     pairing: FeaturePairing
@@ -200,10 +201,9 @@ class RefineProblem:
     def lines(self) -> LineSegments:
         """Reference segments with their line information, for the kernels."""
         s = self.segs
-        info = np.linalg.inv(self.line_cov + 1e-12 * np.eye(2))
         reach = self.settings.gate_m + self.settings.end_tol_m  # every gate is <= gate_m
         grid = segment_grid(s.a, s.u, s.length, reach, max(reach, SEGMENT_GRID_MIN_CELL_M))
-        return LineSegments(s.a, s.u, s.length, s.normal, s.rho, info, grid)
+        return LineSegments(s.a, s.u, s.length, s.normal, s.rho, self.line_info, grid)
 
     @functools.cached_property
     def pair_geometry(self) -> PairGeometry:
@@ -515,16 +515,16 @@ def effective_line_cov(segs: SegmentSet, wall_end_sigma_m: float) -> FloatArray:
     ``sigma^2 / 2`` at the midpoint, moved to ``(alpha, rho)`` through
     ``d rho / d alpha`` about the midpoint. Unlike the fit covariance it does not shrink with
     the number of beams on the wall, so the information one wall gives saturates."""
-    mid = segs.a + 0.5 * segs.length[:, None] * segs.u
-    tang = np.stack([-np.sin(segs.alpha), np.cos(segs.alpha)], axis=1)
-    k = np.einsum("ma,ma->m", tang, mid)  # d rho / d alpha about the midpoint
-    var_angle = 2.0 * wall_end_sigma_m**2 / np.maximum(segs.length, _MIN_WALL_LENGTH_M) ** 2
-    var_offset = 0.5 * wall_end_sigma_m**2
-    floor = np.zeros((segs.n, 2, 2))
-    floor[:, 0, 0] = var_angle
-    floor[:, 0, 1] = floor[:, 1, 0] = k * var_angle
-    floor[:, 1, 1] = var_offset + k * k * var_angle
-    return np.asarray(segs.cov + floor, dtype=np.float64)
+    return effective_line_info(segs, wall_end_sigma_m)[0]
+
+
+def effective_line_info(segs: SegmentSet, wall_end_sigma_m: float) -> tuple[FloatArray, FloatArray]:
+    """:func:`effective_line_cov` and its inverse (``1e-12`` added to the diagonal), each
+    ``(M, 2, 2)`` float64, in one compiled pass (:func:`~iceg.matching._kernels.
+    line_covariances`)."""
+    return line_covariances(  # type: ignore[no-any-return]
+        segs.a, segs.u, segs.length, segs.alpha, segs.cov, wall_end_sigma_m, _MIN_WALL_LENGTH_M
+    )
 
 
 def refine(
