@@ -11,6 +11,7 @@ Truth comes from three places:
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import itertools
 import math
@@ -76,7 +77,13 @@ from iceg.matching.hypotheses import (
     vote,
 )
 from iceg.matching.matcher import walls_seen_through
-from iceg.matching.refine import build_cloud, effective_line_cov, grid_points, points_within
+from iceg.matching.refine import (
+    build_cloud,
+    effective_line_cov,
+    effective_line_info,
+    grid_points,
+    points_within,
+)
 from iceg.types import FeatureKind, ScanFeatures
 from iceg_common.errors import ConfigError, MatchingError
 from iceg_common.se2 import between, compose, inverse, transform_points, wrap_angle
@@ -1357,6 +1364,44 @@ def test_wall_model_error_is_the_covariance_of_perturbed_wall_ends() -> None:
     # uncertain as a wall twice as long; no floor at sigma 0.
     assert cov[0, 0, 0] == pytest.approx(2 * sigma**2 / length[0] ** 2)
     np.testing.assert_array_equal(effective_line_cov(segs, 0.0), np.zeros((2, 2, 2)))
+
+
+def test_segment_arrays_and_line_information_equal_the_numpy_expressions() -> None:
+    # The compiled segment arrays and line covariances against the numpy expressions they
+    # replaced: equal to rounding, non-finite fit covariances taken as 0, a zero-length
+    # segment's direction 0, and the information the inverse of the covariance.
+    rng = np.random.default_rng(11)
+    m = 40
+    ep = rng.uniform(-8, 8, (m, 2, 2))
+    ep[3, 1] = ep[3, 0]  # zero length
+    lines = np.column_stack([rng.uniform(-np.pi, np.pi, m), rng.uniform(0, 8, m)])
+    q = rng.normal(size=(m, 2, 2))
+    cov = q @ np.swapaxes(q, 1, 2) * 1e-5
+    cov[5, 0, 1] = np.nan
+    f = dataclasses.replace(ScanFeatures.empty(), seg_endpoints=ep, seg_lines=lines, seg_cov=cov)
+    segs = SegmentSet.from_features(f)
+    d = ep[:, 1] - ep[:, 0]
+    length = np.hypot(d[:, 0], d[:, 1])
+    np.testing.assert_array_equal(segs.a, ep[:, 0])
+    np.testing.assert_allclose(segs.length, length, rtol=1e-15)
+    np.testing.assert_allclose(segs.u, d / np.maximum(length, 1e-12)[:, None], rtol=1e-15)
+    np.testing.assert_allclose(
+        segs.normal, np.column_stack([np.cos(lines[:, 0]), np.sin(lines[:, 0])]), rtol=1e-15
+    )
+    np.testing.assert_array_equal(segs.cov, np.where(np.isfinite(cov), cov, 0.0))
+    sigma = 0.01
+    line_cov, info = effective_line_info(segs, sigma)
+    mid = segs.a + 0.5 * segs.length[:, None] * segs.u
+    k = -np.sin(segs.alpha) * mid[:, 0] + np.cos(segs.alpha) * mid[:, 1]
+    var_angle = 2.0 * sigma**2 / np.maximum(segs.length, 1e-3) ** 2
+    want = segs.cov.copy()
+    want[:, 0, 0] += var_angle
+    want[:, 0, 1] += k * var_angle
+    want[:, 1, 0] += k * var_angle
+    want[:, 1, 1] += 0.5 * sigma**2 + k * k * var_angle
+    np.testing.assert_allclose(line_cov, want, rtol=1e-13)
+    np.testing.assert_array_equal(line_cov, effective_line_cov(segs, sigma))
+    np.testing.assert_allclose(info, np.linalg.inv(want + 1e-12 * np.eye(2)), rtol=1e-9)
 
 
 def test_walls_seen_through_measures_each_wall_against_the_beams() -> None:
