@@ -512,6 +512,23 @@ def _pair_covariance(
 
 
 @njit(cache=True, nogil=True)
+def _eow_row(
+    pose: np.ndarray, geom: PairGeometry, i: int, j: int, eow: int, jv: np.ndarray
+) -> tuple[float, float]:
+    """The along-wall row of a feature pair ``(i, j)`` that involves an EOW (the reference
+    EOW's wall, else the new one's rotated): its residual and variance (metres, m^2), its
+    Jacobian written into ``jv`` ``(3,)``."""
+    rnx, rny, ex, ey, ca, cb, cd = _pair_covariance(pose, geom, i, j)
+    ang = geom.ref_edge0[j] if geom.ref_kind[j] == eow else geom.new_edge0[i] + pose[2]
+    dx = math.cos(ang)
+    dy = math.sin(ang)
+    jv[0] = dx
+    jv[1] = dy
+    jv[2] = dy * rnx - dx * rny
+    return dx * ex + dy * ey, dx * dx * ca + 2 * dx * dy * cb + dy * dy * cd
+
+
+@njit(cache=True, nogil=True)
 def _add_row(hess: np.ndarray, grad: np.ndarray, jv: np.ndarray, r: float, w: float) -> None:
     """``H += w j j^T``, ``g += w j r`` for one scalar row."""
     for p in range(3):
@@ -544,17 +561,10 @@ def feature_system(
         j = pairs[k, 1]
         rnx, rny, ex, ey, ca, cb, cd = _pair_covariance(pose, geom, i, j)
         if geom.ref_kind[j] == eow or geom.new_kind[i] == eow:
-            ang = geom.ref_edge0[j] if geom.ref_kind[j] == eow else geom.new_edge0[i] + pose[2]
-            dx = math.cos(ang)
-            dy = math.sin(ang)
-            r = dx * ex + dy * ey
-            var = dx * dx * ca + 2 * dx * dy * cb + dy * dy * cd
+            r, var = _eow_row(pose, geom, i, j, eow, jv)
             if not (var > 0.0) or not math.isfinite(r):
                 continue
             w = 1.0 / (1.0 + r * r / var / (cauchy_c * cauchy_c)) / var
-            jv[0] = dx
-            jv[1] = dy
-            jv[2] = dy * rnx - dx * rny
             _add_row(hess, grad, jv, r, w)
         elif use_positions:
             det = ca * cd - cb * cb
@@ -628,10 +638,31 @@ def cloud_system(
     reference point; Cauchy weights with scale ``cauchy_sigmas`` on the whitened residual."""
     hess = np.zeros((3, 3))
     grad = np.zeros(3)
+    r, jac, w, _ = cloud_rows(pose, cloud, gate_m, sigma, cauchy_sigmas)
+    for k in range(r.shape[0]):
+        _add_row(hess, grad, jac[k], r[k], w[k])
+    return hess, grad
+
+
+@njit(cache=True, nogil=True)
+def cloud_rows(
+    pose: np.ndarray, cloud: PointCloud, gate_m: float, sigma: float, cauchy_sigmas: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The rows of :func:`cloud_system`, point by point: residuals ``(R,)`` (metres),
+    Jacobians ``(R, 3)``, weights ``(R,)`` (Cauchy weight over variance) and variances
+    ``(R,)`` (m^2)."""
     near = cloud_nearest(pose, cloud, gate_m)
     c = math.cos(pose[2])
     s = math.sin(pose[2])
-    jv = np.empty(3)
+    n_rows = 0
+    for i in range(near.shape[0]):
+        if near[i] >= 0:
+            n_rows += 1 if math.isfinite(cloud.ref_normal[near[i], 0]) else 2
+    r = np.empty(n_rows)
+    jac = np.empty((n_rows, 3))
+    w = np.empty(n_rows)
+    var_out = np.empty(n_rows)
+    k = 0
     for i in range(near.shape[0]):
         j = near[i]
         if j < 0:
@@ -644,24 +675,70 @@ def cloud_system(
         ny = cloud.ref_normal[j, 1]
         if math.isfinite(nx):
             var = 2.0 * sigma * sigma
-            r = nx * ex + ny * ey
-            w = 1.0 / (1.0 + (r / math.sqrt(var) / cauchy_sigmas) ** 2) / var
-            jv[0] = nx
-            jv[1] = ny
-            jv[2] = ny * rpx - nx * rpy
-            _add_row(hess, grad, jv, r, w)
+            r[k] = nx * ex + ny * ey
+            w[k] = 1.0 / (1.0 + (r[k] / math.sqrt(var) / cauchy_sigmas) ** 2) / var
+            var_out[k] = var
+            jac[k, 0], jac[k, 1], jac[k, 2] = nx, ny, ny * rpx - nx * rpy
+            k += 1
             continue
         var = 2.0 * sigma * sigma + (0.5 * min(cloud.ref_spacing[j], 1e3)) ** 2
-        w = 1.0 / (1.0 + (math.hypot(ex, ey) / math.sqrt(var) / cauchy_sigmas) ** 2) / var
-        jv[0] = 1.0
-        jv[1] = 0.0
-        jv[2] = -rpy
-        _add_row(hess, grad, jv, ex, w)
-        jv[0] = 0.0
-        jv[1] = 1.0
-        jv[2] = rpx
-        _add_row(hess, grad, jv, ey, w)
-    return hess, grad
+        wk = 1.0 / (1.0 + (math.hypot(ex, ey) / math.sqrt(var) / cauchy_sigmas) ** 2) / var
+        r[k], r[k + 1] = ex, ey
+        w[k], w[k + 1] = wk, wk
+        var_out[k], var_out[k + 1] = var, var
+        jac[k, 0], jac[k, 1], jac[k, 2] = 1.0, 0.0, -rpy
+        jac[k + 1, 0], jac[k + 1, 1], jac[k + 1, 2] = 0.0, 1.0, rpx
+        k += 2
+    return r, jac, w, var_out
+
+
+@njit(cache=True, nogil=True)
+def covariance_rows(
+    pose: np.ndarray,
+    pairs: np.ndarray,
+    geom: PairGeometry,
+    cloud: PointCloud,
+    gate_m: float,
+    sigma: float,
+    settings: GnSettings,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The rows of a refined pose's covariance besides the point-to-line ones: the EOW
+    pairs' along-wall rows (:func:`feature_system`'s fine phase) and the off-segment rows
+    (:func:`cloud_rows`), with their information.
+
+    Returns:
+        Residuals ``(R,)`` (metres), Jacobians ``(R, 3)``, variances ``(R,)`` (m^2) and the
+        information ``(3, 3)`` ``sum_k w_k j_k j_k^T`` (Cauchy weight over variance).
+    """
+    cauchy_c = settings.cauchy_sigmas
+    eow = settings.eow_kind
+    cr, cjac, cw, cvar = cloud_rows(pose, cloud, gate_m, sigma, cauchy_c)
+    n_q = pairs.shape[0]
+    r = np.empty(n_q + cr.shape[0])
+    jac = np.empty((n_q + cr.shape[0], 3))
+    var = np.empty(n_q + cr.shape[0])
+    hess = np.zeros((3, 3))
+    grad = np.zeros(3)  # not used: _add_row's other half
+    jv = np.empty(3)
+    k = 0
+    for q in range(n_q):
+        i = pairs[q, 0]
+        j = pairs[q, 1]
+        if not (geom.ref_kind[j] == eow or geom.new_kind[i] == eow):
+            continue
+        rk, vk = _eow_row(pose, geom, i, j, eow, jv)
+        if not (vk > 0.0) or not math.isfinite(rk):
+            continue
+        _add_row(hess, grad, jv, rk, 1.0 / (1.0 + rk * rk / vk / (cauchy_c * cauchy_c)) / vk)
+        r[k], var[k] = rk, vk
+        jac[k, 0], jac[k, 1], jac[k, 2] = jv[0], jv[1], jv[2]
+        k += 1
+    for m in range(cr.shape[0]):
+        _add_row(hess, grad, cjac[m], cr[m], cw[m])
+        r[k], var[k] = cr[m], cvar[m]
+        jac[k, 0], jac[k, 1], jac[k, 2] = cjac[m, 0], cjac[m, 1], cjac[m, 2]
+        k += 1
+    return r[:k], jac[:k], var[:k], hess
 
 
 @njit(cache=True, nogil=True)

@@ -49,7 +49,7 @@ from iceg.matching._kernels import (
     PointCloud,
     PosePrior,
     SegmentPoints,
-    cloud_nearest,
+    covariance_rows,
     gauss_newton_phase,
     lattice_covariance,
     line_covariances,
@@ -58,7 +58,7 @@ from iceg.matching._kernels import (
     segment_grid,
     sorted_cells,
 )
-from iceg.matching.geometry import EOW, FeatureGeometry, SegmentSet, rot
+from iceg.matching.geometry import EOW, FeatureGeometry, SegmentSet
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -138,22 +138,15 @@ class FeaturePairing(Protocol):
         ...
 
 
-def _cauchy_weight(r: FloatArray, c: float) -> FloatArray:
-    return 1.0 / (1.0 + (r / c) ** 2)
-
-
 @dataclass(frozen=True, eq=False)
 class _Rows:
-    """Linearised residual rows at one pose: residual, Jacobian (w.r.t. a perturbation of
-    ``(x, y, theta)`` in the reference frame), robust weight and variance."""
+    """Linearised residual rows at one pose: residual ``(R,)`` (m), Jacobian ``(R, 3)``
+    (w.r.t. a perturbation of ``(x, y, theta)`` in the reference frame) and variance
+    ``(R,)`` (m^2)."""
 
     r: FloatArray
     jac: FloatArray
-    w: FloatArray
     var: FloatArray
-
-
-_EMPTY_ROWS = _Rows(np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
 
 
 @dataclass(frozen=True, eq=False)
@@ -387,125 +380,6 @@ def grid_points(
     return origin, n_cells, np.ascontiguousarray(key[order]), order
 
 
-def _feature_rows(
-    problem: RefineProblem, pose: FloatArray, pairs: IntArray, use_positions: bool
-) -> _Rows:
-    """Rows of the feature pairs ``(P, 2)`` ``[new, ref]``: a scalar along-wall row for each
-    pair that involves an EOW, two whitened position rows for the others when
-    ``use_positions`` (same model as :func:`~iceg.matching._kernels.feature_system`)."""
-    if pairs.shape[0] == 0:
-        return _EMPTY_ROWS
-    new, ref = problem.new_geom, problem.ref_geom
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    i, j = pairs[:, 0], pairs[:, 1]
-    nx, ny = new.xy[i, 0], new.xy[i, 1]
-    rnx = c * nx - s * ny
-    rny = s * nx + c * ny
-    ex = rnx + pose[0] - ref.xy[j, 0]
-    ey = rny + pose[1] - ref.xy[j, 1]
-    cn = new.cov[i]
-    a, b, d = cn[:, 0, 0], cn[:, 0, 1], cn[:, 1, 1]
-    cr = ref.cov[j]
-    ca = c * c * a - 2 * c * s * b + s * s * d + cr[:, 0, 0]
-    cb = c * s * (a - d) + (c * c - s * s) * b + cr[:, 0, 1]
-    cd = s * s * a + 2 * c * s * b + c * c * d + cr[:, 1, 1]
-    is_eow_r = ref.kind[j] == EOW
-    along = is_eow_r | (new.kind[i] == EOW)
-    rows = _EMPTY_ROWS
-    if np.any(along):
-        ang = np.where(is_eow_r, ref.edge[j, 0], new.edge[i, 0] + pose[2])[along]
-        dx, dy = np.cos(ang), np.sin(ang)
-        rr = dx * ex[along] + dy * ey[along]
-        jac = np.column_stack([dx, dy, dy * rnx[along] - dx * rny[along]])
-        var = dx * dx * ca[along] + 2 * dx * dy * cb[along] + dy * dy * cd[along]
-        rows = _Rows(rr, jac, np.zeros(0), var)
-    if use_positions and not np.all(along):
-        p = ~along
-        cov = (ca[p], cb[p], cd[p])
-        rows = _cat_rows(rows, _position_rows(ex[p], ey[p], rnx[p], rny[p], cov))
-    if rows.r.shape[0] == 0:
-        return _EMPTY_ROWS
-    w = _cauchy_weight(rows.r / np.sqrt(rows.var), problem.settings.cauchy_sigmas)
-    return _Rows(rows.r, rows.jac, w, rows.var)
-
-
-def _position_rows(
-    ex: FloatArray,
-    ey: FloatArray,
-    rnx: FloatArray,
-    rny: FloatArray,
-    cov: tuple[FloatArray, FloatArray, FloatArray],
-) -> _Rows:
-    """Two rows per pair, the position error ``(ex, ey)`` whitened by the Cholesky factor of
-    its covariance ``[[ca, cb], [cb, cd]]`` (weights left empty)."""
-    ca, cb, cd = cov
-    l11 = np.sqrt(ca)
-    l21 = cb / l11
-    l22 = np.sqrt(np.maximum(cd - l21 * l21, _MIN_VARIANCE))
-    u1 = ex / l11
-    u2 = (ey - l21 * u1) / l22
-    n = u1.shape[0]
-    j1 = np.zeros((n, 3))
-    j1[:, 0] = 1.0 / l11
-    j1[:, 2] = -rny / l11
-    j2 = np.zeros((n, 3))
-    j2[:, 0] = -l21 / l11 / l22
-    j2[:, 1] = 1.0 / l22
-    j2[:, 2] = (rnx - l21 * (-rny) / l11) / l22
-    return _Rows(np.concatenate([u1, u2]), np.concatenate([j1, j2]), np.zeros(0), np.ones(2 * n))
-
-
-def _cloud_rows(problem: RefineProblem, pose: FloatArray, gate_m: float, sigma: float) -> _Rows:
-    """Rows of the off-segment points whose nearest reference point is within the gate (the
-    model of :func:`~iceg.matching._kernels.cloud_system`): one point-to-line row
-    (variance ``2 sigma^2``) on the reference point's local line, or two point-to-point
-    rows (variance ``2 sigma^2 + (spacing / 2)^2`` each) for an isolated reference point."""
-    cloud = problem.cloud
-    if cloud.points.shape[0] == 0:
-        return _EMPTY_ROWS
-    near = cloud_nearest(pose, cloud, gate_m)
-    ok = near >= 0
-    if not np.any(ok):
-        return _EMPTY_ROWS
-    idx = near[ok]
-    rps = cloud.points[ok] @ rot(pose[2]).T
-    e = rps + pose[:2] - cloud.ref_points[idx]
-    jac = np.zeros((e.shape[0], 2, 3))
-    jac[:, 0, 0] = 1.0
-    jac[:, 1, 1] = 1.0
-    jac[:, 0, 2] = -rps[:, 1]
-    jac[:, 1, 2] = rps[:, 0]
-    nrm = cloud.ref_normal[idx]
-    line = np.isfinite(nrm[:, 0])
-    cs = problem.settings.cauchy_sigmas
-    rows = _EMPTY_ROWS
-    if np.any(line):
-        rr = np.einsum("na,na->n", nrm[line], e[line])
-        jj = np.einsum("na,nak->nk", nrm[line], jac[line])
-        vv = np.full(rr.shape[0], 2.0 * sigma**2)
-        rows = _Rows(rr, jj, _cauchy_weight(rr / np.sqrt(vv), cs), vv)
-    pt = ~line
-    if np.any(pt):
-        var = 2.0 * sigma**2 + (0.5 * np.minimum(cloud.ref_spacing[idx[pt]], 1e3)) ** 2
-        ep = e[pt]
-        w = np.repeat(_cauchy_weight(np.hypot(ep[:, 0], ep[:, 1]) / np.sqrt(var), cs), 2)
-        rows = _cat_rows(rows, _Rows(ep.reshape(-1), jac[pt].reshape(-1, 3), w, np.repeat(var, 2)))
-    return rows
-
-
-def _cat_rows(a: _Rows, b: _Rows) -> _Rows:
-    if b.r.shape[0] == 0:
-        return a
-    if a.r.shape[0] == 0:
-        return b
-    return _Rows(
-        np.concatenate([a.r, b.r]),
-        np.concatenate([a.jac, b.jac]),
-        np.concatenate([a.w, b.w]),
-        np.concatenate([a.var, b.var]),
-    )
-
-
 def effective_line_cov(segs: SegmentSet, wall_end_sigma_m: float) -> FloatArray:
     """``(M, 2, 2)`` covariance of each reference line ``(alpha, rho)``: the fit covariance
     plus the model error of the wall: its two ends off the fitted line by independent
@@ -630,13 +504,16 @@ def _final_rows(
     """The information ``(3, 3)`` of the point-to-line (``point_hess``), EOW-pair and
     off-segment rows at the refined pose (prior excluded), and the latter rows (for the
     lattice)."""
-    hess = point_hess.copy()
-    rows = _cat_rows(
-        _feature_rows(problem, pose, pairs, False), _cloud_rows(problem, pose, gate, sigma)
+    r, jac, var, hess = covariance_rows(
+        pose,
+        np.ascontiguousarray(pairs, dtype=np.int64),
+        problem.pair_geometry,
+        problem.cloud,
+        gate,
+        sigma,
+        problem.kernel_settings,
     )
-    if rows.r.shape[0] > 0:
-        hess += (rows.jac.T * (rows.w / rows.var)) @ rows.jac
-    return hess, rows
+    return point_hess + hess, _Rows(r, jac, var)
 
 
 def _covariance(

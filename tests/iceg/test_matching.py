@@ -41,9 +41,11 @@ from iceg.matching._kernels import (
     LatticePoints,
     LatticeSettings,
     LineSegments,
+    PairGeometry,
     SegmentPoints,
     associate,
     cloud_nearest,
+    covariance_rows,
     density_peak,
     lattice_covariance,
     nearest_segment_distance,
@@ -86,7 +88,14 @@ from iceg.matching.refine import (
 )
 from iceg.types import FeatureKind, ScanFeatures
 from iceg_common.errors import ConfigError, MatchingError
-from iceg_common.se2 import between, compose, inverse, transform_points, wrap_angle
+from iceg_common.se2 import (
+    between,
+    compose,
+    inverse,
+    rotation_matrix,
+    transform_points,
+    wrap_angle,
+)
 from tests.conftest import shared_file
 
 SIGMA_M = 0.01  # range noise of the hand-made scans, metres
@@ -1402,6 +1411,80 @@ def test_segment_arrays_and_line_information_equal_the_numpy_expressions() -> No
     np.testing.assert_allclose(line_cov, want, rtol=1e-13)
     np.testing.assert_array_equal(line_cov, effective_line_cov(segs, sigma))
     np.testing.assert_allclose(info, np.linalg.inv(want + 1e-12 * np.eye(2)), rtol=1e-9)
+
+
+def test_covariance_rows_equal_the_numpy_expressions() -> None:
+    # The compiled rows of a refined pose's covariance (EOW pairs along their wall, off-
+    # segment points on a reference point's local line or to an isolated point) against the
+    # same model written in numpy: the same rows, information equal to rounding.
+    rng = np.random.default_rng(21)
+    pose = np.array([0.3, -0.2, 0.4])
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    k_new, k_ref = 12, 15
+    q = rng.normal(size=(k_new + k_ref, 2, 2))
+    cov = q @ np.swapaxes(q, 1, 2) * 1e-4
+    kinds = np.array([int(FeatureKind.CORNER), int(FeatureKind.EOW), int(FeatureKind.INTERSECTION)])
+    geom = PairGeometry(
+        rng.uniform(-5, 5, (k_new, 2)), cov[:k_new], rng.choice(kinds, k_new),
+        rng.uniform(-np.pi, np.pi, k_new), rng.uniform(-5, 5, (k_ref, 2)), cov[k_new:],
+        rng.choice(kinds, k_ref), rng.uniform(-np.pi, np.pi, k_ref),
+    )  # fmt: skip
+    pairs = np.column_stack([rng.permutation(k_new)[:10], rng.permutation(k_ref)[:10]])
+    ref = rng.uniform(-4, 4, (300, 2))
+    normal = rng.normal(size=(300, 2))
+    normal /= np.hypot(normal[:, 0], normal[:, 1])[:, None]
+    normal[::3] = np.nan  # isolated reference points
+    spacing = rng.uniform(0.01, 0.2, 300)
+    pts = transform_points(inverse(pose), ref[:120] + rng.normal(0, 0.05, (120, 2)))
+    cloud = build_cloud(pts, ref, spacing, normal, 0.3)
+    gate, sigma, cs = 0.3, 0.02, 2.5
+    settings = GnSettings(0.15, math.sin(math.radians(20)), 0.005, cs, gate, 4.0, 0.04, EOW)
+    r, jac, var, hess = covariance_rows(pose, pairs, geom, cloud, gate, sigma, settings)
+    want_r: list[float] = []
+    want_jac: list[np.ndarray] = []
+    want_var: list[float] = []
+    want_w: list[float] = []
+    n_eow = n_isolated = 0
+    for i, j in pairs:
+        if EOW not in (geom.new_kind[i], geom.ref_kind[j]):
+            continue
+        rn = np.array([c * geom.new_xy[i, 0] - s * geom.new_xy[i, 1],
+                       s * geom.new_xy[i, 0] + c * geom.new_xy[i, 1]])  # fmt: skip
+        e = rn + pose[:2] - geom.ref_xy[j]
+        rot = rotation_matrix(pose[2])
+        cv = rot @ geom.new_cov[i] @ rot.T + geom.ref_cov[j]
+        ang = geom.ref_edge0[j] if geom.ref_kind[j] == EOW else geom.new_edge0[i] + pose[2]
+        d = np.array([math.cos(ang), math.sin(ang)])
+        want_r.append(d @ e)
+        want_var.append(d @ cv @ d)
+        want_jac.append([d[0], d[1], d[1] * rn[0] - d[0] * rn[1]])
+        want_w.append(1.0 / (1.0 + (want_r[-1] / math.sqrt(want_var[-1]) / cs) ** 2) / want_var[-1])
+        n_eow += 1
+    for i, j in enumerate(cloud_nearest(pose, cloud, gate)):
+        if j < 0:
+            continue
+        rp = rotation_matrix(pose[2]) @ pts[i]
+        e = rp + pose[:2] - ref[j]
+        jj = np.array([[1.0, 0.0, -rp[1]], [0.0, 1.0, rp[0]]])
+        if np.isfinite(normal[j, 0]):
+            v = 2 * sigma**2
+            want_r.append(normal[j] @ e)
+            want_jac.append(normal[j] @ jj)
+            want_var.append(v)
+            want_w.append(1.0 / (1.0 + (want_r[-1] / math.sqrt(v) / cs) ** 2) / v)
+        else:
+            v = 2 * sigma**2 + (0.5 * spacing[j]) ** 2
+            want_r += [e[0], e[1]]
+            want_jac += [jj[0], jj[1]]
+            want_var += [v, v]
+            want_w += 2 * [1.0 / (1.0 + (math.hypot(*e) / math.sqrt(v) / cs) ** 2) / v]
+            n_isolated += 1
+    np.testing.assert_allclose(r, want_r, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(jac, np.array(want_jac), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(var, want_var, rtol=1e-12)
+    want_hess = (np.array(want_jac).T * np.array(want_w)) @ np.array(want_jac)
+    np.testing.assert_allclose(hess, want_hess, rtol=1e-10)
+    assert n_eow >= 3 and n_isolated >= 10 and r.shape[0] - n_eow - 2 * n_isolated >= 20
 
 
 def test_walls_seen_through_measures_each_wall_against_the_beams() -> None:
