@@ -54,15 +54,30 @@ def run_scans(
         LogFormatError: there are no scans.
     """
     slam = Slam(config)
-    n = 0
+    with helper_processes(slam, slam.config.slam.workers or auto_workers()) as prefetch:
+        return _process(slam, prefetch, scans, progress, total)
+
+
+def _process(
+    slam: Slam,
+    prefetch: FeaturePrefetcher,
+    scans: Iterable[LaserScan],
+    progress: bool,
+    total: int | None,
+) -> SlamResult:
+    """Every scan through ``slam`` (features from ``prefetch``), then its finished result.
+
+    Raises:
+        LogFormatError: there are no scans.
+    """
     if progress:
         from tqdm.auto import tqdm  # lazy: tqdm.auto imports asyncio (a cold-start cost)
 
         scans = tqdm(scans, total=total, unit="scan", desc="iceg")
-    with helper_processes(slam, slam.config.slam.workers or auto_workers()) as prefetch:
-        for scan, features in prefetch.scans(scans):
-            slam.process(scan, features=features)
-            n += 1
+    n = 0
+    for scan, features in prefetch.scans(scans):
+        slam.process(scan, features=features)
+        n += 1
     if n == 0:
         raise LogFormatError("the input holds no laser scans")
     return slam.finish()
@@ -133,13 +148,17 @@ def run_log(
     check_log_file(Path(path))
     reader = open_log(path, stamps=stamps, **(reader_options or {}))
     rel = read_relations(relations) if relations is not None else None
-    # compact: no LaserScan object per scan held during the run
-    scans = ScanStore(shift_odometry(reader, odometry_time_offset_s))
-    if not scans:
-        raise LogFormatError(f"{path}: the log holds no laser scans")
-    if rel is not None:
-        check_relations_match(rel, scans.stamps_s)
-    result = run_scans(scans, config, progress=progress, total=len(scans))
+    slam = Slam(config)
+    # the helpers start first: the feature worker loads its compiled kernels while the log
+    # is read
+    with helper_processes(slam, slam.config.slam.workers or auto_workers()) as prefetch:
+        # compact: no LaserScan object per scan held during the run
+        scans = ScanStore(shift_odometry(reader, odometry_time_offset_s))
+        if not scans:
+            raise LogFormatError(f"{path}: the log holds no laser scans")
+        if rel is not None:
+            check_relations_match(rel, scans.stamps_s)
+        result = _process(slam, prefetch, scans, progress, len(scans))
     report = getattr(reader, "stamp_report", None)
     result.metrics["stamps"] = (
         report.as_dict() if isinstance(report, StampReport) else {"policy": stamps}
@@ -209,8 +228,11 @@ def run_simulated_demo(
     """
     from frontends.simulate import office_world, simulate
 
-    run = simulate(office_world(), seed=seed)
-    result = run_scans(run.scans, config, progress=progress, total=len(run.scans))
+    slam = Slam(config)
+    # the helpers start first: the feature worker loads its compiled kernels meanwhile
+    with helper_processes(slam, slam.config.slam.workers or auto_workers()) as prefetch:
+        run = simulate(office_world(), seed=seed)
+        result = _process(slam, prefetch, run.scans, progress, len(run.scans))
     result.metrics["ground_truth"] = position_errors(result.poses, run.true_poses).as_dict()
     result.metrics["odometry_vs_truth"] = position_errors(run.odom_poses, run.true_poses).as_dict()
     result.metrics["source"] = f"simulated office world, seed {seed}"

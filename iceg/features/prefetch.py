@@ -22,7 +22,10 @@ alone (:mod:`iceg.scan_products`), which the calling process adopts with the fea
 Scans go out in batches (one wake-up of a worker per few scans), never more than
 ``LOOKAHEAD_PER_WORKER`` unfinished per worker, and workers run at a lower priority
 (``WORKER_NICENESS``): on a busy machine they take spare CPU only, and the main process
-extracts what they have not done yet.
+extracts what they have not done yet. A worker loads the extraction's compiled kernels as
+it starts (a synthetic scan), while the calling process reads its log; until the calling
+process has extracted a scan itself, which would load them there too, it waits for the
+workers' results instead (``UNLOADED_WAIT_S`` in all).
 """
 
 from __future__ import annotations
@@ -33,11 +36,14 @@ import multiprocessing
 import os
 import signal
 import sys
+import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
 from typing import Any, Protocol, TypeVar, cast
+
+import numpy as np
 
 from frontends.scan import LaserScan
 from iceg import forked
@@ -51,6 +57,11 @@ log = logging.getLogger(__name__)
 LOOKAHEAD_PER_WORKER = 8
 #: Scheduling niceness added to a worker (it uses spare cores, not the main process's).
 WORKER_NICENESS = 10
+#: Most time (seconds, in all) the calling process waits for a worker's features while it
+#: has extracted none itself: its first extraction would load the compiled kernels
+#: (0.3-0.5 s), which the workers load as they start. Past it, it extracts what has not
+#: arrived, as it always does once it has extracted one.
+UNLOADED_WAIT_S = 2.0
 
 FeaturesOf = Callable[[], ScanFeatures]
 
@@ -113,16 +124,19 @@ class _Worker:
         self.alive = True
         self.outstanding = 0  # scans sent whose results have not been read
 
-    def send(self, batch: list[tuple[int, LaserScan]], inbox: _Inbox, block: bool) -> bool:
+    def send(
+        self,
+        batch: list[tuple[int, LaserScan]],
+        inbox: _Inbox,
+        block: bool,
+        timeout_s: float | None = None,
+    ) -> bool:
         """Send a batch unless the worker is gone or still has ``LOOKAHEAD_PER_WORKER``
         scans to do (a worker starved of CPU must not fill the pipe and block the calling
-        process), or with ``block`` after waiting for it to catch up; whether it was sent."""
-        try:
-            while block and self.alive and self.outstanding >= LOOKAHEAD_PER_WORKER:
-                inbox.put(*self.conn.recv())
-                self.outstanding -= 1
-        except (EOFError, OSError):
-            self.alive = False
+        process), or with ``block`` after waiting for it to catch up (at most ``timeout_s``
+        seconds); whether it was sent."""
+        if block:
+            self._receive_while(inbox, lambda: self.outstanding >= LOOKAHEAD_PER_WORKER, timeout_s)
         if not self.alive or not batch or self.outstanding >= LOOKAHEAD_PER_WORKER:
             return False
         try:
@@ -142,10 +156,23 @@ class _Worker:
         except (EOFError, OSError):
             self.alive = False
 
-    def wait_for(self, index: int, inbox: _Inbox) -> None:
-        """Block until the result for ``index`` (sent to this worker) has arrived."""
+    def wait_for(self, index: int, inbox: _Inbox, timeout_s: float | None = None) -> None:
+        """Block until the result for ``index`` (sent to this worker) has arrived, or for at
+        most ``timeout_s`` seconds."""
+        self._receive_while(inbox, lambda: index not in inbox.results, timeout_s)
+
+    def _receive_while(
+        self, inbox: _Inbox, pending: Callable[[], bool], timeout_s: float | None
+    ) -> None:
+        """Move results into ``inbox`` as they arrive while ``pending()`` holds, for at most
+        ``timeout_s`` seconds (None: however long it takes)."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
         try:
-            while self.alive and index not in inbox.results:
+            while self.alive and pending():
+                if deadline is not None and not self.conn.poll(
+                    max(0.0, deadline - time.monotonic())
+                ):
+                    return
                 inbox.put(*self.conn.recv())
                 self.outstanding -= 1
         except (EOFError, OSError):
@@ -172,6 +199,7 @@ def _serve(
         os.nice(WORKER_NICENESS)
     for other in inherited:  # the parent's ends: never hold them open here
         other.close()
+    _warm_up(config, precompute)
     while (msg := forked.next_message(conn, parent_pid)) is not None:
         for index, scan in cast(list[tuple[int, LaserScan]], msg):
             try:
@@ -188,6 +216,34 @@ def _serve(
                 conn.send((index, feats, products))
             except (OSError, ValueError):  # the calling process is gone
                 return
+
+
+def warm_up_scan() -> LaserScan:
+    """The synthetic scan a worker extracts as it starts (:func:`_warm_up`): 181 beams over
+    180 degrees in a 4 m x 3 m room seen from (1, 1.5) m, with a doorway of no returns, so
+    that it has walls, corners and ends of wall."""
+    bearing = np.linspace(-0.5 * np.pi, 0.5 * np.pi, 181)
+    with np.errstate(divide="ignore"):
+        # the walls x = 3 m ahead and y = +-1.5 m on both sides, in the sensor's frame
+        ranges = np.minimum(
+            np.where(np.cos(bearing) > 0, 3.0 / np.cos(bearing), np.inf),
+            1.5 / np.abs(np.sin(bearing)),
+        )
+    ranges[100:110] = 25.0  # a doorway: no return, so the walls beside it end
+    return LaserScan(0.0, ranges, bearing, 0.05, 25.0, None)
+
+
+def _warm_up(config: FeatureConfig, precompute: Precompute[Any] | None) -> None:
+    """Load the compiled kernels of the extraction (numba's cache) before the first scan
+    arrives, while the calling process reads its log: extract :func:`warm_up_scan` and drop
+    the result."""
+    scan = warm_up_scan()
+    try:
+        feats = extract(scan, config)
+        if precompute is not None:
+            precompute.compute(scan, feats)
+    except Exception:  # only a warm-up: the first real scan loads what it needs
+        return
 
 
 def auto_workers() -> int:
@@ -241,6 +297,7 @@ class FeaturePrefetcher:
         self.config = config
         self.workers = max(1, int(workers))
         self.wait = wait
+        self._waited_s = 0.0  # waited for workers before extracting here (UNLOADED_WAIT_S)
         self.precompute = precompute
         self.hits = 0
         self.misses = 0
@@ -294,7 +351,11 @@ class FeaturePrefetcher:
                 taken: dict[int, _Worker | None] = {}
                 for worker, batch in zip(pool, batches, strict=True):
                     worker.drain(self._inbox)
-                    ok = worker.send(batch, self._inbox, block=self.wait)
+                    if self.wait:
+                        ok = worker.send(batch, self._inbox, block=True)
+                    else:
+                        with self._unloaded_wait() as left_s:
+                            ok = worker.send(batch, self._inbox, left_s is not None, left_s)
                     taken.update((i, worker if ok else None) for i, _ in batch)
                 queue.extend((i, scan, taken[i]) for i, scan in fresh)
             if not queue:
@@ -302,6 +363,21 @@ class FeaturePrefetcher:
             index, scan, owner = queue.popleft()
             yield scan, (self._local(scan) if owner is None else self._resolver(index, scan, owner))
             self._inbox.advance(index + 1)
+
+    @contextlib.contextmanager
+    def _unloaded_wait(self) -> Iterator[float | None]:
+        """The time (seconds) left to wait for the workers while this process has extracted
+        no scan itself (its first extraction would load the compiled kernels the workers
+        loaded as they started; ``UNLOADED_WAIT_S`` in all), or None: do not wait. The time
+        spent in the block is counted against it."""
+        if self.misses or self._waited_s >= UNLOADED_WAIT_S:
+            yield None
+            return
+        t0 = time.monotonic()
+        try:
+            yield UNLOADED_WAIT_S - self._waited_s
+        finally:
+            self._waited_s += time.monotonic() - t0
 
     def _local(self, scan: LaserScan) -> FeaturesOf:
         def features() -> ScanFeatures:
@@ -315,7 +391,11 @@ class FeaturePrefetcher:
             if self.wait:
                 worker.wait_for(index, self._inbox)
             else:
-                worker.drain(self._inbox)
+                with self._unloaded_wait() as left_s:
+                    if left_s is None:
+                        worker.drain(self._inbox)
+                    else:
+                        worker.wait_for(index, self._inbox, left_s)
             got, products = self._inbox.results.get(index, (None, None))
             if got is not None:
                 self.hits += 1

@@ -11,11 +11,11 @@ from frontends.scan import LaserScan
 from frontends.simulate import corridor_world, default_trajectory, simulate
 from iceg.config import IcegConfig
 from iceg.features import extract
-from iceg.features.prefetch import FeaturePrefetcher, auto_workers
+from iceg.features.prefetch import FeaturePrefetcher, _Inbox, _Worker, auto_workers, warm_up_scan
 from iceg.pipeline import run_scans
 from iceg.scan_products import ScanPrecompute
 from iceg.slam import Slam
-from iceg.types import ScanFeatures
+from iceg.types import FeatureKind, ScanFeatures
 
 
 def _config(workers: int) -> IcegConfig:
@@ -131,3 +131,24 @@ def test_closing_reads_what_a_blocked_worker_still_sends(short_run) -> None:  # 
         next(iter(prefetch.scans(short_run.scans)))
         workers = list(prefetch._pool)
     assert [w.proc.exitcode for w in workers] == [0]
+
+
+def test_the_warm_up_scan_has_walls_corners_and_ends_of_wall() -> None:
+    # A worker extracts it as it starts, to load the kernels of every kind of feature: the
+    # room's two far corners and the doorway's two ends of wall.
+    feats = extract(warm_up_scan(), IcegConfig().features)
+    kinds = feats.kind.tolist()
+    assert kinds.count(int(FeatureKind.CORNER)) >= 2
+    assert kinds.count(int(FeatureKind.EOW)) >= 2
+    assert feats.seg_endpoints.shape[0] >= 3
+
+
+def test_a_bounded_wait_for_a_worker_returns_without_the_result_it_never_gets() -> None:
+    # Nothing was sent: the wait gives up after its timeout, and the worker stays usable.
+    worker = _Worker(IcegConfig().features, None, [])
+    inbox = _Inbox()
+    try:
+        worker.wait_for(0, inbox, timeout_s=0.05)
+        assert 0 not in inbox.results and worker.alive
+    finally:
+        worker.close()
