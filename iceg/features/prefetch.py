@@ -57,11 +57,11 @@ log = logging.getLogger(__name__)
 LOOKAHEAD_PER_WORKER = 8
 #: Scheduling niceness added to a worker (it uses spare cores, not the main process's).
 WORKER_NICENESS = 10
-#: Most time (seconds, in all) the calling process waits for a worker's features while it
-#: has extracted none itself: its first extraction would load the compiled kernels
-#: (0.3-0.5 s), which the workers load as they start. Past it, it extracts what has not
-#: arrived, as it always does once it has extracted one.
-UNLOADED_WAIT_S = 2.0
+#: Most time (seconds, in all) the calling process waits for the workers' features while
+#: it has extracted none itself: about what its first extraction would cost, loading the
+#: compiled kernels (0.3-0.5 s) that the workers load as they start. Past it, it extracts
+#: what has not arrived, as it always does once it has extracted one.
+UNLOADED_WAIT_S = 0.5
 
 FeaturesOf = Callable[[], ScanFeatures]
 
