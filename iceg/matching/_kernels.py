@@ -1,8 +1,9 @@
 """Compiled kernels of the matcher (numba): the Gauss-Newton loop of the refinement with its
 normal equations (point-to-line GLS rows, feature-pair rows, off-segment PL-ICP rows), the
-correlation's feature pairing, visibility count and terms, the hypotheses' vote, the
-covariance lattice cost, the free-space ray check, the prediction start's kernel-density peak
-and the gridded point query of the contradiction test.
+covariance of a refined pose (its rows, the Olson 2009 lattice, the floor), the reference's
+segment arrays and line information, the correlation's feature pairing, visibility count and
+terms, the hypotheses' vote, the free-space ray check, the prediction start's kernel-density
+peak and the gridded point query of the contradiction test.
 
 numpy builds (points x segments) temporaries and spends most of its time in call overhead
 for scans of a few hundred points; these loops do the arithmetic without temporaries.

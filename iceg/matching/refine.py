@@ -76,8 +76,6 @@ LATTICE_POINTS = 100
 #: Smallest cell of the reference segments' association grid (metres; the cell is the
 #: association's reach, gate plus end tolerance, when larger).
 SEGMENT_GRID_MIN_CELL_M = 1.0
-#: Variance floor of a feature pair's second whitened direction.
-_MIN_VARIANCE = 1e-18
 #: Guard of the wall-length division in :func:`effective_line_cov` (metres).
 _MIN_WALL_LENGTH_M = 1e-3
 
