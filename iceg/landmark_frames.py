@@ -2,12 +2,13 @@
 
 A reference for a match gathers every landmark and segment of its nodes into one frame, and
 an update moves a matched observation into its landmark's anchor frame: per row a rotation
-and a translation of points, direction vectors, 2 x 2 covariances and Hessian lines. In
-numpy that is a dozen calls on ``(n, 2, 2)`` temporaries per gather (``rotation_matrix``,
-``einsum``, stacked ``matmul``), 50-250 us for the few dozen to few hundred rows of a
-reference; these loops do it in one pass. The arithmetic is that of the numpy expressions
-(``R p + t``, ``R C R^T``, :func:`~iceg.matching.geometry.transform_lines`), so the results
-agree to rounding (``tests/iceg/test_feature_map.py``).
+and a translation of points, direction vectors and 2 x 2 covariances (Hessian lines move by
+:func:`~iceg.matching._kernels.move_lines`, as :func:`~iceg.matching.geometry.transform_lines`
+does). In numpy that is a dozen calls on ``(n, 2, 2)`` temporaries per gather
+(``rotation_matrix``, ``einsum``, stacked ``matmul``), 50-250 us for the few dozen to few
+hundred rows of a reference; these loops do it in one pass. The arithmetic is that of the
+numpy expressions (``R p + t``, ``R C R^T``), so the results agree to rounding
+(``tests/iceg/test_feature_map.py``).
 
 Every pose is ``[x_m, y_m, theta_rad]`` of the source frame in the target frame, one per
 row.
@@ -90,65 +91,4 @@ def move_points(poses: np.ndarray, pts: np.ndarray, translate: bool) -> np.ndarr
     return out
 
 
-@njit(cache=True, nogil=True)
-def move_segments(
-    rows: np.ndarray,
-    poses: np.ndarray,
-    endpoints: np.ndarray,
-    lines: np.ndarray,
-    cov: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Segments ``rows`` moved by ``poses``: their endpoints and their Hessian lines with
-    covariances, as :func:`~iceg.matching.geometry.transform_lines` moves them
-    (``alpha' = alpha + theta``, ``rho' = rho + (cos alpha', sin alpha') . t``, flipped to
-    keep ``rho' >= 0``; the covariance by the Jacobian ``[[1, 0], [d rho'/d alpha, 1]]``).
-
-    Args:
-        rows: ``(n,)`` int64 rows of the segment arrays.
-        poses: ``(n, 3)`` float64 the pose of each row's frame in the target frame.
-        endpoints: ``(N, 2, 2)`` float64 metres; ``lines`` ``(N, 2)`` ``(alpha_rad,
-            rho_m)``; ``cov`` ``(N, 2, 2)`` their covariances.
-
-    Returns:
-        ``(n, 2, 2)`` endpoints, ``(n, 2)`` lines (``alpha`` wrapped to ``[-pi, pi)``) and
-        ``(n, 2, 2)`` covariances in the target frame.
-    """
-    n = rows.shape[0]
-    out_ep = np.empty((n, 2, 2))
-    out_lines = np.empty((n, 2))
-    out_cov = np.empty((n, 2, 2))
-    th, c, s = np.nan, 1.0, 0.0
-    for i in range(n):
-        r = rows[i]
-        x, y = poses[i, 0], poses[i, 1]
-        if poses[i, 2] != th:  # segments of one node share its pose
-            th = poses[i, 2]
-            c, s = math.cos(th), math.sin(th)
-        for j in range(2):
-            out_ep[i, j, 0] = c * endpoints[r, j, 0] - s * endpoints[r, j, 1] + x
-            out_ep[i, j, 1] = s * endpoints[r, j, 0] + c * endpoints[r, j, 1] + y
-        a = lines[r, 0] + th
-        ca = math.cos(a)
-        sa = math.sin(a)
-        rho = lines[r, 1] + ca * x + sa * y
-        j10 = -sa * x + ca * y
-        j11 = 1.0
-        if rho < 0.0:
-            a += math.pi
-            rho = -rho
-            j10 = -j10
-            j11 = -1.0
-        out_lines[i, 0] = (a + math.pi) % (2.0 * math.pi) - math.pi
-        out_lines[i, 1] = rho
-        # J C J^T with J = [[1, 0], [j10, j11]]
-        c00, c01, c10, c11 = cov[r, 0, 0], cov[r, 0, 1], cov[r, 1, 0], cov[r, 1, 1]
-        b10 = j10 * c00 + j11 * c10
-        b11 = j10 * c01 + j11 * c11
-        out_cov[i, 0, 0] = c00
-        out_cov[i, 0, 1] = c00 * j10 + c01 * j11
-        out_cov[i, 1, 0] = b10
-        out_cov[i, 1, 1] = b10 * j10 + b11 * j11
-    return out_ep, out_lines, out_cov
-
-
-__all__ = ["move_features", "move_points", "move_segments"]
+__all__ = ["move_features", "move_points"]

@@ -12,10 +12,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from iceg.matching._kernels import segment_arrays
+from iceg.matching._kernels import move_lines, segment_arrays
 from iceg.types import FeatureKind, ScanFeatures
 from iceg_common.se2 import rotation_matrix as rot
-from iceg_common.se2 import wrap_angle
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -111,21 +110,15 @@ def transform_lines(
     Returns:
         ``(M, 2)`` lines and ``(M, 2, 2)`` covariances in the parent frame.
     """
-    p = np.asarray(pose, dtype=np.float64)
-    x, y, th = p[..., 0], p[..., 1], p[..., 2]
-    a = lines[:, 0] + th
-    ca, sa = np.cos(a), np.sin(a)
-    rho = lines[:, 1] + ca * x + sa * y
-    jac = np.zeros((lines.shape[0], 2, 2))
-    jac[:, 0, 0] = 1.0
-    jac[:, 1, 1] = 1.0
-    jac[:, 1, 0] = -sa * x + ca * y
-    flip = rho < 0.0
-    a = np.where(flip, a + math.pi, a)
-    rho = np.abs(rho)
-    jac[flip, 1, :] *= -1.0
-    out_cov = jac @ cov @ np.swapaxes(jac, 1, 2)
-    return np.stack([wrap_angle(a), rho], axis=1), out_cov
+    lines = np.asarray(lines, dtype=np.float64).reshape(-1, 2)
+    m = lines.shape[0]
+    poses = np.broadcast_to(np.asarray(pose, dtype=np.float64), (m, 3))
+    return move_lines(  # type: ignore[no-any-return]
+        np.arange(m),
+        np.ascontiguousarray(poses),
+        lines,
+        np.asarray(cov, dtype=np.float64).reshape(-1, 2, 2),
+    )
 
 
 def transform_features(

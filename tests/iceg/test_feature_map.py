@@ -23,14 +23,15 @@ from iceg.feature_map import (
 )
 from iceg.features import extract
 from iceg.landmark_association import nearest_free_pairs, within_gate_of_any
-from iceg.landmark_frames import move_features, move_points, move_segments
-from iceg.matching import IceMatcher, MatchBounds, transform_lines
+from iceg.landmark_frames import move_features, move_points
+from iceg.matching import IceMatcher, MatchBounds
+from iceg.matching._kernels import move_lines
 from iceg.matching.geometry import PolarProfile
 from iceg.matching.matcher import walls_seen_through
 from iceg.types import FeatureKind, MatchResult
 from iceg.visibility import expected_landmarks
 from iceg_common.errors import FeatureMapError
-from iceg_common.se2 import between, rotation_matrix, transform_points
+from iceg_common.se2 import between, rotation_matrix, transform_points, wrap_angle
 from tests.iceg.test_matching import hand_scan, point_features, room_walls
 
 
@@ -531,7 +532,7 @@ def test_association_kernels_equal_the_numpy_expressions() -> None:
 
 def test_moved_geometry_equals_the_numpy_expressions() -> None:
     # The compiled frame changes of the feature map against the numpy expressions they
-    # replaced (R p + t, R C R^T, R d, transform_lines): equal to rounding, NaN directions
+    # replaced (R p + t, R C R^T, R d, the line transform): equal to rounding, NaN directions
     # kept NaN, lines that flip (rho < 0 after the move) included.
     rng = np.random.default_rng(3)
     n_all, n = 50, 30
@@ -562,20 +563,19 @@ def test_moved_geometry_equals_the_numpy_expressions() -> None:
     np.testing.assert_allclose(
         move_points(poses, pts, False), np.einsum("nab,nkb->nka", r, pts), rtol=1e-13, atol=1e-13
     )
-    ep = rng.uniform(-10, 10, (n_all, 2, 2))
     lines = np.column_stack([rng.uniform(-np.pi, np.pi, n_all), rng.uniform(0, 8, n_all)])
     lcov = q @ np.swapaxes(q, 1, 2) * 1e-4
-    got_ep, got_lines, got_cov = move_segments(rows, poses, ep, lines, lcov)
-    want_lines, want_cov = transform_lines(lines[rows], lcov[rows], poses)
-    np.testing.assert_allclose(
-        got_ep, np.einsum("nab,nkb->nka", r, ep[rows]) + poses[:, None, :2], rtol=1e-13, atol=1e-13
-    )
+    got_lines, got_cov = move_lines(rows, poses, lines, lcov)
+    # the numpy expressions: alpha' = alpha + theta, rho' = rho + n' . t, flipped to rho' >= 0,
+    # the covariance by J = [[1, 0], [d rho' / d alpha, 1]] (second row negated by a flip)
+    a = lines[rows, 0] + poses[:, 2]
+    rho = lines[rows, 1] + np.cos(a) * poses[:, 0] + np.sin(a) * poses[:, 1]
+    jac = np.zeros((n, 2, 2))
+    jac[:, 0, 0] = jac[:, 1, 1] = 1.0
+    jac[:, 1, 0] = -np.sin(a) * poses[:, 0] + np.cos(a) * poses[:, 1]
+    flip = rho < 0
+    jac[flip, 1, :] *= -1.0
+    want_lines = np.column_stack([wrap_angle(np.where(flip, a + np.pi, a)), np.abs(rho)])
     np.testing.assert_allclose(got_lines, want_lines, rtol=1e-13, atol=1e-13)
-    np.testing.assert_allclose(got_cov, want_cov, rtol=1e-12, atol=1e-16)
-    flipped = (
-        lines[rows, 1]
-        + np.cos(lines[rows, 0] + poses[:, 2]) * poses[:, 0]
-        + np.sin(lines[rows, 0] + poses[:, 2]) * poses[:, 1]
-        < 0
-    )
-    assert 5 < np.count_nonzero(flipped) < n - 5
+    np.testing.assert_allclose(got_cov, jac @ lcov[rows] @ np.swapaxes(jac, 1, 2), rtol=1e-12)
+    assert 5 < np.count_nonzero(flip) < n - 5
