@@ -3,12 +3,11 @@
 A reference for a match gathers every landmark and segment of its nodes into one frame, and
 an update moves a matched observation into its landmark's anchor frame: per row a rotation
 and a translation of points, direction vectors and 2 x 2 covariances (Hessian lines move by
-:func:`~iceg.matching._kernels.move_lines`, as :func:`~iceg.matching.geometry.transform_lines`
-does). In numpy that is a dozen calls on ``(n, 2, 2)`` temporaries per gather
-(``rotation_matrix``, ``einsum``, stacked ``matmul``), 50-250 us for the few dozen to few
-hundred rows of a reference; these loops do it in one pass. The arithmetic is that of the
-numpy expressions (``R p + t``, ``R C R^T``), so the results agree to rounding
-(``tests/iceg/test_feature_map.py``).
+:func:`~iceg.matching.geometry.transform_lines`, compiled as well). In numpy that is a dozen
+calls on ``(n, 2, 2)`` temporaries per gather (``rotation_matrix``, ``einsum``, stacked
+``matmul``), 50-250 us for the few dozen to few hundred rows of a reference; these loops do
+it in one pass. The arithmetic is that of the numpy expressions (``R p + t``, ``R C R^T``),
+so the results agree to rounding (``tests/iceg/test_feature_map.py``).
 
 Every pose is ``[x_m, y_m, theta_rad]`` of the source frame in the target frame, one per
 row.
