@@ -29,10 +29,13 @@ def next_message(conn: Connection, parent_pid: int) -> object | None:
         return None
 
 
-def stop(conn: Connection, proc: BaseProcess) -> None:
+def stop(conn: Connection, proc: BaseProcess, at_once: bool = False) -> None:
     """Ask a helper to exit (a None message) and wait for it, terminated after
-    ``JOIN_TIMEOUT_S``; close the parent's end. What it still sends meanwhile is read and
+    ``JOIN_TIMEOUT_S`` (``at_once``: terminated now, when the run failed and nothing it
+    computes is wanted); close the parent's end. What it still sends meanwhile is read and
     dropped: a helper blocked on a full pipe would never read the request."""
+    if at_once:
+        proc.terminate()
     with contextlib.suppress(OSError, ValueError):
         conn.send(None)
     deadline = time.monotonic() + JOIN_TIMEOUT_S

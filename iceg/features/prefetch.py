@@ -178,8 +178,8 @@ class _Worker:
         except (EOFError, OSError):
             self.alive = False
 
-    def close(self) -> None:
-        forked.stop(self.conn, self.proc)
+    def close(self, at_once: bool = False) -> None:
+        forked.stop(self.conn, self.proc, at_once)
 
 
 def _serve(
@@ -318,8 +318,9 @@ class FeaturePrefetcher:
     def __exit__(self, *exc: object) -> None:
         if self._pool:
             log.debug("feature prefetch: %d from workers, %d here", self.hits, self.misses)
+        failed = bool(exc) and exc[0] is not None  # a worker may still be warming up: no wait
         for worker in self._pool:
-            worker.close()
+            worker.close(at_once=failed)
         self._pool = []
         self._inbox = _Inbox()
 

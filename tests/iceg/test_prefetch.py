@@ -4,6 +4,9 @@ pose), bit for bit. No timings here: speed is measured by ``benchmarks/bench_pip
 
 from __future__ import annotations
 
+import multiprocessing
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -12,10 +15,11 @@ from frontends.simulate import corridor_world, default_trajectory, simulate
 from iceg.config import IcegConfig
 from iceg.features import extract
 from iceg.features.prefetch import FeaturePrefetcher, _Inbox, _Worker, auto_workers, warm_up_scan
-from iceg.pipeline import run_scans
+from iceg.pipeline import run_log, run_scans
 from iceg.scan_products import ScanPrecompute
 from iceg.slam import Slam
 from iceg.types import FeatureKind, ScanFeatures
+from iceg_common.errors import LogFormatError
 
 
 def _config(workers: int) -> IcegConfig:
@@ -152,3 +156,13 @@ def test_a_bounded_wait_for_a_worker_returns_without_the_result_it_never_gets() 
         assert 0 not in inbox.results and worker.alive
     finally:
         worker.close()
+
+
+def test_a_log_that_fails_to_read_leaves_no_worker_behind(tmp_path: Path) -> None:
+    # The feature worker starts before the log is read; a log that fails stops it at once
+    # (it may still be loading its kernels), and no helper process is left.
+    bad = tmp_path / "bad.clf"
+    bad.write_text("FLASER 3 1.0 1.0 abc 0 0 0 0 0 0 0 0 1.0 host 1.0\n")
+    with pytest.raises(LogFormatError, match=r"bad\.clf:1"):
+        run_log(bad, _config(2))
+    assert multiprocessing.active_children() == []
