@@ -54,7 +54,7 @@ def run_scans(
         LogFormatError: there are no scans.
     """
     slam = Slam(config)
-    with helper_processes(slam, slam.config.slam.workers or auto_workers()) as prefetch:
+    with helper_processes(slam) as prefetch:
         return _process(slam, prefetch, scans, progress, total)
 
 
@@ -84,12 +84,16 @@ def _process(
 
 
 @contextlib.contextmanager
-def helper_processes(slam: Slam, workers: int) -> Iterator[FeaturePrefetcher]:
-    """The helper processes of a run of ``slam`` with ``workers`` processes in all (1: none):
-    the feature workers, which also compute the scans' pose-independent products
-    (:class:`~iceg.scan_products.ScanPrecompute`), and the loop closer's match helper
+def helper_processes(slam: Slam, workers: int | None = None) -> Iterator[FeaturePrefetcher]:
+    """The helper processes of a run of ``slam`` with ``workers`` processes in all (1: none;
+    None: ``slam.workers`` of its configuration, 0 there meaning
+    :func:`~iceg.features.prefetch.auto_workers`): the feature workers, which also compute
+    the scans' pose-independent products (:class:`~iceg.scan_products.ScanPrecompute`), and
+    the loop closer's match helper
     (:class:`~iceg.match_pool.MatchPool`). Yields the prefetcher whose ``scans`` feed
     ``slam.process``; the helpers stop when the block ends."""
+    if workers is None:
+        workers = slam.config.slam.workers or auto_workers()
     precompute = ScanPrecompute(slam.config)
     with (
         MatchPool(slam.matcher, helper=workers > 1) as pool,
@@ -151,7 +155,7 @@ def run_log(
     slam = Slam(config)
     # the helpers start first: the feature worker loads its compiled kernels while the log
     # is read
-    with helper_processes(slam, slam.config.slam.workers or auto_workers()) as prefetch:
+    with helper_processes(slam) as prefetch:
         # compact: no LaserScan object per scan held during the run
         scans = ScanStore(shift_odometry(reader, odometry_time_offset_s))
         if not scans:
@@ -230,7 +234,7 @@ def run_simulated_demo(
 
     slam = Slam(config)
     # the helpers start first: the feature worker loads its compiled kernels meanwhile
-    with helper_processes(slam, slam.config.slam.workers or auto_workers()) as prefetch:
+    with helper_processes(slam) as prefetch:
         run = simulate(office_world(), seed=seed)
         result = _process(slam, prefetch, run.scans, progress, len(run.scans))
     result.metrics["ground_truth"] = position_errors(result.poses, run.true_poses).as_dict()

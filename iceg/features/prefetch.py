@@ -124,19 +124,12 @@ class _Worker:
         self.alive = True
         self.outstanding = 0  # scans sent whose results have not been read
 
-    def send(
-        self,
-        batch: list[tuple[int, LaserScan]],
-        inbox: _Inbox,
-        block: bool,
-        timeout_s: float | None = None,
-    ) -> bool:
+    def send(self, batch: list[tuple[int, LaserScan]], inbox: _Inbox, block: bool) -> bool:
         """Send a batch unless the worker is gone or still has ``LOOKAHEAD_PER_WORKER``
         scans to do (a worker starved of CPU must not fill the pipe and block the calling
-        process), or with ``block`` after waiting for it to catch up (at most ``timeout_s``
-        seconds); whether it was sent."""
+        process), or with ``block`` after waiting for it to catch up; whether it was sent."""
         if block:
-            self._receive_while(inbox, lambda: self.outstanding >= LOOKAHEAD_PER_WORKER, timeout_s)
+            self.catch_up(inbox)
         if not self.alive or not batch or self.outstanding >= LOOKAHEAD_PER_WORKER:
             return False
         try:
@@ -155,6 +148,11 @@ class _Worker:
                 self.outstanding -= 1
         except (EOFError, OSError):
             self.alive = False
+
+    def catch_up(self, inbox: _Inbox, timeout_s: float | None = None) -> None:
+        """Block until the worker has fewer than ``LOOKAHEAD_PER_WORKER`` scans to do, or for
+        at most ``timeout_s`` seconds."""
+        self._receive_while(inbox, lambda: self.outstanding >= LOOKAHEAD_PER_WORKER, timeout_s)
 
     def wait_for(self, index: int, inbox: _Inbox, timeout_s: float | None = None) -> None:
         """Block until the result for ``index`` (sent to this worker) has arrived, or for at
@@ -352,11 +350,11 @@ class FeaturePrefetcher:
                 taken: dict[int, _Worker | None] = {}
                 for worker, batch in zip(pool, batches, strict=True):
                     worker.drain(self._inbox)
-                    if self.wait:
-                        ok = worker.send(batch, self._inbox, block=True)
-                    else:
+                    if not self.wait:
                         with self._unloaded_wait() as left_s:
-                            ok = worker.send(batch, self._inbox, left_s is not None, left_s)
+                            if left_s is not None:
+                                worker.catch_up(self._inbox, left_s)
+                    ok = worker.send(batch, self._inbox, block=self.wait)
                     taken.update((i, worker if ok else None) for i, _ in batch)
                 queue.extend((i, scan, taken[i]) for i, scan in fresh)
             if not queue:

@@ -1183,7 +1183,7 @@ class LatticePoints(NamedTuple):
 
 
 #: A running product of :func:`_log1p_into` is folded into its logarithm beyond this (far
-#: below overflow: a factor is ``1 + (r / c)^2`` of a gated residual).
+#: below overflow: one factor ``1 + (r / c)^2`` would need ``r / c`` above 1e104).
 _PRODUCT_FOLD = 1e100
 
 
