@@ -114,28 +114,48 @@ class _VarianceFactor:
 
 @dataclass
 class _Rls:
-    """Information-form linear least squares ``y = h . p`` with a Gaussian prior."""
+    """Information-form linear least squares ``y = h . p`` with a Gaussian prior, for one
+    or two parameters (the arithmetic is written out in floats: a keyframe's observation
+    costs a few microseconds, not the tens that numpy's calls on 2 x 2 arrays take)."""
 
-    info: FloatArray  # (n, n)
+    info: FloatArray  # (n, n), n = 1 or 2
     vec: FloatArray  # (n,) information vector
     n_obs: int = 0
 
     @property
     def params(self) -> FloatArray:
-        return np.asarray(np.linalg.solve(self.info, self.vec), dtype=np.float64)
+        """``(n,)`` the estimate ``info^-1 vec`` (Cramer's rule for two)."""
+        if self.info.shape[0] == 1:
+            return self.vec / self.info[0]
+        (a, b), (c, d) = self.info.tolist()
+        v0, v1 = self.vec.tolist()
+        det = a * d - b * c
+        return np.array([(d * v0 - b * v1) / det, (a * v1 - c * v0) / det])
 
     @property
     def cov(self) -> FloatArray:
         """Covariance of the parameters for unit residual variance factor."""
         return np.asarray(np.linalg.inv(self.info), dtype=np.float64)
 
-    def add(self, h: FloatArray, y: float | FloatArray, w: FloatArray | float) -> None:
-        """One observation: regressor ``h`` ``(m, n)`` (or ``(n,)``), ``y`` ``(m,)``,
-        information ``w`` ``(m, m)`` (or scalar)."""
-        hm = np.atleast_2d(h)
-        wm = np.atleast_2d(w)
-        self.info += hm.T @ wm @ hm
-        self.vec += hm.T @ wm @ np.atleast_1d(y)
+    def add_pair(self, h: tuple[float, float], y: tuple[float, float], w: FloatArray) -> None:
+        """Two observations of the one parameter: ``y = h p`` + noise of information ``w``
+        ``(2, 2)``: ``info += h^T w h``, ``vec += h^T w y``."""
+        (a, b), (c, d) = w.tolist()
+        (h0, h1), (y0, y1) = h, y
+        self.info[0, 0] += h0 * (a * h0 + b * h1) + h1 * (c * h0 + d * h1)
+        self.vec[0] += h0 * (a * y0 + b * y1) + h1 * (c * y0 + d * y1)
+        self.n_obs += 1
+
+    def add_row(self, h: tuple[float, float], y: float, w: float) -> None:
+        """One observation of the two parameters: ``y = h . p`` + noise of information
+        ``w``."""
+        h0, h1 = h
+        self.info[0, 0] += h0 * w * h0
+        self.info[0, 1] += h0 * w * h1
+        self.info[1, 0] += h1 * w * h0
+        self.info[1, 1] += h1 * w * h1
+        self.vec[0] += h0 * w * y
+        self.vec[1] += h1 * w * y
         self.n_obs += 1
 
 
@@ -292,20 +312,27 @@ class OdometryCalibrator:
         self._observe_heading(d, z, float(cov[2, 2]))
 
     def _observe_translation(self, d: FloatArray, z: FloatArray, cov: FloatArray) -> None:
-        h = d[:2].reshape(2, 1)
-        info = np.linalg.inv(cov)
-        r = z[:2] - self.scale * d[:2]
+        (a, b), (c, e) = cov.tolist()
+        det = a * e - b * c
+        info = np.array([[e / det, -b / det], [-c / det, a / det]])  # cov^-1
+        (i00, i01), (i10, i11) = info.tolist()
+        h = (float(d[0]), float(d[1]))
+        y = (float(z[0]), float(z[1]))
+        kappa = self.scale
+        r0, r1 = y[0] - kappa * h[0], y[1] - kappa * h[1]
+        chi2 = r0 * (i00 * r0 + i01 * r1) + r1 * (i10 * r0 + i11 * r1)
         s2 = self._s2_t.value
-        chi2 = float(r @ info @ r)
         w = _huber_weight(math.sqrt(chi2 / (2.0 * s2)), self.config.huber_k)
         self._s2_t.add(chi2, 2.0, w)
-        self._scale.add(h, z[:2], np.asarray(w * info, dtype=np.float64))
+        self._scale.add_pair(h, y, w * info)
 
     def _observe_heading(self, d: FloatArray, z: FloatArray, var: float) -> None:
-        dtheta = float(np.arctan2(np.sin(z[2] - d[2]), np.cos(z[2] - d[2]))) + d[2]
-        h = np.array([d[2], -signed_distance(d)])
-        r = dtheta - float(h @ self._heading.params)
+        dth, zth = float(d[2]), float(z[2])
+        dtheta = math.atan2(math.sin(zth - dth), math.cos(zth - dth)) + dth
+        h = (dth, -signed_distance(d))
+        p0, p1 = self._heading.params.tolist()
+        r = dtheta - (h[0] * p0 + h[1] * p1)
         s2 = self._s2_r.value
         w = _huber_weight(r / math.sqrt(var * s2), self.config.huber_k)
         self._s2_r.add(r * r / var, 1.0, w)
-        self._heading.add(h, dtheta, w / var)
+        self._heading.add_row(h, dtheta, w / var)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 import time
 from array import array
 from collections import defaultdict
@@ -1255,6 +1256,31 @@ def points_prefer_prediction(
     )
 
 
+def _no_weak_direction(cov: FloatArray, prediction_cov: FloatArray) -> bool:
+    """Whether the whitened translation information ``M = W^T cov_xy^-1 W`` of
+    :func:`remap_weak_directions` has no eigenvalue below 1 (``M - I`` positive semidefinite:
+    both diagonal entries and the determinant of ``M - I`` non-negative), decided in floats
+    without the eigendecomposition: 1815 of MIT CSAIL's 1834 matches. False also where a
+    covariance is not positive definite (the eigendecomposition's path decides then)."""
+    (p00, _), (p10, p11) = prediction_cov[:2, :2].tolist()
+    (c00, c01), (c10, c11) = cov[:2, :2].tolist()
+    det = c00 * c11 - c01 * c10
+    if not (p00 > 0.0 and det > 0.0):
+        return False
+    w00 = math.sqrt(p00)  # W = [[w00, 0], [w10, w11]], lower Cholesky factor
+    w10 = p10 / w00
+    if not p11 - w10 * w10 > 0.0:
+        return False
+    w11 = math.sqrt(p11 - w10 * w10)
+    i00, i01, i10, i11 = c11 / det, -c01 / det, -c10 / det, c00 / det  # cov_xy^-1
+    # M = W^T (info W)
+    a00, a01 = i00 * w00 + i01 * w10, i01 * w11
+    a10, a11 = i10 * w00 + i11 * w10, i11 * w11
+    m00, m01 = w00 * a00 + w10 * a10, w00 * a01 + w10 * a11
+    m10, m11 = w11 * a10, w11 * a11
+    return m00 >= 1.0 and m11 >= 1.0 and (m00 - 1.0) * (m11 - 1.0) >= m01 * m10
+
+
 def remap_weak_directions(
     measured: FloatArray, cov: FloatArray, prediction: FloatArray, prediction_cov: FloatArray
 ) -> FloatArray:
@@ -1287,6 +1313,8 @@ def remap_weak_directions(
         ``(3,)`` float64 the remapped motion (``measured`` when no direction is weak and
         consistent, or a covariance is not positive definite).
     """
+    if _no_weak_direction(cov, prediction_cov):  # most matches: nothing to remap
+        return measured
     try:
         w = np.linalg.cholesky(prediction_cov[:2, :2])
         info_xy = np.linalg.inv(cov[:2, :2])

@@ -77,6 +77,73 @@ def test_identity_odometry_stays_identity() -> None:
     assert signed_distance([-0.3, 0.4, 0.0]) == pytest.approx(-0.5)
 
 
+def _numpy_estimate(
+    deltas: np.ndarray, measured: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, list[float], list[float]]:
+    """The estimator's recursion in numpy matrix algebra (``np.linalg.inv`` / ``solve``), as
+    the module describes it: the parameters ``(kappa,)`` and ``(gamma, beta)`` after every
+    observation of ``deltas`` / ``measured`` ``(n, 3)`` with ``MATCH_COV``, the two variance
+    factors, and the Huber weights of the two equations' observations."""
+    c = OdometryCalibrationConfig()
+    s_info = np.array([[1 / c.prior_scale_sigma**2]])
+    s_vec = s_info[0].copy()
+    h_info = np.diag(
+        [1 / c.prior_turn_scale_sigma**2, 1 / c.prior_heading_drift_sigma_rad_per_m**2]
+    )
+    h_vec = np.array([h_info[0, 0], 0.0])
+    chi_t = dof_t = chi_r = dof_r = 0.0
+    w_t: list[float] = []
+    w_r: list[float] = []
+    for d, z in zip(deltas, measured, strict=True):
+        cov = odometry_covariance(d) + MATCH_COV
+        info = np.linalg.inv(cov[:2, :2])
+        r = z[:2] - np.linalg.solve(s_info, s_vec)[0] * d[:2]
+        chi2 = float(r @ info @ r)
+        s2 = (c.prior_dof + chi_t) / (c.prior_dof + dof_t)
+        z_n = math.sqrt(chi2 / (2.0 * s2))
+        w = 1.0 if z_n <= c.huber_k else c.huber_k / z_n
+        chi_t, dof_t = chi_t + w * chi2, dof_t + 2.0 * w
+        w_t.append(w)
+        h = d[:2].reshape(2, 1)
+        s_info = s_info + h.T @ (w * info) @ h
+        s_vec = s_vec + h.T @ (w * info) @ z[:2]
+        var = float(cov[2, 2])
+        dtheta = float(np.arctan2(np.sin(z[2] - d[2]), np.cos(z[2] - d[2]))) + d[2]
+        hr = np.array([d[2], -signed_distance(d)])
+        r_h = dtheta - float(hr @ np.linalg.solve(h_info, h_vec))
+        s2 = (c.prior_dof + chi_r) / (c.prior_dof + dof_r)
+        z_n = abs(r_h / math.sqrt(var * s2))
+        w = 1.0 if z_n <= c.huber_k else c.huber_k / z_n
+        chi_r, dof_r = chi_r + w * r_h * r_h / var, dof_r + w
+        w_r.append(w)
+        h_info = h_info + (w / var) * np.outer(hr, hr)
+        h_vec = h_vec + (w / var) * hr * dtheta
+    factors = [
+        (c.prior_dof + chi_t) / (c.prior_dof + dof_t),
+        (c.prior_dof + chi_r) / (c.prior_dof + dof_r),
+    ]
+    return np.linalg.solve(s_info, s_vec), np.linalg.solve(h_info, h_vec), factors, w_t + w_r
+
+
+def test_the_float_recursion_equals_the_matrix_algebra_to_rounding() -> None:
+    """The per-observation arithmetic is written out in floats (a keyframe's observation in
+    microseconds): the same estimate as the matrix algebra, to rounding, with outliers
+    down-weighted on both equations."""
+    rng = np.random.default_rng(7)
+    true = _steps(rng, 300)
+    odo = true * np.array([1.02, 1.02, 1.03])
+    measured = true + rng.standard_normal(true.shape) * np.sqrt(np.diag(MATCH_COV))
+    measured[::20] += rng.normal(0.0, 0.3, (15, 3))  # outliers: Huber weights below 1
+    cal = OdometryCalibrator()
+    for d, z in zip(odo, measured, strict=True):
+        cal.observe(d, odometry_covariance(d), z, MATCH_COV)
+    scale, heading, factors, weights = _numpy_estimate(odo, measured)
+    assert min(weights) < 0.5  # the outliers were down-weighted
+    assert cal.scale == pytest.approx(scale[0], rel=1e-12)
+    assert [cal.turn_scale, cal.heading_drift_rad_per_m] == pytest.approx(heading, rel=1e-10)
+    assert list(cal.variance_factors()) == pytest.approx(factors, rel=1e-10)
+
+
 @pytest.fixture(scope="module")
 def biased_office():  # type: ignore[no-untyped-def]
     run = simulate_scenario("office_biased", seed=2)

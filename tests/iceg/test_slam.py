@@ -6,6 +6,8 @@ import dataclasses
 
 import numpy as np
 import pytest
+from hypothesis import assume, given
+from hypothesis import strategies as st
 
 from frontends import open_log
 from frontends.simulate import (
@@ -27,6 +29,7 @@ from iceg.slam import (
     CONSISTENCY_PROBABILITY,
     ScanRecords,
     Slam,
+    _no_weak_direction,
     chi2_3dof,
     consistent_with_prediction,
     points_prefer_prediction,
@@ -211,6 +214,40 @@ def test_weak_match_that_contradicts_the_prediction_keeps_its_value() -> None:
     np.testing.assert_array_equal(remap_weak_directions(far, weak_x, pred, pred_cov), far)
     near = np.array([0.02, 0.0, 0.0])  # 80 mm off: 1.6 joint sigmas, remapped
     assert abs(remap_weak_directions(near, weak_x, pred, pred_cov)[0] - pred[0]) < 1e-9
+
+
+def _xy_cov(sigmas_m: tuple[float, float], angle_rad: float) -> np.ndarray:
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    r = np.array([[c, -s], [s, c]])
+    cov = np.eye(3) * 1e-4
+    cov[:2, :2] = r @ np.diag(np.square(sigmas_m)) @ r.T
+    return cov
+
+
+_SIGMA_M = st.floats(1e-4, 1.0)
+_ANGLE = st.floats(-np.pi, np.pi)
+
+
+@given(_SIGMA_M, _SIGMA_M, _ANGLE, _SIGMA_M, _SIGMA_M, _ANGLE)
+def test_no_weak_direction_agrees_with_the_eigenvalues(  # type: ignore[no-untyped-def]
+    s0, s1, a, p0, p1, b
+) -> None:
+    """The float test of the common case (nothing to remap) against ``eigvalsh`` of the
+    whitened information, away from an eigenvalue of exactly 1."""
+    cov, pred_cov = _xy_cov((s0, s1), a), _xy_cov((p0, p1), b)
+    w = np.linalg.cholesky(pred_cov[:2, :2])
+    smallest = np.linalg.eigvalsh(w.T @ np.linalg.inv(cov[:2, :2]) @ w)[0]
+    assume(abs(smallest - 1.0) > 1e-9)
+    assert _no_weak_direction(cov, pred_cov) == (smallest >= 1.0)
+
+
+def test_no_weak_direction_leaves_a_degenerate_covariance_to_the_full_path() -> None:
+    pred_cov = np.diag([0.01**2, 0.01**2, 1e-4])
+    singular = np.diag([0.0, 0.01**2, 1e-4])
+    assert not _no_weak_direction(singular, pred_cov)
+    assert not _no_weak_direction(pred_cov, singular)
+    meas = np.array([0.1, 0.0, 0.0])
+    np.testing.assert_array_equal(remap_weak_directions(meas, singular, meas, singular), meas)
 
 
 def test_oblique_weak_direction_is_remapped_only_along_itself() -> None:
