@@ -1359,14 +1359,14 @@ class FeatureMap:
         one when its covariance trace is below ``replace_ratio`` of it, or when it tells
         more (an EOW seen as a Corner becomes a Corner)."""
         lm = self._lm
-        new_in_anchor = inverse(near.anchor_in_new[near.slot[pair_row]])
-        tr_new = np.trace(features.cov[pair_new], axis1=1, axis2=2)
-        tr_old = np.trace(lm.cov[pair_row], axis1=1, axis2=2)
+        tr_new = features.cov[pair_new, 0, 0] + features.cov[pair_new, 1, 1]
+        tr_old = lm.cov[pair_row, 0, 0] + lm.cov[pair_row, 1, 1]
         upgrade = _RANK[features.kind[pair_new]] > _RANK[lm.kind[pair_row]]
         same = lm.kind[pair_row] == features.kind[pair_new]
         rep = np.flatnonzero(upgrade | (same & (tr_new < self.config.replace_ratio * tr_old)))
         if rep.shape[0]:
-            self._replace(features, pair_row[rep], pair_new[rep], new_in_anchor[rep])
+            rows, new = pair_row[rep], pair_new[rep]
+            self._replace(features, rows, new, inverse(near.anchor_in_new[near.slot[rows]]))
 
     def _geometry_of(self, features: ScanFeatures) -> _VisibilityGeometry:
         """:func:`_geometry` of a scan's features, computed once per features object (an
