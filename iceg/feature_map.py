@@ -30,13 +30,13 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from frontends.scan import LaserScan
 from iceg.landmark_association import nearest_free_pairs, within_gate_of_any
-from iceg.landmark_frames import move_features, move_points
+from iceg.landmark_frames import move_features, move_points, poses_in_frame
 from iceg.matching.geometry import PolarProfile, transform_lines
 from iceg.matching.matcher import walls_seen_through
 from iceg.types import FeatureKind, MatchResult, ScanFeatures
 from iceg.visibility import expected_landmarks
 from iceg_common.errors import FeatureMapError
-from iceg_common.se2 import between, compose, inverse
+from iceg_common.se2 import compose, inverse
 
 log = logging.getLogger(__name__)
 
@@ -986,7 +986,7 @@ class FeatureMap:
         want_posed = want[posed]  # nodes whose segments and points can be placed
         ssel = _block_rows(self._seg_rows, want_posed)
         spos, _ = _lookup(ids, self._seg.node[ssel])
-        srel = between(frame, poses[spos]) if ssel.shape[0] else np.zeros((0, 3))
+        srel = poses_in_frame(frame, poses, spos)
         ep, lines, lcov = self._seg.in_frame(ssel, srel)
         points, seg_pr = self._reference_points(ids, poses, want_posed, frame, ssel)
         features = ScanFeatures(
@@ -1039,7 +1039,7 @@ class FeatureMap:
         chosen = self._chosen(want)
         apos, afound = _lookup(ids, lm.anchor[chosen])
         sel = chosen[afound]
-        rel = between(frame, poses[apos[afound]]) if sel.shape[0] else np.zeros((0, 3))
+        rel = poses_in_frame(frame, poses, apos[afound])
         return lm.in_frame(sel, rel)
 
     def _chosen(self, want: IntArray) -> IntArray:
@@ -1101,7 +1101,7 @@ class FeatureMap:
         sg, pt = self._seg, self._pts
         psel = _block_rows(self._pts_rows, want)
         ppos, _ = _lookup(ids, pt.node[psel])
-        prel = between(frame, poses[ppos])
+        prel = poses_in_frame(frame, poses, ppos)
         points = move_points(prel, pt.xy[psel][:, None, :], True)[:, 0]
         # Each node's points are contiguous: shift its segments' ranges to its block.
         nodes_sel, first = np.unique(pt.node[psel], return_index=True)
@@ -1304,9 +1304,7 @@ class FeatureMap:
         part = self._taking_part(node_id, reference.landmark_ids)
         apos, afound = _lookup(tab_ids, lm.anchor[part])
         rows = part[afound]
-        anchor_in_new = (
-            between(new_pose, tab_poses[apos[afound]]) if rows.shape[0] else np.zeros((0, 3))
-        )
+        anchor_in_new = poses_in_frame(new_pose, tab_poses, apos[afound])
         xy_new = move_points(anchor_in_new, lm.xy[rows][:, None, :], True)[:, 0]
         slot = np.full(len(self), -1, dtype=np.int64)
         slot[rows] = np.arange(rows.shape[0])

@@ -7,7 +7,9 @@ and a translation of points, direction vectors and 2 x 2 covariances (Hessian li
 calls on ``(n, 2, 2)`` temporaries per gather (``rotation_matrix``, ``einsum``, stacked
 ``matmul``), 50-250 us for the few dozen to few hundred rows of a reference; these loops do
 it in one pass. The arithmetic is that of the numpy expressions (``R p + t``, ``R C R^T``),
-so the results agree to rounding (``tests/iceg/test_feature_map.py``).
+so the results agree to rounding (``tests/iceg/test_feature_map.py``). The rows' anchor
+poses in the gather's frame (:func:`poses_in_frame`) are ``se2.between`` of the gathered rows
+in one pass, the same bits.
 
 Every pose is ``[x_m, y_m, theta_rad]`` of the source frame in the target frame, one per
 row.
@@ -19,6 +21,8 @@ import math
 
 import numpy as np
 from numba import njit
+
+from iceg_common import se2
 
 
 @njit(cache=True, nogil=True)
@@ -90,4 +94,46 @@ def move_points(poses: np.ndarray, pts: np.ndarray, translate: bool) -> np.ndarr
     return out
 
 
-__all__ = ["move_features", "move_points"]
+def poses_in_frame(frame: np.ndarray, poses: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``se2.between(frame, poses[rows])`` in one compiled pass, the same bits (the same
+    expressions in the same order, with the frame's inverse and its sine and cosine from
+    :mod:`iceg_common.se2`): the anchors of a reference's rows in its frame.
+
+    Args:
+        frame: ``(3,)`` float64 the target frame's pose ``[x_m, y_m, theta_rad]``.
+        poses: ``(N, 3)`` float64 poses in the frame ``frame`` is given in.
+        rows: ``(n,)`` int64 rows of ``poses`` to express.
+
+    Returns:
+        ``(n, 3)`` float64 the rows' poses in the target frame, headings in ``[-pi, pi)``.
+    """
+    ax, ay, at = se2.inverse(np.asarray(frame, dtype=np.float64).reshape(3)).tolist()
+    return _compose_rows(  # type: ignore[no-any-return]
+        ax,
+        ay,
+        at,
+        math.cos(at),
+        math.sin(at),
+        np.ascontiguousarray(poses, dtype=np.float64),
+        np.asarray(rows, dtype=np.int64),
+    )
+
+
+@njit(cache=True, nogil=True)
+def _compose_rows(
+    ax: float, ay: float, at: float, c: float, s: float, poses: np.ndarray, rows: np.ndarray
+) -> np.ndarray:
+    """``a ∘ poses[rows]`` for ``a = (ax, ay, at)`` with ``c, s = cos at, sin at``: the
+    expressions of ``se2.compose`` for one pose and a batch."""
+    n = rows.shape[0]
+    out = np.empty((n, 3))
+    for i in range(n):
+        r = rows[i]
+        bx, by = poses[r, 0], poses[r, 1]
+        out[i, 0] = ax + c * bx - s * by
+        out[i, 1] = ay + s * bx + c * by
+        out[i, 2] = (at + poses[r, 2] + math.pi) % (2.0 * math.pi) - math.pi
+    return out
+
+
+__all__ = ["move_features", "move_points", "poses_in_frame"]

@@ -23,13 +23,14 @@ from iceg.feature_map import (
 )
 from iceg.features import extract
 from iceg.landmark_association import nearest_free_pairs, within_gate_of_any
-from iceg.landmark_frames import move_features, move_points
+from iceg.landmark_frames import move_features, move_points, poses_in_frame
 from iceg.matching import IceMatcher, MatchBounds
 from iceg.matching._kernels import move_lines
 from iceg.matching.geometry import PolarProfile
 from iceg.matching.matcher import walls_seen_through
 from iceg.types import FeatureKind, MatchResult
 from iceg.visibility import expected_landmarks
+from iceg_common import se2
 from iceg_common.errors import FeatureMapError
 from iceg_common.se2 import between, rotation_matrix, transform_points, wrap_angle
 from tests.iceg.test_matching import hand_scan, point_features, room_walls
@@ -528,6 +529,21 @@ def test_association_kernels_equal_the_numpy_expressions() -> None:
             dd = np.linalg.norm(feature_xy[paired][:, None, :] - landmark_xy[None], axis=2)
             want = np.any(dd <= 0.3, axis=0)
         assert np.array_equal(within_gate_of_any(feature_xy, paired, landmark_xy, 0.3), want)
+
+
+def test_poses_in_frame_are_the_bits_of_se2_between() -> None:
+    # The compiled gather-and-compose against se2.between on the gathered rows: the same
+    # expressions in the same order, so the same bits (headings at +-pi and beyond wrap
+    # alike); repeated and empty rows.
+    rng = np.random.default_rng(5)
+    poses = np.column_stack([rng.normal(0, 50, (400, 2)), rng.uniform(-7, 7, 400)])
+    poses[:5, 2] = [np.pi, -np.pi, 0.0, 2 * np.pi, -3 * np.pi]
+    for _ in range(50):
+        frame = np.array([*rng.normal(0, 50, 2), rng.uniform(-4, 4)])
+        rows = rng.integers(0, 400, 300)
+        got = poses_in_frame(frame, poses, rows)
+        assert np.array_equal(got.view(np.int64), se2.between(frame, poses[rows]).view(np.int64))
+    assert poses_in_frame(poses[0], poses, np.zeros(0, dtype=np.int64)).shape == (0, 3)
 
 
 def test_moved_geometry_equals_the_numpy_expressions() -> None:
