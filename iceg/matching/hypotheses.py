@@ -314,4 +314,8 @@ def segment_rotation(
         return None
     # Mean of the pairs within one kernel width of the peak.
     near = np.abs(d - d[k]) <= kernel_rad
-    return float(wrap_angle(theta0 + np.average(d[near], weights=w[near])))
+    d_near, w_near = d[near], w[near]
+    # np.average's weighted mean, its expression without its argument checks; the wrap in
+    # floats (Python's modulo is numpy's), the same bits as wrap_angle.
+    mean = float((d_near * w_near).sum() / w_near.sum())
+    return (theta0 + mean + math.pi) % (2.0 * math.pi) - math.pi

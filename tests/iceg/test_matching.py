@@ -76,6 +76,7 @@ from iceg.matching.hypotheses import (
     directed_hypotheses,
     intersection_hypotheses,
     pair_codes,
+    segment_rotation,
     vote,
 )
 from iceg.matching.matcher import walls_seen_through
@@ -639,6 +640,36 @@ def test_density_peak_is_the_argmax_of_every_density(case: str) -> None:
         else:
             assert k == -1
     assert density_peak(np.zeros(0), np.zeros(0), kernel, 1.0)[0] == -1
+
+
+@pytest.mark.parametrize("true_deg", [3.0, -7.5, 179.0])
+def test_segment_rotation_recovers_the_rotation_of_the_walls(true_deg: float) -> None:
+    # A room's walls seen rotated by true_deg: every reference line is a new line turned by
+    # it (lines are undirected, so pi apart is the same line), plus walls seen in one scan
+    # only. The weighted mean of the agreeing pairs is the rotation to rounding, wrapped to
+    # [-pi, pi) also past pi.
+    rng = np.random.default_rng(int(true_deg * 10) % 7)
+    alpha = np.concatenate([rng.uniform(-np.pi, np.pi, 3), [0.0, 0.5 * np.pi]])
+    true = math.radians(true_deg)
+    new = np.column_stack([alpha, rng.uniform(1, 5, alpha.shape[0])])
+    ref = new.copy()
+    ref[:, 0] = np.where(rng.uniform(size=alpha.shape[0]) < 0.5, alpha + true, alpha + true - np.pi)
+    lengths = rng.uniform(0.5, 4.0, alpha.shape[0])
+    extra = np.array([[1.0, 2.0]])
+    theta0 = true + math.radians(1.5)
+    got = segment_rotation(
+        np.vstack([new, extra]),
+        np.append(lengths, 0.3),
+        ref,
+        lengths,
+        theta0,
+        math.radians(5.0),
+        math.radians(1.0),
+        0.5,
+    )
+    assert got is not None
+    assert abs(float(wrap_angle(got - true))) < 1e-12
+    assert -math.pi <= got < math.pi
 
 
 def test_nearest_segment_distance_hand_values() -> None:
