@@ -24,6 +24,7 @@ estimates are the batch values themselves.
 from __future__ import annotations
 
 import logging
+import math
 import operator
 import os
 import re
@@ -1214,7 +1215,7 @@ class PoseGraph:
             v = np.asarray(value, dtype=np.float64)
         except (TypeError, ValueError):
             raise GraphError(f"{ctx}: {what} is not numeric: {value!r}") from None
-        if v.shape != (3,) or not np.all(np.isfinite(v)):
+        if v.shape != (3,) or not all(math.isfinite(x) for x in v.tolist()):
             raise GraphError(
                 f"{ctx}: {what} must be a finite (3,) [x_m, y_m, theta_rad], got shape "
                 f"{v.shape} {v.tolist()}"
@@ -1227,23 +1228,28 @@ class PoseGraph:
             c = np.asarray(value, dtype=np.float64)
         except (TypeError, ValueError):
             raise GraphError(f"{ctx}: covariance is not numeric: {value!r}") from None
-        if c.shape != (3, 3) or not np.all(np.isfinite(c)):
+        # The checks on the nine numbers as floats (a factor per keyframe and more: numpy's
+        # calls on a 3 x 3 cost five times as much); the returned matrix is numpy's.
+        rows = c.tolist() if c.shape == (3, 3) else None
+        if rows is None or not all(math.isfinite(x) for row in rows for x in row):
             raise GraphError(
                 f"{ctx}: covariance must be a finite (3, 3) matrix in (x, y, theta) order, got "
                 f"shape {c.shape}"
             )
-        scale = float(np.max(np.abs(c)))
-        if float(np.max(np.abs(c - c.T))) > 1e-9 * scale:
-            raise GraphError(f"{ctx}: covariance is not symmetric: {c.tolist()}")
+        (_, a01, a02), (a10, _, a12), (a20, a21, _) = rows
+        scale = max(abs(x) for row in rows for x in row)
+        if max(abs(a01 - a10), abs(a02 - a20), abs(a12 - a21)) > 1e-9 * scale:
+            raise GraphError(f"{ctx}: covariance is not symmetric: {rows}")
         c = 0.5 * (c + c.T)
-        try:
-            np.linalg.cholesky(c)
-        except np.linalg.LinAlgError:
-            eig = np.linalg.eigvalsh(c)
-            raise GraphError(
-                f"{ctx}: covariance is not positive definite (eigenvalues {eig.tolist()}); "
-                "every direction needs a positive variance"
-            ) from None
+        if not _clearly_positive_definite(c):
+            try:
+                np.linalg.cholesky(c)
+            except np.linalg.LinAlgError:
+                eig = np.linalg.eigvalsh(c)
+                raise GraphError(
+                    f"{ctx}: covariance is not positive definite (eigenvalues {eig.tolist()}); "
+                    "every direction needs a positive variance"
+                ) from None
         return c
 
     @staticmethod
@@ -1252,6 +1258,28 @@ class PoseGraph:
             return gtsam.noiseModel.Gaussian.Covariance(cov)
         except _GTSAM_ERRORS as exc:
             raise GraphError(f"{ctx}: gtsam rejected the covariance: {exc}") from exc
+
+
+#: Least pivot of :func:`_clearly_positive_definite`, relative to its diagonal entry: far
+#: above the rounding of the elimination, so that LAPACK's Cholesky succeeds wherever the
+#: test does.
+_PIVOT_MARGIN = 1e-9
+
+
+def _clearly_positive_definite(c: FloatArray) -> bool:
+    """Whether the symmetric ``(3, 3)`` ``c`` is positive definite with every pivot of its
+    ``L D L^T`` elimination above :data:`_PIVOT_MARGIN` of its diagonal entry, in floats
+    (False: too close to call here; ``np.linalg.cholesky`` decides)."""
+    (a00, a01, a02), (_, a11, a12), (_, _, a22) = c.tolist()
+    if not a00 > 0.0:
+        return False
+    l10, l20 = a01 / a00, a02 / a00
+    d1 = a11 - l10 * a01
+    if not d1 > _PIVOT_MARGIN * abs(a11):
+        return False
+    l21 = (a12 - l20 * a01) / d1
+    d2 = a22 - l20 * a02 - l21 * l21 * d1
+    return d2 > _PIVOT_MARGIN * abs(a22)
 
 
 def _warn_if_not_converged(stats: BatchStats, max_iterations: int) -> None:

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 from scipy.optimize import brentq, least_squares
 
 from graph import FactorKind, GraphConfig, PoseGraph
@@ -16,6 +18,7 @@ from graph.pose_graph import (
     STEP_BATCH_CORRECTION,
     STEP_BATCH_GAUSSIAN_LOOPS,
     STEP_UPDATE,
+    _clearly_positive_definite,
 )
 from iceg_common.errors import GraphError
 from iceg_common.se2 import between, compose, wrap_angle
@@ -365,6 +368,25 @@ def test_invalid_factor_raises_graph_error_naming_the_factor(kwargs: dict, messa
         g.add_between(0, 1, **args)
     assert "loop_closure factor between 0 and 1" in str(info.value)
     assert g.n_factors == 2  # nothing was added
+
+
+_EIG = st.floats(-1e-3, 1e2)
+
+
+@given(_EIG, _EIG, _EIG, st.integers(0, 2**32 - 1))
+def test_covariance_check_accepts_what_cholesky_accepts(  # type: ignore[no-untyped-def]
+    e0, e1, e2, seed
+) -> None:
+    """The float pivot test of a covariance: whatever it accepts, LAPACK's Cholesky accepts
+    (it leaves close calls to it), and a matrix conditioned below 1e6 it accepts itself."""
+    q, _ = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
+    eig = np.array([e0, e1, e2])
+    c = q @ np.diag(eig) @ q.T
+    c = 0.5 * (c + c.T)
+    if _clearly_positive_definite(c):
+        np.linalg.cholesky(c)  # raises if not
+    if eig.min() > 1e-6 * eig.max() > 0.0:
+        assert _clearly_positive_definite(c)
 
 
 def test_structural_errors_name_the_node() -> None:
