@@ -137,10 +137,12 @@ class _Rls:
         """Covariance of the parameters for unit residual variance factor."""
         return np.asarray(np.linalg.inv(self.info), dtype=np.float64)
 
-    def add_pair(self, h: tuple[float, float], y: tuple[float, float], w: FloatArray) -> None:
+    def add_pair(
+        self, h: tuple[float, float], y: tuple[float, float], w: tuple[float, float, float, float]
+    ) -> None:
         """Two observations of the one parameter: ``y = h p`` + noise of information ``w``
-        ``(2, 2)``: ``info += h^T w h``, ``vec += h^T w y``."""
-        (a, b), (c, d) = w.tolist()
+        (a 2 x 2 matrix, row by row): ``info += h^T w h``, ``vec += h^T w y``."""
+        a, b, c, d = w
         (h0, h1), (y0, y1) = h, y
         self.info[0, 0] += h0 * (a * h0 + b * h1) + h1 * (c * h0 + d * h1)
         self.vec[0] += h0 * (a * y0 + b * y1) + h1 * (c * y0 + d * y1)
@@ -314,8 +316,7 @@ class OdometryCalibrator:
     def _observe_translation(self, d: FloatArray, z: FloatArray, cov: FloatArray) -> None:
         (a, b), (c, e) = cov.tolist()
         det = a * e - b * c
-        info = np.array([[e / det, -b / det], [-c / det, a / det]])  # cov^-1
-        (i00, i01), (i10, i11) = info.tolist()
+        i00, i01, i10, i11 = e / det, -b / det, -c / det, a / det  # cov^-1
         h = (float(d[0]), float(d[1]))
         y = (float(z[0]), float(z[1]))
         kappa = self.scale
@@ -324,7 +325,7 @@ class OdometryCalibrator:
         s2 = self._s2_t.value
         w = _huber_weight(math.sqrt(chi2 / (2.0 * s2)), self.config.huber_k)
         self._s2_t.add(chi2, 2.0, w)
-        self._scale.add_pair(h, y, w * info)
+        self._scale.add_pair(h, y, (w * i00, w * i01, w * i10, w * i11))
 
     def _observe_heading(self, d: FloatArray, z: FloatArray, var: float) -> None:
         dth, zth = float(d[2]), float(z[2])
