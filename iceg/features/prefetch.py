@@ -87,11 +87,13 @@ _Result = tuple[ScanFeatures | None, object]
 
 class _Inbox:
     """Results arrived from the workers, by scan index; those below ``floor`` (scans already
-    handed out) are dropped on arrival."""
+    handed out) are dropped on arrival. The floor is also in shared memory (``shared``),
+    where the workers read it to skip the scans the calling process has passed."""
 
-    def __init__(self) -> None:
+    def __init__(self, shared: Any = None) -> None:
         self.results: dict[int, _Result] = {}
         self.floor = 0
+        self.shared = shared
 
     def put(self, index: int, feats: ScanFeatures | None, products: object = None) -> None:
         if index >= self.floor:
@@ -99,6 +101,8 @@ class _Inbox:
 
     def advance(self, floor: int) -> None:
         self.floor = floor
+        if self.shared is not None:
+            self.shared.value = floor
         for k in [k for k in self.results if k < floor]:
             del self.results[k]
 
@@ -109,13 +113,17 @@ class _Worker:
     that every worker sees the end of its pipe when the calling process exits)."""
 
     def __init__(
-        self, config: FeatureConfig, precompute: Precompute[Any] | None, others: list[Connection]
+        self,
+        config: FeatureConfig,
+        precompute: Precompute[Any] | None,
+        others: list[Connection],
+        floor: Any,
     ) -> None:
         ctx = multiprocessing.get_context("fork")
         self.conn, child = ctx.Pipe(duplex=True)
         self.proc: BaseProcess = ctx.Process(
             target=_serve,
-            args=(child, [self.conn, *others], os.getpid(), config, precompute),
+            args=(child, [self.conn, *others], os.getpid(), config, precompute, floor),
             daemon=True,
             name="iceg-features",
         )
@@ -186,10 +194,13 @@ def _serve(
     parent_pid: int,
     config: FeatureConfig,
     precompute: Precompute[Any] | None,
+    floor: Any,
 ) -> None:
     """Worker loop: batches ``[(index, scan), ...]`` in, one ``(index, features or None,
     products or None)`` out per scan; None, the end of the pipe or the parent's exit stops
-    it."""
+    it. A scan below the calling process's ``floor`` (shared memory) is passed already:
+    it is answered with None, not extracted (a stretch of scans that make no keyframe goes
+    by faster than the worker extracts them)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle
     with contextlib.suppress(OSError):
         # Spare CPU only: on a busy machine the worker must not take the main process's
@@ -200,10 +211,13 @@ def _serve(
     _warm_up(config, precompute)
     while (msg := forked.next_message(conn, parent_pid)) is not None:
         for index, scan in cast(list[tuple[int, LaserScan]], msg):
-            try:
-                feats: ScanFeatures | None = extract(scan, config)
-            except Exception:  # the calling process recomputes it and raises it there
-                feats = None
+            if index < floor.value:
+                feats: ScanFeatures | None = None
+            else:
+                try:
+                    feats = extract(scan, config)
+                except Exception:  # the calling process recomputes it and raises it there
+                    feats = None
             products = None
             if precompute is not None and feats is not None:
                 try:
@@ -305,9 +319,11 @@ class FeaturePrefetcher:
     def __enter__(self) -> FeaturePrefetcher:
         if self.workers > 1 and sys.platform == "linux":
             try:
+                floor = multiprocessing.get_context("fork").RawValue("q", 0)
+                self._inbox = _Inbox(floor)
                 for _ in range(self.workers - 1):
                     others = [w.conn for w in self._pool]
-                    self._pool.append(_Worker(self.config, self.precompute, others))
+                    self._pool.append(_Worker(self.config, self.precompute, others, floor))
             except OSError as exc:
                 log.warning("feature prefetch off (%s); extracting here", exc)
                 self.__exit__()

@@ -149,11 +149,31 @@ def test_the_warm_up_scan_has_walls_corners_and_ends_of_wall() -> None:
 
 def test_a_bounded_wait_for_a_worker_returns_without_the_result_it_never_gets() -> None:
     # Nothing was sent: the wait gives up after its timeout, and the worker stays usable.
-    worker = _Worker(IcegConfig().features, None, [])
+    worker = _Worker(IcegConfig().features, None, [], multiprocessing.RawValue("q", 0))
     inbox = _Inbox()
     try:
         worker.wait_for(0, inbox, timeout_s=0.05)
         assert 0 not in inbox.results and worker.alive
+    finally:
+        worker.close()
+
+
+def test_a_worker_skips_the_scans_the_calling_process_has_passed() -> None:
+    # The calling process is at scan 2 (its shared floor): the worker answers scans 0 and 1
+    # without extracting them, and extracts 2 and 3 as the calling process would.
+    config = IcegConfig().features
+    floor = multiprocessing.RawValue("q", 2)
+    worker = _Worker(config, None, [], floor)
+    inbox = _Inbox()  # this inbox keeps every answer
+    scan = warm_up_scan()
+    try:
+        assert worker.send([(k, scan) for k in range(4)], inbox, block=False)
+        worker.wait_for(3, inbox, timeout_s=60.0)
+        assert inbox.results[0] == (None, None) and inbox.results[1] == (None, None)
+        want = extract(scan, config)
+        for k in (2, 3):
+            got = inbox.results[k][0]
+            assert got is not None and np.array_equal(got.xy, want.xy)
     finally:
         worker.close()
 
