@@ -20,7 +20,9 @@ parent), which is what makes forking a process that may hold other threads safe 
 a :class:`Precompute` they also compute what the run derives from a scan and its features
 alone (:mod:`iceg.scan_products`), which the calling process adopts with the features.
 Scans go out in batches (one wake-up of a worker per few scans), never more than
-``LOOKAHEAD_PER_WORKER`` unfinished per worker, and workers run at a lower priority
+``LOOKAHEAD_PER_WORKER`` unfinished per worker; a worker skips the scans the calling process
+has passed meanwhile (a shared floor: through a stretch without keyframes the calling
+process outruns the extraction and reads none of it), and workers run at a lower priority
 (``WORKER_NICENESS``): on a busy machine they take spare CPU only, and the main process
 extracts what they have not done yet. A worker loads the extraction's compiled kernels as
 it starts (a synthetic scan), while the calling process reads its log; until the calling
