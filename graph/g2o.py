@@ -94,13 +94,17 @@ class G2oGraph:
         return int(self.edge_ij.shape[0])
 
 
-def _floats(values: Iterable[float]) -> str:
-    return " ".join(repr(float(v)) for v in values)
+def _floats(values: Iterable[float] | NDArray[np.float64]) -> str:
+    """The numbers as g2o writes them: shortest round-trip ``repr``, space-separated."""
+    seq = values.tolist() if isinstance(values, np.ndarray) else [float(v) for v in values]
+    return " ".join(map(repr, seq))
 
 
 def _information(cov: NDArray[np.float64]) -> NDArray[np.float64]:
-    info = np.linalg.inv(cov)
-    return 0.5 * (info + info.T)
+    """Information matrices ``inv(cov)`` made symmetric, of one ``(3, 3)`` covariance or a
+    stack ``(F, 3, 3)`` (one LAPACK solve per matrix either way)."""
+    info = np.asarray(np.linalg.inv(cov), dtype=np.float64)
+    return 0.5 * (info + np.swapaxes(info, -1, -2))
 
 
 def _covariance_of(noise_model: Any) -> NDArray[np.float64]:  # a gtsam noise model
@@ -306,11 +310,13 @@ def write_g2o_file(
     file = Path(path)
     lines = [f"VERTEX_SE2 {n} {_floats(p)}" for n, p in zip(node_ids.tolist(), poses, strict=True)]
     meta = []
+    edges = [f for f in factors if f.j is not None]
+    infos = iter(_information(np.array([f.cov for f in edges])) if edges else np.zeros((0, 3, 3)))
     for f in factors:
         if f.j is None:
             meta.append(f"# ICEG_PRIOR {f.i} {_floats(f.measured)} {_floats(f.cov[_UPPER])}")
             continue
-        info = _information(f.cov)
+        info = next(infos)
         lines.append(f"EDGE_SE2 {f.i} {f.j} {_floats(f.measured)} {_floats(info[_UPPER])}")
         k = float("nan") if f.robust_k is None else f.robust_k
         kind = getattr(f.kind, "value", f.kind)

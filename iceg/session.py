@@ -294,12 +294,15 @@ def scan_hash(scan: LaserScan) -> str:
     return h.hexdigest()[:16]
 
 
-def _split_source(source: str) -> tuple[str, str] | None:
-    """``(path, key)`` of a ``path:key`` source whose path is a readable log, else None."""
+def _split_source(source: str, resolved: dict[str, str | None]) -> tuple[str, str] | None:
+    """``(absolute path, key)`` of a ``path:key`` source whose path is a readable log, else
+    None; ``resolved`` memoizes each path's absolute form (None: not a log)."""
     path, sep, key = source.rpartition(":")
-    if not sep or not path or not os.path.exists(path):
-        return None
-    return path, key
+    if path not in resolved:
+        exists = bool(sep and path and os.path.exists(path))
+        resolved[path] = str(Path(path).resolve()) if exists else None
+    absolute = resolved[path] if sep else None
+    return None if absolute is None else (absolute, key)
 
 
 def scan_arrays(
@@ -310,21 +313,24 @@ def scan_arrays(
     logs: dict[str, int] = {}
     log_idx: list[int] = []
     keys: list[str] = []
+    hashes: list[str] = []
     inline: list[LaserScan] = []
-    for scan in scans:
-        split = _split_source(scan.source)
+    resolved: dict[str, str | None] = {}  # a source's log, resolved once per path
+    for scan in scans:  # one pass: a ScanStore builds each scan as it is read
+        hashes.append(scan_hash(scan))
+        split = _split_source(scan.source, resolved)
         if split is None:
             log_idx.append(-1)
             keys.append(str(len(inline)))
             inline.append(scan)
             continue
-        path = str(Path(split[0]).resolve())
+        path, key = split
         log_idx.append(logs.setdefault(path, len(logs)))
-        keys.append(split[1])
+        keys.append(key)
     out = {
         "s_log": np.array(log_idx, dtype=np.int64),
         "s_key": np.array(keys, dtype=np.str_),
-        "s_hash": np.array([scan_hash(s) for s in scans], dtype=np.str_),
+        "s_hash": np.array(hashes, dtype=np.str_),
         **_inline_arrays(inline),
     }
     table = [{"path": p, "relative": os.path.relpath(p, session_dir.resolve())} for p in logs]

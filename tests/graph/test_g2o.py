@@ -75,6 +75,22 @@ def test_round_trip_keeps_factors_and_values(tmp_path: Path) -> None:
     np.testing.assert_allclose(g.estimates()[1], back.estimates()[1], atol=1e-9)
 
 
+def test_written_information_is_the_inverse_of_each_covariance(tmp_path: Path) -> None:
+    # The writer inverts every edge's covariance in one stacked call: each EDGE_SE2 line
+    # holds the upper triangle of inv(cov) of its own factor, symmetrized, to the bit.
+    g = _mixed_graph()
+    path = tmp_path / "mixed.g2o"
+    g.write_g2o(path)
+    edges = [ln.split() for ln in path.read_text().splitlines() if ln.startswith("EDGE_SE2")]
+    between = [f for f in g.factors if f.j is not None]
+    assert len(edges) == len(between) == 9
+    for line, f in zip(edges, between, strict=True):
+        assert (int(line[1]), int(line[2])) == (f.i, f.j)
+        info = np.linalg.inv(f.cov)
+        info = 0.5 * (info + info.T)
+        assert [float(x) for x in line[6:]] == info[np.triu_indices(3)].tolist()
+
+
 def test_written_file_reads_like_gtsams_own_writer(tmp_path: Path) -> None:
     # Same graph written by gtsam.writeG2o (6 significant digits) and by write_g2o: gtsam reads
     # both to the same edges within gtsam's printing precision, ours exactly.
