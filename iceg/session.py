@@ -301,7 +301,7 @@ def _split_source(source: str, resolved: dict[str, str | None]) -> tuple[str, st
     if path not in resolved:
         exists = bool(sep and path and os.path.exists(path))
         resolved[path] = str(Path(path).resolve()) if exists else None
-    absolute = resolved[path] if sep else None
+    absolute = resolved[path]  # no ":" leaves path "", never a log
     return None if absolute is None else (absolute, key)
 
 
