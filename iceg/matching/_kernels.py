@@ -1775,6 +1775,67 @@ def density_peak(d: np.ndarray, w: np.ndarray, kernel: float, max_abs: float) ->
 
 
 @njit(cache=True, nogil=True)
+def segment_rotation_peak(
+    new_lines: np.ndarray,
+    new_lengths: np.ndarray,
+    ref_lines: np.ndarray,
+    ref_lengths: np.ndarray,
+    theta0: float,
+    max_dev_rad: float,
+    kernel_rad: float,
+    min_support_m: float,
+) -> tuple[bool, float]:
+    """The arithmetic of ``segment_rotation`` (:mod:`iceg.matching.hypotheses`) in one pass,
+    with numpy's operations and summation order (the same bits): the differences of every
+    segment pair's line angles less ``theta0`` modulo pi (new segments outer, reference
+    inner), weighted by the shorter segment, those within ``max_dev_rad + 2 kernel_rad``
+    kept; their :func:`density_peak`; the weighted mean of the pairs within one kernel width
+    of the peak (:func:`pairwise_sum`), added to ``theta0`` and wrapped to ``[-pi, pi)``.
+
+    Args:
+        new_lines, ref_lines: ``(M, 2)`` float64 Hessian lines ``(alpha_rad, rho_m)``.
+        new_lengths, ref_lengths: ``(M,)`` float64 segment lengths, metres.
+
+    Returns:
+        ``(found, rotation_rad)``; ``found`` False (rotation NaN) when no pair is kept or
+        the peak's density is below ``min_support_m``.
+    """
+    n_new = new_lines.shape[0]
+    n_ref = ref_lines.shape[0]
+    d = np.empty(n_new * n_ref)
+    w = np.empty(n_new * n_ref)
+    reach = max_dev_rad + 2.0 * kernel_rad
+    n = 0
+    for i in range(n_new):
+        for j in range(n_ref):
+            x = ref_lines[j, 0] - new_lines[i, 0] - theta0
+            x = (x + 0.5 * math.pi) % math.pi - 0.5 * math.pi  # modulo pi, in [-pi/2, pi/2)
+            if abs(x) <= reach:
+                a = new_lengths[i]
+                b = ref_lengths[j]
+                d[n] = x
+                w[n] = a if (a < b or math.isnan(a)) else b  # np.minimum (NaN propagates)
+                n += 1
+    if n == 0:
+        return False, np.nan
+    d = d[:n]
+    w = w[:n]
+    k, peak = density_peak(d, w, kernel_rad, max_dev_rad)
+    if k < 0 or not peak >= min_support_m:
+        return False, np.nan
+    dw = np.empty(n)
+    w_near = np.empty(n)
+    m = 0
+    for x in range(n):
+        if abs(d[x] - d[k]) <= kernel_rad:
+            dw[m] = d[x] * w[x]
+            w_near[m] = w[x]
+            m += 1
+    mean = pairwise_sum(dw, 0, m) / pairwise_sum(w_near, 0, m)
+    return True, (theta0 + mean + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@njit(cache=True, nogil=True)
 def points_explained(
     points: np.ndarray,
     poses: np.ndarray,

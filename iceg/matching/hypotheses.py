@@ -10,9 +10,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from iceg.matching._kernels import (
-    density_peak,
     directed_poses,
     intersection_pair_poses,
+    segment_rotation_peak,
     vote_clusters,
 )
 from iceg.matching.config import MatchBounds
@@ -300,22 +300,14 @@ def segment_rotation(
     """
     if new_lines.shape[0] == 0 or ref_lines.shape[0] == 0:
         return None
-    d = ref_lines[None, :, 0] - new_lines[:, None, 0] - theta0
-    d = (d + 0.5 * math.pi) % math.pi - 0.5 * math.pi  # modulo pi, in [-pi/2, pi/2)
-    w = np.minimum(new_lengths[:, None], ref_lengths[None, :])
-    keep = np.abs(d) <= max_dev_rad + 2.0 * kernel_rad
-    d, w = d[keep], w[keep]
-    if d.shape[0] == 0:
-        return None
-    k, peak = density_peak(
-        np.ascontiguousarray(d), np.ascontiguousarray(w), kernel_rad, max_dev_rad
+    found, rotation = segment_rotation_peak(
+        np.ascontiguousarray(new_lines, dtype=np.float64),
+        np.ascontiguousarray(new_lengths, dtype=np.float64),
+        np.ascontiguousarray(ref_lines, dtype=np.float64),
+        np.ascontiguousarray(ref_lengths, dtype=np.float64),
+        float(theta0),
+        float(max_dev_rad),
+        float(kernel_rad),
+        float(min_support_m),
     )
-    if k < 0 or not peak >= min_support_m:
-        return None
-    # Mean of the pairs within one kernel width of the peak.
-    near = np.abs(d - d[k]) <= kernel_rad
-    d_near, w_near = d[near], w[near]
-    # np.average's weighted mean, its expression without its argument checks; the wrap in
-    # floats (Python's modulo is numpy's), the same bits as wrap_angle.
-    mean = float((d_near * w_near).sum() / w_near.sum())
-    return (theta0 + mean + math.pi) % (2.0 * math.pi) - math.pi
+    return float(rotation) if found else None
