@@ -699,6 +699,16 @@ def _numpy_segment_rotation(
     return (theta0 + mean + math.pi) % (2.0 * math.pi) - math.pi
 
 
+def _room_lines(rng: np.random.Generator, walls: np.ndarray, n: int, turn: float) -> np.ndarray:
+    """``(n, 2)`` lines ``(alpha, rho)`` along the wall directions ``walls`` turned by
+    ``turn``, with noise, either orientation, and a fifth of them clutter."""
+    alpha = rng.choice(walls, n) + turn + rng.normal(0, 0.01, n)
+    alpha += np.pi * rng.integers(0, 2, n)  # undirected: pi apart is the same line
+    clutter = rng.uniform(size=n) < 0.2
+    alpha[clutter] = rng.uniform(-np.pi, np.pi, int(clutter.sum()))
+    return np.column_stack([wrap_angle(alpha), rng.uniform(0, 8, n)])
+
+
 def test_segment_rotation_is_the_numpy_arithmetic_bit_for_bit() -> None:
     # Rooms of a few wall directions seen with noise, clutter and repeated walls (a map
     # reference holds several nodes' copies of a wall), at any predicted rotation: the
@@ -709,18 +719,10 @@ def test_segment_rotation_is_the_numpy_arithmetic_bit_for_bit() -> None:
         n_new, n_ref = (int(x) for x in rng.integers(0, 60, 2))
         walls = rng.uniform(-np.pi, np.pi, int(rng.integers(1, 5)))
         rotation = float(rng.uniform(-np.pi, np.pi))
-
-        def lines(n: int, turn: float) -> np.ndarray:
-            alpha = rng.choice(walls, n) + turn + rng.normal(0, 0.01, n)
-            alpha += np.pi * rng.integers(0, 2, n)  # undirected: pi apart is the same line
-            clutter = rng.uniform(size=n) < 0.2
-            alpha[clutter] = rng.uniform(-np.pi, np.pi, int(clutter.sum()))
-            return np.column_stack([wrap_angle(alpha), rng.uniform(0, 8, n)])
-
         args = (
-            lines(n_new, 0.0),
+            _room_lines(rng, walls, n_new, 0.0),
             rng.uniform(0.1, 6.0, n_new),
-            lines(n_ref, rotation),
+            _room_lines(rng, walls, n_ref, rotation),
             rng.uniform(0.1, 6.0, n_ref),
             rotation + float(rng.normal(0, 0.05)),
             math.radians(float(rng.uniform(1, 20))),
