@@ -779,8 +779,8 @@ class IceMatcher:
             if prof.bearing.shape[0] == 0:
                 continue
             dist = math.hypot(xy[0], xy[1])
-            _, hi, _ = _bracket(prof, np.array([math.atan2(xy[1], xy[0])]))
-            if np.isfinite(hi[0]) and hi[0] < dist - tol:
+            hi = _far_bracket_range(prof, math.atan2(xy[1], xy[0]))
+            if math.isfinite(hi) and hi < dist - tol:
                 return False
         return True
 
@@ -889,17 +889,16 @@ def _ray_check(ep: FloatArray, prof: PolarProfile, tol_m: float) -> tuple[float,
     return float(see.sum()), float(cons.sum())
 
 
-def _bracket(prof: PolarProfile, bearing: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Ranges of the two returns bracketing each bearing (their min and max) and of the
-    nearest; NaN where the bracket spans a gap of more than ``MAX_GAP_BEAMS`` beam spacings."""
+def _far_bracket_range(prof: PolarProfile, bearing: float) -> float:
+    """The range (metres) of the farther of the two returns bracketing ``bearing`` (radians);
+    NaN outside the profile's bearings or where the bracket spans a gap of more than
+    ``MAX_GAP_BEAMS`` beam spacings. In floats: one bearing costs less than numpy's calls."""
     n = prof.bearing.shape[0]
-    k = np.searchsorted(prof.bearing, bearing)
-    k0 = np.maximum(k - 1, 0)  # searchsorted gives 0..n
-    k1 = np.minimum(k, n - 1)
-    b0, b1 = prof.bearing[k0], prof.bearing[k1]
-    ok = (k > 0) & (k < n) & (b1 - b0 <= MAX_GAP_BEAMS * prof.spacing)
-    r0, r1 = prof.range[k0], prof.range[k1]
-    near = np.where(np.abs(bearing - b0) <= np.abs(b1 - bearing), r0, r1)
-    lo = np.where(ok, np.minimum(r0, r1), np.nan)
-    hi = np.where(ok, np.maximum(r0, r1), np.nan)
-    return lo, hi, np.where(ok, near, np.nan)
+    k = int(np.searchsorted(prof.bearing, bearing))
+    if k == 0 or k == n:
+        return math.nan
+    b0, b1 = float(prof.bearing[k - 1]), float(prof.bearing[k])
+    if not b1 - b0 <= MAX_GAP_BEAMS * prof.spacing:
+        return math.nan
+    r0, r1 = float(prof.range[k - 1]), float(prof.range[k])
+    return r0 if (r0 >= r1 or math.isnan(r0)) else r1  # np.maximum's: NaN propagates

@@ -79,7 +79,7 @@ from iceg.matching.hypotheses import (
     segment_rotation,
     vote,
 )
-from iceg.matching.matcher import walls_seen_through
+from iceg.matching.matcher import _far_bracket_range, walls_seen_through
 from iceg.matching.refine import (
     build_cloud,
     effective_line_cov,
@@ -736,6 +736,21 @@ def test_segment_rotation_is_the_numpy_arithmetic_bit_for_bit() -> None:
             found += 1
             assert got == want
     assert found > 100  # most cases find their rotation
+
+
+def test_far_bracket_range_hand_values() -> None:
+    # Returns at -0.1, 0, 0.1 and 0.5 rad, spaced 0.1 rad: a bracket wider than 1.6 spacings
+    # spans a gap, a bearing outside the returns has no bracket; a NaN range propagates.
+    prof = PolarProfile(np.array([-0.1, 0.0, 0.1, 0.5]), np.array([2.0, 3.0, 1.0, 4.0]), 0.1, 20.0)
+    assert _far_bracket_range(prof, 0.05) == 3.0
+    assert _far_bracket_range(prof, 0.0) == 3.0  # on a return: it and the one before
+    assert _far_bracket_range(prof, -0.05) == 3.0
+    for outside in (0.3, -0.2, 0.6):
+        assert math.isnan(_far_bracket_range(prof, outside))
+    with_nan = PolarProfile(np.array([0.0, 0.1]), np.array([np.nan, 3.0]), 0.1, 20.0)
+    assert math.isnan(_far_bracket_range(with_nan, 0.05))
+    with_nan = PolarProfile(np.array([0.0, 0.1]), np.array([3.0, np.nan]), 0.1, 20.0)
+    assert math.isnan(_far_bracket_range(with_nan, 0.05))
 
 
 def test_nearest_segment_distance_hand_values() -> None:
