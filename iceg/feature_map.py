@@ -821,6 +821,9 @@ class FeatureMap:
         self._pruned: list[PrunedLandmarks] = []
         # The last scan's visibility geometry (_geometry), read twice per update.
         self._geometry_memo: tuple[ScanFeatures, _VisibilityGeometry] | None = None
+        # The last _chosen answer (the nodes' bytes, the rows): a reference reads it twice,
+        # for its pose nodes and for its landmarks; an update forgets it.
+        self._chosen_memo: tuple[bytes, IntArray] | None = None
 
     # ------------------------------------------------------------------ inspection
     def __len__(self) -> int:
@@ -1045,16 +1048,24 @@ class FeatureMap:
     def _chosen(self, want: IntArray) -> IntArray:
         """Ascending rows of the landmarks anchored to or last matched from the nodes
         ``want`` (sorted unique ids). In a large map, among the landmarks those nodes touched
-        (:class:`_Touched`), so the cost is what the nodes hold, not what the map holds."""
+        (:class:`_Touched`), so the cost is what the nodes hold, not what the map holds.
+        Read-only: the answer is kept until the next question or update."""
+        key = want.tobytes()
+        if self._chosen_memo is not None and self._chosen_memo[0] == key:
+            return self._chosen_memo[1]
         lm = self._lm
         if len(lm) < _TOUCHED_FROM_LANDMARKS:
-            return np.flatnonzero(_lookup(want, lm.anchor)[1] | _lookup(want, lm.last_node)[1])
-        touched = self._touched.id[_block_rows(self._touched_rows, want)]
-        pos, found = _lookup(lm.id, touched)
-        rows = pos[found]  # ids ascending with the rows
-        nodes = np.concatenate([lm.anchor[rows], lm.last_node[rows]])
-        keep = _lookup(want, nodes)[1].reshape(2, -1).any(axis=0)
-        return np.unique(rows[keep])
+            rows = np.flatnonzero(_lookup(want, lm.anchor)[1] | _lookup(want, lm.last_node)[1])
+        else:
+            touched = self._touched.id[_block_rows(self._touched_rows, want)]
+            pos, found = _lookup(lm.id, touched)
+            rows = pos[found]  # ids ascending with the rows
+            nodes = np.concatenate([lm.anchor[rows], lm.last_node[rows]])
+            keep = _lookup(want, nodes)[1].reshape(2, -1).any(axis=0)
+            rows = np.unique(rows[keep])
+        rows.flags.writeable = False
+        self._chosen_memo = (key, rows)
+        return rows
 
     def _touch(self, node_id: int, landmark_ids: IntArray) -> None:
         """Record the landmarks a new node created or matched (:class:`_Touched`)."""
@@ -1170,6 +1181,7 @@ class FeatureMap:
         node_id = int(node_id)
         if node_id in self._nodes:
             raise FeatureMapError(f"FeatureMap.update: node {node_id} was already added")
+        self._chosen_memo = None  # the rows and their anchors change
         stamp = float(stamp_s)
         empty = np.zeros(0, dtype=np.int64)
         book = _Bookkeeping(empty, empty, np.ones(features.n_features, dtype=bool), empty)

@@ -8,6 +8,7 @@ geometry and removal time) for time-validity.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -160,9 +161,15 @@ def test_an_eow_seen_as_a_corner_becomes_a_corner() -> None:
     )
 
 
-def _run_map(world, seed: int, config: FeatureMapConfig):
+def _run_map(
+    world,
+    seed: int,
+    config: FeatureMapConfig,
+    after_update: Callable[[FeatureMap, dict[int, np.ndarray], int], None] | None = None,
+):
     """Feature map along a simulated run with true node poses: keyframes every 0.3 m or
-    10 deg, each matched against the landmarks of the last four nodes."""
+    10 deg, each matched against the landmarks of the last four nodes (``after_update``
+    called with the map, the poses and the node after each matched node's update)."""
     run = simulate(world, seed=seed)
     fm = FeatureMap(config)
     m = IceMatcher()
@@ -187,6 +194,8 @@ def _run_map(world, seed: int, config: FeatureMapConfig):
             up = fm.update(node, f, s.stamp_s, reference=ref, match=res, scan=s, node_poses=poses)
             for i in up.expected_ids:
                 expected_at.setdefault(int(i), []).append(s.stamp_s)
+            if after_update is not None:
+                after_update(fm, poses, node)
         last = truth
     return fm, poses, expected_at
 
@@ -352,6 +361,26 @@ def test_reference_landmarks_equal_a_scan_of_every_landmark(
             np.testing.assert_array_equal(
                 m.reference_pose_nodes(want), np.union1d(want, anchor[np.isin(ids, expect)])
             )
+
+
+def test_a_reference_after_an_update_is_that_of_the_map_rebuilt_from_its_state() -> None:
+    # A map keeps the landmark rows it last chose for a window (a reference reads them twice):
+    # an update that matches, merges and prunes landmarks (the box world) changes them. The
+    # window of the last match, asked again after each update, and the next window give what
+    # a map rebuilt from its state, which chose nothing yet, gives.
+    def check(fm: FeatureMap, poses: dict[int, np.ndarray], node: int) -> None:
+        fresh = FeatureMap.from_state(fm.export_state())
+        for want in (range(max(0, node - 4), node), range(max(0, node - 3), node + 1)):
+            a = fm.reference(poses, want, poses[node])
+            b = fresh.reference(poses, want, poses[node])
+            np.testing.assert_array_equal(a.landmark_ids, b.landmark_ids)
+            np.testing.assert_array_equal(a.features.xy, b.features.xy)
+            np.testing.assert_array_equal(
+                fm.reference_pose_nodes(want), fresh.reference_pose_nodes(want)
+            )
+
+    fm, _, _ = _run_map(box_world(), 3, FeatureMapConfig(), check)
+    assert fm.n_merged > 0 and fm.pruned.ids.shape[0] > 0
 
 
 @pytest.mark.parametrize("removed", [True, False])
