@@ -754,6 +754,41 @@ def _absw(x: float) -> float:
 
 
 @njit(cache=True, nogil=True)
+def pair_code_matrix(
+    new_kind: np.ndarray,
+    new_opening: np.ndarray,
+    ref_kind: np.ndarray,
+    ref_opening: np.ndarray,
+    table: np.ndarray,
+    corner: int,
+    intersections: int,
+    max_opening_diff_rad: float,
+) -> np.ndarray:
+    """``(K_new, K_ref)`` int64 pair codes (``hypotheses.pair_codes``): ``table[new kind,
+    reference kind]`` (``(3, 3)`` int64), 0 where both are Corners or the code is
+    ``intersections`` and the opening angles differ by more than ``max_opening_diff_rad`` (or
+    either is NaN); 0 for a kind outside the table."""
+    kn = new_kind.shape[0]
+    kr = ref_kind.shape[0]
+    codes = np.zeros((kn, kr), dtype=np.int64)
+    n_kinds = table.shape[0]
+    for i in range(kn):
+        a = new_kind[i]
+        if a < 0 or a >= n_kinds:
+            continue
+        for j in range(kr):
+            b = ref_kind[j]
+            if b < 0 or b >= n_kinds:
+                continue
+            code = table[a, b]
+            gated = (a == corner and b == corner) or code == intersections
+            if gated and not (abs(new_opening[i] - ref_opening[j]) <= max_opening_diff_rad):
+                code = 0
+            codes[i, j] = code
+    return codes
+
+
+@njit(cache=True, nogil=True)
 def pair_nearest(
     poses: np.ndarray,
     new_xy: np.ndarray,

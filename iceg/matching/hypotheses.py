@@ -12,6 +12,7 @@ from numpy.typing import NDArray
 from iceg.matching._kernels import (
     directed_poses,
     intersection_pair_poses,
+    pair_code_matrix,
     segment_rotation_peak,
     vote_clusters,
 )
@@ -27,6 +28,24 @@ BoolArray = NDArray[np.bool_]
 INCOMPATIBLE, SAME_DIRECTED, CORNER_TO_EOW, EOW_TO_CORNER, INTERSECTIONS = 0, 1, 2, 3, 4
 
 
+def _code_table(corner_eow: bool) -> IntArray:
+    """``(3, 3)`` int64 pair code by (new kind, reference kind): Corner, EOW, Intersection."""
+    table = np.array(
+        [
+            [SAME_DIRECTED, CORNER_TO_EOW if corner_eow else 0, 0],
+            [EOW_TO_CORNER if corner_eow else 0, SAME_DIRECTED, 0],
+            [0, 0, INTERSECTIONS],
+        ],
+        dtype=np.int64,
+    )
+    table.flags.writeable = False
+    return table
+
+
+#: The code tables without and with the Corner<->EOW exception.
+_CODE_TABLES = {False: _code_table(False), True: _code_table(True)}
+
+
 def pair_codes(
     gn: FeatureGeometry, gr: FeatureGeometry, corner_eow: bool, max_opening_diff_rad: float
 ) -> IntArray:
@@ -37,23 +56,16 @@ def pair_codes(
     Returns:
         ``(K_new, K_ref)`` int64 pair codes (``INCOMPATIBLE`` where the pair is filtered out).
     """
-    table = np.array(
-        [
-            [SAME_DIRECTED, CORNER_TO_EOW if corner_eow else 0, 0],
-            [EOW_TO_CORNER if corner_eow else 0, SAME_DIRECTED, 0],
-            [0, 0, INTERSECTIONS],
-        ],
-        dtype=np.int64,
+    return pair_code_matrix(  # type: ignore[no-any-return]
+        gn.kind,
+        gn.opening,
+        gr.kind,
+        gr.opening,
+        _CODE_TABLES[bool(corner_eow)],
+        CORNER,
+        INTERSECTIONS,
+        float(max_opening_diff_rad),
     )
-    codes = table[gn.kind[:, None], gr.kind[None, :]]
-    with np.errstate(invalid="ignore"):
-        open_diff = np.abs(gn.opening[:, None] - gr.opening[None, :])
-    has_opening = ((gn.kind[:, None] == CORNER) & (gr.kind[None, :] == CORNER)) | (
-        codes == INTERSECTIONS
-    )
-    bad = has_opening & ~(open_diff <= max_opening_diff_rad)
-    codes[bad] = INCOMPATIBLE
-    return codes
 
 
 def rotation_chord(max_rotation_rad: float) -> float:

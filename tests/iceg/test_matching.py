@@ -295,6 +295,50 @@ def test_directed_pair_fixes_the_transform_and_corner_eow_exception() -> None:
     assert pair_codes(gn, ge, False, math.radians(10))[0, 0] == 0
 
 
+def test_pair_codes_follow_the_type_table_and_the_opening_gate() -> None:
+    # Every (new, reference) pair's code by hand from paper §III-C2's levels: the type table
+    # (same kind; Corner<->EOW only with the exception), then Corners and Intersections
+    # whose opening angles differ by more than the gate (or are NaN) filtered out.
+    rng = np.random.default_rng(8)
+    corner, eow, inter = (int(k) for k in FeatureKind)
+    for corner_eow in (True, False):
+        for _ in range(20):
+            kn, kr = (int(x) for x in rng.integers(0, 25, 2))
+            new_kind = rng.integers(0, 3, kn)
+            ref_kind = rng.integers(0, 3, kr)
+            new_open = rng.uniform(0.5, 2.5, kn)
+            ref_open = rng.uniform(0.5, 2.5, kr)
+            new_open[rng.uniform(size=kn) < 0.1] = np.nan
+            gate = math.radians(float(rng.uniform(1, 30)))
+            gn = _geometry_of_kinds(new_kind, new_open)
+            gr = _geometry_of_kinds(ref_kind, ref_open)
+            got = pair_codes(gn, gr, corner_eow, gate)
+            assert got.shape == (kn, kr) and got.dtype == np.int64
+            for i in range(kn):
+                for j in range(kr):
+                    a, b = int(new_kind[i]), int(ref_kind[j])
+                    want = {
+                        (corner, corner): 1,
+                        (eow, eow): 1,
+                        (inter, inter): 4,
+                        (corner, eow): 2 if corner_eow else 0,
+                        (eow, corner): 3 if corner_eow else 0,
+                    }.get((a, b), 0)
+                    gated = want in (1, 4) and a != eow
+                    if gated and not abs(new_open[i] - ref_open[j]) <= gate:
+                        want = 0
+                    assert got[i, j] == want
+
+
+def _geometry_of_kinds(kind: np.ndarray, opening: np.ndarray) -> FeatureGeometry:
+    """A :class:`FeatureGeometry` of the kinds and opening angles (other fields unused)."""
+    k = kind.shape[0]
+    z = np.zeros((k, 2))
+    return FeatureGeometry(
+        kind.astype(np.int64), z, np.zeros((k, 2, 2)), np.zeros(k), z, opening, np.zeros(k)
+    )
+
+
 def test_two_intersection_pairs_fix_the_transform() -> None:
     truth = np.array([-0.5, 2.0, -1.1])
     new = point_features([FeatureKind.INTERSECTION] * 2, [[3.0, 1.0], [1.0, -2.0]])
