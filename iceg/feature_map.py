@@ -35,7 +35,7 @@ from iceg.matching._kernels import move_lines
 from iceg.matching.geometry import PolarProfile
 from iceg.matching.matcher import walls_seen_through
 from iceg.types import FeatureKind, MatchResult, ScanFeatures
-from iceg.visibility import expected_landmarks
+from iceg.visibility import expected_landmarks, pruned_landmarks
 from iceg_common.errors import FeatureMapError
 from iceg_common.se2 import compose, inverse
 
@@ -1486,30 +1486,31 @@ class FeatureMap:
     def _prune(self, stamp: float) -> IntArray:
         """Ratio and time-validity pruning (paper §III-C3); returns the pruned ids."""
         cfg, lm = self.config, self._lm
-        ratio = (lm.n_expected >= cfg.min_expected) & (
-            lm.n_matched < cfg.min_match_ratio * lm.n_expected
+        d, stale = pruned_landmarks(
+            lm.n_expected,
+            lm.n_matched,
+            lm.misses,
+            lm.last_matched_s,
+            lm.first_miss_s,
+            float(stamp),
+            cfg.min_expected,
+            cfg.min_match_ratio,
+            cfg.min_misses,
+            cfg.validity_s,
+            cfg.miss_confirm_s,
         )
-        with np.errstate(invalid="ignore"):
-            stale = (
-                (lm.misses >= cfg.min_misses)
-                & (stamp - lm.last_matched_s >= cfg.validity_s)
-                & (stamp - lm.first_miss_s >= cfg.miss_confirm_s)
-            )
-        drop = ratio | stale
-        if not np.any(drop):
-            return np.zeros(0, dtype=np.int64)
-        d = np.flatnonzero(drop)
-        gone = lm.take(d)
+        if d.shape[0] == 0:
+            return d
         self._pruned.append(
             PrunedLandmarks(
-                ids=gone.id,
-                anchor=gone.anchor,
-                kind=gone.kind,
-                xy=gone.xy,
+                ids=lm.id[d],
+                anchor=lm.anchor[d],
+                kind=lm.kind[d],
+                xy=lm.xy[d],
                 stamp_s=np.full(d.shape[0], stamp),
-                created_s=gone.created_s,
-                last_matched_s=gone.last_matched_s,
-                reason=np.where(stale[d], PRUNED_VALIDITY, PRUNED_RATIO).astype(np.int64),
+                created_s=lm.created_s[d],
+                last_matched_s=lm.last_matched_s[d],
+                reason=np.where(stale, PRUNED_VALIDITY, PRUNED_RATIO).astype(np.int64),
             )
         )
         lm.drop(d)

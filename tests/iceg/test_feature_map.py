@@ -30,7 +30,7 @@ from iceg.matching._kernels import move_lines
 from iceg.matching.geometry import PolarProfile
 from iceg.matching.matcher import walls_seen_through
 from iceg.types import FeatureKind, MatchResult
-from iceg.visibility import expected_landmarks
+from iceg.visibility import expected_landmarks, pruned_landmarks
 from iceg_common import se2
 from iceg_common.errors import FeatureMapError
 from iceg_common.se2 import between, rotation_matrix, transform_points, wrap_angle
@@ -527,6 +527,45 @@ def test_expected_landmarks_equal_the_numpy_expressions_bit_for_bit(offset) -> N
     )
     assert 0.1 < want.mean() < 0.9, want.mean()  # both answers occur
     assert np.array_equal(got, want)
+
+
+def test_pruned_landmarks_are_those_of_the_ratio_and_validity_expressions() -> None:
+    # Paper §III-C3's two tests as numpy expressions over every landmark (what the map
+    # computed before the compiled pass), on counters and times around each threshold,
+    # never-missed landmarks (NaN first miss) included: the same rows and reasons.
+    rng = np.random.default_rng(12)
+    cfg = FeatureMapConfig()
+    for _ in range(50):
+        n = int(rng.integers(0, 300))
+        n_expected = rng.integers(0, 2 * cfg.min_expected + 2, n)
+        n_matched = rng.integers(0, n_expected + 1)
+        misses = rng.integers(0, 2 * cfg.min_misses + 2, n)
+        stamp = 100.0
+        last_matched = stamp - rng.uniform(0, 2 * cfg.validity_s, n)
+        first_miss = stamp - rng.uniform(0, 2 * cfg.miss_confirm_s, n)
+        first_miss[rng.uniform(size=n) < 0.3] = np.nan
+        ratio = (n_expected >= cfg.min_expected) & (n_matched < cfg.min_match_ratio * n_expected)
+        with np.errstate(invalid="ignore"):
+            stale = (
+                (misses >= cfg.min_misses)
+                & (stamp - last_matched >= cfg.validity_s)
+                & (stamp - first_miss >= cfg.miss_confirm_s)
+            )
+        rows, got_stale = pruned_landmarks(
+            n_expected,
+            n_matched,
+            misses,
+            last_matched,
+            first_miss,
+            stamp,
+            cfg.min_expected,
+            cfg.min_match_ratio,
+            cfg.min_misses,
+            cfg.validity_s,
+            cfg.miss_confirm_s,
+        )
+        np.testing.assert_array_equal(rows, np.flatnonzero(ratio | stale))
+        np.testing.assert_array_equal(got_stale, stale[rows])
 
 
 def test_association_kernels_equal_the_numpy_expressions() -> None:
