@@ -33,7 +33,7 @@ from graph import FactorKind, PoseGraph, odometry_covariance
 from iceg.config import IcegConfig
 from iceg.feature_map import FeatureMap, MapReference
 from iceg.features import extract
-from iceg.landmark_frames import move_points
+from iceg.landmark_frames import move_points, poses_in_frame
 from iceg.loop_closure import LoopCloser, LoopClosureStats, innovation_chi2
 from iceg.matching import MatchBounds
 from iceg.matching.geometry import PolarProfile
@@ -807,7 +807,7 @@ class Slam:
         bounds = MatchBounds.local(cfg.match_max_translation_m, cfg.match_max_rotation_deg)
         result = self.matcher.match(feats, reference.features, motion.delta, bounds)
         # the recent nodes' points, stacked once for the points test and the point match
-        recent_xy = functools.cache(lambda: self._recent_points(recent))
+        recent_xy = functools.cache(lambda: self._recent_points(recent, ids, poses))
         if result.success and cfg.contradiction_gate_m is not None:
             contradiction = points_prefer_prediction(
                 feats.points_xy,
@@ -889,11 +889,15 @@ class Slam:
             return None
         return result
 
-    def _recent_points(self, recent: NDArray[np.int64]) -> FloatArray:
-        """``(P, 2)`` float64 scan points of the ``recent`` nodes in the frame of the last of
-        them (current estimates), metres."""
-        _, poses = self.graph.estimates_of(recent)
-        relative = se2.between(poses[-1], poses)
+    def _recent_points(
+        self, recent: NDArray[np.int64], ids: NDArray[np.int64], poses: FloatArray
+    ) -> FloatArray:
+        """``(P, 2)`` float64 scan points of the ``recent`` nodes (ascending) in the frame of
+        the last of them, metres, placed by the estimates ``poses`` ``(N, 3)`` of the sorted
+        node ``ids`` ``(N,)`` that hold them (the reference's table, read in this state of
+        the graph)."""
+        rows = np.searchsorted(ids, recent)
+        relative = poses_in_frame(poses[rows[-1]], poses, rows)
         points = [self._points_of(i) for i in recent.tolist()]
         each = np.repeat(relative, [p.shape[0] for p in points], axis=0)
         return move_points(each, np.concatenate(points)[:, None, :], True)[:, 0]  # type: ignore[no-any-return]
