@@ -31,8 +31,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from frontends.scan import LaserScan
 from iceg.landmark_association import nearest_free_pairs, within_gate_of_any
 from iceg.landmark_frames import move_features, move_points, poses_in_frame
-from iceg.matching._kernels import move_lines
-from iceg.matching.geometry import PolarProfile
+from iceg.matching.geometry import PolarProfile, transform_line_rows
 from iceg.matching.matcher import walls_seen_through
 from iceg.types import FeatureKind, MatchResult, ScanFeatures
 from iceg.visibility import expected_landmarks, pruned_landmarks
@@ -510,8 +509,7 @@ class _Segments(_Columns):
         """Endpoints ``(M, 2, 2)``, lines ``(M, 2)`` and their covariances ``(M, 2, 2)`` of
         the segments ``rows`` ``(M,)`` in another frame, given each one's node pose ``(M, 3)``
         there."""
-        # transform_lines' kernel on the rows in place (no gathered copies)
-        lines, cov = move_lines(rows, frame_from_node, self.lines, self.cov)
+        lines, cov = transform_line_rows(rows, frame_from_node, self.lines, self.cov)
         return move_points(frame_from_node, self.ep[rows], True), lines, cov
 
 

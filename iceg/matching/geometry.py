@@ -121,6 +121,22 @@ def transform_lines(
     )
 
 
+def transform_line_rows(
+    rows: IntArray, poses: FloatArray, lines: FloatArray, cov: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`transform_lines` of some rows without gathering them first.
+
+    Args:
+        rows: ``(n,)`` int64 rows of ``lines`` ``(N, 2)`` float64 ``(alpha_rad, rho_m)`` and
+            ``cov`` ``(N, 2, 2)`` float64.
+        poses: ``(n, 3)`` float64 the pose of each row's frame in the parent frame.
+
+    Returns:
+        ``(n, 2)`` lines and ``(n, 2, 2)`` covariances in the parent frame.
+    """
+    return move_lines(rows, poses, lines, cov)  # type: ignore[no-any-return]
+
+
 def transform_features(
     features: ScanFeatures, pose: ArrayLike, keep_points: bool = True
 ) -> ScanFeatures:
