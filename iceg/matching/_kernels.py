@@ -765,9 +765,9 @@ def pair_code_matrix(
     max_opening_diff_rad: float,
 ) -> np.ndarray:
     """``(K_new, K_ref)`` int64 pair codes (``hypotheses.pair_codes``): ``table[new kind,
-    reference kind]`` (``(3, 3)`` int64), 0 where both are Corners or the code is
-    ``intersections`` and the opening angles differ by more than ``max_opening_diff_rad`` (or
-    either is NaN); 0 for a kind outside the table."""
+    reference kind]`` (``(3, 3)`` int64); 0 instead for a pair of two Corners or of code
+    ``intersections`` whose opening angles (radians) differ by more than
+    ``max_opening_diff_rad`` or are NaN, and for a kind outside the table."""
     kn = new_kind.shape[0]
     kr = ref_kind.shape[0]
     codes = np.zeros((kn, kr), dtype=np.int64)
