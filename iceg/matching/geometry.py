@@ -124,11 +124,12 @@ def transform_lines(
 def transform_line_rows(
     rows: IntArray, poses: FloatArray, lines: FloatArray, cov: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
-    """:func:`transform_lines` of some rows without gathering them first.
+    """:func:`transform_lines` of some rows without gathering them first (the same numbers
+    as ``transform_lines(lines[rows], cov[rows], poses)``).
 
     Args:
         rows: ``(n,)`` int64 rows of ``lines`` ``(N, 2)`` float64 ``(alpha_rad, rho_m)`` and
-            ``cov`` ``(N, 2, 2)`` float64.
+            ``cov`` ``(N, 2, 2)`` float64; each in ``[0, N)`` (not checked: a compiled loop).
         poses: ``(n, 3)`` float64 the pose of each row's frame in the parent frame.
 
     Returns:

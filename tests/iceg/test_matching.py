@@ -68,6 +68,7 @@ from iceg.matching.geometry import (
     point_segment_index,
     rot,
     transform_features,
+    transform_line_rows,
 )
 from iceg.matching.hypotheses import (
     CORNER_TO_EOW,
@@ -836,6 +837,21 @@ def test_transform_lines_keeps_points_on_their_line(
     assert lines[0, 1] >= 0
     assert n2 @ q == pytest.approx(lines[0, 1], abs=1e-9)
     assert np.all(np.linalg.eigvalsh(cov[0]) > 0)
+
+
+def test_transform_line_rows_moves_the_rows_as_transform_lines_moves_their_copies() -> None:
+    # The feature map moves stored segments' lines in place: the same numbers as moving the
+    # gathered rows, each by its own pose (one pose per row).
+    rng = np.random.default_rng(6)
+    lines = np.column_stack([rng.uniform(-np.pi, np.pi, 40), rng.uniform(0, 10, 40)])
+    a = rng.normal(0, 0.01, (40, 2, 2))
+    cov = a @ np.swapaxes(a, 1, 2) + 1e-6 * np.eye(2)
+    rows = rng.choice(40, 25)
+    poses = np.column_stack([rng.uniform(-5, 5, (25, 2)), rng.uniform(-np.pi, np.pi, 25)])
+    got = transform_line_rows(rows, poses, lines, cov)
+    want = transform_lines(lines[rows], cov[rows], poses)
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
 
 
 def _numpy_point_line_system(
