@@ -1067,6 +1067,65 @@ def correlation_terms(
 
 
 @njit(cache=True, nogil=True)
+def correlation_scores(
+    poses: np.ndarray,
+    new_xy: np.ndarray,
+    new_heading: np.ndarray,
+    new_edge: np.ndarray,
+    new_opening: np.ndarray,
+    new_dist: np.ndarray,
+    ref_xy: np.ndarray,
+    ref_heading: np.ndarray,
+    ref_edge: np.ndarray,
+    ref_opening: np.ndarray,
+    ref_dist: np.ndarray,
+    codes: np.ndarray,
+    bearing: np.ndarray,
+    ranges: np.ndarray,
+    spacing: float,
+    max_gap_rad: float,
+    range_max_m: float,
+    occlusion_tolerance_m: float,
+    gate_distance_m: float,
+    gate_angle_rad: float,
+    fimp_near: float,
+    fimp_k: float,
+    weights: tuple[float, float, float, float],
+) -> tuple[
+    np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray
+]:
+    """``correlation.correlate`` of ``H`` poses with features on both sides, in one call:
+    :func:`visible_counts` (zeros without returns), :func:`pair_nearest`, each feature's
+    ``fImp`` ``fimp_near / (1 + fimp_k d)`` of its distance ``new_dist`` / ``ref_dist`` from
+    its frame's origin (paper eq. 3, ``correlation.fimp``'s expression) and
+    :func:`correlation_terms`; the same numbers as those calls one by one.
+
+    Returns:
+        ``(score, dis, ang, count, acc)`` ``(H,)`` float64, ``match`` ``(H, K_new)`` int64,
+        ``n_matched`` and ``n_visible`` ``(H,)`` int64 (the fields of
+        ``correlation.Correlation`` in order).
+    """
+    if bearing.shape[0] == 0:
+        n_visible = np.zeros(poses.shape[0], dtype=np.int64)
+    else:
+        n_visible = visible_counts(
+            poses, ref_xy, bearing, ranges, spacing, max_gap_rad, range_max_m,
+            occlusion_tolerance_m,
+        )  # fmt: skip
+    match, dist, angle = pair_nearest(
+        poses, new_xy, new_heading, new_edge, new_opening, ref_xy, ref_heading, ref_edge,
+        ref_opening, codes, gate_distance_m, gate_angle_rad,
+    )  # fmt: skip
+    new_importance = fimp_near / (1.0 + fimp_k * new_dist)
+    ref_importance = fimp_near / (1.0 + fimp_k * ref_dist)
+    score, dis, ang, count, acc, n_matched = correlation_terms(
+        match, dist, angle, new_importance, ref_importance, n_visible, gate_distance_m,
+        gate_angle_rad, weights,
+    )  # fmt: skip
+    return score, dis, ang, count, acc, match, n_matched, n_visible
+
+
+@njit(cache=True, nogil=True)
 def move_lines(
     rows: np.ndarray, poses: np.ndarray, lines: np.ndarray, cov: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:

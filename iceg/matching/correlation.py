@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from iceg.matching._kernels import correlation_terms, pair_nearest, visible_counts
+from iceg.matching._kernels import correlation_scores, pair_nearest, visible_counts
 from iceg.matching.config import CorrelationConfig
 from iceg.matching.geometry import MAX_GAP_BEAMS, FeatureGeometry, PolarProfile
 
@@ -21,8 +21,12 @@ def fimp(d_m: FloatArray, near: float, far: float, range_m: float) -> FloatArray
     """Feature importance of paper eq. 3 as fixed in docs/design.md step 7:
     ``fImp(d) = near / (1 + k d)`` with ``k`` such that ``fImp(range_m) = far``
     (defaults 0.65 and 0.1 at 20 m)."""
-    k = (near / far - 1.0) / range_m
-    return near / (1.0 + k * np.asarray(d_m, dtype=np.float64))
+    return near / (1.0 + fimp_slope(near, far, range_m) * np.asarray(d_m, dtype=np.float64))
+
+
+def fimp_slope(near: float, far: float, range_m: float) -> float:
+    """``k`` of :func:`fimp` (1/m): ``fImp(range_m) = near / (1 + k range_m) = far``."""
+    return (near / far - 1.0) / range_m
 
 
 @dataclass(frozen=True, eq=False)
@@ -156,12 +160,41 @@ def correlate(
         A :class:`Correlation`.
     """
     h = poses.shape[0]
+    st = settings
+    if not pairing_only and gn.n > 0 and gr.n > 0:
+        # Visible: inside the new scan's field of view and range and not occluded (no return
+        # near its bearing shorter than its distance minus the tolerance); docs/design.md
+        # "Feature map and time-validity".
+        return Correlation(
+            *correlation_scores(
+                poses,
+                gn.xy,
+                gn.heading,
+                gn.edge,
+                gn.opening,
+                gn.dist,
+                gr.xy,
+                gr.heading,
+                gr.edge,
+                gr.opening,
+                gr.dist,
+                codes,
+                profile.bearing,
+                profile.range,
+                profile.spacing,
+                MAX_GAP_BEAMS * profile.spacing,
+                st.range_max_m,
+                st.occlusion_tolerance_m,
+                st.gate_distance_m,
+                st.gate_angle_rad,
+                st.fimp_near,
+                fimp_slope(st.fimp_near, st.fimp_far, st.fimp_range_m),
+                st.weights,
+            )
+        )
     if pairing_only or gr.n == 0 or profile.bearing.shape[0] == 0:
         n_visible = np.zeros(h, dtype=np.int64)
     else:
-        # Visible: inside the new scan's field of view and range and not occluded (no
-        # return near its bearing shorter than its distance minus the tolerance);
-        # docs/design.md "Feature map and time-validity".
         n_visible = visible_counts(
             poses,
             gr.xy,
@@ -169,39 +202,15 @@ def correlate(
             profile.range,
             profile.spacing,
             MAX_GAP_BEAMS * profile.spacing,
-            settings.range_max_m,
-            settings.occlusion_tolerance_m,
+            st.range_max_m,
+            st.occlusion_tolerance_m,
         )
     if gn.n == 0 or gr.n == 0:
         return _empty(h, gn.n, n_visible)
-    match, dbest, a_best = pair_features(poses, gn, gr, codes, settings)
-    if pairing_only:
-        out = _empty(h, gn.n, n_visible)
-        n_matched = (match >= 0).sum(axis=1).astype(np.int64)
-        return Correlation(
-            out.score, out.dis, out.ang, out.count, out.acc, match, n_matched, n_visible
-        )
-    return _eq1(gn, gr, match, dbest, a_best, n_visible, settings)
-
-
-def _eq1(
-    gn: FeatureGeometry,
-    gr: FeatureGeometry,
-    match: IntArray,
-    dbest: FloatArray,
-    a_best: FloatArray,
-    n_visible: IntArray,
-    settings: CorrelationSettings,
-) -> Correlation:
-    """The four terms of eq. 1 and their weighted mean from the pairing (see
-    :func:`correlate`; :func:`~iceg.matching._kernels.correlation_terms`)."""
-    st = settings
-    fn = fimp(gn.dist, st.fimp_near, st.fimp_far, st.fimp_range_m)  # (Kn,)
-    fr = fimp(gr.dist, st.fimp_near, st.fimp_far, st.fimp_range_m)  # (Kr,)
-    score, dis, ang, count, acc, n_matched = correlation_terms(
-        match, dbest, a_best, fn, fr, n_visible, st.gate_distance_m, st.gate_angle_rad, st.weights
-    )
-    return Correlation(score, dis, ang, count, acc, match, n_matched, n_visible)
+    match, _, _ = pair_features(poses, gn, gr, codes, settings)
+    out = _empty(h, gn.n, n_visible)
+    n_matched = (match >= 0).sum(axis=1).astype(np.int64)
+    return Correlation(out.score, out.dis, out.ang, out.count, out.acc, match, n_matched, n_visible)
 
 
 @dataclass(frozen=True, eq=False)

@@ -636,6 +636,15 @@ def test_correlation_equals_the_numpy_expressions_bit_for_bit(n_new: int) -> Non
     have = (got.score, got.dis, got.ang, got.count, got.acc, got.n_matched, got.n_visible)
     for a, b in zip(have, want, strict=True):
         assert np.array_equal(a, b)
+    # A scan without returns sees no reference feature: count is n_matched over
+    # max(1, min(K_new, 0)), clipped; the pairing terms do not depend on the profile.
+    blind = correlate(
+        poses, gn, gr, codes, PolarProfile.from_points(np.zeros((0, 2)), 20.0), settings
+    )
+    assert not blind.n_visible.any()
+    assert np.array_equal(blind.count, np.clip(got.n_matched / 1.0, 0.0, 1.0))
+    for a, b in ((blind.dis, got.dis), (blind.ang, got.ang), (blind.acc, got.acc)):
+        assert np.array_equal(a, b)
 
 
 def _every_density(d: np.ndarray, w: np.ndarray, kernel: float) -> np.ndarray:
