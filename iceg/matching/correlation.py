@@ -179,12 +179,7 @@ def correlate(
                 gr.opening,
                 gr.dist,
                 codes,
-                profile.bearing,
-                profile.range,
-                profile.spacing,
-                MAX_GAP_BEAMS * profile.spacing,
-                st.range_max_m,
-                st.occlusion_tolerance_m,
+                *_visibility_args(profile, st),
                 st.gate_distance_m,
                 st.gate_angle_rad,
                 st.fimp_near,
@@ -195,22 +190,29 @@ def correlate(
     if pairing_only or gr.n == 0 or profile.bearing.shape[0] == 0:
         n_visible = np.zeros(h, dtype=np.int64)
     else:
-        n_visible = visible_counts(
-            poses,
-            gr.xy,
-            profile.bearing,
-            profile.range,
-            profile.spacing,
-            MAX_GAP_BEAMS * profile.spacing,
-            st.range_max_m,
-            st.occlusion_tolerance_m,
-        )
+        n_visible = visible_counts(poses, gr.xy, *_visibility_args(profile, st))
     if gn.n == 0 or gr.n == 0:
         return _empty(h, gn.n, n_visible)
     match, _, _ = pair_features(poses, gn, gr, codes, settings)
     out = _empty(h, gn.n, n_visible)
     n_matched = (match >= 0).sum(axis=1).astype(np.int64)
     return Correlation(out.score, out.dis, out.ang, out.count, out.acc, match, n_matched, n_visible)
+
+
+def _visibility_args(
+    profile: PolarProfile, settings: CorrelationSettings
+) -> tuple[FloatArray, FloatArray, float, float, float, float]:
+    """The new scan's arguments of :func:`~iceg.matching._kernels.visible_counts`: its
+    bearings and ranges, beam spacing, the largest gap to a return that still judges
+    occlusion (radians), its reliable range and the occlusion tolerance (metres)."""
+    return (
+        profile.bearing,
+        profile.range,
+        profile.spacing,
+        MAX_GAP_BEAMS * profile.spacing,
+        settings.range_max_m,
+        settings.occlusion_tolerance_m,
+    )
 
 
 @dataclass(frozen=True, eq=False)
