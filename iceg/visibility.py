@@ -11,6 +11,9 @@ whose other wall faces away shows as an EOW, paper §III-C2).
 One loop per landmark instead of some forty numpy calls over ``(n, 3, 2)`` temporaries; the
 arithmetic is that of the numpy expressions it replaced, term for term, so the answers are
 the same bit for bit (``tests/iceg/test_feature_map.py``).
+
+The counters then decide which landmarks go (:func:`pruned_landmarks`): the ratio and
+time-validity tests of paper §III-C3 in one pass over them.
 """
 
 from __future__ import annotations
@@ -176,7 +179,7 @@ def pruned_landmarks(
 
     Returns:
         ``(rows (k,) int64 ascending, stale (k,) bool)``: the pruned rows and which of them
-        the time-validity test prunes (else the ratio test).
+        the time-validity test prunes (else the ratio test). Raises nothing.
     """
     n = n_expected.shape[0]
     rows = np.empty(n, dtype=np.int64)
