@@ -313,6 +313,7 @@ def associate(
         residual, metres (NaN where none).
     """
     n_p = pts.xy.shape[0]
+    n_m = segs.a.shape[0]
     c = math.cos(pose[2])
     s = math.sin(pose[2])
     idx = np.full(n_p, -1, dtype=np.int64)
@@ -322,33 +323,40 @@ def associate(
     # The grid lists, per cell, every segment that can pass the gate (in ascending order,
     # so ties resolve as in the loop over all segments); without one, all are tested.
     gridded = g.reach_m > 0.0 and gate_m + end_tol_m <= g.reach_m
-    all_segs = np.arange(segs.a.shape[0])
-    # Points come segment by segment: the normal's sine and cosine are those of the previous
-    # point while its segment angle repeats (the same numbers, computed once).
+    # Points come segment by segment and neighbours share a cell: the segments of the cell
+    # that pass the normal gate are kept while the cell and the point's segment angle repeat
+    # (the same list, in the same order, tested once).
+    kept = np.empty(n_m, np.int64)
+    n_kept = 0
+    key_prev = -2
     alpha_prev = np.nan
-    sq = 0.0
-    cq = 1.0
     for i in range(n_p):
         px = c * pts.xy[i, 0] - s * pts.xy[i, 1] + pose[0]
         py = s * pts.xy[i, 0] + c * pts.xy[i, 1] + pose[1]
-        cand = all_segs
+        key = -1
         if gridded:
             fx = np.floor((px - g.origin[0]) / g.cell_m)
             fy = np.floor((py - g.origin[1]) / g.cell_m)
             if not (0.0 <= fx < g.n_cells[0] and 0.0 <= fy < g.n_cells[1]):
                 continue  # outside the grid (or not finite): no segment within reach
             key = int(fx) * g.n_cells[1] + int(fy)
-            cand = g.segs[g.start[key] : g.start[key + 1]]
-        if pts.alpha[i] != alpha_prev:
+        if pts.alpha[i] != alpha_prev or key != key_prev:
             alpha_prev = pts.alpha[i]
+            key_prev = key
             qa = pts.alpha[i] + pose[2]
             sq = math.sin(qa)
             cq = math.cos(qa)
+            lo, hi = (g.start[key], g.start[key + 1]) if gridded else (0, n_m)
+            n_kept = 0
+            for t in range(lo, hi):
+                j = g.segs[t] if gridded else t
+                if abs(sq * segs.normal[j, 0] - cq * segs.normal[j, 1]) <= sin_normal_gate:
+                    kept[n_kept] = j
+                    n_kept += 1
         best = gate2
         bj = -1
-        for j in cand:
-            if abs(sq * segs.normal[j, 0] - cq * segs.normal[j, 1]) > sin_normal_gate:
-                continue
+        for t in range(n_kept):
+            j = kept[t]
             rx = px - segs.a[j, 0]
             ry = py - segs.a[j, 1]
             along = rx * segs.u[j, 0] + ry * segs.u[j, 1]
@@ -357,7 +365,7 @@ def associate(
             d2 = perp * perp + over * over
             if d2 <= best:
                 best = d2
-                bj = int(j)
+                bj = j
         if bj >= 0:
             idx[i] = bj
             res[i] = px * segs.normal[bj, 0] + py * segs.normal[bj, 1] - segs.rho[bj]

@@ -931,7 +931,8 @@ def test_compiled_kernel_equals_the_numpy_reference() -> None:
 def test_gridded_association_equals_all_segments(seed: int) -> None:
     # The segment grid only skips segments no point of a cell can reach: the association
     # (segment and residual of each point, ties included) is bit for bit the one that tests
-    # every segment, for every gate up to the grid's reach; larger gates test all.
+    # every segment, for every gate up to the grid's reach; larger gates test all. Neither
+    # depends on the order of the points.
     rng = np.random.default_rng(seed)
     m = 60
     a = rng.uniform(-5.0, 5.0, (m, 2))
@@ -959,12 +960,23 @@ def test_gridded_association_equals_all_segments(seed: int) -> None:
     assert grid.reach_m == 0.45 and grid.segs.shape[0] < m * grid.n_cells.prod()
     plain = LineSegments(a, u, length, normal, rho, info, no_segment_grid())
     gridded = plain._replace(grid=grid)
+    # The same points grouped by segment angle and cell (runs of neighbours, as a scan's
+    # points come), where the kernel tests a cell's normal gate once per run: each point's
+    # answer is the one it gets among random neighbours.
+    fx = np.floor((transform_points(pose, pts.xy) - grid.origin) / grid.cell_m)
+    runs = np.lexsort((fx[:, 1], fx[:, 0], pts.alpha))
+    grouped = SegmentPoints(pts.xy[runs], pts.alpha[runs])
+    assert np.count_nonzero(np.diff(grouped.alpha) == 0.0) > 1000
     for gate in (0.3, 0.1, 0.04, 0.6):
         want = associate(pose, pts, plain, gate, end_tol, sin_gate)
         got = associate(pose, pts, gridded, gate, end_tol, sin_gate)
         np.testing.assert_array_equal(got[0], want[0])
         np.testing.assert_array_equal(got[1], want[1])
         assert np.count_nonzero(want[0] >= 0) > 50
+        for lines in (plain, gridded):
+            got = associate(pose, grouped, lines, gate, end_tol, sin_gate)
+            np.testing.assert_array_equal(got[0], want[0][runs])
+            np.testing.assert_array_equal(got[1], want[1][runs])
 
 
 def test_cloud_nearest_equals_brute_force() -> None:
