@@ -24,6 +24,14 @@ MIN_POINTS_FOR_SIGMA = 6
 MAD_TO_SIGMA = 1.4826
 #: Damping added to the Gauss-Newton system's diagonal (keeps it invertible).
 GN_DAMPING = 1e-9
+#: Step below which the refinement's coarse phase ends (metres, radians).
+COARSE_TOL_XY_M = 1e-2
+COARSE_TOL_THETA_RAD = 5e-3
+#: Step below which the refinement's fine phase has converged (metres, radians).
+FINE_TOL_XY_M = 5e-4
+FINE_TOL_THETA_RAD = 1e-4
+#: The refinement's starting point noise is the coarse gate divided by this (floored).
+GATE_TO_SIGMA0 = 3.0
 
 
 #: Slack (metres) added to a segment grid's reach: far above the rounding of the distances
@@ -294,6 +302,26 @@ class PosePrior(NamedTuple):
 
     mean: np.ndarray
     info: np.ndarray
+
+
+class FeaturePairing(NamedTuple):
+    """The correlation's feature pairing (:func:`pair_nearest`) for the refinement: both
+    scans' feature positions ``(K, 2)`` (m), headings ``(K,)``, edge directions ``(K, 2)``
+    and opening angles ``(K,)`` (rad; ``new_*`` in the new frame, ``ref_*`` in the reference
+    frame), the pair codes ``(K_new, K_ref)`` int64 and the distance (m) and angle (rad)
+    gates. Zero features: no pairs."""
+
+    new_xy: np.ndarray
+    new_heading: np.ndarray
+    new_edge: np.ndarray
+    new_opening: np.ndarray
+    ref_xy: np.ndarray
+    ref_heading: np.ndarray
+    ref_edge: np.ndarray
+    ref_opening: np.ndarray
+    codes: np.ndarray
+    gate_distance_m: float
+    gate_angle_rad: float
 
 
 @njit(cache=True, nogil=True)
@@ -1507,7 +1535,7 @@ def _add_prior(hess: np.ndarray, grad: np.ndarray, pose: np.ndarray, prior: Pose
 
 
 @njit(cache=True, nogil=True)
-def gauss_newton_phase(
+def _gauss_newton_phase(
     pose0: np.ndarray,
     prior: PosePrior,
     pts: SegmentPoints,
@@ -1561,6 +1589,87 @@ def gauss_newton_phase(
         if math.hypot(delta[0], delta[1]) < phase.tol_xy_m and abs(delta[2]) < phase.tol_theta_rad:
             break
     return pose, sigma, gate, it
+
+
+@njit(cache=True, nogil=True)
+def _pairs_at(pose: np.ndarray, p: FeaturePairing) -> np.ndarray:
+    """``(Q, 2)`` int64 feature pairs ``[new, ref]`` at one ``(3,)`` pose, by new index
+    (:func:`pair_nearest`)."""
+    poses = np.empty((1, 3))
+    poses[0] = pose
+    match, _, _ = pair_nearest(
+        poses, p.new_xy, p.new_heading, p.new_edge, p.new_opening, p.ref_xy, p.ref_heading,
+        p.ref_edge, p.ref_opening, p.codes, p.gate_distance_m, p.gate_angle_rad,
+    )  # fmt: skip
+    n = 0
+    for i in range(match.shape[1]):
+        if match[0, i] >= 0:
+            n += 1
+    pairs = np.empty((n, 2), np.int64)
+    n = 0
+    for i in range(match.shape[1]):
+        if match[0, i] >= 0:
+            pairs[n, 0] = i
+            pairs[n, 1] = match[0, i]
+            n += 1
+    return pairs
+
+
+@njit(cache=True, nogil=True)
+def refine_pose(
+    pose0: np.ndarray,
+    initial_pairs: np.ndarray | None,
+    prior: PosePrior,
+    pts: SegmentPoints,
+    segs: LineSegments,
+    geom: PairGeometry,
+    pairing: FeaturePairing,
+    cloud: PointCloud,
+    settings: GnSettings,
+    max_iterations: int,
+) -> tuple[np.ndarray, float, float, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The Gauss-Newton refinement of one hypothesis (paper §III-C3 "an optimization
+    problem"; docs/design.md step 8) in two phases, and its point-to-line rows at the result.
+
+    The coarse phase keeps the wide gate ``settings.gate_m`` and the feature pairs
+    ``initial_pairs`` ``(Q, 2)`` ``[new, ref]`` (the pairs at ``pose0``; ``None`` pairs
+    them there) with their full positions, for at most half of ``max_iterations``, until a
+    step is below ``COARSE_TOL_*`` (a coarse hypothesis is pulled in). The fine phase pairs
+    the features again at the coarse result and keeps that pairing, with a gate of
+    ``gate_sigmas`` estimated sigmas, for the remaining iterations (at least one), until a
+    step is below ``FINE_TOL_*`` (points off the matched segments stop pulling). Each phase
+    is :func:`_gauss_newton_phase`; the starting point noise is the gate over
+    :data:`GATE_TO_SIGMA0`, floored.
+
+    Args:
+        pose0: ``(3,)`` float64 starting pose of the new scan in the reference frame.
+        initial_pairs: ``(Q, 2)`` int64 pairs at ``pose0``, or ``None``.
+        max_iterations: Iterations of both phases together.
+
+    Returns:
+        The pose ``(3,)``, the point noise (m), the gate (m), the iterations run, the fine
+        phase's pairs ``(Q', 2)``, and at the pose (:func:`point_line_system`, with that
+        gate and noise): the point-to-line information ``(3, 3)``, the segment of each
+        point ``(P,)`` int64 (-1: none) and its residual ``(P,)`` (m, NaN where none); the
+        point noise returned is the one estimated there.
+    """
+    s = settings
+    sigma = max(s.sigma_min_m, s.gate_m / GATE_TO_SIGMA0)
+    pairs = _pairs_at(pose0, pairing) if initial_pairs is None else initial_pairs
+    n_coarse = max(1, max_iterations // 2)
+    coarse = GnPhase(True, s.gate_m, sigma, n_coarse, COARSE_TOL_XY_M, COARSE_TOL_THETA_RAD)
+    pose, sigma, gate, it = _gauss_newton_phase(
+        pose0, prior, pts, segs, pairs, geom, cloud, s, coarse
+    )
+    gate = min(s.gate_m, max(s.gate_min_m, s.gate_sigmas * sigma))
+    pairs = _pairs_at(pose, pairing)
+    n_fine = max(1, max_iterations - it)
+    fine = GnPhase(False, gate, sigma, n_fine, FINE_TOL_XY_M, FINE_TOL_THETA_RAD)
+    pose, sigma, gate, it2 = _gauss_newton_phase(
+        pose, prior, pts, segs, pairs, geom, cloud, s, fine
+    )
+    hess, _, sigma, idx, res = point_line_system(pose, pts, segs, gate, sigma, s)
+    return pose, sigma, gate, it + it2, pairs, hess, idx, res
 
 
 #: Widening of a segment's angular span (radians) in :func:`nearest_walls`: far above the

@@ -3,13 +3,19 @@ hypotheses."""
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
-from iceg.matching._kernels import correlation_scores, pair_nearest, visible_counts
+from iceg.matching._kernels import (
+    FeaturePairing,
+    correlation_scores,
+    pair_nearest,
+    visible_counts,
+)
 from iceg.matching.config import CorrelationConfig
 from iceg.matching.geometry import MAX_GAP_BEAMS, FeatureGeometry, PolarProfile
 
@@ -239,10 +245,20 @@ class CorrelationModel:
             poses, self.new_geom, self.ref_geom, self.codes, self.profile, self.settings
         )
 
-    def pairs(self, pose: FloatArray) -> IntArray:
-        """``(Q, 2)`` int64 feature pairs ``[new, ref]`` at one ``(3,)`` pose."""
-        if self.new_geom.n == 0 or self.ref_geom.n == 0:
-            return np.zeros((0, 2), dtype=np.int64)
-        m = pair_features(pose[None], self.new_geom, self.ref_geom, self.codes, self.settings)
-        i = np.flatnonzero(m[0][0] >= 0)
-        return np.column_stack([i, m[0][0][i]]).astype(np.int64)
+    @functools.cached_property
+    def feature_pairing(self) -> FeaturePairing:
+        """The pairing of :func:`pair_features` for the refinement's kernel."""
+        gn, gr, st = self.new_geom, self.ref_geom, self.settings
+        return FeaturePairing(
+            gn.xy,
+            gn.heading,
+            gn.edge,
+            gn.opening,
+            gr.xy,
+            gr.heading,
+            gr.edge,
+            gr.opening,
+            self.codes,
+            st.gate_distance_m,
+            st.gate_angle_rad,
+        )

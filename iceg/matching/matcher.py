@@ -581,7 +581,7 @@ class IceMatcher:
             line_info,
             ctx.new_geom,
             ctx.ref_geom,
-            ctx.correlation,
+            ctx.correlation.feature_pairing,
             prior,
             self._cloud(ctx, pseg),
             s,

@@ -31,6 +31,7 @@ from iceg.matching.refine import (
     _final_system,
     bounds_prior_information,
     build_cloud,
+    no_feature_pairing,
     points_within,
     refine,
 )
@@ -60,13 +61,6 @@ BOUNDS_MARGIN_M = 0.3
 BOUNDS_MARGIN_DEG = 8.0
 #: Least number of new points for a match.
 MIN_POINTS = 10
-
-
-class _NoPairs:
-    """A feature pairing without pairs (PL-ICP uses points only)."""
-
-    def pairs(self, pose: FloatArray) -> IntArray:
-        return np.zeros((0, 2), dtype=np.int64)
 
 
 def reference_points(reference: ScanFeatures) -> FloatArray:
@@ -122,7 +116,7 @@ def plicp_problem(
         np.zeros((0, 2, 2)),
         geom,
         geom,
-        _NoPairs(),
+        no_feature_pairing(),
         prior,
         reference_cloud(new_points, ref_points, config, settings.gate_m),
         settings,

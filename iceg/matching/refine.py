@@ -34,13 +34,12 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass, field
-from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from iceg.matching._kernels import (
-    GnPhase,
+    FeaturePairing,
     GnSettings,
     LatticePoints,
     LatticeSettings,
@@ -50,11 +49,11 @@ from iceg.matching._kernels import (
     PosePrior,
     SegmentPoints,
     covariance_rows,
-    gauss_newton_phase,
     lattice_covariance,
     line_covariances,
     point_line_system,
     points_explained,
+    refine_pose,
     segment_grid,
     sorted_cells,
 )
@@ -63,14 +62,6 @@ from iceg.matching.geometry import EOW, FeatureGeometry, SegmentSet
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-#: Step below which the coarse phase ends (metres, radians).
-COARSE_TOL_XY_M = 1e-2
-COARSE_TOL_THETA_RAD = 5e-3
-#: Step below which the fine phase has converged (metres, radians).
-FINE_TOL_XY_M = 5e-4
-FINE_TOL_THETA_RAD = 1e-4
-#: The starting point noise is the coarse gate divided by this (floored).
-GATE_TO_SIGMA0 = 3.0
 #: Points evaluated on the lattice (evenly subsampled beyond; the cost is scaled up).
 LATTICE_POINTS = 100
 #: Smallest cell of the reference segments' association grid (metres; the cell is the
@@ -127,15 +118,6 @@ class RefineSettings:
         )
 
 
-class FeaturePairing(Protocol):
-    """The correlation's feature pairing at a pose (see
-    :class:`~iceg.matching.correlation.CorrelationModel`)."""
-
-    def pairs(self, pose: FloatArray) -> IntArray:
-        """``(Q, 2)`` int64 feature pairs ``[new index, reference index]`` at ``pose``."""
-        ...
-
-
 @dataclass(frozen=True, eq=False)
 class _Rows:
     """Linearised residual rows at one pose: residual ``(R,)`` (m), Jacobian ``(R, 3)``
@@ -171,7 +153,7 @@ class RefineProblem:
         line_info: ``(M, 2, 2)`` float64 information (inverse covariance) of each reference
             line ``(alpha, rho)`` (see :func:`effective_line_info`).
         new_geom, ref_geom: New and reference feature geometry.
-        pairing: The correlation's feature pairing (pairs at a pose).
+        pairing: The correlation's feature pairing (no features: no pairs).
         prior: The bounds' prior (mean: the prediction; information: uniform variance of
             the admissible motion, zeros when unbounded).
         cloud: Off-segment new points against the reference's points (may hold none).
@@ -285,6 +267,13 @@ def empty_cloud() -> PointCloud:
     z2 = np.zeros((0, 2))
     zi = np.zeros(0, dtype=np.int64)
     return PointCloud(z2, z2, np.zeros(0), z2, 1.0, np.zeros(2), np.ones(2, np.int64), zi, zi)
+
+
+def no_feature_pairing() -> FeaturePairing:
+    """A :class:`~iceg.matching._kernels.FeaturePairing` without features (no pairs)."""
+    z2 = np.zeros((0, 2))
+    z = np.zeros(0)
+    return FeaturePairing(z2, z, z2, z, z2, z, z2, z, np.zeros((0, 0), np.int64), 0.0, 0.0)
 
 
 def build_cloud(
@@ -405,6 +394,11 @@ def refine(
     """Gauss-Newton refinement and covariance of one hypothesis (docs/design.md steps 8-9; paper
     §III-C3 "an optimization problem"; covariance after Olson 2009).
 
+    The two phases: the wide gate with full feature positions until the steps are small (a
+    coarse hypothesis is pulled in), then a gate of a few estimated sigmas with the pairing
+    fixed at the coarse result until convergence (points off the matched segments stop
+    pulling); all in one compiled call (:func:`~iceg.matching._kernels.refine_pose`).
+
     Args:
         problem: What the match's refinements share (points, segments, features, prior).
         pose0: ``(3,)`` float64 starting pose of the new scan in the reference frame
@@ -416,55 +410,29 @@ def refine(
         A :class:`Refined`; its covariances are perturbations of ``(x, y, theta)`` in the
         reference frame.
     """
-    pose, sigma, gate, iterations, pairs = _gauss_newton(problem, pose0, initial_pairs)
-    hess, pr, sigma = _final_point_rows(problem, pose, gate, sigma)
+    pose, sigma, gate, iterations, pairs, hess, idx, res = refine_pose(
+        np.asarray(pose0, dtype=np.float64),
+        None if initial_pairs is None else np.ascontiguousarray(initial_pairs, dtype=np.int64),
+        problem.prior,
+        problem.points,
+        problem.lines,
+        problem.pair_geometry,
+        problem.pairing,
+        problem.cloud,
+        problem.kernel_settings,
+        problem.settings.max_iterations,
+    )
+    pr = _point_rows(problem, idx, res)
     overlap = float(pr.sel.sum()) / max(1, problem.points.xy.shape[0])
     system = _FinalSystem(problem, pose.copy(), hess, pr, pairs, sigma, gate)
     return Refined(pose, sigma, overlap, int(pr.sel.sum()), pr.idx, iterations, system)
 
 
-def _gauss_newton(
-    problem: RefineProblem, pose0: FloatArray, initial_pairs: IntArray | None
-) -> tuple[FloatArray, float, float, int, IntArray]:
-    """The two phases of the Gauss-Newton loop: the wide gate with full feature positions
-    until the steps are small (a coarse hypothesis is pulled in), then a gate of a few
-    estimated sigmas with the pairing fixed at the coarse result until convergence (points
-    off the matched segments stop pulling).
-
-    Returns:
-        The pose ``(3,)``, the point noise (m), the gate (m), the iterations run and the
-        fine phase's feature pairs ``(Q, 2)``.
-    """
-    s = problem.settings
-    pose = np.asarray(pose0, dtype=np.float64).copy()
-    sigma = max(s.sigma_min_m, s.gate_m / GATE_TO_SIGMA0)
-    pairs = problem.pairing.pairs(pose) if initial_pairs is None else initial_pairs
-    n_coarse = max(1, s.max_iterations // 2)
-    coarse = GnPhase(True, s.gate_m, sigma, n_coarse, COARSE_TOL_XY_M, COARSE_TOL_THETA_RAD)
-    pose, sigma, gate, it = _phase(problem, pose, pairs, coarse)
-    gate = min(s.gate_m, max(s.gate_min_m, s.gate_sigmas * sigma))
-    pairs = problem.pairing.pairs(pose)
-    n_fine = max(1, s.max_iterations - it)
-    fine = GnPhase(False, gate, sigma, n_fine, FINE_TOL_XY_M, FINE_TOL_THETA_RAD)
-    pose, sigma, gate, it2 = _phase(problem, pose, pairs, fine)
-    return pose, sigma, gate, it + it2, pairs
-
-
-def _phase(
-    problem: RefineProblem, pose: FloatArray, pairs: IntArray, phase: GnPhase
-) -> tuple[FloatArray, float, float, int]:
-    """One call of the compiled loop :func:`~iceg.matching._kernels.gauss_newton_phase`."""
-    return gauss_newton_phase(  # type: ignore[no-any-return]
-        pose,
-        problem.prior,
-        problem.points,
-        problem.lines,
-        np.ascontiguousarray(pairs, dtype=np.int64),
-        problem.pair_geometry,
-        problem.cloud,
-        problem.kernel_settings,
-        phase,
-    )
+def _point_rows(problem: RefineProblem, idx: IntArray, res: FloatArray) -> _PointRows:
+    """The point-to-line rows of the associated points (segment ``idx`` ``(P,)``, -1: none;
+    residuals ``res`` ``(P,)``)."""
+    sel = idx >= 0
+    return _PointRows(idx, sel, res[sel], problem.points.xy[sel], problem.segs.normal[idx[sel]])
 
 
 def _final_point_rows(
@@ -475,9 +443,7 @@ def _final_point_rows(
     hess, _, sigma, idx, res = point_line_system(
         pose, problem.points, problem.lines, gate, sigma, problem.kernel_settings
     )
-    sel = idx >= 0
-    rows = _PointRows(idx, sel, res[sel], problem.points.xy[sel], problem.segs.normal[idx[sel]])
-    return hess, rows, sigma
+    return hess, _point_rows(problem, idx, res), sigma
 
 
 def _final_system(
