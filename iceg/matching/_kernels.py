@@ -1724,24 +1724,31 @@ def nearest_walls(
 
 
 @njit(cache=True, nogil=True)
+def beam_directions(bearing: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cosines and sines ``(B,)`` float64 of the bearings ``(B,)`` (radians), as
+    :func:`ray_wall_check` takes them."""
+    return np.cos(bearing), np.sin(bearing)
+
+
+@njit(cache=True, nogil=True)
 def ray_wall_check(
     ep: np.ndarray,
     bearing: np.ndarray,
+    cos_b: np.ndarray,
+    sin_b: np.ndarray,
     ranges: np.ndarray,
     spacing: float,
     range_max_m: float,
     tol_m: float,
     cos_max_incidence: float,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Cast segments ``ep`` (M, 2, 2) along beams (bearing ascending, range) from the
-    origin; see ``matcher._ray_check``. Returns ``(M,)`` float64 arrays: each segment's wall
-    length seen through and confirmed (metres), each beam counting on its nearest segment
-    (:func:`nearest_walls`)."""
+    """Cast segments ``ep`` (M, 2, 2) along beams (bearing ascending, its cosines and sines
+    from :func:`beam_directions`, range) from the origin; see ``matcher._ray_check``.
+    Returns ``(M,)`` float64 arrays: each segment's wall length seen through and confirmed
+    (metres), each beam counting on its nearest segment (:func:`nearest_walls`)."""
     n_b = bearing.shape[0]
     see = np.zeros(ep.shape[0])
     cons = np.zeros(ep.shape[0])
-    cos_b = np.cos(bearing)
-    sin_b = np.sin(bearing)
     best_t, best_k = nearest_walls(ep, bearing, cos_b, sin_b)
     for b in range(n_b):
         dx = cos_b[b]

@@ -6,13 +6,14 @@ All functions are vectorized over features, segments or points.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from iceg.matching._kernels import move_lines, segment_arrays
+from iceg.matching._kernels import beam_directions, move_lines, segment_arrays
 from iceg.types import FeatureKind, ScanFeatures
 from iceg_common.se2 import rotation_matrix as rot
 
@@ -190,6 +191,12 @@ class PolarProfile:
     range: FloatArray
     spacing: float
     range_max_m: float
+
+    @functools.cached_property
+    def directions(self) -> tuple[FloatArray, FloatArray]:
+        """Cosines and sines ``(B,)`` float64 of ``bearing``, computed once per profile (a
+        scan's free-space checks cast walls along its beams many times)."""
+        return beam_directions(self.bearing)  # type: ignore[no-any-return]
 
     @classmethod
     def from_points(cls, points_xy: FloatArray, range_max_m: float) -> PolarProfile:

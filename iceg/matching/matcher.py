@@ -872,6 +872,7 @@ def walls_seen_through(
     see, cons = ray_wall_check(
         np.ascontiguousarray(seg_endpoints, dtype=np.float64),
         profile.bearing,
+        *profile.directions,
         profile.range,
         profile.spacing,
         profile.range_max_m,
