@@ -17,9 +17,10 @@ Gauss-Newton over
 - the bounds' prior (uniform variance of the admissible motion) pulling toward the
   prediction, which only matters along directions the scene leaves unconstrained.
 
-All of it runs in one compiled Gauss-Newton loop
-(:func:`~iceg.matching._kernels.gauss_newton_phase`), in two phases: a coarse one with the
-wide gate and full feature positions, then a fine one with a gate of a few estimated sigmas.
+All of it runs in one compiled call (:func:`~iceg.matching._kernels.refine_pose`): a
+Gauss-Newton loop in two phases, a coarse one with the wide gate and full feature positions,
+then a fine one with a gate of a few estimated sigmas, and the point-to-line rows at the
+result.
 
 The least-squares covariance is the inverse of that information (point noise ``sigma``
 estimated from the residuals, floored). It is the floor of the correlation-landscape
