@@ -29,7 +29,7 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from frontends.scan import LaserScan
-from iceg.landmark_association import nearest_free_pairs, within_gate_of_any
+from iceg.landmark_association import lookup_sorted, nearest_free_pairs, within_gate_of_any
 from iceg.landmark_frames import move_features, move_points, poses_in_frame
 from iceg.matching.geometry import PolarProfile, transform_line_rows
 from iceg.matching.matcher import walls_seen_through
@@ -666,14 +666,6 @@ def _block_rows(blocks: Mapping[int, tuple[int, int]], nodes: IntArray) -> IntAr
     return np.concatenate([np.arange(a, b, dtype=np.int64) for a, b in spans])
 
 
-def _lookup(table_ids: IntArray, query: IntArray) -> tuple[IntArray, BoolArray]:
-    """Positions of ``query`` in the sorted ``table_ids`` and whether each was found."""
-    if table_ids.shape[0] == 0:
-        return np.zeros(query.shape, dtype=np.int64), np.zeros(query.shape, dtype=bool)
-    pos = np.minimum(np.searchsorted(table_ids, query), table_ids.shape[0] - 1)  # >= 0
-    return pos, table_ids[pos] == query
-
-
 #: ``(support, wall_p, wall_d, wall_side)`` of :func:`_geometry`.
 _VisibilityGeometry = tuple[FloatArray, FloatArray, FloatArray, FloatArray]
 
@@ -928,7 +920,7 @@ class FeatureMap:
             FeatureMapError: ``node_poses`` holds different numbers of ids and poses.
         """
         ids, poses = _node_pose_table(node_poses)
-        pos, found = _lookup(ids, self._lm.anchor)
+        pos, found = lookup_sorted(ids, self._lm.anchor)
         sel = np.flatnonzero(found)
         return self._lm.in_frame(sel, poses[pos[sel]])
 
@@ -947,7 +939,7 @@ class FeatureMap:
             FeatureMapError: ``node_poses`` holds different numbers of ids and poses.
         """
         ids, poses = _node_pose_table(node_poses)
-        pos, found = _lookup(ids, self._seg.node)
+        pos, found = lookup_sorted(ids, self._seg.node)
         sel = np.flatnonzero(found)
         endpoints, _, _ = self._seg.in_frame(sel, poses[pos[sel]])
         return endpoints, self._seg.node[sel]
@@ -985,10 +977,10 @@ class FeatureMap:
         ids, poses = _node_pose_table(node_poses)
         want = np.unique(np.asarray(node_ids, dtype=np.int64).reshape(-1))
         view = self._reference_landmarks(ids, poses, want, frame)
-        _, posed = _lookup(ids, want)
+        _, posed = lookup_sorted(ids, want)
         want_posed = want[posed]  # nodes whose segments and points can be placed
         ssel = _block_rows(self._seg_rows, want_posed)
-        spos, _ = _lookup(ids, self._seg.node[ssel])
+        spos, _ = lookup_sorted(ids, self._seg.node[ssel])
         srel = poses_in_frame(frame, poses, spos)
         ep, lines, lcov = self._seg.in_frame(ssel, srel)
         points, seg_pr = self._reference_points(ids, poses, want_posed, frame, ssel)
@@ -1040,7 +1032,7 @@ class FeatureMap:
         """Landmarks anchored to or last matched from ``want``, in the frame ``frame``."""
         lm = self._lm
         chosen = self._chosen(want)
-        apos, afound = _lookup(ids, lm.anchor[chosen])
+        apos, afound = lookup_sorted(ids, lm.anchor[chosen])
         sel = chosen[afound]
         rel = poses_in_frame(frame, poses, apos[afound])
         return lm.in_frame(sel, rel)
@@ -1055,13 +1047,15 @@ class FeatureMap:
             return self._chosen_memo[1]
         lm = self._lm
         if len(lm) < _TOUCHED_FROM_LANDMARKS:
-            rows = np.flatnonzero(_lookup(want, lm.anchor)[1] | _lookup(want, lm.last_node)[1])
+            _, anchored = lookup_sorted(want, lm.anchor)
+            _, last_matched = lookup_sorted(want, lm.last_node)
+            rows = np.flatnonzero(anchored | last_matched)
         else:
             touched = self._touched.id[_block_rows(self._touched_rows, want)]
-            pos, found = _lookup(lm.id, touched)
+            pos, found = lookup_sorted(lm.id, touched)
             rows = pos[found]  # ids ascending with the rows
             nodes = np.concatenate([lm.anchor[rows], lm.last_node[rows]])
-            keep = _lookup(want, nodes)[1].reshape(2, -1).any(axis=0)
+            keep = lookup_sorted(want, nodes)[1].reshape(2, -1).any(axis=0)
             rows = np.unique(rows[keep])
         rows.flags.writeable = False
         self._chosen_memo = (key, rows)
@@ -1096,7 +1090,7 @@ class FeatureMap:
             return np.arange(len(lm), dtype=np.int64)
         part = lm.last_node >= node_id - self.config.bookkeeping_recent_nodes
         if reference_ids is not None:
-            pos, found = _lookup(lm.id, reference_ids)  # ids ascending: no scan of every row
+            pos, found = lookup_sorted(lm.id, reference_ids)  # ids ascending: no scan of every row
             part[pos[found]] = True
         return np.flatnonzero(part)
 
@@ -1111,7 +1105,7 @@ class FeatureMap:
             return points, seg_pr
         sg, pt = self._seg, self._pts
         psel = _block_rows(self._pts_rows, want)
-        ppos, _ = _lookup(ids, pt.node[psel])
+        ppos, _ = lookup_sorted(ids, pt.node[psel])
         prel = poses_in_frame(frame, poses, ppos)
         points = move_points(prel, pt.xy[psel][:, None, :], True)[:, 0]
         # Each node's points are contiguous: shift its segments' ranges to its block.
@@ -1306,7 +1300,7 @@ class FeatureMap:
             tab_ids, tab_poses = _node_pose_table(node_poses)
         else:
             tab_ids, tab_poses = reference.node_ids, reference.node_poses
-        npos, nfound = _lookup(tab_ids, np.array([node_id]))
+        npos, nfound = lookup_sorted(tab_ids, np.array([node_id]))
         if nfound[0]:
             new_pose = tab_poses[npos[0]]
         elif node_pose is not None:
@@ -1314,7 +1308,7 @@ class FeatureMap:
         else:
             new_pose = compose(reference.frame_pose, match.pose)
         part = self._taking_part(node_id, reference.landmark_ids)
-        apos, afound = _lookup(tab_ids, lm.anchor[part])
+        apos, afound = lookup_sorted(tab_ids, lm.anchor[part])
         rows = part[afound]
         anchor_in_new = poses_in_frame(new_pose, tab_poses, apos[afound])
         xy_new = move_points(anchor_in_new, lm.xy[rows][:, None, :], True)[:, 0]
@@ -1331,7 +1325,7 @@ class FeatureMap:
         pairs = np.asarray(match.inlier_pairs, dtype=np.int64).reshape(-1, 2)
         pairs = pairs[(pairs[:, 0] >= 0) & (pairs[:, 0] < k_new)]
         pairs = pairs[(pairs[:, 1] >= 0) & (pairs[:, 1] < ref_ids.shape[0])]
-        lpos, lfound = _lookup(self._lm.id, ref_ids[pairs[:, 1]])
+        lpos, lfound = lookup_sorted(self._lm.id, ref_ids[pairs[:, 1]])
         ok = lfound & (near.slot[lpos] >= 0)
         return pairs[ok, 0], lpos[ok]
 

@@ -1,6 +1,7 @@
 """Distance-gated association of a scan's features with the feature map's landmarks, in the
 new node's frame (docs/design.md "Feature map and time-validity"): the geometric pairs that
-complete the matcher's inlier pairs, and the duplicate landmarks to merge.
+complete the matcher's inlier pairs, and the duplicate landmarks to merge; and the rows of
+landmark or node ids in a sorted id table (:func:`lookup_sorted`).
 
 Compiled loops over (features x landmarks) instead of numpy's ``(K, n, 2)`` distance
 temporaries; each distance is ``sqrt(dx^2 + dy^2)`` as ``np.linalg.norm`` computes it, so
@@ -81,3 +82,36 @@ def within_gate_of_any(
                 out[j] = True
                 break
     return out
+
+
+@njit(cache=True, nogil=True)
+def lookup_sorted(table_ids: np.ndarray, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of ids in a sorted id table, by binary search: for each query id the first row
+    whose id is not below it (``np.searchsorted``, side left), clipped to the last row, and
+    whether that row holds the id.
+
+    Args:
+        table_ids: ``(n,)`` int64 ids, ascending.
+        query: ``(q,)`` int64 ids.
+
+    Returns:
+        ``pos`` ``(q,)`` int64 rows (0 for an empty table) and ``found`` ``(q,)`` bool.
+    """
+    n = table_ids.shape[0]
+    pos = np.zeros(query.shape[0], dtype=np.int64)
+    found = np.zeros(query.shape[0], dtype=np.bool_)
+    if n == 0:
+        return pos, found
+    for i in range(query.shape[0]):
+        q = query[i]
+        lo, hi = 0, n
+        while lo < hi:
+            mid = (lo + hi) >> 1
+            if table_ids[mid] < q:
+                lo = mid + 1
+            else:
+                hi = mid
+        row = min(lo, n - 1)
+        pos[i] = row
+        found[i] = table_ids[row] == q
+    return pos, found

@@ -23,7 +23,7 @@ from iceg.feature_map import (
     _Points,
 )
 from iceg.features import extract
-from iceg.landmark_association import nearest_free_pairs, within_gate_of_any
+from iceg.landmark_association import lookup_sorted, nearest_free_pairs, within_gate_of_any
 from iceg.landmark_frames import move_features, move_points, poses_in_frame
 from iceg.matching import IceMatcher, MatchBounds
 from iceg.matching._kernels import move_lines
@@ -597,6 +597,25 @@ def test_association_kernels_equal_the_numpy_expressions() -> None:
             dd = np.linalg.norm(feature_xy[paired][:, None, :] - landmark_xy[None], axis=2)
             want = np.any(dd <= 0.3, axis=0)
         assert np.array_equal(within_gate_of_any(feature_xy, paired, landmark_xy, 0.3), want)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_lookup_sorted_is_numpys_searchsorted(seed: int) -> None:
+    # Rows of ids in a sorted table: numpy's left searchsorted clipped to the last row, and
+    # whether that row holds the id; ids below, between, equal to and above the table's,
+    # repeated queries, and an empty table or query.
+    rng = np.random.default_rng(seed)
+    for n, q in ((0, 5), (1, 6), (7, 0), (40, 300)):
+        table = np.unique(rng.integers(-20, 60, n * 2))[:n].astype(np.int64)
+        query = rng.integers(-25, 65, q).astype(np.int64)
+        pos, found = lookup_sorted(table, query)
+        if n == 0:
+            assert not pos.any() and not found.any() and pos.shape == (q,)
+            continue
+        want = np.minimum(np.searchsorted(table, query), n - 1)
+        np.testing.assert_array_equal(pos, want)
+        np.testing.assert_array_equal(found, table[want] == query)
+        assert set(query[found].tolist()) == set(query.tolist()) & set(table.tolist())
 
 
 def test_poses_in_frame_are_the_bits_of_se2_between() -> None:
