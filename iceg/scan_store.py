@@ -20,10 +20,12 @@ exactly what the pipeline saw.
 from __future__ import annotations
 
 import itertools
+import math
 from collections.abc import Iterable, Iterator, Sequence
 from typing import overload
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from frontends import LaserScan
@@ -293,21 +295,48 @@ class ScanStore(Sequence[LaserScan]):
 
 def _encode(ranges: FloatArray) -> tuple[int, np.ndarray]:
     """The first of :data:`RANGE_ENCODINGS` that gives back every bit of ``ranges``:
-    ``(index, encoded array)``."""
-    bits = ranges.view(np.int64)
-    with np.errstate(invalid="ignore", over="ignore"):
-        for k, (dtype, scale) in enumerate(RANGE_ENCODINGS[:-1]):
-            if np.issubdtype(dtype, np.integer):
-                scaled = np.rint(ranges * scale)
-                info = np.iinfo(dtype)
-                if not np.all((scaled >= info.min) & (scaled <= info.max)):  # NaN fails too
-                    continue
-                encoded: np.ndarray = scaled.astype(dtype)
-            else:
-                encoded = ranges.astype(dtype)
-            if np.array_equal(_decode(encoded, scale).view(np.int64), bits):
-                return k, encoded
+    ``(index, encoded array)``. The integer encodings are tested in one compiled pass
+    (:func:`_integer_round_trip`), the float ones by numpy."""
+    for k, (dtype, scale, limits) in enumerate(_ENCODING_TESTS):
+        if limits is not None:
+            if _integer_round_trip(ranges, scale, *limits):
+                return k, np.rint(ranges * scale).astype(dtype)
+            continue
+        with np.errstate(over="ignore"):
+            encoded: np.ndarray = ranges.astype(dtype)
+        if np.array_equal(_decode(encoded, scale).view(np.int64), ranges.view(np.int64)):
+            return k, encoded
     return len(RANGE_ENCODINGS) - 1, ranges.copy()
+
+
+#: The encodings :func:`_encode` tests (all but the last): ``(dtype, scale, limits)``, the
+#: limits ``(min, max)`` of an integer dtype, None for a float one.
+_ENCODING_TESTS: tuple[tuple[type, float, tuple[int, int] | None], ...] = tuple(
+    (
+        dtype,
+        scale,
+        (int(np.iinfo(dtype).min), int(np.iinfo(dtype).max))
+        if np.issubdtype(dtype, np.integer)
+        else None,
+    )
+    for dtype, scale in RANGE_ENCODINGS[:-1]
+)
+
+
+@njit(cache=True, nogil=True)
+def _integer_round_trip(ranges: np.ndarray, scale: float, lo: int, hi: int) -> bool:
+    """Whether every range stored as the integer ``rint(range * scale)`` (within
+    ``[lo, hi]``; NaN never is) decodes as ``stored / scale`` to its own float64 bits: equal
+    values, and not -0.0 (which decodes to +0.0)."""
+    for i in range(ranges.shape[0]):
+        v = ranges[i]
+        stored = np.rint(v * scale)
+        if not (stored >= lo and stored <= hi):
+            return False
+        decoded = float(int(stored)) / scale
+        if decoded != v or (v == 0.0 and math.copysign(1.0, v) < 0.0):
+            return False
+    return True
 
 
 def _decode(stored: np.ndarray, scale: float) -> FloatArray:
