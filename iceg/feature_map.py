@@ -816,6 +816,9 @@ class FeatureMap:
         # The last _chosen answer (the nodes' bytes, the rows): a reference reads it twice,
         # for its pose nodes and for its landmarks; an update forgets it.
         self._chosen_memo: tuple[bytes, IntArray] | None = None
+        # The last _taking_part answer (node id, the reference ids' bytes, the rows): an
+        # update's pose nodes and its bookkeeping read it; the bookkeeping forgets it.
+        self._part_memo: tuple[int, bytes | None, IntArray] | None = None
 
     # ------------------------------------------------------------------ inspection
     def __len__(self) -> int:
@@ -1084,15 +1087,24 @@ class FeatureMap:
         """Ascending rows of the landmarks taking part in the bookkeeping of the new node
         ``node_id``: all, or with ``bookkeeping_recent_nodes`` those last matched (or
         created) from the recent nodes and those of the reference (ids
-        ``reference_ids``)."""
+        ``reference_ids``). Read-only: the answer is kept until the next question or the
+        update's bookkeeping."""
+        key = None if reference_ids is None else reference_ids.tobytes()
+        memo = self._part_memo
+        if memo is not None and memo[0] == node_id and memo[1] == key:
+            return memo[2]
         lm = self._lm
         if self.config.bookkeeping_recent_nodes is None:
-            return np.arange(len(lm), dtype=np.int64)
-        part = lm.last_node >= node_id - self.config.bookkeeping_recent_nodes
-        if reference_ids is not None:
-            pos, found = lookup_sorted(lm.id, reference_ids)  # ids ascending: no scan of every row
-            part[pos[found]] = True
-        return np.flatnonzero(part)
+            rows = np.arange(len(lm), dtype=np.int64)
+        else:
+            part = lm.last_node >= node_id - self.config.bookkeeping_recent_nodes
+            if reference_ids is not None:
+                pos, found = lookup_sorted(lm.id, reference_ids)  # ids ascending: no full scan
+                part[pos[found]] = True
+            rows = np.flatnonzero(part)
+        rows.flags.writeable = False
+        self._part_memo = (node_id, key, rows)
+        return rows
 
     def _reference_points(
         self, ids: IntArray, poses: FloatArray, want: IntArray, frame: FloatArray, ssel: IntArray
@@ -1182,6 +1194,7 @@ class FeatureMap:
         if match is not None and match.success:
             ref = self._own(reference)
             book = self._bookkeep(node_id, features, stamp, ref, match, scan, node_poses, node_pose)
+        self._part_memo = None  # the bookkeeping and what follows change the rows
         merged_ids = self._merge(book.merge_rows) if book.merge_rows.shape[0] else empty
         self._store_segments(node_id, features)
         added = self._add_landmarks(node_id, features, book.new_mask, stamp)

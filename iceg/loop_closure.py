@@ -505,7 +505,12 @@ class _Poses:
     def __getitem__(self, key: int | np.integer | slice) -> FloatArray:
         if isinstance(key, slice):
             return self.rows(np.arange(key.start, key.stop, dtype=np.int64))
-        return self.rows(np.array([int(key)]))[0]
+        n = int(key)
+        if self._full is not None:
+            return self._full[n].copy()
+        if self._known[n]:
+            return self._cache[n].copy()
+        return self.rows(np.array([n]))[0]
 
 
 class _Nearby:

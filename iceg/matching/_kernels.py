@@ -2069,8 +2069,8 @@ def points_explained(
 
     The reference points are gridded in cells of ``gate_m`` (keys ``ix * n_cells[1] + iy``
     sorted, as :func:`~iceg.matching.refine.grid_points` builds them), so each moved point
-    scans the 3 x 3 cells around it (three runs of consecutive keys) and stops at the first
-    reference point within the gate.
+    scans the 3 x 3 cells around it (three runs of consecutive keys, each found by a binary
+    search among its column's keys) and stops at the first reference point within the gate.
 
     Args:
         points: ``(P, 2)`` float64 points in their own frame, metres.
@@ -2086,6 +2086,14 @@ def points_explained(
     n_r = cell_key.shape[0]
     nx, ny = n_cells[0], n_cells[1]
     gate2 = gate_m * gate_m
+    # The first sorted key of each column of cells (and the end): a cell's search runs over
+    # its column's keys only.
+    column = np.empty(nx + 1, np.int64)
+    m = 0
+    for cx in range(nx + 1):
+        while m < n_r and cell_key[m] < cx * ny:
+            m += 1
+        column[cx] = m
     out = np.zeros((poses.shape[0], points.shape[0]), dtype=np.bool_)
     for k in range(poses.shape[0]):
         c = math.cos(poses[k, 2])
@@ -2101,9 +2109,10 @@ def points_explained(
             iy = math.floor(fy)
             lo_y, hi_y = max(iy - 1, 0), min(iy + 1, ny - 1)
             for cx in range(max(ix - 1, 0), min(ix + 2, nx)):
-                m = np.searchsorted(cell_key, cx * ny + lo_y)
+                a, b = column[cx], column[cx + 1]
+                m = a + np.searchsorted(cell_key[a:b], cx * ny + lo_y)
                 last = cx * ny + hi_y
-                while m < n_r and cell_key[m] <= last and not out[k, i]:
+                while m < b and cell_key[m] <= last and not out[k, i]:
                     j = cell_order[m]
                     dx = qx - ref_points[j, 0]
                     dy = qy - ref_points[j, 1]

@@ -383,6 +383,50 @@ def test_a_reference_after_an_update_is_that_of_the_map_rebuilt_from_its_state()
     assert fm.n_merged > 0 and fm.pruned.ids.shape[0] > 0
 
 
+def test_an_update_after_its_pose_nodes_were_asked_is_the_update_without() -> None:
+    # A map keeps the rows of the landmarks taking part in a node's bookkeeping that its
+    # update_pose_nodes chose (the update reads them again); the bookkeeping changes them.
+    # Two maps along the box world (matches, merges, pruning), one asked for each update's
+    # pose nodes first (as the SLAM loop does), the other not, hold the same state after
+    # every update; asked again after it, the first answers as a map rebuilt from its state.
+    run = simulate(box_world(), seed=3)
+    asked, plain = FeatureMap(FeatureMapConfig()), FeatureMap(FeatureMapConfig())
+    m = IceMatcher()
+    poses: dict[int, np.ndarray] = {}
+    for s, truth in zip(run.scans, run.true_poses, strict=True):
+        if poses:  # keyframes every 0.3 m or 10 deg, as _run_map
+            d = between(poses[len(poses) - 1], truth)
+            if math.hypot(d[0], d[1]) < 0.3 and abs(d[2]) < math.radians(10):
+                continue
+        f = extract(s)
+        node = len(poses)
+        poses[node] = truth
+        if node == 0:
+            asked.update(0, f, s.stamp_s, scan=s)
+            plain.update(0, f, s.stamp_s, scan=s)
+            continue
+        window = range(max(0, node - 4), node)
+        ref_a = asked.reference(poses, window, poses[node - 1])
+        ref_p = plain.reference(poses, window, poses[node - 1])
+        res = m.match(
+            f, ref_a.features, between(poses[node - 1], truth), MatchBounds.local(0.3, 10)
+        )
+        want_nodes = asked.update_pose_nodes(node, ref_a)
+        assert set(want_nodes.tolist()) <= set(poses)
+        asked.update(node, f, s.stamp_s, reference=ref_a, match=res, scan=s, node_poses=poses)
+        plain.update(node, f, s.stamp_s, reference=ref_p, match=res, scan=s, node_poses=poses)
+        a, b = asked.export_state(), plain.export_state()
+        assert a.keys() == b.keys()
+        for k in a:
+            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+        # asked again after the update: what a map rebuilt from the state answers
+        fresh = FeatureMap.from_state(a)
+        np.testing.assert_array_equal(
+            asked.update_pose_nodes(node, ref_a), fresh.update_pose_nodes(node, ref_a)
+        )
+    assert asked.n_merged > 0 and asked.pruned.ids.shape[0] > 0
+
+
 @pytest.mark.parametrize("removed", [True, False])
 def test_walls_the_newest_scan_sees_through_are_dropped_from_a_reference(removed: bool) -> None:
     # Truth: box_world's box spans x 5.5-6.5, y 3.5-4.5 in a 12 m x 8 m room. Node 0 looks at
