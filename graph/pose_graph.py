@@ -646,9 +646,14 @@ class PoseGraph:
                 self._note_delta_read()
                 keys = [nodes[k] for k in solver]  # ascending, as the Values' rows
                 values = self._isam.calculateEstimate(keys)  # type: ignore[union-attr]
-                poses = gtsam.utilities.extractPose2(values).tolist()
-                for k, n, pose in zip(solver, keys, poses, strict=True):
-                    cache[n] = rows[k] = (pose[0], pose[1], pose[2])
+                read = gtsam.utilities.extractPose2(values)
+                poses = list(map(tuple, read.tolist()))
+                cache.update(zip(keys, poses, strict=True))
+                if len(solver) == len(rows):  # all of them from this read (after an update)
+                    out[todo] = read
+                    return ids, out
+                for k, pose in zip(solver, poses, strict=True):
+                    rows[k] = pose
             for k in missing:
                 if rows[k] is None:
                     n = nodes[k]
