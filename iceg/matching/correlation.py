@@ -101,6 +101,25 @@ def _empty(h: int, kn: int, n_visible: IntArray) -> Correlation:
     return Correlation(zeros, zeros, zeros, zeros, zeros, none, np.zeros(h, np.int64), n_visible)
 
 
+def feature_pairing(
+    gn: FeatureGeometry, gr: FeatureGeometry, codes: IntArray, settings: CorrelationSettings
+) -> FeaturePairing:
+    """The arguments of :func:`pair_features` after the poses, as the kernels take them."""
+    return FeaturePairing(
+        gn.xy,
+        gn.heading,
+        gn.edge,
+        gn.opening,
+        gr.xy,
+        gr.heading,
+        gr.edge,
+        gr.opening,
+        codes,
+        settings.gate_distance_m,
+        settings.gate_angle_rad,
+    )
+
+
 def pair_features(
     poses: FloatArray,
     gn: FeatureGeometry,
@@ -116,20 +135,7 @@ def pair_features(
         ``match`` ``(H, K_new)`` int64 reference index (-1: none), ``dist`` (m) and ``angle``
         (rad) ``(H, K_new)`` float64 of each pair (NaN where unpaired).
     """
-    return pair_nearest(  # type: ignore[no-any-return]
-        poses,
-        gn.xy,
-        gn.heading,
-        gn.edge,
-        gn.opening,
-        gr.xy,
-        gr.heading,
-        gr.edge,
-        gr.opening,
-        codes,
-        settings.gate_distance_m,
-        settings.gate_angle_rad,
-    )
+    return pair_nearest(poses, *feature_pairing(gn, gr, codes, settings))  # type: ignore[no-any-return]
 
 
 def correlate(
@@ -247,18 +253,5 @@ class CorrelationModel:
 
     @functools.cached_property
     def feature_pairing(self) -> FeaturePairing:
-        """The pairing of :func:`pair_features` for the refinement's kernel."""
-        gn, gr, st = self.new_geom, self.ref_geom, self.settings
-        return FeaturePairing(
-            gn.xy,
-            gn.heading,
-            gn.edge,
-            gn.opening,
-            gr.xy,
-            gr.heading,
-            gr.edge,
-            gr.opening,
-            self.codes,
-            st.gate_distance_m,
-            st.gate_angle_rad,
-        )
+        """:func:`feature_pairing` of this match, for the refinement's kernel."""
+        return feature_pairing(self.new_geom, self.ref_geom, self.codes, self.settings)

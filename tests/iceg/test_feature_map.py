@@ -8,12 +8,13 @@ geometry and removal time) for time-validity.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import pytest
 
-from frontends.simulate import box_world, office_world, simulate
+from frontends import LaserScan
+from frontends.simulate import SimulatedRun, box_world, office_world, simulate
 from iceg import feature_map
 from iceg.feature_map import (
     PRUNED_VALIDITY,
@@ -170,17 +171,11 @@ def _run_map(
     """Feature map along a simulated run with true node poses: keyframes every 0.3 m or
     10 deg, each matched against the landmarks of the last four nodes (``after_update``
     called with the map, the poses and the node after each matched node's update)."""
-    run = simulate(world, seed=seed)
     fm = FeatureMap(config)
     m = IceMatcher()
     poses: dict[int, np.ndarray] = {}
     expected_at: dict[int, list[float]] = {}
-    last = None
-    for s, truth in zip(run.scans, run.true_poses, strict=True):
-        if last is not None:
-            d = between(last, truth)
-            if math.hypot(d[0], d[1]) < 0.3 and abs(d[2]) < math.radians(10):
-                continue
+    for s, truth in _keyframes(simulate(world, seed=seed)):
         f = extract(s)
         node = len(poses)
         poses[node] = truth
@@ -196,8 +191,19 @@ def _run_map(
                 expected_at.setdefault(int(i), []).append(s.stamp_s)
             if after_update is not None:
                 after_update(fm, poses, node)
-        last = truth
     return fm, poses, expected_at
+
+
+def _keyframes(run: SimulatedRun) -> Iterator[tuple[LaserScan, np.ndarray]]:
+    """The run's scans and true poses every 0.3 m or 10 deg of true motion."""
+    last = None
+    for s, truth in zip(run.scans, run.true_poses, strict=True):
+        if last is not None:
+            d = between(last, truth)
+            if math.hypot(d[0], d[1]) < 0.3 and abs(d[2]) < math.radians(10):
+                continue
+        last = truth
+        yield s, truth
 
 
 def _pruned_world(
@@ -389,15 +395,10 @@ def test_an_update_after_its_pose_nodes_were_asked_is_the_update_without() -> No
     # Two maps along the box world (matches, merges, pruning), one asked for each update's
     # pose nodes first (as the SLAM loop does), the other not, hold the same state after
     # every update; asked again after it, the first answers as a map rebuilt from its state.
-    run = simulate(box_world(), seed=3)
     asked, plain = FeatureMap(FeatureMapConfig()), FeatureMap(FeatureMapConfig())
     m = IceMatcher()
     poses: dict[int, np.ndarray] = {}
-    for s, truth in zip(run.scans, run.true_poses, strict=True):
-        if poses:  # keyframes every 0.3 m or 10 deg, as _run_map
-            d = between(poses[len(poses) - 1], truth)
-            if math.hypot(d[0], d[1]) < 0.3 and abs(d[2]) < math.radians(10):
-                continue
+    for s, truth in _keyframes(simulate(box_world(), seed=3)):
         f = extract(s)
         node = len(poses)
         poses[node] = truth
