@@ -94,6 +94,31 @@ def move_points(poses: np.ndarray, pts: np.ndarray, translate: bool) -> np.ndarr
     return out
 
 
+@njit(cache=True, nogil=True)
+def move_point_blocks(poses: np.ndarray, counts: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Consecutive blocks of points, each moved by its own pose: :func:`move_points` of
+    ``pts`` with each pose repeated over its block, the same bits, without the repeat.
+
+    Args:
+        poses: ``(n, 3)`` float64 the pose of each block's frame in the target frame.
+        counts: ``(n,)`` int64 points in each block, summing to ``P``.
+        pts: ``(P, 2)`` float64 the blocks' points, one after the other, metres.
+
+    Returns:
+        ``(P, 2)`` float64 ``R p + t`` in the target frame.
+    """
+    out = np.empty((pts.shape[0], 2))
+    j = 0
+    for i in range(poses.shape[0]):
+        c, s = math.cos(poses[i, 2]), math.sin(poses[i, 2])
+        tx, ty = poses[i, 0], poses[i, 1]
+        for _ in range(counts[i]):
+            out[j, 0] = c * pts[j, 0] - s * pts[j, 1] + tx
+            out[j, 1] = s * pts[j, 0] + c * pts[j, 1] + ty
+            j += 1
+    return out
+
+
 def poses_in_frame(frame: np.ndarray, poses: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """``se2.between(frame, poses[rows])`` in one compiled pass, the same bits (the same
     expressions in the same order, with the frame's inverse and its sine and cosine from
@@ -136,4 +161,4 @@ def _compose_rows(
     return out
 
 
-__all__ = ["move_features", "move_points", "poses_in_frame"]
+__all__ = ["move_features", "move_point_blocks", "move_points", "poses_in_frame"]

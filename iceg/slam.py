@@ -33,7 +33,7 @@ from graph import FactorKind, PoseGraph, odometry_covariance
 from iceg.config import IcegConfig
 from iceg.feature_map import FeatureMap, MapReference
 from iceg.features import extract
-from iceg.landmark_frames import move_points, poses_in_frame
+from iceg.landmark_frames import move_point_blocks, poses_in_frame
 from iceg.loop_closure import LoopCloser, LoopClosureStats, innovation_chi2
 from iceg.matching import MatchBounds
 from iceg.matching.geometry import PolarProfile
@@ -899,8 +899,8 @@ class Slam:
         rows = np.searchsorted(ids, recent)
         relative = poses_in_frame(poses[rows[-1]], poses, rows)
         points = [self._points_of(i) for i in recent.tolist()]
-        each = np.repeat(relative, [p.shape[0] for p in points], axis=0)
-        return move_points(each, np.concatenate(points)[:, None, :], True)[:, 0]  # type: ignore[no-any-return]
+        counts = np.array([p.shape[0] for p in points], dtype=np.int64)
+        return move_point_blocks(relative, counts, np.concatenate(points))  # type: ignore[no-any-return]
 
     def _remember_points(self, node_id: int, feats: ScanFeatures) -> None:
         """Keep the new node's scan points for :meth:`_point_match`; forget those of nodes

@@ -25,7 +25,7 @@ from iceg.feature_map import (
 )
 from iceg.features import extract
 from iceg.landmark_association import lookup_sorted, nearest_free_pairs, within_gate_of_any
-from iceg.landmark_frames import move_features, move_points, poses_in_frame
+from iceg.landmark_frames import move_features, move_point_blocks, move_points, poses_in_frame
 from iceg.matching import IceMatcher, MatchBounds
 from iceg.matching._kernels import move_lines
 from iceg.matching.geometry import PolarProfile
@@ -710,6 +710,13 @@ def test_moved_geometry_equals_the_numpy_expressions() -> None:
     )
     np.testing.assert_allclose(
         move_points(poses, pts, False), np.einsum("nab,nkb->nka", r, pts), rtol=1e-13, atol=1e-13
+    )
+    # blocks of points, some empty: the bits of move_points with each pose repeated
+    counts = rng.integers(0, 4, n)
+    block_pts = rng.uniform(-10, 10, (int(counts.sum()), 2))
+    assert np.array_equal(
+        move_point_blocks(poses, counts, block_pts),
+        move_points(np.repeat(poses, counts, axis=0), block_pts[:, None, :], True)[:, 0],
     )
     lines = np.column_stack([rng.uniform(-np.pi, np.pi, n_all), rng.uniform(0, 8, n_all)])
     lcov = q @ np.swapaxes(q, 1, 2) * 1e-4
