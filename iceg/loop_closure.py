@@ -1310,13 +1310,19 @@ class LoopCloser:
             self._step_info = _grown(self._step_info, size, 0.0)
             self._odom_step = _grown(self._odom_step, size, np.nan)
             self._odom_cov = _grown(self._odom_cov, size, np.nan)
+        steps = []
         for f in new:
             if f.kind is FactorKind.LOOP_CLOSURE:
                 self._closures_seen += 1
             elif f.j == f.i + 1:
-                self._step_info[f.i] += np.linalg.inv(f.cov)
+                steps.append(f)
                 if f.kind is FactorKind.ODOMETRY:
                     self._odom_step[f.i], self._odom_cov[f.i] = f.measured, f.cov
+        if steps:
+            # One stacked inverse (LAPACK per matrix, the bits of one call each).
+            infos = np.linalg.inv(np.array([f.cov for f in steps]))
+            for f, info in zip(steps, infos, strict=True):
+                self._step_info[f.i] += info
         self._factors_seen = graph.n_factors
         if self._closures_seen > self._closures_own:  # closures added by someone else
             self._closures_own = self._closures_seen
