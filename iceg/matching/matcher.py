@@ -274,6 +274,29 @@ def _lengths(endpoints: FloatArray) -> FloatArray:
     return np.hypot(d[:, 0], d[:, 1])
 
 
+#: Relative distance from the threshold beyond which :func:`largest_std_exceeds` trusts the
+#: closed form (far above the rounding of either eigenvalue computation, about 1e-15).
+_EIGENVALUE_MARGIN = 1e-9
+
+
+def largest_std_exceeds(cov_xy: FloatArray, limit: float) -> bool:
+    """Whether the largest standard deviation of a symmetric ``(2, 2)`` covariance exceeds
+    ``limit`` (``sqrt(max(eigvalsh(cov_xy)[-1], 0)) > limit``, the same answer): the
+    closed-form eigenvalue ``(a + d) / 2 + hypot((a - d) / 2, b)`` decides unless it lies
+    within :data:`_EIGENVALUE_MARGIN` of ``limit^2``, where LAPACK's does.
+
+    Args:
+        cov_xy: ``(2, 2)`` float64 finite symmetric covariance, m^2.
+        limit: Standard deviation, metres (>= 0).
+    """
+    (a, b), (_, d) = cov_xy.tolist()
+    largest = 0.5 * (a + d) + math.hypot(0.5 * (a - d), b)
+    bound = limit * limit
+    if abs(largest - bound) > _EIGENVALUE_MARGIN * (abs(a) + abs(b) + abs(d) + bound):
+        return largest > bound
+    return math.sqrt(max(float(np.linalg.eigvalsh(cov_xy)[-1]), 0.0)) > limit
+
+
 def _same_pose(a: FloatArray, b: FloatArray, dist_m: float, angle_rad: float) -> bool:
     return (
         math.hypot(a[0] - b[0], a[1] - b[1]) <= dist_m
@@ -737,10 +760,9 @@ class IceMatcher:
         cv = ctx.config.covariance
         ref = best.refined
         cov_param = ref.cov
-        evals = np.linalg.eigvalsh(cov_param[:2, :2]) if np.all(np.isfinite(cov_param)) else None
         if (
-            evals is None
-            or math.sqrt(max(evals[-1], 0.0)) > cv.max_std_m
+            not all(map(math.isfinite, cov_param.ravel().tolist()))
+            or largest_std_exceeds(cov_param[:2, :2], cv.max_std_m)
             or math.sqrt(max(cov_param[2, 2], 0.0)) > math.radians(cv.max_std_deg)
         ):
             return ctx.fail(
@@ -748,8 +770,9 @@ class IceMatcher:
                 f"{cv.max_std_m} m / {cv.max_std_deg} deg)",
                 n_hyp,
             )
-        m = np.eye(3)
-        m[:2, :2] = rot(ref.pose[2]).T
+        # M = diag(R^T, 1), the rotation's cosine and sine from libm (numpy's, bit for bit)
+        c, s = math.cos(ref.pose[2]), math.sin(ref.pose[2])
+        m = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
         cov_body = m @ cov_param @ m.T
         cov_body = 0.5 * (cov_body + cov_body.T)
         mt = best.corr.match[0]
@@ -761,7 +784,7 @@ class IceMatcher:
             pose=pose,
             cov=cov_body,
             correlation=float(best.corr.score[0]),
-            inlier_pairs=np.column_stack([i, mt[i]]).astype(np.int64),
+            inlier_pairs=np.stack((i, mt[i]), axis=1).astype(np.int64, copy=False),
             n_hypotheses=n_hyp,
             reason="",
         )

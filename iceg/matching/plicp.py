@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 from iceg.matching._kernels import PointCloud, PosePrior, SegmentPoints, cloud_nearest
 from iceg.matching.config import MatchBounds, MatchingConfig
 from iceg.matching.geometry import SegmentSet, feature_geometry, rot
-from iceg.matching.matcher import _local_lines, _refine_settings
+from iceg.matching.matcher import _local_lines, _refine_settings, largest_std_exceeds
 from iceg.matching.refine import (
     RefineProblem,
     RefineSettings,
@@ -205,8 +205,8 @@ def check_result(
     cv = config.covariance
     if not np.all(np.isfinite(cov)):
         return "degenerate: singular covariance"
-    std_xy = math.sqrt(max(float(np.linalg.eigvalsh(cov[:2, :2])[-1]), 0.0))
-    if std_xy > cv.max_std_m or math.sqrt(max(cov[2, 2], 0.0)) > math.radians(cv.max_std_deg):
+    heading_open = math.sqrt(max(cov[2, 2], 0.0)) > math.radians(cv.max_std_deg)
+    if largest_std_exceeds(cov[:2, :2], cv.max_std_m) or heading_open:
         return "degenerate: the scene does not constrain the pose"
     return ""
 

@@ -80,7 +80,12 @@ from iceg.matching.hypotheses import (
     segment_rotation,
     vote,
 )
-from iceg.matching.matcher import MatchContext, _far_bracket_range, walls_seen_through
+from iceg.matching.matcher import (
+    MatchContext,
+    _far_bracket_range,
+    largest_std_exceeds,
+    walls_seen_through,
+)
 from iceg.matching.refine import (
     build_cloud,
     effective_line_cov,
@@ -1749,3 +1754,31 @@ def test_nearest_walls_equals_every_beam_against_every_segment() -> None:
     np.testing.assert_array_equal(got_k, want_k)
     np.testing.assert_allclose(got_t, dist.min(axis=1), rtol=1e-12)
     assert np.count_nonzero(got_k >= 0) > 500 and np.unique(got_k).shape[0] >= 5
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.floats(-6, 2),
+    st.floats(0.0, 1.0),
+    st.floats(-1.0, 1.0),
+    st.floats(-4, 1),
+    st.sampled_from(["random", "at", "just below", "just above"]),
+)
+def test_largest_std_exceeds_is_the_eigenvalue_test(
+    log_scale: float, ratio: float, corr: float, log_limit: float, where: str
+) -> None:
+    # Covariances from tiny to large, elongated to nearly singular, some not positive
+    # semidefinite; the limit anywhere, or on the boundary (the closed form's rounding
+    # must not decide there).
+    a = 10.0**log_scale
+    d = a * ratio
+    b = corr * math.sqrt(a * max(d, 1e-300)) * 1.2
+    cov = np.array([[a, b], [b, d]])
+    truth = math.sqrt(max(float(np.linalg.eigvalsh(cov)[-1]), 0.0))
+    limit = {
+        "random": 10.0**log_limit,
+        "at": truth,
+        "just below": math.nextafter(truth, 0.0),
+        "just above": math.nextafter(truth, math.inf),
+    }[where]
+    assert largest_std_exceeds(cov, limit) == (truth > limit)
