@@ -825,6 +825,39 @@ def pair_code_matrix(
 
 
 @njit(cache=True, nogil=True)
+def feasible_pair_indices(
+    pred_xy: np.ndarray, ref_xy: np.ndarray, radius: np.ndarray, codes: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The (new, reference) pairs with a non-zero code whose reference feature lies within
+    its new feature's radius of the predicted position (``hypotheses.feasible_pairs``):
+    ``dx * dx + dy * dy <= radius * radius``, numpy's expression, in row-major order.
+
+    Args:
+        pred_xy: ``(K_new, 2)`` float64 new features at the prediction, reference frame, m.
+        ref_xy: ``(K_ref, 2)`` float64 reference features, m.
+        radius: ``(K_new,)`` float64 feasible radius of each new feature, m.
+        codes: ``(K_new, K_ref)`` int64 pair codes (0: incompatible).
+
+    Returns:
+        ``(Q,)`` int64 new and ``(Q,)`` int64 reference indices.
+    """
+    kn, kr = pred_xy.shape[0], ref_xy.shape[0]
+    out_i = np.empty(kn * kr, dtype=np.int64)
+    out_j = np.empty(kn * kr, dtype=np.int64)
+    q = 0
+    for i in range(kn):
+        r2 = radius[i] * radius[i]
+        for j in range(kr):
+            dx = pred_xy[i, 0] - ref_xy[j, 0]
+            dy = pred_xy[i, 1] - ref_xy[j, 1]
+            if dx * dx + dy * dy <= r2 and codes[i, j] != 0:
+                out_i[q] = i
+                out_j[q] = j
+                q += 1
+    return out_i[:q].copy(), out_j[:q].copy()
+
+
+@njit(cache=True, nogil=True)
 def pair_nearest(
     poses: np.ndarray,
     new_xy: np.ndarray,

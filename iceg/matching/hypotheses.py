@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 
 from iceg.matching._kernels import (
     directed_poses,
+    feasible_pair_indices,
     intersection_pair_poses,
     pair_code_matrix,
     segment_rotation_peak,
@@ -100,17 +101,15 @@ def feasible_pairs(
     r0 = rot(prediction[2])
     pred_xy = gn.xy @ r0.T + prediction[:2]
     radius = bounds.max_translation_m + gn.dist * rotation_chord(bounds.max_rotation_rad) + margin_m
-    # All (new, reference) pairs at once: a few dozen by a few hundred features, cheaper
+    # All (new, reference) pairs in one pass: a few dozen by a few hundred features, cheaper
     # than a KD-tree. Squared distances against squared radii, as cKDTree.query_ball_point
     # tests them, in row-major (sorted) order.
-    dx = pred_xy[:, None, 0] - gr.xy[None, :, 0]
-    dy = pred_xy[:, None, 1] - gr.xy[None, :, 1]
-    i, j = np.nonzero(dx * dx + dy * dy <= (radius * radius)[:, None])
-    if i.shape[0] == 0:
-        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    i, j = i.astype(np.int64), j.astype(np.int64)
-    keep = codes[i, j] != INCOMPATIBLE
-    return i[keep], j[keep]
+    return feasible_pair_indices(  # type: ignore[no-any-return]
+        np.ascontiguousarray(pred_xy),
+        np.ascontiguousarray(gr.xy, dtype=np.float64),
+        np.ascontiguousarray(radius, dtype=np.float64),
+        np.ascontiguousarray(codes, dtype=np.int64),
+    )
 
 
 @dataclass(frozen=True, eq=False)

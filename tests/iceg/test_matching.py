@@ -47,6 +47,7 @@ from iceg.matching._kernels import (
     cloud_nearest,
     covariance_rows,
     density_peak,
+    feasible_pair_indices,
     lattice_covariance,
     nearest_segment_distance,
     nearest_walls,
@@ -1782,3 +1783,22 @@ def test_largest_std_exceeds_is_the_eigenvalue_test(
         "just above": math.nextafter(truth, math.inf),
     }[where]
     assert largest_std_exceeds(cov, limit) == (truth > limit)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_feasible_pairs_are_the_numpy_expression(seed: int) -> None:
+    # Features on a coarse lattice, so that many reference features lie exactly on a radius;
+    # a third of the codes incompatible. The compiled pass keeps numpy's pairs, in order.
+    rng = np.random.default_rng(seed)
+    kn, kr = int(rng.integers(0, 40)), int(rng.integers(0, 200))
+    pred = rng.integers(-10, 10, (kn, 2)) * 0.5
+    ref = rng.integers(-10, 10, (kr, 2)) * 0.5
+    radius = rng.integers(0, 8, kn) * 0.5
+    codes = rng.integers(0, 3, (kn, kr)) * rng.integers(0, 2, (kn, kr))
+    dx = pred[:, None, 0] - ref[None, :, 0]
+    dy = pred[:, None, 1] - ref[None, :, 1]
+    i, j = np.nonzero(dx * dx + dy * dy <= (radius * radius)[:, None])
+    keep = codes[i, j] != 0
+    got_i, got_j = feasible_pair_indices(pred, ref, radius, codes.astype(np.int64))
+    assert np.array_equal(got_i, i[keep]) and np.array_equal(got_j, j[keep])
+    assert got_i.dtype == np.int64 and got_j.dtype == np.int64
