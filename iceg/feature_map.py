@@ -29,7 +29,12 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from frontends.scan import LaserScan
-from iceg.landmark_association import lookup_sorted, nearest_free_pairs, within_gate_of_any
+from iceg.landmark_association import (
+    lookup_sorted,
+    nearest_free_pairs,
+    sorted_union,
+    within_gate_of_any,
+)
 from iceg.landmark_frames import move_features, move_points, poses_in_frame
 from iceg.matching.geometry import PolarProfile, transform_line_rows
 from iceg.matching.matcher import walls_seen_through
@@ -1014,7 +1019,7 @@ class FeatureMap:
             ``(k,)`` int64 sorted node ids.
         """
         want = np.unique(np.asarray(node_ids, dtype=np.int64).reshape(-1))
-        return np.union1d(want, self._lm.anchor[self._chosen(want)])
+        return sorted_union(want, self._lm.anchor[self._chosen(want)])
 
     def update_pose_nodes(self, node_id: int, reference: MapReference | None) -> IntArray:
         """The nodes whose poses :meth:`update` reads for the new node ``node_id`` matched
@@ -1027,7 +1032,7 @@ class FeatureMap:
         """
         ref_ids = None if reference is None else reference.landmark_ids
         anchors = self._lm.anchor[self._taking_part(int(node_id), ref_ids)]
-        return np.union1d(np.array([int(node_id)], dtype=np.int64), anchors)
+        return sorted_union(np.array([int(node_id)], dtype=np.int64), anchors)
 
     def _reference_landmarks(
         self, ids: IntArray, poses: FloatArray, want: IntArray, frame: FloatArray

@@ -1,7 +1,8 @@
 """Distance-gated association of a scan's features with the feature map's landmarks, in the
 new node's frame (docs/design.md "Feature map and time-validity"): the geometric pairs that
 complete the matcher's inlier pairs, and the duplicate landmarks to merge; and the rows of
-landmark or node ids in a sorted id table (:func:`lookup_sorted`).
+landmark or node ids in a sorted id table (:func:`lookup_sorted`) and the union of id sets
+(:func:`sorted_union`).
 
 Compiled loops over (features x landmarks) instead of numpy's ``(K, n, 2)`` distance
 temporaries; each distance is ``sqrt(dx^2 + dy^2)`` as ``np.linalg.norm`` computes it, so
@@ -102,3 +103,26 @@ def lookup_sorted(table_ids: np.ndarray, query: np.ndarray) -> tuple[np.ndarray,
         return np.zeros(query.shape[0], dtype=np.int64), np.zeros(query.shape[0], dtype=np.bool_)
     pos = np.minimum(np.searchsorted(table_ids, query), n - 1)
     return pos, table_ids[pos] == query
+
+
+@njit(cache=True, nogil=True)
+def sorted_union(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.union1d(a, b)``: the ids in either array, ascending, each once; one compiled
+    pass instead of numpy's concatenation, sort and unique.
+
+    Args:
+        a, b: ``(n,)`` and ``(m,)`` int64 ids, any order, repeats allowed.
+
+    Returns:
+        ``(k,)`` int64 sorted unique ids.
+    """
+    both = np.empty(a.shape[0] + b.shape[0], dtype=np.int64)
+    both[: a.shape[0]] = a
+    both[a.shape[0] :] = b
+    both.sort()
+    k = 0
+    for i in range(both.shape[0]):
+        if k == 0 or both[i] != both[k - 1]:
+            both[k] = both[i]
+            k += 1
+    return both[:k].copy()

@@ -24,7 +24,12 @@ from iceg.feature_map import (
     _Points,
 )
 from iceg.features import extract
-from iceg.landmark_association import lookup_sorted, nearest_free_pairs, within_gate_of_any
+from iceg.landmark_association import (
+    lookup_sorted,
+    nearest_free_pairs,
+    sorted_union,
+    within_gate_of_any,
+)
 from iceg.landmark_frames import move_features, move_point_blocks, move_points, poses_in_frame
 from iceg.matching import IceMatcher, MatchBounds
 from iceg.matching._kernels import move_lines
@@ -661,6 +666,18 @@ def test_lookup_sorted_is_numpys_searchsorted(seed: int) -> None:
         np.testing.assert_array_equal(pos, want)
         np.testing.assert_array_equal(found, table[want] == query)
         assert set(query[found].tolist()) == set(query.tolist()) & set(table.tolist())
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_sorted_union_is_numpys_union1d(seed: int) -> None:
+    # Ids in any order with repeats, negative ones, one side or both empty.
+    rng = np.random.default_rng(seed)
+    for n, m in ((0, 0), (0, 4), (5, 0), (1, 1), (20, 120), (300, 7)):
+        a = rng.integers(-10, 50, n).astype(np.int64)
+        b = rng.integers(-10, 50, m).astype(np.int64)
+        got = sorted_union(a, b)
+        assert got.dtype == np.int64
+        np.testing.assert_array_equal(got, np.union1d(a, b))
 
 
 def test_poses_in_frame_are_the_bits_of_se2_between() -> None:
