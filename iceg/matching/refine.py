@@ -424,9 +424,10 @@ def refine(
         problem.settings.max_iterations,
     )
     pr = _point_rows(problem, idx, res)
-    overlap = float(pr.sel.sum()) / max(1, problem.points.xy.shape[0])
+    n_on = int(np.count_nonzero(pr.sel))
+    overlap = float(n_on) / max(1, problem.points.xy.shape[0])
     system = _FinalSystem(problem, pose.copy(), hess, pr, pairs, sigma, gate)
-    return Refined(pose, sigma, overlap, int(pr.sel.sum()), pr.idx, iterations, system)
+    return Refined(pose, sigma, overlap, n_on, pr.idx, iterations, system)
 
 
 def _point_rows(problem: RefineProblem, idx: IntArray, res: FloatArray) -> _PointRows:
