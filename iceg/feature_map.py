@@ -35,13 +35,20 @@ from iceg.landmark_association import (
     sorted_union,
     within_gate_of_any,
 )
-from iceg.landmark_frames import move_features, move_points, poses_in_frame
+from iceg.landmark_frames import (
+    LandmarkRows,
+    Observations,
+    keep_better,
+    move_features,
+    move_points,
+    poses_in_frame,
+)
 from iceg.matching.geometry import PolarProfile, transform_line_rows
 from iceg.matching.matcher import walls_seen_through
 from iceg.types import FeatureKind, MatchResult, ScanFeatures
 from iceg.visibility import expected_landmarks, pruned_landmarks
 from iceg_common.errors import FeatureMapError
-from iceg_common.se2 import compose, inverse
+from iceg_common.se2 import compose
 
 log = logging.getLogger(__name__)
 
@@ -1379,16 +1386,38 @@ class FeatureMap:
     ) -> None:
         """Keep the better observation of each paired landmark: a new one replaces the stored
         one when its covariance trace is below ``replace_ratio`` of it, or when it tells
-        more (an EOW seen as a Corner becomes a Corner)."""
+        more (an EOW seen as a Corner becomes a Corner); moved into the anchor's frame, with
+        the side of each wall the new node saw it from (:func:`keep_better`, compiled)."""
         lm = self._lm
-        tr_new = features.cov[pair_new, 0, 0] + features.cov[pair_new, 1, 1]
-        tr_old = lm.cov[pair_row, 0, 0] + lm.cov[pair_row, 1, 1]
-        upgrade = _RANK[features.kind[pair_new]] > _RANK[lm.kind[pair_row]]
-        same = lm.kind[pair_row] == features.kind[pair_new]
-        rep = np.flatnonzero(upgrade | (same & (tr_new < self.config.replace_ratio * tr_old)))
-        if rep.shape[0]:
-            rows, new = pair_row[rep], pair_new[rep]
-            self._replace(features, rows, new, inverse(near.anchor_in_new[near.slot[rows]]))
+        support, wall_p, wall_d, _ = self._geometry_of(features)
+        keep_better(
+            pair_new,
+            pair_row,
+            np.ascontiguousarray(near.anchor_in_new[near.slot[pair_row]]),
+            _RANK,
+            float(self.config.replace_ratio),
+            Observations(
+                np.ascontiguousarray(features.xy, dtype=np.float64),
+                np.ascontiguousarray(features.cov, dtype=np.float64),
+                np.ascontiguousarray(features.directions, dtype=np.float64),
+                np.ascontiguousarray(features.opening_rad, dtype=np.float64),
+                np.ascontiguousarray(features.kind, dtype=np.int64),
+                support,
+                wall_p,
+                wall_d,
+            ),
+            LandmarkRows(
+                lm.xy,
+                lm.cov,
+                lm.dirs,
+                lm.opening,
+                lm.kind,
+                lm.support,
+                lm.wall_p,
+                lm.wall_d,
+                lm.wall_side,
+            ),
+        )
 
     def _geometry_of(self, features: ScanFeatures) -> _VisibilityGeometry:
         """:func:`_geometry` of a scan's features, computed once per features object (an
@@ -1404,27 +1433,6 @@ class FeatureMap:
                 _geometry(features, self.config.support_offset_m),
             )
         return memo[1]
-
-    def _replace(self, features: ScanFeatures, rr: IntArray, fi: IntArray, na: FloatArray) -> None:
-        """Landmark rows ``rr`` take new features ``fi``, whose node sits at ``na`` ``(n, 3)``
-        in each anchor's frame."""
-        lm = self._lm
-        lm.xy[rr], lm.cov[rr], lm.dirs[rr] = move_features(
-            fi, na, features.xy, features.cov, features.directions
-        )
-        lm.opening[rr] = features.opening_rad[fi]
-        lm.kind[rr] = features.kind[fi]
-        sup, wp, wd, _ = (a[fi] for a in self._geometry_of(features))
-        lm.support[rr] = move_points(na, sup, True)
-        lm.wall_p[rr] = move_points(na, wp, True)
-        lm.wall_d[rr] = move_points(na, wd, False)
-        # The side seen from the new node, expressed for the anchor-frame wall.
-        o = na[:, None, :2]  # new node's origin in the anchor frame
-        wpa, wda = lm.wall_p[rr], lm.wall_d[rr]
-        with np.errstate(invalid="ignore"):
-            lm.wall_side[rr] = np.sign(
-                wda[..., 0] * (o[..., 1] - wpa[..., 1]) - wda[..., 1] * (o[..., 0] - wpa[..., 0])
-            )
 
     def _count(
         self, rows: IntArray, expected: BoolArray, pair_row: IntArray, stamp: float, node_id: int

@@ -18,6 +18,7 @@ row.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -119,6 +120,125 @@ def move_point_blocks(poses: np.ndarray, counts: np.ndarray, pts: np.ndarray) ->
     return out
 
 
+class Observations(NamedTuple):
+    """A scan's features as a replacement reads them (``FeatureMap._keep_better``), new
+    scan's frame.
+
+    Attributes:
+        xy: ``(K, 2)`` float64 positions, metres; ``cov`` ``(K, 2, 2)`` their covariances.
+        dirs: ``(K, 2, 2)`` float64 direction vectors (NaN rows: none).
+        opening: ``(K,)`` float64 opening angles, radians; ``kind`` ``(K,)`` int64 kinds.
+        support: ``(K, 3, 2)``, ``wall_p``, ``wall_d`` ``(K, 2, 2)`` float64 the
+            visibility geometry (``feature_map._geometry``), metres.
+    """
+
+    xy: np.ndarray
+    cov: np.ndarray
+    dirs: np.ndarray
+    opening: np.ndarray
+    kind: np.ndarray
+    support: np.ndarray
+    wall_p: np.ndarray
+    wall_d: np.ndarray
+
+
+class LandmarkRows(NamedTuple):
+    """The landmark table's columns a replacement reads and writes, each anchor's frame (the
+    ``_Landmarks`` arrays of the same names, written in place)."""
+
+    xy: np.ndarray
+    cov: np.ndarray
+    dirs: np.ndarray
+    opening: np.ndarray
+    kind: np.ndarray
+    support: np.ndarray
+    wall_p: np.ndarray
+    wall_d: np.ndarray
+    wall_side: np.ndarray
+
+
+@njit(cache=True, nogil=True)
+def keep_better(
+    pair_new: np.ndarray,
+    pair_row: np.ndarray,
+    anchor_in_new: np.ndarray,
+    rank: np.ndarray,
+    replace_ratio: float,
+    obs: Observations,
+    lm: LandmarkRows,
+) -> None:
+    """Replace each paired landmark's stored observation by the new one where it is better
+    (``FeatureMap._keep_better``), in place, in one pass: the numpy expressions' bits.
+
+    A new observation replaces a landmark when it ranks higher (``rank`` by kind: an EOW seen
+    as a Corner) or, of the same kind, when its covariance trace is below ``replace_ratio``
+    of the stored one (all pairs judged before any is replaced). The replacement is the
+    observation moved into the anchor's frame (``se2.inverse`` of the anchor's pose in the
+    new node's frame; :func:`move_features` and :func:`move_points`), with the side of each
+    wall the new node saw it from (``np.sign``: +1, -1, +0.0, NaN).
+
+    Args:
+        pair_new: ``(Q,)`` int64 new features; ``pair_row`` ``(Q,)`` int64 their landmark rows.
+        anchor_in_new: ``(Q, 3)`` float64 each row's anchor pose in the new node's frame.
+        rank: ``(3,)`` int64 rank of each kind.
+    """
+    n = pair_new.shape[0]
+    better = np.zeros(n, dtype=np.bool_)
+    for q in range(n):
+        f, r = pair_new[q], pair_row[q]
+        tr_new = obs.cov[f, 0, 0] + obs.cov[f, 1, 1]
+        tr_old = lm.cov[r, 0, 0] + lm.cov[r, 1, 1]
+        upgrade = rank[obs.kind[f]] > rank[lm.kind[r]]
+        same = lm.kind[r] == obs.kind[f]
+        better[q] = upgrade or (same and tr_new < replace_ratio * tr_old)
+    for q in range(n):
+        if not better[q]:
+            continue
+        f, r = pair_new[q], pair_row[q]
+        # the new node in the anchor's frame: se2.inverse's expressions
+        a = anchor_in_new[q]
+        ca, sa = math.cos(a[2]), math.sin(a[2])
+        ox = -(ca * a[0] + sa * a[1])
+        oy = -(-sa * a[0] + ca * a[1])
+        th = (-a[2] + math.pi) % (2.0 * math.pi) - math.pi
+        c, s = math.cos(th), math.sin(th)
+        lm.xy[r, 0] = c * obs.xy[f, 0] - s * obs.xy[f, 1] + ox
+        lm.xy[r, 1] = s * obs.xy[f, 0] + c * obs.xy[f, 1] + oy
+        a00 = c * obs.cov[f, 0, 0] - s * obs.cov[f, 1, 0]
+        a01 = c * obs.cov[f, 0, 1] - s * obs.cov[f, 1, 1]
+        a10 = s * obs.cov[f, 0, 0] + c * obs.cov[f, 1, 0]
+        a11 = s * obs.cov[f, 0, 1] + c * obs.cov[f, 1, 1]
+        lm.cov[r, 0, 0] = a00 * c - a01 * s
+        lm.cov[r, 0, 1] = a00 * s + a01 * c
+        lm.cov[r, 1, 0] = a10 * c - a11 * s
+        lm.cov[r, 1, 1] = a10 * s + a11 * c
+        for j in range(2):
+            lm.dirs[r, j, 0] = c * obs.dirs[f, j, 0] - s * obs.dirs[f, j, 1]
+            lm.dirs[r, j, 1] = s * obs.dirs[f, j, 0] + c * obs.dirs[f, j, 1]
+        lm.opening[r] = obs.opening[f]
+        lm.kind[r] = obs.kind[f]
+        for j in range(3):
+            lm.support[r, j, 0] = c * obs.support[f, j, 0] - s * obs.support[f, j, 1] + ox
+            lm.support[r, j, 1] = s * obs.support[f, j, 0] + c * obs.support[f, j, 1] + oy
+        for j in range(2):
+            lm.wall_p[r, j, 0] = c * obs.wall_p[f, j, 0] - s * obs.wall_p[f, j, 1] + ox
+            lm.wall_p[r, j, 1] = s * obs.wall_p[f, j, 0] + c * obs.wall_p[f, j, 1] + oy
+            # a direction moves without the translation (move_points adds 0.0)
+            lm.wall_d[r, j, 0] = c * obs.wall_d[f, j, 0] - s * obs.wall_d[f, j, 1] + 0.0
+            lm.wall_d[r, j, 1] = s * obs.wall_d[f, j, 0] + c * obs.wall_d[f, j, 1] + 0.0
+            side = lm.wall_d[r, j, 0] * (oy - lm.wall_p[r, j, 1]) - lm.wall_d[r, j, 1] * (
+                ox - lm.wall_p[r, j, 0]
+            )
+            if side > 0.0:
+                lm.wall_side[r, j] = 1.0
+            elif side < 0.0:
+                lm.wall_side[r, j] = -1.0
+            elif side == 0.0:
+                lm.wall_side[r, j] = 0.0
+            else:
+                lm.wall_side[r, j] = side  # NaN
+
+
 def poses_in_frame(frame: np.ndarray, poses: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """``se2.between(frame, poses[rows])`` in one compiled pass, the same bits (the same
     expressions in the same order, with the frame's inverse and its sine and cosine from
@@ -161,4 +281,12 @@ def _compose_rows(
     return out
 
 
-__all__ = ["move_features", "move_point_blocks", "move_points", "poses_in_frame"]
+__all__ = [
+    "LandmarkRows",
+    "Observations",
+    "keep_better",
+    "move_features",
+    "move_point_blocks",
+    "move_points",
+    "poses_in_frame",
+]

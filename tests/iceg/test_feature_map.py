@@ -30,7 +30,15 @@ from iceg.landmark_association import (
     sorted_union,
     within_gate_of_any,
 )
-from iceg.landmark_frames import move_features, move_point_blocks, move_points, poses_in_frame
+from iceg.landmark_frames import (
+    LandmarkRows,
+    Observations,
+    keep_better,
+    move_features,
+    move_point_blocks,
+    move_points,
+    poses_in_frame,
+)
 from iceg.matching import IceMatcher, MatchBounds
 from iceg.matching._kernels import move_lines
 from iceg.matching.geometry import PolarProfile
@@ -678,6 +686,100 @@ def test_sorted_union_is_numpys_union1d(seed: int) -> None:
         got = sorted_union(a, b)
         assert got.dtype == np.int64
         np.testing.assert_array_equal(got, np.union1d(a, b))
+
+
+def _keep_better_numpy(
+    pair_new: np.ndarray,
+    pair_row: np.ndarray,
+    anchor_in_new: np.ndarray,
+    rank: np.ndarray,
+    ratio: float,
+    obs: Observations,
+    lm: dict[str, np.ndarray],
+) -> None:
+    """The replacement in numpy expressions, as ``FeatureMap`` wrote it before it was
+    compiled: the bits :func:`keep_better` must give."""
+    tr_new = obs.cov[pair_new, 0, 0] + obs.cov[pair_new, 1, 1]
+    tr_old = lm["cov"][pair_row, 0, 0] + lm["cov"][pair_row, 1, 1]
+    upgrade = rank[obs.kind[pair_new]] > rank[lm["kind"][pair_row]]
+    same = lm["kind"][pair_row] == obs.kind[pair_new]
+    rep = np.flatnonzero(upgrade | (same & (tr_new < ratio * tr_old)))
+    rr, fi = pair_row[rep], pair_new[rep]
+    na = se2.inverse(anchor_in_new[rep])
+    lm["xy"][rr], lm["cov"][rr], lm["dirs"][rr] = move_features(fi, na, obs.xy, obs.cov, obs.dirs)
+    lm["opening"][rr] = obs.opening[fi]
+    lm["kind"][rr] = obs.kind[fi]
+    lm["support"][rr] = move_points(na, obs.support[fi], True)
+    lm["wall_p"][rr] = move_points(na, obs.wall_p[fi], True)
+    lm["wall_d"][rr] = move_points(na, obs.wall_d[fi], False)
+    o = na[:, None, :2]
+    wpa, wda = lm["wall_p"][rr], lm["wall_d"][rr]
+    with np.errstate(invalid="ignore"):
+        lm["wall_side"][rr] = np.sign(
+            wda[..., 0] * (o[..., 1] - wpa[..., 1]) - wda[..., 1] * (o[..., 0] - wpa[..., 0])
+        )
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_keep_better_is_the_numpy_replacement(seed: int) -> None:
+    # Landmarks of three kinds, some paired twice (the last replacement wins), NaN directions
+    # and walls (EOWs, Intersections), anchors at headings past +-pi, a wall through the new
+    # node's origin (side 0): the compiled pass writes numpy's bits into the table.
+    rng = np.random.default_rng(seed)
+    k, n_lm, q = 12, 30, 20
+    rank = np.array([2, 1, 0], dtype=np.int64)
+
+    def cov(n: int) -> np.ndarray:
+        a = rng.normal(size=(n, 2, 2))
+        return a @ np.swapaxes(a, 1, 2) * rng.uniform(1e-4, 1e-2, (n, 1, 1))
+
+    def geometry(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        support = rng.uniform(-8, 8, (n, 3, 2))
+        wall_p = rng.uniform(-8, 8, (n, 2, 2))
+        wall_d = rng.normal(size=(n, 2, 2))
+        support[::3, 2] = np.nan
+        wall_p[::3, 1] = wall_d[::3, 1] = np.nan
+        return support, wall_p, wall_d
+
+    dirs = rng.normal(size=(k, 2, 2))
+    dirs[::4] = np.nan
+    obs = Observations(
+        rng.uniform(-8, 8, (k, 2)),
+        cov(k),
+        dirs,
+        rng.uniform(0, 3, k),
+        rng.integers(0, 3, k).astype(np.int64),
+        *geometry(k),
+    )
+    table = dict(
+        xy=rng.uniform(-8, 8, (n_lm, 2)),
+        cov=cov(n_lm),
+        dirs=rng.normal(size=(n_lm, 2, 2)),
+        opening=rng.uniform(0, 3, n_lm),
+        kind=rng.integers(0, 3, n_lm).astype(np.int64),
+    )
+    table.update(zip(("support", "wall_p", "wall_d"), geometry(n_lm), strict=True))
+    table["wall_side"] = np.sign(rng.normal(size=(n_lm, 2)))
+    pair_new = rng.integers(0, k, q).astype(np.int64)
+    pair_row = rng.integers(0, n_lm - 1, q).astype(np.int64)
+    anchor_in_new = np.column_stack([rng.uniform(-5, 5, (q, 2)), rng.uniform(-4, 4, q)])
+    # The first pair, an upgrade of the last row, puts the new node on the wall's line: the
+    # side is -0.0 before the sign, +0.0 after (numpy's).
+    pair_row[0] = n_lm - 1
+    obs.kind[pair_new[0]], table["kind"][n_lm - 1] = 0, 2
+    obs.wall_p[pair_new[0], 0] = 0.0
+    obs.wall_d[pair_new[0], 0] = (1.0, -0.5)
+    anchor_in_new[0] = 0.0
+    want = {name: a.copy() for name, a in table.items()}
+    _keep_better_numpy(pair_new, pair_row, anchor_in_new, rank, 0.5, obs, want)
+    got = {name: a.copy() for name, a in table.items()}
+    keep_better(pair_new, pair_row, anchor_in_new, rank, 0.5, obs, LandmarkRows(**got))
+    for name in table:
+        assert np.array_equal(got[name], want[name], equal_nan=True), name
+        zero = want[name] == 0.0  # +0.0 and -0.0 alike
+        assert np.array_equal(np.signbit(got[name][zero]), np.signbit(want[name][zero])), name
+    assert not np.array_equal(want["xy"], table["xy"])  # some replaced
+    assert want["wall_side"][n_lm - 1, 0] == 0.0
 
 
 def test_poses_in_frame_are_the_bits_of_se2_between() -> None:
