@@ -29,12 +29,7 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from frontends.scan import LaserScan
-from iceg.landmark_association import (
-    lookup_sorted,
-    nearest_free_pairs,
-    sorted_union,
-    within_gate_of_any,
-)
+from iceg.landmark_association import associate_scan, lookup_sorted, sorted_union
 from iceg.landmark_frames import (
     LandmarkRows,
     Observations,
@@ -48,7 +43,7 @@ from iceg.matching.matcher import walls_seen_through
 from iceg.types import FeatureKind, MatchResult, ScanFeatures
 from iceg.visibility import expected_landmarks, pruned_landmarks
 from iceg_common.errors import FeatureMapError
-from iceg_common.se2 import compose
+from iceg_common.se2 import compose, inverse
 
 log = logging.getLogger(__name__)
 
@@ -1296,12 +1291,11 @@ class FeatureMap:
     ) -> _Bookkeeping:
         """Association and expected/matched counting for one matched scan; also finds the
         rows of duplicate landmarks to merge."""
-        near = self._near(node_id, reference, match, node_poses, node_pose)
-        pair_new, pair_row = self._matcher_pairs(features, match, reference.landmark_ids, near)
-        pair_new, pair_row = self._associate(features, near, pair_new, pair_row)
+        near, pair_new, pair_row, merge_rows = self._associate(
+            node_id, features, reference, match, node_poses, node_pose
+        )
         new_mask = np.ones(features.n_features, dtype=bool)
         new_mask[pair_new] = False
-        merge_rows = self._duplicates(features, near, pair_new, pair_row)
         if pair_row.shape[0]:
             self._keep_better(features, near, pair_new, pair_row)
         expected = self._expected(near.rows, near.anchor_in_new, features, scan)
@@ -1310,16 +1304,22 @@ class FeatureMap:
             self._lm.id[matched_rows].copy(), self._lm.id[exp_rows].copy(), new_mask, merge_rows
         )
 
-    def _near(
+    def _associate(
         self,
         node_id: int,
+        features: ScanFeatures,
         reference: MapReference,
         match: MatchResult,
         node_poses: NodePoses | None,
         node_pose: ArrayLike | None,
-    ) -> _Near:
-        """Every landmark whose anchor has a pose (restricted to the reference's and recently
-        matched ones by ``bookkeeping_recent_nodes``), in the new node's frame."""
+    ) -> tuple[_Near, IntArray, IntArray, IntArray]:
+        """The landmarks taking part (restricted to the reference's and recently matched ones
+        by ``bookkeeping_recent_nodes``) whose anchor has a pose, in the new node's frame; the
+        pairs (new feature, landmark row): the matcher's, then each unpaired feature with the
+        nearest unpaired landmark within ``association_gate_m``; and the rows of the other
+        landmarks within the gate of a paired feature (the same physical feature anchored to
+        another node: they merge into the paired one). One compiled pass
+        (:func:`~iceg.landmark_association.associate_scan`)."""
         lm = self._lm
         if node_poses is not None:
             tab_ids, tab_poses = _node_pose_table(node_poses)
@@ -1332,54 +1332,22 @@ class FeatureMap:
             new_pose = np.asarray(node_pose, dtype=np.float64).reshape(3)
         else:
             new_pose = compose(reference.frame_pose, match.pose)
-        part = self._taking_part(node_id, reference.landmark_ids)
-        apos, afound = lookup_sorted(tab_ids, lm.anchor[part])
-        rows = part[afound]
-        anchor_in_new = poses_in_frame(new_pose, tab_poses, apos[afound])
-        xy_new = move_points(anchor_in_new, lm.xy[rows][:, None, :], True)[:, 0]
-        slot = np.full(len(self), -1, dtype=np.int64)
-        slot[rows] = np.arange(rows.shape[0])
-        return _Near(rows, anchor_in_new, xy_new, slot)
-
-    def _matcher_pairs(
-        self, features: ScanFeatures, match: MatchResult, ref_ids: IntArray, near: _Near
-    ) -> tuple[IntArray, IntArray]:
-        """The matcher's pairs as (new feature index, landmark row), for landmarks taking
-        part."""
-        k_new = features.n_features
-        pairs = np.asarray(match.inlier_pairs, dtype=np.int64).reshape(-1, 2)
-        pairs = pairs[(pairs[:, 0] >= 0) & (pairs[:, 0] < k_new)]
-        pairs = pairs[(pairs[:, 1] >= 0) & (pairs[:, 1] < ref_ids.shape[0])]
-        lpos, lfound = lookup_sorted(self._lm.id, ref_ids[pairs[:, 1]])
-        ok = lfound & (near.slot[lpos] >= 0)
-        return pairs[ok, 0], lpos[ok]
-
-    def _associate(
-        self, features: ScanFeatures, near: _Near, pair_new: IntArray, pair_row: IntArray
-    ) -> tuple[IntArray, IntArray]:
-        """Add geometric pairs: each unpaired new feature with the nearest unpaired landmark
-        within ``association_gate_m`` (one feature per landmark)."""
-        feature_paired = np.zeros(features.n_features, dtype=bool)
-        feature_paired[pair_new] = True
-        slot_paired = np.zeros(near.rows.shape[0], dtype=bool)
-        slot_paired[near.slot[pair_row]] = True
-        new_f, new_s = nearest_free_pairs(
-            features.xy, feature_paired, near.xy_new, slot_paired, self.config.association_gate_m
+        # the new node's inverse as poses_in_frame reads it (se2, libm's cosine and sine)
+        ax, ay, at = inverse(np.asarray(new_pose, dtype=np.float64).reshape(3)).tolist()
+        rows, anchor_in_new, xy_new, slot, pair_new, pair_row, merge_rows = associate_scan(
+            self._taking_part(node_id, reference.landmark_ids),
+            lm.id,
+            lm.anchor,
+            lm.xy,
+            tab_ids,
+            np.ascontiguousarray(tab_poses, dtype=np.float64),
+            np.array([ax, ay, at, math.cos(at), math.sin(at)]),
+            np.ascontiguousarray(np.asarray(match.inlier_pairs, dtype=np.int64).reshape(-1, 2)),
+            reference.landmark_ids,
+            np.ascontiguousarray(features.xy, dtype=np.float64).reshape(-1, 2),
+            float(self.config.association_gate_m),
         )
-        return np.concatenate([pair_new, new_f]), np.concatenate([pair_row, near.rows[new_s]])
-
-    def _duplicates(
-        self, features: ScanFeatures, near: _Near, pair_new: IntArray, pair_row: IntArray
-    ) -> IntArray:
-        """Rows of other landmarks within the gate of a paired feature: the same physical
-        feature anchored to another node; they merge into the paired one."""
-        if not (pair_new.shape[0] and near.rows.shape[0]):
-            return np.zeros(0, dtype=np.int64)
-        close = within_gate_of_any(
-            features.xy, pair_new, near.xy_new, self.config.association_gate_m
-        )
-        close[near.slot[pair_row]] = False
-        return near.rows[close]
+        return _Near(rows, anchor_in_new, xy_new, slot), pair_new, pair_row, merge_rows
 
     def _keep_better(
         self, features: ScanFeatures, near: _Near, pair_new: IntArray, pair_row: IntArray

@@ -6,7 +6,9 @@ landmark or node ids in a sorted id table (:func:`lookup_sorted`) and the union 
 
 Compiled loops over (features x landmarks) instead of numpy's ``(K, n, 2)`` distance
 temporaries; each distance is ``sqrt(dx^2 + dy^2)`` as ``np.linalg.norm`` computes it, so
-the pairs are those of the numpy formulation (``tests/iceg/test_feature_map.py``).
+the pairs are those of the numpy formulation (``tests/iceg/test_feature_map.py``). A scan's
+whole association, from placing the landmarks in the new node's frame to the duplicates, is
+one call (:func:`associate_scan`).
 """
 
 from __future__ import annotations
@@ -15,6 +17,8 @@ import math
 
 import numpy as np
 from numba import njit
+
+from iceg.landmark_frames import _compose_rows
 
 
 @njit(cache=True, nogil=True)
@@ -126,3 +130,111 @@ def sorted_union(a: np.ndarray, b: np.ndarray) -> np.ndarray:
             both[k] = both[i]
             k += 1
     return both[:k].copy()
+
+
+@njit(cache=True, nogil=True)
+def associate_scan(
+    part: np.ndarray,
+    lm_id: np.ndarray,
+    lm_anchor: np.ndarray,
+    lm_xy: np.ndarray,
+    tab_ids: np.ndarray,
+    tab_poses: np.ndarray,
+    new_inverse: np.ndarray,
+    inlier_pairs: np.ndarray,
+    ref_ids: np.ndarray,
+    feature_xy: np.ndarray,
+    gate_m: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One scan's association with the landmarks taking part in its bookkeeping
+    (``FeatureMap._bookkeep``), in one pass: the numpy formulation's answers and bits.
+
+    The landmarks of ``part`` whose anchor has a pose are placed in the new node's frame
+    (``se2.between`` of the anchors, :func:`~iceg.landmark_frames.poses_in_frame`'s
+    expressions, and their positions as ``move_points`` moves them). The matcher's inlier
+    pairs whose landmark takes part come first; then each unpaired feature takes its
+    nearest unpaired landmark within ``gate_m`` (:func:`nearest_free_pairs`); the other
+    landmarks within ``gate_m`` of a paired feature are duplicates to merge
+    (:func:`within_gate_of_any`).
+
+    Args:
+        part: ``(p,)`` int64 ascending rows of the landmarks taking part.
+        lm_id, lm_anchor: ``(L,)`` int64 every landmark's id (ascending) and anchor node.
+        lm_xy: ``(L, 2)`` float64 every landmark's position, its anchor's frame, metres.
+        tab_ids: ``(N,)`` int64 ascending nodes with a pose; ``tab_poses`` ``(N, 3)`` float64
+            their poses, map frame.
+        new_inverse: ``(5,)`` float64 the new node's inverse pose ``x, y, theta`` and that
+            theta's cosine and sine.
+        inlier_pairs: ``(Q, 2)`` int64 the match's pairs ``[new feature, reference row]``.
+        ref_ids: ``(R,)`` int64 landmark id of each reference row.
+        feature_xy: ``(K, 2)`` float64 the new features' positions, new node's frame.
+        gate_m: Association gate, metres.
+
+    Returns:
+        ``rows`` ``(n,)`` int64 the landmarks placed; ``anchor_in_new`` ``(n, 3)`` float64
+        their anchors' poses and ``xy_new`` ``(n, 2)`` their positions, new node's frame;
+        ``slot`` ``(L,)`` int64 each row's index into ``rows`` (-1: not placed); the pairs
+        ``pair_new``, ``pair_row`` ``(m,)`` int64 (feature, landmark row); and
+        ``merge_rows`` ``(d,)`` int64 the duplicates' rows.
+    """
+    n_lm = lm_id.shape[0]
+    n_tab = tab_ids.shape[0]
+    placed = np.empty(part.shape[0], dtype=np.int64)
+    pos = np.empty(part.shape[0], dtype=np.int64)
+    n = 0
+    for t in range(part.shape[0]):
+        r = part[t]
+        if n_tab == 0:
+            continue
+        k = min(np.searchsorted(tab_ids, lm_anchor[r]), n_tab - 1)
+        if tab_ids[k] == lm_anchor[r]:
+            placed[n] = r
+            pos[n] = k
+            n += 1
+    rows = placed[:n].copy()
+    anchor_in_new = _compose_rows(
+        new_inverse[0],
+        new_inverse[1],
+        new_inverse[2],
+        new_inverse[3],
+        new_inverse[4],
+        tab_poses,
+        pos[:n],
+    )
+    xy_new = np.empty((n, 2))
+    slot = np.full(n_lm, -1, dtype=np.int64)
+    for i in range(n):
+        c, s = math.cos(anchor_in_new[i, 2]), math.sin(anchor_in_new[i, 2])
+        px, py = lm_xy[rows[i], 0], lm_xy[rows[i], 1]
+        xy_new[i, 0] = c * px - s * py + anchor_in_new[i, 0]
+        xy_new[i, 1] = s * px + c * py + anchor_in_new[i, 1]
+        slot[rows[i]] = i
+    # the matcher's pairs whose landmark takes part
+    k_new = feature_xy.shape[0]
+    n_ref = ref_ids.shape[0]
+    first_new = np.empty(inlier_pairs.shape[0], dtype=np.int64)
+    first_row = np.empty(inlier_pairs.shape[0], dtype=np.int64)
+    m = 0
+    for t in range(inlier_pairs.shape[0]):
+        a, b = inlier_pairs[t, 0], inlier_pairs[t, 1]
+        if a < 0 or a >= k_new or b < 0 or b >= n_ref or n_lm == 0:
+            continue
+        k = min(np.searchsorted(lm_id, ref_ids[b]), n_lm - 1)
+        if lm_id[k] == ref_ids[b] and slot[k] >= 0:
+            first_new[m] = a
+            first_row[m] = k
+            m += 1
+    feature_paired = np.zeros(k_new, dtype=np.bool_)
+    slot_paired = np.zeros(n, dtype=np.bool_)
+    for t in range(m):
+        feature_paired[first_new[t]] = True
+        slot_paired[slot[first_row[t]]] = True
+    geo_new, geo_slot = nearest_free_pairs(feature_xy, feature_paired, xy_new, slot_paired, gate_m)
+    pair_new = np.concatenate((first_new[:m], geo_new))
+    pair_row = np.concatenate((first_row[:m], rows[geo_slot]))
+    if pair_new.shape[0] == 0 or n == 0:
+        return rows, anchor_in_new, xy_new, slot, pair_new, pair_row, np.zeros(0, np.int64)
+    close = within_gate_of_any(feature_xy, pair_new, xy_new, gate_m)
+    for t in range(pair_row.shape[0]):
+        close[slot[pair_row[t]]] = False
+    return rows, anchor_in_new, xy_new, slot, pair_new, pair_row, rows[np.flatnonzero(close)]

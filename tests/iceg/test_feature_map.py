@@ -25,6 +25,7 @@ from iceg.feature_map import (
 )
 from iceg.features import extract
 from iceg.landmark_association import (
+    associate_scan,
     lookup_sorted,
     nearest_free_pairs,
     sorted_union,
@@ -780,6 +781,103 @@ def test_keep_better_is_the_numpy_replacement(seed: int) -> None:
         assert np.array_equal(np.signbit(got[name][zero]), np.signbit(want[name][zero])), name
     assert not np.array_equal(want["xy"], table["xy"])  # some replaced
     assert want["wall_side"][n_lm - 1, 0] == 0.0
+
+
+def _associate_numpy(
+    part: np.ndarray,
+    lm_id: np.ndarray,
+    lm_anchor: np.ndarray,
+    lm_xy: np.ndarray,
+    tab_ids: np.ndarray,
+    tab_poses: np.ndarray,
+    new_pose: np.ndarray,
+    inlier_pairs: np.ndarray,
+    ref_ids: np.ndarray,
+    feature_xy: np.ndarray,
+    gate: float,
+) -> tuple[np.ndarray, ...]:
+    """The association in numpy expressions and separate kernels, as ``FeatureMap`` wrote
+    it before it was one compiled pass: the answers and bits :func:`associate_scan` must
+    give."""
+    apos, afound = lookup_sorted(tab_ids, lm_anchor[part])
+    rows = part[afound]
+    anchor_in_new = poses_in_frame(new_pose, tab_poses, apos[afound])
+    xy_new = move_points(anchor_in_new, lm_xy[rows][:, None, :], True)[:, 0]
+    slot = np.full(lm_id.shape[0], -1, dtype=np.int64)
+    slot[rows] = np.arange(rows.shape[0])
+    pairs = inlier_pairs[(inlier_pairs[:, 0] >= 0) & (inlier_pairs[:, 0] < feature_xy.shape[0])]
+    pairs = pairs[(pairs[:, 1] >= 0) & (pairs[:, 1] < ref_ids.shape[0])]
+    lpos, lfound = lookup_sorted(lm_id, ref_ids[pairs[:, 1]])
+    ok = lfound & (slot[lpos] >= 0)
+    pair_new, pair_row = pairs[ok, 0], lpos[ok]
+    feature_paired = np.zeros(feature_xy.shape[0], dtype=bool)
+    feature_paired[pair_new] = True
+    slot_paired = np.zeros(rows.shape[0], dtype=bool)
+    slot_paired[slot[pair_row]] = True
+    new_f, new_s = nearest_free_pairs(feature_xy, feature_paired, xy_new, slot_paired, gate)
+    pair_new = np.concatenate([pair_new, new_f])
+    pair_row = np.concatenate([pair_row, rows[new_s]])
+    merge = np.zeros(0, dtype=np.int64)
+    if pair_new.shape[0] and rows.shape[0]:
+        close = within_gate_of_any(feature_xy, pair_new, xy_new, gate)
+        close[slot[pair_row]] = False
+        merge = rows[close]
+    return rows, anchor_in_new, xy_new, slot, pair_new, pair_row, merge
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_associate_scan_is_the_numpy_association(seed: int) -> None:
+    # Landmarks clustered so that gates overlap (pairs, contested landmarks, duplicates),
+    # anchors without a pose, the matcher's pairs with indices out of range and landmarks
+    # that do not take part; headings past +-pi; an empty map or scan now and then.
+    rng = np.random.default_rng(seed)
+    n_lm = int(rng.choice([0, 5, 40]))
+    k = int(rng.choice([0, 3, 15]))
+    lm_id = np.unique(rng.integers(0, 200, n_lm * 2))[:n_lm].astype(np.int64)
+    n_lm = lm_id.shape[0]
+    lm_anchor = rng.integers(0, 12, n_lm).astype(np.int64)
+    lm_xy = rng.uniform(-3, 3, (n_lm, 2))
+    tab_ids = np.unique(rng.integers(0, 12, 9)).astype(np.int64)
+    tab_poses = np.column_stack(
+        [rng.uniform(-1, 1, (tab_ids.shape[0], 2)), rng.uniform(-4, 4, tab_ids.shape[0])]
+    )
+    part = np.flatnonzero(rng.uniform(size=n_lm) < 0.8).astype(np.int64)
+    new_pose = np.array([0.2, -0.1, float(rng.uniform(-4, 4))])
+    feature_xy = rng.uniform(-3, 3, (k, 2))
+    ref_ids = np.concatenate([lm_id[rng.permutation(n_lm)[: n_lm // 2]], [999]]).astype(np.int64)
+    inlier_pairs = np.column_stack(
+        [rng.integers(-1, k + 1, 8), rng.integers(-1, ref_ids.shape[0] + 1, 8)]
+    ).astype(np.int64)
+    ax, ay, at = se2.inverse(new_pose).tolist()
+    got = associate_scan(
+        part,
+        lm_id,
+        lm_anchor,
+        lm_xy,
+        tab_ids,
+        tab_poses,
+        np.array([ax, ay, at, math.cos(at), math.sin(at)]),
+        inlier_pairs,
+        ref_ids,
+        feature_xy,
+        1.0,
+    )
+    want = _associate_numpy(
+        part,
+        lm_id,
+        lm_anchor,
+        lm_xy,
+        tab_ids,
+        tab_poses,
+        new_pose,
+        inlier_pairs,
+        ref_ids,
+        feature_xy,
+        1.0,
+    )
+    for a, b in zip(got, want, strict=True):
+        assert a.dtype == b.dtype and a.shape == b.shape
+        assert np.array_equal(a, b)
 
 
 def test_poses_in_frame_are_the_bits_of_se2_between() -> None:
