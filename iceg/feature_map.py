@@ -41,7 +41,7 @@ from iceg.landmark_frames import (
 from iceg.matching.geometry import PolarProfile, transform_line_rows
 from iceg.matching.matcher import walls_seen_through
 from iceg.types import FeatureKind, MatchResult, ScanFeatures
-from iceg.visibility import expected_landmarks, pruned_landmarks
+from iceg.visibility import count_observations, expected_landmarks, pruned_landmarks
 from iceg_common.errors import FeatureMapError
 from iceg_common.se2 import compose, inverse
 
@@ -1405,23 +1405,22 @@ class FeatureMap:
     def _count(
         self, rows: IntArray, expected: BoolArray, pair_row: IntArray, stamp: float, node_id: int
     ) -> tuple[IntArray, IntArray]:
-        """Expected / matched / miss counters; returns the matched and expected rows."""
+        """Expected / matched / miss counters (:func:`~iceg.visibility.count_observations`);
+        returns the matched and expected rows."""
         lm = self._lm
-        matched_rows = np.unique(pair_row)
-        is_matched = np.zeros(len(self), dtype=bool)
-        is_matched[matched_rows] = True
-        exp_rows = rows[expected | is_matched[rows]]
-        lm.n_expected[exp_rows] += 1
-        lm.n_matched[matched_rows] += 1
-        lm.last_matched_s[matched_rows] = stamp
-        lm.misses[matched_rows] = 0
-        lm.first_miss_s[matched_rows] = np.nan
-        lm.last_node[matched_rows] = node_id
-        miss_rows = rows[expected & ~is_matched[rows]]
-        lm.misses[miss_rows] += 1
-        first = miss_rows[np.isnan(lm.first_miss_s[miss_rows])]
-        lm.first_miss_s[first] = stamp
-        return matched_rows, exp_rows
+        return count_observations(  # type: ignore[no-any-return]
+            rows,
+            expected,
+            pair_row,
+            float(stamp),
+            int(node_id),
+            lm.n_expected,
+            lm.n_matched,
+            lm.misses,
+            lm.first_miss_s,
+            lm.last_matched_s,
+            lm.last_node,
+        )
 
     # ------------------------------------------------------------------ visibility
     def _expected(

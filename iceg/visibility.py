@@ -12,7 +12,8 @@ One loop per landmark instead of some forty numpy calls over ``(n, 3, 2)`` tempo
 arithmetic is that of the numpy expressions it replaced, term for term, so the answers are
 the same bit for bit (``tests/iceg/test_feature_map.py``).
 
-The counters then decide which landmarks go (:func:`pruned_landmarks`): the ratio and
+Each scan's matches and expectations update the counters (:func:`count_observations`), and
+the counters then decide which landmarks go (:func:`pruned_landmarks`): the ratio and
 time-validity tests of paper §III-C3 in one pass over them.
 """
 
@@ -154,6 +155,66 @@ def expected_landmarks(
         else:
             out[i] = n_seen > 0
     return out
+
+
+@njit(cache=True, nogil=True)
+def count_observations(
+    rows: np.ndarray,
+    expected: np.ndarray,
+    pair_row: np.ndarray,
+    stamp_s: float,
+    node_id: int,
+    n_expected: np.ndarray,
+    n_matched: np.ndarray,
+    misses: np.ndarray,
+    first_miss_s: np.ndarray,
+    last_matched_s: np.ndarray,
+    last_node: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """One scan's update of the time-validity counters (paper §III-C3), in place: a
+    matched landmark counts as expected and matched, its misses reset (last matched now,
+    by ``node_id``); an expected landmark not matched counts as expected and missed (its
+    first miss now, unless it is already missing).
+
+    Args:
+        rows: ``(n,)`` int64 distinct landmark rows taking part; ``expected`` ``(n,)`` bool
+            whether the scan should see each.
+        pair_row: ``(m,)`` int64 rows of the matched landmarks (among ``rows``; repeats
+            allowed).
+        stamp_s: The scan's time, seconds.
+        n_expected, n_matched, misses: ``(L,)`` int64 counters; ``first_miss_s``,
+            ``last_matched_s`` ``(L,)`` float64 times (NaN: none); ``last_node`` ``(L,)``
+            int64.
+
+    Returns:
+        The matched rows ``(k,)`` int64 (ascending, each once) and the rows counted as
+        expected ``(e,)`` int64 (in the order of ``rows``).
+    """
+    matched = np.unique(pair_row)
+    is_matched = np.zeros(n_expected.shape[0], dtype=np.bool_)
+    for r in matched:
+        is_matched[r] = True
+    counted = np.empty(rows.shape[0], dtype=np.int64)
+    e = 0
+    for i in range(rows.shape[0]):
+        r = rows[i]
+        if expected[i] or is_matched[r]:
+            n_expected[r] += 1
+            counted[e] = r
+            e += 1
+    for r in matched:
+        n_matched[r] += 1
+        last_matched_s[r] = stamp_s
+        misses[r] = 0
+        first_miss_s[r] = np.nan
+        last_node[r] = node_id
+    for i in range(rows.shape[0]):
+        r = rows[i]
+        if expected[i] and not is_matched[r]:
+            misses[r] += 1
+            if math.isnan(first_miss_s[r]):
+                first_miss_s[r] = stamp_s
+    return matched, counted[:e].copy()
 
 
 @njit(cache=True, nogil=True)

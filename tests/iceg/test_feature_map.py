@@ -45,7 +45,7 @@ from iceg.matching._kernels import move_lines
 from iceg.matching.geometry import PolarProfile
 from iceg.matching.matcher import walls_seen_through
 from iceg.types import FeatureKind, MatchResult
-from iceg.visibility import expected_landmarks, pruned_landmarks
+from iceg.visibility import count_observations, expected_landmarks, pruned_landmarks
 from iceg_common import se2
 from iceg_common.errors import FeatureMapError
 from iceg_common.se2 import between, rotation_matrix, transform_points, wrap_angle
@@ -878,6 +878,48 @@ def test_associate_scan_is_the_numpy_association(seed: int) -> None:
     for a, b in zip(got, want, strict=True):
         assert a.dtype == b.dtype and a.shape == b.shape
         assert np.array_equal(a, b)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_count_observations_is_the_numpy_update(seed: int) -> None:
+    # Counters of landmarks taking part or not, matched ones repeated among the pairs,
+    # expected ones already missing (their first miss kept) or not: the compiled update
+    # gives the numpy expressions' counters and rows.
+    rng = np.random.default_rng(seed)
+    n_lm = 40
+    rows = rng.permutation(n_lm)[: int(rng.integers(0, 30))].astype(np.int64)
+    expected = rng.uniform(size=rows.shape[0]) < 0.6
+    pair_row = rng.choice(rows, int(rng.integers(0, 12))) if rows.shape[0] else rows[:0]
+    counters = dict(
+        n_expected=rng.integers(0, 9, n_lm),
+        n_matched=rng.integers(0, 9, n_lm),
+        misses=rng.integers(0, 4, n_lm),
+        first_miss_s=np.where(rng.uniform(size=n_lm) < 0.5, np.nan, rng.uniform(0, 9, n_lm)),
+        last_matched_s=rng.uniform(0, 9, n_lm),
+        last_node=rng.integers(0, 50, n_lm),
+    )
+    want = {name: a.copy() for name, a in counters.items()}
+    matched = np.unique(pair_row)
+    is_matched = np.zeros(n_lm, dtype=bool)
+    is_matched[matched] = True
+    exp_rows = rows[expected | is_matched[rows]]
+    want["n_expected"][exp_rows] += 1
+    want["n_matched"][matched] += 1
+    want["last_matched_s"][matched] = 10.0
+    want["misses"][matched] = 0
+    want["first_miss_s"][matched] = np.nan
+    want["last_node"][matched] = 77
+    miss_rows = rows[expected & ~is_matched[rows]]
+    want["misses"][miss_rows] += 1
+    first = miss_rows[np.isnan(want["first_miss_s"][miss_rows])]
+    want["first_miss_s"][first] = 10.0
+    got = {name: a.copy() for name, a in counters.items()}
+    got_matched, got_expected = count_observations(
+        rows, expected, pair_row.astype(np.int64), 10.0, 77, *got.values()
+    )
+    assert np.array_equal(got_matched, matched) and np.array_equal(got_expected, exp_rows)
+    for name in counters:
+        assert np.array_equal(got[name], want[name], equal_nan=True), name
 
 
 def test_poses_in_frame_are_the_bits_of_se2_between() -> None:
