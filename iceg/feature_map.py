@@ -29,7 +29,12 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from frontends.scan import LaserScan
-from iceg.landmark_association import associate_scan, lookup_sorted, sorted_union
+from iceg.landmark_association import (
+    associate_scan,
+    lookup_sorted,
+    rows_of_nodes,
+    sorted_union,
+)
 from iceg.landmark_frames import (
     LandmarkRows,
     Observations,
@@ -1057,9 +1062,7 @@ class FeatureMap:
             return self._chosen_memo[1]
         lm = self._lm
         if len(lm) < _TOUCHED_FROM_LANDMARKS:
-            _, anchored = lookup_sorted(want, lm.anchor)
-            _, last_matched = lookup_sorted(want, lm.last_node)
-            rows = np.flatnonzero(anchored | last_matched)
+            rows = rows_of_nodes(want, lm.anchor, lm.last_node)
         else:
             touched = self._touched.id[_block_rows(self._touched_rows, want)]
             pos, found = lookup_sorted(lm.id, touched)

@@ -110,6 +110,40 @@ def lookup_sorted(table_ids: np.ndarray, query: np.ndarray) -> tuple[np.ndarray,
 
 
 @njit(cache=True, nogil=True)
+def rows_of_nodes(want: np.ndarray, anchor: np.ndarray, last_node: np.ndarray) -> np.ndarray:
+    """Ascending rows whose ``anchor`` or ``last_node`` is one of the nodes ``want``
+    (``(w,)`` int64, ascending and unique): a range test when ``want`` is a run of
+    consecutive ids (a local map's recent nodes), a binary search otherwise; the rows of
+    ``lookup_sorted(want, anchor)[1] | lookup_sorted(want, last_node)[1]``.
+
+    Args:
+        anchor, last_node: ``(L,)`` int64 node ids of each row.
+
+    Returns:
+        ``(k,)`` int64 rows.
+    """
+    n_w = want.shape[0]
+    out = np.empty(anchor.shape[0], dtype=np.int64)
+    if n_w == 0:
+        return out[:0].copy()
+    lo, hi = want[0], want[n_w - 1]
+    run = hi - lo == n_w - 1
+    k = 0
+    for r in range(anchor.shape[0]):
+        a, b = anchor[r], last_node[r]
+        if run:
+            hit = (lo <= a and a <= hi) or (lo <= b and b <= hi)
+        else:
+            ia = min(np.searchsorted(want, a), n_w - 1)
+            ib = min(np.searchsorted(want, b), n_w - 1)
+            hit = want[ia] == a or want[ib] == b
+        if hit:
+            out[k] = r
+            k += 1
+    return out[:k].copy()
+
+
+@njit(cache=True, nogil=True)
 def sorted_union(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``np.union1d(a, b)``: the ids in either array, ascending, each once; one compiled
     pass instead of numpy's concatenation, sort and unique.

@@ -28,6 +28,7 @@ from iceg.landmark_association import (
     associate_scan,
     lookup_sorted,
     nearest_free_pairs,
+    rows_of_nodes,
     sorted_union,
     within_gate_of_any,
 )
@@ -920,6 +921,27 @@ def test_count_observations_is_the_numpy_update(seed: int) -> None:
     assert np.array_equal(got_matched, matched) and np.array_equal(got_expected, exp_rows)
     for name in counters:
         assert np.array_equal(got[name], want[name], equal_nan=True), name
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_rows_of_nodes_are_the_lookups_rows(seed: int) -> None:
+    # Wanted nodes as a run of consecutive ids (the range test) or with gaps (the binary
+    # search), one node, none; rows anchored or last matched inside, outside and at the
+    # run's ends.
+    rng = np.random.default_rng(seed)
+    anchor = rng.integers(0, 60, 300).astype(np.int64)
+    last_node = np.maximum(anchor, rng.integers(0, 60, 300)).astype(np.int64)
+    for want in (
+        np.arange(20, 40, dtype=np.int64),
+        np.unique(rng.integers(0, 60, 15)).astype(np.int64),
+        np.array([33], dtype=np.int64),
+        np.zeros(0, dtype=np.int64),
+    ):
+        expected = np.flatnonzero(
+            lookup_sorted(want, anchor)[1] | lookup_sorted(want, last_node)[1]
+        )
+        assert np.array_equal(rows_of_nodes(want, anchor, last_node), expected)
+    assert rows_of_nodes(np.arange(3, dtype=np.int64), anchor[:0], last_node[:0]).shape == (0,)
 
 
 def test_poses_in_frame_are_the_bits_of_se2_between() -> None:
