@@ -345,8 +345,11 @@ _MAX_DROP_BLOCKS = 32
 #: From this many landmarks on, a reference finds its landmarks through the ids its nodes
 #: touched (:class:`_Touched`) instead of a pass over every landmark. The pass streams
 #: through the table, the index reads it at random: on MIT CSAIL (about 1500 landmarks) the
-#: pass costs 31 µs a call and the index 52; the index stays near 40 µs at any size, the
-#: pass grows to 88 µs at 3000 and 549 µs at 30000 (docs/design.md, "Landmarks by node").
+#: pass cost 31 µs a call and the index 52; the index stays near 40 µs at any size, the
+#: pass grew to 88 µs at 3000 and 549 µs at 30000 (docs/design.md, "Landmarks by node").
+#: The compiled pass (:func:`~iceg.landmark_association.rows_of_nodes`) costs 13 / 26 / 249
+#: µs at 1500 / 3000 / 30000 for scattered nodes and 2 / 4 / 27 µs for a run of ids (a
+#: local map), so the index still pays from a few thousand landmarks on.
 _TOUCHED_FROM_LANDMARKS = 4096
 
 
