@@ -31,8 +31,10 @@ def _one_pose(a: object) -> bool:
     )
 
 
-def _wrap(t: float) -> float:
-    return (t + math.pi) % (2.0 * math.pi) - math.pi
+def wrap_float(theta_rad: float) -> float:
+    """:func:`wrap_angle` of one angle as a Python float (radians, to ``[-pi, pi)``): Python's
+    float modulo gives numpy's bits at a tenth of the call cost."""
+    return (theta_rad + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def compose(a: ArrayLike, b: ArrayLike) -> FloatArray:
@@ -41,7 +43,7 @@ def compose(a: ArrayLike, b: ArrayLike) -> FloatArray:
         ax, ay, at = a.tolist()  # type: ignore[union-attr]
         bx, by, bt = b.tolist()  # type: ignore[union-attr]
         c, s = math.cos(at), math.sin(at)
-        return np.array([ax + c * bx - s * by, ay + s * bx + c * by, _wrap(at + bt)])
+        return np.array([ax + c * bx - s * by, ay + s * bx + c * by, wrap_float(at + bt)])
     if _one_pose(a) and type(b) is np.ndarray and b.ndim == 2 and b.shape[1] == 3:
         # One pose and a batch (relative poses of many nodes): the same expressions with the
         # first pose's numbers as floats, without numpy's 0-d steps.
@@ -66,7 +68,7 @@ def inverse(a: ArrayLike) -> FloatArray:
     if _one_pose(a):
         x, y, t = a.tolist()  # type: ignore[union-attr]
         c, s = math.cos(t), math.sin(t)
-        return np.array([-(c * x + s * y), -(-s * x + c * y), _wrap(-t)])
+        return np.array([-(c * x + s * y), -(-s * x + c * y), wrap_float(-t)])
     a = np.asarray(a, dtype=np.float64)
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
     x = -(c * a[..., 0] + s * a[..., 1])

@@ -77,6 +77,18 @@ def test_wrap_angle_hand_values() -> None:
     )
 
 
+@given(
+    st.one_of(
+        st.floats(-1e6, 1e6, allow_nan=False),
+        st.sampled_from([np.pi, -np.pi, 2 * np.pi, -2 * np.pi, 0.0, -0.0, 5e-324, 1e-300]),
+    )
+)
+def test_wrap_float_is_wrap_angle_bit_for_bit(theta: float) -> None:
+    # Python's float modulo against numpy's remainder, for one angle: the same bits.
+    got, want = se2.wrap_float(theta), float(se2.wrap_angle(theta))
+    assert got == want and np.signbit(got) == np.signbit(want)
+
+
 def test_accumulate_equals_composing_step_by_step() -> None:
     rng = np.random.default_rng(5)
     steps = np.column_stack(

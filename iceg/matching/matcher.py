@@ -34,7 +34,6 @@ from iceg.matching.geometry import (
     SegmentSet,
     feature_geometry,
     point_segment_index,
-    rot,
 )
 from iceg.matching.hypotheses import (
     INCOMPATIBLE,
@@ -55,7 +54,7 @@ from iceg.matching.refine import (
 )
 from iceg.types import MatchResult, ScanFeatures
 from iceg_common.errors import MatchingError
-from iceg_common.se2 import inverse, wrap_angle
+from iceg_common.se2 import inverse, wrap_float
 
 log = logging.getLogger(__name__)
 
@@ -300,7 +299,7 @@ def largest_std_exceeds(cov_xy: FloatArray, limit: float) -> bool:
 def _same_pose(a: FloatArray, b: FloatArray, dist_m: float, angle_rad: float) -> bool:
     return (
         math.hypot(a[0] - b[0], a[1] - b[1]) <= dist_m
-        and abs(float(wrap_angle(a[2] - b[2]))) <= angle_rad
+        and abs(wrap_float(float(a[2] - b[2]))) <= angle_rad
     )
 
 
@@ -645,7 +644,7 @@ class IceMatcher:
         """The refined pose lies within the bounds (plus the filter's noise allowances)."""
         f = ctx.config.filter
         d = pose - ctx.prediction
-        dist, dth = math.hypot(d[0], d[1]), abs(float(wrap_angle(d[2])))
+        dist, dth = math.hypot(d[0], d[1]), abs(wrap_float(float(d[2])))
         if dist > ctx.bounds.max_translation_m + f.feasible_margin_m or dth > (
             ctx.bounds.max_rotation_rad + math.radians(f.direction_tolerance_deg)
         ):
@@ -747,7 +746,7 @@ class IceMatcher:
                 return (
                     f"{REASON_AMBIGUOUS}: two distinct hypotheses score {best.fitness:.2f} and "
                     f"{other.fitness:.2f} (apart {math.hypot(d[0], d[1]):.2f} m, "
-                    f"{math.degrees(abs(float(wrap_angle(d[2])))):.1f} deg)"
+                    f"{math.degrees(abs(wrap_float(float(d[2])))):.1f} deg)"
                 )
         return ""
 
@@ -778,7 +777,7 @@ class IceMatcher:
         mt = best.corr.match[0]
         i = np.flatnonzero(mt >= 0)
         pose = ref.pose.copy()
-        pose[2] = float(wrap_angle(pose[2]))
+        pose[2] = wrap_float(float(pose[2]))
         return MatchResult(
             success=True,
             pose=pose,
@@ -815,11 +814,13 @@ class IceMatcher:
         tol = ctx.config.validation.see_through_tolerance_m
         len_see = 0.0
         len_cons = 0.0
-        inv_r = rot(pose[2]).T
-        ep_ref_new = (ctx.reference.seg_endpoints - pose[:2]) @ inv_r.T
+        # R(theta) from libm's cosine and sine (numpy's, bit for bit), the products numpy's
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        r = np.array([[c, -s], [s, c]])
+        ep_ref_new = (ctx.reference.seg_endpoints - pose[:2]) @ r
         checks = [(ep_ref_new, ctx.profile)]
         if ctx.ref_profile is not None:
-            ep_new_ref = ctx.features.seg_endpoints @ rot(pose[2]).T + pose[:2]
+            ep_new_ref = ctx.features.seg_endpoints @ r.T + pose[:2]
             checks.append((ep_new_ref, ctx.ref_profile))
         for ep, prof in checks:
             see, cons = _ray_check(ep, prof, tol)
