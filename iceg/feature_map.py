@@ -36,8 +36,7 @@ from iceg.landmark_association import (
     sorted_union,
 )
 from iceg.landmark_frames import (
-    LandmarkRows,
-    Observations,
+    FeatureRows,
     keep_better,
     move_features,
     move_points,
@@ -1370,7 +1369,7 @@ class FeatureMap:
             np.ascontiguousarray(near.anchor_in_new[near.slot[pair_row]]),
             _RANK,
             float(self.config.replace_ratio),
-            Observations(
+            FeatureRows(
                 np.ascontiguousarray(features.xy, dtype=np.float64),
                 np.ascontiguousarray(features.cov, dtype=np.float64),
                 np.ascontiguousarray(features.directions, dtype=np.float64),
@@ -1380,17 +1379,10 @@ class FeatureMap:
                 wall_p,
                 wall_d,
             ),
-            LandmarkRows(
-                lm.xy,
-                lm.cov,
-                lm.dirs,
-                lm.opening,
-                lm.kind,
-                lm.support,
-                lm.wall_p,
-                lm.wall_d,
-                lm.wall_side,
+            FeatureRows(
+                lm.xy, lm.cov, lm.dirs, lm.opening, lm.kind, lm.support, lm.wall_p, lm.wall_d
             ),
+            lm.wall_side,
         )
 
     def _geometry_of(self, features: ScanFeatures) -> _VisibilityGeometry:

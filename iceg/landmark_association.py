@@ -110,6 +110,17 @@ def lookup_sorted(table_ids: np.ndarray, query: np.ndarray) -> tuple[np.ndarray,
 
 
 @njit(cache=True, nogil=True)
+def _row_of(table: np.ndarray, value: int) -> int:
+    """The row of ``value`` in the ascending ``table`` (``(n,)`` int64), -1 when absent:
+    :func:`lookup_sorted` of one id."""
+    n = table.shape[0]
+    if n == 0:
+        return -1
+    k = min(np.searchsorted(table, value), n - 1)
+    return k if table[k] == value else -1
+
+
+@njit(cache=True, nogil=True)
 def rows_of_nodes(want: np.ndarray, anchor: np.ndarray, last_node: np.ndarray) -> np.ndarray:
     """Ascending rows whose ``anchor`` or ``last_node`` is one of the nodes ``want``
     (``(w,)`` int64, ascending and unique): a range test when ``want`` is a run of
@@ -134,9 +145,7 @@ def rows_of_nodes(want: np.ndarray, anchor: np.ndarray, last_node: np.ndarray) -
         if run:
             hit = (lo <= a and a <= hi) or (lo <= b and b <= hi)
         else:
-            ia = min(np.searchsorted(want, a), n_w - 1)
-            ib = min(np.searchsorted(want, b), n_w - 1)
-            hit = want[ia] == a or want[ib] == b
+            hit = _row_of(want, a) >= 0 or _row_of(want, b) >= 0
         if hit:
             out[k] = r
             k += 1
@@ -212,17 +221,13 @@ def associate_scan(
         ``merge_rows`` ``(d,)`` int64 the duplicates' rows.
     """
     n_lm = lm_id.shape[0]
-    n_tab = tab_ids.shape[0]
     placed = np.empty(part.shape[0], dtype=np.int64)
     pos = np.empty(part.shape[0], dtype=np.int64)
     n = 0
     for t in range(part.shape[0]):
-        r = part[t]
-        if n_tab == 0:
-            continue
-        k = min(np.searchsorted(tab_ids, lm_anchor[r]), n_tab - 1)
-        if tab_ids[k] == lm_anchor[r]:
-            placed[n] = r
+        k = _row_of(tab_ids, lm_anchor[part[t]])
+        if k >= 0:
+            placed[n] = part[t]
             pos[n] = k
             n += 1
     rows = placed[:n].copy()
@@ -251,10 +256,10 @@ def associate_scan(
     m = 0
     for t in range(inlier_pairs.shape[0]):
         a, b = inlier_pairs[t, 0], inlier_pairs[t, 1]
-        if a < 0 or a >= k_new or b < 0 or b >= n_ref or n_lm == 0:
+        if a < 0 or a >= k_new or b < 0 or b >= n_ref:
             continue
-        k = min(np.searchsorted(lm_id, ref_ids[b]), n_lm - 1)
-        if lm_id[k] == ref_ids[b] and slot[k] >= 0:
+        k = _row_of(lm_id, ref_ids[b])
+        if k >= 0 and slot[k] >= 0:
             first_new[m] = a
             first_row[m] = k
             m += 1

@@ -120,9 +120,10 @@ def move_point_blocks(poses: np.ndarray, counts: np.ndarray, pts: np.ndarray) ->
     return out
 
 
-class Observations(NamedTuple):
-    """A scan's features as a replacement reads them (``FeatureMap._keep_better``), new
-    scan's frame.
+class FeatureRows(NamedTuple):
+    """Point features' columns as a replacement (:func:`keep_better`) reads a scan's (its
+    frame) and reads and writes the landmark table's (each anchor's frame; the
+    ``_Landmarks`` arrays of the same names, written in place).
 
     Attributes:
         xy: ``(K, 2)`` float64 positions, metres; ``cov`` ``(K, 2, 2)`` their covariances.
@@ -142,21 +143,6 @@ class Observations(NamedTuple):
     wall_d: np.ndarray
 
 
-class LandmarkRows(NamedTuple):
-    """The landmark table's columns a replacement reads and writes, each anchor's frame (the
-    ``_Landmarks`` arrays of the same names, written in place)."""
-
-    xy: np.ndarray
-    cov: np.ndarray
-    dirs: np.ndarray
-    opening: np.ndarray
-    kind: np.ndarray
-    support: np.ndarray
-    wall_p: np.ndarray
-    wall_d: np.ndarray
-    wall_side: np.ndarray
-
-
 @njit(cache=True, nogil=True)
 def keep_better(
     pair_new: np.ndarray,
@@ -164,8 +150,9 @@ def keep_better(
     anchor_in_new: np.ndarray,
     rank: np.ndarray,
     replace_ratio: float,
-    obs: Observations,
-    lm: LandmarkRows,
+    obs: FeatureRows,
+    lm: FeatureRows,
+    lm_wall_side: np.ndarray,
 ) -> None:
     """Replace each paired landmark's stored observation by the new one where it is better
     (``FeatureMap._keep_better``), in place, in one pass: the numpy expressions' bits.
@@ -181,6 +168,8 @@ def keep_better(
         pair_new: ``(Q,)`` int64 new features; ``pair_row`` ``(Q,)`` int64 their landmark rows.
         anchor_in_new: ``(Q, 3)`` float64 each row's anchor pose in the new node's frame.
         rank: ``(3,)`` int64 rank of each kind.
+        obs: The new scan's features; ``lm`` the landmarks' columns and ``lm_wall_side``
+            ``(L, 2)`` float64 their walls' sides, both written.
     """
     n = pair_new.shape[0]
     better = np.zeros(n, dtype=np.bool_)
@@ -230,13 +219,13 @@ def keep_better(
                 ox - lm.wall_p[r, j, 0]
             )
             if side > 0.0:
-                lm.wall_side[r, j] = 1.0
+                lm_wall_side[r, j] = 1.0
             elif side < 0.0:
-                lm.wall_side[r, j] = -1.0
+                lm_wall_side[r, j] = -1.0
             elif side == 0.0:
-                lm.wall_side[r, j] = 0.0
+                lm_wall_side[r, j] = 0.0
             else:
-                lm.wall_side[r, j] = side  # NaN
+                lm_wall_side[r, j] = side  # NaN
 
 
 def poses_in_frame(frame: np.ndarray, poses: np.ndarray, rows: np.ndarray) -> np.ndarray:
@@ -282,8 +271,7 @@ def _compose_rows(
 
 
 __all__ = [
-    "LandmarkRows",
-    "Observations",
+    "FeatureRows",
     "keep_better",
     "move_features",
     "move_point_blocks",

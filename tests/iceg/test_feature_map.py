@@ -33,8 +33,7 @@ from iceg.landmark_association import (
     within_gate_of_any,
 )
 from iceg.landmark_frames import (
-    LandmarkRows,
-    Observations,
+    FeatureRows,
     keep_better,
     move_features,
     move_point_blocks,
@@ -696,7 +695,7 @@ def _keep_better_numpy(
     anchor_in_new: np.ndarray,
     rank: np.ndarray,
     ratio: float,
-    obs: Observations,
+    obs: FeatureRows,
     lm: dict[str, np.ndarray],
 ) -> None:
     """The replacement in numpy expressions, as ``FeatureMap`` wrote it before it was
@@ -745,7 +744,7 @@ def test_keep_better_is_the_numpy_replacement(seed: int) -> None:
 
     dirs = rng.normal(size=(k, 2, 2))
     dirs[::4] = np.nan
-    obs = Observations(
+    obs = FeatureRows(
         rng.uniform(-8, 8, (k, 2)),
         cov(k),
         dirs,
@@ -775,7 +774,8 @@ def test_keep_better_is_the_numpy_replacement(seed: int) -> None:
     want = {name: a.copy() for name, a in table.items()}
     _keep_better_numpy(pair_new, pair_row, anchor_in_new, rank, 0.5, obs, want)
     got = {name: a.copy() for name, a in table.items()}
-    keep_better(pair_new, pair_row, anchor_in_new, rank, 0.5, obs, LandmarkRows(**got))
+    columns = FeatureRows(**{name: got[name] for name in FeatureRows._fields})
+    keep_better(pair_new, pair_row, anchor_in_new, rank, 0.5, obs, columns, got["wall_side"])
     for name in table:
         assert np.array_equal(got[name], want[name], equal_nan=True), name
         zero = want[name] == 0.0  # +0.0 and -0.0 alike
@@ -850,32 +850,11 @@ def test_associate_scan_is_the_numpy_association(seed: int) -> None:
         [rng.integers(-1, k + 1, 8), rng.integers(-1, ref_ids.shape[0] + 1, 8)]
     ).astype(np.int64)
     ax, ay, at = se2.inverse(new_pose).tolist()
-    got = associate_scan(
-        part,
-        lm_id,
-        lm_anchor,
-        lm_xy,
-        tab_ids,
-        tab_poses,
-        np.array([ax, ay, at, math.cos(at), math.sin(at)]),
-        inlier_pairs,
-        ref_ids,
-        feature_xy,
-        1.0,
-    )
-    want = _associate_numpy(
-        part,
-        lm_id,
-        lm_anchor,
-        lm_xy,
-        tab_ids,
-        tab_poses,
-        new_pose,
-        inlier_pairs,
-        ref_ids,
-        feature_xy,
-        1.0,
-    )
+    new_inverse = np.array([ax, ay, at, math.cos(at), math.sin(at)])
+    table = (part, lm_id, lm_anchor, lm_xy, tab_ids, tab_poses)
+    scan = (inlier_pairs, ref_ids, feature_xy, 1.0)
+    got = associate_scan(*table, new_inverse, *scan)
+    want = _associate_numpy(*table, new_pose, *scan)
     for a, b in zip(got, want, strict=True):
         assert a.dtype == b.dtype and a.shape == b.shape
         assert np.array_equal(a, b)
