@@ -643,8 +643,9 @@ class PoseGraph:
         if self._solver_rows is not None:  # the solver's nodes, from its last full read
             solver_ids, solver_poses = self._solver_rows
             pos = np.minimum(np.searchsorted(solver_ids, ids), solver_ids.shape[0] - 1)
-            todo = solver_ids[pos] != ids
-            out[~todo] = solver_poses[pos[~todo]]
+            held = solver_ids[pos] == ids
+            out[held] = solver_poses[pos[held]]
+            todo = ~held
             nodes = ids[todo].tolist()
         else:
             nodes = ids.tolist()
