@@ -677,7 +677,16 @@ def _block_rows(blocks: Mapping[int, tuple[int, int]], nodes: IntArray) -> IntAr
     spans = sorted(blocks[n] for n in nodes.tolist() if n in blocks)
     if not spans:
         return np.zeros(0, dtype=np.int64)
-    return np.concatenate([np.arange(a, b, dtype=np.int64) for a, b in spans])
+    # Blocks are appended node by node: a run of nodes is mostly one run of rows.
+    merged = [list(spans[0])]
+    for a, b in spans[1:]:
+        if a == merged[-1][1]:
+            merged[-1][1] = b
+        else:
+            merged.append([a, b])
+    if len(merged) == 1:
+        return np.arange(merged[0][0], merged[0][1], dtype=np.int64)
+    return np.concatenate([np.arange(a, b, dtype=np.int64) for a, b in merged])
 
 
 #: ``(support, wall_p, wall_d, wall_side)`` of :func:`_geometry`.
