@@ -42,6 +42,7 @@ from graph.config import GraphConfig
 from graph.g2o import load_g2o, write_g2o_file
 from iceg_common import se2
 from iceg_common.errors import GraphError
+from iceg_common.ids import sorted_unique
 
 logger = logging.getLogger(__name__)
 
@@ -138,19 +139,6 @@ class BatchStats:
     error_before: float
     error_after: float
     converged: bool
-
-
-def _sorted_unique(ids: NDArray[np.int64]) -> NDArray[np.int64]:
-    """``np.unique(ids)`` of a ``(k,)`` int64 array: its sorted distinct values, one sort and
-    one comparison (``np.unique``'s general path costs several times more at a few dozen)."""
-    out = np.sort(ids)
-    if out.shape[0] > 1:
-        keep = np.empty(out.shape[0], dtype=bool)
-        keep[0] = True
-        np.not_equal(out[1:], out[:-1], out=keep[1:])
-        if not keep.all():
-            out = out[keep]
-    return out
 
 
 def _readonly(a: FloatArray) -> FloatArray:
@@ -631,7 +619,7 @@ class PoseGraph:
         Raises:
             GraphError: an unknown node.
         """
-        ids = _sorted_unique(np.asarray(node_ids, dtype=np.int64).reshape(-1))
+        ids = sorted_unique(node_ids)
         if self._estimates is not None:
             all_ids, all_poses = self._estimates
             pos = np.searchsorted(all_ids, ids)

@@ -47,6 +47,7 @@ from iceg.matching.matcher import walls_seen_through
 from iceg.types import FeatureKind, MatchResult, ScanFeatures
 from iceg.visibility import count_observations, expected_landmarks, pruned_landmarks
 from iceg_common.errors import FeatureMapError
+from iceg_common.ids import sorted_unique
 from iceg_common.se2 import compose, inverse
 
 log = logging.getLogger(__name__)
@@ -411,7 +412,7 @@ class _Columns:
         given to the constructor are never written: the first drop copies them.
         """
         n = len(self)
-        gone = np.unique(np.asarray(rows, dtype=np.int64))
+        gone = sorted_unique(rows)
         kept = n - gone.shape[0]
         blocks = list(zip([0, *(gone + 1).tolist()], [*gone.tolist(), n], strict=True))
         mask = None
@@ -1001,7 +1002,7 @@ class FeatureMap:
         """
         frame = np.asarray(frame_pose, dtype=np.float64).reshape(3)
         ids, poses = _node_pose_table(node_poses)
-        want = np.unique(np.asarray(node_ids, dtype=np.int64).reshape(-1))
+        want = sorted_unique(node_ids)
         view = self._reference_landmarks(ids, poses, want, frame)
         _, posed = lookup_sorted(ids, want)
         want_posed = want[posed]  # nodes whose segments and points can be placed
@@ -1036,7 +1037,7 @@ class FeatureMap:
         Returns:
             ``(k,)`` int64 sorted node ids.
         """
-        want = np.unique(np.asarray(node_ids, dtype=np.int64).reshape(-1))
+        want = sorted_unique(node_ids)
         return sorted_union(want, self._lm.anchor[self._chosen(want)])
 
     def update_pose_nodes(self, node_id: int, reference: MapReference | None) -> IntArray:

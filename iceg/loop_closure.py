@@ -46,6 +46,7 @@ from iceg.node_index import NodeGrid
 from iceg.place_index import PlaceIndex, PlaceIndexConfig, place_descriptor
 from iceg.types import MatchResult, ScanFeatures
 from iceg_common import se2
+from iceg_common.ids import sorted_unique
 
 logger = logging.getLogger(__name__)
 
@@ -499,7 +500,7 @@ class _Poses:
 
     def table(self, node_ids: IntArray) -> tuple[IntArray, FloatArray]:
         """``(ids (k,), poses (k, 3))`` of the sorted unique ``node_ids`` (a pose table)."""
-        ids = np.unique(np.asarray(node_ids, dtype=np.int64))
+        ids = sorted_unique(node_ids)
         return ids, self.rows(ids)
 
     def __getitem__(self, key: int | np.integer | slice) -> FloatArray:

@@ -1,4 +1,4 @@
-"""Shared root of the ICEG distribution: the exception hierarchy and SE(2) algebra.
+"""Shared root of the ICEG distribution: the exception hierarchy, SE(2) algebra and id sets.
 
 ``frontends`` and ``graph`` are leaves that must not import ``iceg`` or each other, yet the
 project has one exception hierarchy and one set of SE(2) conventions. Both live here, in a
