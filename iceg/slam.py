@@ -32,7 +32,7 @@ from frontends import LaserScan
 from graph import FactorKind, PoseGraph, odometry_covariance
 from iceg.config import IcegConfig
 from iceg.feature_map import FeatureMap, MapReference
-from iceg.features import extract
+from iceg.features import extract, extract_points
 from iceg.landmark_frames import move_point_blocks, poses_in_frame
 from iceg.loop_closure import LoopCloser, LoopClosureStats, innovation_chi2
 from iceg.matching import MatchBounds
@@ -927,7 +927,7 @@ class Slam:
         points = self._node_points.get(node_id)
         if points is None:
             scan = self._s.scans[self._s.node_scan_index[node_id]]
-            points = extract(scan, self.config.features).points_xy
+            points = extract_points(scan, self.config.features)
         return points
 
     def _calibrate_odometry(self, local: _LocalMatch, motion: _Motion) -> None:

@@ -5,6 +5,6 @@ Paper §III-B and §III-C1; docs/design.md "ICE matching, step by step", steps 1
 """
 
 from iceg.features.config import FeatureConfig
-from iceg.features.extract import extract
+from iceg.features.extract import extract, extract_points
 
-__all__ = ["FeatureConfig", "extract"]
+__all__ = ["FeatureConfig", "extract", "extract_points"]

@@ -87,6 +87,27 @@ def extract(scan: LaserScan, config: FeatureConfig | None = None) -> ScanFeature
     return assemble(beams.points, segs, (corners, eows, inters), range_max, stamp)
 
 
+def extract_points(scan: LaserScan, config: FeatureConfig | None = None) -> np.ndarray:
+    """The scan's points as :func:`extract` gives them (``ScanFeatures.points_xy``, the same
+    array bit for bit) without the segments and features: step 1 alone, for a node whose
+    points are needed again (a point match against it, an offline second match).
+
+    Args:
+        scan: One laser scan.
+        config: Thresholds (only ``range_max_m`` is read); defaults to
+            :class:`FeatureConfig`.
+
+    Returns:
+        ``(P, 2)`` float64 valid beam endpoints, metres, robot frame.
+
+    Raises:
+        ScanError: the scan's beams are not in strictly increasing bearing order.
+    """
+    cfg = FeatureConfig() if config is None else config
+    check_bearings(scan)
+    return beam_points(scan, float(min(cfg.range_max_m, scan.range_max_m))).points
+
+
 def assemble(
     points: np.ndarray,
     segs: Segments,

@@ -49,7 +49,7 @@ from frontends.simulate import (
     simulate,
     visible_mask,
 )
-from iceg.features import FeatureConfig, extract, neighbours
+from iceg.features import FeatureConfig, extract, extract_points, neighbours
 from iceg.features.corners import find_corners, greedy_by_gap
 from iceg.features.ends import find_ends_of_wall, junctions
 from iceg.features.geometry import line_intersections, meet
@@ -689,12 +689,30 @@ def test_csail_every_scan_is_processed() -> None:
     for scan in open_log(path):
         f = extract(scan)
         _check_invariants(f)
+        # the points alone are the extraction's, bit for bit (a node's points read again)
+        np.testing.assert_array_equal(extract_points(scan), f.points_xy, strict=True)
         counts += np.bincount(f.kind, minlength=3)
         n += 1
     assert n == 1988  # the data README: 1988 FLASER scans
     # Every type occurs across the log (measured: about 1.6 corners, 4 EOWs and 7
     # intersections per scan).
     assert np.all(counts > n // 2), counts
+
+
+def test_extract_points_without_features_and_with_a_bad_scan() -> None:
+    # Too few valid beams for a segment: no features, the points all the same; beams out of
+    # bearing order: the extraction's error.
+    angles = np.linspace(-0.5, 0.5, 5)
+    few = LaserScan(0.0, np.array([1.0, 2.0, 80.0, 1.5, np.inf]), angles, 0.0, 30.0, None)
+    np.testing.assert_array_equal(extract_points(few), extract(few).points_xy, strict=True)
+    assert extract_points(few).shape == (3, 2)
+    config = FeatureConfig(range_max_m=1.8)
+    np.testing.assert_array_equal(
+        extract_points(few, config), extract(few, config).points_xy, strict=True
+    )
+    bad = LaserScan(0.0, np.ones(5), angles[::-1].copy(), 0.0, 30.0, None)
+    with pytest.raises(ScanError):
+        extract_points(bad)
 
 
 def _tls_line(p: np.ndarray) -> tuple[np.ndarray, float]:
