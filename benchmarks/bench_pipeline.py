@@ -141,7 +141,7 @@ def _config(workers: int | None) -> Any:
     if workers is not None and "workers" in type(cfg.slam).model_fields:
         cfg = cfg.model_copy(update={"slam": cfg.slam.model_copy(update={"workers": workers})})
     if workers is not None and "threads" in type(cfg.grid).model_fields:
-        # the grid's threads too, rather than a choice by the load average of the moment
+        # the grid's threads too, rather than a choice by the machine's idleness of the moment
         cfg = cfg.model_copy(update={"grid": cfg.grid.model_copy(update={"threads": workers})})
     return cfg
 

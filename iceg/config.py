@@ -149,8 +149,9 @@ class SlamConfig(BaseModel):
         "upcoming scans (and what the run derives from a scan alone) are computed in "
         "workers - 1 other processes while this one matches, and the loop-closure searches "
         "share their candidate matches with one helper process; 0 picks 2 when a core is "
-        "idle (load average), else 1. The result is identical with any number (features do "
-        "not depend on the pose, a match is a pure function of its inputs).",
+        "idle (auto_workers: the cores watched for 50 ms), else 1. The result is identical "
+        "with any number (features do not depend on the pose, a match is a pure function of "
+        "its inputs).",
     )
 
 

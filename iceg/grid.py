@@ -156,7 +156,7 @@ class GridConfig(BaseModel):
         ge=0,
         description="Threads tracing the beams, each over its own band of rows (every cell "
         "is updated by one thread, in scan order, so the map is identical with any number). "
-        "0: 2 when a core is idle (load average), else 1.",
+        "0: 2 when a core is idle (iceg.features.prefetch.auto_workers), else 1.",
     )
     max_cells: int = Field(
         default=25_000_000,

@@ -65,6 +65,13 @@ WORKER_NICENESS = 10
 #: what has not arrived, as it always does once it has extracted one.
 UNLOADED_WAIT_S = 0.5
 
+#: Seconds :func:`auto_workers` watches the cores before deciding.
+IDLE_SAMPLE_S = 0.05
+#: Idle capacity (cores) beyond the one a run takes for :func:`auto_workers` to add a
+#: second process: its helpers use about half a core (MIT CSAIL: 4.8 s of CPU in a 9.5 s
+#: run, nearly all of it the features of every scan, 1.3 ms each with their products).
+MIN_SPARE_CORES = 0.5
+
 FeaturesOf = Callable[[], ScanFeatures]
 
 
@@ -261,17 +268,26 @@ def _warm_up(config: FeatureConfig, precompute: Precompute[Any] | None) -> None:
 
 
 def auto_workers() -> int:
-    """Processes for a run when the configuration leaves it open (``slam.workers: 0``): 2
-    when at least one core is idle by the 1-minute load average (Linux), else 1. A second
-    process pays off only on a free core: on a saturated machine it slowed runs down."""
+    """Processes for a run when the configuration leaves it open (``slam.workers: 0``; also
+    the grid's threads): 2 when the machine's idle capacity, measured over the next
+    ``IDLE_SAMPLE_S`` seconds (``psutil.cpu_percent``, every core), is at least one core for
+    this run and ``MIN_SPARE_CORES`` more for the helpers (Linux), else 1. A second process
+    pays off only on a free core: on a saturated machine it slowed runs down.
+
+    Measured now, not by the load average: its minute-long memory counts runs that have
+    finished, so of runs started one after another (a loop over logs) about every other one
+    ran in one process on an idle machine (1-minute load 1.0-1.5 after a two-process run).
+    """
     cores = os.cpu_count() or 1
     if cores < 2 or sys.platform != "linux":
         return 1
+    import psutil  # on first use: a run that sets its workers never needs it
+
     try:
-        load = os.getloadavg()[0]
-    except OSError:
+        busy = psutil.cpu_percent(interval=IDLE_SAMPLE_S) / 100.0 * cores
+    except (OSError, psutil.Error):
         return 1
-    return 2 if load <= cores - 1 else 1
+    return 2 if cores - busy >= 1.0 + MIN_SPARE_CORES else 1
 
 
 class FeaturePrefetcher:

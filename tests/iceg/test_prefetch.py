@@ -5,6 +5,8 @@ pose), bit for bit. No timings here: speed is measured by ``benchmarks/bench_pip
 from __future__ import annotations
 
 import multiprocessing
+import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +16,14 @@ from frontends.scan import LaserScan
 from frontends.simulate import corridor_world, default_trajectory, simulate
 from iceg.config import IcegConfig
 from iceg.features import extract
-from iceg.features.prefetch import FeaturePrefetcher, _Inbox, _Worker, auto_workers, warm_up_scan
+from iceg.features.prefetch import (
+    IDLE_SAMPLE_S,
+    FeaturePrefetcher,
+    _Inbox,
+    _Worker,
+    auto_workers,
+    warm_up_scan,
+)
 from iceg.pipeline import run_log, run_scans
 from iceg.scan_products import ScanPrecompute
 from iceg.slam import Slam
@@ -80,6 +89,52 @@ def test_one_worker_has_no_pool(short_run) -> None:  # type: ignore[no-untyped-d
 
 def test_auto_workers_is_one_or_two() -> None:
     assert auto_workers() in (1, 2)
+
+
+@pytest.mark.parametrize(
+    ("cores", "busy_percent", "workers"),
+    [
+        (2, 3.0, 2),  # an idle machine: a core for the run, one for its helpers
+        (2, 50.0, 1),  # another process holds a core: the run takes the other, none spare
+        (2, 24.0, 2),  # light background load: more than half a core spare
+        (4, 50.0, 2),  # two busy cores of four
+        (4, 70.0, 1),  # 1.2 idle cores: the run's own and 0.2 spare
+        (1, 0.0, 1),  # one core: never a second process
+    ],
+)
+def test_auto_workers_counts_the_idle_cores_now(
+    monkeypatch: pytest.MonkeyPatch, cores: int, busy_percent: float, workers: int
+) -> None:
+    # The decision reads the cores' use over the next IDLE_SAMPLE_S seconds (psutil), not the
+    # load average, which remembers runs that have finished.
+    import psutil
+
+    sampled: list[float | None] = []
+
+    def cpu_percent(interval: float | None = None) -> float:
+        sampled.append(interval)
+        return busy_percent
+
+    monkeypatch.setattr(psutil, "cpu_percent", cpu_percent)
+    monkeypatch.setattr(os, "cpu_count", lambda: cores)
+    monkeypatch.setattr(os, "getloadavg", lambda: (9.0, 9.0, 9.0))  # must not matter
+    monkeypatch.setattr(sys, "platform", "linux")
+    assert auto_workers() == workers
+    assert sampled == ([IDLE_SAMPLE_S] if cores > 1 else [])
+
+
+def test_auto_workers_is_one_where_the_cores_cannot_be_read(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import psutil
+
+    def unreadable(interval: float | None = None) -> float:
+        raise psutil.AccessDenied()
+
+    monkeypatch.setattr(psutil, "cpu_percent", unreadable)
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(sys, "platform", "linux")
+    assert auto_workers() == 1
 
 
 def _leaves(value: object) -> list[object]:
