@@ -26,8 +26,8 @@ def _pose3(value: object, what: str, scan: LaserScan) -> FloatArray:
         pose = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
         raise ScanError(f"{scan.source}: {what} is not numeric: {value!r}") from None
-    # The finiteness test on the three numbers as floats (a few scans' poses per scan read:
-    # numpy's calls on a (3,) array cost several times as much), the same answer.
+    # The finiteness test on the three numbers as floats (two poses per scan read; numpy's
+    # calls on a (3,) array cost several times as much), the same answer.
     if pose.shape != (3,) or not all(map(math.isfinite, pose.tolist())):
         raise ScanError(
             f"{scan.source}: {what} must be a finite (3,) pose [x_m, y_m, theta_rad], got "

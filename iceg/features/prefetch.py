@@ -275,8 +275,8 @@ def auto_workers() -> int:
     pays off only on a free core: on a saturated machine it slowed runs down.
 
     Measured now, not by the load average: its minute-long memory counts runs that have
-    finished, so of runs started one after another (a loop over logs) about every other one
-    ran in one process on an idle machine (1-minute load 1.0-1.5 after a two-process run).
+    finished, so of runs started one after another (a loop over logs), once the 1-minute
+    load reached 1.0 every later one ran in one process on an otherwise idle machine.
     """
     cores = os.cpu_count() or 1
     if cores < 2 or sys.platform != "linux":
