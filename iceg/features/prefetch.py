@@ -269,25 +269,29 @@ def _warm_up(config: FeatureConfig, precompute: Precompute[Any] | None) -> None:
 
 def auto_workers() -> int:
     """Processes for a run when the configuration leaves it open (``slam.workers: 0``; also
-    the grid's threads): 2 when the machine's idle capacity, measured over the next
-    ``IDLE_SAMPLE_S`` seconds (``psutil.cpu_percent``, every core), is at least one core for
-    this run and ``MIN_SPARE_CORES`` more for the helpers (Linux), else 1. A second process
-    pays off only on a free core: on a saturated machine it slowed runs down.
+    the grid's threads): 2 when the idle capacity of the cores this process may run on
+    (``os.sched_getaffinity``), measured over the next ``IDLE_SAMPLE_S`` seconds
+    (``psutil.cpu_percent`` per core), is at least one core for this run and
+    ``MIN_SPARE_CORES`` more for the helpers (Linux), else 1. A second process pays off only
+    on a free core: on a saturated machine it slowed runs down.
 
     Measured now, not by the load average: its minute-long memory counts runs that have
     finished, so of runs started one after another (a loop over logs), once the 1-minute
     load reached 1.0 every later one ran in one process on an otherwise idle machine.
     """
-    cores = os.cpu_count() or 1
-    if cores < 2 or sys.platform != "linux":
+    if sys.platform != "linux":
+        return 1
+    allowed = sorted(os.sched_getaffinity(0))
+    if len(allowed) < 2:
         return 1
     import psutil  # on first use: a run that sets its workers never needs it
 
     try:
-        busy = psutil.cpu_percent(interval=IDLE_SAMPLE_S) / 100.0 * cores
+        busy_percent = psutil.cpu_percent(interval=IDLE_SAMPLE_S, percpu=True)
     except (OSError, psutil.Error):
         return 1
-    return 2 if cores - busy >= 1.0 + MIN_SPARE_CORES else 1
+    idle = sum(100.0 - busy_percent[c] for c in allowed if c < len(busy_percent)) / 100.0
+    return 2 if idle >= 1.0 + MIN_SPARE_CORES else 1
 
 
 class FeaturePrefetcher:

@@ -92,35 +92,38 @@ def test_auto_workers_is_one_or_two() -> None:
 
 
 @pytest.mark.parametrize(
-    ("cores", "busy_percent", "workers"),
+    ("allowed", "busy_percent", "workers"),
     [
-        (2, 3.0, 2),  # an idle machine: a core for the run, one for its helpers
-        (2, 50.0, 1),  # another process holds a core: the run takes the other, none spare
-        (2, 24.0, 2),  # light background load: more than half a core spare
-        (4, 50.0, 2),  # two busy cores of four
-        (4, 70.0, 1),  # 1.2 idle cores: the run's own and 0.2 spare
-        (1, 0.0, 1),  # one core: never a second process
+        ({0, 1}, [3.0, 2.0], 2),  # an idle machine: a core for the run, one for its helpers
+        ({0, 1}, [100.0, 1.0], 1),  # another process holds a core: none spare
+        ({0, 1}, [40.0, 5.0], 2),  # light background load: more than half a core spare
+        ({0, 1, 2, 3}, [100.0, 100.0, 0.0, 0.0], 2),  # two busy cores of four
+        ({0, 1, 2, 3}, [100.0, 100.0, 80.0, 0.0], 1),  # 1.2 idle cores: 0.2 spare
+        ({2, 3}, [0.0, 0.0, 100.0, 90.0], 1),  # idle cores this process may not run on
+        ({0}, [0.0, 0.0], 1),  # one core allowed (taskset): never a second process
     ],
 )
 def test_auto_workers_counts_the_idle_cores_now(
-    monkeypatch: pytest.MonkeyPatch, cores: int, busy_percent: float, workers: int
+    monkeypatch: pytest.MonkeyPatch, allowed: set[int], busy_percent: list[float], workers: int
 ) -> None:
-    # The decision reads the cores' use over the next IDLE_SAMPLE_S seconds (psutil), not the
-    # load average, which remembers runs that have finished.
+    # The decision reads the use of the cores this process may run on over the next
+    # IDLE_SAMPLE_S seconds (psutil, per core), not the load average, which remembers runs
+    # that have finished.
     import psutil
 
     sampled: list[float | None] = []
 
-    def cpu_percent(interval: float | None = None) -> float:
+    def cpu_percent(interval: float | None = None, percpu: bool = False) -> list[float]:
+        assert percpu
         sampled.append(interval)
         return busy_percent
 
     monkeypatch.setattr(psutil, "cpu_percent", cpu_percent)
-    monkeypatch.setattr(os, "cpu_count", lambda: cores)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: allowed)
     monkeypatch.setattr(os, "getloadavg", lambda: (9.0, 9.0, 9.0))  # must not matter
     monkeypatch.setattr(sys, "platform", "linux")
     assert auto_workers() == workers
-    assert sampled == ([IDLE_SAMPLE_S] if cores > 1 else [])
+    assert sampled == ([IDLE_SAMPLE_S] if len(allowed) > 1 else [])
 
 
 def test_auto_workers_is_one_where_the_cores_cannot_be_read(
@@ -128,11 +131,11 @@ def test_auto_workers_is_one_where_the_cores_cannot_be_read(
 ) -> None:
     import psutil
 
-    def unreadable(interval: float | None = None) -> float:
+    def unreadable(interval: float | None = None, percpu: bool = False) -> list[float]:
         raise psutil.AccessDenied()
 
     monkeypatch.setattr(psutil, "cpu_percent", unreadable)
-    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1})
     monkeypatch.setattr(sys, "platform", "linux")
     assert auto_workers() == 1
 
