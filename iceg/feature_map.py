@@ -270,6 +270,21 @@ class PrunedLandmarks:
 
 
 @dataclass(frozen=True, eq=False)
+class MapCheckpoint:
+    """A :class:`FeatureMap`'s state before one or more updates, for
+    :meth:`FeatureMap.restore` (:meth:`FeatureMap.checkpoint`). The landmark table is
+    copied; the segments, points, touched landmarks, node blocks and pruning records only
+    grow in an update, so their sizes are enough.
+    """
+
+    landmarks: _Landmarks
+    n_rows: tuple[int, int, int]  # segments, points, touched landmarks
+    n_blocks: tuple[int, int, int]  # node blocks of each (dicts, in insertion order)
+    n_pruned: int
+    scalars: tuple[int, int, float, float]  # next id, merged, range max (m), last stamp (s)
+
+
+@dataclass(frozen=True, eq=False)
 class MapReference:
     """A matching reference built by :meth:`FeatureMap.reference`, with the snapshot of node
     poses it was built from (what :meth:`FeatureMap.update` needs after a match against it).
@@ -401,6 +416,15 @@ class _Columns:
     def take(self: _C, rows: IntArray | BoolArray) -> _C:
         """A copy holding the selected rows (indices or a mask)."""
         return type(self)(**{name: getattr(self, name)[rows] for name in self.SPEC})
+
+    def copy(self: _C) -> _C:
+        """A copy of every row (its own arrays, no spare capacity)."""
+        return type(self)(**{name: getattr(self, name).copy() for name in self.SPEC})
+
+    def truncate(self, n: int) -> None:
+        """Keep the first ``n`` rows (the rows beyond are the next appends' to overwrite)."""
+        for name in self.SPEC:
+            setattr(self, name, getattr(self, name)[:n])
 
     def drop(self, rows: IntArray) -> None:
         """Remove ``rows`` (indices), the others kept in order, in place: the kept rows move
@@ -935,6 +959,33 @@ class FeatureMap:
         fmap._next_id, fmap.n_merged = int(scalars[0]), int(scalars[1])
         fmap._range_max_m, fmap._last_stamp_s = float(scalars[2]), float(scalars[3])
         return fmap
+
+    def checkpoint(self) -> MapCheckpoint:
+        """The map's state now, to :meth:`restore` after updates that are to be undone (a
+        speculative update, :mod:`iceg.slam`). Costs a copy of the landmark table."""
+        return MapCheckpoint(
+            self._lm.copy(),
+            (len(self._seg), len(self._pts), len(self._touched)),
+            (len(self._seg_rows), len(self._pts_rows), len(self._touched_rows)),
+            len(self._pruned),
+            (self._next_id, self.n_merged, self._range_max_m, self._last_stamp_s),
+        )
+
+    def restore(self, checkpoint: MapCheckpoint) -> None:
+        """Undo every :meth:`update` since ``checkpoint`` (taken from this map, restored at
+        most once): the map answers and updates as if they had never run, bit for bit."""
+        self._lm = checkpoint.landmarks
+        tables = (self._seg, self._pts, self._touched)
+        for table, n in zip(tables, checkpoint.n_rows, strict=True):
+            table.truncate(n)
+        blocks = (self._seg_rows, self._pts_rows, self._touched_rows)
+        for rows, n in zip(blocks, checkpoint.n_blocks, strict=True):
+            while len(rows) > n:
+                node, _ = rows.popitem()  # the newest block first
+                self._nodes.discard(node)
+        del self._pruned[checkpoint.n_pruned :]
+        self._next_id, self.n_merged, self._range_max_m, self._last_stamp_s = checkpoint.scalars
+        self._chosen_memo = self._part_memo = None
 
     def world_landmarks(self, node_poses: NodePoses) -> LandmarkView:
         """All landmarks whose anchor has a pose, expressed in the frame of ``node_poses``
@@ -1517,6 +1568,7 @@ __all__ = [
     "FeatureMap",
     "FeatureMapConfig",
     "LandmarkView",
+    "MapCheckpoint",
     "MapReference",
     "MapUpdate",
     "PrunedLandmarks",

@@ -28,9 +28,9 @@ Olson 2009).
 from __future__ import annotations
 
 import bisect
-import functools
+import itertools
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -40,7 +40,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from graph import FactorKind, OdometryNoiseConfig, PoseGraph
 from iceg.feature_map import FeatureMap
-from iceg.match_pool import MatchJob, MatchPool
+from iceg.match_pool import MatchJob, MatchPool, SentMatches
 from iceg.matching import MatchBounds, Matcher
 from iceg.node_index import NodeGrid
 from iceg.place_index import PlaceIndex, PlaceIndexConfig, place_descriptor
@@ -616,6 +616,26 @@ class _Best:
     result: MatchResult
 
 
+@dataclass(frozen=True, eq=False)
+class OpenSearch:
+    """A search begun by :meth:`LoopCloser.start_search`, for
+    :meth:`LoopCloser.finish_search`: its inputs, candidates and matches in flight.
+
+    Attributes:
+        search: The estimates and radius the search started from.
+        places: The due global search's candidate places (``None``: not due).
+        candidates: The local candidate places matched, in job order.
+        predictions: Their ``(3,)`` predicted poses of the new node in each place's frame.
+        sent: The matches: the global ones first, then one per local candidate.
+    """
+
+    search: _Search
+    places: list[int] | None
+    candidates: list[int]
+    predictions: list[FloatArray]
+    sent: SentMatches
+
+
 class LoopCloser:
     """Searches loop closures for new nodes and decides which to accept.
 
@@ -702,6 +722,10 @@ class LoopCloser:
         Global search (when nothing was accepted, every ``global_every_n_searches``-th
         search): see :meth:`_global`.
 
+        The same as :meth:`start_search` then :meth:`finish_search` with nothing in between
+        (:mod:`iceg.slam` tracks the next keyframe in between, while the match helper runs
+        the search's matches).
+
         Args:
             node_id: The current node (through ``graph.update()`` or ``graph.solve_pending()``,
                 and observed).
@@ -717,6 +741,24 @@ class LoopCloser:
             GraphError: the graph cannot give the current node's marginal covariance (or a
                 global closure's relative covariance).
         """
+        begun = self.start_search(node_id, features, graph, path_m)
+        return None if begun is None else self.finish_search(begun, graph, path_m)
+
+    def start_search(
+        self,
+        node_id: int,
+        features: ScanFeatures,
+        graph: PoseGraph,
+        path_m: Sequence[float],
+    ) -> OpenSearch | None:
+        """The first half of :meth:`search`: its candidates, and their matches built and
+        handed to :attr:`match_pool` (sent to its helper process); ``None`` when the node has
+        no older candidates. Pass the result to :meth:`finish_search` before the graph
+        changes or another search starts.
+
+        Raises:
+            GraphError: the graph cannot give the current node's marginal covariance.
+        """
         n_older = self._n_older(node_id, path_m)
         if n_older == 0:
             return None
@@ -728,17 +770,43 @@ class LoopCloser:
         self._sync_index(graph, poses)
         nearby = _Nearby(self.nodes, poses, poses[node_id][:2], n_older, radius)
         search = _Search(node_id, poses, n_older, marginal, radius, nearby)
-        # A due global search's matches run in one batch with the local ones (issue 13: the
-        # helper process takes a share of both); their results are read only where nothing
-        # local is accepted, as if matched after it.
+        # A due global search's matches run in one batch with the local ones; their results
+        # are read only where nothing local is accepted, as if matched after it.
         places = self._global_places(search, features) if self._global_due() else None
-        global_jobs = [] if places is None else self._global_jobs(search, features, places)
-        best, global_results = self._best_match(search, features, global_jobs)
-        accepted = self._decide(search, best, graph, path_m) if best is not None else None
+        candidates: list[int] = []
+        predictions: list[FloatArray] = []
+        jobs = itertools.chain(
+            () if places is None else self._global_jobs(search, features, places),
+            self._local_jobs(search, features, candidates, predictions),
+        )
+        # each match is sent as soon as its reference is built
+        pool = self.match_pool
+        sent = pool.submit(jobs) if pool is not None else SentMatches(list(jobs))
+        self.stats.attempts += len(candidates)
+        return OpenSearch(search, places, candidates, predictions, sent)
+
+    def finish_search(
+        self, begun: OpenSearch, graph: PoseGraph, path_m: Sequence[float]
+    ) -> AcceptedClosures | None:
+        """The second half of :meth:`search`: the matches' results (from :attr:`match_pool`
+        when set, else run here) and the decision.
+
+        Raises:
+            GraphError: the graph cannot give a global closure's relative covariance.
+        """
+        s, places = begun.search, begun.places
+        pool = self.match_pool
+        if pool is not None:
+            every = pool.collect(begun.sent)
+        else:
+            every = [self.matcher.match(*job) for job in begun.sent.jobs]
+        n_global = 0 if places is None else len(places)
+        best = self._best(s, begun.candidates, begun.predictions, every[n_global:])
+        accepted = self._decide(s, best, graph, path_m) if best is not None else None
         if accepted is None and places is not None:
-            accepted = self._global(search, places, global_results, graph, path_m)
+            accepted = self._global(s, places, every[:n_global], graph, path_m)
         if accepted is not None:
-            self._note_correction(accepted, poses)
+            self._note_correction(accepted, s.poses)
         return accepted
 
     # ------------------------------------------------------------------ steps
@@ -856,21 +924,19 @@ class LoopCloser:
                 return ids
             reach *= 2.0
 
-    def _best_match(
+    def _local_jobs(
         self,
         s: _Search,
         features: ScanFeatures,
-        other_jobs: Sequence[Callable[[], MatchJob]] = (),
-    ) -> tuple[_Best | None, list[MatchResult]]:
-        """Match each candidate place; keep the best-correlated acceptable match. A candidate
-        whose reference window is one already matched in this search is skipped
-        (:func:`_same_place`). ``other_jobs`` (the global search's) are matched in the same
-        batch, ahead of the local ones; their results are returned beside the best."""
+        candidates: list[int],
+        predictions: list[FloatArray],
+    ) -> Iterator[MatchJob]:
+        """The matches of the candidate places, each reference built when the match is
+        asked for; each place and its prediction are appended to ``candidates`` and
+        ``predictions`` as its match is. A candidate whose reference window is one already
+        taken in this search is skipped (:func:`_same_place`)."""
         bounds = self._bounds(s)
-        matched: list[IntArray] = []  # the windows of the places matched so far
-        candidates: list[int] = []
-        predictions: list[FloatArray] = []
-        jobs: list[Callable[[], MatchJob]] = []
+        matched: list[IntArray] = []  # the windows of the places taken so far
         banned = self._forbidden_nodes(s)
         for candidate in self._candidates(s, banned):
             window = self._window(s, candidate)
@@ -882,13 +948,17 @@ class LoopCloser:
             prediction = se2.between(s.poses[candidate], s.poses[s.node_id])
             candidates.append(candidate)
             predictions.append(prediction)
-            jobs.append(
-                functools.partial(self._job, s, features, candidate, window, prediction, bounds)
-            )
-        self.stats.attempts += len(jobs)
+            yield self._job(s, features, candidate, window, prediction, bounds)
+
+    def _best(
+        self,
+        s: _Search,
+        candidates: Sequence[int],
+        predictions: Sequence[FloatArray],
+        results: Sequence[MatchResult],
+    ) -> _Best | None:
+        """The best-correlated acceptable match of the candidate places."""
         best: _Best | None = None
-        every = self._match_all([*other_jobs, *jobs])
-        other, results = every[: len(other_jobs)], every[len(other_jobs) :]
         for candidate, prediction, result in zip(candidates, predictions, results, strict=True):
             if not usable_match(result, self.config):
                 self.stats.rejected_match += 1
@@ -902,7 +972,7 @@ class LoopCloser:
                 )
             elif best is None or result.correlation > best.result.correlation:
                 best = _Best(candidate, prediction, result)
-        return best, other
+        return best
 
     def _job(
         self,
@@ -1005,15 +1075,13 @@ class LoopCloser:
 
     def _global_jobs(
         self, s: _Search, features: ScanFeatures, places: Sequence[int]
-    ) -> list[Callable[[], MatchJob]]:
-        """The global ICE match (no prediction used) of the scan against each place."""
+    ) -> Iterator[MatchJob]:
+        """The global ICE match (no prediction used) of the scan against each place, each
+        reference built when the match is asked for."""
         bounds = MatchBounds.global_()
-        return [
-            functools.partial(
-                self._job, s, features, c, None, se2.between(s.poses[c], s.poses[s.node_id]), bounds
-            )
-            for c in places
-        ]
+        for c in places:
+            prediction = se2.between(s.poses[c], s.poses[s.node_id])
+            yield self._job(s, features, c, None, prediction, bounds)
 
     def _global(
         self,
@@ -1108,14 +1176,6 @@ class LoopCloser:
                 )
             )
         return verified
-
-    def _match_all(self, jobs: Sequence[Callable[[], MatchJob]]) -> list[MatchResult]:
-        """The matches of one search (each job built when needed), in order: shared with the
-        run's helper process when :attr:`match_pool` is set
-        (:class:`~iceg.match_pool.MatchPool`; the same results)."""
-        if self.match_pool is not None:
-            return self.match_pool.map(jobs)
-        return [self.matcher.match(*job()) for job in jobs]
 
     def _unique(self, verified: list[LoopClosure], poses: _Poses) -> bool:
         """Whether every two verified places put the current node at the same pose (the

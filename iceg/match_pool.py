@@ -1,21 +1,22 @@
-"""A loop-closure search's candidate matches shared with a helper process (issue 13).
+"""A loop-closure search's candidate matches run by a helper process (issue 13).
 
 A search matches the new scan against several candidate places (up to
 ``loop_closure.max_candidates`` near the estimate, ``global_candidates`` by appearance), each
 an independent call of the matcher, a pure function of the scan's features, the place's
-reference, the prediction and the bounds. :class:`MatchPool` sends every second match of a
-search to a forked helper process and runs the others in the calling process. When the
-calling process is done with its own, it waits for the helper's results, each for as long as
-one of its own matches took, and runs a match that has not arrived by then itself (from the
-last one back; the helper's late result is dropped): a helper starved of CPU costs little.
-Either process computes the same result from the same inputs, so the run is the same bit for
-bit whatever the timing and with or without a helper (``tests/iceg/test_match_pool.py``).
+reference, the prediction and the bounds. :meth:`MatchPool.submit` sends every match of a
+search to a forked helper process and returns at once, so that the calling process goes on
+with its own work (the next keyframe's tracking, :mod:`iceg.slam`);
+:meth:`MatchPool.collect` then reads the results, waiting for each for about as long as a
+match takes, and runs a match that has not arrived by then itself (from the last one back;
+the helper's late result is dropped): a helper starved of CPU costs little. Either process
+computes the same result from the same inputs, so the run is the same bit for bit whatever
+the timing and with or without a helper (``tests/iceg/test_match_pool.py``).
 
-The helper is forked at the first search with two matches, when the calling process has
-loaded the matcher's compiled kernels, so it starts warm; it holds the matcher and its
-configuration from the fork. It only matches (numpy and numba, no gtsam), which is what
-makes forking safe here, as for the feature workers (:mod:`iceg.features.prefetch`). Linux
-only; elsewhere every match runs in the calling process.
+The helper is forked at the first submitted search, when the calling process has loaded the
+matcher's compiled kernels, so it starts warm; it holds the matcher and its configuration
+from the fork. It only matches (numpy and numba, no gtsam), which is what makes forking safe
+here, as for the feature workers (:mod:`iceg.features.prefetch`). Linux only; elsewhere
+every match runs in the calling process.
 """
 
 from __future__ import annotations
@@ -26,10 +27,11 @@ import os
 import signal
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Iterable
+from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
-from typing import NamedTuple, cast
+from typing import Any, NamedTuple, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -58,25 +60,47 @@ class MatchJob(NamedTuple):
     bounds: MatchBounds
 
 
+#: How long :meth:`MatchPool.collect` waits for the last missing result (seconds) before
+#: any match's duration is known (a cost setting only: the results are the same).
+FIRST_PATIENCE_S = 0.01
+
+
+@dataclass(eq=False)
+class SentMatches:
+    """A search's matches handed to :meth:`MatchPool.submit`, to :meth:`MatchPool.collect`.
+
+    Attributes:
+        jobs: The matches, in order.
+        remote: Indices of the jobs sent to the helper (none without one).
+        batch: The batch number the helper's results carry (a late result names an older one).
+    """
+
+    jobs: list[MatchJob]
+    remote: list[int] = field(default_factory=list)
+    batch: int = 0
+
+
 class MatchPool:
-    """Runs a search's matches in the calling process and one forked helper.
+    """Runs a search's matches in one forked helper process while the caller works on.
 
     Use as a context manager (the helper is stopped on exit)::
 
         with MatchPool(slam.matcher, helper=True) as pool:
-            results = pool.map(jobs)
+            sent = pool.submit(jobs)
+            ...  # other work
+            results = pool.collect(sent)
 
     Args:
         matcher: The matcher every match uses (the helper holds a copy of it from the fork).
-        helper: Whether to start the helper process (Linux only); without it :meth:`map`
+        helper: Whether to start the helper process (Linux only); without it :meth:`collect`
             runs every match in the calling process.
-        wait: Wait for the helper's results however long they take, never running its
-            share here (for tests).
+        wait: Wait for the helper's results however long they take, never running a match
+            here unless it failed there (for tests).
 
     Attributes:
         remote: Matches whose result came from the helper so far.
-        local: Matches run in the calling process (its share, and those the helper had not
-            returned in time).
+        local: Matches run in the calling process (with no helper, and those the helper had
+            not returned in time).
     """
 
     def __init__(self, matcher: Matcher, helper: bool = True, wait: bool = False) -> None:
@@ -90,6 +114,10 @@ class MatchPool:
         self._open = False  # inside the with-block
         self._started = False  # the helper was forked (or failed to be)
         self._batch = 0  # the current batch's number: a late result names an older one
+        self._match_cpu_s = [0.0, 0]  # CPU seconds of the helper's matches, their number
+        # [batch, k]: the calling process runs the jobs k.. of that batch (shared with the
+        # helper, which skips them; a job both run costs time, not a different result)
+        self._taken: Any = None
 
     def __enter__(self) -> MatchPool:
         self._open = True
@@ -101,9 +129,10 @@ class MatchPool:
         try:
             ctx = multiprocessing.get_context("fork")
             self._conn, child = ctx.Pipe(duplex=True)
+            self._taken = ctx.RawArray("q", 2)
             self._proc = ctx.Process(
                 target=_serve,
-                args=(child, self._conn, os.getpid(), self.matcher),
+                args=(child, self._conn, os.getpid(), self.matcher, self._taken),
                 daemon=True,
                 name="iceg-matches",
             )
@@ -122,94 +151,128 @@ class MatchPool:
         log.debug("match helper: %d matches there, %d here", self.remote, self.local)
         forked.stop(conn, proc)
 
-    def map(self, jobs: Sequence[Callable[[], MatchJob]]) -> list[MatchResult]:
-        """The match of every job, in order (``matcher.match(*job())`` each). Each job is
-        built when needed: the helper's share (the first half) is built and sent first, so
-        that the helper works while this process builds and runs its own.
+    def submit(self, jobs: Iterable[MatchJob]) -> SentMatches:
+        """Send every job to the helper (forked on first use), each as soon as the iterable
+        gives it, and return; nothing is sent without a helper (outside the with-block, or
+        not on Linux). Read the results with :meth:`collect` before the next ``submit``."""
+        sent = SentMatches([])
+        helper = self._open and self.want_helper and sys.platform == "linux"
+        for k, job in enumerate(jobs):
+            sent.jobs.append(job)
+            if not helper:
+                continue
+            if not self._started:
+                self._start()
+            if self._conn is None:
+                helper = False
+                continue
+            if not sent.remote:
+                self._batch += 1
+                sent.batch = self._batch
+            try:
+                self._conn.send((self._batch, k, job))
+            except (OSError, ValueError):
+                self._conn, helper = None, False
+                continue
+            sent.remote.append(k)
+        return sent
+
+    def collect(self, sent: SentMatches) -> list[MatchResult]:
+        """The match of every job of ``sent``, in order. Those not sent run here. Of those
+        sent, the helper's results that have arrived are taken; while two or more are
+        missing, the last of them runs here (the helper works from the first, so this one
+        waits longest there); the one left missing is awaited for about as long as one of
+        the helper's matches took (their mean CPU time so far, :data:`FIRST_PATIENCE_S`
+        before the first), then runs here. The helper skips a job this process has taken
+        (``[batch, first index]`` in shared memory); a result it sends for one it had begun
+        is dropped.
 
         Raises:
             Whatever the matcher raises (a match that failed in the helper is run here, so
             its error is raised in this process).
         """
-        built: list[MatchJob | None] = [None] * len(jobs)
-        results: list[MatchResult | None] = [None] * len(jobs)
-        remote = self._send_first_half(jobs, built)
-        t0 = time.perf_counter()
-        own = range(len(remote), len(jobs))
-        for k in own:
-            results[k] = self._here(jobs[k]())
-        patience_s = (time.perf_counter() - t0) / max(1, len(own))
-        missing = set(remote)
+        results: list[MatchResult | None] = [None] * len(sent.jobs)
+        missing = set(sent.remote) if sent.batch == self._batch else set()
+        for k, job in enumerate(sent.jobs):
+            if k not in missing:
+                results[k] = self._here(job)
         while missing:
-            got = self._arrived(None if self.wait else patience_s)
-            k = max(missing) if got is None else got[0]  # none in time: the last one here
+            if self.wait:
+                timeout_s: float | None = None
+            else:
+                timeout_s = self._patience_s() if len(missing) == 1 else 0.0
+            got = self._arrived(timeout_s, sent.batch)
+            k = max(missing) if got is None else got[0]
             if k not in missing:
                 continue
             missing.discard(k)
             if got is not None and got[1] is not None:
                 results[k] = got[1]
                 self.remote += 1
-            else:  # not arrived in time, or failed there (its error is raised here)
-                results[k] = self._here(built[k] or jobs[k]())
+            else:  # not arrived, or failed there (its error is raised here)
+                if got is None:  # the last missing: the helper may skip it
+                    self._take(sent.batch, k)
+                results[k] = self._here(sent.jobs[k])
         return [r for r in results if r is not None]
+
+    def _take(self, batch: int, k: int) -> None:
+        """Tell the helper that this process runs job ``k`` of ``batch`` and the later ones
+        (taken from the last back). The index is written before the batch, so the helper
+        never reads a pair that takes a job of the new batch this process has not taken."""
+        if self._taken is not None:
+            self._taken[1] = k
+            self._taken[0] = batch
+
+    def _patience_s(self) -> float:
+        total_s, n = self._match_cpu_s
+        return total_s / n if n else FIRST_PATIENCE_S
 
     def _here(self, job: MatchJob) -> MatchResult:
         self.local += 1
         return self.matcher.match(*job)
 
-    def _send_first_half(
-        self, jobs: Sequence[Callable[[], MatchJob]], built: list[MatchJob | None]
-    ) -> list[int]:
-        """Build the first half of the jobs (rounded down) and send each to the helper as
-        soon as it is built; the indices sent (none without a helper or with one job)."""
-        if len(jobs) < 2 or not (self._open and self.want_helper and sys.platform == "linux"):
-            return []
-        if not self._started:
-            self._start()
-        if self._conn is None:
-            return []
-        self._batch += 1
-        sent = []
-        for k in range(len(jobs) // 2):
-            built[k] = job = jobs[k]()
-            try:
-                self._conn.send((self._batch, k, job))
-            except (OSError, ValueError):
-                self._conn = None
-                break
-            sent.append(k)
-        return sent
-
-    def _arrived(self, timeout_s: float | None) -> tuple[int, MatchResult | None] | None:
-        """A result of the current batch from the helper (None for a match that failed
-        there), if one arrives within ``timeout_s`` (None: however long it takes; results
-        of older batches are dropped)."""
+    def _arrived(
+        self, timeout_s: float | None, batch: int
+    ) -> tuple[int, MatchResult | None] | None:
+        """A result of ``batch`` from the helper (None for a match that failed there), if
+        one arrives within ``timeout_s`` (None: however long it takes; results of older
+        batches are dropped)."""
         conn = self._conn
         deadline = time.perf_counter() + (0.0 if timeout_s is None else timeout_s)
         try:
             while conn is not None and conn.poll(
                 None if timeout_s is None else max(0.0, deadline - time.perf_counter())
             ):
-                batch, k, result = conn.recv()
-                if batch == self._batch:
+                got, k, result, cpu_s = conn.recv()
+                if result is not None:
+                    self._match_cpu_s[0] += cpu_s
+                    self._match_cpu_s[1] += 1
+                if got == batch:
                     return k, result
         except (EOFError, OSError):
             self._conn = None
         return None
 
 
-def _serve(conn: Connection, parent_end: Connection, parent_pid: int, matcher: Matcher) -> None:
-    """Helper loop: jobs ``(batch, k, job)`` in, ``(batch, k, result or None)`` out; None,
-    the end of the pipe or the parent's exit stops it."""
+def _serve(
+    conn: Connection, parent_end: Connection, parent_pid: int, matcher: Matcher, taken: Any
+) -> None:
+    """Helper loop: jobs ``(batch, k, job)`` in, ``(batch, k, result or None, CPU seconds of
+    the match)`` out, except for a job the calling process has taken (``taken``, shared
+    ``[batch, first index]``): it runs that one itself. None, the end of the pipe or the
+    parent's exit stops it."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle
     parent_end.close()
     while (msg := forked.next_message(conn, parent_pid)) is not None:
         batch, k, job = cast(tuple[int, int, MatchJob], msg)
+        if taken[0] == batch and k >= taken[1]:
+            continue
+        t0 = time.thread_time()
         try:
             result: MatchResult | None = matcher.match(*job)
         except Exception:  # the calling process runs it again and raises it there
             result = None
         try:
-            conn.send((batch, k, result))
+            conn.send((batch, k, result, time.thread_time() - t0))
         except (OSError, ValueError):  # the calling process is gone
             return

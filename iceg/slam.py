@@ -31,10 +31,16 @@ from numpy.typing import ArrayLike, NDArray
 from frontends import LaserScan
 from graph import FactorKind, PoseGraph, odometry_covariance
 from iceg.config import IcegConfig
-from iceg.feature_map import FeatureMap, MapReference
+from iceg.feature_map import FeatureMap, MapCheckpoint, MapReference
 from iceg.features import extract, extract_points
 from iceg.landmark_frames import move_point_blocks, poses_in_frame
-from iceg.loop_closure import LoopCloser, LoopClosureStats, innovation_chi2
+from iceg.loop_closure import (
+    AcceptedClosures,
+    LoopCloser,
+    LoopClosureStats,
+    OpenSearch,
+    innovation_chi2,
+)
 from iceg.matching import MatchBounds
 from iceg.matching.geometry import PolarProfile
 from iceg.matching.matcher import (
@@ -202,6 +208,16 @@ class _LocalMatch:
     ice_failure: str = ""  # why the ICE match failed (reason category; "": it succeeded)
 
 
+@dataclass(eq=False)
+class _OpenSearch:
+    """A node's loop-closure search whose matches run in the helper process while the next
+    keyframe is tracked (:meth:`Slam._finish_search`)."""
+
+    begun: OpenSearch
+    map_update: tuple[int, ScanFeatures, LaserScan, _LocalMatch]  # the node's _update_map
+    checkpoint: MapCheckpoint | None = None  # the feature map before that update ran
+
+
 @dataclass(frozen=True, eq=False)
 class Anchor:
     """The old node a revisit hangs from (``slam.reuse_nodes``; docs/design.md, "Reused
@@ -302,7 +318,8 @@ class Slam:
 
     def __init__(self, config: IcegConfig | None = None) -> None:
         self.config = config or IcegConfig()
-        self.graph = PoseGraph(self.config.graph)
+        self._graph = PoseGraph(self.config.graph)
+        self._open: _OpenSearch | None = None  # a search decided at the next keyframe
         self.matcher = make_matcher(self.config.matching)
         self.point_matcher = PlIcpMatcher(self.config.matching)
         self._node_points: dict[int, FloatArray] = {}  # recent nodes' scan points (cache)
@@ -318,8 +335,20 @@ class Slam:
         self._online_factors: int | None = None  # factors before the final refinement
 
     @property
+    def graph(self) -> PoseGraph:
+        """The pose graph, every loop-closure search begun so far decided
+        (:meth:`_finish_search`)."""
+        self._finish_search()
+        return self._graph
+
+    @graph.setter
+    def graph(self, graph: PoseGraph) -> None:
+        self._graph = graph
+
+    @property
     def loop_stats(self) -> LoopClosureStats:
         """Loop-closure statistics of the run so far."""
+        self._finish_search()
         return self.loop_closer.stats
 
     @property
@@ -331,7 +360,9 @@ class Slam:
     # ------------------------------------------------------------------ state (sessions)
 
     def export_state(self) -> SlamState:
-        """The per-run bookkeeping (shared, not a copy), for :mod:`iceg.session`."""
+        """The per-run bookkeeping (shared, not a copy), for :mod:`iceg.session` (every
+        loop-closure search begun so far decided)."""
+        self._finish_search()
         return self._s
 
     @classmethod
@@ -347,7 +378,7 @@ class Slam:
         the graph rebuilt by replay, the feature map, the bookkeeping and loop statistics.
         Held-back closures go to ``slam.loop_closer.pending`` afterwards."""
         slam = cls(config)
-        slam.graph = graph
+        slam._graph = graph
         slam.feature_map = feature_map
         slam.loop_closer = LoopCloser(
             config.loop_closure, slam.matcher, feature_map, config.odometry_noise
@@ -380,6 +411,7 @@ class Slam:
         """
         if self._result is not None or not match.success or not self._s.node_odom:
             raise GraphError("Slam.start_segment needs a running Slam and a successful match")
+        self._finish_search()
         t0 = time.perf_counter()
         for early in before:
             self._check_order(early)
@@ -388,7 +420,7 @@ class Slam:
         feats = extract(scan, self.config.features)
         for early, delta in zip(before, self._track_backwards(scan, feats, before), strict=True):
             self._s.records.append(early.stamp_s, len(self._s.node_odom), delta)
-        anchor_pose = self.graph.estimate(anchor)
+        anchor_pose = self._graph.estimate(anchor)
         self._s.scans.append(scan)
         new_id = self._add_node(
             scan,
@@ -404,7 +436,7 @@ class Slam:
         # agree with itself where that log left a loop open).
         self._s.segment_start = new_id
         self._s.anchor = self._s.reuse_from = None
-        self.graph.update()
+        self._graph.update()
         # All its features become its own landmarks, as the first node of a run: the next
         # scans are matched against the landmarks of the recent nodes (this one), not against
         # the old place's that the placement matched.
@@ -412,7 +444,7 @@ class Slam:
         self.loop_closer.observe(new_id, feats)  # a place the global search can find
         self.feature_map.update(new_id, feats, scan.stamp_s, scan=scan)
         self.timer.add("segment_start", t0)
-        return self.graph.estimate(new_id)
+        return self._graph.estimate(new_id)
 
     def _track_backwards(
         self, scan: LaserScan, feats: ScanFeatures, before: Sequence[LaserScan]
@@ -468,12 +500,13 @@ class Slam:
         if not self._s.node_odom:
             return self._start(scan, odom, t0, features)
         if self._s.anchor is not None:
+            self._finish_search()
             return self._process_anchored(scan, odom, self._s.anchor, t0, features)
         last = len(self._s.node_odom) - 1
         motion = self._motion(scan, odom, last)
         if not motion.is_keyframe:
             self._s.records.append(scan.stamp_s, last, motion.delta)
-            return se2.compose(self.graph.estimate(last), motion.delta)
+            return se2.compose(self._graph.estimate(last), motion.delta)
         return self._process_keyframe(scan, motion, last, t0, features)
 
     # ------------------------------------------------------------------ steps
@@ -491,6 +524,8 @@ class Slam:
         place: where it puts the scan at an old node, the scan hangs from that node."""
         feats = self._features(scan, features)
         t0 = self.timer.add("features", t0)
+        if self._s.reuse_from is not None:
+            self._finish_search()  # a closure it accepts names the old place to try
         old, self._s.reuse_from = self._s.reuse_from, None
         if old is not None and motion.measured and not motion.odometry_break:
             # predicted from the last node's pose in the old node's frame (the closure's
@@ -509,14 +544,19 @@ class Slam:
         local = self._match_local(feats, motion, last, self._s.segment_start)
         if not local.result.success:
             local = self._match_from_node_before(feats, motion, last, local)
+        t0 = self.timer.add("matching", t0)
+        if self._finish_search():
+            # The last node's search, its matches run by the helper meanwhile, accepted a
+            # closure: the keyframe starts again from the corrected estimates and map.
+            motion = self._motion(scan, self._odometry_of(scan), last)
+            return self._process_keyframe(scan, motion, last, time.perf_counter(), lambda: feats)
         if local.ice_failure:
             counts = self._s.point_fallbacks if local.result.success else self._s.match_failures
             counts[local.ice_failure] += 1
         self._calibrate_odometry(local, motion)
-        t0 = self.timer.add("matching", t0)
         new_id = self._add_keyframe(scan, motion, local, last)
         self._after_node(new_id, feats, scan, local, t0)
-        return self.graph.estimate(new_id)
+        return self._graph.estimate(new_id)
 
     def _after_node(
         self, node_id: int, feats: ScanFeatures, scan: LaserScan, local: _LocalMatch, t0: float
@@ -527,13 +567,15 @@ class Slam:
         self.loop_closer.observe(node_id, feats)
         t0 = self.timer.add("graph_build", t0)
         if self._isam2_due():
-            self.graph.update()
+            self._graph.update()
         else:
-            self.graph.solve_pending()
+            self._graph.solve_pending()
         t0 = self.timer.add("isam2", t0)
         if self.loop_closer.due(node_id):
-            self._close_loops(node_id, feats)
+            self._begin_search(node_id, feats, scan, local)
             t0 = self.timer.add("loop_closure", t0)
+        if self._open is not None:
+            self._open.checkpoint = self.feature_map.checkpoint()
         self._update_map(node_id, feats, scan, local)
         self.timer.add("feature_map", t0)
 
@@ -554,7 +596,7 @@ class Slam:
         motion = self._anchored_motion(scan, odom, anchor)
         if not motion.is_keyframe:
             self._s.records.append(scan.stamp_s, anchor.node, motion.delta)
-            return se2.compose(self.graph.estimate(anchor.node), motion.delta)
+            return se2.compose(self._graph.estimate(anchor.node), motion.delta)
         feats = self._features(scan, features)
         t0 = self.timer.add("features", t0)
         reuse = self._match_old_place(feats, anchor.node, motion.delta, motion.cov)
@@ -606,9 +648,9 @@ class Slam:
         cfg = self.config.slam
         half = cfg.local_map_nodes // 2
         window = np.arange(
-            max(0, node - half), min(self.graph.n_nodes, node + half + 1), dtype=np.int64
+            max(0, node - half), min(self._graph.n_nodes, node + half + 1), dtype=np.int64
         )
-        ids, poses = self.graph.estimates_of(self.feature_map.reference_pose_nodes(window))
+        ids, poses = self._graph.estimates_of(self.feature_map.reference_pose_nodes(window))
         frame = poses[np.searchsorted(ids, node)]
         reference = self.feature_map.reference((ids, poses), window, frame)
         bounds = MatchBounds.local(cfg.match_max_translation_m, cfg.match_max_rotation_deg)
@@ -710,7 +752,7 @@ class Slam:
         if s.reuse_from is None:  # a brief departure (a person passing): the next keyframe
             # tries the old place again
             s.reuse_from = self._anchor_of(new_id, anchor.node, reuse.pose, reuse.cov)
-        return self.graph.estimate(new_id)
+        return self._graph.estimate(new_id)
 
     def _isam2_due(self) -> bool:
         """Whether this keyframe updates iSAM2: always below ``isam2_defer_from_nodes`` nodes,
@@ -718,10 +760,11 @@ class Slam:
         ``isam2_defer_from_nodes`` the graph has reached. An update costs O(N) in gtsam 4.3,
         so this bounds its cost per keyframe (docs/design.md, "Long logs")."""
         defer_from = self.config.slam.isam2_defer_from_nodes
-        n = self.graph.n_nodes
+        n = self._graph.n_nodes
         if defer_from is None or n < defer_from:
             return True
-        return self.graph.n_pending[0] >= (n // defer_from) * self.config.loop_closure.every_n_nodes
+        every_n = self.config.loop_closure.every_n_nodes
+        return self._graph.n_pending[0] >= (n // defer_from) * every_n
 
     def _check_order(self, scan: LaserScan) -> None:
         if self._s.scans and scan.stamp_s < self._s.scans.stamp_s(-1):
@@ -748,7 +791,7 @@ class Slam:
         self._add_node(scan, odom, initial=odom, odom_measured=scan.odom_pose is not None)
         self._remember_points(0, feats)
         self.loop_closer.observe(0, feats)
-        self.graph.update()
+        self._graph.update()
         self.feature_map.update(0, feats, scan.stamp_s, scan=scan)
         self.timer.add("feature_map", t0)
         return odom.copy()
@@ -793,7 +836,7 @@ class Slam:
         cfg = self.config.slam
         first = max(log_start, last - cfg.local_map_nodes + 1)
         recent = np.arange(first, last + 1, dtype=np.int64)
-        ids, poses = self.graph.estimates_of(self.feature_map.reference_pose_nodes(recent))
+        ids, poses = self._graph.estimates_of(self.feature_map.reference_pose_nodes(recent))
         last_pose = poses[np.searchsorted(ids, last)]
         reference = self.feature_map.reference((ids, poses), recent, last_pose)
         if cfg.drop_walls_seen_through and self._s.node_matched[last]:
@@ -856,7 +899,7 @@ class Slam:
             or s.scans[s.node_scan_index[last]].odom_break
         ):
             return failed
-        _, poses = self.graph.estimates_of([before, last])
+        _, poses = self._graph.estimates_of([before, last])
         odometry = se2.compose(se2.between(s.node_odom[before], s.node_odom[last]), motion.delta)
         predicted = se2.between(poses[1], se2.compose(poses[0], odometry))
         gap = se2.between(motion.delta, predicted)
@@ -975,11 +1018,46 @@ class Slam:
             robust=self.config.slam.scan_match_kernel,
         )
 
-    def _close_loops(self, node_id: int, feats: ScanFeatures) -> None:
-        """Loop-closure search; accepted closures enter as factors, then iSAM2 updates."""
-        accepted = self.loop_closer.search(node_id, feats, self.graph, self._s.node_path_m)
-        if accepted is None:
+    def _begin_search(
+        self, node_id: int, feats: ScanFeatures, scan: LaserScan, local: _LocalMatch
+    ) -> None:
+        """Begin the node's loop-closure search. With the match helper
+        (``loop_closer.match_pool``) it stays open: the node's map update and the next
+        keyframe's local match run while the helper runs its matches, and
+        :meth:`_finish_search` decides it before the graph changes again. Otherwise (or
+        with no match to run) it is decided now."""
+        begun = self.loop_closer.start_search(node_id, feats, self._graph, self._s.node_path_m)
+        if begun is None:
             return
+        self._open = _OpenSearch(begun, (node_id, feats, scan, local))
+        if self.loop_closer.match_pool is None or not begun.sent.jobs:
+            self._finish_search()
+
+    def _finish_search(self) -> bool:
+        """Decide the open loop-closure search, if any (:meth:`_begin_search`); return
+        whether it accepted closures. Accepted closures enter as factors, then iSAM2
+        updates. Where the node's map update ran meanwhile, it is undone before
+        (:meth:`FeatureMap.restore`) and runs again after: the map update needs the
+        closure's correction, and every step is the one a search decided at its node takes,
+        bit for bit (docs/design.md, "Loop-closure matches beside tracking")."""
+        open_, self._open = self._open, None
+        if open_ is None:
+            return False
+        t0 = time.perf_counter()
+        accepted = self.loop_closer.finish_search(open_.begun, self._graph, self._s.node_path_m)
+        if accepted is not None:
+            if open_.checkpoint is not None:
+                self.feature_map.restore(open_.checkpoint)
+            self._add_closures(accepted)
+        t0 = self.timer.add("loop_closure", t0)
+        if accepted is None or open_.checkpoint is None:
+            return accepted is not None
+        self._update_map(*open_.map_update)
+        self.timer.add("feature_map", t0)
+        return True
+
+    def _add_closures(self, accepted: AcceptedClosures) -> None:
+        """Accepted closures as factors, then the iSAM2 update (or a batch solve)."""
         for c in accepted.closures:
             self._add_factor(
                 FactorKind.LOOP_CLOSURE,
@@ -998,9 +1076,9 @@ class Slam:
             # A global closure can move the estimate by tens of metres and degrees: a batch
             # Levenberg-Marquardt from the current estimate converges where iSAM2's
             # incremental relinearisation would take many updates (it is rebuilt after).
-            self.graph.optimize_batch(correction=True)
+            self._graph.optimize_batch(correction=True)
         else:
-            self.graph.update()
+            self._graph.update()
 
     def _update_map(
         self, node_id: int, feats: ScanFeatures, scan: LaserScan, local: _LocalMatch
@@ -1014,7 +1092,7 @@ class Slam:
             match=local.result,
             scan=scan,
             # Only the poses the update reads (same values as the full table, O(k) not O(N)).
-            node_poses=self.graph.estimates_of(
+            node_poses=self._graph.estimates_of(
                 self.feature_map.update_pose_nodes(node_id, local.reference)
             ),
         )
@@ -1030,7 +1108,7 @@ class Slam:
         """Motion of the last node pair (estimates), as the prediction of the next one."""
         if last == 0:
             return np.zeros(3)
-        return se2.between(self.graph.estimate(last - 1), self.graph.estimate(last))
+        return se2.between(self._graph.estimate(last - 1), self._graph.estimate(last))
 
     def _step_m(self, motion: _Motion, last: int) -> float:
         """Path travelled from node ``last`` to the scan of ``motion`` (m): the odometry's, or
@@ -1057,7 +1135,7 @@ class Slam:
         s.node_odom.append(odom)
         s.node_scan_index.append(len(s.scans) - 1)
         s.records.append(scan.stamp_s, node_id)
-        self.graph.add_node(node_id, initial)
+        self._graph.add_node(node_id, initial)
         return node_id
 
     def _add_factor(
@@ -1073,7 +1151,7 @@ class Slam:
     ) -> None:
         """Add a between-factor and keep its correlation; ``robust_k`` ``None``: the kernel's
         95 %-efficiency width."""
-        record = self.graph.add_between(
+        record = self._graph.add_between(
             i, j, measured, cov, kind=kind, robust=robust, robust_k=robust_k
         )
         if np.isfinite(correlation):
@@ -1100,7 +1178,7 @@ class Slam:
             The number of scan-match factors added.
         """
         s = self._s
-        odometry = {r.j: r for r in self.graph.factors if r.kind is FactorKind.ODOMETRY}
+        odometry = {r.j: r for r in self._graph.factors if r.kind is FactorKind.ODOMETRY}
         log_start = 0
         added = 0
         for node in range(1, len(s.node_odom)):
@@ -1111,7 +1189,7 @@ class Slam:
             if s.node_matched[node]:
                 continue
             last = node - 1
-            predicted = se2.between(self.graph.estimate(last), self.graph.estimate(node))
+            predicted = se2.between(self._graph.estimate(last), self._graph.estimate(node))
             motion = _Motion(s.node_odom[node], predicted, link.cov, is_keyframe=True)
             feats = extract(s.scans[s.node_scan_index[node]], self.config.features)
             local = self._match_local(feats, motion, last, log_start)
@@ -1151,17 +1229,17 @@ class Slam:
             # The final estimate satisfies every closure the run accepted: their kernels
             # guarded the online estimate, but a kernel a few match sigmas wide all but
             # ignores a true closure against a drifted chain (docs/design.md, "Loop closure").
-            self.graph.optimize_batch(loop_closure_kernels=False)
+            self._graph.optimize_batch(loop_closure_kernels=False)
             t0 = self.timer.add("batch_refinement", t0)
         stamps, poses = self.trajectory()
-        ids, node_poses = self.graph.estimates()
+        ids, node_poses = self._graph.estimates()
         self._result = SlamResult(
             stamps_s=stamps,
             poses=poses,
             node_ids=ids,
             node_poses=node_poses,
             node_scan_index=np.array(self._s.node_scan_index, dtype=np.int64),
-            factors=self.graph.factors,
+            factors=self._graph.factors,
             correlations=dict(self._s.correlations),
             loop_closures=self.loop_stats,
             match_failures=dict(self._s.match_failures),
@@ -1169,7 +1247,7 @@ class Slam:
             reused_keyframes=self._s.reused_keyframes,
             stage_seconds=dict(self.timer.seconds),
             feature_map=self.feature_map,
-            graph=self.graph,
+            graph=self._graph,
             config=self.config,
             scans=self._s.scans,
             slam=self,

@@ -442,6 +442,55 @@ def test_an_update_after_its_pose_nodes_were_asked_is_the_update_without() -> No
     assert asked.n_merged > 0 and asked.pruned.ids.shape[0] > 0
 
 
+def test_a_restored_map_is_the_map_before_the_updates_it_undid() -> None:
+    # The SLAM loop updates the map before the node's loop-closure search is decided, and
+    # where a closure is accepted, restores the checkpoint taken before and updates again on
+    # the corrected estimates (iceg.slam, Slam._finish_search). Along the box world
+    # (matches, merges, pruning), one map runs every update that way, first on estimates a
+    # closure would then correct (bent along the path), the other only the second update:
+    # both hold the same state after every node. A reference built before the undone update
+    # still holds the values it had (a loop-closure match built then may run after it).
+    spec, plain = FeatureMap(FeatureMapConfig()), FeatureMap(FeatureMapConfig())
+    m = IceMatcher()
+    poses: dict[int, np.ndarray] = {}
+    restored_merges = restored_prunes = 0
+    for s, truth in _keyframes(simulate(box_world(), seed=3)):
+        f = extract(s)
+        node = len(poses)
+        poses[node] = truth
+        if node == 0:
+            spec.update(0, f, s.stamp_s, scan=s)
+            plain.update(0, f, s.stamp_s, scan=s)
+            continue
+        window = range(max(0, node - 4), node)
+        ref_s = spec.reference(poses, window, poses[node - 1])
+        ref_p = plain.reference(poses, window, poses[node - 1])
+        res = m.match(
+            f, ref_s.features, between(poses[node - 1], truth), MatchBounds.local(0.3, 10)
+        )
+        before = [np.array(a, copy=True) for a in (ref_s.features.xy, ref_s.features.cov)]
+        checkpoint = spec.checkpoint()
+        bent = {i: p + np.array([0.004 * i, -0.002 * i, 0.001 * i]) for i, p in poses.items()}
+        undone = spec.update(
+            node, f, s.stamp_s, reference=ref_s, match=res, scan=s, node_poses=bent
+        )
+        restored_merges += undone.merged_ids.shape[0]
+        restored_prunes += undone.pruned_ids.shape[0]
+        for a, b in zip(before, (ref_s.features.xy, ref_s.features.cov), strict=True):
+            np.testing.assert_array_equal(a, b)
+        spec.restore(checkpoint)
+        spec.update(node, f, s.stamp_s, reference=ref_s, match=res, scan=s, node_poses=poses)
+        plain.update(node, f, s.stamp_s, reference=ref_p, match=res, scan=s, node_poses=poses)
+        a, b = spec.export_state(), plain.export_state()
+        assert a.keys() == b.keys()
+        for k in a:
+            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+        np.testing.assert_array_equal(spec._touched.id, plain._touched.id)
+        assert spec._touched_rows == plain._touched_rows
+        assert (spec._seg_rows, spec._pts_rows) == (plain._seg_rows, plain._pts_rows)
+    assert restored_merges > 0 and restored_prunes > 0
+
+
 @pytest.mark.parametrize("removed", [True, False])
 def test_walls_the_newest_scan_sees_through_are_dropped_from_a_reference(removed: bool) -> None:
     # Truth: box_world's box spans x 5.5-6.5, y 3.5-4.5 in a 12 m x 8 m room. Node 0 looks at

@@ -177,11 +177,11 @@ def test_a_place_is_matched_once_per_search_and_the_skipped_match_would_agree(
         trajectory_from_waypoints([[1.0, 1.0], [29.0, 1.0], [1.0, 1.0], [29.0, 1.0]]),
         seed=0,
     )
-    best_match = LoopCloser._best_match
+    local_jobs = LoopCloser._local_jobs
     outcomes: list[tuple[np.ndarray | None, np.ndarray | None]] = []  # (first, repeat)
     distinct = 0
 
-    def every_candidate(self: LoopCloser, s, features, *global_jobs):  # type: ignore[no-untyped-def]
+    def every_candidate(self: LoopCloser, s, features, *lists):  # type: ignore[no-untyped-def]
         nonlocal distinct
         first: dict[tuple[int, ...], np.ndarray | None] = {}
         for candidate in self._candidates(s):
@@ -196,9 +196,9 @@ def test_a_place_is_matched_once_per_search_and_the_skipped_match_would_agree(
             else:
                 first[key] = implied
         distinct += len(first)
-        return best_match(self, s, features, *global_jobs)
+        return local_jobs(self, s, features, *lists)
 
-    monkeypatch.setattr(LoopCloser, "_best_match", every_candidate)
+    monkeypatch.setattr(LoopCloser, "_local_jobs", every_candidate)
     # every pass adds its nodes (with reused nodes the later passes would hang from the first)
     slam = Slam(IcegConfig(slam=SlamConfig(reuse_nodes=False)))
     for scan in run.scans:

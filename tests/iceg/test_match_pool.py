@@ -1,11 +1,12 @@
-"""A search's matches shared with a helper process (issue 13): the results are the matcher's,
+"""A search's matches run by a helper process (issue 13): the results are the matcher's,
 bit for bit, whichever process ran each match. No timings here: speed is measured by
 ``benchmarks/bench_pipeline.py``."""
 
 from __future__ import annotations
 
-import functools
+import multiprocessing
 import os
+import signal
 import time
 from typing import Any
 
@@ -14,7 +15,7 @@ import pytest
 
 from frontends.simulate import corridor_world, default_trajectory, simulate
 from iceg.features import extract
-from iceg.match_pool import MatchJob, MatchPool
+from iceg.match_pool import MatchJob, MatchPool, _serve
 from iceg.matching import IceMatcher, MatchBounds, MatchingConfig
 from iceg.types import MatchResult
 from iceg_common.se2 import between
@@ -46,19 +47,15 @@ def _same(a: MatchResult, b: MatchResult) -> bool:
     )
 
 
-def _thunks(jobs: list[MatchJob]) -> list[functools.partial[MatchJob]]:
-    return [functools.partial(lambda j: j, job) for job in jobs]
-
-
-def test_shared_matches_equal_the_matcher_s(jobs: list[MatchJob]) -> None:
+def test_submitted_matches_equal_the_matcher_s(jobs: list[MatchJob]) -> None:
     matcher = IceMatcher(MatchingConfig())
     want = [matcher.match(*job) for job in jobs]
     assert sum(r.success for r in want) >= len(jobs) // 2  # real matches, not only failures
     with MatchPool(IceMatcher(MatchingConfig()), wait=True) as pool:
-        got = [r for n in (2, 3, 5) for r in pool.map(_thunks(jobs[:n]))]
-        got_all = pool.map(_thunks(jobs))
-    assert pool.remote == 1 + 1 + 2 + len(jobs) // 2  # the first half of each call
-    expect = [r for n in (2, 3, 5) for r in want[:n]]
+        got = [r for n in (1, 3, 5) for r in pool.collect(pool.submit(jobs[:n]))]
+        got_all = pool.collect(pool.submit(jobs))
+    assert (pool.remote, pool.local) == (1 + 3 + 5 + len(jobs), 0)  # every one sent
+    expect = [r for n in (1, 3, 5) for r in want[:n]]
     assert all(_same(a, b) for a, b in zip(got, expect, strict=True))
     assert all(_same(a, b) for a, b in zip(got_all, want, strict=True))
 
@@ -81,13 +78,14 @@ class _MisbehavesInHelper:
 
 
 def test_matches_the_helper_has_not_returned_are_run_here(jobs: list[MatchJob]) -> None:
-    # The helper is half a second late with every match: the calling process waits as long as
-    # one of its own took, then runs the rest itself; the helper's late results are dropped
-    # (the next map call sees them from an older batch).
+    # The helper is half a second late with every match: the calling process runs the last
+    # missing one while several are missing, waits for the one left about as long as a match
+    # takes, then runs it too; the helper's late results are dropped (the next batch sees
+    # them from an older one).
     matcher = IceMatcher(MatchingConfig())
     with MatchPool(_MisbehavesInHelper(slow=True)) as pool:
-        first = pool.map(_thunks(jobs[:4]))
-        second = pool.map(_thunks(jobs[4:8]))
+        first = pool.collect(pool.submit(jobs[:4]))
+        second = pool.collect(pool.submit(jobs[4:8]))
     assert pool.remote == 0 and pool.local == 8
     want = [matcher.match(*job) for job in jobs[:8]]
     assert all(_same(a, b) for a, b in zip(first + second, want, strict=True))
@@ -97,13 +95,45 @@ def test_a_match_that_failed_in_the_helper_is_run_here(jobs: list[MatchJob]) -> 
     # Even when told to wait for the helper: its failure comes back, and the match runs here.
     matcher = IceMatcher(MatchingConfig())
     with MatchPool(_MisbehavesInHelper(slow=False), wait=True) as pool:
-        got = pool.map(_thunks(jobs[:4]))
+        got = pool.collect(pool.submit(jobs[:4]))
     assert pool.remote == 0 and pool.local == 4
     want = [matcher.match(*job) for job in jobs[:4]]
     assert all(_same(a, b) for a, b in zip(got, want, strict=True))
 
 
 def test_without_a_helper_every_match_runs_here(jobs: list[MatchJob]) -> None:
-    with MatchPool(IceMatcher(MatchingConfig()), helper=False) as pool:
-        pool.map(_thunks(jobs[:4]))
-    assert (pool.remote, pool.local) == (0, 4)
+    matcher = IceMatcher(MatchingConfig())
+    want = [matcher.match(*job) for job in jobs[:4]]
+    with MatchPool(matcher, helper=False) as pool:
+        got = pool.collect(pool.submit(jobs[:4]))
+    outside = MatchPool(matcher)  # never entered: no helper is forked
+    got_outside = outside.collect(outside.submit(jobs[:4]))
+    assert (pool.remote, pool.local) == (outside.remote, outside.local) == (0, 4)
+    assert all(_same(a, b) for a, b in zip(got + got_outside, want + want, strict=True))
+
+
+def test_the_helper_skips_the_jobs_the_calling_process_has_taken(jobs: list[MatchJob]) -> None:
+    # The helper loop, run here on a pipe: of batch 1 the calling process has taken jobs 2
+    # and 3 (shared [batch, first index]); the helper answers 0 and 1 of it and every job
+    # of batch 2, each with the matcher's result.
+    matcher = IceMatcher(MatchingConfig())
+    here, there = multiprocessing.Pipe(duplex=True)
+    parent_end, _ = multiprocessing.Pipe(duplex=True)
+    taken = multiprocessing.RawArray("q", [1, 2])
+    for msg in [(1, 0, jobs[0]), (1, 1, jobs[1]), (1, 2, jobs[2]), (1, 3, jobs[3])]:
+        here.send(msg)
+    here.send((2, 0, jobs[4]))
+    here.send((2, 1, jobs[5]))
+    here.send(None)
+    previous = signal.getsignal(signal.SIGINT)
+    try:
+        _serve(there, parent_end, os.getpid(), matcher, taken)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    answered = []
+    while here.poll(0):
+        batch, k, result, cpu_s = here.recv()
+        answered.append((batch, k))
+        want = jobs[{1: 0, 2: 4}[batch] + k]
+        assert _same(result, matcher.match(*want)) and cpu_s >= 0.0
+    assert answered == [(1, 0), (1, 1), (2, 0), (2, 1)]

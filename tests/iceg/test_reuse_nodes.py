@@ -1,6 +1,7 @@
 """Reused nodes (``slam.reuse_nodes``, a reduced pose graph): a revisit hangs from the old
 nodes instead of adding new ones, against the simulated truth; a session split while a
-revisit hangs from an old node continues bit for bit, and two workers give the same run."""
+revisit hangs from an old node continues bit for bit, and two workers, or searches decided at
+the next keyframe, give the same run."""
 
 from __future__ import annotations
 
@@ -12,6 +13,8 @@ from graph import FactorKind
 from iceg import session
 from iceg.config import config_from_dict
 from iceg.evaluation import position_errors
+from iceg.feature_map import FeatureMap, MapCheckpoint
+from iceg.match_pool import MatchPool
 from iceg.pipeline import run_scans
 from iceg.results import SlamResult
 from iceg.slam import Anchor, Slam
@@ -124,6 +127,40 @@ def test_two_workers_give_the_same_run_bit_for_bit(two_laps, reused) -> None:  #
     two = run_scans(run.scans, config_from_dict({"slam": {"reuse_nodes": True, "workers": 2}}))
     assert two.reused_keyframes == one.reused_keyframes
     assert two.poses.tobytes() == one.poses.tobytes()
+
+
+def test_searches_decided_at_the_next_keyframe_give_the_same_run_bit_for_bit(  # type: ignore[no-untyped-def]
+    two_laps, reused, monkeypatch
+) -> None:
+    # With a match pool, a node's loop-closure search stays open while the node's map update
+    # and the next keyframe's local match run; a closure it then accepts undoes that map
+    # update, updates it again on the corrected estimates, and the keyframe starts again
+    # (revisits hang from old nodes here). The run is the one that decides each search at
+    # its node, bit for bit. A pool without a helper takes the same steps in one process.
+    run, _ = two_laps
+    _, one = reused
+    restores = 0
+    restore = FeatureMap.restore
+
+    def counted(self: FeatureMap, checkpoint: MapCheckpoint) -> None:
+        nonlocal restores
+        restores += 1
+        restore(self, checkpoint)
+
+    monkeypatch.setattr(FeatureMap, "restore", counted)
+    slam = Slam(config_from_dict(REUSE))
+    with MatchPool(slam.matcher, helper=False) as pool:
+        slam.loop_closer.match_pool = pool
+        for scan in run.scans:
+            slam.process(scan)
+        deferred = slam.finish()
+    assert restores >= 3 and pool.local > 0  # closures accepted after their map update ran
+    assert deferred.reused_keyframes == one.reused_keyframes
+    assert deferred.poses.tobytes() == one.poses.tobytes()
+    assert deferred.node_poses.tobytes() == one.node_poses.tobytes()
+    assert [(f.kind, f.i, f.j) for f in deferred.factors] == [
+        (f.kind, f.i, f.j) for f in one.factors
+    ]
 
 
 def test_a_closure_a_revisit_hangs_from_is_forbidden_in_a_new_run_not_removed(  # type: ignore[no-untyped-def]
