@@ -147,8 +147,8 @@ class SlamConfig(BaseModel):
         ge=0,
         description="Processes of a whole run (iceg run): with 2 or more, ICE features of "
         "upcoming scans (and what the run derives from a scan alone) are computed in "
-        "workers - 1 other processes while this one matches, and the loop-closure searches "
-        "share their candidate matches with one helper process; 0 picks 2 when a core is "
+        "workers - 1 other processes while this one matches, and the loop-closure searches' "
+        "matches run in one helper process while this one tracks; 0 picks 2 when a core is "
         "idle (auto_workers: the cores watched for 50 ms), else 1. The result is identical "
         "with any number (features do not depend on the pose, a match is a pure function of "
         "its inputs).",

@@ -46,9 +46,9 @@ def run_scans(
     With ``config.slam.workers`` > 1 (0: :func:`~iceg.features.prefetch.auto_workers`) the
     features of upcoming scans, and what the run derives from them alone
     (:mod:`iceg.scan_products`), are computed in worker processes
-    (:class:`~iceg.features.prefetch.FeaturePrefetcher`), and the loop-closure searches
-    share their candidate matches with a helper process (:class:`~iceg.match_pool.MatchPool`);
-    the result is the same.
+    (:class:`~iceg.features.prefetch.FeaturePrefetcher`), and the loop-closure searches'
+    candidate matches run in a helper process (:class:`~iceg.match_pool.MatchPool`) while
+    the next keyframe is tracked; the result is the same.
 
     Raises:
         LogFormatError: there are no scans.

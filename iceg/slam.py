@@ -488,6 +488,12 @@ class Slam:
         computed ahead by :class:`iceg.features.prefetch.FeaturePrefetcher`); it is called
         only when the scan needs features (a keyframe).
 
+        With a match helper (``loop_closer.match_pool``, set by :mod:`iceg.pipeline` for two
+        processes), a keyframe's loop-closure search is decided at the next keyframe, before
+        its node (or when :attr:`graph`, :meth:`trajectory`, :meth:`export_state` or
+        :meth:`finish` is read): until then the poses returned leave its closures out. The
+        run is the same bit for bit (:meth:`_finish_search`).
+
         Raises:
             ScanError: the scan's stamp is earlier than the previous scan's.
         """
@@ -550,6 +556,7 @@ class Slam:
             # closure: the keyframe starts again from the corrected estimates and map.
             motion = self._motion(scan, self._odometry_of(scan), last)
             return self._process_keyframe(scan, motion, last, time.perf_counter(), lambda: feats)
+        t0 = time.perf_counter()  # the search's decision is timed as its own stage
         if local.ice_failure:
             counts = self._s.point_fallbacks if local.result.success else self._s.match_failures
             counts[local.ice_failure] += 1
