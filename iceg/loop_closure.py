@@ -644,7 +644,9 @@ class LoopCloser:
         closer = LoopCloser(config.loop_closure, matcher, feature_map)
         closer.observe(node_id, features)  # every node: its place descriptor
         if closer.due(node_id):
-            accepted = closer.search(node_id, features, graph, path_m)
+            begun = closer.start_search(node_id, features, graph, path_m)
+            ...  # other work while the match helper runs the matches
+            accepted = None if begun is None else closer.finish_search(begun, graph, path_m)
 
     Args:
         config: Loop-closure settings.
@@ -697,15 +699,19 @@ class LoopCloser:
         if self.config.enabled and self.config.global_search:
             self.places.add(node_id, place_descriptor(features, self.config.place_index))
 
-    def search(
+    def start_search(
         self,
         node_id: int,
         features: ScanFeatures,
         graph: PoseGraph,
         path_m: Sequence[float],
-    ) -> AcceptedClosures | None:
-        """Search older nodes for a loop closure of ``node_id``, near its estimate and, when
-        due, by appearance.
+    ) -> OpenSearch | None:
+        """Begin a search of older nodes for a loop closure of ``node_id``, near its estimate
+        and, when due, by appearance: its candidates, and their matches built and handed to
+        :attr:`match_pool` (sent to its helper process, each as its reference is built).
+        :meth:`finish_search` decides it; call it before the graph changes or another search
+        starts (:mod:`iceg.slam` tracks the next keyframe in between, while the helper runs
+        the matches).
 
         Local search: candidates are nodes at least ``min_node_gap`` nodes and ``min_path_m``
         metres of path back, within ``radius = base + n_sigma * sqrt(lambda_max(cov_xy))`` of
@@ -722,10 +728,6 @@ class LoopCloser:
         Global search (when nothing was accepted, every ``global_every_n_searches``-th
         search): see :meth:`_global`.
 
-        The same as :meth:`start_search` then :meth:`finish_search` with nothing in between
-        (:mod:`iceg.slam` tracks the next keyframe in between, while the match helper runs
-        the search's matches).
-
         Args:
             node_id: The current node (through ``graph.update()`` or ``graph.solve_pending()``,
                 and observed).
@@ -735,26 +737,8 @@ class LoopCloser:
             path_m: Odometry path length at each node, metres, indexed by node id.
 
         Returns:
-            The closures to add as factors, or ``None``.
-
-        Raises:
-            GraphError: the graph cannot give the current node's marginal covariance (or a
-                global closure's relative covariance).
-        """
-        begun = self.start_search(node_id, features, graph, path_m)
-        return None if begun is None else self.finish_search(begun, graph, path_m)
-
-    def start_search(
-        self,
-        node_id: int,
-        features: ScanFeatures,
-        graph: PoseGraph,
-        path_m: Sequence[float],
-    ) -> OpenSearch | None:
-        """The first half of :meth:`search`: its candidates, and their matches built and
-        handed to :attr:`match_pool` (sent to its helper process); ``None`` when the node has
-        no older candidates. Pass the result to :meth:`finish_search` before the graph
-        changes or another search starts.
+            The search for :meth:`finish_search`, or ``None`` when the node has no older
+            candidates.
 
         Raises:
             GraphError: the graph cannot give the current node's marginal covariance.
@@ -788,8 +772,12 @@ class LoopCloser:
     def finish_search(
         self, begun: OpenSearch, graph: PoseGraph, path_m: Sequence[float]
     ) -> AcceptedClosures | None:
-        """The second half of :meth:`search`: the matches' results (from :attr:`match_pool`
-        when set, else run here) and the decision.
+        """Decide a search begun by :meth:`start_search`: the matches' results (from
+        :attr:`match_pool` when set, else run here), then the gates and agreement described
+        there.
+
+        Returns:
+            The closures to add as factors, or ``None``.
 
         Raises:
             GraphError: the graph cannot give a global closure's relative covariance.

@@ -6,9 +6,10 @@ an independent call of the matcher, a pure function of the scan's features, the 
 reference, the prediction and the bounds. :meth:`MatchPool.submit` sends every match of a
 search to a forked helper process and returns at once, so that the calling process goes on
 with its own work (the next keyframe's tracking, :mod:`iceg.slam`);
-:meth:`MatchPool.collect` then reads the results, waiting for each for about as long as a
-match takes, and runs a match that has not arrived by then itself (from the last one back;
-the helper's late result is dropped): a helper starved of CPU costs little. Either process
+:meth:`MatchPool.collect` then reads the results: while two or more are missing it runs the
+last of them itself (the helper works from the first and skips a match taken here), and it
+waits for the one left about as long as a match takes before running that one too (the
+helper's late result is dropped): a helper starved of CPU costs little. Either process
 computes the same result from the same inputs, so the run is the same bit for bit whatever
 the timing and with or without a helper (``tests/iceg/test_match_pool.py``).
 

@@ -1046,7 +1046,7 @@ class Slam:
         updates. Where the node's map update ran meanwhile, it is undone before
         (:meth:`FeatureMap.restore`) and runs again after: the map update needs the
         closure's correction, and every step is the one a search decided at its node takes,
-        bit for bit (docs/design.md, "Loop-closure matches beside tracking")."""
+        bit for bit (docs/design.md, "Loop-closure searches decided at the next keyframe")."""
         open_, self._open = self._open, None
         if open_ is None:
             return False

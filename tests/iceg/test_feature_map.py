@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterator
+from typing import NamedTuple
 
 import numpy as np
 import pytest
@@ -20,6 +21,8 @@ from iceg.feature_map import (
     PRUNED_VALIDITY,
     FeatureMap,
     FeatureMapConfig,
+    MapReference,
+    MapUpdate,
     PrunedLandmarks,
     _Points,
 )
@@ -44,7 +47,7 @@ from iceg.matching import IceMatcher, MatchBounds
 from iceg.matching._kernels import move_lines
 from iceg.matching.geometry import PolarProfile
 from iceg.matching.matcher import walls_seen_through
-from iceg.types import FeatureKind, MatchResult
+from iceg.types import FeatureKind, MatchResult, ScanFeatures
 from iceg.visibility import count_observations, expected_landmarks, pruned_landmarks
 from iceg_common import se2
 from iceg_common.errors import FeatureMapError
@@ -403,13 +406,22 @@ def test_a_reference_after_an_update_is_that_of_the_map_rebuilt_from_its_state()
     assert fm.n_merged > 0 and fm.pruned.ids.shape[0] > 0
 
 
-def test_an_update_after_its_pose_nodes_were_asked_is_the_update_without() -> None:
-    # A map keeps the rows of the landmarks taking part in a node's bookkeeping that its
-    # update_pose_nodes chose (the update reads them again); the bookkeeping changes them.
-    # Two maps along the box world (matches, merges, pruning), one asked for each update's
-    # pose nodes first (as the SLAM loop does), the other not, hold the same state after
-    # every update; asked again after it, the first answers as a map rebuilt from its state.
-    asked, plain = FeatureMap(FeatureMapConfig()), FeatureMap(FeatureMapConfig())
+class _Step(NamedTuple):
+    """A keyframe of :func:`_box_world_steps` to update both maps with."""
+
+    node: int
+    features: ScanFeatures
+    scan: LaserScan
+    poses: dict[int, np.ndarray]  # true poses of the nodes so far, this one included
+    ref_a: MapReference
+    ref_b: MapReference
+    match: MatchResult  # against ref_a
+
+
+def _box_world_steps(a: FeatureMap, b: FeatureMap) -> Iterator[_Step]:
+    """Two maps along the box world (matches, merges, pruning) with true poses: node 0 is
+    added to both, then every keyframe's scan is matched against ``a``'s landmarks of the
+    last four nodes, each map's reference of them given (the caller updates both)."""
     m = IceMatcher()
     poses: dict[int, np.ndarray] = {}
     for s, truth in _keyframes(simulate(box_world(), seed=3)):
@@ -417,27 +429,59 @@ def test_an_update_after_its_pose_nodes_were_asked_is_the_update_without() -> No
         node = len(poses)
         poses[node] = truth
         if node == 0:
-            asked.update(0, f, s.stamp_s, scan=s)
-            plain.update(0, f, s.stamp_s, scan=s)
+            a.update(0, f, s.stamp_s, scan=s)
+            b.update(0, f, s.stamp_s, scan=s)
             continue
         window = range(max(0, node - 4), node)
-        ref_a = asked.reference(poses, window, poses[node - 1])
-        ref_p = plain.reference(poses, window, poses[node - 1])
+        ref_a = a.reference(poses, window, poses[node - 1])
+        ref_b = b.reference(poses, window, poses[node - 1])
         res = m.match(
             f, ref_a.features, between(poses[node - 1], truth), MatchBounds.local(0.3, 10)
         )
-        want_nodes = asked.update_pose_nodes(node, ref_a)
-        assert set(want_nodes.tolist()) <= set(poses)
-        asked.update(node, f, s.stamp_s, reference=ref_a, match=res, scan=s, node_poses=poses)
-        plain.update(node, f, s.stamp_s, reference=ref_p, match=res, scan=s, node_poses=poses)
-        a, b = asked.export_state(), plain.export_state()
-        assert a.keys() == b.keys()
-        for k in a:
-            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+        yield _Step(node, f, s, poses, ref_a, ref_b, res)
+
+
+def _update(
+    fm: FeatureMap, step: _Step, ref: MapReference, poses: dict[int, np.ndarray]
+) -> MapUpdate:
+    return fm.update(
+        step.node,
+        step.features,
+        step.scan.stamp_s,
+        reference=ref,
+        match=step.match,
+        scan=step.scan,
+        node_poses=poses,
+    )
+
+
+def _assert_same_state(a: FeatureMap, b: FeatureMap) -> dict[str, np.ndarray]:
+    """Both maps' states hold the same arrays; returns ``a``'s."""
+    x, y = a.export_state(), b.export_state()
+    assert x.keys() == y.keys()
+    for k in x:
+        np.testing.assert_array_equal(x[k], y[k], err_msg=k)
+    return x
+
+
+def test_an_update_after_its_pose_nodes_were_asked_is_the_update_without() -> None:
+    # A map keeps the rows of the landmarks taking part in a node's bookkeeping that its
+    # update_pose_nodes chose (the update reads them again); the bookkeeping changes them.
+    # Two maps along the box world (matches, merges, pruning), one asked for each update's
+    # pose nodes first (as the SLAM loop does), the other not, hold the same state after
+    # every update; asked again after it, the first answers as a map rebuilt from its state.
+    asked, plain = FeatureMap(FeatureMapConfig()), FeatureMap(FeatureMapConfig())
+    for step in _box_world_steps(asked, plain):
+        want_nodes = asked.update_pose_nodes(step.node, step.ref_a)
+        assert set(want_nodes.tolist()) <= set(step.poses)
+        _update(asked, step, step.ref_a, step.poses)
+        _update(plain, step, step.ref_b, step.poses)
+        state = _assert_same_state(asked, plain)
         # asked again after the update: what a map rebuilt from the state answers
-        fresh = FeatureMap.from_state(a)
+        fresh = FeatureMap.from_state(state)
         np.testing.assert_array_equal(
-            asked.update_pose_nodes(node, ref_a), fresh.update_pose_nodes(node, ref_a)
+            asked.update_pose_nodes(step.node, step.ref_a),
+            fresh.update_pose_nodes(step.node, step.ref_a),
         )
     assert asked.n_merged > 0 and asked.pruned.ids.shape[0] > 0
 
@@ -451,40 +495,21 @@ def test_a_restored_map_is_the_map_before_the_updates_it_undid() -> None:
     # both hold the same state after every node. A reference built before the undone update
     # still holds the values it had (a loop-closure match built then may run after it).
     spec, plain = FeatureMap(FeatureMapConfig()), FeatureMap(FeatureMapConfig())
-    m = IceMatcher()
-    poses: dict[int, np.ndarray] = {}
     restored_merges = restored_prunes = 0
-    for s, truth in _keyframes(simulate(box_world(), seed=3)):
-        f = extract(s)
-        node = len(poses)
-        poses[node] = truth
-        if node == 0:
-            spec.update(0, f, s.stamp_s, scan=s)
-            plain.update(0, f, s.stamp_s, scan=s)
-            continue
-        window = range(max(0, node - 4), node)
-        ref_s = spec.reference(poses, window, poses[node - 1])
-        ref_p = plain.reference(poses, window, poses[node - 1])
-        res = m.match(
-            f, ref_s.features, between(poses[node - 1], truth), MatchBounds.local(0.3, 10)
-        )
-        before = [np.array(a, copy=True) for a in (ref_s.features.xy, ref_s.features.cov)]
+    for step in _box_world_steps(spec, plain):
+        ref = step.ref_a.features
+        before = [np.array(a, copy=True) for a in (ref.xy, ref.cov)]
         checkpoint = spec.checkpoint()
-        bent = {i: p + np.array([0.004 * i, -0.002 * i, 0.001 * i]) for i, p in poses.items()}
-        undone = spec.update(
-            node, f, s.stamp_s, reference=ref_s, match=res, scan=s, node_poses=bent
-        )
+        bent = {i: p + np.array([0.004 * i, -0.002 * i, 0.001 * i]) for i, p in step.poses.items()}
+        undone = _update(spec, step, step.ref_a, bent)
         restored_merges += undone.merged_ids.shape[0]
         restored_prunes += undone.pruned_ids.shape[0]
-        for a, b in zip(before, (ref_s.features.xy, ref_s.features.cov), strict=True):
+        for a, b in zip(before, (ref.xy, ref.cov), strict=True):
             np.testing.assert_array_equal(a, b)
         spec.restore(checkpoint)
-        spec.update(node, f, s.stamp_s, reference=ref_s, match=res, scan=s, node_poses=poses)
-        plain.update(node, f, s.stamp_s, reference=ref_p, match=res, scan=s, node_poses=poses)
-        a, b = spec.export_state(), plain.export_state()
-        assert a.keys() == b.keys()
-        for k in a:
-            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+        _update(spec, step, step.ref_a, step.poses)
+        _update(plain, step, step.ref_b, step.poses)
+        _assert_same_state(spec, plain)
         np.testing.assert_array_equal(spec._touched.id, plain._touched.id)
         assert spec._touched_rows == plain._touched_rows
         assert (spec._seg_rows, spec._pts_rows) == (plain._seg_rows, plain._pts_rows)
