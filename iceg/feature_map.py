@@ -278,6 +278,7 @@ class MapCheckpoint:
     """
 
     landmarks: _Landmarks
+    map_token: object  # the map it was taken from
     n_rows: tuple[int, int, int]  # segments, points, touched landmarks
     n_blocks: tuple[int, int, int]  # node blocks of each (dicts, in insertion order)
     n_pruned: int
@@ -962,9 +963,11 @@ class FeatureMap:
 
     def checkpoint(self) -> MapCheckpoint:
         """The map's state now, to :meth:`restore` after updates that are to be undone (a
-        speculative update, :mod:`iceg.slam`). Costs a copy of the landmark table."""
+        speculative update, :mod:`iceg.slam`). Costs a copy of the landmark table (and a
+        restore another)."""
         return MapCheckpoint(
             self._lm.copy(),
+            self._token,
             (len(self._seg), len(self._pts), len(self._touched)),
             (len(self._seg_rows), len(self._pts_rows), len(self._touched_rows)),
             len(self._pruned),
@@ -972,9 +975,15 @@ class FeatureMap:
         )
 
     def restore(self, checkpoint: MapCheckpoint) -> None:
-        """Undo every :meth:`update` since ``checkpoint`` (taken from this map, restored at
-        most once): the map answers and updates as if they had never run, bit for bit."""
-        self._lm = checkpoint.landmarks
+        """Undo every :meth:`update` since ``checkpoint``: the map answers and updates as if
+        they had never run, bit for bit (the checkpoint stays valid for another restore).
+
+        Raises:
+            FeatureMapError: the checkpoint was taken from another map.
+        """
+        if checkpoint.map_token is not self._token:
+            raise FeatureMapError("FeatureMap.restore: the checkpoint is another map's")
+        self._lm = checkpoint.landmarks.copy()
         tables = (self._seg, self._pts, self._touched)
         for table, n in zip(tables, checkpoint.n_rows, strict=True):
             table.truncate(n)

@@ -507,6 +507,8 @@ def test_a_restored_map_is_the_map_before_the_updates_it_undid() -> None:
         for a, b in zip(before, (ref.xy, ref.cov), strict=True):
             np.testing.assert_array_equal(a, b)
         spec.restore(checkpoint)
+        _update(spec, step, step.ref_a, bent)  # once more undone: a checkpoint stays valid
+        spec.restore(checkpoint)
         _update(spec, step, step.ref_a, step.poses)
         _update(plain, step, step.ref_b, step.poses)
         _assert_same_state(spec, plain)
@@ -514,6 +516,8 @@ def test_a_restored_map_is_the_map_before_the_updates_it_undid() -> None:
         assert spec._touched_rows == plain._touched_rows
         assert (spec._seg_rows, spec._pts_rows) == (plain._seg_rows, plain._pts_rows)
     assert restored_merges > 0 and restored_prunes > 0
+    with pytest.raises(FeatureMapError, match="another map's"):
+        plain.restore(checkpoint)
 
 
 @pytest.mark.parametrize("removed", [True, False])
