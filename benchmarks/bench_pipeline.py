@@ -26,11 +26,16 @@ compare CPU times of runs made back to back. With ``--profile`` the CSAIL run is
 pyinstrument instead (wall figures then include the profiler's overhead): the HTML goes to
 the printed path and the five largest self-time costs are listed.
 
+Last, ``iceg run`` as a user types it (``python -m iceg.cli run``), in a fresh process on
+the log with its relations and on the demo: the wall time from start to exit, and how much of
+it is not the run's stages (interpreter, imports, log reading, saving, exit); ``--no-cli``
+skips it.
+
 ``--workers N`` sets both ``slam.workers`` and ``grid.threads`` (each picks by the load
 average when left at 0).
 
 Run: ``python benchmarks/bench_pipeline.py [--profile [HTML]] [--no-demo] [--no-cold]
-[--workers N] [path/to/mit-csail.clf [path/to/relations]]``
+[--no-cli] [--workers N] [path/to/mit-csail.clf [path/to/relations]]``
 """
 
 from __future__ import annotations
