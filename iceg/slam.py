@@ -324,9 +324,9 @@ class Slam:
         self.point_matcher = PlIcpMatcher(self.config.matching)
         self._node_points: dict[int, FloatArray] = {}  # recent nodes' scan points (cache)
         self._last_features: tuple[int, ScanFeatures] | None = None  # newest node, features
-        self.feature_map = FeatureMap(self.config.feature_map)
+        self._feature_map = FeatureMap(self.config.feature_map)
         self.loop_closer = LoopCloser(
-            self.config.loop_closure, self.matcher, self.feature_map, self.config.odometry_noise
+            self.config.loop_closure, self.matcher, self._feature_map, self.config.odometry_noise
         )
         self.odometry_calibrator = OdometryCalibrator(self.config.odometry_calibration)
         self.timer = StageTimer()
@@ -344,6 +344,14 @@ class Slam:
     @graph.setter
     def graph(self, graph: PoseGraph) -> None:
         self._graph = graph
+
+    @property
+    def feature_map(self) -> FeatureMap:
+        """The feature map, every loop-closure search begun so far decided
+        (:meth:`_finish_search`): a node's map update that ran before its search accepted a
+        closure is redone first."""
+        self._finish_search()
+        return self._feature_map
 
     @property
     def loop_stats(self) -> LoopClosureStats:
@@ -379,7 +387,7 @@ class Slam:
         Held-back closures go to ``slam.loop_closer.pending`` afterwards."""
         slam = cls(config)
         slam._graph = graph
-        slam.feature_map = feature_map
+        slam._feature_map = feature_map
         slam.loop_closer = LoopCloser(
             config.loop_closure, slam.matcher, feature_map, config.odometry_noise
         )
@@ -442,7 +450,7 @@ class Slam:
         # the old place's that the placement matched.
         self._remember_points(new_id, feats)
         self.loop_closer.observe(new_id, feats)  # a place the global search can find
-        self.feature_map.update(new_id, feats, scan.stamp_s, scan=scan)
+        self._feature_map.update(new_id, feats, scan.stamp_s, scan=scan)
         self.timer.add("segment_start", t0)
         return self._graph.estimate(new_id)
 
@@ -490,9 +498,9 @@ class Slam:
 
         With a match helper (``loop_closer.match_pool``, set by :mod:`iceg.pipeline` for two
         processes), a keyframe's loop-closure search is decided at the next keyframe, before
-        its node (or when :attr:`graph`, :meth:`trajectory`, :meth:`export_state` or
-        :meth:`finish` is read): until then the poses returned leave its closures out. The
-        run is the same bit for bit (:meth:`_finish_search`).
+        its node (or when :attr:`graph`, :attr:`feature_map`, :meth:`trajectory`,
+        :meth:`export_state` or :meth:`finish` is read): until then the poses returned leave
+        its closures out. The run is the same bit for bit (:meth:`_finish_search`).
 
         Raises:
             ScanError: the scan's stamp is earlier than the previous scan's.
@@ -582,7 +590,7 @@ class Slam:
             self._begin_search(node_id, feats, scan, local)
             t0 = self.timer.add("loop_closure", t0)
         if self._open is not None:
-            self._open.checkpoint = self.feature_map.checkpoint()
+            self._open.checkpoint = self._feature_map.checkpoint()
         self._update_map(node_id, feats, scan, local)
         self.timer.add("feature_map", t0)
 
@@ -657,9 +665,9 @@ class Slam:
         window = np.arange(
             max(0, node - half), min(self._graph.n_nodes, node + half + 1), dtype=np.int64
         )
-        ids, poses = self._graph.estimates_of(self.feature_map.reference_pose_nodes(window))
+        ids, poses = self._graph.estimates_of(self._feature_map.reference_pose_nodes(window))
         frame = poses[np.searchsorted(ids, node)]
-        reference = self.feature_map.reference((ids, poses), window, frame)
+        reference = self._feature_map.reference((ids, poses), window, frame)
         bounds = MatchBounds.local(cfg.match_max_translation_m, cfg.match_max_rotation_deg)
         result = self.matcher.match(feats, reference.features, prediction, bounds)
         if not result.success:
@@ -799,7 +807,7 @@ class Slam:
         self._remember_points(0, feats)
         self.loop_closer.observe(0, feats)
         self._graph.update()
-        self.feature_map.update(0, feats, scan.stamp_s, scan=scan)
+        self._feature_map.update(0, feats, scan.stamp_s, scan=scan)
         self.timer.add("feature_map", t0)
         return odom.copy()
 
@@ -843,9 +851,9 @@ class Slam:
         cfg = self.config.slam
         first = max(log_start, last - cfg.local_map_nodes + 1)
         recent = np.arange(first, last + 1, dtype=np.int64)
-        ids, poses = self._graph.estimates_of(self.feature_map.reference_pose_nodes(recent))
+        ids, poses = self._graph.estimates_of(self._feature_map.reference_pose_nodes(recent))
         last_pose = poses[np.searchsorted(ids, last)]
-        reference = self.feature_map.reference((ids, poses), recent, last_pose)
+        reference = self._feature_map.reference((ids, poses), recent, last_pose)
         if cfg.drop_walls_seen_through and self._s.node_matched[last]:
             # The last node's scan is the newest view of the place; its pose comes from a
             # match against these walls, so a wall it sees through is gone.
@@ -1054,7 +1062,7 @@ class Slam:
         accepted = self.loop_closer.finish_search(open_.begun, self._graph, self._s.node_path_m)
         if accepted is not None:
             if open_.checkpoint is not None:
-                self.feature_map.restore(open_.checkpoint)
+                self._feature_map.restore(open_.checkpoint)
             self._add_closures(accepted)
         t0 = self.timer.add("loop_closure", t0)
         if accepted is None or open_.checkpoint is None:
@@ -1091,7 +1099,7 @@ class Slam:
         self, node_id: int, feats: ScanFeatures, scan: LaserScan, local: _LocalMatch
     ) -> None:
         """Feature-map association and time-validity at the updated estimates."""
-        self.feature_map.update(
+        self._feature_map.update(
             node_id,
             feats,
             scan.stamp_s,
@@ -1100,7 +1108,7 @@ class Slam:
             scan=scan,
             # Only the poses the update reads (same values as the full table, O(k) not O(N)).
             node_poses=self._graph.estimates_of(
-                self.feature_map.update_pose_nodes(node_id, local.reference)
+                self._feature_map.update_pose_nodes(node_id, local.reference)
             ),
         )
 
@@ -1253,7 +1261,7 @@ class Slam:
             point_fallbacks=dict(self._s.point_fallbacks),
             reused_keyframes=self._s.reused_keyframes,
             stage_seconds=dict(self.timer.seconds),
-            feature_map=self.feature_map,
+            feature_map=self._feature_map,
             graph=self._graph,
             config=self.config,
             scans=self._s.scans,

@@ -163,6 +163,47 @@ def test_searches_decided_at_the_next_keyframe_give_the_same_run_bit_for_bit(  #
     ]
 
 
+def test_the_feature_map_read_while_a_search_is_open_is_the_map_after_its_decision(  # type: ignore[no-untyped-def]
+    two_laps, reused, monkeypatch
+) -> None:
+    # Read between two keyframes, ``Slam.feature_map`` decides the open search first: where
+    # the search accepts a closure, the node's map update that ran before is redone on the
+    # corrected estimates, so the map read is the map of the run that decides each search
+    # at its node, at the same scan (compared where that run accepted a closure).
+    run, _ = two_laps
+    _, one = reused
+    restores = 0
+    restore = FeatureMap.restore
+
+    def counted(self: FeatureMap, checkpoint: MapCheckpoint) -> None:
+        nonlocal restores
+        restores += 1
+        restore(self, checkpoint)
+
+    monkeypatch.setattr(FeatureMap, "restore", counted)
+    direct, deferred = Slam(config_from_dict(REUSE)), Slam(config_from_dict(REUSE))
+    compared = 0
+    with MatchPool(deferred.matcher, helper=False) as pool:
+        deferred.loop_closer.match_pool = pool
+        for scan in run.scans:
+            accepted = direct.loop_stats.accepted
+            direct.process(scan)
+            deferred.process(scan)
+            if direct.loop_stats.accepted == accepted:
+                continue
+            compared += 1
+            fmap = deferred.feature_map
+            # the read decided the open search (the closure is in, not pending)
+            assert deferred.loop_closer.stats.accepted == direct.loop_stats.accepted
+            want, got = direct.feature_map.export_state(), fmap.export_state()
+            assert want.keys() == got.keys()
+            for k in want:  # NaN where equal (an Intersection has no directions)
+                np.testing.assert_array_equal(got[k], want[k], err_msg=f"{k} {scan.source}")
+        result = deferred.finish()
+    assert compared >= 3 and restores >= 3  # updates redone at the read
+    assert result.poses.tobytes() == one.poses.tobytes()
+
+
 def test_a_closure_a_revisit_hangs_from_is_forbidden_in_a_new_run_not_removed(  # type: ignore[no-untyped-def]
     two_laps, reused, tmp_path
 ) -> None:
