@@ -31,8 +31,8 @@ the log with its relations and on the demo: the wall time from start to exit, an
 it is not the run's stages (interpreter, imports, log reading, saving, exit); ``--no-cli``
 skips it.
 
-``--workers N`` sets both ``slam.workers`` and ``grid.threads`` (each picks by the load
-average when left at 0).
+``--workers N`` sets both ``slam.workers`` and ``grid.threads`` (left at 0, each takes 2
+when the cores are idle enough, :func:`iceg.features.prefetch.auto_workers`).
 
 Run: ``python benchmarks/bench_pipeline.py [--profile [HTML]] [--no-demo] [--no-cold]
 [--no-cli] [--workers N] [path/to/mit-csail.clf [path/to/relations]]``
@@ -352,11 +352,9 @@ def cli_runs(log: Path, rel: Path, workers: int | None) -> None:
         cases = (("MIT CSAIL", [str(log), "--relations", str(rel)]), ("built-in demo", []))
         for label, args in cases:
             out = Path(tmp) / label.replace(" ", "_")
-            cmd = [sys.executable, "-m", "iceg.cli", "run", *args, *extra]
+            cmd = [sys.executable, "-m", "iceg.cli", "run", *args, *extra, "--out", str(out)]
             t0 = time.perf_counter()
-            subprocess.run(
-                [*cmd, "--out", str(out), "--no-progress"], env=env, capture_output=True, check=True
-            )
+            subprocess.run([*cmd, "--no-progress"], env=env, capture_output=True, check=True)
             wall = time.perf_counter() - t0
             stages = json.loads((out / "metrics.json").read_text())["total_seconds"]
             print(
