@@ -244,6 +244,11 @@ def test_stamps_sort_runs_and_records_the_policy(tmp_path: Path) -> None:
     )
     assert result.exit_code == 0, result.output
     metrics = json.loads((out / "metrics.json").read_text())
+    # the command's time holds the run's stages (printed to two decimals)
+    time_row = next(line for line in result.stdout.splitlines() if line.split()[0] == "time")
+    in_all = float(time_row.split()[1])
+    assert in_all >= round(metrics["total_seconds"], 2) > 0, time_row
+    assert f"the run's stages {metrics['total_seconds']:.2f} s" in time_row
     assert metrics["stamps"]["policy"] == "sort"
     assert metrics["stamps"]["out_of_order"] == 1
     assert metrics["relations"]["n_matched"] == 1
