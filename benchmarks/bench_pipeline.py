@@ -54,8 +54,12 @@ import time
 from collections import defaultdict
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from iceg.results import SlamResult
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "mit-csail"
 ROOT = Path(__file__).resolve().parents[1]
@@ -176,16 +180,29 @@ def _helpers_cpu_s() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def _report(
-    name: str,
-    wall: float,
-    n_scans: int,
-    duration_s: float,
-    stage_seconds: dict[str, float],
-    samples: dict[str, list[float]],
-    cpu: float,
-    helpers_cpu: float,
-) -> None:
+@dataclass
+class _Clock:
+    """A timed block's wall time, CPU time of this process and of the helper processes that
+    exited meanwhile (seconds; filled when the block ends)."""
+
+    wall: float = 0.0
+    cpu: float = 0.0
+    helpers_cpu: float = 0.0
+
+
+@contextmanager
+def _clock() -> Iterator[_Clock]:
+    clock = _Clock()
+    h0, t0, c0 = _helpers_cpu_s(), time.perf_counter(), time.process_time()
+    yield clock
+    clock.wall, clock.cpu = time.perf_counter() - t0, time.process_time() - c0
+    clock.helpers_cpu = _helpers_cpu_s() - h0
+
+
+def _report(name: str, result: SlamResult, samples: dict[str, list[float]], clock: _Clock) -> None:
+    wall, cpu, helpers_cpu = clock.wall, clock.cpu, clock.helpers_cpu
+    n_scans, stage_seconds = result.n_scans, result.stage_seconds
+    duration_s = float(result.stamps_s[-1] - result.stamps_s[0])
     print(f"== {name}")
     print(
         f"end to end: {wall:.2f} s for {n_scans} scans ({n_scans / wall:.1f} scans/s); "
@@ -250,32 +267,18 @@ def run_csail(
 
         profiler = Profiler(interval=0.0005)
         profiler.start()
-    with _instrument() as samples:
-        h0 = _helpers_cpu_s()
-        t0, c0 = time.perf_counter(), time.process_time()
+    with _instrument() as samples, _clock() as clock:
         result = run_log(log, cfg, relations=rel)
         c1 = time.process_time()
         result.render_map()
         samples[CPU + "grid"].append(time.process_time() - c1)
-        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-        helpers_cpu = _helpers_cpu_s() - h0
     if profiler is not None:
         profiler.stop()
         assert profile is not None
         profile.write_text(profiler.output_html())
         print(f"profile (pyinstrument HTML): {profile}")
         _print_top_costs(profiler, 5)
-    duration = float(result.stamps_s[-1] - result.stamps_s[0])
-    _report(
-        f"CSAIL {log.name}",
-        wall,
-        result.n_scans,
-        duration,
-        result.stage_seconds,
-        samples,
-        cpu,
-        helpers_cpu,
-    )
+    _report(f"CSAIL {log.name}", result, samples, clock)
     r = result.metrics["relations"]
     print(
         f"relation error: {r['trans_mean_m']:.4f} ± {r['trans_std_m']:.4f} m, "
@@ -286,7 +289,7 @@ def run_csail(
     if out is not None:
         result.save(out)
         print(f"saved (untimed): {out}")
-    return {"wall": wall}
+    return {"wall": clock.wall}
 
 
 def run_demo(workers: int | None) -> None:
@@ -294,24 +297,10 @@ def run_demo(workers: int | None) -> None:
     from iceg.pipeline import run_simulated_demo
 
     cfg = _config(workers)
-    with _instrument() as samples:
-        h0 = _helpers_cpu_s()
-        t0, c0 = time.perf_counter(), time.process_time()
+    with _instrument() as samples, _clock() as clock:
         result = run_simulated_demo(cfg)
         result.render_map()
-        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-        helpers_cpu = _helpers_cpu_s() - h0
-    duration = float(result.stamps_s[-1] - result.stamps_s[0])
-    _report(
-        "built-in demo (simulated office)",
-        wall,
-        result.n_scans,
-        duration,
-        result.stage_seconds,
-        samples,
-        cpu,
-        helpers_cpu,
-    )
+    _report("built-in demo (simulated office)", result, samples, clock)
     gt = result.metrics["ground_truth"]
     print(f"ground truth: {json.dumps(gt, default=str)}")
 
