@@ -32,13 +32,15 @@ the printed path and the five largest self-time costs are listed.
 Last, ``iceg run`` as a user types it (``python -m iceg.cli run``), in a fresh process on
 the log with its relations and on the demo: the wall time from start to exit, and how much of
 it is not the run's stages (interpreter, imports, log reading, saving, exit); ``--no-cli``
-skips it.
+skips it. ``--fresh-install`` first times a new user's first ``iceg run`` of the demo, with
+numba's cache empty so that every kernel is compiled, and the same command once more (about
+a minute on the benchmark machine).
 
 ``--workers N`` sets both ``slam.workers`` and ``grid.threads`` (left at 0, each takes 2
 when the cores are idle enough, :func:`iceg.features.prefetch.auto_workers`).
 
 Run: ``python benchmarks/bench_pipeline.py [--profile [HTML]] [--no-demo] [--no-cold]
-[--no-cli] [--workers N] [path/to/mit-csail.clf [path/to/relations]]``
+[--no-cli] [--fresh-install] [--workers N] [path/to/mit-csail.clf [path/to/relations]]``
 """
 
 from __future__ import annotations
@@ -332,8 +334,7 @@ print(json.dumps({"import": t_import, "first_scan": t_first, "first_keyframe": t
 def cold_start(log: Path) -> None:
     """Fresh processes: import, first scan, first two matched keyframes (numba cache loads;
     the scans before them, the robot standing, are not keyframes)."""
-    env = dict(os.environ, PYTHONPATH=os.environ.get("PYTHONPATH", str(ROOT)))
-    env.pop("PYTHONDONTWRITEBYTECODE", None)  # a user's install has its bytecode cache
+    env = _cli_env()
     runs = []
     for _ in range(3):
         out = subprocess.run(
@@ -354,6 +355,24 @@ def cold_start(log: Path) -> None:
     print(f"  budget 1.00 s: {'ok' if sum(warm.values()) <= 1.0 else 'OVER'}")
 
 
+def _cli_env() -> dict[str, str]:
+    """The environment of a fresh ``iceg`` process: this checkout on the path, with Python's
+    bytecode cache written (a user's install has it)."""
+    env = dict(os.environ, PYTHONPATH=os.environ.get("PYTHONPATH", str(ROOT)))
+    env.pop("PYTHONDONTWRITEBYTECODE", None)
+    return env
+
+
+def _iceg_run(args: list[str], out: Path, env: dict[str, str]) -> tuple[float, float]:
+    """``python -m iceg.cli run ARGS --out OUT`` in a fresh process: its wall time from start
+    to exit and the run's stages (``total_seconds`` of its metrics.json), seconds."""
+    cmd = [sys.executable, "-m", "iceg.cli", "run", *args, "--out", str(out), "--no-progress"]
+    t0 = time.perf_counter()
+    subprocess.run(cmd, env=env, capture_output=True, check=True)
+    wall = time.perf_counter() - t0
+    return wall, float(json.loads((out / "metrics.json").read_text())["total_seconds"])
+
+
 def cli_runs(log: Path, rel: Path, workers: int | None) -> None:
     """``iceg run`` as a user types it, in a fresh process each (bytecode and numba caches
     warm), on the log with its relations and on the built-in demo: the wall time from the
@@ -362,8 +381,6 @@ def cli_runs(log: Path, rel: Path, workers: int | None) -> None:
     and the interpreter's exit."""
     import tempfile
 
-    env = dict(os.environ, PYTHONPATH=os.environ.get("PYTHONPATH", str(ROOT)))
-    env.pop("PYTHONDONTWRITEBYTECODE", None)
     extra: list[str] = []
     with tempfile.TemporaryDirectory() as tmp:
         if workers is not None:
@@ -376,15 +393,25 @@ def cli_runs(log: Path, rel: Path, workers: int | None) -> None:
         )
         for label, args in cases:
             out = Path(tmp) / label.replace(" ", "_")
-            cmd = [sys.executable, "-m", "iceg.cli", "run", *args, *extra, "--out", str(out)]
-            t0 = time.perf_counter()
-            subprocess.run([*cmd, "--no-progress"], env=env, capture_output=True, check=True)
-            wall = time.perf_counter() - t0
-            stages = json.loads((out / "metrics.json").read_text())["total_seconds"]
+            wall, stages = _iceg_run([*args, *extra], out, _cli_env())
             print(
                 f"iceg run, {label}: {wall:.2f} s from start to exit = the run's stages "
                 f"{stages:.2f} s + {wall - stages:.2f} s of start, log reading, saving and exit"
             )
+
+
+def fresh_install() -> None:
+    """A new user's first ``iceg run`` (the built-in demo): numba's cache empty
+    (``NUMBA_CACHE_DIR`` set to a new folder), so every kernel the run calls is compiled;
+    then the same command again, loading them from that cache."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        env = dict(_cli_env(), NUMBA_CACHE_DIR=str(Path(tmp) / "numba"))
+        for label in ("first run, empty numba cache", "second run, cache written by the first"):
+            out = Path(tmp) / label.split(",")[0].replace(" ", "_")
+            wall, stages = _iceg_run([], out, env)
+            print(f"fresh install, built-in demo, {label}: {wall:.2f} s (stages {stages:.2f} s)")
 
 
 def _print_top_costs(profiler: Any, n: int) -> None:
@@ -424,8 +451,12 @@ def main() -> None:
     ap.add_argument("--no-cold", action="store_true")
     ap.add_argument("--no-csail", action="store_true")
     ap.add_argument("--no-cli", action="store_true")
+    ap.add_argument("--fresh-install", action="store_true")
     ap.add_argument("--out", type=Path, default=None, help="save the CSAIL result here")
     args = ap.parse_args()
+    print(f"python {sys.version.split()[0]} ({sys.executable})")
+    if args.fresh_install:
+        fresh_install()
     if not args.no_cold:
         cold_start(args.log)
     if not args.no_csail:
