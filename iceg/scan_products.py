@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 from frontends.scan import LaserScan
 from iceg.config import IcegConfig
 from iceg.feature_map import VisibilityInputs, remember_visibility_inputs, visibility_inputs
+from iceg.kernel_warmup import compile_later_stages
 from iceg.matching.matcher import ScanDerived, compute_scan_derived, remember_scan_derived
 from iceg.place_index import place_descriptor, remember_place_descriptor
 from iceg.types import ScanFeatures
@@ -64,6 +65,11 @@ class ScanPrecompute:
             visibility_inputs(features, scan, self.config.feature_map.support_offset_m),
             place,
         )
+
+    def warm_up(self, scan: LaserScan, features: ScanFeatures) -> None:
+        """Compile the later stages' kernels in the worker on a new numba cache
+        (:func:`iceg.kernel_warmup.compile_later_stages`)."""
+        compile_later_stages(scan, features, self.config)
 
     def adopt(self, scan: LaserScan, features: ScanFeatures, products: ScanProducts) -> None:
         """Let the stages serve ``products`` (computed by :meth:`compute` for copies of

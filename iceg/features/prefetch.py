@@ -51,6 +51,7 @@ from frontends.scan import LaserScan
 from iceg import forked
 from iceg.features.config import FeatureConfig
 from iceg.features.extract import extract
+from iceg.features.segmentation import split_and_merge
 from iceg.types import ScanFeatures
 
 log = logging.getLogger(__name__)
@@ -87,6 +88,12 @@ class Precompute(Protocol[_P]):
     def compute(self, scan: LaserScan, features: ScanFeatures) -> _P: ...
 
     def adopt(self, scan: LaserScan, features: ScanFeatures, products: _P) -> None: ...
+
+    def warm_up(self, scan: LaserScan, features: ScanFeatures) -> None:
+        """Called in the first worker after its warm-up extraction when that extraction had
+        to compile (numba's cache is new): compile what the calling process needs later,
+        while it compiles what it needs first (:mod:`iceg.kernel_warmup`). Results are
+        dropped; an exception only ends the warm-up."""
 
 
 #: A worker's result for one scan: its features (None: extraction failed) and products (None:
@@ -132,7 +139,7 @@ class _Worker:
         self.conn, child = ctx.Pipe(duplex=True)
         self.proc: BaseProcess = ctx.Process(
             target=_serve,
-            args=(child, [self.conn, *others], os.getpid(), config, precompute, floor),
+            args=(child, [self.conn, *others], os.getpid(), config, precompute, floor, not others),
             daemon=True,
             name="iceg-features",
         )
@@ -204,12 +211,14 @@ def _serve(
     config: FeatureConfig,
     precompute: Precompute[Any] | None,
     floor: Any,
+    first: bool,
 ) -> None:
     """Worker loop: batches ``[(index, scan), ...]`` in, one ``(index, features or None,
     products or None)`` out per scan; None, the end of the pipe or the parent's exit stops
     it. A scan below the calling process's ``floor`` (shared memory) is passed already:
     it is answered with None, not extracted (a stretch of scans that make no keyframe goes
-    by faster than the worker extracts them)."""
+    by faster than the worker extracts them). The ``first`` worker also warms up the
+    later stages on a new numba cache (:meth:`Precompute.warm_up`)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle
     with contextlib.suppress(OSError):
         # Spare CPU only: on a busy machine the worker must not take the main process's
@@ -217,7 +226,7 @@ def _serve(
         os.nice(WORKER_NICENESS)
     for other in inherited:  # the parent's ends: never hold them open here
         other.close()
-    _warm_up(config, precompute)
+    _warm_up(config, precompute, first)
     while (msg := forked.next_message(conn, parent_pid)) is not None:
         for index, scan in cast(list[tuple[int, LaserScan]], msg):
             if index < floor.value:
@@ -254,17 +263,28 @@ def warm_up_scan() -> LaserScan:
     return LaserScan(0.0, ranges, bearing, 0.05, 25.0, None)
 
 
-def _warm_up(config: FeatureConfig, precompute: Precompute[Any] | None) -> None:
+def _warm_up(config: FeatureConfig, precompute: Precompute[Any] | None, later: bool) -> None:
     """Load the compiled kernels of the extraction (numba's cache) before the first scan
     arrives, while the calling process reads its log: extract :func:`warm_up_scan` and drop
-    the result."""
+    the result. Where that had to compile them (a new cache), and ``later``, the products'
+    :meth:`Precompute.warm_up` follows."""
     scan = warm_up_scan()
+    compiled = _extraction_compiles()
     try:
         feats = extract(scan, config)
         if precompute is not None:
             precompute.compute(scan, feats)
+            if later and _extraction_compiles() > compiled:
+                precompute.warm_up(scan, feats)
     except Exception:  # only a warm-up: the first real scan loads what it needs
         return
+
+
+def _extraction_compiles() -> int:
+    """How many times this process has compiled the segmentation kernel rather than load it
+    from numba's cache (its dispatcher's ``stats.cache_misses``; 0 without numba's JIT)."""
+    stats = getattr(split_and_merge, "stats", None)
+    return sum(stats.cache_misses.values()) if stats is not None else 0
 
 
 def auto_workers() -> int:

@@ -48,6 +48,7 @@ from iceg.matching.refine import (
     RefineSettings,
     bounds_prior_information,
     build_cloud,
+    covariance_at,
     effective_line_info,
     empty_cloud,
     refine,
@@ -400,6 +401,26 @@ class IceMatcher:
             or bounds.max_translation_m > v.tracking_max_translation_m
             or bounds.max_rotation_rad > math.radians(v.tracking_max_rotation_deg)
         )
+
+    def compile_checks(self, features: ScanFeatures) -> None:
+        """Run the covariance (docs/design.md step 9) and the free-space checks (step 10) of
+        a tracking match of ``features`` with themselves at the identity, without its
+        hypotheses and refinement (steps 5-8), and drop the results. Their compiled kernels
+        load then, or on a cold numba cache compile, apart from those of the steps before
+        (:mod:`iceg.kernel_warmup`).
+
+        Raises:
+            MatchingError: ``features`` are inconsistent (as :meth:`match`).
+        """
+        pose = np.zeros(3)
+        v = self.config.validation
+        bounds = MatchBounds.local(v.tracking_max_translation_m, v.tracking_max_rotation_deg)
+        pred = _checked_prediction(features, features, pose)
+        ctx = MatchContext(features, features, pred, bounds, self.config)
+        covariance_at(self._refine_problem(ctx), pose)
+        self._see_through(ctx, pose)
+        self._origins_visible(ctx, pose)
+        nearest_segment_distance(pose[:2], features.seg_endpoints)
 
     # ------------------------------------------------------------------------------------
     def match(

@@ -40,6 +40,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from iceg.matching._kernels import (
+    GATE_TO_SIGMA0,
     FeaturePairing,
     GnSettings,
     LatticePoints,
@@ -428,6 +429,23 @@ def refine(
     overlap = float(n_on) / max(1, problem.points.xy.shape[0])
     system = _FinalSystem(problem, pose.copy(), hess, pr, pairs, sigma, gate)
     return Refined(pose, sigma, overlap, n_on, pr.idx, iterations, system)
+
+
+def covariance_at(problem: RefineProblem, pose: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """``(cov_ls, cov)`` of ``pose`` as :attr:`Refined.cov_ls` and :attr:`Refined.cov` give
+    them for a refinement that ended there with the coarse gate, the starting point noise and
+    no feature pairs: the rows linearised at ``pose`` (docs/design.md step 9; lattice after
+    Olson 2009). Each ``(3, 3)`` float64, a perturbation of ``(x, y, theta)`` in the
+    reference frame. For a covariance at a pose that no refinement produced, e.g. to load
+    (or compile) the covariance's kernels without the refinement's
+    (:mod:`iceg.kernel_warmup`)."""
+    s = problem.kernel_settings
+    gate = s.gate_m
+    sigma = max(s.sigma_min_m, gate / GATE_TO_SIGMA0)
+    p = np.asarray(pose, dtype=np.float64)
+    point_hess, pr, sigma = _final_point_rows(problem, p, gate, sigma)
+    hess, rows = _final_rows(problem, p, point_hess, np.zeros((0, 2), np.int64), gate, sigma)
+    return _covariance(problem, p, hess, pr, rows, sigma, gate)
 
 
 def _point_rows(problem: RefineProblem, idx: IntArray, res: FloatArray) -> _PointRows:

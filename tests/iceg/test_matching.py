@@ -89,6 +89,7 @@ from iceg.matching.matcher import (
 )
 from iceg.matching.refine import (
     build_cloud,
+    covariance_at,
     effective_line_cov,
     effective_line_info,
     grid_points,
@@ -1012,6 +1013,26 @@ def test_refine_pairs_the_features_at_the_start_when_not_given() -> None:
     np.testing.assert_array_equal(paired_here.cov, given.cov)
     d = between(truth, given.pose)
     assert math.hypot(d[0], d[1]) < 0.01 and abs(d[2]) < math.radians(0.2)
+
+
+def test_the_covariance_at_a_refined_pose_is_the_refinements_to_a_few_percent() -> None:
+    # covariance_at linearises at a given pose with the coarse gate and the starting point
+    # noise, without feature pairs; at the pose a refinement reached (simulated office, real
+    # extractor) its standard deviations are those of the refinement's covariances within
+    # 20 %, both positive definite.
+    pa = np.array([5.0, 3.0, 0.3])
+    pb = compose(pa, [0.4, 0.1, 0.08])
+    sa, sb = simulate_pair(office_world(), pa, pb, seed=3)
+    truth = between(pa, pb)
+    matcher = IceMatcher()
+    ctx = MatchContext(extract(sb), extract(sa), truth, MatchBounds.local(0.5, 15), matcher.config)
+    problem = matcher._refine_problem(ctx)
+    refined = refine(problem, truth)
+    cov_ls, cov = covariance_at(problem, refined.pose)
+    for got, want in ((cov_ls, refined.cov_ls), (cov, refined.cov)):
+        assert np.all(np.linalg.eigvalsh(got) > 0.0)
+        ratio = np.sqrt(np.diag(got) / np.diag(want))
+        assert np.all(np.abs(ratio - 1.0) < 0.2), ratio
 
 
 def test_cloud_nearest_equals_brute_force() -> None:

@@ -20,6 +20,7 @@ from iceg.features.prefetch import (
     IDLE_SAMPLE_S,
     FeaturePrefetcher,
     _Inbox,
+    _warm_up,
     _Worker,
     auto_workers,
     warm_up_scan,
@@ -203,6 +204,35 @@ def test_the_warm_up_scan_has_walls_corners_and_ends_of_wall() -> None:
     assert kinds.count(int(FeatureKind.CORNER)) >= 2
     assert kinds.count(int(FeatureKind.EOW)) >= 2
     assert feats.seg_endpoints.shape[0] >= 3
+
+
+def test_the_first_worker_warms_the_later_stages_only_where_its_extraction_compiled(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # A new numba cache: the warm-up extraction compiled the segmentation kernel, so the
+    # first worker goes on to the later stages' kernels with the warm-up scan and its
+    # features. A cache that served it (the count unchanged), or a worker after the first,
+    # does not.
+    from iceg.features import prefetch
+
+    cfg = IcegConfig()
+    calls: list[tuple[LaserScan, ScanFeatures]] = []
+
+    class Recording(ScanPrecompute):
+        def warm_up(self, scan: LaserScan, features: ScanFeatures) -> None:
+            calls.append((scan, features))
+
+    counts = iter(range(100))
+    monkeypatch.setattr(prefetch, "_extraction_compiles", lambda: next(counts))  # compiled
+    _warm_up(cfg.features, Recording(cfg), True)
+    assert len(calls) == 1
+    scan, feats = calls[0]
+    assert np.array_equal(scan.ranges_m, warm_up_scan().ranges_m)
+    assert np.array_equal(feats.xy, extract(warm_up_scan(), cfg.features).xy)
+    _warm_up(cfg.features, Recording(cfg), False)  # not the first worker
+    monkeypatch.setattr(prefetch, "_extraction_compiles", lambda: 7)  # served by the cache
+    _warm_up(cfg.features, Recording(cfg), True)
+    assert len(calls) == 1
 
 
 def test_a_bounded_wait_for_a_worker_returns_without_the_result_it_never_gets() -> None:

@@ -1,0 +1,87 @@
+"""The later stages' compiled kernels, compiled beside the first ones on a new install
+(issue 13, "a new user's first run").
+
+numba compiles a kernel at its first call and keeps it in its cache on disk
+(docs/design.md, "Compiled kernels"). A fresh install's first run therefore compiles some 45
+kernels, one after another, in the main process as the run first calls each: 52 s for the
+built-in demo on the 2-core benchmark machine, against 3 s for the second run, while the second
+core waits. The feature worker (:mod:`iceg.features.prefetch`) extracts a synthetic scan
+as it starts; when that extraction had to compile, the cache is new, and the worker then
+calls :func:`compile_later_stages`: the kernels the main process needs last (a match's
+covariance and free-space checks, the contradiction test's point query, the feature map's,
+the grid's) compile in the worker, while the main process compiles those of the features,
+the hypotheses, the correlation and the refinement. The main process then loads the rest from
+the cache. Nothing here changes a result: the calls' outputs are dropped, and a kernel is
+the same compiled code whichever process compiled it.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from frontends.scan import LaserScan
+from iceg.config import IcegConfig
+from iceg.feature_map import FeatureMap
+from iceg.grid import render_tiled_chunks
+from iceg.landmark_frames import move_point_blocks, poses_in_frame
+from iceg.matching.matcher import IceMatcher
+from iceg.matching.refine import points_within
+from iceg.scan_store import ScanStore
+from iceg.types import MatchResult, ScanFeatures
+
+log = logging.getLogger(__name__)
+
+#: The second node's pose in the first's frame, ``[x_m, y_m, theta_rad]``: a small step.
+_STEP = np.array([0.05, 0.02, 0.01])
+
+
+def compile_later_stages(scan: LaserScan, features: ScanFeatures, config: IcegConfig) -> None:
+    """Call the later stages' kernels on ``scan`` and its ``features`` (the worker's warm-up
+    scan), in the order the main process first needs them, and drop the results.
+
+    Args:
+        scan: A laser scan.
+        features: Its features (``extract(scan, config.features)``).
+        config: The run's configuration (the same kernels, with the same argument types).
+
+    Raises:
+        IcegError: a stage rejects the scan (the caller drops the warm-up; the run compiles
+            what is missing when it first needs it).
+    """
+    IceMatcher(config.matching).compile_checks(features)
+    poses = np.stack([np.zeros(3), _STEP])
+    # the contradiction test's point query, and its recent points moved node by node
+    gate_m = config.slam.contradiction_gate_m or 0.1
+    points_within(features.points_xy, poses, features.points_xy, gate_m)
+    n_points = features.points_xy.shape[0]
+    move_point_blocks(
+        poses_in_frame(poses[1], poses, np.arange(2)),
+        np.full(2, n_points, dtype=np.int64),
+        np.concatenate([features.points_xy, features.points_xy]),
+    )
+    _feature_map(scan, features, config, poses)
+    store = ScanStore([scan, scan])
+    render_tiled_chunks(poses, store.beam_chunk, config.grid)
+    log.debug("later stages' kernels compiled in the feature worker")
+
+
+def _feature_map(
+    scan: LaserScan, features: ScanFeatures, config: IcegConfig, poses: np.ndarray
+) -> None:
+    """Two nodes of the same scan a small step apart: the first adds its features, the
+    second matches each of them (association, visibility, time-validity, pruning)."""
+    fm = FeatureMap(config.feature_map)
+    ids = np.arange(2)
+    fm.update(0, features, scan.stamp_s, scan=scan)
+    ref = fm.reference((ids, poses), [0], poses[0])
+    tolerance_m = config.matching.validation.see_through_tolerance_m
+    ref = ref.without_walls_seen_through(features.points_xy, tolerance_m)
+    n = min(features.n_features, ref.features.n_features)
+    pairs = np.repeat(np.arange(n, dtype=np.int64)[:, None], 2, axis=1)
+    match = MatchResult(True, _STEP.copy(), np.eye(3) * 1e-4, 1.0, pairs)
+    stamp_s = scan.stamp_s + 0.1
+    fm.update(1, features, stamp_s, reference=ref, match=match, scan=scan, node_poses=(ids, poses))
+    fm.reference((ids, poses), fm.reference_pose_nodes(ids), poses[1])
+    fm.update_pose_nodes(2, ref)

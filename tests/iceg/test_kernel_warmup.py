@@ -1,0 +1,78 @@
+"""The later stages' kernels compiled in the feature worker on a new numba cache
+(:mod:`iceg.kernel_warmup`): the signatures it compiles are the ones a run calls."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+#: In a fresh interpreter (no kernel loaded yet): the signatures of every kernel that
+#: ``compile_later_stages`` loads or compiles, then those a short simulated run and its map
+#: add to them.
+_SCRIPT = r"""
+import json
+from numba.core.registry import CPUDispatcher
+import iceg.features.segmentation, iceg.grid, iceg.landmark_association, iceg.landmark_frames
+import iceg.matching._kernels, iceg.scan_store, iceg.visibility
+from frontends.simulate import corridor_world, default_trajectory, simulate
+from iceg.config import IcegConfig
+from iceg.features import extract
+from iceg.features.prefetch import warm_up_scan
+from iceg.kernel_warmup import compile_later_stages
+from iceg.pipeline import run_scans
+
+MODULES = [iceg.features.segmentation, iceg.grid, iceg.landmark_association,
+           iceg.landmark_frames, iceg.matching._kernels, iceg.scan_store, iceg.visibility]
+
+def signatures():
+    return {
+        f"{m.__name__}.{k}": {str(s) for s in v.signatures}
+        for m in MODULES for k, v in vars(m).items()
+        if isinstance(v, CPUDispatcher) and v.py_func.__module__ == m.__name__
+    }
+
+cfg = IcegConfig()
+cfg = cfg.model_copy(update={"slam": cfg.slam.model_copy(update={"workers": 1})})
+scan = warm_up_scan()
+features = extract(scan, cfg.features)
+before = signatures()
+compile_later_stages(scan, features, cfg)
+warmed = {k: v - before[k] for k, v in signatures().items()}
+world = corridor_world(length_m=12.0)
+result = run_scans(simulate(world, trajectory=default_trajectory(world)[:120], seed=3).scans, cfg)
+assert result.render_map() is not None
+after = signatures()
+print(json.dumps({
+    "warmed": {k: sorted(v) for k, v in warmed.items() if v},
+    "run": {k: sorted(after[k] - before[k] - warmed[k]) for k in after
+            if after[k] - before[k] - warmed[k]},
+}))
+"""
+
+
+def test_the_warm_up_compiles_the_later_stages_with_the_signatures_a_run_calls() -> None:
+    root = Path(__file__).resolve().parents[2]
+    env = dict(os.environ, PYTHONPATH=str(root))
+    out = subprocess.run(
+        [sys.executable, "-c", _SCRIPT], env=env, capture_output=True, text=True, check=True
+    ).stdout
+    got = json.loads(out.strip().splitlines()[-1])
+    warmed = {k.rsplit(".", 1)[1] for k in got["warmed"]}
+    # A run calls no kernel the warm-up compiled with any other argument types: the main
+    # process loads from the cache what the worker compiled.
+    both = set(got["run"]) & set(got["warmed"])
+    assert not both, {k: (got["warmed"][k], got["run"][k]) for k in both}
+    # The split: the covariance, the free-space checks, the contradiction test, the feature
+    # map and the grid in the worker ...
+    later = {"lattice_covariance", "covariance_rows", "ray_wall_check", "points_explained"}
+    later |= {"associate_scan", "keep_better", "count_observations", "expected_landmarks"}
+    later |= {"move_point_blocks", "sorted_union", "_trace_scans", "_mark_tiles"}
+    assert later <= warmed, later - warmed
+    # ... the hypotheses, the correlation and the refinement in the main process, which the
+    # run then compiles (or loads) itself.
+    first = {"segment_rotation_peak", "vote_clusters", "correlation_scores", "refine_pose"}
+    assert not first & warmed
+    assert first <= {k.rsplit(".", 1)[1] for k in got["run"]}
