@@ -433,12 +433,12 @@ def refine(
 
 def covariance_at(problem: RefineProblem, pose: FloatArray) -> tuple[FloatArray, FloatArray]:
     """``(cov_ls, cov)`` of ``pose`` as :attr:`Refined.cov_ls` and :attr:`Refined.cov` give
-    them for a refinement that ended there with the coarse gate, the starting point noise and
-    no feature pairs: the rows linearised at ``pose`` (docs/design.md step 9; lattice after
-    Olson 2009). Each ``(3, 3)`` float64, a perturbation of ``(x, y, theta)`` in the
-    reference frame. For a covariance at a pose that no refinement produced, e.g. to load
-    (or compile) the covariance's kernels without the refinement's
-    (:mod:`iceg.kernel_warmup`)."""
+    them for a refinement that ended there with the coarse gate and no feature pairs: the
+    rows linearised at ``pose``, with the point noise estimated there (the starting noise
+    when too few points associate; docs/design.md step 9; lattice after Olson 2009). Each
+    ``(3, 3)`` float64, a perturbation of ``(x, y, theta)`` in the reference frame. For a
+    covariance at a pose that no refinement produced, e.g. to load (or compile) the
+    covariance's kernels without the refinement's (:mod:`iceg.kernel_warmup`)."""
     s = problem.kernel_settings
     gate = s.gate_m
     sigma = max(s.sigma_min_m, gate / GATE_TO_SIGMA0)
