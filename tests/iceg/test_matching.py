@@ -88,6 +88,7 @@ from iceg.matching.matcher import (
     walls_seen_through,
 )
 from iceg.matching.refine import (
+    RefineProblem,
     build_cloud,
     covariance_at,
     effective_line_cov,
@@ -987,18 +988,24 @@ def test_gridded_association_equals_all_segments(seed: int) -> None:
             np.testing.assert_array_equal(got[1], want[1][runs])
 
 
-def test_refine_pairs_the_features_at_the_start_when_not_given() -> None:
-    # The compiled refinement pairs the features at the start itself when no pairs are
-    # given: the same refinement as with the correlation's pairs at the start, and it
-    # reaches the true pose from a start 8 cm / 1.7 deg off (simulated office, real
-    # extractor).
+def _office_pair() -> tuple[MatchContext, RefineProblem, np.ndarray]:
+    """A tracking match's context and refinement problem for two scans of the simulated
+    office 0.41 m / 4.6 deg apart (real extractor), and the true relative pose."""
     pa = np.array([5.0, 3.0, 0.3])
     pb = compose(pa, [0.4, 0.1, 0.08])
     sa, sb = simulate_pair(office_world(), pa, pb, seed=3)
     truth = between(pa, pb)
     matcher = IceMatcher()
     ctx = MatchContext(extract(sb), extract(sa), truth, MatchBounds.local(0.5, 15), matcher.config)
-    problem = matcher._refine_problem(ctx)
+    return ctx, matcher._refine_problem(ctx), truth
+
+
+def test_refine_pairs_the_features_at_the_start_when_not_given() -> None:
+    # The compiled refinement pairs the features at the start itself when no pairs are
+    # given: the same refinement as with the correlation's pairs at the start, and it
+    # reaches the true pose from a start 8 cm / 1.7 deg off (simulated office, real
+    # extractor).
+    ctx, problem, truth = _office_pair()
     start = truth + np.array([0.06, -0.05, 0.03])
     corr = ctx.correlation
     match, _, _ = pair_features(
@@ -1016,17 +1023,11 @@ def test_refine_pairs_the_features_at_the_start_when_not_given() -> None:
 
 
 def test_the_covariance_at_a_refined_pose_is_the_refinements_to_a_few_percent() -> None:
-    # covariance_at linearises at a given pose with the coarse gate and the starting point
-    # noise, without feature pairs; at the pose a refinement reached (simulated office, real
-    # extractor) its standard deviations are those of the refinement's covariances within
-    # 20 %, both positive definite.
-    pa = np.array([5.0, 3.0, 0.3])
-    pb = compose(pa, [0.4, 0.1, 0.08])
-    sa, sb = simulate_pair(office_world(), pa, pb, seed=3)
-    truth = between(pa, pb)
-    matcher = IceMatcher()
-    ctx = MatchContext(extract(sb), extract(sa), truth, MatchBounds.local(0.5, 15), matcher.config)
-    problem = matcher._refine_problem(ctx)
+    # covariance_at linearises at a given pose with the coarse gate and the point noise
+    # estimated there, without feature pairs; at the pose a refinement reached (simulated
+    # office, real extractor) its standard deviations are those of the refinement's
+    # covariances within 20 %, both positive definite.
+    _, problem, truth = _office_pair()
     refined = refine(problem, truth)
     cov_ls, cov = covariance_at(problem, refined.pose)
     for got, want in ((cov_ls, refined.cov_ls), (cov, refined.cov)):
