@@ -5,22 +5,24 @@ numba compiles a kernel at its first call and keeps it in its cache on disk
 (docs/design.md, "Compiled kernels"). A fresh install's first run therefore compiles some 45
 kernels, one after another, in the main process as the run first calls each: 52 s for the
 built-in demo on the 2-core benchmark machine, against 3 s for the second run, while the second
-core waits. The feature worker (:mod:`iceg.features.prefetch`) extracts a synthetic scan
-as it starts; when that extraction had to compile, the cache is new, and the worker then
-calls :func:`compile_later_stages`: the kernels the main process needs last (a match's
-covariance and free-space checks, the contradiction test's point query, the feature map's,
-the grid's) compile in the worker, while the main process compiles those of the features,
-the hypotheses, the correlation and the refinement. The main process then loads the rest from
-the cache: the demo's first run took 32 s instead of 52 s there. Nothing here changes a
+core waits. Before it starts the feature worker (:mod:`iceg.features.prefetch`), the run asks
+:func:`cache_is_new`; where it is, the first worker compiles the kernels the main process
+needs last, while the main process compiles those of the features, the hypotheses, the
+correlation and the refinement: :func:`compile_without_features` (the grid, the
+contradiction test's point query) before the worker's warm-up extraction, then
+:func:`compile_later_stages` (a match's covariance and free-space checks, the feature map)
+with the features. The main process then loads them from the cache. Nothing here changes a
 result: the calls' outputs are dropped, and a kernel is the same compiled code whichever
 process compiled it.
 """
 
 from __future__ import annotations
 
+import functools
 import logging
 
 import numpy as np
+from numba import njit
 
 from frontends.scan import LaserScan
 from iceg.config import IcegConfig
@@ -38,9 +40,53 @@ log = logging.getLogger(__name__)
 _STEP = np.array([0.05, 0.02, 0.01])
 
 
+@njit(cache=True)
+def _probe(x: float) -> float:
+    """A kernel of this module's own, for :func:`cache_is_new`."""
+    return x + 1.0
+
+
+@functools.cache
+def cache_is_new() -> bool:
+    """Whether numba's cache lacked this module's probe kernel when this process first
+    asked, so that it compiled it instead of loading it: a new install, a new numba cache
+    folder, or a new version of this module. The answer is kept for the process (and its
+    forks). The first call is a process's first kernel call: it installs numba's typing
+    registry (about 0.3 s), which the run's first kernel would pay otherwise."""
+    _probe(0.0)
+    stats = getattr(_probe, "stats", None)  # None where numba's JIT is off
+    return stats is not None and sum(stats.cache_misses.values()) > 0
+
+
+def compile_without_features(scan: LaserScan, config: IcegConfig) -> None:
+    """Call the later stages' kernels that need no features on ``scan`` and drop the
+    results: the grid of two copies of it, the contradiction test's point query and its
+    recent points moved node by node.
+
+    Args:
+        scan: A laser scan.
+        config: The run's configuration (the same kernels, with the same argument types).
+
+    Raises:
+        IcegError: a stage rejects the scan (the caller drops the warm-up; the run compiles
+            what is missing when it first needs it).
+    """
+    poses = _poses()
+    store = ScanStore([scan, scan])
+    render_tiled_chunks(poses, store.beam_chunk, config.grid)
+    points = scan.points_xy()
+    points_within(points, poses, points, config.slam.contradiction_gate_m or 0.1)
+    move_point_blocks(
+        poses_in_frame(poses[1], poses, np.arange(2)),
+        np.full(2, points.shape[0], dtype=np.int64),
+        np.concatenate([points, points]),
+    )
+
+
 def compile_later_stages(scan: LaserScan, features: ScanFeatures, config: IcegConfig) -> None:
-    """Call the later stages' kernels on ``scan`` and its ``features`` (the worker's warm-up
-    scan), in the order the main process first needs them, and drop the results.
+    """Call the later stages' kernels that need features on ``scan`` and its ``features``,
+    in the order the main process first needs them, and drop the results: a match's
+    covariance and free-space checks, two nodes of the feature map.
 
     Args:
         scan: A laser scan.
@@ -52,20 +98,13 @@ def compile_later_stages(scan: LaserScan, features: ScanFeatures, config: IcegCo
             what is missing when it first needs it).
     """
     IceMatcher(config.matching).compile_checks(features)
-    poses = np.stack([np.zeros(3), _STEP])
-    # the contradiction test's point query, and its recent points moved node by node
-    gate_m = config.slam.contradiction_gate_m or 0.1
-    points_within(features.points_xy, poses, features.points_xy, gate_m)
-    n_points = features.points_xy.shape[0]
-    move_point_blocks(
-        poses_in_frame(poses[1], poses, np.arange(2)),
-        np.full(2, n_points, dtype=np.int64),
-        np.concatenate([features.points_xy, features.points_xy]),
-    )
-    _feature_map(scan, features, config, poses)
-    store = ScanStore([scan, scan])
-    render_tiled_chunks(poses, store.beam_chunk, config.grid)
+    _feature_map(scan, features, config, _poses())
     log.debug("later stages' kernels compiled in the feature worker")
+
+
+def _poses() -> np.ndarray:
+    """``(2, 3)`` float64 two nodes' poses a small step apart, the first at the origin."""
+    return np.stack([np.zeros(3), _STEP])
 
 
 def _feature_map(

@@ -21,6 +21,7 @@ from frontends.scan import StampPolicy, StampReport
 from iceg.config import IcegConfig
 from iceg.evaluation import position_errors, relation_errors
 from iceg.features.prefetch import FeaturePrefetcher, auto_workers
+from iceg.kernel_warmup import cache_is_new
 from iceg.match_pool import MatchPool
 from iceg.odometry_timing import odometry_time_offset
 from iceg.results import SlamResult
@@ -91,13 +92,23 @@ def helper_processes(slam: Slam, workers: int | None = None) -> Iterator[Feature
     the scans' pose-independent products (:class:`~iceg.scan_products.ScanPrecompute`), and
     the loop closer's match helper
     (:class:`~iceg.match_pool.MatchPool`). Yields the prefetcher whose ``scans`` feed
-    ``slam.process``; the helpers stop when the block ends."""
+    ``slam.process``; the helpers stop when the block ends. Where numba's cache is new
+    (:func:`~iceg.kernel_warmup.cache_is_new`, logged as a warning), the first feature worker
+    compiles the later stages' kernels while this process compiles the first ones."""
     if workers is None:
         workers = slam.config.slam.workers or auto_workers()
     precompute = ScanPrecompute(slam.config)
+    new_cache = cache_is_new()
+    if new_cache:
+        logger.warning(
+            "numba's cache holds no compiled kernels of this version yet: this run compiles "
+            "them as it first calls them (half a minute to a minute); later runs load them"
+        )
     with (
         MatchPool(slam.matcher, helper=workers > 1) as pool,
-        FeaturePrefetcher(slam.config.features, workers, precompute=precompute) as prefetch,
+        FeaturePrefetcher(
+            slam.config.features, workers, precompute=precompute, warm_up_later=new_cache
+        ) as prefetch,
     ):
         slam.loop_closer.match_pool = pool
         try:

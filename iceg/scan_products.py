@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 from frontends.scan import LaserScan
 from iceg.config import IcegConfig
 from iceg.feature_map import VisibilityInputs, remember_visibility_inputs, visibility_inputs
-from iceg.kernel_warmup import compile_later_stages
+from iceg.kernel_warmup import compile_later_stages, compile_without_features
 from iceg.matching.matcher import ScanDerived, compute_scan_derived, remember_scan_derived
 from iceg.place_index import place_descriptor, remember_place_descriptor
 from iceg.types import ScanFeatures
@@ -66,9 +66,14 @@ class ScanPrecompute:
             place,
         )
 
-    def warm_up(self, scan: LaserScan, features: ScanFeatures) -> None:
-        """Compile the later stages' kernels in the worker on a new numba cache
-        (:func:`iceg.kernel_warmup.compile_later_stages`)."""
+    def warm_up_without_features(self, scan: LaserScan) -> None:
+        """Compile the later stages' kernels that need no features, in the worker, on a new
+        numba cache (:func:`iceg.kernel_warmup.compile_without_features`)."""
+        compile_without_features(scan, self.config)
+
+    def warm_up_with_features(self, scan: LaserScan, features: ScanFeatures) -> None:
+        """Compile the later stages' kernels that need features, in the worker, on a new
+        numba cache (:func:`iceg.kernel_warmup.compile_later_stages`)."""
         compile_later_stages(scan, features, self.config)
 
     def adopt(self, scan: LaserScan, features: ScanFeatures, products: ScanProducts) -> None:

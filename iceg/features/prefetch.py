@@ -51,7 +51,6 @@ from frontends.scan import LaserScan
 from iceg import forked
 from iceg.features.config import FeatureConfig
 from iceg.features.extract import extract
-from iceg.features.segmentation import split_and_merge
 from iceg.types import ScanFeatures
 
 log = logging.getLogger(__name__)
@@ -89,11 +88,15 @@ class Precompute(Protocol[_P]):
 
     def adopt(self, scan: LaserScan, features: ScanFeatures, products: _P) -> None: ...
 
-    def warm_up(self, scan: LaserScan, features: ScanFeatures) -> None:
-        """Called in the first worker after its warm-up extraction when that extraction had
-        to compile (numba's cache is new): compile what the calling process needs later,
-        while it compiles what it needs first (:mod:`iceg.kernel_warmup`). Results are
-        dropped; an exception only ends the warm-up."""
+    def warm_up_without_features(self, scan: LaserScan) -> None:
+        """Called in the first worker before its warm-up extraction where numba's cache is
+        new (:class:`FeaturePrefetcher`'s ``warm_up_later``): compile kernels the calling
+        process needs late that need no features, while it compiles those it needs first
+        (:mod:`iceg.kernel_warmup`). Results are dropped; an exception ends the warm-up."""
+
+    def warm_up_with_features(self, scan: LaserScan, features: ScanFeatures) -> None:
+        """As :meth:`warm_up_without_features`, after the warm-up extraction, for the
+        kernels that need the scan's features."""
 
 
 #: A worker's result for one scan: its features (None: extraction failed) and products (None:
@@ -126,7 +129,8 @@ class _Inbox:
 class _Worker:
     """One forked extraction process and the calling side of its pipe. ``others`` are the
     calling sides of the workers started before (the child closes its copies of them, so
-    that every worker sees the end of its pipe when the calling process exits)."""
+    that every worker sees the end of its pipe when the calling process exits). With
+    ``later`` it first compiles the later stages' kernels (:func:`_warm_up`)."""
 
     def __init__(
         self,
@@ -134,12 +138,13 @@ class _Worker:
         precompute: Precompute[Any] | None,
         others: list[Connection],
         floor: Any,
+        later: bool = False,
     ) -> None:
         ctx = multiprocessing.get_context("fork")
         self.conn, child = ctx.Pipe(duplex=True)
         self.proc: BaseProcess = ctx.Process(
             target=_serve,
-            args=(child, [self.conn, *others], os.getpid(), config, precompute, floor, not others),
+            args=(child, [self.conn, *others], os.getpid(), config, precompute, floor, later),
             daemon=True,
             name="iceg-features",
         )
@@ -211,14 +216,14 @@ def _serve(
     config: FeatureConfig,
     precompute: Precompute[Any] | None,
     floor: Any,
-    first: bool,
+    later: bool,
 ) -> None:
     """Worker loop: batches ``[(index, scan), ...]`` in, one ``(index, features or None,
     products or None)`` out per scan; None, the end of the pipe or the parent's exit stops
     it. A scan below the calling process's ``floor`` (shared memory) is passed already:
     it is answered with None, not extracted (a stretch of scans that make no keyframe goes
-    by faster than the worker extracts them). The ``first`` worker also warms up the
-    later stages on a new numba cache (:meth:`Precompute.warm_up`)."""
+    by faster than the worker extracts them). With ``later`` its warm-up also compiles the
+    later stages' kernels (:func:`_warm_up`)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle
     with contextlib.suppress(OSError):
         # Spare CPU only: on a busy machine the worker must not take the main process's
@@ -226,7 +231,7 @@ def _serve(
         os.nice(WORKER_NICENESS)
     for other in inherited:  # the parent's ends: never hold them open here
         other.close()
-    _warm_up(config, precompute, first)
+    _warm_up(config, precompute, later)
     while (msg := forked.next_message(conn, parent_pid)) is not None:
         for index, scan in cast(list[tuple[int, LaserScan]], msg):
             if index < floor.value:
@@ -266,25 +271,19 @@ def warm_up_scan() -> LaserScan:
 def _warm_up(config: FeatureConfig, precompute: Precompute[Any] | None, later: bool) -> None:
     """Load the compiled kernels of the extraction (numba's cache) before the first scan
     arrives, while the calling process reads its log: extract :func:`warm_up_scan` and drop
-    the result. Where that had to compile them (a new cache), and ``later``, the products'
-    :meth:`Precompute.warm_up` follows."""
+    the result. With ``later`` (a new cache) and ``precompute``, the products' warm-up
+    hooks compile the later stages' kernels before and after that extraction."""
     scan = warm_up_scan()
-    compiled = _extraction_compiles()
     try:
+        if later and precompute is not None:
+            precompute.warm_up_without_features(scan)
         feats = extract(scan, config)
         if precompute is not None:
             precompute.compute(scan, feats)
-            if later and _extraction_compiles() > compiled:
-                precompute.warm_up(scan, feats)
+            if later:
+                precompute.warm_up_with_features(scan, feats)
     except Exception:  # only a warm-up: the first real scan loads what it needs
         return
-
-
-def _extraction_compiles() -> int:
-    """How many times this process has compiled the segmentation kernel rather than load it
-    from numba's cache (its dispatcher's ``stats.cache_misses``; 0 without numba's JIT)."""
-    stats = getattr(split_and_merge, "stats", None)
-    return sum(stats.cache_misses.values()) if stats is not None else 0
 
 
 def auto_workers() -> int:
@@ -334,6 +333,9 @@ class FeaturePrefetcher:
             when it has not arrived (for tests).
         precompute: Products the workers also compute for each scan, adopted in the calling
             process with the features (:class:`Precompute`; None: features only).
+        warm_up_later: numba's cache is new (:func:`iceg.kernel_warmup.cache_is_new`): the
+            first worker compiles the later stages' kernels through ``precompute``'s warm-up
+            hooks while the calling process compiles the first ones (the run is the same).
 
     Attributes:
         hits: Features taken from a worker so far.
@@ -347,8 +349,10 @@ class FeaturePrefetcher:
         workers: int,
         wait: bool = False,
         precompute: Precompute[Any] | None = None,
+        warm_up_later: bool = False,
     ) -> None:
         self.config = config
+        self.warm_up_later = warm_up_later
         self.workers = max(1, int(workers))
         self.wait = wait
         self._waited_s = 0.0  # waited for workers before extracting here (UNLOADED_WAIT_S)
@@ -365,7 +369,8 @@ class FeaturePrefetcher:
                 self._inbox = _Inbox(floor)
                 for _ in range(self.workers - 1):
                     others = [w.conn for w in self._pool]
-                    self._pool.append(_Worker(self.config, self.precompute, others, floor))
+                    later = self.warm_up_later and not others
+                    self._pool.append(_Worker(self.config, self.precompute, others, floor, later))
             except OSError as exc:
                 log.warning("feature prefetch off (%s); extracting here", exc)
                 self.__exit__()

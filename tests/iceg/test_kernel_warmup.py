@@ -1,5 +1,6 @@
 """The later stages' kernels compiled in the feature worker on a new numba cache
-(:mod:`iceg.kernel_warmup`): the signatures it compiles are the ones a run calls."""
+(:mod:`iceg.kernel_warmup`): how a new cache is told, and the signatures the warm-up
+compiles are the ones a run calls."""
 
 from __future__ import annotations
 
@@ -10,8 +11,8 @@ import sys
 from pathlib import Path
 
 #: In a fresh interpreter (no kernel loaded yet): the signatures of every kernel that
-#: ``compile_later_stages`` loads or compiles, then those a short simulated run and its map
-#: add to them.
+#: ``compile_without_features`` and ``compile_later_stages`` load or compile, then those a
+#: short simulated run and its map add to them.
 _SCRIPT = r"""
 import json
 from numba.core.registry import CPUDispatcher
@@ -21,7 +22,7 @@ from frontends.simulate import corridor_world, default_trajectory, simulate
 from iceg.config import IcegConfig
 from iceg.features import extract
 from iceg.features.prefetch import warm_up_scan
-from iceg.kernel_warmup import compile_later_stages
+from iceg.kernel_warmup import compile_later_stages, compile_without_features
 from iceg.pipeline import run_scans
 
 MODULES = [iceg.features.segmentation, iceg.grid, iceg.landmark_association,
@@ -39,6 +40,7 @@ cfg = cfg.model_copy(update={"slam": cfg.slam.model_copy(update={"workers": 1})}
 scan = warm_up_scan()
 features = extract(scan, cfg.features)
 before = signatures()
+compile_without_features(scan, cfg)
 compile_later_stages(scan, features, cfg)
 warmed = {k: v - before[k] for k, v in signatures().items()}
 world = corridor_world(length_m=12.0)
@@ -76,3 +78,18 @@ def test_the_warm_up_compiles_the_later_stages_with_the_signatures_a_run_calls()
     first = {"segment_rotation_peak", "vote_clusters", "correlation_scores", "refine_pose"}
     assert not first & warmed
     assert first <= {k.rsplit(".", 1)[1] for k in got["run"]}
+
+
+def test_a_new_cache_is_told_from_one_that_holds_the_probe(tmp_path: Path) -> None:
+    # An empty NUMBA_CACHE_DIR: the first process compiles the probe kernel and finds the
+    # cache new; a second process on the same folder loads it and does not.
+    root = Path(__file__).resolve().parents[2]
+    env = dict(os.environ, PYTHONPATH=str(root), NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+    code = "from iceg.kernel_warmup import cache_is_new; print(cache_is_new(), cache_is_new())"
+    answers = [
+        subprocess.run(
+            [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
+        ).stdout.split()
+        for _ in range(2)
+    ]
+    assert answers == [["True", "True"], ["False", "False"]]

@@ -206,33 +206,28 @@ def test_the_warm_up_scan_has_walls_corners_and_ends_of_wall() -> None:
     assert feats.seg_endpoints.shape[0] >= 3
 
 
-def test_the_first_worker_warms_the_later_stages_only_where_its_extraction_compiled(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    # A new numba cache: the warm-up extraction compiled the segmentation kernel, so the
-    # first worker goes on to the later stages' kernels with the warm-up scan and its
-    # features. A cache that served it (the count unchanged), or a worker after the first,
-    # does not.
-    from iceg.features import prefetch
-
+def test_a_worker_warms_the_later_stages_around_its_extraction_only_when_asked() -> None:
+    # On a new numba cache (later=True) the worker compiles the later stages' kernels: those
+    # that need no features before its warm-up extraction, the others with the warm-up scan
+    # and its features after it. Otherwise it only extracts.
     cfg = IcegConfig()
-    calls: list[tuple[LaserScan, ScanFeatures]] = []
+    calls: list[tuple[str, LaserScan, ScanFeatures | None]] = []
 
     class Recording(ScanPrecompute):
-        def warm_up(self, scan: LaserScan, features: ScanFeatures) -> None:
-            calls.append((scan, features))
+        def warm_up_without_features(self, scan: LaserScan) -> None:
+            calls.append(("without", scan, None))
 
-    counts = iter(range(100))
-    monkeypatch.setattr(prefetch, "_extraction_compiles", lambda: next(counts))  # compiled
+        def warm_up_with_features(self, scan: LaserScan, features: ScanFeatures) -> None:
+            calls.append(("with", scan, features))
+
     _warm_up(cfg.features, Recording(cfg), True)
-    assert len(calls) == 1
-    scan, feats = calls[0]
-    assert np.array_equal(scan.ranges_m, warm_up_scan().ranges_m)
-    assert np.array_equal(feats.xy, extract(warm_up_scan(), cfg.features).xy)
-    _warm_up(cfg.features, Recording(cfg), False)  # not the first worker
-    monkeypatch.setattr(prefetch, "_extraction_compiles", lambda: 7)  # served by the cache
-    _warm_up(cfg.features, Recording(cfg), True)
-    assert len(calls) == 1
+    assert [c[0] for c in calls] == ["without", "with"]
+    want = warm_up_scan()
+    assert all(np.array_equal(c[1].ranges_m, want.ranges_m) for c in calls)
+    feats = calls[1][2]
+    assert feats is not None and np.array_equal(feats.xy, extract(want, cfg.features).xy)
+    _warm_up(cfg.features, Recording(cfg), False)
+    assert len(calls) == 2
 
 
 def test_a_bounded_wait_for_a_worker_returns_without_the_result_it_never_gets() -> None:
