@@ -438,7 +438,16 @@ def covariance_at(problem: RefineProblem, pose: FloatArray) -> tuple[FloatArray,
     when too few points associate; docs/design.md step 9; lattice after Olson 2009). Each
     ``(3, 3)`` float64, a perturbation of ``(x, y, theta)`` in the reference frame. For a
     covariance at a pose that no refinement produced, e.g. to load (or compile) the
-    covariance's kernels without the refinement's (:mod:`iceg.kernel_warmup`)."""
+    covariance's kernels without the refinement's (:mod:`iceg.kernel_warmup`).
+
+    Args:
+        problem: What the match's refinements share (points, segments, prior).
+        pose: ``(3,)`` float pose of the new scan in the reference frame
+            ``[x_m, y_m, theta_rad]``.
+
+    Returns:
+        ``(cov_ls, cov)``; both infinite where the information is singular. Raises nothing.
+    """
     s = problem.kernel_settings
     gate = s.gate_m
     sigma = max(s.sigma_min_m, gate / GATE_TO_SIGMA0)
