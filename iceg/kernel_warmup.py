@@ -51,8 +51,8 @@ def cache_is_new() -> bool:
     """Whether numba's cache lacked this module's probe kernel when this process first
     asked, so that it compiled it instead of loading it: a new install, a new numba cache
     folder, or a new version of this module. The answer is kept for the process (and its
-    forks). The first call is a process's first kernel call: it installs numba's typing
-    registry (about 0.3 s), which the run's first kernel would pay otherwise."""
+    forks). Where no kernel has run in the process yet, the first call installs numba's
+    typing registry (about 0.3 s), which the run's first kernel would pay otherwise."""
     _probe(0.0)
     stats = getattr(_probe, "stats", None)  # None where numba's JIT is off
     return stats is not None and sum(stats.cache_misses.values()) > 0
