@@ -109,7 +109,7 @@ def scenario_pairs(world: str, gap_m: float, n: int) -> list[Pair]:
 
 def score(method: str, pairs: Sequence[Pair]) -> dict[str, float]:
     """Correct and wrong rates, mean error (m) of the correct matches, ms per match."""
-    matcher = make_matcher(MatchingConfig(method=method))
+    matcher = make_matcher(MatchingConfig.model_validate({"method": method}))
     matcher.match(pairs[0][2], pairs[0][1], np.zeros(3), MatchBounds.global_())  # warm up
     good, wrong, errs, t = 0, 0, [], 0.0
     for truth, fa, fb in pairs:

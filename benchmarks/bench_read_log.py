@@ -18,6 +18,7 @@ import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 from frontends import open_log
 from frontends.relations import read_relations
@@ -28,10 +29,12 @@ DEFAULT_LOG = (
 REPEATS = 5
 
 
-def _time(fn: Callable[[], object]) -> tuple[float, float, object]:
+T = TypeVar("T")
+
+
+def _time(fn: Callable[[], T]) -> tuple[float, float, T]:
     """Best and median wall time (s) of ``REPEATS`` calls, and the last result."""
     times = []
-    result: object = None
     for _ in range(REPEATS):
         t0 = time.perf_counter()
         result = fn()
@@ -56,18 +59,18 @@ def main(argv: list[str] | None = None) -> None:
     print(f"log: {path} ({path.stat().st_size / 1e6:.2f} MB), {REPEATS} runs each")
 
     best, median, scans = _time(lambda: list(open_log(path)))
-    n = len(scans)  # type: ignore[arg-type]
+    n = len(scans)
     _report("iterate (parse all scans)", n, best, median)
 
     best, median, count = _time(lambda: open_log(path).count_scans())
-    _report("count_scans (fast pass)", int(count), best, median)  # type: ignore[call-overload]
+    _report("count_scans (fast pass)", int(count), best, median)
 
     with tempfile.TemporaryDirectory() as tmp:
         gz_path = Path(tmp) / (path.name + ".gz")
         with open(path, "rb") as src, gzip.open(gz_path, "wb") as dst:
             shutil.copyfileobj(src, dst)
         best, median, scans_gz = _time(lambda: list(open_log(gz_path)))
-        _report("iterate .gz copy", len(scans_gz), best, median)  # type: ignore[arg-type]
+        _report("iterate .gz copy", len(scans_gz), best, median)
 
     relations = path.with_suffix(".relations")
     if relations.is_file():
@@ -75,7 +78,7 @@ def main(argv: list[str] | None = None) -> None:
         logging.getLogger("frontends.relations").setLevel(logging.ERROR)
         best, median, rel = _time(lambda: read_relations(relations))
         print(
-            f"{'read_relations':<28} {len(rel):5d} relations  best {best * 1e3:6.1f} ms  "  # type: ignore[arg-type]
+            f"{'read_relations':<28} {len(rel):5d} relations  best {best * 1e3:6.1f} ms  "
             f"median {median * 1e3:6.1f} ms"
         )
 
