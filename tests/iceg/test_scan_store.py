@@ -19,7 +19,7 @@ def _same(a: LaserScan, b: LaserScan) -> bool:
         a.stamp_s == b.stamp_s
         and a.ranges_m.dtype == b.ranges_m.dtype == np.float64
         and np.array_equal(a.ranges_m.view(np.int64), b.ranges_m.view(np.int64))  # every bit
-        and np.array_equal(a.angles_rad, b.angles_rad)
+        and np.array_equal(a.angles_rad.view(np.int64), b.angles_rad.view(np.int64))
         and a.range_min_m == b.range_min_m
         and a.range_max_m == b.range_max_m
         and (
@@ -257,3 +257,18 @@ def test_a_carmen_log_costs_two_bytes_a_beam_and_blocks_are_never_copied(monkeyp
     monkeypatch.setattr(scan_store, "BLOCK_BYTES", 1 << 22)
     carmen = ScanStore(_ranges_scan(s.ranges_m) for s in scans if s.ranges_m.shape[0] == 361)
     assert carmen._used == 2 * 361 * len(carmen)
+
+
+def test_bearings_that_differ_only_in_the_sign_of_a_zero_come_back_with_their_bits() -> None:
+    # equal values, other bits: each scan keeps its own bearings (np.array_equal would
+    # hand the second scan the first one's +0.0)
+    fan = np.array([-0.5, 0.0, 0.5])
+    signed = np.array([-0.5, -0.0, 0.5])
+    scans = [
+        LaserScan(float(k), np.ones(3), a, 0.0, 10.0, None)
+        for k, a in enumerate((fan, signed, fan))
+    ]
+    store = ScanStore(scans)
+    for want, got in zip(scans, store, strict=True):
+        assert _same(want, got)
+    assert np.signbit(store[1].angles_rad[1]) and not np.signbit(store[2].angles_rad[1])
