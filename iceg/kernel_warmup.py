@@ -9,7 +9,7 @@ core waits. Before it starts the feature worker (:mod:`iceg.features.prefetch`),
 :func:`cache_is_new`; where it is, the first worker compiles the kernels the main process
 needs last, while the main process compiles those of the features, the hypotheses, the
 correlation and the refinement: :func:`compile_without_features` (the grid, the
-contradiction test's point query) before the worker's warm-up extraction, then
+contradiction test's point query, the node index) before the worker's warm-up extraction, then
 :func:`compile_later_stages` (a match's covariance and free-space checks, the feature map)
 with the features. The main process then loads them from the cache. Nothing here changes a
 result: the calls' outputs are dropped, and a kernel is the same compiled code whichever
@@ -31,6 +31,7 @@ from iceg.grid import render_tiled_chunks
 from iceg.landmark_frames import move_point_blocks, poses_in_frame
 from iceg.matching.matcher import IceMatcher
 from iceg.matching.refine import points_within
+from iceg.node_index import NodeGrid
 from iceg.scan_store import ScanStore
 from iceg.types import MatchResult, ScanFeatures
 
@@ -61,7 +62,7 @@ def cache_is_new() -> bool:
 def compile_without_features(scan: LaserScan, config: IcegConfig) -> None:
     """Call the later stages' kernels that need no features on ``scan`` and drop the
     results: the grid of two copies of it, the contradiction test's point query and its
-    recent points moved node by node.
+    recent points moved node by node, the loop-closure search's node index.
 
     Args:
         scan: A laser scan.
@@ -81,6 +82,9 @@ def compile_without_features(scan: LaserScan, config: IcegConfig) -> None:
         np.full(2, points.shape[0], dtype=np.int64),
         np.concatenate([points, points]),
     )
+    nodes = NodeGrid(1.0)
+    nodes.add(np.arange(2), poses[:, :2])
+    nodes.query(poses[1, :2], 1.0)
 
 
 def compile_later_stages(scan: LaserScan, features: ScanFeatures, config: IcegConfig) -> None:

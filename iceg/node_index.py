@@ -21,10 +21,17 @@ import itertools
 import math
 
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+
+#: Up to this many rows (1 + the largest id indexed), :meth:`NodeGrid.query` tests every
+#: row's position in one compiled pass (a few microseconds at MIT CSAIL's 1800 nodes, where
+#: gathering the cells' lists in Python took about 80); beyond, it reads the overlapping
+#: cells, O(nodes nearby). Both give the same ids (the test is the same expression).
+SCAN_ALL_ROWS = 16384
 
 
 class NodeGrid:
@@ -113,6 +120,8 @@ class NodeGrid:
         r = float(radius_m)
         if self._count == 0 or not r >= 0:
             return np.zeros(0, dtype=np.int64)
+        if self._n <= SCAN_ALL_ROWS:
+            return _rows_within(self._xy, self._n, float(c[0]), float(c[1]), r * r)
         lo = np.floor((c - r) / self.cell_m).astype(np.int64)
         hi = np.floor((c + r) / self.cell_m).astype(np.int64)
         n_cells = int((hi[0] - lo[0] + 1) * (hi[1] - lo[1] + 1))
@@ -155,6 +164,22 @@ class NodeGrid:
             del self._cells[key]  # type: ignore[arg-type]
         self._xy[n] = np.nan
         self._count -= 1
+
+
+@njit(cache=True, nogil=True)
+def _rows_within(xy: np.ndarray, n: int, cx: float, cy: float, r2: float) -> np.ndarray:
+    """``(k,)`` int64 the rows ``< n`` of ``xy`` ``(N, 2)`` whose position lies within
+    ``sqrt(r2)`` of ``(cx, cy)``, ascending; NaN rows (not indexed) never do. The expression
+    of :meth:`NodeGrid.query`'s cell path, so the same rows."""
+    keep = np.empty(n, np.int64)
+    k = 0
+    for i in range(n):
+        dx = xy[i, 0] - cx
+        dy = xy[i, 1] - cy
+        if dx**2 + dy**2 <= r2:
+            keep[k] = i
+            k += 1
+    return keep[:k].copy()
 
 
 __all__ = ["NodeGrid"]

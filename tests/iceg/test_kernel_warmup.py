@@ -17,7 +17,7 @@ _SCRIPT = r"""
 import json
 from numba.core.registry import CPUDispatcher
 import iceg.features.segmentation, iceg.grid, iceg.landmark_association, iceg.landmark_frames
-import iceg.matching._kernels, iceg.scan_store, iceg.visibility
+import iceg.matching._kernels, iceg.node_index, iceg.scan_store, iceg.visibility
 from frontends.simulate import corridor_world, default_trajectory, simulate
 from iceg.config import IcegConfig
 from iceg.features import extract
@@ -26,7 +26,8 @@ from iceg.kernel_warmup import compile_later_stages, compile_without_features
 from iceg.pipeline import run_scans
 
 MODULES = [iceg.features.segmentation, iceg.grid, iceg.landmark_association,
-           iceg.landmark_frames, iceg.matching._kernels, iceg.scan_store, iceg.visibility]
+           iceg.landmark_frames, iceg.matching._kernels, iceg.node_index, iceg.scan_store,
+           iceg.visibility]
 
 def signatures():
     return {
@@ -68,10 +69,10 @@ def test_the_warm_up_compiles_the_later_stages_with_the_signatures_a_run_calls()
     both = set(got["run"]) & set(got["warmed"])
     assert not both, {k: (got["warmed"][k], got["run"][k]) for k in both}
     # The split: the covariance, the free-space checks, the contradiction test, the feature
-    # map and the grid in the worker ...
+    # map, the node index and the grid in the worker ...
     later = {"lattice_covariance", "covariance_rows", "ray_wall_check", "points_explained"}
     later |= {"associate_scan", "keep_better", "count_observations", "expected_landmarks"}
-    later |= {"move_point_blocks", "sorted_union", "_trace_scans", "_mark_tiles"}
+    later |= {"move_point_blocks", "sorted_union", "_trace_scans", "_mark_tiles", "_rows_within"}
     assert later <= warmed, later - warmed
     # ... the hypotheses, the correlation and the refinement in the main process, which the
     # run then compiles (or loads) itself.

@@ -3,15 +3,18 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from iceg import node_index
 from iceg.node_index import NodeGrid
 
 #: Coordinates in micrometres (a squared distance of 1e-250 m would underflow to 0).
 coords = st.floats(-50.0, 50.0, allow_nan=False).map(lambda v: round(v, 6))
 
 
+@pytest.mark.parametrize("scan_all_rows", [node_index.SCAN_ALL_ROWS, 0])
 @settings(max_examples=60, deadline=None)
 @given(
     st.lists(st.tuples(coords, coords), min_size=0, max_size=80),
@@ -21,6 +24,7 @@ coords = st.floats(-50.0, 50.0, allow_nan=False).map(lambda v: round(v, 6))
     st.lists(st.tuples(st.integers(0, 79), coords, coords), max_size=10),
 )
 def test_query_equals_brute_force(
+    scan_all_rows: int,
     points: list[tuple[float, float]],
     center: tuple[float, float],
     radius: float,
@@ -42,7 +46,11 @@ def test_query_equals_brute_force(
         grid.add([n for n, _, _ in moves[3:]], [[x, y] for _, x, y in moves[3:]])
     c = np.array(center)
     d2 = ((xy - c) ** 2).sum(axis=1)
-    np.testing.assert_array_equal(grid.query(c, radius), np.flatnonzero(d2 <= radius * radius))
+    # both paths: every row's position in one compiled pass, and the cells the disc overlaps
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(node_index, "SCAN_ALL_ROWS", scan_all_rows)
+        got = grid.query(c, radius)
+    np.testing.assert_array_equal(got, np.flatnonzero(d2 <= radius * radius))
     assert len(grid) == xy.shape[0]
     np.testing.assert_array_equal(grid.position(np.arange(xy.shape[0])), xy)
     if xy.shape[0]:  # the extent covers every position indexed (moved nodes' old ones too)
