@@ -5,7 +5,8 @@ estimate, a candidate place). Reading every node's estimate for that costs O(N) 
 so a long log slows down with its length. :class:`NodeGrid` is a grid hash (cells of
 ``cell_m`` metres, a dict from cell to the node ids whose **indexed** position falls in it):
 adding a node is O(1), and a query reads only the cells that overlap its disc, O(nodes
-nearby).
+nearby). Up to :data:`SCAN_ALL_ROWS` nodes a query tests every indexed position in one
+compiled pass instead, which costs less there than gathering the cells in Python.
 
 Indexed positions go stale when the graph moves its estimates. The caller bounds the
 staleness: it queries with a radius enlarged by a margin, measures the exact distances on the
