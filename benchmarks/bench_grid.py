@@ -112,7 +112,7 @@ def main() -> None:
     ]:
         times = timed(lambda c=c: render(scans, poses, c), 5)
         g = render(scans, poses, c)
-        updates = int(g.hits.sum() + g.misses.sum())  # type: ignore[union-attr]
+        updates = int(g.hits.sum() + g.misses.sum())
         print(
             f"render {len(scans)} scans at 5 cm, {label}: median {statistics.median(times):.3f} s,"
             f" best {min(times):.3f} s; grid {g.shape[0]}x{g.shape[1]}, {updates / 1e6:.1f} M "

@@ -390,7 +390,7 @@ def _interruptible(work: Callable[[], R], on_interrupt: Callable[[], str]) -> R:
         signal.signal(signal.SIGTERM, previous)
     if "error" in box:
         raise box["error"]
-    return box["result"]  # type: ignore[no-any-return]
+    return box["result"]
 
 
 def _progress_bar_open() -> bool:

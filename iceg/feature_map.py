@@ -1476,7 +1476,7 @@ class FeatureMap:
         """Expected / matched / miss counters (:func:`~iceg.visibility.count_observations`);
         returns the matched and expected rows."""
         lm = self._lm
-        return count_observations(  # type: ignore[no-any-return]
+        return count_observations(
             rows,
             expected,
             pair_row,
@@ -1516,7 +1516,7 @@ class FeatureMap:
         if profile.bearing.shape[0] == 0:
             return np.zeros(n, dtype=bool)
         cfg = self.config
-        return expected_landmarks(  # type: ignore[no-any-return]
+        return expected_landmarks(
             rows,
             anchor_in_new,
             lm.support,

@@ -242,7 +242,7 @@ def poses_in_frame(frame: np.ndarray, poses: np.ndarray, rows: np.ndarray) -> np
         ``(n, 3)`` float64 the rows' poses in the target frame, headings in ``[-pi, pi)``.
     """
     ax, ay, at = se2.inverse(np.asarray(frame, dtype=np.float64).reshape(3)).tolist()
-    return _compose_rows(  # type: ignore[no-any-return]
+    return _compose_rows(
         ax,
         ay,
         at,

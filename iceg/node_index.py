@@ -159,10 +159,10 @@ class NodeGrid:
 
     def _remove(self, n: int) -> None:
         key = tuple(np.floor(self._xy[n] / self.cell_m).astype(np.int64).tolist())
-        cell = self._cells[key]  # type: ignore[index]
+        cell = self._cells[key]
         cell.remove(n)
         if not cell:
-            del self._cells[key]  # type: ignore[arg-type]
+            del self._cells[key]
         self._xy[n] = np.nan
         self._count -= 1
 

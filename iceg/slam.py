@@ -958,7 +958,7 @@ class Slam:
         relative = poses_in_frame(poses[rows[-1]], poses, rows)
         points = [self._points_of(i) for i in recent.tolist()]
         counts = np.array([p.shape[0] for p in points], dtype=np.int64)
-        return move_point_blocks(relative, counts, np.concatenate(points))  # type: ignore[no-any-return]
+        return move_point_blocks(relative, counts, np.concatenate(points))
 
     def _remember_points(self, node_id: int, feats: ScanFeatures) -> None:
         """Keep the new node's scan points for :meth:`_point_match`; forget those of nodes

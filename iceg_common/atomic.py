@@ -20,7 +20,7 @@ def atomic_write(
 ) -> contextlib.AbstractContextManager[IO[bytes]]: ...
 
 
-def atomic_write(path: str | Path, mode: str = "w") -> contextlib.AbstractContextManager[IO]:  # type: ignore[type-arg]
+def atomic_write(path: str | Path, mode: str = "w") -> contextlib.AbstractContextManager[IO]:
     """Open a temporary file beside ``path``; on clean exit it replaces ``path`` atomically.
 
     On an exception the temporary file is removed and ``path`` is left untouched.
@@ -33,7 +33,7 @@ def atomic_write(path: str | Path, mode: str = "w") -> contextlib.AbstractContex
 
 
 @contextlib.contextmanager
-def _atomic_write(path: Path, mode: str) -> Iterator[IO]:  # type: ignore[type-arg]
+def _atomic_write(path: Path, mode: str) -> Iterator[IO]:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         encoding = None if "b" in mode else "utf-8"

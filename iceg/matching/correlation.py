@@ -135,7 +135,7 @@ def pair_features(
         ``match`` ``(H, K_new)`` int64 reference index (-1: none), ``dist`` (m) and ``angle``
         (rad) ``(H, K_new)`` float64 of each pair (NaN where unpaired).
     """
-    return pair_nearest(poses, *feature_pairing(gn, gr, codes, settings))  # type: ignore[no-any-return]
+    return pair_nearest(poses, *feature_pairing(gn, gr, codes, settings))
 
 
 def correlate(

@@ -114,7 +114,7 @@ def transform_lines(
     lines = np.asarray(lines, dtype=np.float64).reshape(-1, 2)
     m = lines.shape[0]
     poses = np.broadcast_to(np.asarray(pose, dtype=np.float64), (m, 3))
-    return move_lines(  # type: ignore[no-any-return]
+    return move_lines(
         np.arange(m),
         np.ascontiguousarray(poses),
         lines,
@@ -136,7 +136,7 @@ def transform_line_rows(
     Returns:
         ``(n, 2)`` lines and ``(n, 2, 2)`` covariances in the parent frame.
     """
-    return move_lines(rows, poses, lines, cov)  # type: ignore[no-any-return]
+    return move_lines(rows, poses, lines, cov)
 
 
 def transform_features(
@@ -196,7 +196,7 @@ class PolarProfile:
     def directions(self) -> tuple[FloatArray, FloatArray]:
         """Cosines and sines ``(B,)`` float64 of ``bearing``, computed once per profile (a
         scan's free-space checks cast walls along its beams many times)."""
-        return beam_directions(self.bearing)  # type: ignore[no-any-return]
+        return beam_directions(self.bearing)
 
     @classmethod
     def from_points(cls, points_xy: FloatArray, range_max_m: float) -> PolarProfile:

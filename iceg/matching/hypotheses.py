@@ -57,7 +57,7 @@ def pair_codes(
     Returns:
         ``(K_new, K_ref)`` int64 pair codes (``INCOMPATIBLE`` where the pair is filtered out).
     """
-    return pair_code_matrix(  # type: ignore[no-any-return]
+    return pair_code_matrix(
         gn.kind,
         gn.opening,
         gr.kind,
@@ -104,7 +104,7 @@ def feasible_pairs(
     # All (new, reference) pairs in one pass: a few dozen by a few hundred features, cheaper
     # than a KD-tree. Squared distances against squared radii, as cKDTree.query_ball_point
     # tests them, in row-major (sorted) order.
-    return feasible_pair_indices(  # type: ignore[no-any-return]
+    return feasible_pair_indices(
         np.ascontiguousarray(pred_xy),
         np.ascontiguousarray(gr.xy, dtype=np.float64),
         np.ascontiguousarray(radius, dtype=np.float64),
@@ -153,7 +153,7 @@ def directed_hypotheses(
     Returns:
         ``(N, 3)`` float64 poses (unfiltered).
     """
-    return directed_poses(  # type: ignore[no-any-return]
+    return directed_poses(
         np.ascontiguousarray(i, dtype=np.int64),
         np.ascontiguousarray(j, dtype=np.int64),
         np.ascontiguousarray(codes, dtype=np.int64),
@@ -200,7 +200,7 @@ def intersection_hypotheses(
         d = np.hypot(*(pred - gr.xy[j]).T)
         keep = np.argsort(d, kind="stable")[:max_pairs]
         i, j = i[keep], j[keep]
-    return intersection_pair_poses(  # type: ignore[no-any-return]
+    return intersection_pair_poses(
         np.ascontiguousarray(i, dtype=np.int64),
         np.ascontiguousarray(j, dtype=np.int64),
         gn.xy,

@@ -329,7 +329,7 @@ def points_within(
     if ref.shape[0] == 0:
         return np.zeros((np.shape(poses)[0], np.shape(points_xy)[0]), dtype=bool)
     origin, n_cells, key, order = grid_points(ref, gate_m)
-    return points_explained(  # type: ignore[no-any-return]
+    return points_explained(
         np.ascontiguousarray(points_xy, dtype=np.float64),
         np.ascontiguousarray(poses, dtype=np.float64),
         ref,
@@ -359,7 +359,7 @@ def grid_points(
         each key (points of one cell in their input order).
     """
     if np.isfinite(points).all():  # compiled: the same arrays (sorted_cells)
-        return sorted_cells(np.ascontiguousarray(points, dtype=np.float64), cell_m)  # type: ignore[no-any-return]
+        return sorted_cells(np.ascontiguousarray(points, dtype=np.float64), cell_m)
     # Column by column: numpy reduces an (R, 2) array along axis 0 ten times slower.
     origin = np.array([points[:, 0].min(), points[:, 1].min()]) - cell_m
     cells = np.floor((points - origin) / cell_m).astype(np.int64)
@@ -385,7 +385,7 @@ def effective_line_info(segs: SegmentSet, wall_end_sigma_m: float) -> tuple[Floa
     """:func:`effective_line_cov` and its inverse (``1e-12`` added to the diagonal), each
     ``(M, 2, 2)`` float64, in one compiled pass (:func:`~iceg.matching._kernels.
     line_covariances`)."""
-    return line_covariances(  # type: ignore[no-any-return]
+    return line_covariances(
         segs.a, segs.u, segs.length, segs.alpha, segs.cov, wall_end_sigma_m, _MIN_WALL_LENGTH_M
     )
 
