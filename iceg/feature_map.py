@@ -32,11 +32,13 @@ from frontends.scan import LaserScan
 from iceg.landmark_association import (
     associate_scan,
     lookup_sorted,
+    reference_geometry,
     rows_of_nodes,
     sorted_union,
 )
 from iceg.landmark_frames import (
     FeatureRows,
+    frame_inverse,
     keep_better,
     move_features,
     move_points,
@@ -48,7 +50,7 @@ from iceg.types import FeatureKind, MatchResult, ScanFeatures
 from iceg.visibility import count_observations, expected_landmarks, pruned_landmarks
 from iceg_common.errors import FeatureMapError
 from iceg_common.ids import sorted_unique
-from iceg_common.se2 import compose, inverse
+from iceg_common.se2 import compose
 
 log = logging.getLogger(__name__)
 
@@ -682,6 +684,8 @@ def _node_pose_table(node_poses: NodePoses) -> tuple[IntArray, FloatArray]:
             f"node_poses: {ids.shape[0]} ids but {poses.shape[0]} poses; pass a dict "
             "{node_id: (3,) pose} or a tuple (ids (N,), poses (N, 3))"
         )
+    if ids.shape[0] < 2 or bool((ids[1:] >= ids[:-1]).all()):  # sorted already (tables usually are)
+        return ids.copy(), poses.copy()
     order = np.argsort(ids, kind="stable")
     return ids[order], poses[order]
 
@@ -1063,13 +1067,25 @@ class FeatureMap:
         frame = np.asarray(frame_pose, dtype=np.float64).reshape(3)
         ids, poses = _node_pose_table(node_poses)
         want = sorted_unique(node_ids)
-        view = self._reference_landmarks(ids, poses, want, frame)
         _, posed = lookup_sorted(ids, want)
         want_posed = want[posed]  # nodes whose segments and points can be placed
         ssel = _block_rows(self._seg_rows, want_posed)
-        spos, _ = lookup_sorted(ids, self._seg.node[ssel])
-        srel = poses_in_frame(frame, poses, spos)
-        ep, lines, lcov = self._seg.in_frame(ssel, srel)
+        lm, seg = self._lm, self._seg
+        rows, xy, cov, directions, ep, lines, lcov = reference_geometry(
+            ids,
+            poses,
+            frame_inverse(frame),
+            self._chosen(want),
+            lm.anchor,
+            lm.xy,
+            lm.cov,
+            lm.dirs,
+            ssel,
+            seg.node,
+            seg.ep,
+            seg.lines,
+            seg.cov,
+        )
         points, seg_pr = self._reference_points(ids, poses, want_posed, frame, ssel)
         features = ScanFeatures(
             points_xy=points,
@@ -1077,13 +1093,13 @@ class FeatureMap:
             seg_lines=lines,
             seg_cov=lcov,
             seg_point_range=seg_pr,
-            kind=view.kind,
-            xy=view.xy,
-            cov=view.cov,
-            directions=view.directions,
-            opening_rad=view.opening_rad,
-            segment_ids=np.full((len(view), 2), -1, dtype=np.int64),
-            ids=view.ids,
+            kind=lm.kind[rows],
+            xy=xy,
+            cov=cov,
+            directions=directions,
+            opening_rad=lm.opening[rows],
+            segment_ids=np.full((rows.shape[0], 2), -1, dtype=np.int64),
+            ids=lm.id[rows],
             range_max_m=self._range_max_m,
             stamp_s=self._last_stamp_s,
         )
@@ -1112,17 +1128,6 @@ class FeatureMap:
         ref_ids = None if reference is None else reference.landmark_ids
         anchors = self._lm.anchor[self._taking_part(int(node_id), ref_ids)]
         return sorted_union(np.array([int(node_id)], dtype=np.int64), anchors)
-
-    def _reference_landmarks(
-        self, ids: IntArray, poses: FloatArray, want: IntArray, frame: FloatArray
-    ) -> LandmarkView:
-        """Landmarks anchored to or last matched from ``want``, in the frame ``frame``."""
-        lm = self._lm
-        chosen = self._chosen(want)
-        apos, afound = lookup_sorted(ids, lm.anchor[chosen])
-        sel = chosen[afound]
-        rel = poses_in_frame(frame, poses, apos[afound])
-        return lm.in_frame(sel, rel)
 
     def _chosen(self, want: IntArray) -> IntArray:
         """Ascending rows of the landmarks anchored to or last matched from the nodes
@@ -1407,8 +1412,6 @@ class FeatureMap:
             new_pose = np.asarray(node_pose, dtype=np.float64).reshape(3)
         else:
             new_pose = compose(reference.frame_pose, match.pose)
-        # the new node's inverse as poses_in_frame reads it (se2, libm's cosine and sine)
-        ax, ay, at = inverse(np.asarray(new_pose, dtype=np.float64).reshape(3)).tolist()
         rows, anchor_in_new, xy_new, slot, pair_new, pair_row, merge_rows = associate_scan(
             self._taking_part(node_id, reference.landmark_ids),
             lm.id,
@@ -1416,7 +1419,7 @@ class FeatureMap:
             lm.xy,
             tab_ids,
             np.ascontiguousarray(tab_poses, dtype=np.float64),
-            np.array([ax, ay, at, math.cos(at), math.sin(at)]),
+            frame_inverse(new_pose),
             np.ascontiguousarray(np.asarray(match.inlier_pairs, dtype=np.int64).reshape(-1, 2)),
             reference.landmark_ids,
             np.ascontiguousarray(features.xy, dtype=np.float64).reshape(-1, 2),

@@ -2,7 +2,8 @@
 new node's frame (docs/design.md "Feature map and time-validity"): the geometric pairs that
 complete the matcher's inlier pairs, and the duplicate landmarks to merge; and the rows of
 landmark or node ids in a sorted id table (:func:`lookup_sorted`) and the union of id sets
-(:func:`sorted_union`).
+(:func:`sorted_union`); and a matching reference's landmarks and segments gathered into its
+frame (:func:`reference_geometry`).
 
 Compiled loops over (features x landmarks) instead of numpy's ``(K, n, 2)`` distance
 temporaries; each distance is ``sqrt(dx^2 + dy^2)`` as ``np.linalg.norm`` computes it, so
@@ -18,7 +19,8 @@ import math
 import numpy as np
 from numba import njit
 
-from iceg.landmark_frames import _compose_rows
+from iceg.landmark_frames import _compose_rows, move_features, move_points
+from iceg.matching._kernels import move_lines
 
 
 @njit(cache=True, nogil=True)
@@ -277,3 +279,60 @@ def associate_scan(
     for t in range(pair_row.shape[0]):
         close[slot[pair_row[t]]] = False
     return rows, anchor_in_new, xy_new, slot, pair_new, pair_row, rows[np.flatnonzero(close)]
+
+
+@njit(cache=True, nogil=True)
+def reference_geometry(
+    tab_ids: np.ndarray,
+    tab_poses: np.ndarray,
+    frame_inverse: np.ndarray,
+    lm_rows: np.ndarray,
+    lm_anchor: np.ndarray,
+    lm_xy: np.ndarray,
+    lm_cov: np.ndarray,
+    lm_dirs: np.ndarray,
+    seg_rows: np.ndarray,
+    seg_node: np.ndarray,
+    seg_ep: np.ndarray,
+    seg_lines: np.ndarray,
+    seg_cov: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A matching reference's geometry in its frame (``FeatureMap.reference``), in one
+    pass: the landmarks of ``lm_rows`` whose anchor has a pose and the segments of
+    ``seg_rows``, each placed by its node's pose in the frame (the anchors as
+    :func:`~iceg.landmark_frames.poses_in_frame` places them, the landmarks as
+    :func:`~iceg.landmark_frames.move_features` moves them, the segments' lines as
+    :func:`~iceg.matching._kernels.move_lines` and their endpoints as
+    :func:`~iceg.landmark_frames.move_points`): the same calls, so the same bits.
+
+    Args:
+        tab_ids: ``(N,)`` int64 ascending nodes with a pose; ``tab_poses`` ``(N, 3)``
+            float64 their poses, map frame.
+        frame_inverse: ``(5,)`` float64 the frame's inverse pose and its heading's cosine and
+            sine (:func:`~iceg.landmark_frames.frame_inverse`).
+        lm_rows: ``(k,)`` int64 ascending landmark rows to place.
+        lm_anchor: ``(L,)`` int64 every landmark's anchor node; ``lm_xy`` ``(L, 2)``,
+            ``lm_cov`` ``(L, 2, 2)``, ``lm_dirs`` ``(L, 2, 2)`` float64 its position (metres),
+            position covariance (m²) and wall directions, anchor's frame.
+        seg_rows: ``(m,)`` int64 segment rows to place, each of a node in ``tab_ids``.
+        seg_node: ``(M,)`` int64 every segment's node; ``seg_ep`` ``(M, 2, 2)``,
+            ``seg_lines`` ``(M, 2)``, ``seg_cov`` ``(M, 2, 2)`` float64 its endpoints
+            (metres), Hessian line ``(alpha_rad, rho_m)`` and the line's covariance, node's
+            frame.
+
+    Returns:
+        ``rows`` ``(n,)`` int64 the landmarks placed; their positions ``(n, 2)``,
+        covariances ``(n, 2, 2)`` and directions ``(n, 2, 2)``; the segments' endpoints
+        ``(m, 2, 2)``, lines ``(m, 2)`` and line covariances ``(m, 2, 2)``; all float64 in
+        the frame.
+    """
+    fi = frame_inverse
+    pos, found = lookup_sorted(tab_ids, lm_anchor[lm_rows])
+    keep = np.flatnonzero(found)
+    rows = lm_rows[keep]
+    anchors = _compose_rows(fi[0], fi[1], fi[2], fi[3], fi[4], tab_poses, pos[keep])
+    xy, cov, dirs = move_features(rows, anchors, lm_xy, lm_cov, lm_dirs)
+    seg_pos, _ = lookup_sorted(tab_ids, seg_node[seg_rows])
+    nodes = _compose_rows(fi[0], fi[1], fi[2], fi[3], fi[4], tab_poses, seg_pos)
+    lines, line_cov = move_lines(seg_rows, nodes, seg_lines, seg_cov)
+    return rows, xy, cov, dirs, move_points(nodes, seg_ep[seg_rows], True), lines, line_cov

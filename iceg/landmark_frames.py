@@ -241,16 +241,34 @@ def poses_in_frame(frame: np.ndarray, poses: np.ndarray, rows: np.ndarray) -> np
     Returns:
         ``(n, 3)`` float64 the rows' poses in the target frame, headings in ``[-pi, pi)``.
     """
-    ax, ay, at = se2.inverse(np.asarray(frame, dtype=np.float64).reshape(3)).tolist()
+    ax, ay, at, c, s = frame_inverse(frame).tolist()
     return _compose_rows(
         ax,
         ay,
         at,
-        math.cos(at),
-        math.sin(at),
+        c,
+        s,
         np.ascontiguousarray(poses, dtype=np.float64),
         np.asarray(rows, dtype=np.int64),
     )
+
+
+def frame_inverse(frame: np.ndarray) -> np.ndarray:
+    """The inverse of a frame's pose as :func:`poses_in_frame` composes with it: ``(5,)``
+    float64 ``x_m, y_m, theta_rad`` of ``se2.inverse(frame)`` and that theta's cosine and
+    sine (libm's, as numpy's), for the compiled passes that place rows in the frame.
+
+    Args:
+        frame: ``(3,)`` float64 the frame's pose ``[x_m, y_m, theta_rad]``.
+    """
+    pose = np.asarray(frame, dtype=np.float64).reshape(3)
+    x, y, t = pose.tolist()
+    if math.isfinite(t):  # se2.inverse's expressions for one pose, in floats
+        c, s = math.cos(t), math.sin(t)
+        ax, ay, at = -(c * x + s * y), -(-s * x + c * y), se2.wrap_float(-t)
+    else:
+        ax, ay, at = se2.inverse(pose).tolist()
+    return np.array([ax, ay, at, math.cos(at), math.sin(at)])
 
 
 @njit(cache=True, nogil=True)
@@ -272,6 +290,7 @@ def _compose_rows(
 
 __all__ = [
     "FeatureRows",
+    "frame_inverse",
     "keep_better",
     "move_features",
     "move_point_blocks",

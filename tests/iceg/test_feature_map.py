@@ -31,12 +31,14 @@ from iceg.landmark_association import (
     associate_scan,
     lookup_sorted,
     nearest_free_pairs,
+    reference_geometry,
     rows_of_nodes,
     sorted_union,
     within_gate_of_any,
 )
 from iceg.landmark_frames import (
     FeatureRows,
+    frame_inverse,
     keep_better,
     move_features,
     move_point_blocks,
@@ -1014,6 +1016,78 @@ def test_poses_in_frame_are_the_bits_of_se2_between() -> None:
         got = poses_in_frame(frame, poses, rows)
         assert np.array_equal(got.view(np.int64), se2.between(frame, poses[rows]).view(np.int64))
     assert poses_in_frame(poses[0], poses, np.zeros(0, dtype=np.int64)).shape == (0, 3)
+
+
+def test_frame_inverse_is_se2_inverse_with_its_cosine_and_sine() -> None:
+    # The frame's inverse as the compiled passes read it: se2.inverse's bits (headings at and
+    # beyond +-pi, a non-finite one through numpy's path), then libm's cosine and sine.
+    rng = np.random.default_rng(11)
+    frames = [np.array([*rng.normal(0, 50, 2), t]) for t in rng.uniform(-9, 9, 40)]
+    frames += [np.array([1.0, 2.0, t]) for t in (np.pi, -np.pi, 0.0, -0.0, np.inf, np.nan)]
+    for frame in frames:
+        with np.errstate(invalid="ignore"):  # the non-finite headings
+            ax, ay, at = se2.inverse(frame).tolist()
+            got = frame_inverse(frame)
+        want = np.array([ax, ay, at, math.cos(at), math.sin(at)])
+        assert np.array_equal(got.view(np.int64), want.view(np.int64))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_reference_geometry_is_the_frame_changes_one_by_one(seed: int) -> None:
+    # The reference's one compiled pass against the separate calls it fuses (the anchors'
+    # and the segments' nodes placed by poses_in_frame, then move_features, move_lines and
+    # move_points): the same bits. Landmarks whose anchor has no pose are left out; headings
+    # past +-pi; no landmark or no segment now and then.
+    rng = np.random.default_rng(seed)
+    tab_ids = np.unique(rng.integers(0, 30, 20)).astype(np.int64)
+    tab_poses = np.column_stack(
+        [rng.normal(0, 30, (tab_ids.shape[0], 2)), rng.uniform(-5, 5, tab_ids.shape[0])]
+    )
+    frame = np.array([*rng.normal(0, 30, 2), rng.uniform(-5, 5)])
+    n_lm, n_seg = (0, 12) if seed == 1 else (60, 0) if seed == 2 else (60, 40)
+    lm_anchor = rng.integers(0, 30, n_lm).astype(np.int64)
+    lm_xy = rng.uniform(-10, 10, (n_lm, 2))
+    q = rng.normal(size=(n_lm, 2, 2))
+    lm_cov = q @ np.swapaxes(q, 1, 2) * 1e-3
+    lm_dirs = rng.normal(size=(n_lm, 2, 2))
+    lm_dirs[::3] = np.nan
+    lm_rows = np.flatnonzero(rng.uniform(size=n_lm) < 0.7).astype(np.int64)
+    seg_node = np.sort(rng.choice(tab_ids, n_seg)).astype(np.int64)
+    seg_ep = rng.uniform(-10, 10, (n_seg, 2, 2))
+    seg_lines = np.column_stack([rng.uniform(-np.pi, np.pi, n_seg), rng.uniform(0, 8, n_seg)])
+    w = rng.normal(size=(n_seg, 2, 2))
+    seg_cov = w @ np.swapaxes(w, 1, 2) * 1e-4
+    seg_rows = np.flatnonzero(rng.uniform(size=n_seg) < 0.6).astype(np.int64)
+    got = reference_geometry(
+        tab_ids,
+        tab_poses,
+        frame_inverse(frame),
+        lm_rows,
+        lm_anchor,
+        lm_xy,
+        lm_cov,
+        lm_dirs,
+        seg_rows,
+        seg_node,
+        seg_ep,
+        seg_lines,
+        seg_cov,
+    )
+    apos, afound = lookup_sorted(tab_ids, lm_anchor[lm_rows])
+    rows = lm_rows[afound]
+    anchors = poses_in_frame(frame, tab_poses, apos[afound])
+    spos, _ = lookup_sorted(tab_ids, seg_node[seg_rows])
+    nodes = poses_in_frame(frame, tab_poses, spos)
+    want = (
+        rows,
+        *move_features(rows, anchors, lm_xy, lm_cov, lm_dirs),
+        move_points(nodes, seg_ep[seg_rows], True),
+        *move_lines(seg_rows, nodes, seg_lines, seg_cov),
+    )
+    assert 0 < rows.shape[0] < lm_rows.shape[0] or n_lm == 0
+    for a, b in zip(got, want, strict=True):
+        assert a.dtype == b.dtype and a.shape == b.shape
+        assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f")
 
 
 def test_moved_geometry_equals_the_numpy_expressions() -> None:

@@ -72,6 +72,7 @@ def test_the_warm_up_compiles_the_later_stages_with_the_signatures_a_run_calls()
     # map, the node index and the grid in the worker ...
     later = {"lattice_covariance", "covariance_rows", "ray_wall_check", "points_explained"}
     later |= {"associate_scan", "keep_better", "count_observations", "expected_landmarks"}
+    later |= {"reference_geometry"}
     later |= {"move_point_blocks", "sorted_union", "_trace_scans", "_mark_tiles", "_rows_within"}
     assert later <= warmed, later - warmed
     # ... the hypotheses, the correlation and the refinement in the main process, which the
