@@ -6,7 +6,8 @@ so a long log slows down with its length. :class:`NodeGrid` is a grid hash (cell
 ``cell_m`` metres, a dict from cell to the node ids whose **indexed** position falls in it):
 adding a node is O(1), and a query reads only the cells that overlap its disc, O(nodes
 nearby). Up to :data:`SCAN_ALL_ROWS` nodes a query tests every indexed position in one
-compiled pass instead, which costs less there than gathering the cells in Python.
+compiled pass instead, which costs less there than gathering the cells in Python; the cells
+are built only when a query first needs them, and kept up to date from then on.
 
 Indexed positions go stale when the graph moves its estimates. The caller bounds the
 staleness: it queries with a radius enlarged by a margin, measures the exact distances on the
@@ -46,7 +47,8 @@ class NodeGrid:
         if not (math.isfinite(cell_m) and cell_m > 0):
             raise ValueError(f"NodeGrid: cell_m must be a positive number, got {cell_m!r}")
         self.cell_m = float(cell_m)
-        self._cells: dict[tuple[int, int], list[int]] = {}
+        # None until a query reads cells (more than SCAN_ALL_ROWS rows), then kept up to date
+        self._cells: dict[tuple[int, int], list[int]] | None = None
         self._xy = np.zeros((0, 2))  # row = node id; NaN: not indexed
         self._n = 0  # rows in use (1 + the largest id indexed)
         self._count = 0
@@ -88,25 +90,18 @@ class NodeGrid:
             raise ValueError("NodeGrid.add: positions must be finite")
         if ids.size == 0:
             return
-        # The last position given for a repeated id wins.
-        _, last = np.unique(ids[::-1], return_index=True)
-        keep = ids.shape[0] - 1 - last
-        ids, pts = ids[keep], pts[keep]
+        if ids.shape[0] > 1 and not bool((ids[1:] > ids[:-1]).all()):
+            # The last position given for a repeated id wins (ids then ascending).
+            _, last = np.unique(ids[::-1], return_index=True)
+            keep = ids.shape[0] - 1 - last
+            ids, pts = ids[keep], pts[keep]
         self._reserve(int(ids.max()) + 1)
         for n in ids[~np.isnan(self._xy[ids, 0])].tolist():  # moved nodes
             self._remove(n)
         self._xy[ids] = pts
         self._count += ids.shape[0]
-        # One dict step per cell: the nodes grouped by cell key.
-        keys = np.floor(pts / self.cell_m).astype(np.int64)
-        order = np.lexsort((keys[:, 1], keys[:, 0]))
-        keys, ids = keys[order], ids[order]
-        starts = np.flatnonzero(np.any(np.diff(keys, axis=0) != 0, axis=1)) + 1
-        bounds = [0, *starts.tolist(), ids.shape[0]]
-        cells = keys[bounds[:-1]].tolist()
-        grouped = ids.tolist()
-        for (cx, cy), a, b in zip(cells, bounds[:-1], bounds[1:], strict=True):
-            self._cells.setdefault((cx, cy), []).extend(grouped[a:b])
+        if self._cells is not None:
+            _file(self._cells, ids, pts, self.cell_m)
         self._lo = np.minimum(self._lo, [pts[:, 0].min(), pts[:, 1].min()])
         self._hi = np.maximum(self._hi, [pts[:, 0].max(), pts[:, 1].max()])
 
@@ -123,6 +118,10 @@ class NodeGrid:
             return np.zeros(0, dtype=np.int64)
         if self._n <= SCAN_ALL_ROWS:
             return _rows_within(self._xy, self._n, float(c[0]), float(c[1]), r * r)
+        if self._cells is None:  # the first query beyond SCAN_ALL_ROWS: file every node
+            rows = np.flatnonzero(~np.isnan(self._xy[: self._n, 0]))
+            self._cells = {}
+            _file(self._cells, rows, self._xy[rows], self.cell_m)
         lo = np.floor((c - r) / self.cell_m).astype(np.int64)
         hi = np.floor((c + r) / self.cell_m).astype(np.int64)
         n_cells = int((hi[0] - lo[0] + 1) * (hi[1] - lo[1] + 1))
@@ -158,13 +157,32 @@ class NodeGrid:
         self._n = max(self._n, rows)
 
     def _remove(self, n: int) -> None:
-        key = tuple(np.floor(self._xy[n] / self.cell_m).astype(np.int64).tolist())
-        cell = self._cells[key]
-        cell.remove(n)
-        if not cell:
-            del self._cells[key]
+        if self._cells is not None:
+            key = tuple(np.floor(self._xy[n] / self.cell_m).astype(np.int64).tolist())
+            cell = self._cells[key]
+            cell.remove(n)
+            if not cell:
+                del self._cells[key]
         self._xy[n] = np.nan
         self._count -= 1
+
+
+def _file(
+    cells: dict[tuple[int, int], list[int]], ids: IntArray, pts: FloatArray, cell_m: float
+) -> None:
+    """File the nodes ``ids`` ``(k,)`` int64 at ``pts`` ``(k, 2)`` float64 metres (in no cell
+    yet) in ``cells`` (cells of ``cell_m`` metres): one dict step per cell, the nodes grouped
+    by cell key."""
+    if ids.shape[0] == 0:
+        return
+    keys = np.floor(pts / cell_m).astype(np.int64)
+    order = np.lexsort((keys[:, 1], keys[:, 0]))
+    keys, ids = keys[order], ids[order]
+    starts = np.flatnonzero(np.any(np.diff(keys, axis=0) != 0, axis=1)) + 1
+    bounds = [0, *starts.tolist(), ids.shape[0]]
+    grouped = ids.tolist()
+    for (cx, cy), a, b in zip(keys[bounds[:-1]].tolist(), bounds[:-1], bounds[1:], strict=True):
+        cells.setdefault((cx, cy), []).extend(grouped[a:b])
 
 
 @njit(cache=True, nogil=True)

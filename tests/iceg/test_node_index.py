@@ -34,8 +34,13 @@ def test_query_equals_brute_force(
     xy = np.array(points, dtype=np.float64).reshape(-1, 2)
     grid = NodeGrid(cell)
     half = xy.shape[0] // 2
+    c = np.array(center)
     grid.add(np.arange(half), xy[:half])  # in two batches, as nodes arrive
-    grid.add(np.arange(half, xy.shape[0]), xy[half:])
+    with pytest.MonkeyPatch.context() as mp:  # the cells, where read, are built here ...
+        mp.setattr(node_index, "SCAN_ALL_ROWS", scan_all_rows)
+        d2 = ((xy[:half] - c) ** 2).sum(axis=1)
+        np.testing.assert_array_equal(grid.query(c, radius), np.flatnonzero(d2 <= radius * radius))
+    grid.add(np.arange(half, xy.shape[0]), xy[half:])  # ... and kept up to date from then on
     moves = [(n, x, y) for n, x, y in moves if n < xy.shape[0]]
     for n, x, y in moves[:3]:  # re-indexing a node moves it
         xy[n] = (x, y)
@@ -44,7 +49,6 @@ def test_query_equals_brute_force(
         xy[n] = (x, y)
     if moves[3:]:
         grid.add([n for n, _, _ in moves[3:]], [[x, y] for _, x, y in moves[3:]])
-    c = np.array(center)
     d2 = ((xy - c) ** 2).sum(axis=1)
     # both paths: every row's position in one compiled pass, and the cells the disc overlaps
     with pytest.MonkeyPatch.context() as mp:
