@@ -19,8 +19,7 @@ import math
 import numpy as np
 from numba import njit
 
-from iceg.landmark_frames import _compose_rows, move_features, move_points
-from iceg.matching._kernels import move_lines
+from iceg.landmark_frames import _compose_rows, move_features, move_lines, move_points
 
 
 @njit(cache=True, nogil=True)
@@ -302,7 +301,7 @@ def reference_geometry(
     ``seg_rows``, each placed by its node's pose in the frame (the anchors as
     :func:`~iceg.landmark_frames.poses_in_frame` places them, the landmarks as
     :func:`~iceg.landmark_frames.move_features` moves them, the segments' lines as
-    :func:`~iceg.matching._kernels.move_lines` and their endpoints as
+    :func:`~iceg.landmark_frames.move_lines` and their endpoints as
     :func:`~iceg.landmark_frames.move_points`): the same calls, so the same bits.
 
     Args:

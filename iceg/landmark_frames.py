@@ -2,11 +2,12 @@
 
 A reference for a match gathers every landmark and segment of its nodes into one frame, and
 an update moves a matched observation into its landmark's anchor frame: per row a rotation
-and a translation of points, direction vectors and 2 x 2 covariances (Hessian lines move by
-:func:`~iceg.matching.geometry.transform_lines`, compiled as well). In numpy that is a dozen
-calls on ``(n, 2, 2)`` temporaries per gather (``rotation_matrix``, ``einsum``, stacked
-``matmul``), 50-250 us for the few dozen to few hundred rows of a reference; these loops do
-it in one pass. The arithmetic is that of the numpy expressions (``R p + t``, ``R C R^T``),
+and a translation of points, direction vectors and 2 x 2 covariances, and Hessian lines with
+their covariances (:func:`move_lines`, also behind the matcher's
+:func:`~iceg.matching.geometry.transform_lines`). In numpy that is a dozen calls on
+``(n, 2, 2)`` temporaries per gather (``rotation_matrix``, ``einsum``, stacked ``matmul``),
+50-250 us for the few dozen to few hundred rows of a reference; these loops do it in one
+pass. The arithmetic is that of the numpy expressions (``R p + t``, ``R C R^T``),
 so the results agree to rounding (``tests/iceg/test_feature_map.py``). The rows' anchor
 poses in the gather's frame (:func:`poses_in_frame`) are ``se2.between`` of the gathered rows
 in one pass, the same bits.
@@ -118,6 +119,46 @@ def move_point_blocks(poses: np.ndarray, counts: np.ndarray, pts: np.ndarray) ->
             out[j, 1] = s * pts[j, 0] + c * pts[j, 1] + ty
             j += 1
     return out
+
+
+@njit(cache=True, nogil=True)
+def move_lines(
+    rows: np.ndarray, poses: np.ndarray, lines: np.ndarray, cov: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Hessian lines ``rows`` of ``lines`` ``(N, 2)`` ``(alpha_rad, rho_m)`` and their
+    covariances ``cov`` ``(N, 2, 2)`` moved by ``poses`` ``(n, 3)`` (each row's frame in the
+    target frame): ``alpha' = alpha + theta``, ``rho' = rho + (cos alpha', sin alpha') . t``,
+    flipped to keep ``rho' >= 0`` (``alpha'`` then wrapped to ``[-pi, pi)``); the covariance
+    by the Jacobian ``[[1, 0], [d rho'/d alpha, 1]]`` (its second row negated by a flip).
+    Returns ``(n, 2)`` lines and ``(n, 2, 2)`` covariances (float64)."""
+    n = rows.shape[0]
+    out_lines = np.empty((n, 2))
+    out_cov = np.empty((n, 2, 2))
+    for i in range(n):
+        r = rows[i]
+        x, y = poses[i, 0], poses[i, 1]
+        a = lines[r, 0] + poses[i, 2]
+        ca = math.cos(a)
+        sa = math.sin(a)
+        rho = lines[r, 1] + ca * x + sa * y
+        j10 = -sa * x + ca * y
+        j11 = 1.0
+        if rho < 0.0:
+            a += math.pi
+            rho = -rho
+            j10 = -j10
+            j11 = -1.0
+        out_lines[i, 0] = (a + math.pi) % (2.0 * math.pi) - math.pi
+        out_lines[i, 1] = rho
+        # J C J^T with J = [[1, 0], [j10, j11]]
+        c00, c01, c10, c11 = cov[r, 0, 0], cov[r, 0, 1], cov[r, 1, 0], cov[r, 1, 1]
+        b10 = j10 * c00 + j11 * c10
+        b11 = j10 * c01 + j11 * c11
+        out_cov[i, 0, 0] = c00
+        out_cov[i, 0, 1] = c00 * j10 + c01 * j11
+        out_cov[i, 1, 0] = b10
+        out_cov[i, 1, 1] = b10 * j10 + b11 * j11
+    return out_lines, out_cov
 
 
 class FeatureRows(NamedTuple):
@@ -293,6 +334,7 @@ __all__ = [
     "frame_inverse",
     "keep_better",
     "move_features",
+    "move_lines",
     "move_point_blocks",
     "move_points",
     "poses_in_frame",

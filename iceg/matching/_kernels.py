@@ -1195,46 +1195,6 @@ def correlation_scores(
 
 
 @njit(cache=True, nogil=True)
-def move_lines(
-    rows: np.ndarray, poses: np.ndarray, lines: np.ndarray, cov: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Hessian lines ``rows`` of ``lines`` ``(N, 2)`` ``(alpha_rad, rho_m)`` and their
-    covariances ``cov`` ``(N, 2, 2)`` moved by ``poses`` ``(n, 3)`` (each row's frame in the
-    target frame): ``alpha' = alpha + theta``, ``rho' = rho + (cos alpha', sin alpha') . t``,
-    flipped to keep ``rho' >= 0`` (``alpha'`` then wrapped to ``[-pi, pi)``); the covariance
-    by the Jacobian ``[[1, 0], [d rho'/d alpha, 1]]`` (its second row negated by a flip).
-    Returns ``(n, 2)`` lines and ``(n, 2, 2)`` covariances (float64)."""
-    n = rows.shape[0]
-    out_lines = np.empty((n, 2))
-    out_cov = np.empty((n, 2, 2))
-    for i in range(n):
-        r = rows[i]
-        x, y = poses[i, 0], poses[i, 1]
-        a = lines[r, 0] + poses[i, 2]
-        ca = math.cos(a)
-        sa = math.sin(a)
-        rho = lines[r, 1] + ca * x + sa * y
-        j10 = -sa * x + ca * y
-        j11 = 1.0
-        if rho < 0.0:
-            a += math.pi
-            rho = -rho
-            j10 = -j10
-            j11 = -1.0
-        out_lines[i, 0] = (a + math.pi) % (2.0 * math.pi) - math.pi
-        out_lines[i, 1] = rho
-        # J C J^T with J = [[1, 0], [j10, j11]]
-        c00, c01, c10, c11 = cov[r, 0, 0], cov[r, 0, 1], cov[r, 1, 0], cov[r, 1, 1]
-        b10 = j10 * c00 + j11 * c10
-        b11 = j10 * c01 + j11 * c11
-        out_cov[i, 0, 0] = c00
-        out_cov[i, 0, 1] = c00 * j10 + c01 * j11
-        out_cov[i, 1, 0] = b10
-        out_cov[i, 1, 1] = b10 * j10 + b11 * j11
-    return out_lines, out_cov
-
-
-@njit(cache=True, nogil=True)
 def segment_arrays(
     endpoints: np.ndarray, lines: np.ndarray, cov: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -13,7 +13,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from iceg.matching._kernels import beam_directions, move_lines, segment_arrays
+from iceg.landmark_frames import move_lines
+from iceg.matching._kernels import beam_directions, segment_arrays
 from iceg.types import FeatureKind, ScanFeatures
 from iceg_common.se2 import rotation_matrix as rot
 

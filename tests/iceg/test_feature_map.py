@@ -41,12 +41,12 @@ from iceg.landmark_frames import (
     frame_inverse,
     keep_better,
     move_features,
+    move_lines,
     move_point_blocks,
     move_points,
     poses_in_frame,
 )
 from iceg.matching import IceMatcher, MatchBounds
-from iceg.matching._kernels import move_lines
 from iceg.matching.geometry import PolarProfile
 from iceg.matching.matcher import walls_seen_through
 from iceg.types import FeatureKind, MatchResult, ScanFeatures
