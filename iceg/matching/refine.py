@@ -452,8 +452,7 @@ def covariance_at(problem: RefineProblem, pose: FloatArray) -> tuple[FloatArray,
     gate = s.gate_m
     sigma = max(s.sigma_min_m, gate / GATE_TO_SIGMA0)
     p = np.asarray(pose, dtype=np.float64)
-    point_hess, pr, sigma = _final_point_rows(problem, p, gate, sigma)
-    hess, rows = _final_rows(problem, p, point_hess, np.zeros((0, 2), np.int64), gate, sigma)
+    hess, pr, rows, sigma = _final_system(problem, p, gate, sigma, np.zeros((0, 2), np.int64))
     return _covariance(problem, p, hess, pr, rows, sigma, gate)
 
 
