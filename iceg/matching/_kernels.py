@@ -1717,6 +1717,53 @@ def nearest_walls(
 
 
 @njit(cache=True, nogil=True)
+def feature_angles(
+    kind: np.ndarray,
+    xy: np.ndarray,
+    cov: np.ndarray,
+    directions: np.ndarray,
+    min_var_m2: float,
+    corner: int,
+    eow: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The derived columns of ``geometry.feature_geometry`` in one pass over ``K`` features:
+    each edge's direction angle ``atan2(dy, dx)`` ``(K, 2)`` (NaN stays NaN), the heading
+    ``(K,)`` (a ``corner``'s bisector angle, the first edge of an ``eow``, else NaN), the
+    covariance ``(K, 2, 2)`` with non-finite entries as 0 and ``min_var_m2`` added to the
+    diagonal (and 0.0 to the rest, as numpy adds the identity's zeros), and the distance
+    ``hypot(x, y)`` ``(K,)`` from the frame's origin. The angles are libm's ``atan2``, as
+    ``math.atan2`` gives them on every machine.
+
+    Args:
+        kind: ``(K,)`` int64 feature kinds; ``xy`` ``(K, 2)`` float64 positions (m);
+            ``cov`` ``(K, 2, 2)`` float64 covariances (m^2); ``directions`` ``(K, 2, 2)``
+            float64 unit edge directions (NaN where none).
+    """
+    n = kind.shape[0]
+    edge = np.empty((n, 2))
+    heading = np.full(n, np.nan)
+    cov_out = np.empty((n, 2, 2))
+    dist = np.empty(n)
+    for i in range(n):
+        for e in range(2):
+            edge[i, e] = math.atan2(directions[i, e, 1], directions[i, e, 0])
+        if kind[i] == corner:
+            heading[i] = math.atan2(
+                directions[i, 0, 1] + directions[i, 1, 1], directions[i, 0, 0] + directions[i, 1, 0]
+            )
+        elif kind[i] == eow:
+            heading[i] = edge[i, 0]
+        for a in range(2):
+            for b in range(2):
+                c = cov[i, a, b]
+                cov_out[i, a, b] = (c if math.isfinite(c) else 0.0) + (
+                    min_var_m2 if a == b else 0.0
+                )
+        dist[i] = math.hypot(xy[i, 0], xy[i, 1])
+    return edge, heading, cov_out, dist
+
+
+@njit(cache=True, nogil=True)
 def beam_directions(bearing: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Cosines and sines ``(B,)`` float64 of the bearings ``(B,)`` (radians), as
     :func:`ray_wall_check` takes them."""
@@ -1769,6 +1816,38 @@ def ray_wall_check(
 #: Kernel density terms beyond this many kernel widths are dropped: ``exp(-0.5 * 12**2)``
 #: is below 1e-31, under half an ulp of any partial sum (each starts at its own weight).
 DENSITY_WINDOW_WIDTHS = 12.0
+
+
+@njit(cache=True, nogil=True)
+def poses_within_bounds(
+    directed: np.ndarray,
+    intersection: np.ndarray,
+    prediction: np.ndarray,
+    max_rotation_rad: float,
+    max_translation_m: float,
+) -> np.ndarray:
+    """The hypotheses ``directed`` ``(N1, 3)`` then ``intersection`` ``(N2, 3)`` (float64
+    poses) whose heading lies within ``max_rotation_rad`` of the ``(3,)`` ``prediction``'s
+    (wrapped to ``[-pi, pi)``; no test when infinite) and whose position lies within
+    ``max_translation_m`` of it (no test when infinite), in order: ``(N, 3)`` float64. The
+    comparisons of ``hypotheses._within_bounds``' numpy formulation (NaN fails a test)."""
+    n1 = directed.shape[0]
+    n = n1 + intersection.shape[0]
+    out = np.empty((n, 3))
+    k = 0
+    for r in range(n):
+        p = directed[r] if r < n1 else intersection[r - n1]
+        if math.isfinite(max_rotation_rad) and not (
+            abs(_wrap(p[2] - prediction[2])) <= max_rotation_rad
+        ):
+            continue
+        if math.isfinite(max_translation_m) and not (
+            math.hypot(p[0] - prediction[0], p[1] - prediction[1]) <= max_translation_m
+        ):
+            continue
+        out[k] = p
+        k += 1
+    return out[:k]
 
 
 @njit(cache=True, nogil=True)

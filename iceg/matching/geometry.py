@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from iceg.landmark_frames import move_lines
-from iceg.matching._kernels import beam_directions, segment_arrays
+from iceg.matching._kernels import beam_directions, feature_angles, segment_arrays
 from iceg.types import FeatureKind, ScanFeatures
 from iceg_common.se2 import rotation_matrix as rot
 
@@ -64,24 +64,24 @@ class FeatureGeometry:
 
 def feature_geometry(features: ScanFeatures, min_std_m: float = 0.005) -> FeatureGeometry:
     """Headings, edge angles and distances of a scan's features (paper §III-B: "vector
-    directions ... start from feature point"; a Corner's two edges define its bisector).
+    directions ... start from feature point"; a Corner's two edges define its bisector), in
+    one compiled pass (:func:`~iceg.matching._kernels.feature_angles`).
 
     Args:
         features: The scan's (or reference's) features.
         min_std_m: Floor added to each position covariance (m), so that it is invertible.
     """
-    kind = np.asarray(features.kind, dtype=np.int64)
-    xy = np.asarray(features.xy, dtype=np.float64).reshape(-1, 2)
-    d = np.asarray(features.directions, dtype=np.float64).reshape(-1, 2, 2)
-    edge = np.arctan2(d[..., 1], d[..., 0])  # NaN stays NaN
-    bis = d[:, 0] + d[:, 1]
-    heading = np.full(kind.shape, np.nan)
-    is_c = kind == CORNER
-    heading[is_c] = np.arctan2(bis[is_c, 1], bis[is_c, 0])
-    is_e = kind == EOW
-    heading[is_e] = edge[is_e, 0]
-    cov = np.asarray(features.cov, dtype=np.float64).reshape(-1, 2, 2)
-    cov = np.where(np.isfinite(cov), cov, 0.0) + (min_std_m**2) * np.eye(2)
+    kind = np.ascontiguousarray(features.kind, dtype=np.int64)
+    xy = np.ascontiguousarray(features.xy, dtype=np.float64).reshape(-1, 2)
+    edge, heading, cov, dist = feature_angles(
+        kind,
+        xy,
+        np.ascontiguousarray(features.cov, dtype=np.float64).reshape(-1, 2, 2),
+        np.ascontiguousarray(features.directions, dtype=np.float64).reshape(-1, 2, 2),
+        min_std_m**2,
+        CORNER,
+        EOW,
+    )
     return FeatureGeometry(
         kind=kind,
         xy=xy,
@@ -89,7 +89,7 @@ def feature_geometry(features: ScanFeatures, min_std_m: float = 0.005) -> Featur
         heading=heading,
         edge=edge,
         opening=np.asarray(features.opening_rad, dtype=np.float64),
-        dist=np.hypot(xy[:, 0], xy[:, 1]),
+        dist=dist,
     )
 
 

@@ -14,16 +14,15 @@ from iceg.matching._kernels import (
     feasible_pair_indices,
     intersection_pair_poses,
     pair_code_matrix,
+    poses_within_bounds,
     segment_rotation_peak,
     vote_clusters,
 )
 from iceg.matching.config import MatchBounds
 from iceg.matching.geometry import CORNER, INTERSECTION, FeatureGeometry, rot
-from iceg_common.se2 import wrap_angle
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
-BoolArray = NDArray[np.bool_]
 
 #: Pair codes: how a new feature may match a reference feature (paper §III-C2, type level).
 INCOMPATIBLE, SAME_DIRECTED, CORNER_TO_EOW, EOW_TO_CORNER, INTERSECTIONS = 0, 1, 2, 3, 4
@@ -123,18 +122,6 @@ class Hypotheses:
 
     poses: FloatArray
     n_pairs: int
-
-
-def _within_bounds(
-    poses: FloatArray, prediction: FloatArray, bounds: MatchBounds, rot_tol: float, trans_tol: float
-) -> BoolArray:
-    ok = np.ones(poses.shape[0], dtype=bool)
-    if not bounds.rotation_unbounded:
-        ok &= np.abs(wrap_angle(poses[:, 2] - prediction[2])) <= bounds.max_rotation_rad + rot_tol
-    if not math.isinf(bounds.max_translation_m):
-        d = np.hypot(poses[:, 0] - prediction[0], poses[:, 1] - prediction[1])
-        ok &= d <= bounds.max_translation_m + trans_tol
-    return ok
 
 
 def directed_hypotheses(
@@ -242,9 +229,15 @@ def generate_hypotheses(
         intersection_min_baseline_m,
         max_intersection_pairs,
     )
-    poses = np.concatenate([directed, inter], axis=0)
-    ok = _within_bounds(poses, prediction, bounds, direction_tolerance_rad, margin_m)
-    return Hypotheses(poses[ok], int(i.shape[0]))
+    max_rotation_rad = bounds.max_rotation_rad + direction_tolerance_rad
+    poses = poses_within_bounds(
+        np.ascontiguousarray(directed, dtype=np.float64),
+        np.ascontiguousarray(inter, dtype=np.float64),
+        np.ascontiguousarray(prediction, dtype=np.float64),
+        math.inf if bounds.rotation_unbounded else max_rotation_rad,
+        bounds.max_translation_m + margin_m,
+    )
+    return Hypotheses(poses, int(i.shape[0]))
 
 
 @dataclass(frozen=True, eq=False)

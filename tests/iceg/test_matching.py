@@ -54,6 +54,7 @@ from iceg.matching._kernels import (
     no_segment_grid,
     pairwise_sum,
     point_line_system,
+    poses_within_bounds,
     psd_max,
     segment_grid,
 )
@@ -433,6 +434,72 @@ def test_hypotheses_equal_the_numpy_expressions_bit_for_bit() -> None:
         assert np.array_equal(got, want)
         n_poses += got.shape[0]
     assert n_poses > 1000  # the intersection pairs were not all filtered out
+
+
+def test_bounds_filter_of_the_hypotheses_is_the_numpy_expression() -> None:
+    # generate_hypotheses keeps the directed, then the Intersection hypotheses whose heading
+    # and position lie within the bounds plus tolerances of the prediction: the same poses,
+    # in the same order, as the numpy masks it replaced (NaN fails, angles wrap at +-pi,
+    # an unbounded rotation or translation is not tested).
+    rng = np.random.default_rng(11)
+    n_kept = 0
+    for trial in range(300):
+        directed = rng.normal(0.0, 1.0, (int(rng.integers(0, 30)), 3))
+        inter = rng.normal(0.0, 1.0, (int(rng.integers(0, 10)), 3))
+        for poses in (directed, inter):
+            poses[:, 2] = rng.uniform(-7.0, 7.0, poses.shape[0])
+            poses[rng.random(poses.shape) < 0.03] = np.nan
+        prediction = np.array([*rng.normal(0.0, 0.5, 2), rng.uniform(-math.pi, math.pi)])
+        max_rot = math.inf if trial % 5 == 0 else float(rng.uniform(0.0, 3.0))
+        max_trans = math.inf if trial % 7 == 0 else float(rng.uniform(0.0, 2.0))
+        both = np.concatenate([directed, inter], axis=0)
+        ok = np.ones(both.shape[0], dtype=bool)
+        if math.isfinite(max_rot):
+            ok &= np.abs(wrap_angle(both[:, 2] - prediction[2])) <= max_rot
+        if math.isfinite(max_trans):
+            ok &= np.hypot(both[:, 0] - prediction[0], both[:, 1] - prediction[1]) <= max_trans
+        got = poses_within_bounds(directed, inter, prediction, max_rot, max_trans)
+        assert got.tobytes() == both[ok].tobytes()
+        n_kept += got.shape[0]
+    assert 0 < n_kept < 300 * 20  # some kept, some dropped
+
+
+def test_feature_geometry_is_the_numpy_expressions_with_libm_angles() -> None:
+    # feature_geometry's compiled pass: covariances (non-finite entries as 0, the floor on
+    # the diagonal, -0.0 off the diagonal made +0.0 as numpy's identity adds it) and
+    # distances bit for bit as the numpy expressions give them; edge and heading angles
+    # those of math.atan2 (libm, on every machine; numpy's SIMD arctan2 can differ in the
+    # last bit), NaN where a feature has no such direction.
+    world = office_world()
+    scans = simulate(world, trajectory=default_trajectory(world)[:60:6], seed=2).scans
+    n_corner = n_eow = 0
+    for k, scan in enumerate(scans):
+        f = extract(scan)
+        cov = f.cov.copy()
+        if cov.shape[0]:
+            cov[0, 0, 1] = cov[0, 1, 0] = -0.0
+            cov[-1, 1, 1] = np.inf if k % 2 else np.nan
+        f = dataclasses.replace(f, cov=cov)
+        g = feature_geometry(f, min_std_m=0.01)
+        want_cov = np.where(np.isfinite(cov), cov, 0.0) + 0.01**2 * np.eye(2)
+        assert g.cov.tobytes() == want_cov.tobytes()
+        assert g.dist.tobytes() == np.hypot(f.xy[:, 0], f.xy[:, 1]).tobytes()
+        np.testing.assert_array_equal(g.kind, f.kind)
+        np.testing.assert_array_equal(g.xy, f.xy)
+        for i in range(f.n_features):
+            d = f.directions[i]
+            edge = [math.atan2(d[e, 1], d[e, 0]) for e in range(2)]
+            np.testing.assert_array_equal(g.edge[i], edge)
+            if f.kind[i] == FeatureKind.CORNER:
+                n_corner += 1
+                bis = d[0] + d[1]
+                assert g.heading[i] == math.atan2(bis[1], bis[0])
+            elif f.kind[i] == FeatureKind.EOW:
+                n_eow += 1
+                assert g.heading[i] == edge[0]
+            else:
+                assert math.isnan(g.heading[i])
+    assert n_corner > 0 and n_eow > 0
 
 
 def _numpy_vote(
