@@ -24,6 +24,7 @@ from iceg.feature_map import (
     MapReference,
     MapUpdate,
     PrunedLandmarks,
+    _Landmarks,
     _Points,
 )
 from iceg.features import extract
@@ -565,7 +566,7 @@ def test_walls_the_newest_scan_sees_through_are_dropped_from_a_reference(removed
 @pytest.mark.parametrize("n_drop", [0, 1, 3, 40])
 def test_dropping_rows_keeps_the_others_in_order_and_the_spare_capacity(n_drop: int) -> None:
     # Dropping landmark rows (merged, pruned) leaves the rows a mask would keep, in order,
-    # whether moved block by block within the buffers (few rows) or gathered (many); the
+    # moved down within the buffers (a compiled pass over each column's bytes); the
     # container keeps its buffers and capacity, so appending after it writes into them.
     rng = np.random.default_rng(n_drop)
     cols = _Points(np.arange(100, dtype=np.int64), rng.normal(size=(100, 2)))
@@ -582,6 +583,29 @@ def test_dropping_rows_keeps_the_others_in_order_and_the_spare_capacity(n_drop: 
     cols.append(_Points(np.array([7], dtype=np.int64), np.array([[1.5, -2.5]])))
     assert cols._bufs["xy"] is buffer and len(cols) == 151 - n_drop
     np.testing.assert_array_equal(cols.xy[-1], [1.5, -2.5])
+
+
+def test_dropping_landmark_rows_moves_every_column_whatever_its_dtype_and_shape() -> None:
+    # The landmark table's columns: int64 and float64, rows of shape (), (2,), (2, 2) and
+    # (3, 2). Drops one after another (the first row, the last, a run, scattered rows,
+    # none) leave the rows a mask keeps, bit for bit.
+    rng = np.random.default_rng(5)
+    n = 300
+    table = _Landmarks.empty()
+    table.extend(
+        n,
+        **{name: rng.normal(size=(n, *shape)) for name, (_, shape) in _Landmarks.SPEC.items()},
+    )
+    want = {name: getattr(table, name).copy() for name in _Landmarks.SPEC}
+    for gone in ([0], [n - 2], list(range(10, 20)), [3, 4, 99, 150, 151, 200], []):
+        rows = np.array(gone, dtype=np.int64)
+        keep = np.ones(len(table), dtype=bool)
+        keep[rows] = False
+        want = {name: col[keep] for name, col in want.items()}
+        table.drop(rows)
+        for name in _Landmarks.SPEC:
+            assert getattr(table, name).tobytes() == want[name].tobytes(), name
+    assert len(table) == n - 18
 
 
 def test_dropping_rows_never_writes_the_arrays_a_container_was_made_of() -> None:
