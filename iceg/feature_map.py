@@ -31,7 +31,6 @@ from pydantic import BaseModel, ConfigDict, Field
 from frontends.scan import LaserScan
 from iceg.landmark_association import (
     associate_scan,
-    drop_rows,
     lookup_sorted,
     reference_geometry,
     rows_of_nodes,
@@ -359,6 +358,8 @@ _C = TypeVar("_C", bound="_Columns")
 
 #: Initial row capacity of a growing column container (:class:`_Columns`).
 _MIN_CAPACITY = 64
+#: Above this many kept blocks, :meth:`_Columns.drop` gathers the kept rows by a mask.
+_MAX_DROP_BLOCKS = 32
 #: From this many landmarks on, a reference finds its landmarks through the ids its nodes
 #: touched (:class:`_Touched`) instead of a pass over every landmark. The pass streams
 #: through the table, the index reads it at random: on MIT CSAIL (about 1500 landmarks) the
@@ -385,8 +386,6 @@ class _Columns:
         self._bufs: dict[str, np.ndarray] = {name: getattr(self, name) for name in self.SPEC}
         self._cap = len(self)
         self._owned = False  # the buffers are the constructor's arrays (never written)
-        # the buffers' flat bytes and each column's bytes per row (drop), built on demand
-        self._bytes: list[tuple[NDArray[np.uint8], int]] | None = None
 
     @classmethod
     def empty(cls: type[_C]) -> _C:
@@ -411,7 +410,7 @@ class _Columns:
                 buf = np.empty((cap, *mine.shape[1:]), dtype=mine.dtype)
                 buf[:n] = mine
                 self._bufs[name] = buf
-            self._cap, self._owned, self._bytes = cap, True, None
+            self._cap, self._owned = cap, True
         for name in self.SPEC:
             buf = self._bufs[name]
             buf[n : n + m] = columns[name]
@@ -432,9 +431,9 @@ class _Columns:
 
     def drop(self, rows: IntArray) -> None:
         """Remove ``rows`` (indices), the others kept in order, in place: the kept rows move
-        down within the container's buffers (:func:`~iceg.landmark_association.drop_rows`, a
-        compiled pass per column), so a drop allocates nothing (a fresh buffer of a
-        large table costs a page fault per page) and keeps the spare capacity.
+        down within the container's buffers, so a drop allocates nothing (a fresh buffer of a
+        large table costs a page fault per page) and keeps the spare capacity. A few dropped
+        rows cost a block move between each two, not a gather of every row.
 
         Column arrays read from the container before the drop are stale after it. Arrays
         given to the constructor are never written: the first drop copies them.
@@ -442,19 +441,28 @@ class _Columns:
         n = len(self)
         gone = sorted_unique(rows)
         kept = n - gone.shape[0]
+        blocks = list(zip([0, *(gone + 1).tolist()], [*gone.tolist(), n], strict=True))
+        mask = None
+        if len(blocks) > _MAX_DROP_BLOCKS:
+            mask = np.ones(n, dtype=bool)
+            mask[gone] = False
         if not self._owned:
             self._bufs = {name: getattr(self, name).copy() for name in self.SPEC}
             self._cap, self._owned = n, True
-            self._bytes = None
-        if self._bytes is None:
-            self._bytes = [
-                (b.reshape(-1).view(np.uint8), b.itemsize * math.prod(b.shape[1:]))
-                for b in (self._bufs[name] for name in self.SPEC)
-            ]
-        for column, row_bytes in self._bytes:
-            drop_rows(column, row_bytes, gone, n)
         for name in self.SPEC:
-            setattr(self, name, self._bufs[name][:kept])
+            col = getattr(self, name)
+            buf = self._bufs[name]
+            if mask is not None:
+                buf[:kept] = col[mask]
+            else:
+                # A 1-D view, so numpy moves overlapping ranges itself (memmove), no temporary.
+                flat, width = buf.reshape(-1), math.prod(buf.shape[1:])
+                at = 0
+                for a, b in blocks:
+                    if at != a:
+                        flat[at * width : (at + b - a) * width] = flat[a * width : b * width]
+                    at += b - a
+            setattr(self, name, buf[:kept])
 
 
 @dataclass

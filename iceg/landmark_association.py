@@ -3,8 +3,7 @@ new node's frame (docs/design.md "Feature map and time-validity"): the geometric
 complete the matcher's inlier pairs, and the duplicate landmarks to merge; and the rows of
 landmark or node ids in a sorted id table (:func:`lookup_sorted`) and the union of id sets
 (:func:`sorted_union`); and a matching reference's landmarks and segments gathered into its
-frame (:func:`reference_geometry`); and rows dropped from the map's tables in place
-(:func:`drop_rows`).
+frame (:func:`reference_geometry`).
 
 Compiled loops over (features x landmarks) instead of numpy's ``(K, n, 2)`` distance
 temporaries; each distance is ``sqrt(dx^2 + dy^2)`` as ``np.linalg.norm`` computes it, so
@@ -336,27 +335,3 @@ def reference_geometry(
     nodes = _compose_rows(fi[0], fi[1], fi[2], fi[3], fi[4], tab_poses, seg_pos)
     lines, line_cov = move_lines(seg_rows, nodes, seg_lines, seg_cov)
     return rows, xy, cov, dirs, move_points(nodes, seg_ep[seg_rows], True), lines, line_cov
-
-
-@njit(cache=True, nogil=True)
-def drop_rows(column: np.ndarray, row_bytes: int, gone: np.ndarray, n: int) -> None:
-    """Remove the rows ``gone`` of one column of a table of ``n`` rows, in place: the kept
-    rows move down, in order.
-
-    Args:
-        column: The column's buffer as ``(>= n * row_bytes,)`` uint8 bytes (a C-ordered
-            array's flat bytes, rows first); ``row_bytes`` the bytes of one row.
-        gone: ``(G,)`` int64 rows to drop, ascending, unique, each in ``[0, n)`` (not
-            checked: a compiled loop).
-    """
-    if gone.shape[0] == 0:
-        return
-    at = gone[0]  # the rows before the first dropped one stay where they are
-    src = gone[0] + 1
-    for g in range(1, gone.shape[0] + 1):
-        end = gone[g] if g < gone.shape[0] else n
-        # rows [src, end) to [at, ...): forward, so overlapping ranges move intact
-        for k in range((end - src) * row_bytes):
-            column[at * row_bytes + k] = column[src * row_bytes + k]
-        at += end - src
-        src = end + 1

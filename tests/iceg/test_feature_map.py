@@ -566,7 +566,7 @@ def test_walls_the_newest_scan_sees_through_are_dropped_from_a_reference(removed
 @pytest.mark.parametrize("n_drop", [0, 1, 3, 40])
 def test_dropping_rows_keeps_the_others_in_order_and_the_spare_capacity(n_drop: int) -> None:
     # Dropping landmark rows (merged, pruned) leaves the rows a mask would keep, in order,
-    # moved down within the buffers (a compiled pass over each column's bytes); the
+    # whether moved block by block within the buffers (few rows) or gathered (many); the
     # container keeps its buffers and capacity, so appending after it writes into them.
     rng = np.random.default_rng(n_drop)
     cols = _Points(np.arange(100, dtype=np.int64), rng.normal(size=(100, 2)))
