@@ -1830,7 +1830,8 @@ def poses_within_bounds(
     poses) whose heading lies within ``max_rotation_rad`` of the ``(3,)`` ``prediction``'s
     (wrapped to ``[-pi, pi)``; no test when infinite) and whose position lies within
     ``max_translation_m`` of it (no test when infinite), in order: ``(N, 3)`` float64. The
-    comparisons of ``hypotheses._within_bounds``' numpy formulation (NaN fails a test)."""
+    numpy masks' comparisons, bit for bit: ``abs(wrap_angle(theta - theta_pred)) <= max``
+    and ``hypot(dx, dy) <= max`` (NaN fails a test)."""
     n1 = directed.shape[0]
     n = n1 + intersection.shape[0]
     out = np.empty((n, 3))

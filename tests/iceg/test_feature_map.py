@@ -585,7 +585,7 @@ def test_dropping_rows_keeps_the_others_in_order_and_the_spare_capacity(n_drop: 
     np.testing.assert_array_equal(cols.xy[-1], [1.5, -2.5])
 
 
-def test_dropping_landmark_rows_moves_every_column_whatever_its_dtype_and_shape() -> None:
+def test_dropping_landmark_rows_moves_every_column_of_the_table() -> None:
     # The landmark table's columns: int64 and float64, rows of shape (), (2,), (2, 2) and
     # (3, 2). Drops one after another (the first row, the last, a run, scattered rows,
     # none) leave the rows a mask keeps, bit for bit.
