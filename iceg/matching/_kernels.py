@@ -431,56 +431,88 @@ def _gls_normal_equations(
 ) -> tuple[np.ndarray, np.ndarray]:
     """GLS normal equations of the associated point-to-line residuals: per segment
     ``C = W^-1 + B S B^T`` (``B``: derivative w.r.t. the line's ``(alpha, rho)``, ``S`` its
-    covariance), inverted by the Woodbury identity (a 2x2 inverse per segment)."""
+    covariance), inverted by the Woodbury identity (a 2x2 inverse per segment).
+
+    A segment's 24 sums (``J^T W J`` 3x3, ``J^T W B`` 3x2, ``B^T W B`` 2x2, ``J^T W r`` and
+    ``B^T W r``) are kept in locals along a run of consecutive points on it (points come
+    wall by wall) and stored when the run ends; each sum still takes its terms in the
+    order of the points."""
     n_m = segs.a.shape[0]
+    n_p = pts.xy.shape[0]
     c = math.cos(pose[2])
     s = math.sin(pose[2])
     cc = cauchy_sigmas * sigma
-    jj = np.zeros((n_m, 3, 3))
-    jb = np.zeros((n_m, 3, 2))
-    bb = np.zeros((n_m, 2, 2))
-    jr = np.zeros((n_m, 3))
-    br = np.zeros((n_m, 2))
+    # per segment: jj[a, b] at 3a + b, jb[a, b] at 9 + 2a + b, bb[a, b] at 15 + 2a + b,
+    # jr[a] at 19 + a, br[a] at 22 + a
+    acc = np.zeros((n_m, 24))
     used = np.zeros(n_m, dtype=np.bool_)
-    jv = np.empty(3)
-    bv = np.empty(2)
-    for i in range(pts.xy.shape[0]):
+    i = 0
+    while i < n_p:
         j = idx[i]
         if j < 0:
+            i += 1
             continue
         used[j] = True
         ca = segs.normal[j, 0]
         sa = segs.normal[j, 1]
-        rpx = c * pts.xy[i, 0] - s * pts.xy[i, 1]
-        rpy = s * pts.xy[i, 0] + c * pts.xy[i, 1]
-        qx = rpx + pose[0]
-        qy = rpy + pose[1]
-        r = res[i]
-        w = 1.0 / (1.0 + (r / cc) ** 2) / (sigma * sigma)
-        jv[0] = ca
-        jv[1] = sa
-        jv[2] = sa * rpx - ca * rpy
-        bv[0] = -sa * qx + ca * qy
-        bv[1] = -1.0
-        for a in range(3):
-            jr[j, a] += w * jv[a] * r
-            for b in range(3):
-                jj[j, a, b] += w * jv[a] * jv[b]
-            for b in range(2):
-                jb[j, a, b] += w * jv[a] * bv[b]
-        for a in range(2):
-            br[j, a] += w * bv[a] * r
-            for b in range(2):
-                bb[j, a, b] += w * bv[a] * bv[b]
+        jj00, jj01, jj02 = acc[j, 0], acc[j, 1], acc[j, 2]
+        jj10, jj11, jj12 = acc[j, 3], acc[j, 4], acc[j, 5]
+        jj20, jj21, jj22 = acc[j, 6], acc[j, 7], acc[j, 8]
+        jb00, jb01, jb10, jb11, jb20, jb21 = (
+            acc[j, 9], acc[j, 10], acc[j, 11], acc[j, 12], acc[j, 13], acc[j, 14]
+        )  # fmt: skip
+        bb00, bb01, bb10, bb11 = acc[j, 15], acc[j, 16], acc[j, 17], acc[j, 18]
+        jr0, jr1, jr2, br0, br1 = acc[j, 19], acc[j, 20], acc[j, 21], acc[j, 22], acc[j, 23]
+        while i < n_p and idx[i] == j:
+            rpx = c * pts.xy[i, 0] - s * pts.xy[i, 1]
+            rpy = s * pts.xy[i, 0] + c * pts.xy[i, 1]
+            qx = rpx + pose[0]
+            qy = rpy + pose[1]
+            r = res[i]
+            w = 1.0 / (1.0 + (r / cc) ** 2) / (sigma * sigma)
+            j0, j1, j2 = ca, sa, sa * rpx - ca * rpy
+            b0, b1 = -sa * qx + ca * qy, -1.0
+            jr0 += w * j0 * r
+            jj00 += w * j0 * j0
+            jj01 += w * j0 * j1
+            jj02 += w * j0 * j2
+            jb00 += w * j0 * b0
+            jb01 += w * j0 * b1
+            jr1 += w * j1 * r
+            jj10 += w * j1 * j0
+            jj11 += w * j1 * j1
+            jj12 += w * j1 * j2
+            jb10 += w * j1 * b0
+            jb11 += w * j1 * b1
+            jr2 += w * j2 * r
+            jj20 += w * j2 * j0
+            jj21 += w * j2 * j1
+            jj22 += w * j2 * j2
+            jb20 += w * j2 * b0
+            jb21 += w * j2 * b1
+            br0 += w * b0 * r
+            bb00 += w * b0 * b0
+            bb01 += w * b0 * b1
+            br1 += w * b1 * r
+            bb10 += w * b1 * b0
+            bb11 += w * b1 * b1
+            i += 1
+        acc[j, 0], acc[j, 1], acc[j, 2] = jj00, jj01, jj02
+        acc[j, 3], acc[j, 4], acc[j, 5] = jj10, jj11, jj12
+        acc[j, 6], acc[j, 7], acc[j, 8] = jj20, jj21, jj22
+        acc[j, 9], acc[j, 10], acc[j, 11], acc[j, 12] = jb00, jb01, jb10, jb11
+        acc[j, 13], acc[j, 14] = jb20, jb21
+        acc[j, 15], acc[j, 16], acc[j, 17], acc[j, 18] = bb00, bb01, bb10, bb11
+        acc[j, 19], acc[j, 20], acc[j, 21], acc[j, 22], acc[j, 23] = jr0, jr1, jr2, br0, br1
     hess = np.zeros((3, 3))
     grad = np.zeros(3)
     for j in range(n_m):
         if not used[j]:
             continue
-        m00 = segs.line_info[j, 0, 0] + bb[j, 0, 0]
-        m01 = segs.line_info[j, 0, 1] + bb[j, 0, 1]
-        m10 = segs.line_info[j, 1, 0] + bb[j, 1, 0]
-        m11 = segs.line_info[j, 1, 1] + bb[j, 1, 1]
+        m00 = segs.line_info[j, 0, 0] + acc[j, 15]
+        m01 = segs.line_info[j, 0, 1] + acc[j, 16]
+        m10 = segs.line_info[j, 1, 0] + acc[j, 17]
+        m11 = segs.line_info[j, 1, 1] + acc[j, 18]
         det = m00 * m11 - m01 * m10
         k00 = m11 / det
         k01 = -m01 / det
@@ -488,11 +520,11 @@ def _gls_normal_equations(
         k11 = m00 / det
         for a in range(3):
             # (JB K) row a
-            t0 = jb[j, a, 0] * k00 + jb[j, a, 1] * k10
-            t1 = jb[j, a, 0] * k01 + jb[j, a, 1] * k11
-            grad[a] += jr[j, a] - (t0 * br[j, 0] + t1 * br[j, 1])
+            t0 = acc[j, 9 + 2 * a] * k00 + acc[j, 10 + 2 * a] * k10
+            t1 = acc[j, 9 + 2 * a] * k01 + acc[j, 10 + 2 * a] * k11
+            grad[a] += acc[j, 19 + a] - (t0 * acc[j, 22] + t1 * acc[j, 23])
             for b in range(3):
-                hess[a, b] += jj[j, a, b] - (t0 * jb[j, b, 0] + t1 * jb[j, b, 1])
+                hess[a, b] += acc[j, 3 * a + b] - (t0 * acc[j, 9 + 2 * b] + t1 * acc[j, 10 + 2 * b])
     return hess, grad
 
 
@@ -1363,14 +1395,21 @@ def _lattice_point_cost(
     """Robust cost ``(L,)`` (Cauchy, in units of sigma^2) of the sampled point-to-line rows
     at each lattice perturbation, scaled up to all rows: residuals and along-segment
     coordinates move linearly with the perturbation; a point beyond its segment's extent
-    or beyond the gate costs as much as one at the gate."""
+    or beyond the gate costs as much as one at the gate.
+
+    Point by point, each over the whole lattice (a loop the compiler vectorizes): every
+    lattice point's running sum (:func:`_log1p_into`) still takes its terms in the order of
+    the points, so the costs are those of a loop over the points per lattice point."""
     n = pts.pick.shape[0]
     c, sn = math.cos(pose[2]), math.sin(pose[2])
-    r0 = np.empty(n)
-    jac = np.empty((n, 3))
-    along0 = np.empty(n)
-    jac_along = np.empty((n, 3))
-    seg_len = np.empty(n)
+    n_l = deltas.shape[0]
+    dx = np.ascontiguousarray(deltas[:, 0])
+    dy = np.ascontiguousarray(deltas[:, 1])
+    dt = np.ascontiguousarray(deltas[:, 2])
+    log_sum = np.zeros(n_l)
+    product = np.ones(n_l)
+    n_out = np.zeros(n_l, dtype=np.int64)
+    c2 = cauchy_c * cauchy_c
     for i in range(n):
         p = pts.pick[i]
         m = pts.seg[p]
@@ -1379,29 +1418,29 @@ def _lattice_point_cost(
         ry = sn * pts.points[p, 0] + c * pts.points[p, 1]
         nx, ny = pts.normal[p, 0], pts.normal[p, 1]
         ux, uy = segs.u[m, 0], segs.u[m, 1]
-        r0[i] = pts.r[p]
-        jac[i, 0], jac[i, 1], jac[i, 2] = nx, ny, ny * rx - nx * ry
-        along0[i] = (rx + pose[0] - segs.a[m, 0]) * ux + (ry + pose[1] - segs.a[m, 1]) * uy
-        jac_along[i, 0], jac_along[i, 1], jac_along[i, 2] = ux, uy, uy * rx - ux * ry
-        seg_len[i] = segs.length[m]
-    n_l = deltas.shape[0]
+        r0 = pts.r[p]
+        jt = ny * rx - nx * ry
+        along0 = (rx + pose[0] - segs.a[m, 0]) * ux + (ry + pose[1] - segs.a[m, 1]) * uy
+        jat = uy * rx - ux * ry
+        hi = segs.length[m] + end_tol_m
+        for k in range(n_l):
+            r = r0 + nx * dx[k] + ny * dy[k] + jt * dt[k]
+            a = along0 + ux * dx[k] + uy * dy[k] + jat * dt[k]
+            term = product[k] * (1.0 + r * r / c2)
+            if a < -end_tol_m or a > hi or abs(r) > gate_m:
+                n_out[k] += 1
+            else:
+                product[k] = term
+        for k in range(n_l):  # _log1p_into's fold, after each point as there
+            if product[k] > _PRODUCT_FOLD:
+                log_sum[k] += math.log(product[k])
+                product[k] = 1.0
     out = np.zeros(n_l)
-    c2 = cauchy_c * cauchy_c
     sat = 0.5 * c2 * math.log1p(gate_m * gate_m / c2)
     scale = pts.r.shape[0] / n
     for k in range(n_l):
-        dx, dy, dt = deltas[k, 0], deltas[k, 1], deltas[k, 2]
-        n_out = 0
-        log_sum, product = 0.0, 1.0
-        for i in range(n):
-            r = r0[i] + jac[i, 0] * dx + jac[i, 1] * dy + jac[i, 2] * dt
-            a = along0[i] + jac_along[i, 0] * dx + jac_along[i, 1] * dy + jac_along[i, 2] * dt
-            if a < -end_tol_m or a > seg_len[i] + end_tol_m or abs(r) > gate_m:
-                n_out += 1
-            else:
-                log_sum, product = _log1p_into(log_sum, product, r * r / c2)
-        inliers = log_sum + math.log(product)
-        out[k] = scale * ((n_out * sat + 0.5 * c2 * inliers) / (sigma * sigma))
+        inliers = log_sum[k] + math.log(product[k])
+        out[k] = scale * ((n_out[k] * sat + 0.5 * c2 * inliers) / (sigma * sigma))
     return out
 
 
@@ -2143,7 +2182,8 @@ def points_explained(
     The reference points are gridded in cells of ``gate_m`` (keys ``ix * n_cells[1] + iy``
     sorted, as :func:`~iceg.matching.refine.grid_points` builds them), so each moved point
     scans the 3 x 3 cells around it (three runs of consecutive keys, each found by a binary
-    search among its column's keys) and stops at the first reference point within the gate.
+    search among its column's keys; its own column first) and stops at the first reference
+    point within the gate.
 
     Args:
         points: ``(P, 2)`` float64 points in their own frame, metres.
@@ -2181,7 +2221,10 @@ def points_explained(
             ix = math.floor(fx)
             iy = math.floor(fy)
             lo_y, hi_y = max(iy - 1, 0), min(iy + 1, ny - 1)
-            for cx in range(max(ix - 1, 0), min(ix + 2, nx)):
+            for step in range(3):  # the point's own column first: most stop there
+                cx = ix + (0, -1, 1)[step]
+                if cx < 0 or cx >= nx:
+                    continue
                 a, b = column[cx], column[cx + 1]
                 m = a + np.searchsorted(cell_key[a:b], cx * ny + lo_y)
                 last = cx * ny + hi_y

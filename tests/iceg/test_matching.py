@@ -37,12 +37,15 @@ from frontends.simulate import (
 from iceg.features import extract
 from iceg.matching import IceMatcher, MatchBounds, MatchingConfig, transform_lines
 from iceg.matching._kernels import (
+    _PRODUCT_FOLD,
     GnSettings,
     LatticePoints,
     LatticeSettings,
     LineSegments,
     PairGeometry,
     SegmentPoints,
+    _gls_normal_equations,
+    _lattice_point_cost,
     associate,
     cloud_nearest,
     covariance_rows,
@@ -1003,6 +1006,76 @@ def test_compiled_kernel_equals_the_numpy_reference() -> None:
     np.testing.assert_allclose(g, g_np, rtol=1e-4, atol=1e-6 * np.abs(g_np).max())
 
 
+def _random_lines(rng: np.random.Generator, m: int) -> LineSegments:
+    """``m`` random reference segments with random line information, for the kernels."""
+    a = rng.uniform(-3.0, 3.0, (m, 2))
+    angle = rng.uniform(-np.pi, np.pi, m)
+    u = np.column_stack([np.cos(angle), np.sin(angle)])
+    normal = np.column_stack([-u[:, 1], u[:, 0]])
+    q = rng.normal(0.0, 1.0, (m, 2, 2))
+    info = q @ np.swapaxes(q, 1, 2) * 1e4 + np.eye(2)
+    return LineSegments(
+        a, u, rng.uniform(0.5, 4.0, m), normal, np.einsum("ma,ma->m", normal, a), info,
+        no_segment_grid(),
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_gls_sums_along_runs_of_points_are_the_sums_point_by_point(seed: int) -> None:
+    # The GLS kernel keeps a segment's 24 sums in locals along a run of consecutive points
+    # on it; each sum must still take its terms in the points' order, so the normal
+    # equations are bit for bit those of adding every point's terms to the per-segment
+    # arrays one point at a time, written out here in Python. The points come in runs that
+    # return to segments seen before, with unassociated points (-1) between them.
+    rng = np.random.default_rng(seed)
+    m, n = 7, 300
+    segs = _random_lines(rng, m)
+    runs = rng.integers(1, 30, 40)
+    idx = np.repeat(rng.integers(-1, m, runs.shape[0]), runs)[:n].astype(np.int64)
+    xy = rng.uniform(-4.0, 4.0, (idx.shape[0], 2))
+    res = rng.normal(0.0, 0.05, idx.shape[0])
+    pose = np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-np.pi, np.pi)])
+    sigma, cauchy = 0.02, 2.5
+    pts = SegmentPoints(xy, rng.uniform(-np.pi, np.pi, idx.shape[0]))
+    hess, grad = _gls_normal_equations(pose, pts, segs, idx, res, sigma, cauchy)
+
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    jj, jb, bb = np.zeros((m, 3, 3)), np.zeros((m, 3, 2)), np.zeros((m, 2, 2))
+    jr, br = np.zeros((m, 3)), np.zeros((m, 2))
+    for i, j in enumerate(idx.tolist()):
+        if j < 0:
+            continue
+        ca, sa = float(segs.normal[j, 0]), float(segs.normal[j, 1])
+        rpx = c * float(xy[i, 0]) - s * float(xy[i, 1])
+        rpy = s * float(xy[i, 0]) + c * float(xy[i, 1])
+        qx, qy, r = rpx + float(pose[0]), rpy + float(pose[1]), float(res[i])
+        w = 1.0 / (1.0 + (r / (cauchy * sigma)) ** 2) / (sigma * sigma)
+        jv, bv = (ca, sa, sa * rpx - ca * rpy), (-sa * qx + ca * qy, -1.0)
+        for a in range(3):
+            jr[j, a] += w * jv[a] * r
+            for b in range(3):
+                jj[j, a, b] += w * jv[a] * jv[b]
+            for b in range(2):
+                jb[j, a, b] += w * jv[a] * bv[b]
+        for a in range(2):
+            br[j, a] += w * bv[a] * r
+            for b in range(2):
+                bb[j, a, b] += w * bv[a] * bv[b]
+    want_h, want_g = np.zeros((3, 3)), np.zeros(3)
+    for j in sorted(set(idx.tolist()) - {-1}):
+        (m00, m01), (m10, m11) = (segs.line_info[j] + bb[j]).tolist()
+        det = m00 * m11 - m01 * m10
+        k00, k01, k10, k11 = m11 / det, -m01 / det, -m10 / det, m00 / det
+        for a in range(3):
+            t0 = jb[j, a, 0] * k00 + jb[j, a, 1] * k10
+            t1 = jb[j, a, 0] * k01 + jb[j, a, 1] * k11
+            want_g[a] += jr[j, a] - (t0 * br[j, 0] + t1 * br[j, 1])
+            for b in range(3):
+                want_h[a, b] += jj[j, a, b] - (t0 * jb[j, b, 0] + t1 * jb[j, b, 1])
+    assert hess.tobytes() == want_h.tobytes()
+    assert grad.tobytes() == want_g.tobytes()
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_gridded_association_equals_all_segments(seed: int) -> None:
     # The segment grid only skips segments no point of a cell can reach: the association
@@ -1234,6 +1307,59 @@ def test_lattice_covariance_equals_the_lattice_written_out(n_points: int) -> Non
         np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-15 * np.abs(want).max())
         # the floor: the result dominates the least-squares covariance
         assert np.linalg.eigvalsh(got - cov_ls).min() >= -1e-12 * np.abs(cov_ls).max()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_lattice_point_cost_point_by_point_is_the_loop_per_lattice_point(seed: int) -> None:
+    # The kernel walks the points once, each over the whole lattice; every lattice point's
+    # running sum must still fold its terms in the points' order, so the costs are bit for
+    # bit those of one loop over the points per lattice point (written out here in Python,
+    # with the product folded into its logarithm beyond _PRODUCT_FOLD: 400 rows of large
+    # residuals fold several times).
+    rng = np.random.default_rng(seed)
+    m, n = 6, 400
+    segs = _random_lines(rng, m)
+    seg = rng.integers(0, m, n)
+    pick = np.sort(rng.choice(n, 350, replace=False))
+    pose = np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-np.pi, np.pi)])
+    # points along their segments (a few beyond an end), residuals mostly within the gate
+    along = rng.uniform(-0.1, 1.1, n) * segs.length[seg]
+    world = segs.a[seg] + along[:, None] * segs.u[seg]
+    pts = LatticePoints(
+        pick, transform_points(inverse(pose), world), segs.normal[seg],
+        rng.normal(0.0, 0.08, n), seg,
+    )  # fmt: skip
+    deltas = rng.normal(0.0, 0.05, (125, 3))
+    end_tol, gate, cauchy_c, sigma = 0.15, 0.2, 0.03, 0.01
+    got = _lattice_point_cost(deltas, pose, pts, segs, end_tol, gate, cauchy_c, sigma)
+
+    c, sn = math.cos(pose[2]), math.sin(pose[2])
+    c2 = cauchy_c * cauchy_c
+    sat = 0.5 * c2 * math.log1p(gate * gate / c2)
+    want = np.zeros(deltas.shape[0])
+    folds = 0
+    for k, (dx, dy, dt) in enumerate(deltas.tolist()):
+        n_out, log_sum, product = 0, 0.0, 1.0
+        for p in pick.tolist():
+            j = int(seg[p])
+            px, py = pts.points[p].tolist()
+            rx, ry = c * px - sn * py, sn * px + c * py
+            (nx, ny), (ux, uy) = pts.normal[p].tolist(), segs.u[j].tolist()
+            r = float(pts.r[p]) + nx * dx + ny * dy + (ny * rx - nx * ry) * dt
+            along = (rx + float(pose[0]) - float(segs.a[j, 0])) * ux + (
+                ry + float(pose[1]) - float(segs.a[j, 1])
+            ) * uy
+            a = along + ux * dx + uy * dy + (uy * rx - ux * ry) * dt
+            if a < -end_tol or a > float(segs.length[j]) + end_tol or abs(r) > gate:
+                n_out += 1
+                continue
+            product *= 1.0 + r * r / c2
+            if product > _PRODUCT_FOLD:
+                log_sum, product, folds = log_sum + math.log(product), 1.0, folds + 1
+        inliers = log_sum + math.log(product)
+        want[k] = n / pick.shape[0] * ((n_out * sat + 0.5 * c2 * inliers) / (sigma * sigma))
+    assert folds > deltas.shape[0]
+    assert got.tobytes() == want.tobytes()
 
 
 def test_lattice_covariance_of_a_covariance_not_positive_definite_is_itself() -> None:
