@@ -889,6 +889,13 @@ def feasible_pair_indices(
     return out_i[:q].copy(), out_j[:q].copy()
 
 
+#: :func:`pair_nearest` skips ``hypot`` for a pair whose squared distance exceeds the
+#: squared gate by this factor: its distance is then at least ``1 + 5e-10`` times the gate,
+#: far beyond the rounding of the squares (a few 1e-16) and of ``hypot`` (one ulp), so the
+#: exact test would reject it too.
+_BEYOND_GATE = 1.0 + 1e-9
+
+
 @njit(cache=True, nogil=True)
 def pair_nearest(
     poses: np.ndarray,
@@ -937,7 +944,11 @@ def pair_nearest(
                 code = codes[i, j]
                 if code == 0:
                     continue
-                d = math.hypot(x - ref_xy[j, 0], y - ref_xy[j, 1])
+                dx = x - ref_xy[j, 0]
+                dy = y - ref_xy[j, 1]
+                if dx * dx + dy * dy > best * best * _BEYOND_GATE:
+                    continue  # hypot(dx, dy) >= best, without it
+                d = math.hypot(dx, dy)
                 if d >= best:
                     continue
                 if code == 1:

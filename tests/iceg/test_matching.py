@@ -55,6 +55,7 @@ from iceg.matching._kernels import (
     nearest_segment_distance,
     nearest_walls,
     no_segment_grid,
+    pair_nearest,
     pairwise_sum,
     point_line_system,
     poses_within_bounds,
@@ -724,6 +725,61 @@ def test_correlation_equals_the_numpy_expressions_bit_for_bit(n_new: int) -> Non
     assert np.array_equal(blind.count, np.clip(got.n_matched / 1.0, 0.0, 1.0))
     for a, b in ((blind.dis, got.dis), (blind.ang, got.ang), (blind.acc, got.acc)):
         assert np.array_equal(a, b)
+
+
+def test_feature_pairing_at_the_distance_gate_is_hypot_of_every_pair() -> None:
+    # pair_nearest skips hypot where the squared distance is clearly beyond the nearest so
+    # far; the pairs must be those of hypot on every pair (a pair at the gate or at the
+    # nearest distance so far loses, one an ulp inside wins, the nearest new feature keeps
+    # a reference feature). Intersections only, with a wide angle gate, so that distance
+    # alone decides: reference features on rings exactly at, and an ulp inside, the gate
+    # around each new one, and random clutter.
+    rng = np.random.default_rng(11)
+    gate, kn = 0.4, 30
+    new_xy = rng.uniform(-5.0, 5.0, (kn, 2))
+    bearing = rng.uniform(-np.pi, np.pi, kn)
+    unit = np.column_stack([np.cos(bearing), np.sin(bearing)])
+    exact = np.column_stack([new_xy[:, 0] + gate, new_xy[:, 1]])  # hypot is exactly the gate
+    inside = new_xy + np.nextafter(gate, 0.0) * unit
+    ref_xy = np.concatenate([exact, inside, new_xy + 0.2 * unit, rng.uniform(-5, 5, (60, 2))])
+    kr = ref_xy.shape[0]
+    opening_new, opening_ref = rng.uniform(0, 1, kn), rng.uniform(0, 1, kr)
+    codes = np.full((kn, kr), 4, dtype=np.int64)
+    codes[rng.uniform(size=(kn, kr)) < 0.2] = 0
+    poses = np.vstack([np.zeros(3), rng.normal(0.0, [0.1, 0.1, 0.05], (5, 3))])
+    nan2 = np.full((kn, 2), np.nan)
+    match, dist, _ = pair_nearest(
+        poses, new_xy, np.full(kn, np.nan), nan2, opening_new, ref_xy, np.full(kr, np.nan),
+        np.full((kr, 2), np.nan), opening_ref, codes, gate, 10.0,
+    )  # fmt: skip
+    for h, (px, py, th) in enumerate(poses.tolist()):
+        c, s = math.cos(th), math.sin(th)
+        want = np.full(kn, -1)
+        want_d = np.full(kn, np.nan)
+        for i, (x0, y0) in enumerate(new_xy.tolist()):
+            x, y = c * x0 - s * y0 + px, s * x0 + c * y0 + py
+            best, bj = gate, -1
+            for j, (rx, ry) in enumerate(ref_xy.tolist()):
+                d = float(np.hypot(x - rx, y - ry))  # libm's, as the kernel's
+                if codes[i, j] and d < best:
+                    best, bj = d, j
+            if bj >= 0:
+                want[i], want_d[i] = bj, best
+        owner: dict[int, int] = {}
+        for i in range(kn):  # one new feature per reference feature: the nearest keeps it
+            j = int(want[i])
+            if j < 0:
+                continue
+            o = owner.get(j)
+            if o is None:
+                owner[j] = i
+            elif want_d[i] < want_d[o]:
+                want[o], want_d[o], owner[j] = -1, np.nan, i
+            else:
+                want[i], want_d[i] = -1, np.nan
+        np.testing.assert_array_equal(match[h], want)
+        assert dist[h].tobytes() == want_d.tobytes()
+    assert (match[0] >= kn).any()  # pairs with the features an ulp inside the gate
 
 
 def _every_density(d: np.ndarray, w: np.ndarray, kernel: float) -> np.ndarray:
