@@ -50,12 +50,13 @@ class MatchBounds:
     @property
     def is_global(self) -> bool:
         """True when the rotation is unbounded (``>= pi``) and the translation infinite."""
-        return self.max_rotation_rad >= math.pi and math.isinf(self.max_translation_m)
+        # bool(): the bounds may be numpy floats, whose comparison gives numpy.bool
+        return bool(self.max_rotation_rad >= math.pi and math.isinf(self.max_translation_m))
 
     @property
     def rotation_unbounded(self) -> bool:
         """True when any heading is admissible."""
-        return self.max_rotation_rad >= math.pi
+        return bool(self.max_rotation_rad >= math.pi)
 
 
 class FilterConfig(BaseModel):

@@ -440,6 +440,16 @@ def test_hypotheses_equal_the_numpy_expressions_bit_for_bit() -> None:
     assert n_poses > 1000  # the intersection pairs were not all filtered out
 
 
+def test_bounds_answer_with_python_bools_for_numpy_floats() -> None:
+    # The loop closer builds bounds from numpy floats; their tests must still be the bools
+    # they are annotated as (numpy's comparisons give numpy.bool).
+    for t, r, is_global in ((np.float64(np.inf), np.float64(np.pi), True), (1.5, 0.3, False)):
+        bounds = MatchBounds(t, r)
+        assert type(bounds.is_global) is bool and bounds.is_global is is_global
+        assert type(bounds.rotation_unbounded) is bool
+        assert bounds.rotation_unbounded is is_global
+
+
 def test_bounds_filter_of_the_hypotheses_is_the_numpy_expression() -> None:
     # generate_hypotheses keeps the directed, then the Intersection hypotheses whose heading
     # and position lie within the bounds plus tolerances of the prediction: the same poses,
