@@ -890,9 +890,9 @@ def feasible_pair_indices(
 
 
 #: :func:`pair_nearest` skips ``hypot`` for a pair whose squared distance exceeds the
-#: squared gate by this factor: its distance is then at least ``1 + 5e-10`` times the gate,
-#: far beyond the rounding of the squares (a few 1e-16) and of ``hypot`` (one ulp), so the
-#: exact test would reject it too.
+#: square of the nearest distance so far (at first the gate) by this factor: its distance is
+#: then at least ``1 + 5e-10`` times that, far beyond the rounding of the squares (a few
+#: 1e-16) and of ``hypot`` (one ulp), so the exact test would reject it too.
 _BEYOND_GATE = 1.0 + 1e-9
 
 
