@@ -742,14 +742,14 @@ def test_feature_pairing_at_the_distance_gate_is_hypot_of_every_pair() -> None:
     # far; the pairs must be those of hypot on every pair (a pair at the gate or at the
     # nearest distance so far loses, one an ulp inside wins, the nearest new feature keeps
     # a reference feature). Intersections only, with a wide angle gate, so that distance
-    # alone decides: reference features on rings exactly at, and an ulp inside, the gate
+    # alone decides: reference features at the gate (to rounding) and an ulp inside it
     # around each new one, and random clutter.
     rng = np.random.default_rng(11)
     gate, kn = 0.4, 30
     new_xy = rng.uniform(-5.0, 5.0, (kn, 2))
     bearing = rng.uniform(-np.pi, np.pi, kn)
     unit = np.column_stack([np.cos(bearing), np.sin(bearing)])
-    exact = np.column_stack([new_xy[:, 0] + gate, new_xy[:, 1]])  # hypot is exactly the gate
+    exact = np.column_stack([new_xy[:, 0] + gate, new_xy[:, 1]])  # at the gate, to rounding
     inside = new_xy + np.nextafter(gate, 0.0) * unit
     ref_xy = np.concatenate([exact, inside, new_xy + 0.2 * unit, rng.uniform(-5, 5, (60, 2))])
     kr = ref_xy.shape[0]
