@@ -2249,6 +2249,17 @@ def points_explained(
 
 
 @njit(cache=True, nogil=True)
+def finite_points_within(
+    points: np.ndarray, poses: np.ndarray, ref_points: np.ndarray, gate_m: float
+) -> np.ndarray:
+    """:func:`points_explained` against finite ``ref_points`` ``(R, 2)`` (``R >= 1``)
+    gridded by :func:`sorted_cells` in cells of ``gate_m``, in one call: the same two
+    kernels, without the grid's round trip through Python. ``(K, P)`` bool."""
+    origin, n_cells, key, order = sorted_cells(ref_points, gate_m)
+    return points_explained(points, poses, ref_points, key, order, origin, n_cells, gate_m)
+
+
+@njit(cache=True, nogil=True)
 def _aligned_translation(
     theta: float, new_xy: np.ndarray, ref_xy: np.ndarray, a: int, b: int
 ) -> tuple[float, float]:

@@ -51,6 +51,7 @@ from iceg.matching._kernels import (
     PosePrior,
     SegmentPoints,
     covariance_rows,
+    finite_points_within,
     lattice_covariance,
     line_covariances,
     point_line_system,
@@ -328,17 +329,12 @@ def points_within(
     ref = np.ascontiguousarray(reference_xy, dtype=np.float64).reshape(-1, 2)
     if ref.shape[0] == 0:
         return np.zeros((np.shape(poses)[0], np.shape(points_xy)[0]), dtype=bool)
+    points = np.ascontiguousarray(points_xy, dtype=np.float64)
+    poses = np.ascontiguousarray(poses, dtype=np.float64)
+    if np.isfinite(ref).all():  # the grid and the query in one compiled call
+        return finite_points_within(points, poses, ref, gate_m)
     origin, n_cells, key, order = grid_points(ref, gate_m)
-    return points_explained(
-        np.ascontiguousarray(points_xy, dtype=np.float64),
-        np.ascontiguousarray(poses, dtype=np.float64),
-        ref,
-        key,
-        order,
-        origin,
-        n_cells,
-        gate_m,
-    )
+    return points_explained(points, poses, ref, key, order, origin, n_cells, gate_m)
 
 
 def grid_points(
