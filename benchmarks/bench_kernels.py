@@ -1,17 +1,17 @@
 """Benchmark: the compiled kernels the main process calls in a MIT CSAIL run, in the run and
 alone (issue 13).
 
-Runs the log once to load every kernel, then once more with each numba kernel that the
-pipeline's modules import wrapped by a timer (``time.perf_counter``, about 0.3 µs a call),
-and prints each kernel's calls, total and mean time in the run, the sum over all kernels, and
-the run's wall time. For the matching kernels (pure functions of their arguments), the
-arguments of the first ``--replay`` calls are copied as they come and each kernel is then
-replayed alone on them: the minimum over ``--passes`` passes of the mean time a call, and
-the ratio of the run's mean to it.
+Runs the log once to load every kernel and count its calls, then once more with each numba
+kernel that the pipeline's modules import wrapped by a timer (``time.perf_counter``, about
+0.3 µs a call), and prints each kernel's calls, total and mean time in the run, the sum over
+all kernels and the run's wall time. For the matching kernels (pure functions of their
+arguments), the arguments of about ``--replay`` calls spread evenly over the run are copied
+as they come, and each kernel is then replayed alone on them: the minimum over ``--passes``
+passes of the mean time a call, and the ratio of the run's mean to it.
 
 The replayed figure is the kernel's own work with its code and data in the caches; the run's
 adds numba's dispatch and the cache misses of code and data that the rest of each keyframe
-displaced (on this 2-core virtual machine the two differ by up to four times; docs/design.md,
+displaced (on this 2-core virtual machine the two differ by up to three times; docs/design.md,
 "Kernels that touch each value once"). The replayed figure hardly moves with the machine's
 load, so it is the one to compare when a kernel's code changes; the run's says what the
 change is worth.
@@ -82,9 +82,10 @@ REPLAYED = frozenset(
 
 
 class _Timings:
-    """Each wrapped kernel's calls and time in the run, and the copied arguments of its
-    first ``keep`` calls (replayed kernels only); in this process only, not in the helpers
-    a run forks."""
+    """Each wrapped kernel's calls and time in the run, in this process only (not in the
+    helpers a run forks), and the copied arguments of about ``keep`` of its calls spread
+    evenly over the run (replayed kernels only; every ``stride[name]``-th call, the strides
+    from the calls of a first run)."""
 
     def __init__(self, keep: int) -> None:
         self.keep = keep
@@ -92,6 +93,7 @@ class _Timings:
         self.recording = False
         self.total_s: dict[str, float] = defaultdict(float)
         self.calls: dict[str, int] = defaultdict(int)
+        self.stride: dict[str, int] = {}
         self.args: dict[str, list[tuple[Any, ...]]] = defaultdict(list)
         self.kernels: dict[str, Callable[..., Any]] = {}
 
@@ -100,19 +102,31 @@ class _Timings:
 
         @functools.wraps(kernel)
         def timed(*args: Any, **kwargs: Any) -> Any:
-            if not self.recording or os.getpid() != self.pid:
+            if os.getpid() != self.pid:
+                return kernel(*args, **kwargs)
+            if not self.recording:
+                self.calls[name] += 1
                 return kernel(*args, **kwargs)
             t0 = time.perf_counter()
             try:
                 return kernel(*args, **kwargs)
             finally:
                 self.total_s[name] += time.perf_counter() - t0
-                self.calls[name] += 1
                 # copied after the call, so that the copy does not warm the caches for it
-                if name in REPLAYED and not kwargs and len(self.args[name]) < self.keep:
+                stride = self.stride.get(name, 0)
+                if stride and not kwargs and self.calls[name] % stride == 0:
                     self.args[name].append(copy.deepcopy(args))
+                self.calls[name] += 1
 
         return timed
+
+    def start_recording(self) -> None:
+        """Strides from the calls counted so far (the first run), then time and record."""
+        self.stride = {
+            name: max(1, n // self.keep) for name, n in self.calls.items() if name in REPLAYED
+        }
+        self.calls.clear()
+        self.recording = True
 
 
 def _install(timings: _Timings) -> None:
@@ -146,8 +160,8 @@ def main() -> None:
     cfg = cfg.model_copy(update={"slam": cfg.slam.model_copy(update={"workers": args.workers})})
     timings = _Timings(args.replay)
     _install(timings)
-    run_log(args.log, config=cfg)  # loads every kernel
-    timings.recording = True
+    run_log(args.log, config=cfg)  # loads every kernel, counts the calls
+    timings.start_recording()
     t0 = time.perf_counter()
     run_log(args.log, config=cfg)
     wall = time.perf_counter() - t0
