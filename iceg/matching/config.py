@@ -36,6 +36,9 @@ class MatchBounds:
             raise ConfigError(
                 f"MatchBounds: max_translation_m ({t}) and max_rotation_rad ({r}) must be >= 0"
             )
+        # Python floats whatever the caller passed (numpy floats compare to numpy.bool)
+        object.__setattr__(self, "max_translation_m", t)
+        object.__setattr__(self, "max_rotation_rad", r)
 
     @classmethod
     def global_(cls) -> MatchBounds:
@@ -50,13 +53,12 @@ class MatchBounds:
     @property
     def is_global(self) -> bool:
         """True when the rotation is unbounded (``>= pi``) and the translation infinite."""
-        # bool(): the bounds may be numpy floats, whose comparison gives numpy.bool
-        return bool(self.max_rotation_rad >= math.pi and math.isinf(self.max_translation_m))
+        return self.max_rotation_rad >= math.pi and math.isinf(self.max_translation_m)
 
     @property
     def rotation_unbounded(self) -> bool:
         """True when any heading is admissible."""
-        return bool(self.max_rotation_rad >= math.pi)
+        return self.max_rotation_rad >= math.pi
 
 
 class FilterConfig(BaseModel):
