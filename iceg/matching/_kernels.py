@@ -2252,9 +2252,19 @@ def points_explained(
 def finite_points_within(
     points: np.ndarray, poses: np.ndarray, ref_points: np.ndarray, gate_m: float
 ) -> np.ndarray:
-    """:func:`points_explained` against finite ``ref_points`` ``(R, 2)`` (``R >= 1``)
-    gridded by :func:`sorted_cells` in cells of ``gate_m``, in one call: the same two
-    kernels, without the grid's round trip through Python. ``(K, P)`` bool."""
+    """:func:`points_explained` against finite ``ref_points`` gridded by :func:`sorted_cells`
+    in cells of ``gate_m``, in one call: the same two kernels, without the grid's round trip
+    through Python.
+
+    Args:
+        points: ``(P, 2)`` float64 points in their own frame, metres.
+        poses: ``(K, 3)`` float64 poses of that frame in the reference frame.
+        ref_points: ``(R, 2)`` float64 finite reference points, reference frame, ``R >= 1``.
+        gate_m: Distance gate and cell side, metres (> 0).
+
+    Returns:
+        ``(K, P)`` bool: whether a reference point lies closer than ``gate_m``.
+    """
     origin, n_cells, key, order = sorted_cells(ref_points, gate_m)
     return points_explained(points, poses, ref_points, key, order, origin, n_cells, gate_m)
 
