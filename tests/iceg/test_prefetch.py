@@ -4,9 +4,11 @@ pose), bit for bit. No timings here: speed is measured by ``benchmarks/bench_pip
 
 from __future__ import annotations
 
+import gc
 import multiprocessing
 import os
 import sys
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +27,7 @@ from iceg.features.prefetch import (
     auto_workers,
     warm_up_scan,
 )
-from iceg.pipeline import run_log, run_scans
+from iceg.pipeline import helper_processes, run_log, run_scans
 from iceg.scan_products import ScanPrecompute
 from iceg.slam import Slam
 from iceg.types import FeatureKind, ScanFeatures
@@ -80,6 +82,48 @@ def test_prefetched_features_equal_extract(short_run) -> None:  # type: ignore[n
                 np.asarray(getattr(feats, name)).tobytes()
                 == np.asarray(getattr(want, name)).tobytes()
             )
+
+
+class _Cycle:
+    """An object in a reference cycle with itself (only the cyclic collector frees it)."""
+
+    def __init__(self) -> None:
+        self.me = self
+
+
+def test_a_run_keeps_the_objects_alive_at_its_start_out_of_the_collector_until_it_ends(
+    short_run,  # type: ignore[no-untyped-def]
+) -> None:
+    gc.collect()
+    assert gc.get_freeze_count() == 0
+    garbage = _Cycle()
+    freed = []
+    gone = weakref.ref(garbage, lambda _: freed.append(True))
+    with helper_processes(Slam(_config(2)), workers=2) as prefetch:
+        # frozen: the cycle dropped during the run is not collected, the run's own are
+        assert gc.get_freeze_count() > 0
+        del garbage
+        later = _Cycle()
+        later_gone = weakref.ref(later)
+        del later
+        gc.collect()
+        assert gone() is not None and later_gone() is None
+        assert len(list(prefetch.scans(short_run.scans[:3]))) == 3
+    assert gc.get_freeze_count() == 0
+    gc.collect()
+    assert gone() is None and freed == [True]
+
+
+def test_a_run_leaves_the_callers_own_freeze_alone(short_run) -> None:  # type: ignore[no-untyped-def]
+    gc.freeze()
+    try:
+        frozen = gc.get_freeze_count()
+        run_scans(short_run.scans[:10], _config(1))
+        # neither unfrozen (0) nor frozen again with the objects made since (more); some
+        # frozen objects were freed by their reference counts
+        assert 0 < gc.get_freeze_count() <= frozen
+    finally:
+        gc.unfreeze()
 
 
 def test_one_worker_has_no_pool(short_run) -> None:  # type: ignore[no-untyped-def]
