@@ -126,8 +126,8 @@ def _frozen_heap() -> Iterator[None]:
     garbage collector's passes until it ends (``gc.freeze``, then ``gc.unfreeze``), and out
     of the forked helpers' passes, so that a full collection walks the run's objects only
     and a helper's collections do not write into the pages it shares with this process
-    (the use the ``gc`` module's documentation gives). Nothing is collected differently:
-    a cycle that was garbage before the run is collected after it. Where the caller has
+    (the use the ``gc`` module's documentation gives). Nothing is left uncollected: a
+    cycle that was garbage before the run is freed after it. Where the caller has
     frozen objects itself (``gc.get_freeze_count()``), its freeze is left alone."""
     if gc.get_freeze_count():
         yield
