@@ -16,18 +16,17 @@ from typing import Any
 import numpy as np
 
 from frontends import LaserScan, open_log
-from frontends.odometry_shift import shift_odometry
 from frontends.relations import Relations, match_stamps, read_relations
-from frontends.scan import StampPolicy, StampReport
+from frontends.scan import StampPolicy
 from iceg.config import IcegConfig
 from iceg.evaluation import position_errors, relation_errors
 from iceg.features.prefetch import FeaturePrefetcher, auto_workers
 from iceg.kernel_warmup import cache_is_new
+from iceg.log_reading import read_aside
 from iceg.match_pool import MatchPool
 from iceg.odometry_timing import odometry_time_offset
 from iceg.results import SlamResult
 from iceg.scan_products import ScanPrecompute
-from iceg.scan_store import ScanStore
 from iceg.slam import Slam
 from iceg_common.errors import EvaluationError, LogFormatError
 
@@ -185,21 +184,19 @@ def run_log(
     check_log_file(Path(path))
     reader = open_log(path, stamps=stamps, **(reader_options or {}))
     rel = read_relations(relations) if relations is not None else None
-    slam = Slam(config)
-    # the helpers start first: the feature worker loads its compiled kernels while the log
-    # is read
-    with helper_processes(slam) as prefetch:
-        # compact: no LaserScan object per scan held during the run
-        scans = ScanStore(shift_odometry(reader, odometry_time_offset_s))
-        if not scans:
-            raise LogFormatError(f"{path}: the log holds no laser scans")
-        if rel is not None:
-            check_relations_match(rel, scans.stamps_s)
-        result = _process(slam, prefetch, scans, progress, len(scans))
-    report = getattr(reader, "stamp_report", None)
-    result.metrics["stamps"] = (
-        report.as_dict() if isinstance(report, StampReport) else {"policy": stamps}
-    )
+    # The log is parsed in a forked process while this one loads numba's registry and the
+    # helpers start (their kernels load meanwhile); compact: no LaserScan object per scan
+    # held during the run.
+    with read_aside(reader, odometry_time_offset_s) as reading:
+        slam = Slam(config)
+        with helper_processes(slam) as prefetch:
+            scans, report = reading.result()
+            if not scans:
+                raise LogFormatError(f"{path}: the log holds no laser scans")
+            if rel is not None:
+                check_relations_match(rel, scans.stamps_s)
+            result = _process(slam, prefetch, scans, progress, len(scans))
+    result.metrics["stamps"] = report.as_dict() if report is not None else {"policy": stamps}
     result.metrics["odometry_time_offset"] = _time_offset_metrics(
         path, odometry_time_offset_s, result
     )

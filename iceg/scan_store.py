@@ -20,12 +20,10 @@ exactly what the pipeline saw.
 from __future__ import annotations
 
 import itertools
-import math
 from collections.abc import Iterable, Iterator, Sequence
 from typing import overload
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
 from frontends import LaserScan
@@ -169,6 +167,16 @@ class ScanStore(Sequence[LaserScan]):
         self._angle_bits.append(bits)
         return len(self._angle_table) - 1
 
+    def __getstate__(self) -> dict[str, object]:
+        """The pickled state (a store read in another process, :mod:`iceg.log_reading`):
+        the header's rows (at least one: they grow by doubling) and the last block's used
+        bytes, not their spare capacity (a later append starts a new block)."""
+        state = dict(self.__dict__)
+        state["_head"] = {k: v[: max(self._n, 1)] for k, v in self._head.items()}
+        if self._blocks:
+            state["_blocks"] = [*self._blocks[:-1], self._blocks[-1][: self._used]]
+        return state
+
     # ------------------------------------------------------------------ reading
     def __len__(self) -> int:
         return self._n
@@ -300,16 +308,21 @@ class ScanStore(Sequence[LaserScan]):
 
 def _encode(ranges: FloatArray) -> tuple[int, np.ndarray]:
     """The first of :data:`RANGE_ENCODINGS` that gives back every bit of ``ranges``:
-    ``(index, encoded array)``. The integer encodings are tested in one compiled pass
-    (:func:`_integer_round_trip`), the float ones by numpy."""
+    ``(index, encoded array)``. An integer encoding stores ``rint(range * scale)`` where
+    every one lies within the dtype's limits (NaN and infinities never do); -0.0 decodes
+    to +0.0, so its bits rule it out. Numpy only: the log's reading process
+    (:mod:`iceg.log_reading`) calls no compiled kernel."""
+    bits = ranges.view(np.int64)
     for k, (dtype, scale, limits) in enumerate(_ENCODING_TESTS):
-        if limits is not None:
-            if _integer_round_trip(ranges, scale, *limits):
-                return k, np.rint(ranges * scale).astype(dtype)
-            continue
-        with np.errstate(over="ignore"):
-            encoded: np.ndarray = ranges.astype(dtype)
-        if np.array_equal(_decode(encoded, scale).view(np.int64), ranges.view(np.int64)):
+        with np.errstate(over="ignore", invalid="ignore"):
+            if limits is not None:
+                scaled = np.rint(ranges * scale)
+                if not ((scaled >= limits[0]) & (scaled <= limits[1])).all():
+                    continue
+                encoded: np.ndarray = scaled.astype(dtype)
+            else:
+                encoded = ranges.astype(dtype)
+        if np.array_equal(_decode(encoded, scale).view(np.int64), bits):
             return k, encoded
     return len(RANGE_ENCODINGS) - 1, ranges.copy()
 
@@ -326,22 +339,6 @@ _ENCODING_TESTS: tuple[tuple[type, float, tuple[int, int] | None], ...] = tuple(
     )
     for dtype, scale in RANGE_ENCODINGS[:-1]
 )
-
-
-@njit(cache=True, nogil=True)
-def _integer_round_trip(ranges: np.ndarray, scale: float, lo: int, hi: int) -> bool:
-    """Whether every range stored as the integer ``rint(range * scale)`` (within
-    ``[lo, hi]``; NaN never is) decodes as ``stored / scale`` to its own float64 bits: equal
-    values, and not -0.0 (which decodes to +0.0)."""
-    for i in range(ranges.shape[0]):
-        v = ranges[i]
-        stored = np.rint(v * scale)
-        if not (stored >= lo and stored <= hi):
-            return False
-        decoded = float(int(stored)) / scale
-        if decoded != v or (v == 0.0 and math.copysign(1.0, v) < 0.0):
-            return False
-    return True
 
 
 def _decode(stored: np.ndarray, scale: float) -> FloatArray:

@@ -199,8 +199,9 @@ def _numpy_encoding(ranges: np.ndarray) -> int:
     )
 )
 def test_the_encoding_is_numpys_round_trip(values: list[float]) -> None:
-    # The compiled test of the integer encodings picks what the numpy round trip picks,
-    # including at the integer limits, for -0.0, NaN, infinities and huge values.
+    # The store picks the first encoding whose plain round trip (scale, round, cast, decode)
+    # gives back every bit, including at the integer limits, for -0.0, NaN, infinities and
+    # huge values, and its encoded ranges decode to those bits.
     ranges = np.array(values, dtype=np.float64)
     k, encoded = scan_store._encode(ranges)
     assert k == _numpy_encoding(ranges)

@@ -1,0 +1,93 @@
+"""A log read in a forked process (iceg.log_reading): the same store bit for bit, the same
+stamp report and log records, and the same error where reading fails."""
+
+from __future__ import annotations
+
+import logging
+import pickle
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from frontends import open_log
+from frontends.odometry_shift import shift_odometry
+from iceg.log_reading import read_aside
+from iceg.scan_store import ScanStore
+from iceg_common.errors import LogFormatError
+from tests.conftest import shared_file
+
+forked = pytest.mark.skipif(sys.platform != "linux", reason="the reading process is Linux only")
+
+
+def _flaser(x: float, stamp: float) -> str:
+    """A 3-beam FLASER line at odometry ``(x, 0, 0)`` (laser pose the same)."""
+    pose = f"{x} 0.0 0.0"
+    return f"FLASER 3 1.0 2.5 3.25 {pose} {pose} {stamp} host {stamp}"
+
+
+def _bits(x: object) -> bytes:
+    return b"" if x is None else np.asarray(x, dtype=np.float64).tobytes()
+
+
+def _assert_same_store(a: ScanStore, b: ScanStore) -> None:
+    """Every scan the same, value for value and bit for bit."""
+    assert len(a) == len(b)
+    for sa, sb in zip(a, b, strict=True):
+        assert (sa.source, sa.odom_break) == (sb.source, sb.odom_break)
+        for field in ("ranges_m", "angles_rad", "laser_offset", "odom_pose"):
+            assert _bits(getattr(sa, field)) == _bits(getattr(sb, field)), field
+        for field in ("stamp_s", "range_min_m", "range_max_m"):
+            assert _bits(getattr(sa, field)) == _bits(getattr(sb, field)), field
+
+
+@forked
+def test_the_store_read_aside_is_the_store_read_here_bit_for_bit() -> None:
+    path = shared_file("mit-csail/mit-csail.clf")
+    here = ScanStore(shift_odometry(open_log(path), -0.12))
+    reader = open_log(path)
+    with read_aside(reader, -0.12) as reading:
+        assert reading._proc is not None  # it is read in another process
+        store, report = reading.result()
+    _assert_same_store(store, here)
+    assert report is not None and report.as_dict()["out_of_order"] == 0
+    assert np.array_equal(store.beams()[1], here.beams()[1])
+
+
+@forked
+def test_the_readers_findings_and_log_records_come_back(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path = tmp_path / "jump.clf"
+    # 0.1 s apart: 0.3 m steps are motion; a 50 m step is an odometry jump (a break).
+    xs = [0.0, 0.3, 0.6, 50.6, 50.9]
+    path.write_text("".join(_flaser(x, 10.0 + 0.1 * k) + "\n" for k, x in enumerate(xs)))
+    with caplog.at_level(logging.WARNING), read_aside(open_log(path)) as reading:
+        store, report = reading.result()
+    assert [store[k].odom_break for k in range(len(store))] == [False, False, False, True, False]
+    assert f"{path}:4: odometry jumps 50.00 m" in caplog.text
+    assert report is not None and report.odometry_breaks[0][0] == f"{path}:4"
+
+
+def test_a_log_that_fails_to_read_raises_here_with_its_line(tmp_path: Path) -> None:
+    path = tmp_path / "bad.clf"
+    path.write_text(_flaser(0.0, 10.0) + "\nFLASER 3 1.0 oops 3.0 0 0 0 0 0 0 11.0 h 11.0\n")
+    with read_aside(open_log(path)) as reading, pytest.raises(LogFormatError, match=":2"):
+        reading.result()
+
+
+def test_a_store_pickles_without_its_spare_capacity_and_grows_on() -> None:
+    path = shared_file("mit-csail/mit-csail.clf")
+    scans = list(open_log(path))[:300]
+    store = ScanStore(scans[:200])
+    back = pickle.loads(pickle.dumps(store))
+    assert back._blocks[-1].nbytes == store._used < store._blocks[-1].nbytes
+    assert back._head["stamp_s"].shape[0] == 200
+    for scan in scans[200:]:
+        back.append(scan)
+        store.append(scan)
+    _assert_same_store(back, store)
+    empty = pickle.loads(pickle.dumps(ScanStore()))
+    empty.append(scans[0])
+    assert len(empty) == 1 and np.array_equal(empty[0].ranges_m, scans[0].ranges_m)
