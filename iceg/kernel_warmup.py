@@ -59,6 +59,13 @@ def cache_is_new() -> bool:
     return stats is not None and sum(stats.cache_misses.values()) > 0
 
 
+def probed() -> bool:
+    """Whether this process has called :func:`cache_is_new` (every run does as it starts its
+    helpers): numba's typing registry is then loaded, and so are the kernels of any run it
+    made."""
+    return cache_is_new.cache_info().currsize > 0
+
+
 def compile_without_features(scan: LaserScan, config: IcegConfig) -> None:
     """Call the later stages' kernels that need no features on ``scan`` and drop the
     results: the grid of two copies of it, the contradiction test's point query and its

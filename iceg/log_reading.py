@@ -1,13 +1,15 @@
 """A log read into a :class:`~iceg.scan_store.ScanStore` by a forked process while the
 calling process starts its run (issue 13).
 
-A run's start is serial in the calling process: numba's typing registry and compiled
-kernels load (0.3-0.4 s; :func:`iceg.kernel_warmup.cache_is_new`), then the log is parsed
-(about 0.3 s for MIT CSAIL's 1988 CARMEN lines), while the second core has nothing to do.
-:func:`read_aside` forks a process that parses the log into a store and sends it back,
-with the log records its reader emitted; :meth:`LogReading.result` takes them, so the two
-overlap. The process reads with the same code the calling process would, and the store
-comes back through ``pickle``, array bytes for array bytes: the run is the same bit for bit
+The first run of a process starts serially: numba's typing registry loads (0.3-0.4 s, at
+:func:`iceg.kernel_warmup.cache_is_new`), then the log is parsed (about 0.3 s for MIT
+CSAIL's 1988 CARMEN lines), while the second core has nothing to do. :func:`read_aside`
+forks a process that parses the log into a store and sends it back, with the log records
+its reader emitted; :meth:`LogReading.result` takes them, so the two overlap
+(:func:`iceg.pipeline.run_log` does so where the registry is still to load; later runs
+of the process read the log themselves, with nothing to overlap). The process reads with
+the same code the calling process would, and the store comes back through ``pickle``, its
+arrays' bytes out of band: the run is the same bit for bit
 (``tests/iceg/test_log_reading.py``). The reading process never calls a compiled kernel, so
 it does not load numba's registry itself.
 
@@ -22,12 +24,15 @@ from __future__ import annotations
 import contextlib
 import logging
 import multiprocessing
+import os
+import pickle
 import signal
 import sys
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
+from typing import cast
 
 from frontends import LaserScan
 from frontends.odometry_shift import shift_odometry
@@ -92,34 +97,37 @@ class LogReading:
         if conn is None or proc is None:
             return None
         try:
-            got = conn.recv()
+            return _receive(conn)
         except (EOFError, OSError):  # the process died (killed, out of memory)
-            got = None
+            return None
         finally:
             conn.close()
             proc.join()
-        return got
 
 
-def read_aside(reader: Iterable[LaserScan], odometry_time_offset_s: float = 0.0) -> LogReading:
+def read_aside(
+    reader: Iterable[LaserScan], odometry_time_offset_s: float = 0.0, fork: bool = True
+) -> LogReading:
     """Start reading the log of ``reader`` (:func:`frontends.open_log`, not yet iterated)
     into a :class:`~iceg.scan_store.ScanStore`, each scan's odometry read at its stamp plus
-    ``odometry_time_offset_s``, in a forked process (Linux; elsewhere, or where the fork
-    fails, :meth:`LogReading.result` reads it). Call :meth:`LogReading.result` once, in the
-    process that called this, inside the reading's with-block (which stops the process
-    where the run fails before)::
+    ``odometry_time_offset_s``, in a forked process (with ``fork``, on Linux; else, or where
+    the fork fails, :meth:`LogReading.result` reads it). Call :meth:`LogReading.result`
+    once, in the process that called this, inside the reading's with-block (which stops the
+    process where the run fails before)::
 
         with read_aside(open_log(path)) as reading:
             ...  # other work
             store, report = reading.result()
     """
     reading = LogReading(reader, odometry_time_offset_s)
-    if sys.platform != "linux":
+    if not fork or sys.platform != "linux":
         return reading
     try:
         ctx = multiprocessing.get_context("fork")
         conn, child = ctx.Pipe(duplex=False)
-        proc = ctx.Process(target=_read, args=(child, reading), daemon=True, name="iceg-read")
+        proc = ctx.Process(
+            target=_read, args=(child, reading, os.getpid()), daemon=True, name="iceg-read"
+        )
         proc.start()
         child.close()
     except OSError as exc:
@@ -138,23 +146,63 @@ def _report(reader: Iterable[LaserScan]) -> StampReport | None:
     return report if isinstance(report, StampReport) else None
 
 
-def _read(conn: Connection, reading: LogReading) -> None:
-    """The reading process: sends the store, the stamp report and the log records, or
-    None where reading failed."""
+def _read(conn: Connection, reading: LogReading, parent_pid: int) -> None:
+    """The reading process: sends the store, the stamp report and the log records
+    (:func:`_send`), or None where reading failed or the calling process exited."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the calling process's to handle
     records: list[logging.LogRecord] = []
     _collect_records(records)
     try:
-        store = _store(reading.reader, reading.odometry_time_offset_s)
+        scans = _while_alive(reading.reader, parent_pid)
+        store = _store(scans, reading.odometry_time_offset_s)
         for record in records:  # pickle the text, not the arguments
             record.msg, record.args = record.getMessage(), None
             record.exc_info = record.exc_text = None
-        conn.send((store, _report(reading.reader), records))
+        _send(conn, (store, _report(reading.reader), records))
     except BaseException:  # the calling process reads the log again and raises the error
         with contextlib.suppress(Exception):
             conn.send(None)
     finally:
         conn.close()
+
+
+#: The reading process checks every this many scans that the calling process still runs.
+_PARENT_CHECK_SCANS = 256
+
+
+def _while_alive(scans: Iterable[LaserScan], parent_pid: int) -> Iterator[LaserScan]:
+    """``scans``, stopped (:class:`ChildProcessError`) once the calling process has exited:
+    its result has no reader then."""
+    for k, scan in enumerate(scans):
+        if k % _PARENT_CHECK_SCANS == 0 and os.getppid() != parent_pid:
+            raise ChildProcessError("the calling process exited")
+        yield scan
+
+
+def _send(conn: Connection, read: _Read) -> None:
+    """Send ``read`` with its arrays' bytes out of band (pickle protocol 5): one message of
+    the objects and the buffers' sizes, then each buffer as it lies in memory, so neither
+    process holds a pickled copy of the scans beside them (a large log's store is hundreds
+    of MB)."""
+    buffers: list[pickle.PickleBuffer] = []
+    payload = pickle.dumps(read, protocol=5, buffer_callback=buffers.append)
+    raws = [b.raw() for b in buffers]
+    conn.send((payload, [r.nbytes for r in raws]))
+    for raw in raws:
+        conn.send_bytes(raw)
+
+
+def _receive(conn: Connection) -> _Read | None:
+    """What :func:`_send` sent (None where reading failed): each buffer received into
+    writable memory of its own, which the arrays then use as they are."""
+    got = conn.recv()
+    if got is None:
+        return None
+    payload, sizes = got
+    buffers = [bytearray(n) for n in sizes]
+    for buffer in buffers:
+        conn.recv_bytes_into(buffer)
+    return cast(_Read, pickle.loads(payload, buffers=buffers))
 
 
 class _Collector(logging.Handler):

@@ -21,7 +21,7 @@ from frontends.scan import StampPolicy
 from iceg.config import IcegConfig
 from iceg.evaluation import position_errors, relation_errors
 from iceg.features.prefetch import FeaturePrefetcher, auto_workers
-from iceg.kernel_warmup import cache_is_new
+from iceg.kernel_warmup import cache_is_new, probed
 from iceg.log_reading import read_aside
 from iceg.match_pool import MatchPool
 from iceg.odometry_timing import odometry_time_offset
@@ -184,10 +184,10 @@ def run_log(
     check_log_file(Path(path))
     reader = open_log(path, stamps=stamps, **(reader_options or {}))
     rel = read_relations(relations) if relations is not None else None
-    # The log is parsed in a forked process while this one loads numba's registry and the
-    # helpers start (their kernels load meanwhile); compact: no LaserScan object per scan
-    # held during the run.
-    with read_aside(reader, odometry_time_offset_s) as reading:
+    # Compact: no LaserScan object per scan held during the run. Where this process has yet
+    # to load numba's registry (its first run), the log is parsed meanwhile in a forked
+    # process; with nothing to overlap, that process would only add its start.
+    with read_aside(reader, odometry_time_offset_s, fork=not probed()) as reading:
         slam = Slam(config)
         with helper_processes(slam) as prefetch:
             scans, report = reading.result()

@@ -13,6 +13,7 @@ import pytest
 
 from frontends import open_log
 from frontends.odometry_shift import shift_odometry
+from iceg import log_reading
 from iceg.log_reading import read_aside
 from iceg.scan_store import ScanStore
 from iceg_common.errors import LogFormatError
@@ -53,6 +54,17 @@ def test_the_store_read_aside_is_the_store_read_here_bit_for_bit() -> None:
     _assert_same_store(store, here)
     assert report is not None and report.as_dict()["out_of_order"] == 0
     assert np.array_equal(store.beams()[1], here.beams()[1])
+    # its arrays are its own and writable: the store grows on as one read here
+    for scan in here[:3]:
+        store.append(scan)
+    assert len(store) == len(here) + 3
+    _assert_same_store(ScanStore(store[-3:]), ScanStore(here[:3]))
+
+
+def test_the_reading_process_stops_once_the_calling_process_is_gone() -> None:
+    scans = iter(ScanStore(list(open_log(shared_file("mit-csail/mit-csail.clf")))[:10]))
+    with pytest.raises(ChildProcessError):
+        list(log_reading._while_alive(scans, parent_pid=-1))
 
 
 @forked
