@@ -184,18 +184,22 @@ def run_log(
     check_log_file(Path(path))
     reader = open_log(path, stamps=stamps, **(reader_options or {}))
     rel = read_relations(relations) if relations is not None else None
+    slam = Slam(config)
+    # decided before the reading process below keeps a core busy (auto_workers watches them)
+    workers = slam.config.slam.workers or auto_workers()
     # Compact: no LaserScan object per scan held during the run. Where this process has yet
     # to load numba's registry (its first run), the log is parsed meanwhile in a forked
     # process; with nothing to overlap, that process would only add its start.
-    with read_aside(reader, odometry_time_offset_s, fork=not probed()) as reading:
-        slam = Slam(config)
-        with helper_processes(slam) as prefetch:
-            scans, report = reading.result()
-            if not scans:
-                raise LogFormatError(f"{path}: the log holds no laser scans")
-            if rel is not None:
-                check_relations_match(rel, scans.stamps_s)
-            result = _process(slam, prefetch, scans, progress, len(scans))
+    with (
+        read_aside(reader, odometry_time_offset_s, fork=not probed()) as reading,
+        helper_processes(slam, workers) as prefetch,
+    ):
+        scans, report = reading.result()
+        if not scans:
+            raise LogFormatError(f"{path}: the log holds no laser scans")
+        if rel is not None:
+            check_relations_match(rel, scans.stamps_s)
+        result = _process(slam, prefetch, scans, progress, len(scans))
     result.metrics["stamps"] = report.as_dict() if report is not None else {"policy": stamps}
     result.metrics["odometry_time_offset"] = _time_offset_metrics(
         path, odometry_time_offset_s, result

@@ -4,6 +4,7 @@ stamp report and log records, and the same error where reading fails."""
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import pickle
 import sys
 from pathlib import Path
@@ -13,7 +14,7 @@ import pytest
 
 from frontends import open_log
 from frontends.odometry_shift import shift_odometry
-from iceg import log_reading
+from iceg import log_reading, pipeline
 from iceg.log_reading import read_aside
 from iceg.scan_store import ScanStore
 from iceg_common.errors import LogFormatError
@@ -103,3 +104,24 @@ def test_a_store_pickles_without_its_spare_capacity_and_grows_on() -> None:
     empty = pickle.loads(pickle.dumps(ScanStore()))
     empty.append(scans[0])
     assert len(empty) == 1 and np.array_equal(empty[0].ranges_m, scans[0].ranges_m)
+
+
+@forked
+def test_a_run_counts_its_idle_cores_before_the_reading_process_takes_one(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # auto_workers watches the cores' idleness: a reading process already at work on one
+    # would make a run on an idle two-core machine choose a single process.
+    seen: list[list[str]] = []
+
+    def auto_workers() -> int:
+        seen.append([p.name for p in multiprocessing.active_children()])
+        return 1
+
+    monkeypatch.setattr(pipeline, "auto_workers", auto_workers)
+    monkeypatch.setattr(pipeline, "probed", lambda: False)  # as in a process's first run
+    path = tmp_path / "short.clf"
+    path.write_text("".join(_flaser(0.1 * k, 10.0 + 0.1 * k) + "\n" for k in range(5)))
+    result = pipeline.run_log(path)
+    assert seen == [[]]
+    assert len(result.stamps_s) == 5
