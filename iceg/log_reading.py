@@ -150,6 +150,9 @@ def _read(conn: Connection, reading: LogReading, parent_pid: int) -> None:
     """The reading process: sends the store, the stamp report and the log records
     (:func:`_send`), or None where reading failed or the calling process exited."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the calling process's to handle
+    # terminate() ends it at once, even where the calling process raises on SIGTERM (the
+    # CLI) and this process inherited that handler while it blocks on a full pipe
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     records: list[logging.LogRecord] = []
     _collect_records(records)
     try:

@@ -6,7 +6,10 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import pickle
+import signal
 import sys
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -125,3 +128,31 @@ def test_a_run_counts_its_idle_cores_before_the_reading_process_takes_one(
     result = pipeline.run_log(path)
     assert seen == [[]]
     assert len(result.stamps_s) == 5
+
+
+@forked
+def test_a_reading_left_unread_is_stopped_even_where_sigterm_raises() -> None:
+    # As in the CLI, whose SIGTERM handler raises: the reading process inherits it. Blocked
+    # sending a store larger than the pipe holds, it must still end at terminate().
+    class Terminated(Exception):
+        pass
+
+    def raise_terminated(signum: int, frame: object) -> None:
+        raise Terminated
+
+    previous = signal.signal(signal.SIGTERM, raise_terminated)
+    try:
+        reading = read_aside(open_log(shared_file("mit-csail/mit-csail.clf")))
+        proc = reading._proc
+        assert proc is not None
+        deadline = time.monotonic() + 30.0
+        while reading._conn is not None and not reading._conn.poll(0.05):
+            assert time.monotonic() < deadline, "the reading process sent nothing"
+        # it is now sending (the store is far larger than a pipe's buffer); nobody reads
+        stopper = threading.Thread(target=reading.__exit__, args=(None, None, None))
+        stopper.start()
+        stopper.join(10.0)
+        assert not stopper.is_alive(), "the with-block's exit hung on the reading process"
+        assert not proc.is_alive()
+    finally:
+        signal.signal(signal.SIGTERM, previous)
