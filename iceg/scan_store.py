@@ -308,36 +308,23 @@ class ScanStore(Sequence[LaserScan]):
 
 def _encode(ranges: FloatArray) -> tuple[int, np.ndarray]:
     """The first of :data:`RANGE_ENCODINGS` that gives back every bit of ``ranges``:
-    ``(index, encoded array)``. An integer encoding stores ``rint(range * scale)`` where
-    every one lies within the dtype's limits (NaN and infinities never do); -0.0 decodes
-    to +0.0, so its bits rule it out. Numpy only: the log's reading process
-    (:mod:`iceg.log_reading`) calls no compiled kernel."""
+    ``(index, encoded array)``. An integer encoding stores ``rint(range * scale)``; its
+    decoding lies within the dtype's limits over the scale whatever the cast made of a
+    value beyond them (or of NaN, an infinity), so such a value never comes back, and
+    -0.0 comes back as +0.0: comparing the bits decides. Numpy only: the log's reading
+    process (:mod:`iceg.log_reading`) calls no compiled kernel."""
     bits = ranges.view(np.int64)
-    for k, (dtype, scale, limits) in enumerate(_ENCODING_TESTS):
+    for k, (dtype, scale, integer) in enumerate(_ENCODING_TESTS):
         with np.errstate(over="ignore", invalid="ignore"):
-            if limits is not None:
-                scaled = np.rint(ranges * scale)
-                if not ((scaled >= limits[0]) & (scaled <= limits[1])).all():
-                    continue
-                encoded: np.ndarray = scaled.astype(dtype)
-            else:
-                encoded = ranges.astype(dtype)
+            encoded: np.ndarray = (np.rint(ranges * scale) if integer else ranges).astype(dtype)
         if np.array_equal(_decode(encoded, scale).view(np.int64), bits):
             return k, encoded
     return len(RANGE_ENCODINGS) - 1, ranges.copy()
 
 
-#: The encodings :func:`_encode` tests (all but the last): ``(dtype, scale, limits)``, the
-#: limits ``(min, max)`` of an integer dtype, None for a float one.
-_ENCODING_TESTS: tuple[tuple[type, float, tuple[int, int] | None], ...] = tuple(
-    (
-        dtype,
-        scale,
-        (int(np.iinfo(dtype).min), int(np.iinfo(dtype).max))
-        if np.issubdtype(dtype, np.integer)
-        else None,
-    )
-    for dtype, scale in RANGE_ENCODINGS[:-1]
+#: The encodings :func:`_encode` tests (all but the last): ``(dtype, scale, integer)``.
+_ENCODING_TESTS: tuple[tuple[type, float, bool], ...] = tuple(
+    (dtype, scale, bool(np.issubdtype(dtype, np.integer))) for dtype, scale in RANGE_ENCODINGS[:-1]
 )
 
 
