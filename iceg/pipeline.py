@@ -9,28 +9,32 @@ import gc
 import logging
 import os
 import stat
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
 from frontends import LaserScan, open_log
+from frontends.odometry_shift import shift_odometry
 from frontends.relations import Relations, match_stamps, read_relations
-from frontends.scan import StampPolicy
+from frontends.scan import StampPolicy, StampReport
+from iceg.aside import compute_aside, while_caller_runs
 from iceg.config import IcegConfig
 from iceg.evaluation import position_errors, relation_errors
 from iceg.features.prefetch import FeaturePrefetcher, auto_workers
 from iceg.kernel_warmup import cache_is_new, probed
-from iceg.log_reading import read_aside
 from iceg.match_pool import MatchPool
 from iceg.odometry_timing import odometry_time_offset
 from iceg.results import SlamResult
 from iceg.scan_products import ScanPrecompute
+from iceg.scan_store import ScanStore
 from iceg.slam import Slam
 from iceg_common.errors import EvaluationError, LogFormatError
 
 logger = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 #: Timestamp tolerance for matching relation stamps to scans (relations carry 5 decimals).
 RELATION_TOLERANCE_S = 1e-3
@@ -119,6 +123,21 @@ def helper_processes(slam: Slam, workers: int | None = None) -> Iterator[Feature
 
 
 @contextlib.contextmanager
+def _started(slam: Slam, make_input: Callable[[], T]) -> Iterator[tuple[T, FeaturePrefetcher]]:
+    """The run's input (``make_input()``: the scans and what comes with them) and its
+    helpers (:func:`helper_processes`). Where this process has yet to load numba's registry
+    (its first run), the input is made meanwhile in a forked process
+    (:func:`~iceg.aside.compute_aside`); the run's processes are counted before that
+    process keeps a core busy (:func:`~iceg.features.prefetch.auto_workers` watches them)."""
+    workers = slam.config.slam.workers or auto_workers()
+    with (
+        compute_aside(make_input, fork=not probed()) as aside,
+        helper_processes(slam, workers) as prefetch,
+    ):
+        yield aside.result(), prefetch
+
+
+@contextlib.contextmanager
 def _frozen_heap() -> Iterator[None]:
     """The objects alive at the start of a run (modules, numba's typing registry: about
     150 000 on a CARMEN log, against about 15 000 the run adds) kept out of the cyclic
@@ -136,6 +155,15 @@ def _frozen_heap() -> Iterator[None]:
         yield
     finally:
         gc.unfreeze()
+
+
+def _simulated(seed: int) -> tuple[ScanStore, np.ndarray, np.ndarray]:
+    """The office world's run (:func:`frontends.simulate.simulate`): its scans in a store,
+    the ``(N, 3)`` true and odometry poses."""
+    from frontends.simulate import office_world, simulate
+
+    run = simulate(office_world(), seed=seed)
+    return ScanStore(run.scans), run.true_poses, run.odom_poses
 
 
 def check_relations_match(relations: Relations, stamps_s: np.ndarray) -> None:
@@ -185,16 +213,8 @@ def run_log(
     reader = open_log(path, stamps=stamps, **(reader_options or {}))
     rel = read_relations(relations) if relations is not None else None
     slam = Slam(config)
-    # decided before the reading process below keeps a core busy (auto_workers watches them)
-    workers = slam.config.slam.workers or auto_workers()
-    # Compact: no LaserScan object per scan held during the run. Where this process has yet
-    # to load numba's registry (its first run), the log is parsed meanwhile in a forked
-    # process; with nothing to overlap, that process would only add its start.
-    with (
-        read_aside(reader, odometry_time_offset_s, fork=not probed()) as reading,
-        helper_processes(slam, workers) as prefetch,
-    ):
-        scans, report = reading.result()
+    with _started(slam, lambda: _read(reader, odometry_time_offset_s)) as (read, prefetch):
+        scans, report = read
         if not scans:
             raise LogFormatError(f"{path}: the log holds no laser scans")
         if rel is not None:
@@ -210,6 +230,16 @@ def run_log(
         )
         result.metrics["relations"] = summary.as_dict()
     return result
+
+
+def _read(reader: Iterable[LaserScan], offset_s: float) -> tuple[ScanStore, StampReport | None]:
+    """The log of ``reader`` (not yet iterated) in a store, compact (no LaserScan object per
+    scan held during the run), each scan's odometry read at its stamp plus ``offset_s``;
+    and the reader's stamp report (out-of-order and duplicate stamps, odometry breaks; None
+    for a reader without one)."""
+    store = ScanStore(shift_odometry(while_caller_runs(reader), offset_s))
+    report = getattr(reader, "stamp_report", None)
+    return store, report if isinstance(report, StampReport) else None
 
 
 def _time_offset_metrics(path: str | Path, applied_s: float, result: SlamResult) -> dict[str, Any]:
@@ -264,14 +294,10 @@ def run_simulated_demo(
     SICK LMS200 laser model and noisy wheel odometry) starts at the true pose, so errors are
     reported both without alignment and after a rigid SE(2) alignment.
     """
-    from frontends.simulate import office_world, simulate
-
     slam = Slam(config)
-    # the helpers start first: the feature worker loads its compiled kernels meanwhile
-    with helper_processes(slam) as prefetch:
-        run = simulate(office_world(), seed=seed)
-        result = _process(slam, prefetch, run.scans, progress, len(run.scans))
-    result.metrics["ground_truth"] = position_errors(result.poses, run.true_poses).as_dict()
-    result.metrics["odometry_vs_truth"] = position_errors(run.odom_poses, run.true_poses).as_dict()
+    with _started(slam, lambda: _simulated(seed)) as ((scans, true_poses, odom_poses), prefetch):
+        result = _process(slam, prefetch, scans, progress, len(scans))
+    result.metrics["ground_truth"] = position_errors(result.poses, true_poses).as_dict()
+    result.metrics["odometry_vs_truth"] = position_errors(odom_poses, true_poses).as_dict()
     result.metrics["source"] = f"simulated office world, seed {seed}"
     return result

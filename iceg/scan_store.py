@@ -168,7 +168,7 @@ class ScanStore(Sequence[LaserScan]):
         return len(self._angle_table) - 1
 
     def __getstate__(self) -> dict[str, object]:
-        """The pickled state (a store read in another process, :mod:`iceg.log_reading`):
+        """The pickled state (a store read in another process, :mod:`iceg.aside`):
         the header's rows (at least one: they grow by doubling) and the last block's used
         bytes, not their spare capacity (a later append starts a new block)."""
         state = dict(self.__dict__)
@@ -311,8 +311,8 @@ def _encode(ranges: FloatArray) -> tuple[int, np.ndarray]:
     ``(index, encoded array)``. An integer encoding stores ``rint(range * scale)``; its
     decoding lies within the dtype's limits over the scale whatever the cast made of a
     value beyond them (or of NaN, an infinity), so such a value never comes back, and
-    -0.0 comes back as +0.0: comparing the bits decides. Numpy only: the log's reading
-    process (:mod:`iceg.log_reading`) calls no compiled kernel."""
+    -0.0 comes back as +0.0: comparing the bits decides. Numpy only: the process that
+    reads the log (:mod:`iceg.aside`) calls no compiled kernel."""
     bits = ranges.view(np.int64)
     for k, (dtype, scale, integer) in enumerate(_ENCODING_TESTS):
         with np.errstate(over="ignore", invalid="ignore"):

@@ -1,5 +1,6 @@
-"""A log read in a forked process (iceg.log_reading): the same store bit for bit, the same
-stamp report and log records, and the same error where reading fails."""
+"""A run's input computed in a forked process (iceg.aside): a log read there is the same
+store bit for bit, with the same stamp report and log records, and the same error where
+reading fails; the built-in demo is the same run."""
 
 from __future__ import annotations
 
@@ -17,13 +18,13 @@ import pytest
 
 from frontends import open_log
 from frontends.odometry_shift import shift_odometry
-from iceg import log_reading, pipeline
-from iceg.log_reading import read_aside
+from iceg import aside, pipeline
+from iceg.aside import compute_aside
 from iceg.scan_store import ScanStore
 from iceg_common.errors import LogFormatError
 from tests.conftest import shared_file
 
-forked = pytest.mark.skipif(sys.platform != "linux", reason="the reading process is Linux only")
+forked = pytest.mark.skipif(sys.platform != "linux", reason="the forked process is Linux only")
 
 
 def _flaser(x: float, stamp: float) -> str:
@@ -51,8 +52,7 @@ def _assert_same_store(a: ScanStore, b: ScanStore) -> None:
 def test_the_store_read_aside_is_the_store_read_here_bit_for_bit() -> None:
     path = shared_file("mit-csail/mit-csail.clf")
     here = ScanStore(shift_odometry(open_log(path), -0.12))
-    reader = open_log(path)
-    with read_aside(reader, -0.12) as reading:
+    with compute_aside(lambda: pipeline._read(open_log(path), -0.12)) as reading:
         assert reading._proc is not None  # it is read in another process
         store, report = reading.result()
     _assert_same_store(store, here)
@@ -65,10 +65,14 @@ def test_the_store_read_aside_is_the_store_read_here_bit_for_bit() -> None:
     _assert_same_store(ScanStore(store[-3:]), ScanStore(here[:3]))
 
 
-def test_the_reading_process_stops_once_the_calling_process_is_gone() -> None:
-    scans = iter(ScanStore(list(open_log(shared_file("mit-csail/mit-csail.clf")))[:10]))
+def test_the_forked_process_stops_reading_once_the_calling_process_is_gone(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    items = list(range(10))
+    assert list(aside.while_caller_runs(items)) == items  # not in a forked process
+    monkeypatch.setattr(aside, "_CALLER_PID", -1)  # forked by a process that is gone
     with pytest.raises(ChildProcessError):
-        list(log_reading._while_alive(scans, parent_pid=-1))
+        list(aside.while_caller_runs(items))
 
 
 @forked
@@ -79,7 +83,10 @@ def test_the_readers_findings_and_log_records_come_back(
     # 0.1 s apart: 0.3 m steps are motion; a 50 m step is an odometry jump (a break).
     xs = [0.0, 0.3, 0.6, 50.6, 50.9]
     path.write_text("".join(_flaser(x, 10.0 + 0.1 * k) + "\n" for k, x in enumerate(xs)))
-    with caplog.at_level(logging.WARNING), read_aside(open_log(path)) as reading:
+    with (
+        caplog.at_level(logging.WARNING),
+        compute_aside(lambda: pipeline._read(open_log(path), 0.0)) as reading,
+    ):
         store, report = reading.result()
     assert [store[k].odom_break for k in range(len(store))] == [False, False, False, True, False]
     assert f"{path}:4: odometry jumps 50.00 m" in caplog.text
@@ -89,7 +96,8 @@ def test_the_readers_findings_and_log_records_come_back(
 def test_a_log_that_fails_to_read_raises_here_with_its_line(tmp_path: Path) -> None:
     path = tmp_path / "bad.clf"
     path.write_text(_flaser(0.0, 10.0) + "\nFLASER 3 1.0 oops 3.0 0 0 0 0 0 0 11.0 h 11.0\n")
-    with read_aside(open_log(path)) as reading, pytest.raises(LogFormatError, match=":2"):
+    reading = compute_aside(lambda: pipeline._read(open_log(path), 0.0))
+    with reading, pytest.raises(LogFormatError, match=":2"):
         reading.result()
 
 
@@ -110,10 +118,10 @@ def test_a_store_pickles_without_its_spare_capacity_and_grows_on() -> None:
 
 
 @forked
-def test_a_run_counts_its_idle_cores_before_the_reading_process_takes_one(
+def test_a_run_counts_its_idle_cores_before_the_forked_process_takes_one(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    # auto_workers watches the cores' idleness: a reading process already at work on one
+    # auto_workers watches the cores' idleness: a forked process already at work on one
     # would make a run on an idle two-core machine choose a single process.
     seen: list[list[str]] = []
 
@@ -132,7 +140,7 @@ def test_a_run_counts_its_idle_cores_before_the_reading_process_takes_one(
 
 @forked
 def test_a_reading_left_unread_is_stopped_even_where_sigterm_raises() -> None:
-    # As in the CLI, whose SIGTERM handler raises: the reading process inherits it. Blocked
+    # As in the CLI, whose SIGTERM handler raises: the forked process inherits it. Blocked
     # sending a store larger than the pipe holds, it must still end at terminate().
     class Terminated(Exception):
         pass
@@ -142,17 +150,31 @@ def test_a_reading_left_unread_is_stopped_even_where_sigterm_raises() -> None:
 
     previous = signal.signal(signal.SIGTERM, raise_terminated)
     try:
-        reading = read_aside(open_log(shared_file("mit-csail/mit-csail.clf")))
+        path = shared_file("mit-csail/mit-csail.clf")
+        reading = compute_aside(lambda: ScanStore(open_log(path)))
         proc = reading._proc
         assert proc is not None
         deadline = time.monotonic() + 30.0
         while reading._conn is not None and not reading._conn.poll(0.05):
-            assert time.monotonic() < deadline, "the reading process sent nothing"
+            assert time.monotonic() < deadline, "the forked process sent nothing"
         # it is now sending (the store is far larger than a pipe's buffer); nobody reads
         stopper = threading.Thread(target=reading.__exit__, args=(None, None, None))
         stopper.start()
         stopper.join(10.0)
-        assert not stopper.is_alive(), "the with-block's exit hung on the reading process"
+        assert not stopper.is_alive(), "the with-block's exit hung on the forked process"
         assert not proc.is_alive()
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+@forked
+def test_the_demo_simulated_aside_is_the_demo_simulated_here(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    runs = []
+    for first_run in (True, False):  # the world simulated in a forked process, then here
+        monkeypatch.setattr(pipeline, "probed", lambda first_run=first_run: not first_run)
+        runs.append(pipeline.run_simulated_demo())
+    aside_run, here = runs
+    assert aside_run.poses.tobytes() == here.poses.tobytes()
+    assert aside_run.metrics["ground_truth"] == here.metrics["ground_truth"]

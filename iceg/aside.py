@@ -1,0 +1,209 @@
+"""A run's input computed in a forked process while the calling process starts the run
+(issue 13).
+
+The first run of a process starts serially: numba's typing registry loads (0.3-0.4 s, at
+:func:`iceg.kernel_warmup.cache_is_new`), then the input is made (MIT CSAIL's 1988 CARMEN
+lines parsed in about 0.3 s, the built-in office world simulated in 0.1 s), while the
+second core has nothing to do. :func:`compute_aside` forks a process that computes the
+input and sends it back, with the log records it emitted; :meth:`Aside.result` takes them,
+so the two overlap (:mod:`iceg.pipeline` does so where the registry is still to load; a
+later run of the process has nothing to overlap, and the forked process would only add its
+start). The process runs the same code the calling process would, and the value comes back
+through ``pickle`` with its arrays' bytes out of band: the run is the same bit for bit
+(``tests/iceg/test_aside.py``). What it computes must call no compiled kernel, or the
+process would load numba's registry itself.
+
+Where the forked process fails for any reason (an error in the computation, a killed
+process, a value that cannot be pickled) the calling process computes the value itself: an
+error is then raised in the calling process, with its message and traceback, as without
+this module. Off Linux the value is computed in the calling process.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import multiprocessing
+import os
+import pickle
+import signal
+import sys
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
+from multiprocessing.process import BaseProcess
+from typing import Generic, TypeVar, cast
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+#: In a process forked by :func:`compute_aside`: the calling process's id (else None).
+_CALLER_PID: int | None = None
+
+#: :func:`while_caller_runs` checks every this many items that the calling process runs.
+CALLER_CHECK_ITEMS = 256
+
+
+@dataclass(eq=False)
+class Aside(Generic[T]):
+    """A value being computed in a forked process (:func:`compute_aside`); :meth:`result`
+    gives it. Use as a context manager: the block's end stops a process whose value was
+    never taken (the run failed before).
+
+    Attributes:
+        compute: The computation (called again here where the forked process failed).
+    """
+
+    compute: Callable[[], T]
+    _conn: Connection | None = field(default=None, repr=False)
+    _proc: BaseProcess | None = field(default=None, repr=False)
+
+    def result(self) -> T:
+        """The value, from the forked process (its log records handled here as if logged
+        here), or computed here where that process failed or never started. Call it once.
+
+        Raises:
+            Whatever ``compute`` raises.
+        """
+        got = self._received()
+        if got is None:
+            return self.compute()
+        value, records = got
+        for record in records:
+            logging.getLogger(record.name).handle(record)
+        return value
+
+    def __enter__(self) -> Aside[T]:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        conn, proc = self._conn, self._proc
+        self._conn = self._proc = None
+        if proc is not None:
+            proc.terminate()
+            proc.join()
+        if conn is not None:
+            conn.close()
+
+    def _received(self) -> tuple[T, list[logging.LogRecord]] | None:
+        conn, proc = self._conn, self._proc
+        self._conn = self._proc = None
+        if conn is None or proc is None:
+            return None
+        try:
+            return _receive(conn)
+        except (EOFError, OSError):  # the process died (killed, out of memory)
+            return None
+        finally:
+            conn.close()
+            proc.join()
+
+
+def compute_aside(compute: Callable[[], T], fork: bool = True) -> Aside[T]:
+    """Start ``compute()`` in a forked process (with ``fork``, on Linux; else, or where the
+    fork fails, :meth:`Aside.result` computes it)::
+
+        with compute_aside(lambda: ScanStore(open_log(path))) as reading:
+            ...  # other work
+            store = reading.result()
+
+    ``compute`` must call no compiled kernel (see the module) and should stop a long loop
+    once the calling process has exited (:func:`while_caller_runs`).
+    """
+    aside = Aside(compute)
+    if not fork or sys.platform != "linux":
+        return aside
+    try:
+        ctx = multiprocessing.get_context("fork")
+        conn, child = ctx.Pipe(duplex=False)
+        proc = ctx.Process(
+            target=_run, args=(child, aside, os.getpid()), daemon=True, name="iceg-aside"
+        )
+        proc.start()
+        child.close()
+    except OSError as exc:
+        log.warning("computing the run's input here (%s)", exc)
+        return aside
+    aside._conn, aside._proc = conn, proc
+    return aside
+
+
+def while_caller_runs(items: Iterable[T]) -> Iterator[T]:
+    """``items``; in a process forked by :func:`compute_aside`, stopped
+    (:class:`ChildProcessError`) once the calling process has exited, checked every
+    :data:`CALLER_CHECK_ITEMS` items: its value has no reader then."""
+    for k, item in enumerate(items):
+        if k % CALLER_CHECK_ITEMS == 0 and _CALLER_PID is not None and os.getppid() != _CALLER_PID:
+            raise ChildProcessError("the calling process exited")
+        yield item
+
+
+def _run(conn: Connection, aside: Aside[T], caller_pid: int) -> None:
+    """The forked process: sends the value and the log records (:func:`_send`), or None
+    where computing it failed."""
+    global _CALLER_PID
+    _CALLER_PID = caller_pid
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the calling process's to handle
+    # terminate() ends it at once, even where the calling process raises on SIGTERM (the
+    # CLI) and this process inherited that handler while it blocks on a full pipe
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    records: list[logging.LogRecord] = []
+    _collect_records(records)
+    try:
+        value = aside.compute()
+        for record in records:  # pickle the text, not the arguments
+            record.msg, record.args = record.getMessage(), None
+            record.exc_info = record.exc_text = None
+        _send(conn, (value, records))
+    except BaseException:  # the calling process computes it again and raises the error
+        with contextlib.suppress(Exception):
+            conn.send(None)
+    finally:
+        conn.close()
+
+
+def _send(conn: Connection, message: object) -> None:
+    """Send ``message`` with its arrays' bytes out of band (pickle protocol 5): one message
+    of the objects and the buffers' sizes, then each buffer as it lies in memory, so
+    neither process holds a pickled copy beside them (a large log's scans are hundreds of
+    MB)."""
+    buffers: list[pickle.PickleBuffer] = []
+    payload = pickle.dumps(message, protocol=5, buffer_callback=buffers.append)
+    raws = [b.raw() for b in buffers]
+    conn.send((payload, [r.nbytes for r in raws]))
+    for raw in raws:
+        conn.send_bytes(raw)
+
+
+def _receive(conn: Connection) -> tuple[T, list[logging.LogRecord]] | None:
+    """What :func:`_send` sent (None where computing failed): each buffer received into
+    writable memory of its own, which the arrays then use as they are."""
+    got = conn.recv()
+    if got is None:
+        return None
+    payload, sizes = got
+    buffers = [bytearray(n) for n in sizes]
+    for buffer in buffers:
+        conn.recv_bytes_into(buffer)
+    return cast(tuple[T, list[logging.LogRecord]], pickle.loads(payload, buffers=buffers))
+
+
+class _Collector(logging.Handler):
+    def __init__(self, records: list[logging.LogRecord]) -> None:
+        super().__init__()
+        self.records = records
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+
+def _collect_records(records: list[logging.LogRecord]) -> None:
+    """In the forked process: every log record goes to ``records`` instead of the handlers
+    inherited from the calling process (which handles them once the value arrives)."""
+    loggers = [logging.getLogger(), *logging.Logger.manager.loggerDict.values()]
+    for logger in loggers:
+        if isinstance(logger, logging.Logger):
+            for handler in list(logger.handlers):
+                logger.removeHandler(handler)
+    logging.getLogger().addHandler(_Collector(records))
