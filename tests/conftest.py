@@ -27,6 +27,21 @@ def shared_file(relative: str) -> Path:
     return path
 
 
+def flaser_line(x_m: float, stamp_s: float) -> str:
+    """A 3-beam CARMEN ``FLASER`` line (ranges 1, 2 and 3 m) at odometry and laser pose
+    ``(x_m, 0, 0)``, stamped ``stamp_s``."""
+    pose = f"{x_m} 0.0 0.0"
+    return f"FLASER 3 1.0 2.0 3.0 {pose} {pose} {stamp_s} h {stamp_s}"
+
+
+def write_odometry_jump_log(path: Path) -> Path:
+    """Write a 5-scan CARMEN log to ``path``: scans 0.1 s apart, 0.3 m steps of motion and
+    a 50 m jump of the odometry at line 4 (a break: the limit is 2 m + 5 m/s * dt)."""
+    xs = [0.0, 0.3, 0.6, 50.6, 50.9]
+    path.write_text("".join(flaser_line(x, 10.0 + 0.1 * k) + "\n" for k, x in enumerate(xs)))
+    return path
+
+
 def load_benchmark(name: str) -> ModuleType:
     """The module ``benchmarks/<name>.py``, imported under ``name`` (so a benchmark that
     imports a sibling, e.g. ``bench_scaling`` importing ``bench_accuracy``, finds it once

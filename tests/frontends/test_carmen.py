@@ -14,7 +14,7 @@ from frontends import LaserScan, open_log
 from frontends.carmen import CarmenReader, flaser_angles, write_carmen
 from iceg_common import se2
 from iceg_common.errors import ConfigError, LogFormatError
-from tests.conftest import shared_file
+from tests.conftest import flaser_line, shared_file, write_odometry_jump_log
 
 # ---------------------------------------------------------------------------------------------
 # A hand-made log (11 lines). Every expected number below is computed by hand in the comments.
@@ -470,11 +470,6 @@ def test_numbers_are_ascii_float_syntax_only(tmp_path: Path, bad: str, message: 
     assert message in str(info.value)
 
 
-def _flaser(x: float, stamp: float) -> str:
-    pose = f"{x} 0.0 0.0"
-    return f"FLASER 3 1.0 2.0 3.0 {pose} {pose} {stamp} h {stamp}"
-
-
 def _robotlaser(x: float, stamp: float) -> str:
     pose = f"{x} 0.0 0.0"
     return (
@@ -486,10 +481,7 @@ def _robotlaser(x: float, stamp: float) -> str:
 def test_odometry_jump_is_a_break_with_file_line(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    path = tmp_path / "jump.clf"
-    # 0.1 s apart: 0.3 m steps are motion; a 50 m step is a jump (limit 2 m + 5 m/s * dt).
-    xs = [0.0, 0.3, 0.6, 50.6, 50.9]
-    path.write_text("".join(_flaser(x, 10.0 + 0.1 * k) + "\n" for k, x in enumerate(xs)))
+    path = write_odometry_jump_log(tmp_path / "jump.clf")
     reader = CarmenReader(path)
     with caplog.at_level(logging.WARNING):
         scans = list(reader)
@@ -500,8 +492,8 @@ def test_odometry_jump_is_a_break_with_file_line(
 
 def test_second_odometry_frame_is_a_break(tmp_path: Path) -> None:
     path = tmp_path / "mixed.clf"
-    lines = [_flaser(0.0, 1.0), _flaser(0.1, 1.1), _robotlaser(0.2, 1.2), _robotlaser(0.3, 1.3)]
-    lines.append(_flaser(0.4, 1.4))
+    lines = [flaser_line(0.0, 1.0), flaser_line(0.1, 1.1)]
+    lines += [_robotlaser(0.2, 1.2), _robotlaser(0.3, 1.3), flaser_line(0.4, 1.4)]
     path.write_text("\n".join(lines) + "\n")
     reader = CarmenReader(path)
     assert [s.odom_break for s in reader] == [False, False, True, False, True]
@@ -514,7 +506,8 @@ def test_real_logs_have_no_false_breaks(mit_csail_scans: list[LaserScan]) -> Non
 
 def test_timestamp_policy_sort_or_refuse(tmp_path: Path) -> None:
     path = tmp_path / "order.clf"
-    path.write_text("\n".join(_flaser(0.1 * k, t) for k, t in enumerate([1.0, 3.0, 2.0])) + "\n")
+    stamps = [1.0, 3.0, 2.0]
+    path.write_text("\n".join(flaser_line(0.1 * k, t) for k, t in enumerate(stamps)) + "\n")
     reader = CarmenReader(path)
     assert [s.stamp_s for s in reader] == [1.0, 2.0, 3.0]
     assert [s.source for s in reader] == [f"{path}:1", f"{path}:3", f"{path}:2"]

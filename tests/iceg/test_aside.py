@@ -22,15 +22,9 @@ from iceg import aside, pipeline
 from iceg.aside import compute_aside
 from iceg.scan_store import ScanStore
 from iceg_common.errors import LogFormatError
-from tests.conftest import shared_file
+from tests.conftest import flaser_line, shared_file, write_odometry_jump_log
 
 forked = pytest.mark.skipif(sys.platform != "linux", reason="the forked process is Linux only")
-
-
-def _flaser(x: float, stamp: float) -> str:
-    """A 3-beam FLASER line at odometry ``(x, 0, 0)`` (laser pose the same)."""
-    pose = f"{x} 0.0 0.0"
-    return f"FLASER 3 1.0 2.5 3.25 {pose} {pose} {stamp} host {stamp}"
 
 
 def _bits(x: object) -> bytes:
@@ -79,10 +73,7 @@ def test_the_forked_process_stops_reading_once_the_calling_process_is_gone(
 def test_the_readers_findings_and_log_records_come_back(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    path = tmp_path / "jump.clf"
-    # 0.1 s apart: 0.3 m steps are motion; a 50 m step is an odometry jump (a break).
-    xs = [0.0, 0.3, 0.6, 50.6, 50.9]
-    path.write_text("".join(_flaser(x, 10.0 + 0.1 * k) + "\n" for k, x in enumerate(xs)))
+    path = write_odometry_jump_log(tmp_path / "jump.clf")
     with (
         caplog.at_level(logging.WARNING),
         compute_aside(lambda: pipeline._read(open_log(path), 0.0)) as reading,
@@ -95,7 +86,7 @@ def test_the_readers_findings_and_log_records_come_back(
 
 def test_a_log_that_fails_to_read_raises_here_with_its_line(tmp_path: Path) -> None:
     path = tmp_path / "bad.clf"
-    path.write_text(_flaser(0.0, 10.0) + "\nFLASER 3 1.0 oops 3.0 0 0 0 0 0 0 11.0 h 11.0\n")
+    path.write_text(flaser_line(0.0, 10.0) + "\nFLASER 3 1.0 oops 3.0 0 0 0 0 0 0 11.0 h 11.0\n")
     reading = compute_aside(lambda: pipeline._read(open_log(path), 0.0))
     with reading, pytest.raises(LogFormatError, match=":2"):
         reading.result()
@@ -132,7 +123,7 @@ def test_a_run_counts_its_idle_cores_before_the_forked_process_takes_one(
     monkeypatch.setattr(pipeline, "auto_workers", auto_workers)
     monkeypatch.setattr(pipeline, "probed", lambda: False)  # as in a process's first run
     path = tmp_path / "short.clf"
-    path.write_text("".join(_flaser(0.1 * k, 10.0 + 0.1 * k) + "\n" for k in range(5)))
+    path.write_text("".join(flaser_line(0.1 * k, 10.0 + 0.1 * k) + "\n" for k in range(5)))
     result = pipeline.run_log(path)
     assert seen == [[]]
     assert len(result.stamps_s) == 5
