@@ -26,13 +26,14 @@ import logging
 import multiprocessing
 import os
 import pickle
-import signal
 import sys
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
 from typing import Generic, TypeVar, cast
+
+from iceg import forked
 
 log = logging.getLogger(__name__)
 
@@ -144,10 +145,7 @@ def _run(conn: Connection, aside: Aside[T], caller_pid: int) -> None:
     where computing it failed."""
     global _CALLER_PID
     _CALLER_PID = caller_pid
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the calling process's to handle
-    # terminate() ends it at once, even where the calling process raises on SIGTERM (the
-    # CLI) and this process inherited that handler while it blocks on a full pipe
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    forked.helper_signals()
     records: list[logging.LogRecord] = []
     _collect_records(records)
     try:

@@ -1,12 +1,14 @@
-"""The two ends of a forked helper process's pipe, as the feature workers
-(:mod:`iceg.features.prefetch`) and the match helper (:mod:`iceg.match_pool`) use them: the
-helper waits for its next message while its parent lives, and the parent stops it without
-losing the pipe to a helper blocked on sending."""
+"""What the forked helper processes share (the feature workers, :mod:`iceg.features.prefetch`;
+the match helper, :mod:`iceg.match_pool`; the input's process, :mod:`iceg.aside`): their
+signals, and the two ends of a helper's pipe: the helper waits for its next message while
+its parent lives, and the parent stops it without losing the pipe to a helper blocked on
+sending."""
 
 from __future__ import annotations
 
 import contextlib
 import os
+import signal
 import time
 from multiprocessing.connection import Connection, wait
 from multiprocessing.process import BaseProcess
@@ -15,6 +17,16 @@ from multiprocessing.process import BaseProcess
 PARENT_CHECK_S = 1.0
 #: Seconds to wait for a helper to exit before it is terminated.
 JOIN_TIMEOUT_S = 2.0
+
+
+def helper_signals() -> None:
+    """A forked helper's signals, set first thing: Ctrl-C (SIGINT) is the calling process's
+    to handle, so it is ignored here; ``terminate()`` (SIGTERM) ends the helper at once, the
+    default action, whatever handler the calling process had installed: the CLI's raises an
+    exception, which a helper would inherit and print as a traceback, or catch and carry on
+    where it catches errors (a blocked send, a match)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def next_message(conn: Connection, parent_pid: int) -> object | None:

@@ -25,7 +25,6 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
-import signal
 import sys
 import time
 from collections.abc import Iterable
@@ -262,7 +261,7 @@ def _serve(
     the match)`` out, except for a job the calling process has taken (``taken``, shared
     ``[batch, first index]``): it runs that one itself. None, the end of the pipe or the
     parent's exit stops it."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle
+    forked.helper_signals()
     parent_end.close()
     while (msg := forked.next_message(conn, parent_pid)) is not None:
         batch, k, job = cast(tuple[int, int, MatchJob], msg)

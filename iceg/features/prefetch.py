@@ -36,7 +36,6 @@ import contextlib
 import logging
 import multiprocessing
 import os
-import signal
 import sys
 import time
 from collections import deque
@@ -224,7 +223,7 @@ def _serve(
     it is answered with None, not extracted (a stretch of scans that make no keyframe goes
     by faster than the worker extracts them). With ``later`` its warm-up also compiles the
     later stages' kernels (:func:`_warm_up`)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle
+    forked.helper_signals()
     with contextlib.suppress(OSError):
         # Spare CPU only: on a busy machine the worker must not take the main process's
         # time (it would then fall behind, and the main process extract itself).

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +15,7 @@ from typer.testing import CliRunner
 
 from iceg.cli import app
 from iceg.results import OUTPUT_FILES
-from tests.conftest import shared_file
+from tests.conftest import flaser_line, shared_file
 
 runner = CliRunner()
 
@@ -70,6 +72,26 @@ def test_log_without_scans(tmp_path: Path) -> None:
     log = tmp_path / "empty.clf"
     log.write_text("PARAM robot_front_laser_max 81.9 1.0 host 1.0\n")
     _assert_one_line_error(["run", str(log)], tmp_path / "o", "no laser scans")
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="the helper processes are Linux only")
+def test_a_malformed_log_is_one_line_with_the_helpers_running(tmp_path: Path) -> None:
+    # The helpers are stopped at once when the run fails; they inherit the command's SIGTERM
+    # handler, which raises: they used to print its traceback. A fresh process, as a user
+    # types it (the helpers' stderr is the terminal's, not a test runner's capture).
+    log = tmp_path / "bad.clf"
+    log.write_text(flaser_line(0.0, 10.0) + "\nFLASER 3 1.0 oops 3.0 0 0 0 0 0 0 11.0 h 11.0\n")
+    config = tmp_path / "two.yaml"
+    config.write_text("slam:\n  workers: 2\n")
+    out = tmp_path / "o"
+    args = ["run", str(log), "--config", str(config), "--out", str(out), "--no-progress"]
+    done = subprocess.run(
+        [sys.executable, "-m", "iceg.cli", *args], capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 1, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and f"{log}:2:" in lines[0], done.stderr
+    assert not out.exists()
 
 
 def test_relations_matching_no_scan(tmp_path: Path) -> None:

@@ -1,0 +1,55 @@
+"""The forked helpers' shared pieces (iceg.forked): their signals."""
+
+from __future__ import annotations
+
+import multiprocessing
+import signal
+import sys
+import time
+
+import pytest
+
+from iceg import forked
+
+pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="the helpers are forked (Linux)")
+
+
+class _Terminated(Exception):
+    pass
+
+
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise _Terminated
+
+
+def _helper(set_signals: bool) -> None:
+    """A helper forked from a process whose SIGTERM handler raises (as the CLI's does)."""
+    if set_signals:
+        forked.helper_signals()
+    try:
+        time.sleep(30.0)
+    except _Terminated:  # what a helper that catches errors would do with it
+        time.sleep(30.0)
+
+
+@pytest.mark.parametrize("set_signals", [True, False])
+def test_a_helper_ends_at_terminate_whatever_handler_it_inherited(set_signals: bool) -> None:
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        proc = multiprocessing.get_context("fork").Process(target=_helper, args=(set_signals,))
+        proc.start()
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    time.sleep(0.5)  # the helper is asleep in its loop
+    proc.terminate()
+    proc.join(2.0)
+    ended = not proc.is_alive()
+    if not ended:
+        proc.kill()
+        proc.join()
+    # with the helper's signals, SIGTERM's default action ends it at once; with the
+    # inherited handler it raises inside the helper, which carries on
+    assert ended == set_signals
+    if set_signals:
+        assert proc.exitcode == -signal.SIGTERM
+    assert signal.getsignal(signal.SIGINT) is not signal.SIG_IGN  # this process untouched
