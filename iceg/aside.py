@@ -121,7 +121,8 @@ def compute_aside(compute: Callable[[], T], fork: bool = True) -> Aside[T]:
         proc = ctx.Process(
             target=_run, args=(child, aside, os.getpid()), daemon=True, name="iceg-aside"
         )
-        proc.start()
+        with forked.signals_held():
+            proc.start()
         child.close()
     except OSError as exc:
         log.warning("computing the run's input here (%s)", exc)

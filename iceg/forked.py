@@ -10,6 +10,7 @@ import contextlib
 import os
 import signal
 import time
+from collections.abc import Iterator
 from multiprocessing.connection import Connection, wait
 from multiprocessing.process import BaseProcess
 
@@ -19,14 +20,34 @@ PARENT_CHECK_S = 1.0
 JOIN_TIMEOUT_S = 2.0
 
 
+#: The signals a helper handles its own way (:func:`helper_signals`).
+_HELPER_SIGNALS = {signal.SIGINT, signal.SIGTERM}
+
+
+@contextlib.contextmanager
+def signals_held() -> Iterator[None]:
+    """Around a helper's start (its fork), in the thread that starts it: SIGINT and SIGTERM
+    are held (blocked) in this thread, so the helper starts with them held until
+    :func:`helper_signals` has set its own handling; a ``terminate()`` that comes first is
+    held until then. The calling process's other threads (the CLI's main thread) take
+    them meanwhile; a signal to this thread alone waits the fork's few milliseconds."""
+    held = signal.pthread_sigmask(signal.SIG_BLOCK, _HELPER_SIGNALS)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, held)
+
+
 def helper_signals() -> None:
-    """A forked helper's signals, set first thing: Ctrl-C (SIGINT) is the calling process's
-    to handle, so it is ignored here; ``terminate()`` (SIGTERM) ends the helper at once, the
-    default action, whatever handler the calling process had installed: the CLI's raises an
-    exception, which a helper would inherit and print as a traceback, or catch and carry on
-    where it catches errors (a blocked send, a match)."""
+    """A forked helper's signals, set first thing (it starts with them held,
+    :func:`signals_held`): Ctrl-C (SIGINT) is the calling process's to handle, so it is
+    ignored here; ``terminate()`` (SIGTERM) ends the helper at once, the default action,
+    whatever handler the calling process had installed: the CLI's raises an exception,
+    which a helper would inherit and print as a traceback, or catch and carry on where it
+    catches errors (a blocked send, a match). Then they are released."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, _HELPER_SIGNALS)
 
 
 def next_message(conn: Connection, parent_pid: int) -> object | None:

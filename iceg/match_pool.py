@@ -136,7 +136,8 @@ class MatchPool:
                 daemon=True,
                 name="iceg-matches",
             )
-            self._proc.start()
+            with forked.signals_held():
+                self._proc.start()
             child.close()
         except OSError as exc:
             log.warning("match helper off (%s); matching here", exc)

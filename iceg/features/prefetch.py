@@ -147,7 +147,8 @@ class _Worker:
             daemon=True,
             name="iceg-features",
         )
-        self.proc.start()
+        with forked.signals_held():
+            self.proc.start()
         child.close()
         self.alive = True
         self.outstanding = 0  # scans sent whose results have not been read

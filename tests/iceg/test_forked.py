@@ -53,3 +53,22 @@ def test_a_helper_ends_at_terminate_whatever_handler_it_inherited(set_signals: b
     if set_signals:
         assert proc.exitcode == -signal.SIGTERM
     assert signal.getsignal(signal.SIGINT) is not signal.SIG_IGN  # this process untouched
+
+
+def test_a_helper_terminated_as_it_starts_ends_by_the_signal() -> None:
+    # A run that fails at once stops a helper just forked, before its target has set its
+    # signals: held across the fork, the SIGTERM waits for them (it used to raise the
+    # inherited handler's exception in multiprocessing's bootstrap and print its traceback).
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        codes = []
+        for _ in range(5):
+            proc = multiprocessing.get_context("fork").Process(target=_helper, args=(True,))
+            with forked.signals_held():
+                proc.start()
+            proc.terminate()
+            proc.join(5.0)
+            codes.append(proc.exitcode)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert codes == [-signal.SIGTERM] * 5
