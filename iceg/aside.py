@@ -23,9 +23,11 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import logging.handlers
 import multiprocessing
 import os
 import pickle
+import queue
 import sys
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
@@ -147,14 +149,10 @@ def _run(conn: Connection, aside: Aside[T], caller_pid: int) -> None:
     global _CALLER_PID
     _CALLER_PID = caller_pid
     forked.helper_signals()
-    records: list[logging.LogRecord] = []
-    _collect_records(records)
+    records = _collect_records()
     try:
         value = aside.compute()
-        for record in records:  # pickle the text, not the arguments
-            record.msg, record.args = record.getMessage(), None
-            record.exc_info = record.exc_text = None
-        _send(conn, (value, records))
+        _send(conn, (value, _drained(records)))
     except BaseException:  # the calling process computes it again and raises the error
         with contextlib.suppress(Exception):
             conn.send(None)
@@ -188,21 +186,23 @@ def _receive(conn: Connection) -> tuple[T, list[logging.LogRecord]] | None:
     return cast(tuple[T, list[logging.LogRecord]], pickle.loads(payload, buffers=buffers))
 
 
-class _Collector(logging.Handler):
-    def __init__(self, records: list[logging.LogRecord]) -> None:
-        super().__init__()
-        self.records = records
-
-    def emit(self, record: logging.LogRecord) -> None:
-        self.records.append(record)
-
-
-def _collect_records(records: list[logging.LogRecord]) -> None:
-    """In the forked process: every log record goes to ``records`` instead of the handlers
-    inherited from the calling process (which handles them once the value arrives)."""
+def _collect_records() -> queue.SimpleQueue[logging.LogRecord]:
+    """In the forked process: every log record goes to the queue returned, its message
+    formatted and its arguments dropped so that it pickles (``logging.handlers.QueueHandler``),
+    instead of to the handlers inherited from the calling process (which handles them once
+    the value arrives)."""
     loggers = [logging.getLogger(), *logging.Logger.manager.loggerDict.values()]
     for logger in loggers:
         if isinstance(logger, logging.Logger):
             for handler in list(logger.handlers):
                 logger.removeHandler(handler)
-    logging.getLogger().addHandler(_Collector(records))
+    records: queue.SimpleQueue[logging.LogRecord] = queue.SimpleQueue()
+    logging.getLogger().addHandler(logging.handlers.QueueHandler(records))
+    return records
+
+
+def _drained(records: queue.SimpleQueue[logging.LogRecord]) -> list[logging.LogRecord]:
+    out = []
+    while not records.empty():
+        out.append(records.get_nowait())
+    return out
