@@ -61,6 +61,7 @@ from iceg.matching._kernels import (
     poses_within_bounds,
     psd_max,
     segment_grid,
+    stable_order,
 )
 from iceg.matching.config import CovarianceConfig
 from iceg.matching.correlation import CorrelationSettings, correlate, fimp, pair_features
@@ -813,7 +814,9 @@ def _every_density(d: np.ndarray, w: np.ndarray, kernel: float) -> np.ndarray:
     return dens
 
 
-@pytest.mark.parametrize("case", ["uniform", "two walls", "ties", "narrow"])
+@pytest.mark.parametrize(
+    "case", ["uniform", "two walls", "ties", "narrow", "flat top", "peak on a background", "sparse"]
+)
 def test_density_peak_is_the_argmax_of_every_density(case: str) -> None:
     rng = np.random.default_rng(len(case))
     kernel = math.radians(1.0)
@@ -825,6 +828,13 @@ def test_density_peak_is_the_argmax_of_every_density(case: str) -> None:
             d = np.where(rng.uniform(size=n) < 0.7, 0.0, 1.5) + rng.normal(0, 0.01, n)
         elif case == "ties":  # repeated values and weights: the first in the order of d wins
             d = np.repeat(rng.uniform(-0.3, 0.3, max(1, n // 4)), 4)
+        elif case == "flat top":  # densities within a fraction of a percent of each other
+            d = rng.uniform(-0.05, 0.05, n) * kernel
+        elif case == "peak on a background":  # the terms beyond the near bounds decide
+            d = np.where(rng.uniform(size=n) < 0.2, rng.normal(0, 0.5 * kernel, n), 0.0)
+            d += np.where(d == 0.0, rng.uniform(-0.4, 0.4, n), 0.0)
+        elif case == "sparse":  # far more kernel widths than samples (no counting sort)
+            d = rng.uniform(-50.0, 50.0, n)
         else:
             d = rng.normal(0, 0.002, n)
         w = np.repeat(rng.uniform(0.1, 3.0, max(1, n // 4)), 4)[: d.shape[0]]
@@ -839,6 +849,36 @@ def test_density_peak_is_the_argmax_of_every_density(case: str) -> None:
         else:
             assert k == -1
     assert density_peak(np.zeros(0), np.zeros(0), kernel, 1.0)[0] == -1
+
+
+@pytest.mark.parametrize("size", [1, 7])
+def test_density_peak_counts_the_terms_beyond_its_near_bounds(size: int) -> None:
+    # Two clusters alike but for A's weights, larger by one part in a million; a heavy
+    # sample five kernels beyond B (past max_abs, so never the peak itself) gives B one part
+    # in a hundred thousand more: B is the peak, though A is denser within four kernels
+    # (one sample each: the bins' bounds decide; seven: the samples' bounds).
+    kernel = 1.0
+    spread = np.linspace(-0.3, 0.3, size)
+    d = np.concatenate([spread - 10.0, spread + 10.0, [15.0]])
+    w = np.concatenate([np.full(size, 1.000001), np.ones(size), [7.0]])
+    k, peak = density_peak(d, w, kernel, 12.0)
+    dens = _every_density(d, w, kernel)
+    dens[np.abs(d) > 12.0] = -np.inf
+    assert k == int(np.argmax(dens)) == size + size // 2  # B's middle sample
+    assert peak == dens[k]
+    near_a = _every_density(d[:size], w[:size], kernel)[size // 2]
+    near_b = _every_density(d[size : 2 * size], w[size : 2 * size], kernel)[size // 2]
+    assert near_a > near_b
+
+
+@given(
+    st.lists(st.sampled_from([-1.0, -0.25, 0.0, 1e-300, 0.3, 0.30000000000000004, 2.0]))
+    | st.lists(st.floats(-1e3, 1e3), min_size=1),
+    st.floats(1e-6, 10.0),
+)
+def test_stable_order_is_numpys_stable_argsort(values: list[float], width: float) -> None:
+    d = np.array(values or [0.0])
+    np.testing.assert_array_equal(stable_order(d, width), np.argsort(d, kind="stable"))
 
 
 @pytest.mark.parametrize("true_deg", [3.0, -7.5, 179.0])
