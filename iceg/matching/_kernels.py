@@ -2285,9 +2285,11 @@ def points_explained(
 
     The reference points are gridded in cells of ``gate_m`` (keys ``ix * n_cells[1] + iy``
     sorted, as :func:`~iceg.matching.refine.grid_points` builds them), so each moved point
-    scans the 3 x 3 cells around it (three runs of consecutive keys, each found by a binary
-    search among its column's keys; its own column first) and stops at the first reference
-    point within the gate.
+    scans the 3 x 3 cells around it and stops at the first reference point within the gate:
+    its own cell first (most points that have a reference point within the gate find one
+    there), then the rest of its column below and above it, then the columns beside it;
+    each a run of consecutive keys found by a binary search among its column's keys. The
+    order changes only how soon a point stops, not its answer.
 
     Args:
         points: ``(P, 2)`` float64 points in their own frame, metres.
@@ -2325,19 +2327,30 @@ def points_explained(
             ix = math.floor(fx)
             iy = math.floor(fy)
             lo_y, hi_y = max(iy - 1, 0), min(iy + 1, ny - 1)
-            for step in range(3):  # the point's own column first: most stop there
-                cx = ix + (0, -1, 1)[step]
-                if cx < 0 or cx >= nx:
+            # rows [y0, y1] of column ix + dx_cell: the own cell, the own column below and
+            # above it, the columns left and right
+            found = False
+            for step in range(5):
+                dx_cell = (0, 0, 0, -1, 1)[step]
+                y0 = (max(iy, lo_y), lo_y, max(iy + 1, lo_y), lo_y, lo_y)[step]
+                y1 = (min(iy, hi_y), min(iy - 1, hi_y), hi_y, hi_y, hi_y)[step]
+                cx = ix + dx_cell
+                if cx < 0 or cx >= nx or y0 > y1:
                     continue
                 a, b = column[cx], column[cx + 1]
-                m = a + np.searchsorted(cell_key[a:b], cx * ny + lo_y)
-                last = cx * ny + hi_y
-                while m < b and cell_key[m] <= last and not out[k, i]:
+                m = a + np.searchsorted(cell_key[a:b], cx * ny + y0)
+                last = cx * ny + y1
+                while m < b and cell_key[m] <= last:
                     j = cell_order[m]
                     dx = qx - ref_points[j, 0]
                     dy = qy - ref_points[j, 1]
-                    out[k, i] = dx * dx + dy * dy < gate2
+                    if dx * dx + dy * dy < gate2:
+                        found = True
+                        break
                     m += 1
+                if found:
+                    break
+            out[k, i] = found
     return out
 
 

@@ -1506,16 +1506,23 @@ def test_points_within_equals_brute_force() -> None:
     # The gridded existence test of slam.points_prefer_prediction gives, for every pose, the
     # same points with a reference point closer than the gate as an exhaustive search,
     # including points that fall outside the grid.
+    # Scattered points, and walls: points 2 cm apart along lines, as scans see them, where
+    # most points find a reference point in their own cell.
     rng = np.random.default_rng(9)
-    ref = rng.uniform(-3.0, 3.0, (400, 2))
-    pts = rng.uniform(-4.0, 4.0, (300, 2))
-    poses = np.array([[0.2, -0.1, 0.3], [0.0, 0.0, 0.0], [-1.0, 2.5, -2.0]])
-    for gate in (0.3, 0.1):
-        got = points_within(pts, poses, ref, gate)
-        for k, pose in enumerate(poses):
-            d = np.linalg.norm(transform_points(pose, pts)[:, None, :] - ref[None], axis=2)
-            np.testing.assert_array_equal(got[k], d.min(axis=1) < gate)
-        assert 20 < np.count_nonzero(got) < got.size - 20
+    t = np.linspace(0.0, 1.0, 300)[:, None]
+    a, b = rng.uniform(-3.0, 3.0, (2, 4, 2))
+    walls = (a[:, None] + t[None] * (b - a)[:, None]).reshape(-1, 2)
+    poses = np.array([[0.2, -0.1, 0.3], [0.0, 0.0, 0.0], [-1.0, 2.5, -2.0], [0.03, 0.02, 0.01]])
+    for ref, pts in (
+        (rng.uniform(-3.0, 3.0, (400, 2)), rng.uniform(-4.0, 4.0, (300, 2))),
+        (walls, walls[::3] + rng.normal(0.0, 0.05, (400, 2))),
+    ):
+        for gate in (0.3, 0.1, 0.05):
+            got = points_within(pts, poses, ref, gate)
+            for k, pose in enumerate(poses):
+                d = np.linalg.norm(transform_points(pose, pts)[:, None, :] - ref[None], axis=2)
+                np.testing.assert_array_equal(got[k], d.min(axis=1) < gate)
+            assert 20 < np.count_nonzero(got) < got.size - 20
 
 
 def test_hand_made_scenes_accuracy_and_calibration() -> None:
