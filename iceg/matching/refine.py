@@ -210,13 +210,15 @@ class RefineProblem:
 @dataclass(frozen=True, eq=False)
 class _FinalSystem:
     """What the covariance of a refined pose needs (computed on first use of
-    :attr:`Refined.cov`): the problem, the point-to-line information ``(3, 3)`` and rows at
-    the pose, the feature pairs, the point noise and the gate (m)."""
+    :attr:`Refined.cov`): the problem, the point-to-line information ``(3, 3)`` at the pose,
+    each point's segment ``(P,)`` (-1: none) and residual ``(P,)`` there (its rows, selected
+    when the covariance is read), the feature pairs, the point noise and the gate (m)."""
 
     problem: RefineProblem
     pose: FloatArray
     point_hess: FloatArray
-    point_rows: _PointRows
+    point_segment: IntArray
+    point_residual: FloatArray
     pairs: IntArray
     sigma: float
     gate: float
@@ -250,7 +252,8 @@ class Refined:
     def _covariances(self) -> tuple[FloatArray, FloatArray]:
         f = self._system
         hess, rows = _final_rows(f.problem, f.pose, f.point_hess, f.pairs, f.gate, f.sigma)
-        return _covariance(f.problem, f.pose, hess, f.point_rows, rows, f.sigma, f.gate)
+        pr = _point_rows(f.problem, f.point_segment, f.point_residual)
+        return _covariance(f.problem, f.pose, hess, pr, rows, f.sigma, f.gate)
 
     @property
     def cov_ls(self) -> FloatArray:
@@ -420,11 +423,10 @@ def refine(
         problem.kernel_settings,
         problem.settings.max_iterations,
     )
-    pr = _point_rows(problem, idx, res)
-    n_on = int(np.count_nonzero(pr.sel))
+    n_on = int(np.count_nonzero(idx >= 0))
     overlap = float(n_on) / max(1, problem.points.xy.shape[0])
-    system = _FinalSystem(problem, pose.copy(), hess, pr, pairs, sigma, gate)
-    return Refined(pose, sigma, overlap, n_on, pr.idx, iterations, system)
+    system = _FinalSystem(problem, pose.copy(), hess, idx, res, pairs, sigma, gate)
+    return Refined(pose, sigma, overlap, n_on, idx, iterations, system)
 
 
 def covariance_at(problem: RefineProblem, pose: FloatArray) -> tuple[FloatArray, FloatArray]:
