@@ -39,7 +39,7 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from frontends.scan import LaserScan
-from iceg.features.prefetch import auto_workers
+from iceg.features.prefetch import CoreWatch
 from iceg_common.atomic import atomic_path, atomic_write
 from iceg_common.errors import GridError
 from iceg_common.se2 import compose
@@ -156,7 +156,8 @@ class GridConfig(BaseModel):
         ge=0,
         description="Threads tracing the beams, each over its own band of rows (every cell "
         "is updated by one thread, in scan order, so the map is identical with any number). "
-        "0: 2 when a core is idle (iceg.features.prefetch.auto_workers), else 1.",
+        "0: 2 when a core is idle (iceg.features.prefetch.auto_workers, the cores watched "
+        "through the render's first passes: CoreWatch), else 1.",
     )
     max_cells: int = Field(
         default=25_000_000,
@@ -711,6 +712,8 @@ def _render_chunks(
     to the first (marking tiles does not depend on the order), so the tracer starts on the
     chunk it walked last and ends on a kept one. A log of one or two chunks is read once.
     """
+    # the cores watched through the passes before the tracing (CoreWatch), not in a wait
+    watch = CoreWatch() if not cfg.threads else None
     n = poses.shape[0]
     spans = [(lo, min(lo + chunk_scans, n)) for lo in range(0, n, max(1, chunk_scans))]
     lo_xy = np.full(2, np.inf)
@@ -738,9 +741,10 @@ def _render_chunks(
             world = _chunk_beams(poses[a:b], chunks(a, b), cfg)
         return _grid_beams(world, frame, cfg.resolution_m)
 
-    grid = _trace_tiled(frame, spans, walk, cfg, exact=False)
+    threads = cfg.threads if watch is None else watch.workers()
+    grid = _trace_tiled(frame, spans, walk, cfg, threads, exact=False)
     if grid is None:  # the tile walk missed a tile a cell walk reaches: walk cell by cell
-        grid = _trace_tiled(frame, spans, walk, cfg, exact=True)
+        grid = _trace_tiled(frame, spans, walk, cfg, threads, exact=True)
         assert grid is not None
     if cfg.mode == "binary":
         _binarize(grid, cfg)
@@ -842,12 +846,13 @@ def _trace_tiled(
     spans: list[tuple[int, int]],
     walk: Callable[[int, int], _Beams],
     cfg: GridConfig,
+    threads: int,
     exact: bool,
 ) -> TiledGrid | None:
     """Allocate the tiles the beams cross and trace them, chunk by chunk (``walk(lo, hi)``
-    gives the beams of scans ``[lo, hi)``). The tile marking walks tile by tile, or cell by
-    cell when ``exact``; None when the tile walk missed a tile the cell walk reaches (a
-    segment through a tile corner within rounding)."""
+    gives the beams of scans ``[lo, hi)``) in ``threads`` threads. The tile marking walks tile
+    by tile, or cell by cell when ``exact``; None when the tile walk missed a tile the cell
+    walk reaches (a segment through a tile corner within rounding)."""
     h, w = frame.shape
     tile_mask = np.zeros((-(-h // TILE_SIZE), -(-w // TILE_SIZE)), dtype=np.bool_)
     unit = 0 if exact else TILE_SHIFT
@@ -857,7 +862,6 @@ def _trace_tiled(
     order = np.cumsum(tile_mask.reshape(-1)).reshape(tile_mask.shape) - 1
     grid = _tiled_grid(frame, np.where(tile_mask, order, -1), cfg)
     model = InverseSensorModel(cfg.l_occ, cfg.l_free, cfg.l_min, cfg.l_max)
-    threads = cfg.threads or auto_workers()
     missing = 0
     with ThreadPoolExecutor(threads) as pool:
         for a, b in spans:

@@ -297,20 +297,56 @@ def auto_workers() -> int:
     Measured now, not by the load average: its minute-long memory counts runs that have
     finished, so of runs started one after another (a loop over logs), once the 1-minute
     load reached 1.0 every later one ran in one process on an otherwise idle machine.
+    :class:`CoreWatch` gives the same answer from the time this process works through.
     """
-    if sys.platform != "linux":
-        return 1
-    allowed = sorted(os.sched_getaffinity(0))
-    if len(allowed) < 2:
-        return 1
-    import psutil  # on first use: a run that sets its workers never needs it
+    return CoreWatch().workers()
 
-    try:
-        busy_percent = psutil.cpu_percent(interval=IDLE_SAMPLE_S, percpu=True)
-    except (OSError, psutil.Error):
-        return 1
-    idle = sum(100.0 - busy_percent[c] for c in allowed if c < len(busy_percent)) / 100.0
-    return 2 if idle >= 1.0 + MIN_SPARE_CORES else 1
+
+class CoreWatch:
+    """:func:`auto_workers`'s answer, measured while this process works instead of in a wait
+    of its own: the cores' use from the watch's start to :meth:`workers` (at least
+    ``IDLE_SAMPLE_S``: it waits for the rest), with this process's own CPU time over that
+    interval counted as idle capacity, since it is the work the answer is for. Start it
+    where no helper process of this one is at work (their use would count as busy).
+    ``psutil.cpu_percent`` keeps one baseline per process, so two watches must not overlap.
+    """
+
+    def __init__(self) -> None:
+        self._start_s = time.monotonic()
+        self._start_cpu_s = time.process_time()
+        self._allowed: list[int] = []
+        if sys.platform != "linux":
+            return
+        allowed = sorted(os.sched_getaffinity(0))
+        if len(allowed) < 2:
+            return
+        import psutil  # on first use: a run that sets its workers never needs it
+
+        try:
+            psutil.cpu_percent(interval=None, percpu=True)  # the baseline of the next call
+        except (OSError, psutil.Error):
+            return
+        self._allowed = allowed
+
+    def workers(self) -> int:
+        """2 or 1, as :func:`auto_workers` decides, from the cores' use since the start."""
+        if not self._allowed:
+            return 1
+        import psutil
+
+        rest_s = IDLE_SAMPLE_S - (time.monotonic() - self._start_s)
+        if rest_s > 0.0:
+            time.sleep(rest_s)
+        try:
+            busy_percent = psutil.cpu_percent(interval=None, percpu=True)
+        except (OSError, psutil.Error):
+            return 1
+        own = (time.process_time() - self._start_cpu_s) / (time.monotonic() - self._start_s)
+        idle = (
+            own
+            + sum(100.0 - busy_percent[c] for c in self._allowed if c < len(busy_percent)) / 100.0
+        )
+        return 2 if idle >= 1.0 + MIN_SPARE_CORES else 1
 
 
 class FeaturePrefetcher:

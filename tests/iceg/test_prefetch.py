@@ -8,6 +8,7 @@ import gc
 import multiprocessing
 import os
 import sys
+import time
 import weakref
 from pathlib import Path
 
@@ -20,6 +21,7 @@ from iceg.config import IcegConfig
 from iceg.features import extract
 from iceg.features.prefetch import (
     IDLE_SAMPLE_S,
+    CoreWatch,
     FeaturePrefetcher,
     _Inbox,
     _warm_up,
@@ -167,8 +169,36 @@ def test_auto_workers_counts_the_idle_cores_now(
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: allowed)
     monkeypatch.setattr(os, "getloadavg", lambda: (9.0, 9.0, 9.0))  # must not matter
     monkeypatch.setattr(sys, "platform", "linux")
+    start = time.monotonic()
     assert auto_workers() == workers
-    assert sampled == ([IDLE_SAMPLE_S] if len(allowed) > 1 else [])
+    # psutil's baseline, then its reading IDLE_SAMPLE_S later
+    assert sampled == ([None, None] if len(allowed) > 1 else [])
+    assert time.monotonic() - start >= (IDLE_SAMPLE_S if len(allowed) > 1 else 0.0)
+
+
+@pytest.mark.parametrize(("own_cpu_s", "workers"), [(0.0, 1), (0.15, 2)])
+def test_a_core_watch_counts_this_process_work_as_idle(
+    monkeypatch: pytest.MonkeyPatch, own_cpu_s: float, workers: int
+) -> None:
+    # Watched through 0.2 s of this process's own work, a core 75 % busy is this process:
+    # what it leaves idle is the other core and a quarter of this one, plus the 0.75 core
+    # the process used (1.0 + 0.25 + 0.75 = 2.0 cores: room for the run and its helpers).
+    # Without the process's work, someone else keeps the core 75 % busy: 1.25 idle cores,
+    # fewer than the run and half a core for its helpers. No wait: the 0.2 s are longer
+    # than IDLE_SAMPLE_S.
+    import psutil
+
+    clock = {"wall": 100.0, "cpu": 5.0}
+    monkeypatch.setattr(time, "monotonic", lambda: clock["wall"])
+    monkeypatch.setattr(time, "process_time", lambda: clock["cpu"])
+    monkeypatch.setattr(time, "sleep", lambda s: pytest.fail(f"waited {s} s"))
+    monkeypatch.setattr(psutil, "cpu_percent", lambda interval=None, percpu=False: [75.0, 0.0])
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1})
+    monkeypatch.setattr(sys, "platform", "linux")
+    watch = CoreWatch()
+    clock["wall"] += 0.2
+    clock["cpu"] += own_cpu_s
+    assert watch.workers() == workers
 
 
 def test_auto_workers_is_one_where_the_cores_cannot_be_read(
