@@ -329,7 +329,9 @@ class CoreWatch:
         self._allowed = allowed
 
     def workers(self) -> int:
-        """2 or 1, as :func:`auto_workers` decides, from the cores' use since the start."""
+        """2 or 1, as :func:`auto_workers` decides, from the cores' use since the start (1
+        off Linux, with one allowed core, or where psutil cannot read the cores); raises
+        nothing."""
         if not self._allowed:
             return 1
         import psutil

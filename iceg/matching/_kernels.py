@@ -2039,7 +2039,8 @@ def stable_order(d: np.ndarray, width: float) -> np.ndarray:
     """``np.argsort(d, kind="stable")`` of ``(N,)`` float64 finite ``d`` (``N >= 1``):
     ascending, equal values in index order. A counting sort into buckets of ``width`` (the
     bucket is monotone in the value), then an insertion sort of each bucket's few samples;
-    numpy's sort where the buckets would outnumber four times the samples."""
+    numpy's sort where the buckets would outnumber four times the samples (or ``d`` is not
+    finite). Returns ``(N,)`` int64 indices into ``d``; raises nothing."""
     n = d.shape[0]
     lo = d[0]
     hi = d[0]
