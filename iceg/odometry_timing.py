@@ -154,9 +154,9 @@ def estimate_odometry_time_offset(
 
 def _signed_rank_p(gain: FloatArray) -> float:
     """One-sided p-value of the Wilcoxon signed-rank test that ``gain`` ``(S,)`` is centred
-    above 0 (normal approximation, zero gains dropped); 1 when none is non-zero."""
-    from scipy.special import ndtr  # on first use: most of scipy's import cost
-
+    above 0 (normal approximation, zero gains dropped); 1 when none is non-zero. The
+    normal tail is libm's ``erfc`` (scipy's ``ndtr`` to 6e-11 relative in the far tail): a
+    run imports no ``scipy.special``, which cost 86 ms."""
     d = gain[gain != 0.0]
     n = d.shape[0]
     if n == 0:
@@ -166,7 +166,7 @@ def _signed_rank_p(gain: FloatArray) -> float:
     w_plus = float(ranks[d > 0].sum())
     mean = n * (n + 1) / 4.0
     sd = math.sqrt(n * (n + 1) * (2 * n + 1) / 24.0)
-    return float(ndtr(-(w_plus - mean) / sd))
+    return 0.5 * math.erfc((w_plus - mean) / sd / math.sqrt(2.0))
 
 
 def odometry_time_offset(result: SlamResult) -> TimeOffsetEstimate | None:

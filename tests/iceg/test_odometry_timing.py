@@ -92,6 +92,21 @@ def test_signed_rank_p_value_by_hand() -> None:
     assert _signed_rank_p(np.zeros(3)) == 1.0
 
 
+def test_signed_rank_p_value_is_scipys_normal_tail() -> None:
+    # The tail from libm's erfc against scipy's ndtr, from p near 1 to p near 1e-106.
+    from scipy.special import ndtr
+
+    rng = np.random.default_rng(3)
+    for n, shift in [(5, 0.0), (40, -1.0), (200, 0.3), (60, 1.5), (2000, 0.5)]:
+        gain = rng.normal(shift, 1.0, n)
+        d = gain[gain != 0.0]
+        ranks = np.empty(d.shape[0])
+        ranks[np.argsort(np.abs(d), kind="stable")] = np.arange(1, d.shape[0] + 1)
+        m = d.shape[0]
+        z = (ranks[d > 0].sum() - m * (m + 1) / 4) / np.sqrt(m * (m + 1) * (2 * m + 1) / 24)
+        assert _signed_rank_p(gain) == pytest.approx(float(ndtr(-z)), rel=1e-10, abs=0.0)
+
+
 def test_a_simulated_robot_has_no_latency() -> None:
     """The Gazebo TurtleBot 3 bag stamps scans and odometry with the simulation's clock."""
     result = run_log(shared_file("rosbag/turtlebot3-gazebo-ros2"), IcegConfig())

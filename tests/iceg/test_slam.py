@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 import pytest
@@ -34,6 +35,7 @@ from iceg.slam import (
     consistent_with_prediction,
     points_prefer_prediction,
     remap_weak_directions,
+    sign_test_rejects,
 )
 from iceg.types import MatchResult
 from iceg_common import se2
@@ -321,10 +323,36 @@ def test_point_fallback_gives_feature_poor_outdoor_keyframes_a_factor() -> None:
 
 
 def test_chi2_quantile_is_scipy_stats() -> None:
-    # The gate computed without importing scipy.stats is its value, bit for bit.
+    # The gate written out (a run imports no scipy.special) is scipy's value, bit for bit.
     from scipy.stats import chi2
 
     assert chi2_3dof() == float(chi2.ppf(CONSISTENCY_PROBABILITY, 3))
+
+
+def test_the_exact_sign_test_decides_as_scipy() -> None:
+    # P(X >= a) for X ~ Binomial(n, 1/2) against 1 - CONSISTENCY_PROBABILITY, on every (a, n)
+    # with a > n / 2 (the test is only asked there) up to 1200 trials, a scan's points and
+    # beyond: scipy's bdtrc decides as the tail by hand (Pascal's row of n summed from the
+    # top, its ratio to 2^n correctly rounded), and so does the exact integer test, on every
+    # a up to 300 trials and on the five a each side of the decision beyond.
+    from scipy.special import bdtrc
+
+    alpha = 1.0 - CONSISTENCY_PROBABILITY
+    row = [1]
+    for n in range(1, 1201):
+        row = [1, *(a + b for a, b in itertools.pairwise(row)), 1]
+        more = np.arange(n // 2 + 1, n + 1)
+        tails = np.cumsum(np.array(row[::-1], dtype=object))[: more.shape[0]][::-1]
+        by_hand = np.array([tail / 2**n < alpha for tail in tails])
+        assert by_hand.tolist() == (bdtrc(more - 1, n, 0.5) < alpha).tolist(), n
+        edge = int(np.argmax(by_hand)) if by_hand.any() else more.shape[0]
+        asked = range(more.shape[0]) if n <= 300 else range(max(0, edge - 5), edge + 5)
+        for k in asked:
+            if k < more.shape[0]:
+                assert sign_test_rejects(int(more[k]), n - int(more[k])) == by_hand[k], (n, k)
+    # 10 against 0: p = 2^-10 = 0.00098 (rejects); 9 against 0: p = 2^-9 (does not).
+    assert sign_test_rejects(10, 0) and not sign_test_rejects(9, 0)
+    assert not sign_test_rejects(0, 0) and not sign_test_rejects(3, 5)
 
 
 #: The points test and the point fallback off (both are on by default): ICE's matches stay.
