@@ -9,7 +9,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from graph.config import OdometryNoiseConfig
 from iceg_common.errors import GraphError
-from iceg_common.se2 import wrap_angle
+from iceg_common.se2 import wrap_float
 
 
 def odometry_covariance(
@@ -43,17 +43,23 @@ def odometry_covariance(
     """
     cfg = config if config is not None else OdometryNoiseConfig()
     d = np.asarray(delta, dtype=np.float64)
-    if d.shape != (3,) or not np.all(np.isfinite(d)):
+    # floats from here: a tenth of numpy's 0-d calls, the same bits (wrap_float)
+    values = d.tolist() if d.shape == (3,) else []
+    if not values or not all(math.isfinite(v) for v in values):
         raise GraphError(
             f"odometry_covariance: delta must be a finite (3,) [dx_m, dy_m, dtheta_rad], "
             f"got shape {d.shape} and values {d!r}"
         )
-    dist_m = math.hypot(d[0], d[1])
-    dtheta_rad = abs(float(wrap_angle(d[2])))
+    dx, dy, dtheta = values
+    dist_m = math.hypot(dx, dy)
+    dtheta_rad = abs(wrap_float(dtheta))
     sigma_xy_m = cfg.sigma_xy_base_m + cfg.sigma_xy_per_distance_m_per_m * dist_m
     sigma_theta_rad = (
         cfg.sigma_theta_base_rad
         + cfg.sigma_theta_per_rotation_deg_per_deg * dtheta_rad
         + cfg.sigma_theta_per_distance_rad_per_m * dist_m
     )
-    return np.diag([sigma_xy_m**2, sigma_xy_m**2, sigma_theta_rad**2])
+    cov = np.zeros((3, 3))
+    cov[0, 0] = cov[1, 1] = sigma_xy_m**2
+    cov[2, 2] = sigma_theta_rad**2
+    return cov
