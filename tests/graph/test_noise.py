@@ -47,7 +47,29 @@ def test_odometry_covariance_grows_with_distance_and_rotation() -> None:
     assert turned[2, 2] > small[2, 2] and turned[0, 0] == pytest.approx(small[0, 0])
 
 
-@pytest.mark.parametrize("bad", [[1.0, 2.0], [1.0, np.nan, 0.0], [[1.0, 2.0, 3.0]]])
+def test_odometry_covariance_has_the_bits_of_the_numpy_expressions() -> None:
+    # The float path (Python's modulo for the wrap) against the numpy wrap it replaced, bit
+    # for bit, on random deltas and headings at and beyond +-pi (where the wrap decides).
+    rng = np.random.default_rng(0)
+    deltas = rng.normal(0.0, [0.5, 0.5, 4.0], (5000, 3))
+    deltas[::5, 2] = rng.choice([np.pi, -np.pi, 3 * np.pi, 2 * np.pi - 1e-12], 1000)
+    cfg = OdometryNoiseConfig()
+    for d in deltas:
+        dist = math.hypot(d[0], d[1])
+        turn = np.abs((d[2] + np.pi) % (2.0 * np.pi) - np.pi)
+        s_xy = cfg.sigma_xy_base_m + cfg.sigma_xy_per_distance_m_per_m * dist
+        s_th = (
+            cfg.sigma_theta_base_rad
+            + cfg.sigma_theta_per_rotation_deg_per_deg * turn
+            + cfg.sigma_theta_per_distance_rad_per_m * dist
+        )
+        want = np.diag([s_xy**2, s_xy**2, s_th**2])
+        assert odometry_covariance(d, cfg).tobytes() == want.tobytes(), d
+
+
+@pytest.mark.parametrize(
+    "bad", [[1.0, 2.0], [1.0, np.nan, 0.0], [[1.0, 2.0, 3.0]], [0.0, 0.0, np.inf]]
+)
 def test_odometry_covariance_rejects_bad_delta(bad: list) -> None:
     with pytest.raises(GraphError, match=r"finite \(3,\)"):
         odometry_covariance(bad)
