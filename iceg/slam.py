@@ -1363,8 +1363,10 @@ def sign_test_rejects(more: int, fewer: int) -> bool:
         more, fewer: Non-negative counts of the two outcomes.
 
     Returns:
-        True where the test rejects chance (the ``more`` side wins beyond it). Raises
-        nothing.
+        True where the test rejects chance (the ``more`` side wins beyond it).
+
+    Raises:
+        ValueError: a negative count (from ``math.comb``).
     """
     n = more + fewer
     term = math.comb(n, more)
