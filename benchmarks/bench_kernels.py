@@ -63,8 +63,7 @@ REPLAYED = frozenset(
     {
         "refine_pose",
         "segment_rotation_peak",
-        "lattice_covariance",
-        "covariance_rows",
+        "final_covariances",
         "correlation_scores",
         "ray_wall_check",
         "finite_points_within",

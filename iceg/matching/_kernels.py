@@ -1523,6 +1523,81 @@ def lattice_covariance(
 
 
 @njit(cache=True, nogil=True)
+def final_covariances(
+    pose: np.ndarray,
+    pairs: np.ndarray,
+    geom: PairGeometry,
+    cloud: PointCloud,
+    point_hess: np.ndarray,
+    point_segment: np.ndarray,
+    point_residual: np.ndarray,
+    points_xy: np.ndarray,
+    seg_normal: np.ndarray,
+    prior_info: np.ndarray,
+    segs: LineSegments,
+    pick: np.ndarray,
+    gate_m: float,
+    sigma: float,
+    settings: GnSettings,
+    lattice: LatticeSettings,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The covariances of a refined pose (docs/design.md step 9) in one call: the EOW-pair
+    and off-segment rows (:func:`covariance_rows`) added to the point-to-line information,
+    the least-squares covariance ``(information + prior)^-1`` (symmetrised), and the
+    lattice's (:func:`lattice_covariance`, Olson 2009) over the associated points' rows.
+
+    The inverse is LAPACK's ``gesv`` against the identity, as ``numpy.linalg.inv`` computes
+    it (the same bits; ``np.linalg.inv`` here would be ``getri``, whose rounding differs).
+
+    Args:
+        pose: ``(3,)`` float64 the refined pose (new scan in the reference frame).
+        pairs: ``(Q, 2)`` int64 feature pairs ``[new, ref]`` at the pose.
+        point_hess: ``(3, 3)`` float64 information of the point-to-line rows at the pose.
+        point_segment: ``(P,)`` int64 reference segment of each new point (-1: none).
+        point_residual: ``(P,)`` float64 its point-to-line residual (metres).
+        points_xy: ``(P, 2)`` float64 the new points (new frame, metres).
+        seg_normal: ``(M, 2)`` float64 unit normal of each reference segment.
+        prior_info: ``(3, 3)`` float64 information of the bounds' prior.
+        pick: ``(m,)`` int64 the associated points' rows the lattice evaluates
+            (``refine._lattice_pick`` of their count).
+        gate_m: The association gate (metres); ``sigma`` the point noise (metres).
+
+    Returns:
+        ``(cov_ls, cov)``, each ``(3, 3)`` float64, perturbations of ``(x, y, theta)`` in the
+        reference frame; both infinite where the information is singular or not finite.
+    """
+    r, jac, var, hess = covariance_rows(pose, pairs, geom, cloud, gate_m, sigma, settings)
+    a = (point_hess + hess) + prior_info
+    try:
+        a_inv = np.linalg.solve(a, np.eye(3))
+    except Exception:  # singular, or not finite
+        return np.full((3, 3), np.inf), np.full((3, 3), np.inf)
+    if not np.all(np.isfinite(a_inv)):
+        return np.full((3, 3), np.inf), np.full((3, 3), np.inf)
+    cov_ls = 0.5 * (a_inv + a_inv.T)
+    n = 0
+    for i in range(point_segment.shape[0]):
+        if point_segment[i] >= 0:
+            n += 1
+    seg = np.empty(n, dtype=np.int64)
+    res = np.empty(n)
+    xy = np.empty((n, 2))
+    normal = np.empty((n, 2))
+    k = 0
+    for i in range(point_segment.shape[0]):
+        m = point_segment[i]
+        if m >= 0:
+            seg[k] = m
+            res[k] = point_residual[i]
+            xy[k, 0], xy[k, 1] = points_xy[i, 0], points_xy[i, 1]
+            normal[k, 0], normal[k, 1] = seg_normal[m, 0], seg_normal[m, 1]
+            k += 1
+    points = LatticePoints(pick, xy, normal, res, seg)
+    cov = lattice_covariance(cov_ls, pose, points, segs, r, jac, var, gate_m, sigma, lattice)
+    return cov_ls, cov
+
+
+@njit(cache=True, nogil=True)
 def psd_max(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """A covariance that dominates both ``a`` and ``b`` (``(3, 3)`` float64, ``a`` positive
     definite): in the frame whitened by ``a``, ``b``'s eigenvalues are raised to at least 1;

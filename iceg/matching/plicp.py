@@ -27,8 +27,7 @@ from iceg.matching.matcher import _local_lines, _refine_settings, largest_std_ex
 from iceg.matching.refine import (
     RefineProblem,
     RefineSettings,
-    _covariance,
-    _final_system,
+    _covariances_at,
     bounds_prior_information,
     build_cloud,
     no_feature_pairing,
@@ -157,8 +156,7 @@ def lattice_covariance(problem: RefineProblem, pose: FloatArray) -> FloatArray:
     s: RefineSettings = problem.settings
     sigma = robust_sigma(problem, pose)
     gate = min(s.gate_m, max(s.gate_min_m, FINE_GATE_SIGMAS * sigma))
-    hess, pr, rows, sigma = _final_system(problem, pose, gate, sigma, np.zeros((0, 2), np.int64))
-    _, cov_ref = _covariance(problem, pose, hess, pr, rows, sigma, gate)
+    _, cov_ref = _covariances_at(problem, pose, gate, sigma)
     return to_body(cov_ref, float(pose[2]))
 
 

@@ -43,16 +43,14 @@ from iceg.matching._kernels import (
     GATE_TO_SIGMA0,
     FeaturePairing,
     GnSettings,
-    LatticePoints,
     LatticeSettings,
     LineSegments,
     PairGeometry,
     PointCloud,
     PosePrior,
     SegmentPoints,
-    covariance_rows,
+    final_covariances,
     finite_points_within,
-    lattice_covariance,
     line_covariances,
     point_line_system,
     points_explained,
@@ -119,30 +117,6 @@ class RefineSettings:
             float(self.end_tol_m),
             float(self.cauchy_sigmas),
         )
-
-
-@dataclass(frozen=True, eq=False)
-class _Rows:
-    """Linearised residual rows at one pose: residual ``(R,)`` (m), Jacobian ``(R, 3)``
-    (w.r.t. a perturbation of ``(x, y, theta)`` in the reference frame) and variance
-    ``(R,)`` (m^2)."""
-
-    r: FloatArray
-    jac: FloatArray
-    var: FloatArray
-
-
-@dataclass(frozen=True, eq=False)
-class _PointRows:
-    """Point-to-line rows at the refined pose: segment of each used point (-1: none), the
-    associated mask, and of the associated points their residuals ``(N,)`` (m), positions
-    ``(N, 2)`` (new frame, m) and their segments' unit normals ``(N, 2)``."""
-
-    idx: IntArray
-    sel: NDArray[np.bool_]
-    r: FloatArray
-    points: FloatArray
-    normal: FloatArray
 
 
 @dataclass(frozen=True, eq=False)
@@ -251,9 +225,17 @@ class Refined:
     @functools.cached_property
     def _covariances(self) -> tuple[FloatArray, FloatArray]:
         f = self._system
-        hess, rows = _final_rows(f.problem, f.pose, f.point_hess, f.pairs, f.gate, f.sigma)
-        pr = _point_rows(f.problem, f.point_segment, f.point_residual)
-        return _covariance(f.problem, f.pose, hess, pr, rows, f.sigma, f.gate)
+        return refined_covariances(
+            f.problem,
+            f.pose,
+            f.point_hess,
+            f.point_segment,
+            f.point_residual,
+            self.n_points,
+            f.pairs,
+            f.gate,
+            f.sigma,
+        )
 
     @property
     def cov_ls(self) -> FloatArray:
@@ -449,98 +431,74 @@ def covariance_at(problem: RefineProblem, pose: FloatArray) -> tuple[FloatArray,
     s = problem.kernel_settings
     gate = s.gate_m
     sigma = max(s.sigma_min_m, gate / GATE_TO_SIGMA0)
-    p = np.asarray(pose, dtype=np.float64)
-    hess, pr, rows, sigma = _final_system(problem, p, gate, sigma, np.zeros((0, 2), np.int64))
-    return _covariance(problem, p, hess, pr, rows, sigma, gate)
+    return _covariances_at(problem, np.asarray(pose, dtype=np.float64), gate, sigma)
 
 
-def _point_rows(problem: RefineProblem, idx: IntArray, res: FloatArray) -> _PointRows:
-    """The point-to-line rows of the associated points (segment ``idx`` ``(P,)``, -1: none;
-    residuals ``res`` ``(P,)``)."""
-    sel = idx >= 0
-    return _PointRows(idx, sel, res[sel], problem.points.xy[sel], problem.segs.normal[idx[sel]])
-
-
-def _final_point_rows(
+def _covariances_at(
     problem: RefineProblem, pose: FloatArray, gate: float, sigma: float
-) -> tuple[FloatArray, _PointRows, float]:
-    """Linearisation of the point-to-line rows at the refined pose: their information
-    ``(3, 3)``, the rows, and the point noise (m)."""
-    hess, _, sigma, idx, res = point_line_system(
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`refined_covariances` with no feature pairs, the point-to-line rows linearised at
+    ``pose`` (:func:`~iceg.matching._kernels.point_line_system`, which also estimates the
+    point noise there)."""
+    point_hess, _, sigma, idx, res = point_line_system(
         pose, problem.points, problem.lines, gate, sigma, problem.kernel_settings
     )
-    return hess, _point_rows(problem, idx, res), sigma
+    n_on = int(np.count_nonzero(idx >= 0))
+    return refined_covariances(problem, pose, point_hess, idx, res, n_on, _NO_PAIRS, gate, sigma)
 
 
-def _final_system(
-    problem: RefineProblem, pose: FloatArray, gate: float, sigma: float, pairs: IntArray
-) -> tuple[FloatArray, _PointRows, _Rows, float]:
-    """Linearisation at the refined pose: the information ``(3, 3)`` of the point-to-line,
-    EOW-pair and off-segment rows (prior excluded), the point-to-line rows and the other
-    rows (for the lattice), and the point noise (m)."""
-    point_hess, pr, sigma = _final_point_rows(problem, pose, gate, sigma)
-    hess, rows = _final_rows(problem, pose, point_hess, pairs, gate, sigma)
-    return hess, pr, rows, sigma
+#: No feature pairs (``(0, 2)`` int64).
+_NO_PAIRS = np.zeros((0, 2), np.int64)
 
 
-def _final_rows(
+def refined_covariances(
     problem: RefineProblem,
     pose: FloatArray,
     point_hess: FloatArray,
+    point_segment: IntArray,
+    point_residual: FloatArray,
+    n_associated: int,
     pairs: IntArray,
     gate: float,
     sigma: float,
-) -> tuple[FloatArray, _Rows]:
-    """The information ``(3, 3)`` of the point-to-line (``point_hess``), EOW-pair and
-    off-segment rows at the refined pose (prior excluded), and the latter rows (for the
-    lattice)."""
-    r, jac, var, hess = covariance_rows(
+) -> tuple[FloatArray, FloatArray]:
+    """Least-squares covariance ``(information + prior)^-1`` (infinite when singular) and
+    the final covariance: the lattice second moment (Olson 2009) floored by it, at most
+    ``LATTICE_POINTS`` point-to-line rows evaluated, evenly spread; one compiled call
+    (:func:`~iceg.matching._kernels.final_covariances`).
+
+    Args:
+        problem: What the match's refinements share.
+        pose: ``(3,)`` float64 the refined pose (new scan in the reference frame).
+        point_hess: ``(3, 3)`` float64 information of the point-to-line rows at ``pose``.
+        point_segment: ``(P,)`` int64 each point's reference segment there (-1: none).
+        point_residual: ``(P,)`` float64 its point-to-line residual (metres).
+        n_associated: How many points have a segment.
+        pairs: ``(Q, 2)`` int64 feature pairs ``[new, ref]``.
+        gate: The association gate (metres); ``sigma`` the point noise (metres).
+
+    Returns:
+        ``(cov_ls, cov)``, each ``(3, 3)`` float64, perturbations of ``(x, y, theta)`` in the
+        reference frame.
+    """
+    return final_covariances(
         pose,
         np.ascontiguousarray(pairs, dtype=np.int64),
         problem.pair_geometry,
         problem.cloud,
+        point_hess,
+        point_segment,
+        point_residual,
+        problem.points.xy,
+        problem.segs.normal,
+        problem.prior.info,
+        problem.lines,
+        _lattice_pick(n_associated),
         gate,
         sigma,
         problem.kernel_settings,
-    )
-    return point_hess + hess, _Rows(r, jac, var)
-
-
-def _covariance(
-    problem: RefineProblem,
-    pose: FloatArray,
-    hess: FloatArray,
-    pr: _PointRows,
-    rows: _Rows,
-    sigma: float,
-    gate: float,
-) -> tuple[FloatArray, FloatArray]:
-    """Least-squares covariance ``(hess + prior)^-1`` (infinite when singular) and the final
-    covariance: the lattice second moment (Olson 2009) floored by it
-    (:func:`~iceg.matching._kernels.lattice_covariance`, at most ``LATTICE_POINTS``
-    point-to-line rows evaluated, evenly spread)."""
-    a = hess + problem.prior.info
-    try:
-        a_inv = np.asarray(np.linalg.inv(a), dtype=np.float64)
-    except np.linalg.LinAlgError:
-        a_inv = np.full((3, 3), np.inf)
-    if not np.all(np.isfinite(a_inv)):
-        return np.full((3, 3), np.inf), np.full((3, 3), np.inf)
-    cov_ls = 0.5 * (a_inv + a_inv.T)
-    points = LatticePoints(_lattice_pick(pr.r.shape[0]), pr.points, pr.normal, pr.r, pr.idx[pr.sel])
-    cov = lattice_covariance(
-        cov_ls,
-        pose,
-        points,
-        problem.lines,
-        rows.r,
-        np.ascontiguousarray(rows.jac),
-        rows.var,
-        gate,
-        sigma,
         problem.lattice_settings,
     )
-    return cov_ls, cov
 
 
 @functools.lru_cache(maxsize=4)

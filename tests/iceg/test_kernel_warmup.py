@@ -70,7 +70,7 @@ def test_the_warm_up_compiles_the_later_stages_with_the_signatures_a_run_calls()
     assert not both, {k: (got["warmed"][k], got["run"][k]) for k in both}
     # The split: the covariance, the free-space checks, the contradiction test, the feature
     # map, the node index and the grid in the worker ...
-    later = {"lattice_covariance", "covariance_rows", "ray_wall_check", "finite_points_within"}
+    later = {"final_covariances", "ray_wall_check", "finite_points_within"}
     later |= {"associate_scan", "keep_better", "count_observations", "expected_landmarks"}
     later |= {"reference_geometry"}
     later |= {"move_point_blocks", "sorted_union", "_trace_scans", "_mark_tiles", "_rows_within"}

@@ -51,6 +51,7 @@ from iceg.matching._kernels import (
     covariance_rows,
     density_peak,
     feasible_pair_indices,
+    final_covariances,
     lattice_covariance,
     nearest_segment_distance,
     nearest_walls,
@@ -94,11 +95,14 @@ from iceg.matching.matcher import (
     walls_seen_through,
 )
 from iceg.matching.refine import (
+    LATTICE_POINTS,
+    Refined,
     RefineProblem,
     build_cloud,
     covariance_at,
     effective_line_cov,
     effective_line_info,
+    empty_cloud,
     grid_points,
     points_within,
     refine,
@@ -1280,6 +1284,85 @@ def test_the_covariance_at_a_refined_pose_is_the_refinements_to_a_few_percent() 
         assert np.all(np.linalg.eigvalsh(got) > 0.0)
         ratio = np.sqrt(np.diag(got) / np.diag(want))
         assert np.all(np.abs(ratio - 1.0) < 0.2), ratio
+
+
+def _covariances_step_by_step(refined: Refined) -> tuple[np.ndarray, np.ndarray]:
+    """A refinement's covariances as numpy and the separate kernels compute them: the other
+    rows, ``numpy.linalg.inv`` of the information with the prior, the associated points'
+    rows selected by a boolean mask, then the lattice."""
+    f = refined._system
+    p = f.problem
+    r, jac, var, hess = covariance_rows(
+        f.pose, f.pairs, p.pair_geometry, p.cloud, f.gate, f.sigma, p.kernel_settings
+    )
+    a_inv = np.linalg.inv((f.point_hess + hess) + p.prior.info)
+    cov_ls = 0.5 * (a_inv + a_inv.T)
+    sel = f.point_segment >= 0
+    n = int(sel.sum())
+    pick = np.linspace(0, n - 1, min(n, LATTICE_POINTS)).astype(np.int64)
+    seg = f.point_segment[sel]
+    points = LatticePoints(pick, p.points.xy[sel], p.segs.normal[seg], f.point_residual[sel], seg)
+    cov = lattice_covariance(
+        cov_ls, f.pose, points, p.lines, r, jac, var, f.gate, f.sigma, p.lattice_settings
+    )
+    return cov_ls, cov
+
+
+def test_the_refined_covariances_are_the_step_by_step_computation_bit_for_bit() -> None:
+    # One compiled call (the other rows, the inverse, the point rows' selection, the
+    # lattice) gives the bits of the computation it replaced, step by step in numpy and the
+    # separate kernels: from starts around the true pose, with and without feature pairs
+    # (simulated office, real extractor).
+    ctx, problem, truth = _office_pair()
+    corr = ctx.correlation
+    rng = np.random.default_rng(4)
+    n_pairs = 0
+    for offset in rng.normal(0.0, [0.05, 0.05, 0.03], size=(12, 3)):
+        start = truth + offset
+        match, _, _ = pair_features(
+            start[None], corr.new_geom, corr.ref_geom, corr.codes, corr.settings
+        )
+        i = np.flatnonzero(match[0] >= 0)
+        pairs = np.column_stack([i, match[0][i]]).astype(np.int64)
+        for refined in (refine(problem, start), refine(problem, start, pairs)):
+            n_pairs += refined._system.pairs.shape[0]
+            cov_ls, cov = _covariances_step_by_step(refined)
+            assert refined.cov_ls.tobytes() == cov_ls.tobytes()
+            assert refined.cov.tobytes() == cov.tobytes()
+            assert np.all(np.linalg.eigvalsh(refined.cov) > 0.0)
+    assert n_pairs > 0
+
+
+def test_the_least_squares_covariance_is_numpys_inverse_and_infinite_when_singular() -> None:
+    # LAPACK's gesv against the identity in the compiled call is numpy's inverse, bit for
+    # bit, over information matrices spread across ten orders of magnitude; a singular or
+    # non-finite information gives infinite covariances.
+    _, problem, truth = _office_pair()
+    refined = refine(problem, truth)
+    f = refined._system
+    none = np.full(problem.points.xy.shape[0], -1, dtype=np.int64)
+    res = np.full(none.shape[0], np.nan)
+    no_prior = problem.prior._replace(info=np.zeros((3, 3)))
+    rng = np.random.default_rng(5)
+
+    def covariances(info: np.ndarray, prior_info: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return final_covariances(
+            truth, np.zeros((0, 2), np.int64), problem.pair_geometry, empty_cloud(), info,
+            none, res, problem.points.xy, problem.segs.normal, prior_info, problem.lines,
+            np.zeros(0, np.int64), f.gate, f.sigma, problem.kernel_settings,
+            problem.lattice_settings,
+        )  # fmt: skip
+
+    for _ in range(2000):
+        m = rng.normal(size=(3, 3)) * 10.0 ** rng.uniform(-3.0, 5.0, size=(3, 1))
+        info = m @ m.T + np.diag(10.0 ** rng.uniform(-5.0, 3.0, size=3))
+        cov_ls, _ = covariances(info, problem.prior.info)
+        want = np.linalg.inv(info + problem.prior.info)
+        assert cov_ls.tobytes() == (0.5 * (want + want.T)).tobytes()
+    singular = np.diag([1.0, 1.0, 0.0])
+    for info in (singular, np.diag([1.0, np.nan, 1.0]), np.diag([np.inf, 1.0, 1.0])):
+        cov_ls, cov = covariances(info, no_prior.info)
+        assert np.all(np.isinf(cov_ls)) and np.all(np.isinf(cov))
 
 
 def test_cloud_nearest_equals_brute_force() -> None:
