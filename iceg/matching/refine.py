@@ -444,11 +444,8 @@ def _covariances_at(
         pose, problem.points, problem.lines, gate, sigma, problem.kernel_settings
     )
     n_on = int(np.count_nonzero(idx >= 0))
-    return refined_covariances(problem, pose, point_hess, idx, res, n_on, _NO_PAIRS, gate, sigma)
-
-
-#: No feature pairs (``(0, 2)`` int64).
-_NO_PAIRS = np.zeros((0, 2), np.int64)
+    no_pairs = np.zeros((0, 2), np.int64)
+    return refined_covariances(problem, pose, point_hess, idx, res, n_on, no_pairs, gate, sigma)
 
 
 def refined_covariances(
