@@ -231,7 +231,6 @@ class Refined:
             f.point_hess,
             f.point_segment,
             f.point_residual,
-            self.n_points,
             f.pairs,
             f.gate,
             f.sigma,
@@ -443,9 +442,8 @@ def _covariances_at(
     point_hess, _, sigma, idx, res = point_line_system(
         pose, problem.points, problem.lines, gate, sigma, problem.kernel_settings
     )
-    n_on = int(np.count_nonzero(idx >= 0))
     no_pairs = np.zeros((0, 2), np.int64)
-    return refined_covariances(problem, pose, point_hess, idx, res, n_on, no_pairs, gate, sigma)
+    return refined_covariances(problem, pose, point_hess, idx, res, no_pairs, gate, sigma)
 
 
 def refined_covariances(
@@ -454,7 +452,6 @@ def refined_covariances(
     point_hess: FloatArray,
     point_segment: IntArray,
     point_residual: FloatArray,
-    n_associated: int,
     pairs: IntArray,
     gate: float,
     sigma: float,
@@ -470,14 +467,14 @@ def refined_covariances(
         point_hess: ``(3, 3)`` float64 information of the point-to-line rows at ``pose``.
         point_segment: ``(P,)`` int64 each point's reference segment there (-1: none).
         point_residual: ``(P,)`` float64 its point-to-line residual (metres).
-        n_associated: How many points have a segment.
         pairs: ``(Q, 2)`` int64 feature pairs ``[new, ref]``.
         gate: The association gate (metres); ``sigma`` the point noise (metres).
 
     Returns:
         ``(cov_ls, cov)``, each ``(3, 3)`` float64, perturbations of ``(x, y, theta)`` in the
-        reference frame.
+        reference frame; both infinite where the information is singular. Raises nothing.
     """
+    n_associated = int(np.count_nonzero(point_segment >= 0))
     return final_covariances(
         pose,
         np.ascontiguousarray(pairs, dtype=np.int64),
