@@ -1552,26 +1552,31 @@ def final_covariances(
     Args:
         pose: ``(3,)`` float64 the refined pose (new scan in the reference frame).
         pairs: ``(Q, 2)`` int64 feature pairs ``[new, ref]`` at the pose.
+        geom: Both scans' feature geometry; ``cloud`` the off-segment new points against
+            the reference's points (may hold none).
         point_hess: ``(3, 3)`` float64 information of the point-to-line rows at the pose.
         point_segment: ``(P,)`` int64 reference segment of each new point (-1: none).
         point_residual: ``(P,)`` float64 its point-to-line residual (metres).
         points_xy: ``(P, 2)`` float64 the new points (new frame, metres).
         seg_normal: ``(M, 2)`` float64 unit normal of each reference segment.
         prior_info: ``(3, 3)`` float64 information of the bounds' prior.
+        segs: The reference segments with their line information (reference frame).
         pick: ``(m,)`` int64 the associated points' rows the lattice evaluates
             (``refine._lattice_pick`` of their count).
         gate_m: The association gate (metres); ``sigma`` the point noise (metres).
+        settings, lattice: The refinement's and the lattice's settings.
 
     Returns:
         ``(cov_ls, cov)``, each ``(3, 3)`` float64, perturbations of ``(x, y, theta)`` in the
         reference frame; both infinite where the information is singular or not finite.
+        Raises nothing.
     """
     r, jac, var, hess = covariance_rows(pose, pairs, geom, cloud, gate_m, sigma, settings)
     a = (point_hess + hess) + prior_info
     try:
         a_inv = np.linalg.solve(a, np.eye(3))
     except Exception:  # singular, or not finite
-        return np.full((3, 3), np.inf), np.full((3, 3), np.inf)
+        a_inv = np.full((3, 3), np.inf)
     if not np.all(np.isfinite(a_inv)):
         return np.full((3, 3), np.inf), np.full((3, 3), np.inf)
     cov_ls = 0.5 * (a_inv + a_inv.T)
