@@ -89,6 +89,7 @@ from iceg.matching.hypotheses import (
     vote,
 )
 from iceg.matching.matcher import (
+    REASON_DEGENERATE,
     MatchContext,
     _far_bracket_range,
     largest_std_exceeds,
@@ -1928,7 +1929,7 @@ class _ChecksInOrder(IceMatcher):
 
     def _validation(self, ctx, cand):  # type: ignore[no-untyped-def]
         if not np.all(np.isfinite(cand.refined.pose)):
-            return "degenerate: refinement diverged"
+            return f"{REASON_DEGENERATE}: refinement diverged"
         return (
             self._check_bounds(ctx, cand.refined.pose)
             or self._check_free_space(ctx, cand)
@@ -1967,6 +1968,11 @@ def test_a_strict_match_checks_free_space_only_where_a_decision_needs_it(monkeyp
         settle(ctx, cands)
 
     monkeypatch.setattr(quick, "_settle_rivals", settle_counted)
+
+    def scans(pa: np.ndarray, pb: np.ndarray, seed: int):  # type: ignore[no-untyped-def]
+        sa, sb = simulate_pair(OFFICE, pa, pb, seed=seed, laser=laser)
+        return extract(sa), extract(sb), between(pa, pb)
+
     pairs = []
     for t in range(30):
         a = names[t % len(names)]
@@ -1984,9 +1990,7 @@ def test_a_strict_match_checks_free_space_only_where_a_decision_needs_it(monkeyp
     decisive = (np.array([12.52, 8.275, -0.698]), np.array([13.454, 10.023, -1.35]), 222)
     outcomes = set()
     for pa, pb, t in [*pairs, decisive]:
-        sa, sb = simulate_pair(OFFICE, pa, pb, seed=t, laser=laser)
-        fa, fb = extract(sa), extract(sb)
-        prediction = between(pa, pb)
+        fa, fb, prediction = scans(pa, pb, t)
         for bounds in (MatchBounds.global_(), MatchBounds.local(3.0, 180)):
             assert quick.is_strict(quick.config, bounds)
             got = quick.match(fb, fa, prediction, bounds)
@@ -2001,16 +2005,14 @@ def test_a_strict_match_checks_free_space_only_where_a_decision_needs_it(monkeyp
                 assert got.reason == want.reason  # decided among passing hypotheses
             outcomes.add(category or "success")
     assert {"success", "inconsistent with free space"} <= outcomes
-    sa, sb = simulate_pair(OFFICE, decisive[0], decisive[1], seed=decisive[2], laser=laser)
     unsettled = IceMatcher()
     monkeypatch.setattr(unsettled, "_settle_rivals", lambda ctx, cands: None)
-    fa, fb = extract(sa), extract(sb)
-    prediction = between(decisive[0], decisive[1])
+    fa, fb, prediction = scans(*decisive)
     assert quick.match(fb, fa, prediction, MatchBounds.global_()).success
     res = unsettled.match(fb, fa, prediction, MatchBounds.global_())
     assert res.reason.startswith("ambiguous")
     assert sum(settled) > 0  # rivals whose free space had to be checked
-    assert checks["quick"] < checks["in_order"]  # 114 against 212
+    assert checks["quick"] < checks["in_order"]
 
 
 # ---------------------------------------------------------------------------------------
