@@ -671,10 +671,10 @@ class IceMatcher:
                 or self._check_free_space(ctx, cand)
                 or self._check_evidence(ctx, cand)
             )
-        weak = self._check_evidence(ctx, cand)
-        if weak:
+        lacking = self._check_evidence(ctx, cand)
+        if lacking:
             cand.free_space_pending = True
-            return weak
+            return lacking
         inconsistent = self._check_free_space(ctx, cand)
         if inconsistent:
             cand.rival = False  # as if the evidence had not been checked
