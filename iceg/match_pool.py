@@ -60,17 +60,6 @@ class MatchJob(NamedTuple):
     bounds: MatchBounds
 
 
-class SameScan(NamedTuple):
-    """A :class:`MatchJob` as sent to the helper without its features, which are those of
-    the batch's job before it (a search matches one scan against each candidate place): the
-    helper matches the features it received last, the same object, so it unpickles them and
-    derives their geometry once per search (``matcher.scan_derived``)."""
-
-    reference: ScanFeatures
-    prediction: NDArray[np.float64]
-    bounds: MatchBounds
-
-
 #: How long :meth:`MatchPool.collect` waits for the last missing result (seconds) before
 #: any match's duration is known (a cost setting only: the results are the same).
 FIRST_PATIENCE_S = 0.01
@@ -166,9 +155,7 @@ class MatchPool:
     def submit(self, jobs: Iterable[MatchJob]) -> SentMatches:
         """Send every job to the helper (forked on first use), each as soon as the iterable
         gives it, and return; nothing is sent without a helper (outside the with-block, or
-        not on Linux). A job with the same features object as the job before it goes as a
-        :class:`SameScan`. Read the results with :meth:`collect` before the next
-        ``submit``."""
+        not on Linux). Read the results with :meth:`collect` before the next ``submit``."""
         sent = SentMatches([])
         helper = self._open and self.want_helper and sys.platform == "linux"
         for k, job in enumerate(jobs):
@@ -183,10 +170,8 @@ class MatchPool:
             if not sent.remote:
                 self._batch += 1
                 sent.batch = self._batch
-            same = k > 0 and job.features is sent.jobs[k - 1].features
-            message = SameScan(*job[1:]) if same else job
             try:
-                self._conn.send((self._batch, k, message))
+                self._conn.send((self._batch, k, job))
             except (OSError, ValueError):
                 self._conn, helper = None, False
                 continue
@@ -273,22 +258,14 @@ class MatchPool:
 def _serve(
     conn: Connection, parent_end: Connection, parent_pid: int, matcher: Matcher, taken: Any
 ) -> None:
-    """Helper loop: jobs ``(batch, k, job)`` in (a :class:`SameScan` job with the features of
-    the job received before it), ``(batch, k, result or None, CPU seconds of the match)``
-    out, except for a job the calling process has taken (``taken``, shared ``[batch, first
-    index]``): it runs that one itself. None, the end of the pipe or the parent's exit stops
-    it."""
+    """Helper loop: jobs ``(batch, k, job)`` in, ``(batch, k, result or None, CPU seconds of
+    the match)`` out, except for a job the calling process has taken (``taken``, shared
+    ``[batch, first index]``): it runs that one itself. None, the end of the pipe or the
+    parent's exit stops it."""
     forked.helper_signals()
     parent_end.close()
-    features: ScanFeatures | None = None
     while (msg := forked.next_message(conn, parent_pid)) is not None:
-        batch, k, sent = cast(tuple[int, int, MatchJob | SameScan], msg)
-        if isinstance(sent, MatchJob):
-            job, features = sent, sent.features
-        elif features is not None:  # the features of the job before it, in the same batch
-            job = MatchJob(features, *sent)
-        else:  # cannot happen (a batch's first job carries them): run in the calling process
-            continue
+        batch, k, job = cast(tuple[int, int, MatchJob], msg)
         if taken[0] == batch and k >= taken[1]:
             continue
         t0 = time.thread_time()

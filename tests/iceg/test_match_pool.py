@@ -15,7 +15,7 @@ import pytest
 
 from frontends.simulate import corridor_world, default_trajectory, simulate
 from iceg.features import extract
-from iceg.match_pool import MatchJob, MatchPool, SameScan, _serve
+from iceg.match_pool import MatchJob, MatchPool, _serve
 from iceg.matching import IceMatcher, MatchBounds, MatchingConfig
 from iceg.types import MatchResult
 from iceg_common.se2 import between
@@ -137,53 +137,3 @@ def test_the_helper_skips_the_jobs_the_calling_process_has_taken(jobs: list[Matc
         want = jobs[{1: 0, 2: 4}[batch] + k]
         assert _same(result, matcher.match(*want)) and cpu_s >= 0.0
     assert answered == [(1, 0), (1, 1), (2, 0), (2, 1)]
-
-
-class _Recorder:
-    """A pipe end that keeps every message sent through it."""
-
-    def __init__(self) -> None:
-        self.sent: list[Any] = []
-
-    def send(self, msg: Any) -> None:
-        self.sent.append(msg)
-
-
-def test_a_scan_s_features_go_to_the_helper_once_per_run_of_its_jobs(  # type: ignore[no-untyped-def]
-    jobs: list[MatchJob], monkeypatch
-) -> None:
-    # The fixture's jobs come in pairs on one features object (a scan matched locally and
-    # globally). Submitted in a mixed order, a job goes without its features when the job
-    # before it has the same object; the helper loop, run here on the messages, matches
-    # each with the features it received last: the matcher's results, bit for bit. The
-    # jobs sent without features are local matches that succeed (with another scan's
-    # features they would not give the same pose).
-    matcher = IceMatcher(MatchingConfig())
-    batch = [jobs[i] for i in (1, 0, 3, 2, 1, 5, 4, 4)]
-    assert all(matcher.match(*batch[k]).success for k in (1, 3, 6, 7))
-    recorder = _Recorder()
-    with MatchPool(matcher) as pool:
-
-        def start() -> None:
-            pool._started, pool._conn = True, recorder  # type: ignore[assignment]
-
-        monkeypatch.setattr(pool, "_start", start)
-        pool.submit(batch)
-    kinds = [type(msg[2]) for msg in recorder.sent]
-    J, S = MatchJob, SameScan
-    assert kinds == [J, S, J, S, J, J, S, S]
-    here, there = multiprocessing.Pipe(duplex=True)
-    parent_end, _ = multiprocessing.Pipe(duplex=True)
-    for msg in [*recorder.sent, None]:
-        here.send(msg)
-    previous = signal.getsignal(signal.SIGINT)
-    try:
-        _serve(there, parent_end, os.getpid(), matcher, multiprocessing.RawArray("q", [0, 0]))
-    finally:
-        signal.signal(signal.SIGINT, previous)
-    answered = []
-    while here.poll(0):
-        _, k, result, _ = here.recv()
-        answered.append(k)
-        assert _same(result, matcher.match(*batch[k]))
-    assert answered == list(range(len(batch)))
