@@ -4,14 +4,20 @@ docs/design.md "ICE matching, step by step", step 3. Each segment's points are f
 total least squares, the weights being the inverse variances of the points' distances to
 the line under a range/bearing noise model (Pfister, Roumeliotis & Burdick 2003, "Weighted
 line fitting algorithms for mobile robot map building and efficient data representation";
-closed form of Arras & Siegwart 1997). All segments are fitted at once with segment-wise
-sums (``np.add.reduceat``).
+closed form of Arras & Siegwart 1997). One compiled pass over the segments (issue 13) whose
+sums take numpy's order (:mod:`iceg.numpy_sums`): the results are those of the earlier
+vectorized numpy fit (segment-wise ``np.add.reduceat`` sums) bit for bit.
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
+
+from iceg.numpy_sums import pairwise_sum
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -19,22 +25,6 @@ IntArray = NDArray[np.int64]
 # A point's distance variance is floored at this fraction of sigma_range² (a beam exactly
 # along the line with no bearing noise would otherwise get an infinite weight).
 VARIANCE_FLOOR_FRACTION = 1e-6
-
-
-def _moments(
-    x: FloatArray, y: FloatArray, w: FloatArray, offsets: IntArray, seg_of: IntArray
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
-    """Weighted sums per segment: ``W, mean_x, mean_y, Sxx, Syy, Sxy`` (central moments)."""
-    sw = np.add.reduceat(w, offsets)
-    mx = np.add.reduceat(w * x, offsets) / sw
-    my = np.add.reduceat(w * y, offsets) / sw
-    dx = x - mx[seg_of]
-    dy = y - my[seg_of]
-    wdx = w * dx
-    sxx = np.add.reduceat(wdx * dx, offsets)
-    syy = np.add.reduceat(w * dy * dy, offsets)
-    sxy = np.add.reduceat(wdx * dy, offsets)
-    return sw, mx, my, sxx, syy, sxy
 
 
 def fit_lines(
@@ -83,88 +73,133 @@ def fit_lines(
         ``(-pi, pi]``; ``cov`` ``(M, 2, 2)`` float64 covariance of ``(alpha, rho)``;
         ``endpoints`` ``(M, 2, 2)`` float64: the first and last points projected on the line.
     """
-    m = seg_point_range.shape[0]
-    if m == 0:
+    if seg_point_range.shape[0] == 0:
         return np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros((0, 2, 2))
-    idx, offsets, seg_of = _segment_points(seg_point_range)
-    x = points_xy[idx, 0]
-    y = points_xy[idx, 1]
-    # Pass 1: unweighted total least squares for the normal direction.
-    _, _, _, sxx, syy, sxy = _moments(x, y, np.ones_like(x), offsets, seg_of)
-    alpha0 = 0.5 * np.arctan2(-2.0 * sxy, syy - sxx)
-    w = _weights(beam_dirs[idx], ranges_m[idx], alpha0, seg_of, (sigma_range_m, sigma_bearing_rad))
-    # Pass 2: weighted total least squares (maximum likelihood).
-    sw, mx, my, sxx, syy, sxy = _moments(x, y, w, offsets, seg_of)
-    alpha, rho, ca, sa = _hessian_line(0.5 * np.arctan2(-2.0 * sxy, syy - sxx), mx, my)
-    # Covariance: along-line second moment about the weighted centroid.
-    t_along = -(x - mx[seg_of]) * sa[seg_of] + (y - my[seg_of]) * ca[seg_of]
-    stt = np.add.reduceat(w * t_along * t_along, offsets)
-    cov = _line_covariance(1.0 / stt, 1.0 / sw, -sa * mx + ca * my)
-    if variance_from_residuals:
-        dist_i = x * ca[seg_of] + y * sa[seg_of] - rho[seg_of]
-        dof = int(np.sum(np.maximum(seg_point_range[:, 1] - seg_point_range[:, 0] - 2, 0)))
-        if dof > 0:
-            cov *= max(1.0, float(np.sum(w * dist_i * dist_i)) / dof)
-    # Endpoints: first and last points projected onto the line.
-    ends = points_xy[np.stack([seg_point_range[:, 0], seg_point_range[:, 1] - 1], axis=1)]
-    normal = np.stack([ca, sa], axis=1)
-    dist = np.einsum("mkj,mj->mk", ends, normal) - rho[:, None]
-    endpoints = ends - dist[..., None] * normal[:, None, :]
-    return np.stack([alpha, rho], axis=1), cov, endpoints
+    return _fit_lines(
+        np.ascontiguousarray(points_xy, dtype=np.float64),
+        np.ascontiguousarray(ranges_m, dtype=np.float64),
+        np.ascontiguousarray(beam_dirs, dtype=np.float64),
+        np.ascontiguousarray(seg_point_range, dtype=np.int64),
+        sigma_range_m**2,
+        VARIANCE_FLOOR_FRACTION * sigma_range_m**2,
+        float(sigma_bearing_rad),
+        bool(variance_from_residuals),
+    )
 
 
-def _segment_points(seg_point_range: IntArray) -> tuple[IntArray, IntArray, IntArray]:
-    """Point indices of all segments concatenated ``(S,)``, each segment's offset in them
-    ``(M,)`` and each concatenated point's segment ``(S,)`` (int64)."""
-    m = seg_point_range.shape[0]
-    starts = seg_point_range[:, 0]
-    lengths = seg_point_range[:, 1] - starts
-    offsets = np.zeros(m, dtype=np.int64)
-    np.cumsum(lengths[:-1], out=offsets[1:])
-    seg_of = np.repeat(np.arange(m), lengths)
-    idx = np.arange(int(lengths.sum())) - offsets[seg_of] + starts[seg_of]
-    return idx, offsets, seg_of
+@njit(cache=True, nogil=True)
+def _segment_sum(a: FloatArray, start: int, stop: int) -> float:
+    """``a[start:stop]`` summed as ``np.add.reduceat`` sums a segment (its first term plus
+    numpy's pairwise sum of the others), so the kernel's sums have numpy's bits."""
+    return a[start] + pairwise_sum(a, start + 1, stop - start - 1)
 
 
-def _weights(
-    dirs: FloatArray,
+@njit(cache=True, nogil=True)
+def _moments(
+    x: FloatArray, y: FloatArray, w: FloatArray, start: int, stop: int, buf: FloatArray
+) -> tuple[float, float, float, float, float, float]:
+    """Weighted sums of one segment's points ``[start, stop)``: ``W, mean_x, mean_y, Sxx,
+    Syy, Sxy`` (central moments), each term formed as the numpy expressions of the earlier
+    vectorized fit formed it (``w * dx * dx`` is ``(w * dx) * dx``); ``buf`` is scratch of
+    at least ``stop`` entries."""
+    sw = _segment_sum(w, start, stop)
+    for i in range(start, stop):
+        buf[i] = w[i] * x[i]
+    mx = _segment_sum(buf, start, stop) / sw
+    for i in range(start, stop):
+        buf[i] = w[i] * y[i]
+    my = _segment_sum(buf, start, stop) / sw
+    for i in range(start, stop):
+        dx = x[i] - mx
+        buf[i] = w[i] * dx * dx
+    sxx = _segment_sum(buf, start, stop)
+    for i in range(start, stop):
+        dy = y[i] - my
+        buf[i] = w[i] * dy * dy
+    syy = _segment_sum(buf, start, stop)
+    for i in range(start, stop):
+        buf[i] = w[i] * (x[i] - mx) * (y[i] - my)
+    sxy = _segment_sum(buf, start, stop)
+    return sw, mx, my, sxx, syy, sxy
+
+
+@njit(cache=True, nogil=True)
+def _fit_lines(
+    points_xy: FloatArray,
     ranges_m: FloatArray,
-    alpha: FloatArray,
-    seg_of: IntArray,
-    sigmas: tuple[float, float],
-) -> FloatArray:
-    """Inverse variances ``1 / s_i²`` of the points' distances to their segment's line of
-    normal angle ``alpha`` ``(M,)`` (Pfister et al. 2003, eq. 4-6): ``dirs`` ``(S, 2)``,
-    ``ranges_m`` and ``seg_of`` ``(S,)``, ``sigmas`` (range m, bearing rad); ``(S,)``."""
-    sigma_r, sigma_phi = sigmas
-    cos_b = dirs[:, 0] * np.cos(alpha)[seg_of] + dirs[:, 1] * np.sin(alpha)[seg_of]
-    cos2 = cos_b * cos_b
-    var = sigma_r**2 * cos2 + (ranges_m * sigma_phi) ** 2 * (1.0 - cos2)
-    w: FloatArray = 1.0 / np.maximum(var, VARIANCE_FLOOR_FRACTION * sigma_r**2)
-    return w
-
-
-def _hessian_line(
-    alpha: FloatArray, mx: FloatArray, my: FloatArray
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """The line of normal angle ``alpha`` through centroids ``(mx, my)`` in Hessian form with
-    ``rho >= 0`` and ``alpha`` in ``(-pi, pi]``: ``alpha, rho, cos alpha, sin alpha`` ``(M,)``."""
-    ca, sa = np.cos(alpha), np.sin(alpha)
-    rho = ca * mx + sa * my
-    flip = rho < 0.0
-    alpha = np.where(flip, alpha + np.pi, alpha)
-    alpha = np.where(alpha > np.pi, alpha - 2.0 * np.pi, alpha)
-    ca = np.where(flip, -ca, ca)
-    sa = np.where(flip, -sa, sa)
-    return alpha, np.abs(rho), ca, sa
-
-
-def _line_covariance(var_alpha: FloatArray, var_off: FloatArray, drho: FloatArray) -> FloatArray:
-    """``(M, 2, 2)`` covariance of ``(alpha, rho)`` from the angle variance, the offset
-    variance at the centroid and ``d rho / d alpha`` (all ``(M,)``; Arras & Siegwart 1997)."""
-    cov = np.empty((var_alpha.shape[0], 2, 2))
-    cov[:, 0, 0] = var_alpha
-    cov[:, 0, 1] = var_alpha * drho
-    cov[:, 1, 0] = cov[:, 0, 1]
-    cov[:, 1, 1] = var_alpha * drho * drho + var_off
-    return cov
+    beam_dirs: FloatArray,
+    seg_point_range: IntArray,
+    var_range: float,
+    var_floor: float,
+    sigma_bearing_rad: float,
+    variance_from_residuals: bool,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """:func:`fit_lines` of ``M >= 1`` segments, compiled: ``var_range`` is ``sigma_range_m
+    ** 2`` and ``var_floor`` the floor of a point's distance variance (both as Python
+    computes them). Segment by segment, each sum in numpy's order (:func:`_segment_sum`),
+    so the results are those of the vectorized numpy fit bit for bit."""
+    m = seg_point_range.shape[0]
+    n_pts = points_xy.shape[0]
+    x = np.ascontiguousarray(points_xy[:, 0])
+    y = np.ascontiguousarray(points_xy[:, 1])
+    ones = np.ones(n_pts)
+    w = np.empty(n_pts)
+    buf = np.empty(n_pts)
+    resid = np.empty(n_pts)
+    lines = np.empty((m, 2))
+    cov = np.empty((m, 2, 2))
+    endpoints = np.empty((m, 2, 2))
+    n_resid = 0
+    dof = 0
+    for k in range(m):
+        start, stop = seg_point_range[k, 0], seg_point_range[k, 1]
+        # Pass 1: unweighted total least squares for the normal direction.
+        _, _, _, sxx, syy, sxy = _moments(x, y, ones, start, stop, buf)
+        alpha0 = 0.5 * math.atan2(-2.0 * sxy, syy - sxx)
+        c0, s0 = math.cos(alpha0), math.sin(alpha0)
+        for i in range(start, stop):
+            cos_b = beam_dirs[i, 0] * c0 + beam_dirs[i, 1] * s0
+            cos2 = cos_b * cos_b
+            across = ranges_m[i] * sigma_bearing_rad
+            var = var_range * cos2 + across * across * (1.0 - cos2)
+            w[i] = 1.0 / (var if not var < var_floor else var_floor)
+        # Pass 2: weighted total least squares (maximum likelihood), in Hessian form.
+        sw, mx, my, sxx, syy, sxy = _moments(x, y, w, start, stop, buf)
+        alpha = 0.5 * math.atan2(-2.0 * sxy, syy - sxx)
+        ca, sa = math.cos(alpha), math.sin(alpha)
+        rho = ca * mx + sa * my
+        if rho < 0.0:
+            alpha += math.pi
+            ca, sa = -ca, -sa
+        if alpha > math.pi:
+            alpha -= 2.0 * math.pi
+        rho = abs(rho)
+        # Covariance: along-line second moment about the weighted centroid.
+        for i in range(start, stop):
+            t = -(x[i] - mx) * sa + (y[i] - my) * ca
+            buf[i] = w[i] * t * t
+        var_alpha = 1.0 / _segment_sum(buf, start, stop)
+        drho = -sa * mx + ca * my
+        cov[k, 0, 0] = var_alpha
+        cov[k, 0, 1] = var_alpha * drho
+        cov[k, 1, 0] = cov[k, 0, 1]
+        cov[k, 1, 1] = var_alpha * drho * drho + 1.0 / sw
+        if variance_from_residuals:
+            for i in range(start, stop):
+                d = x[i] * ca + y[i] * sa - rho
+                resid[n_resid] = w[i] * d * d
+                n_resid += 1
+            dof += max(stop - start - 2, 0)
+        lines[k, 0] = alpha
+        lines[k, 1] = rho
+        # Endpoints: first and last points projected onto the line.
+        for e in range(2):
+            p = start if e == 0 else stop - 1
+            d = points_xy[p, 0] * ca + points_xy[p, 1] * sa - rho
+            endpoints[k, e, 0] = points_xy[p, 0] - d * ca
+            endpoints[k, e, 1] = points_xy[p, 1] - d * sa
+    if variance_from_residuals and dof > 0:
+        factor = pairwise_sum(resid, 0, n_resid) / dof
+        if factor > 1.0:  # max(1.0, factor) as Python takes it (NaN: 1.0)
+            cov *= factor
+    return lines, cov, endpoints

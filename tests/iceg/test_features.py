@@ -333,6 +333,98 @@ def test_line_variance_factor_from_residuals() -> None:
     )
 
 
+def _numpy_fit_lines(
+    points_xy: np.ndarray,
+    ranges_m: np.ndarray,
+    beam_dirs: np.ndarray,
+    seg_point_range: np.ndarray,
+    sigma_range_m: float,
+    sigma_bearing_rad: float,
+    variance_from_residuals: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The vectorized numpy fit that ``fit_lines`` compiled (segment-wise reduceat sums)."""
+    starts, stops = seg_point_range[:, 0], seg_point_range[:, 1]
+    lengths = stops - starts
+    offsets = np.zeros(len(starts), dtype=np.int64)
+    np.cumsum(lengths[:-1], out=offsets[1:])
+    seg_of = np.repeat(np.arange(len(starts)), lengths)
+    idx = np.arange(int(lengths.sum())) - offsets[seg_of] + starts[seg_of]
+    x, y = points_xy[idx, 0], points_xy[idx, 1]
+
+    def moments(w: np.ndarray) -> tuple[np.ndarray, ...]:
+        sw = np.add.reduceat(w, offsets)
+        mx = np.add.reduceat(w * x, offsets) / sw
+        my = np.add.reduceat(w * y, offsets) / sw
+        dx, dy = x - mx[seg_of], y - my[seg_of]
+        wdx = w * dx
+        sums = [np.add.reduceat(v, offsets) for v in (wdx * dx, w * dy * dy, wdx * dy)]
+        return sw, mx, my, *sums
+
+    _, _, _, sxx, syy, sxy = moments(np.ones_like(x))
+    alpha0 = 0.5 * np.arctan2(-2.0 * sxy, syy - sxx)
+    dirs = beam_dirs[idx]
+    cos_b = dirs[:, 0] * np.cos(alpha0)[seg_of] + dirs[:, 1] * np.sin(alpha0)[seg_of]
+    cos2 = cos_b * cos_b
+    var = sigma_range_m**2 * cos2 + (ranges_m[idx] * sigma_bearing_rad) ** 2 * (1.0 - cos2)
+    w = 1.0 / np.maximum(var, 1e-6 * sigma_range_m**2)
+    sw, mx, my, sxx, syy, sxy = moments(w)
+    alpha = 0.5 * np.arctan2(-2.0 * sxy, syy - sxx)
+    ca, sa = np.cos(alpha), np.sin(alpha)
+    rho = ca * mx + sa * my
+    flip = rho < 0.0
+    alpha = np.where(flip, alpha + np.pi, alpha)
+    alpha = np.where(alpha > np.pi, alpha - 2.0 * np.pi, alpha)
+    ca, sa, rho = np.where(flip, -ca, ca), np.where(flip, -sa, sa), np.abs(rho)
+    t_along = -(x - mx[seg_of]) * sa[seg_of] + (y - my[seg_of]) * ca[seg_of]
+    var_alpha = 1.0 / np.add.reduceat(w * t_along * t_along, offsets)
+    drho = -sa * mx + ca * my
+    cov = np.empty((len(starts), 2, 2))
+    cov[:, 0, 0] = var_alpha
+    cov[:, 0, 1] = cov[:, 1, 0] = var_alpha * drho
+    cov[:, 1, 1] = var_alpha * drho * drho + 1.0 / sw
+    if variance_from_residuals:
+        dist = x * ca[seg_of] + y * sa[seg_of] - rho[seg_of]
+        dof = int(np.sum(np.maximum(lengths - 2, 0)))
+        if dof > 0:
+            cov *= max(1.0, float(np.sum(w * dist * dist)) / dof)
+    ends = points_xy[np.stack([starts, stops - 1], axis=1)]
+    normal = np.stack([ca, sa], axis=1)
+    dist_end = np.einsum("mkj,mj->mk", ends, normal) - rho[:, None]
+    endpoints = ends - dist_end[..., None] * normal[:, None, :]
+    return np.stack([alpha, rho], axis=1), cov, endpoints
+
+
+def test_fit_lines_equals_the_vectorized_numpy_fit_bit_for_bit(office_run) -> None:  # type: ignore[no-untyped-def]
+    # The compiled fit sums each segment in numpy's order: its lines, covariances and
+    # endpoints are the numpy fit's bits, on a simulated run's segments (noisy walls,
+    # segments of 3 to a few hundred points) and on random point runs cut into segments of
+    # every length from 2 to 300 (numpy's pairwise sums change order at 8 and 128 terms).
+    cfg = FeatureConfig()
+    sig_r, sig_b = cfg.sigma_range_m, math.radians(cfg.sigma_bearing_deg)
+    cases = []
+    for scan in office_run.scans[::7]:
+        beams = beam_points(scan, min(cfg.range_max_m, scan.range_max_m))
+        segs = line_segments(beams, cfg).point_range
+        cases.append((beams.points, beams.point_ranges, beams.dirs[beams.valid], segs))
+    rng = np.random.default_rng(3)
+    for lengths in ([2, 3, 7, 8, 9, 15, 16, 17], [127, 128, 129, 130], [255, 256, 257, 300]):
+        n = int(np.sum(lengths))
+        bearing = np.sort(rng.uniform(-math.pi, math.pi, n))
+        dirs = np.stack([np.cos(bearing), np.sin(bearing)], axis=1)
+        ranges = rng.uniform(0.3, 30.0, n)
+        bounds = np.cumsum([0, *lengths])
+        cases.append((dirs * ranges[:, None], ranges, dirs, np.stack([bounds[:-1], bounds[1:]], 1)))
+    n_segments = 0
+    for pts, ranges, dirs, segs in cases:
+        for scaled in (False, True):
+            got = fit_lines(pts, ranges, dirs, segs, sig_r, sig_b, scaled)
+            want = _numpy_fit_lines(pts, ranges, dirs, segs, sig_r, sig_b, scaled)
+            for g, w in zip(got, want, strict=True):
+                assert g.tobytes() == w.tobytes()
+        n_segments += segs.shape[0]
+    assert n_segments > 300
+
+
 def test_l_corner_noise_free_exact() -> None:
     # Two walls meeting at (4, 3) at 90°, robot at the origin facing +x. Hand geometry:
     # the corner is (4, 3), its edges point along -x and -y, the opening is 90°.

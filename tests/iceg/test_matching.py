@@ -57,7 +57,6 @@ from iceg.matching._kernels import (
     nearest_walls,
     no_segment_grid,
     pair_nearest,
-    pairwise_sum,
     point_line_system,
     poses_within_bounds,
     psd_max,
@@ -108,6 +107,7 @@ from iceg.matching.refine import (
     points_within,
     refine,
 )
+from iceg.numpy_sums import pairwise_sum
 from iceg.types import FeatureKind, ScanFeatures
 from iceg_common.errors import ConfigError, MatchingError
 from iceg_common.se2 import (
