@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from iceg.features.config import FeatureConfig
-from iceg.features.geometry import norm, opening_angle, unit
+from iceg.features.geometry import dot2
 from iceg.features.pairs import SegmentPairs
 from iceg.features.segments import Segments
 
@@ -48,10 +50,13 @@ class Corners(NamedTuple):
         return used
 
 
+@njit(cache=True, nogil=True)
 def facing_ends(
     endpoints: FloatArray, pairs: SegmentPairs
 ) -> tuple[IntArray, IntArray, FloatArray]:
-    """Per pair, the endpoint combination (end of first, end of second) with the smallest gap.
+    """Per pair, the endpoint combination (end of first, end of second) with the smallest gap
+    (the first of equal gaps in the order (0, 0), (0, 1), (1, 0), (1, 1); a NaN gap counts
+    as smallest, as for ``np.argmin``).
 
     Args:
         endpoints: ``(M, 2, 2)`` float64 segment endpoints, metres.
@@ -60,13 +65,25 @@ def facing_ends(
     Returns:
         ``end_i``, ``end_j`` ``(Q,)`` int64 in ``{0, 1}`` and ``gap`` ``(Q,)`` float64 metres.
     """
-    ei = endpoints[pairs.first]  # (Q, 2, 2)
-    ej = endpoints[pairs.second]
-    gaps = norm(ei[:, :, None, :] - ej[:, None, :, :]).reshape(-1, 4)
-    best = np.argmin(gaps, axis=1)
-    return best // 2, best % 2, gaps[np.arange(best.shape[0]), best]
+    q = pairs.first.shape[0]
+    end_i = np.empty(q, dtype=np.int64)
+    end_j = np.empty(q, dtype=np.int64)
+    gap = np.empty(q)
+    for r in range(q):
+        a, b = pairs.first[r], pairs.second[r]
+        best, best_gap = 0, np.nan
+        for c in range(4):
+            ea, eb = c // 2, c % 2
+            d = math.hypot(
+                endpoints[a, ea, 0] - endpoints[b, eb, 0], endpoints[a, ea, 1] - endpoints[b, eb, 1]
+            )
+            if c == 0 or (not math.isnan(best_gap) and (d < best_gap or math.isnan(d))):
+                best, best_gap = c, d
+        end_i[r], end_j[r], gap[r] = best // 2, best % 2, best_gap
+    return end_i, end_j, gap
 
 
+@njit(cache=True, nogil=True)
 def greedy_by_gap(
     cand: IntArray, gap: FloatArray, keys: tuple[IntArray, IntArray, IntArray, IntArray], m: int
 ) -> IntArray:
@@ -82,15 +99,17 @@ def greedy_by_gap(
         ``(C,)`` int64 chosen pair indices, in the order chosen.
     """
     first, second, end_i, end_j = keys
-    used = np.zeros((m, 2), dtype=bool)
-    chosen = []
-    for c in cand[np.argsort(gap[cand], kind="stable")]:
+    used = np.zeros((m, 2), dtype=np.bool_)
+    chosen = np.empty(cand.shape[0], dtype=np.int64)
+    n = 0
+    for c in cand[np.argsort(gap[cand], kind="mergesort")]:
         a, b, ea, eb = first[c], second[c], end_i[c], end_j[c]
         if used[a, ea] or used[b, eb]:
             continue
         used[a, ea] = used[b, eb] = True
-        chosen.append(c)
-    return np.asarray(chosen, dtype=np.int64)
+        chosen[n] = c
+        n += 1
+    return chosen[:n]
 
 
 def find_corners(segs: Segments, pairs: SegmentPairs, cfg: FeatureConfig) -> Corners:
@@ -99,7 +118,8 @@ def find_corners(segs: Segments, pairs: SegmentPairs, cfg: FeatureConfig) -> Cor
 
     Each endpoint joins at most one corner (greedy by gap). Position: the lines' meeting
     point, covariance propagated from both line covariances; directions: unit vectors from
-    the corner toward each segment's far endpoint; opening angle between them.
+    the corner toward each segment's far endpoint; opening angle between them. Compiled
+    (:func:`_corners`, issue 13): the values of the numpy stage it replaced, bit for bit.
 
     Args:
         segs: The scan's segments.
@@ -111,27 +131,53 @@ def find_corners(segs: Segments, pairs: SegmentPairs, cfg: FeatureConfig) -> Cor
     """
     if pairs.first.size == 0:
         return Corners.empty()
+    return Corners(*_corners(segs, pairs, cfg.corner_gap_m))
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _corners(
+    segs: Segments, pairs: SegmentPairs, corner_gap_m: float
+) -> tuple[IntArray, IntArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """:func:`find_corners` of at least one pair: the fields of :class:`Corners`."""
     end_i, end_j, gap = facing_ends(segs.endpoints, pairs)
-    q = np.arange(gap.shape[0])
-    d_i = norm(pairs.xy - segs.endpoints[pairs.first][q, end_i])
-    d_j = norm(pairs.xy - segs.endpoints[pairs.second][q, end_j])
-    sp_i = segs.spacing[pairs.first, end_i]
-    sp_j = segs.spacing[pairs.second, end_j]
-    ok = (
-        (gap <= cfg.corner_gap_m + sp_i + sp_j)
-        & (d_i <= cfg.corner_gap_m + sp_i)
-        & (d_j <= cfg.corner_gap_m + sp_j)
-    )
-    cand = np.flatnonzero(ok)
-    if cand.size == 0:
-        return Corners.empty()
+    q = gap.shape[0]
+    ok = np.empty(q, dtype=np.bool_)
+    for r in range(q):
+        a, b = pairs.first[r], pairs.second[r]
+        e_i = segs.endpoints[a, end_i[r]]
+        e_j = segs.endpoints[b, end_j[r]]
+        d_i = math.hypot(pairs.xy[r, 0] - e_i[0], pairs.xy[r, 1] - e_i[1])
+        d_j = math.hypot(pairs.xy[r, 0] - e_j[0], pairs.xy[r, 1] - e_j[1])
+        sp_i, sp_j = segs.spacing[a, end_i[r]], segs.spacing[b, end_j[r]]
+        ok[r] = (
+            gap[r] <= corner_gap_m + sp_i + sp_j
+            and d_i <= corner_gap_m + sp_i
+            and d_j <= corner_gap_m + sp_j
+        )
     keys = (pairs.first, pairs.second, end_i, end_j)
-    sel = greedy_by_gap(cand, gap, keys, segs.lines.shape[0])
-    corner_pairs = np.stack([pairs.first[sel], pairs.second[sel]], axis=1)
-    ends = np.stack([end_i[sel], end_j[sel]], axis=1)
-    xy = pairs.xy[sel]
-    far_i = segs.endpoints[corner_pairs[:, 0], 1 - ends[:, 0]]
-    far_j = segs.endpoints[corner_pairs[:, 1], 1 - ends[:, 1]]
-    dirs = np.stack([unit(far_i - xy), unit(far_j - xy)], axis=1)
-    opening = opening_angle(dirs[:, 0], dirs[:, 1])
-    return Corners(corner_pairs, ends, xy, pairs.cov[sel], dirs, opening)
+    sel = greedy_by_gap(np.flatnonzero(ok), gap, keys, segs.lines.shape[0])
+    c = sel.shape[0]
+    corner_pairs = np.empty((c, 2), dtype=np.int64)
+    ends = np.empty((c, 2), dtype=np.int64)
+    xy = np.empty((c, 2))
+    cov = np.empty((c, 2, 2))
+    dirs = np.empty((c, 2, 2))
+    opening = np.empty(c)
+    for r in range(c):
+        k = sel[r]
+        corner_pairs[r, 0], corner_pairs[r, 1] = pairs.first[k], pairs.second[k]
+        ends[r, 0], ends[r, 1] = end_i[k], end_j[k]
+        xy[r] = pairs.xy[k]
+        cov[r] = pairs.cov[k]
+        for side in range(2):
+            far = segs.endpoints[corner_pairs[r, side], 1 - ends[r, side]]
+            vx, vy = far[0] - xy[r, 0], far[1] - xy[r, 1]
+            length = math.hypot(vx, vy)
+            dirs[r, side, 0], dirs[r, side, 1] = vx / length, vy / length
+        cos_open = dot2(dirs[r, 0, 0], dirs[r, 0, 1], dirs[r, 1, 0], dirs[r, 1, 1])
+        if cos_open < -1.0:  # np.clip: NaN stays NaN
+            cos_open = -1.0
+        elif cos_open > 1.0:
+            cos_open = 1.0
+        opening[r] = math.acos(cos_open)
+    return corner_pairs, ends, xy, cov, dirs, opening

@@ -7,10 +7,11 @@ import math
 from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from iceg.features.config import FeatureConfig
-from iceg.features.geometry import meet, norm, sandwich, unit
+from iceg.features.geometry import dot2, meet, sandwich
 from iceg.features.points import BeamPoints
 from iceg.features.segments import Segments
 
@@ -33,48 +34,6 @@ class EndsOfWall(NamedTuple):
     beyond: IntArray  # (E,) int64 the first beam beyond the endpoint
 
 
-def beams_beyond(segs: Segments, n_beams: int, check_beams: int) -> tuple[IntArray, BoolArray]:
-    """The ``check_beams`` beams just beyond each endpoint, in beam order (outward).
-
-    Returns:
-        ``nb`` ``(M, 2, K)`` int64 beam indices clipped into the scan, and ``inside``
-        ``(M, 2, K)`` bool: the unclipped index lies in the scan.
-    """
-    outward = np.array([-1, 1], dtype=np.int64)
-    k_steps = np.arange(1, check_beams + 1, dtype=np.int64)
-    nb = segs.end_beam[:, :, None] + outward[None, :, None] * k_steps[None, None, :]
-    inside = (nb >= 0) & (nb < n_beams)
-    return np.clip(nb, 0, n_beams - 1), inside
-
-
-def sees_past(beams: BeamPoints, segs: Segments, nb: IntArray, cfg: FeatureConfig) -> BoolArray:
-    """Which beams ``nb`` ``(M, 2, K)`` see past their segment's infinite line.
-
-    The range ``r_pred`` at which a beam meets the line (from the laser origin) must be
-    positive, below ``range_max - eow_range_margin_m`` and at an incidence of at most
-    ``eow_max_incidence_deg`` from the normal; the beam then returns farther than
-    ``r_pred + eow_range_margin_m``, or nothing.
-
-    Returns:
-        ``(M, 2, K)`` bool (``inside`` of :func:`beams_beyond` not yet applied).
-    """
-    cos_max_inc = math.cos(math.radians(cfg.eow_max_incidence_deg))
-    n_dot_u = np.einsum("mj,mekj->mek", segs.normals, beams.dirs[nb])
-    dist_to_line = segs.lines[:, 1] - segs.normals @ beams.origin  # (M,) laser -> line
-    with np.errstate(divide="ignore", invalid="ignore"):
-        r_pred = dist_to_line[:, None, None] / n_dot_u
-    predicted = (
-        np.isfinite(r_pred)
-        & (r_pred > 0.0)
-        & (np.abs(n_dot_u) >= cos_max_inc)
-        & (r_pred < beams.range_max - cfg.eow_range_margin_m)
-    )
-    with np.errstate(invalid="ignore"):
-        farther = beams.valid[nb] & (beams.ranges[nb] > r_pred + cfg.eow_range_margin_m)
-    out: BoolArray = predicted & (farther | beams.no_return[nb])
-    return out
-
-
 def junctions(segs: Segments, cfg: FeatureConfig) -> BoolArray:
     """Endpoints where another segment starts right there: within ``eow_check_beams + 1``
     beams and ``corner_gap_m`` plus both endpoints' beam spacing (a corner, or walls
@@ -87,62 +46,29 @@ def junctions(segs: Segments, cfg: FeatureConfig) -> BoolArray:
     Returns:
         ``(M, 2)`` bool.
     """
-    ends = segs.endpoints.reshape(-1, 2)
-    sp = segs.spacing.reshape(-1)
-    beam = segs.end_beam.reshape(-1)
-    n = ends.shape[0]
-    window = cfg.eow_check_beams + 1
-    a = np.repeat(np.arange(n), window)
-    b = a + np.tile(np.arange(1, window + 1), n)
-    a, b = a[b < n], b[b < n]
-    close = (np.abs(beam[a] - beam[b]) <= window) & (a // 2 != b // 2)
-    d = norm(ends[a] - ends[b])
-    hit = np.zeros(n, dtype=bool)
-    hit[a[close & (d <= cfg.corner_gap_m + sp[a] + sp[b])]] = True
-    hit[b[close & (d <= cfg.corner_gap_m + sp[b] + sp[a])]] = True
-    return hit.reshape(-1, 2)
-
-
-def wall_end_geometry(
-    beams: BeamPoints, segs: Segments, seg: IntArray, end: IntArray, beyond: IntArray
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Position, covariance and direction of EOWs (paper §III-B).
-
-    The wall ends between the ray of the endpoint's beam and the ray of the first beam
-    beyond; both meet the wall's line and the EOW is the middle of the two meeting points.
-    Covariance: that midpoint's Jacobian applied to the line covariance, plus ``gap² / 12``
-    along the wall (uniform over the gap).
-
-    Returns:
-        ``xy`` ``(E, 2)`` metres, ``cov`` ``(E, 2, 2)`` m², ``wall_dir`` ``(E, 2)`` unit
-        vectors from the EOW into its wall.
-    """
-    n_e = seg.shape[0]
-    end_xy = segs.endpoints[seg, end]
-    wall_dir = unit(segs.endpoints[seg, 1 - end] - end_xy)
-    ray_beams = np.concatenate([segs.end_beam[seg, end], beyond])
-    rays = np.empty((2 * n_e, 2))
-    rays[:, 0] = beams.bearing_robot[ray_beams] + 0.5 * np.pi  # normal of the beam's ray
-    rays[:, 1] = np.cos(rays[:, 0]) * beams.origin[0] + np.sin(rays[:, 0]) * beams.origin[1]
-    hits, j_wall, _ = meet(np.concatenate([segs.lines[seg], segs.lines[seg]]), rays)
-    hit_end, hit_next = hits[:n_e], hits[n_e:]
-    xy = 0.5 * (hit_end + hit_next)
-    gap_len = norm(hit_next - hit_end)
-    along = (gap_len**2 / UNIFORM_VAR_DIVISOR)[:, None, None] * np.einsum(
-        "ki,kj->kij", wall_dir, wall_dir
-    )
-    cov = sandwich(0.5 * (j_wall[:n_e] + j_wall[n_e:]), segs.cov[seg]) + along
-    return xy, cov, wall_dir
+    return _junctions(segs, cfg.eow_check_beams + 1, cfg.corner_gap_m)
 
 
 def find_ends_of_wall(
     beams: BeamPoints, segs: Segments, in_corner: BoolArray, cfg: FeatureConfig
 ) -> EndsOfWall:
-    """Ends of wall: endpoints in no corner and no junction whose next ``eow_check_beams``
-    beams (in beam order) all see past the wall's extension (paper §III-B, Fig. 1).
+    """Ends of wall: endpoints in no corner and no junction (:func:`junctions`) whose next
+    ``eow_check_beams`` beams (in beam order, all inside the scan) all see past the wall's
+    infinite line (paper §III-B, Fig. 1).
 
-    Not an EOW: an endpoint next to nearer returns (occlusion), at the scan's angular limit,
-    or where the wall's extension would lie beyond the usable range or at grazing incidence.
+    A beam sees past the line when the range ``r_pred`` at which it meets the line (from the
+    laser origin) is positive, below ``range_max - eow_range_margin_m`` and at an incidence
+    of at most ``eow_max_incidence_deg`` from the normal, and the beam returns farther than
+    ``r_pred + eow_range_margin_m``, or nothing. So an endpoint next to nearer returns
+    (occlusion), at the scan's angular limit, or where the wall's extension would lie beyond
+    the usable range or at grazing incidence is no EOW.
+
+    Position: the wall ends between the ray of the endpoint's beam and the ray of the first
+    beam beyond; both meet the wall's line and the EOW is the middle of the two meeting
+    points. Covariance: that midpoint's Jacobian applied to the line covariance, plus
+    ``gap² / 12`` along the wall (uniform over the gap). Direction: the unit vector from the
+    EOW into its wall. One compiled pass (:func:`_ends_of_wall`, issue 13), the values of
+    the vectorized numpy stage it replaced bit for bit.
 
     Args:
         beams: The scan's beams.
@@ -154,14 +80,136 @@ def find_ends_of_wall(
     Returns:
         :class:`EndsOfWall`, by segment then endpoint.
     """
-    nb, inside = beams_beyond(segs, beams.ranges.shape[0], cfg.eow_check_beams)
-    past = inside & sees_past(beams, segs, nb, cfg)
-    is_eow = np.all(past, axis=2) & ~in_corner & ~junctions(segs, cfg)
-    seg, end = np.nonzero(is_eow)
-    beyond = nb[seg, end, 0]
-    if seg.size == 0:
-        no = np.zeros(0, dtype=np.int64)
-        return EndsOfWall(no, no, np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros((0, 2, 2)), no)
-    xy, cov, wall_dir = wall_end_geometry(beams, segs, seg, end, beyond)
+    # numpy's matrix product (BLAS) kept for its bits: laser -> line distance (M,)
+    dist_to_line = segs.lines[:, 1] - segs.normals @ beams.origin
+    settings = _EowSettings(
+        cfg.eow_check_beams,
+        cfg.eow_range_margin_m,
+        beams.range_max - cfg.eow_range_margin_m,
+        math.cos(math.radians(cfg.eow_max_incidence_deg)),
+        cfg.corner_gap_m,
+    )
+    seg, end, xy, cov, wall_dir, beyond = _ends_of_wall(
+        beams, segs, dist_to_line, np.ascontiguousarray(in_corner, dtype=np.bool_), settings
+    )
     dirs = np.stack([wall_dir, np.full((seg.size, 2), np.nan)], axis=1)
-    return EndsOfWall(seg.astype(np.int64), end.astype(np.int64), xy, cov, dirs, beyond)
+    return EndsOfWall(seg, end, xy, cov, dirs, beyond)
+
+
+class _EowSettings(NamedTuple):
+    """:func:`find_ends_of_wall`'s thresholds for its kernel (metres)."""
+
+    check_beams: int
+    range_margin_m: float
+    range_limit_m: float  # range_max - range_margin_m
+    cos_max_incidence: float
+    corner_gap_m: float
+
+
+@njit(cache=True, nogil=True)
+def _junctions(segs: Segments, window: int, corner_gap_m: float) -> BoolArray:
+    """:func:`junctions` with ``window = eow_check_beams + 1``: each endpoint against the
+    next ``window`` endpoints."""
+    n = 2 * segs.endpoints.shape[0]
+    ends = segs.endpoints.reshape(n, 2)
+    sp = segs.spacing.reshape(n)
+    beam = segs.end_beam.reshape(n)
+    hit = np.zeros(n, dtype=np.bool_)
+    for a in range(n):
+        for b in range(a + 1, min(a + window + 1, n)):
+            if abs(beam[a] - beam[b]) > window or a // 2 == b // 2:
+                continue
+            d = math.hypot(ends[a, 0] - ends[b, 0], ends[a, 1] - ends[b, 1])
+            if d <= corner_gap_m + sp[a] + sp[b]:
+                hit[a] = True
+            if d <= corner_gap_m + sp[b] + sp[a]:
+                hit[b] = True
+    return hit.reshape(n // 2, 2)
+
+
+@njit(cache=True, nogil=True)
+def _sees_past(
+    beams: BeamPoints, normal: FloatArray, dist_to_line: float, beam: int, s: _EowSettings
+) -> bool:
+    """Whether ``beam`` sees past the line of unit ``normal`` at ``dist_to_line`` from the
+    laser (:func:`find_ends_of_wall`)."""
+    n_dot_u = dot2(normal[0], normal[1], beams.dirs[beam, 0], beams.dirs[beam, 1])
+    if n_dot_u == 0.0:  # the beam runs along the line: no meeting range
+        return False
+    r_pred = dist_to_line / n_dot_u
+    if not (
+        math.isfinite(r_pred)
+        and r_pred > 0.0
+        and abs(n_dot_u) >= s.cos_max_incidence
+        and r_pred < s.range_limit_m
+    ):
+        return False
+    farther = beams.valid[beam] and beams.ranges[beam] > r_pred + s.range_margin_m
+    return farther or beams.no_return[beam]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _ends_of_wall(
+    beams: BeamPoints,
+    segs: Segments,
+    dist_to_line: FloatArray,
+    in_corner: BoolArray,
+    s: _EowSettings,
+) -> tuple[IntArray, IntArray, FloatArray, FloatArray, FloatArray, IntArray]:
+    """:func:`find_ends_of_wall`'s EOWs: segment, endpoint, position, covariance, unit
+    direction into the wall and first beam beyond, ``(E,)`` / ``(E, 2)`` / ``(E, 2, 2)``."""
+    m = segs.lines.shape[0]
+    n_beams = beams.ranges.shape[0]
+    junction = _junctions(segs, s.check_beams + 1, s.corner_gap_m)
+    seg = np.empty(2 * m, dtype=np.int64)
+    end = np.empty(2 * m, dtype=np.int64)
+    n_e = 0
+    for k in range(m):
+        for e in range(2):
+            if in_corner[k, e] or junction[k, e]:
+                continue
+            outward = -1 if e == 0 else 1
+            ok = True
+            for step in range(1, s.check_beams + 1):
+                b = segs.end_beam[k, e] + outward * step
+                inside = 0 <= b < n_beams
+                if not (inside and _sees_past(beams, segs.normals[k], dist_to_line[k], b, s)):
+                    ok = False
+                    break
+            if ok:
+                seg[n_e], end[n_e] = k, e
+                n_e += 1
+    seg, end = seg[:n_e], end[:n_e]
+    beyond = np.empty(n_e, dtype=np.int64)
+    wall_dir = np.empty((n_e, 2))
+    wall_lines = np.empty((2 * n_e, 2))
+    rays = np.empty((2 * n_e, 2))
+    for q in range(n_e):
+        k, e = seg[q], end[q]
+        beyond[q] = segs.end_beam[k, e] + (-1 if e == 0 else 1)
+        vx = segs.endpoints[k, 1 - e, 0] - segs.endpoints[k, e, 0]
+        vy = segs.endpoints[k, 1 - e, 1] - segs.endpoints[k, e, 1]
+        length = math.hypot(vx, vy)
+        wall_dir[q, 0], wall_dir[q, 1] = vx / length, vy / length
+        for r, b in ((q, segs.end_beam[k, e]), (n_e + q, beyond[q])):
+            wall_lines[r, 0], wall_lines[r, 1] = segs.lines[k, 0], segs.lines[k, 1]
+            rays[r, 0] = beams.bearing_robot[b] + 0.5 * np.pi  # normal of the beam's ray
+            ray = rays[r, 0]
+            rays[r, 1] = math.cos(ray) * beams.origin[0] + math.sin(ray) * beams.origin[1]
+    hits, j_wall, _ = meet(wall_lines, rays)
+    xy = np.empty((n_e, 2))
+    along = np.empty((n_e, 2, 2))
+    j_mid = np.empty((n_e, 2, 2))
+    line_cov = np.empty((n_e, 2, 2))
+    for q in range(n_e):
+        xy[q, 0] = 0.5 * (hits[q, 0] + hits[n_e + q, 0])
+        xy[q, 1] = 0.5 * (hits[q, 1] + hits[n_e + q, 1])
+        gap = math.hypot(hits[n_e + q, 0] - hits[q, 0], hits[n_e + q, 1] - hits[q, 1])
+        var_along = gap * gap / UNIFORM_VAR_DIVISOR
+        for i in range(2):
+            for j in range(2):
+                # np.einsum's outer product: +0.0 where the product is -0.0
+                along[q, i, j] = var_along * (wall_dir[q, i] * wall_dir[q, j] + 0.0)
+                j_mid[q, i, j] = 0.5 * (j_wall[q, i, j] + j_wall[n_e + q, i, j])
+                line_cov[q, i, j] = segs.cov[seg[q], i, j]
+    return seg, end, xy, sandwich(j_mid, line_cov) + along, wall_dir, beyond

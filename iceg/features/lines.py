@@ -17,6 +17,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from iceg.features.geometry import dot2
 from iceg.numpy_sums import pairwise_sum
 
 FloatArray = NDArray[np.float64]
@@ -195,7 +196,7 @@ def _fit_lines(
         # Endpoints: first and last points projected onto the line.
         for e in range(2):
             p = start if e == 0 else stop - 1
-            d = points_xy[p, 0] * ca + points_xy[p, 1] * sa - rho
+            d = dot2(points_xy[p, 0], points_xy[p, 1], ca, sa) - rho
             endpoints[k, e, 0] = points_xy[p, 0] - d * ca
             endpoints[k, e, 1] = points_xy[p, 1] - d * sa
     if variance_from_residuals and dof > 0:

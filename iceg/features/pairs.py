@@ -9,6 +9,7 @@ import math
 from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from iceg.features.config import FeatureConfig
@@ -56,10 +57,20 @@ def meeting_pairs(segs: Segments, cfg: FeatureConfig) -> SegmentPairs:
     """
     ii, jj = segment_pairs_within(segs.endpoints, pair_search_radius(segs, cfg))
     sin_min = math.sin(math.radians(cfg.meeting_angle_min_deg))
-    lines = segs.lines
-    steep = np.abs(np.sin(lines[ii, 0] - lines[jj, 0])) >= sin_min
+    ii, jj = np.ascontiguousarray(ii), np.ascontiguousarray(jj)  # one compiled layout
+    return SegmentPairs(*_steep_pairs(ii, jj, segs.lines, segs.cov, sin_min))
+
+
+@njit(cache=True, nogil=True)
+def _steep_pairs(
+    ii: IntArray, jj: IntArray, lines: FloatArray, cov: FloatArray, sin_min: float
+) -> tuple[IntArray, IntArray, FloatArray, FloatArray]:
+    """The pairs ``(ii, jj)`` whose lines meet with ``|sin(alpha_i - alpha_j)| >= sin_min``,
+    with their meeting points and covariances (:func:`line_intersections`), compiled: the
+    values of the numpy expressions it replaced, bit for bit."""
+    steep = np.empty(ii.shape[0], dtype=np.bool_)
+    for q in range(ii.shape[0]):
+        steep[q] = abs(math.sin(lines[ii[q], 0] - lines[jj[q], 0])) >= sin_min
     ii, jj = ii[steep], jj[steep]
-    if ii.size == 0:
-        return SegmentPairs(ii, jj, np.zeros((0, 2)), np.zeros((0, 2, 2)))
-    xy, cov = line_intersections(lines[ii], segs.cov[ii], lines[jj], segs.cov[jj])
-    return SegmentPairs(ii, jj, xy, cov)
+    xy, pair_cov = line_intersections(lines[ii], cov[ii], lines[jj], cov[jj])
+    return ii, jj, xy, pair_cov

@@ -60,14 +60,16 @@ def beam_points(scan: LaserScan, range_max_m: float) -> BeamPoints:
     Returns:
         :class:`BeamPoints` (shapes and units listed there).
     """
-    ranges = scan.ranges_m
+    # Own writable copies (a reader may hand out read-only arrays): the compiled stages
+    # then see one array type whatever the reader.
+    ranges = np.array(scan.ranges_m, dtype=np.float64)
     with np.errstate(invalid="ignore"):
         no_return = np.isposinf(ranges) | (np.isfinite(ranges) & (ranges >= range_max_m))
         valid = np.isfinite(ranges) & (ranges > scan.range_min_m) & (ranges < range_max_m)
     bearing_robot = scan.angles_rad + scan.laser_offset[2]
     return BeamPoints(
         ranges=ranges,
-        angles=scan.angles_rad,
+        angles=np.array(scan.angles_rad, dtype=np.float64),
         valid=valid,
         no_return=no_return,
         beam_index=np.flatnonzero(valid).astype(np.int64),
@@ -75,6 +77,6 @@ def beam_points(scan: LaserScan, range_max_m: float) -> BeamPoints:
         point_ranges=ranges[valid],
         dirs=np.stack([np.cos(bearing_robot), np.sin(bearing_robot)], axis=1),
         bearing_robot=bearing_robot,
-        origin=scan.laser_offset[:2],
+        origin=np.array(scan.laser_offset[:2], dtype=np.float64),
         range_max=range_max_m,
     )

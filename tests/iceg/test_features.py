@@ -32,6 +32,8 @@ issue's 3 cm is checked on the ends whose beam spacing is at most 6 cm.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -43,6 +45,7 @@ from frontends.simulate import (
     World,
     cast_rays,
     office_world,
+    outdoor_world,
     pillar_world,
     ray_ranges,
     rectangle,
@@ -64,6 +67,7 @@ from iceg.types import FeatureKind, ScanFeatures
 from iceg_common.errors import IcegError, ScanError
 from iceg_common.se2 import compose, inverse, transform_points
 from tests.conftest import shared_file
+from tests.iceg import numpy_feature_stages as numpy_stages
 
 MAX_DIST_M = 8.0
 MIN_HITS = 5
@@ -1161,6 +1165,44 @@ def test_segment_pairs_within_is_a_superset_and_linear() -> None:
     # Density is the same (0.1 m of strip per segment), so pairs per segment stay bounded.
     assert counts[1] <= 4.4 * counts[0]
     assert counts[1] < 0.02 * 8000 * 7999 / 2
+
+
+def _same_fields(got: tuple[Any, ...], want: tuple[Any, ...]) -> None:
+    for g, w in zip(got, want, strict=True):
+        g, w = np.asarray(g), np.asarray(w)
+        assert (g.dtype, g.shape) == (w.dtype, w.shape)
+        assert g.tobytes() == w.tobytes()
+
+
+def test_compiled_feature_stages_equal_the_numpy_stages_bit_for_bit() -> None:
+    # The pairs, corners, ends of wall and intersections are compiled passes; each gives the
+    # fields of the vectorized numpy stage it replaced (tests/iceg/numpy_feature_stages.py),
+    # bit for bit: simulated runs through an office, an outdoor world (360° laser, 30 m)
+    # and a 40-tooth star room of 4000 beams (past the neighbour searches' all-pairs size),
+    # each also with a laser mounted off the robot's centre.
+    cfg = FeatureConfig()
+    outdoor = LaserModel(n_beams=361, fov_deg=360.0, range_max_m=30.0)
+    scans = [
+        *simulate(office_world(), seed=4).scans[::9],
+        *simulate(outdoor_world(), laser=outdoor, seed=5).scans[::9],
+        _sawtooth_scan(40, 4000)[0],
+    ]
+    scans += [replace(s, laser_offset=np.array([0.3, -0.1, 0.05])) for s in scans]
+    found = np.zeros(4, dtype=np.int64)
+    for scan in scans:
+        beams = beam_points(scan, min(cfg.range_max_m, scan.range_max_m))
+        segs = line_segments(beams, cfg)
+        pairs = meeting_pairs(segs, cfg)
+        _same_fields(pairs, numpy_stages.meeting_pairs(segs, cfg))
+        corners = find_corners(segs, pairs, cfg)
+        _same_fields(corners, numpy_stages.find_corners(segs, pairs, cfg))
+        in_corner = corners.endpoint_mask(segs.lines.shape[0])
+        eows = find_ends_of_wall(beams, segs, in_corner, cfg)
+        _same_fields(eows, numpy_stages.find_ends_of_wall(beams, segs, in_corner, cfg))
+        inters = find_intersections(beams, segs, pairs, corners, cfg)
+        _same_fields(inters, numpy_stages.find_intersections(beams, segs, pairs, corners, cfg))
+        found += [len(pairs.first), len(corners.xy), len(eows.xy), len(inters.xy)]
+    assert np.all(found >= [1000, 300, 50, 20]), found
 
 
 def _sawtooth_scan(n_teeth: int, n_beams: int) -> tuple[LaserScan, np.ndarray]:
