@@ -108,6 +108,10 @@ def extract_points(scan: LaserScan, config: FeatureConfig | None = None) -> np.n
     return beam_points(scan, float(min(cfg.range_max_m, scan.range_max_m))).points
 
 
+#: The feature kinds in :func:`assemble`'s order.
+_KINDS = np.array([FeatureKind.CORNER, FeatureKind.EOW, FeatureKind.INTERSECTION], dtype=np.int64)
+
+
 def assemble(
     points: np.ndarray,
     segs: Segments,
@@ -130,13 +134,7 @@ def assemble(
     """
     corners, eows, inters = features
     n_c, n_e, n_i = corners.xy.shape[0], eows.xy.shape[0], inters.xy.shape[0]
-    kind = np.concatenate(
-        [
-            np.full(n_c, FeatureKind.CORNER, dtype=np.int64),
-            np.full(n_e, FeatureKind.EOW, dtype=np.int64),
-            np.full(n_i, FeatureKind.INTERSECTION, dtype=np.int64),
-        ]
-    )
+    kind = np.repeat(_KINDS, [n_c, n_e, n_i])
     eow_ids = np.stack([eows.seg, np.full(n_e, -1, dtype=np.int64)], axis=1)
     return ScanFeatures(
         points_xy=points,

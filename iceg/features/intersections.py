@@ -129,12 +129,19 @@ def best_determined(xy: FloatArray, cov: FloatArray, duplicate_m: float) -> IntA
     """
     order = np.argsort(np.trace(cov, axis1=1, axis2=2), kind="stable")
     near = close_pairs(xy[order], duplicate_m)  # (a, b) positions in `order`, a < b
-    starts = np.searchsorted(near[:, 0], np.arange(order.size + 1))
-    keep = np.ones(order.size, dtype=bool)
-    for a in range(order.size):
-        if keep[a]:
-            keep[near[starts[a] : starts[a + 1], 1]] = False
-    return order[keep]
+    return order[_kept_first(near, order.size)]
+
+
+@njit(cache=True, nogil=True)
+def _kept_first(near: IntArray, n: int) -> BoolArray:
+    """``(n,)`` bool: the greedy of :func:`best_determined` over positions ``0 .. n - 1``,
+    ``near`` ``(K, 2)`` the pairs ``(a, b)``, ``a < b``, sorted by ``a``: a kept position
+    drops every later one near it (a position's own keep is settled before its pairs)."""
+    keep = np.ones(n, dtype=np.bool_)
+    for k in range(near.shape[0]):
+        if keep[near[k, 0]]:
+            keep[near[k, 1]] = False
+    return keep
 
 
 def find_intersections(

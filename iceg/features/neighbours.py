@@ -9,9 +9,11 @@ than a tree and are used directly; both give the same pairs after the exact test
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from iceg.features.geometry import norm
@@ -80,10 +82,9 @@ def close_pairs(xy: FloatArray, radius_m: float) -> IntArray:
     """
     q = xy.shape[0]
     if q <= DENSE_MAX_ROWS:
-        a, b = _all_pairs(q)
-    else:
-        cand = _kdtree()(xy).query_pairs(_tree_radius(radius_m), output_type="ndarray")
-        a, b = _lexicographic(cand[:, 0], cand[:, 1], q).T
+        return _close_pairs_dense(np.ascontiguousarray(xy, dtype=np.float64), float(radius_m))
+    cand = _kdtree()(xy).query_pairs(_tree_radius(radius_m), output_type="ndarray")
+    a, b = _lexicographic(cand[:, 0], cand[:, 1], q).T
     near = norm(xy[a] - xy[b]) <= radius_m
     return np.stack([a[near], b[near]], axis=1).astype(np.int64, copy=False)
 
@@ -103,13 +104,39 @@ def close_to_any(xy: FloatArray, ref: FloatArray, radius_m: float) -> BoolArray:
     if xy.shape[0] == 0 or ref.shape[0] == 0:
         return out
     if xy.shape[0] * ref.shape[0] <= DENSE_MAX_ROWS**2:
-        out[(norm(xy[:, None, :] - ref[None, :, :]) <= radius_m).any(axis=1)] = True
-        return out
+        xy, ref = np.ascontiguousarray(xy, np.float64), np.ascontiguousarray(ref, np.float64)
+        return _close_to_any_dense(xy, ref, float(radius_m))
     lists = _kdtree()(ref).query_ball_point(xy, _tree_radius(radius_m))
     counts = np.array([len(li) for li in lists], dtype=np.int64)
     q = np.repeat(np.arange(xy.shape[0]), counts)
     r = np.fromiter((k for li in lists for k in li), dtype=np.int64, count=int(counts.sum()))
     out[q[norm(xy[q] - ref[r]) <= radius_m]] = True
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _close_pairs_dense(xy: FloatArray, radius_m: float) -> IntArray:
+    """:func:`close_pairs` by testing every pair, in ``np.triu_indices`` order."""
+    q = xy.shape[0]
+    out = np.empty((q * (q - 1) // 2, 2), dtype=np.int64)
+    n = 0
+    for a in range(q):
+        for b in range(a + 1, q):
+            if math.hypot(xy[a, 0] - xy[b, 0], xy[a, 1] - xy[b, 1]) <= radius_m:
+                out[n, 0], out[n, 1] = a, b
+                n += 1
+    return out[:n]
+
+
+@njit(cache=True, nogil=True)
+def _close_to_any_dense(xy: FloatArray, ref: FloatArray, radius_m: float) -> BoolArray:
+    """:func:`close_to_any` by testing every point against every reference point."""
+    out = np.zeros(xy.shape[0], dtype=np.bool_)
+    for q in range(xy.shape[0]):
+        for r in range(ref.shape[0]):
+            if math.hypot(xy[q, 0] - ref[r, 0], xy[q, 1] - ref[r, 1]) <= radius_m:
+                out[q] = True
+                break
     return out
 
 

@@ -1,8 +1,8 @@
 """Scan segmentation: adaptive breakpoints, then split-and-merge inside each cluster.
 
-docs/design.md "ICE matching, step by step", steps 2-3; paper §III-C1. The breakpoint test is
-vectorized over the scan; the recursive end-point fit and the merge run in a numba-compiled
-loop (a few dozen segments per scan, each needing a pass over its points).
+docs/design.md "ICE matching, step by step", steps 2-3; paper §III-C1. The breakpoint test, the
+recursive end-point fit and the merge run in numba-compiled loops (a few dozen segments per
+scan, each needing a pass over its points).
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ MAX_MERGE_PASSES = 4
 DEGENERATE_CHORD_M = 1e-12
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
 def breakpoints(
     points_xy: FloatArray,
     ranges_m: FloatArray,
@@ -57,23 +58,23 @@ def breakpoints(
         index; ``[0]`` for an empty scan.
     """
     n = points_xy.shape[0]
-    if n == 0:
-        return np.zeros(1, dtype=np.int64)
-    step = np.diff(points_xy, axis=0)
-    jump = np.hypot(step[:, 0], step[:, 1])
-    dphi = np.diff(bearings_rad)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        d_max = (
-            ranges_m[:-1] * np.sin(dphi) / np.sin(lambda_rad - dphi)
-            + BREAKPOINT_SIGMAS * sigma_range_m
-        )
-    brk = (np.diff(beam_index) != 1) | (dphi >= lambda_rad) | (jump > d_max)
-    inner = np.flatnonzero(brk) + 1
-    out = np.empty(inner.shape[0] + 2, dtype=np.int64)
+    out = np.empty(n + 2, dtype=np.int64)
     out[0] = 0
-    out[1:-1] = inner
-    out[-1] = n
-    return out
+    if n == 0:
+        return out[:1]
+    noise = BREAKPOINT_SIGMAS * sigma_range_m
+    k = 1
+    for i in range(1, n):
+        dphi = bearings_rad[i] - bearings_rad[i - 1]
+        jump = math.hypot(
+            points_xy[i, 0] - points_xy[i - 1, 0], points_xy[i, 1] - points_xy[i - 1, 1]
+        )
+        d_max = ranges_m[i - 1] * math.sin(dphi) / math.sin(lambda_rad - dphi) + noise
+        if beam_index[i] - beam_index[i - 1] != 1 or dphi >= lambda_rad or jump > d_max:
+            out[k] = i
+            k += 1
+    out[k] = n
+    return out[: k + 1]
 
 
 @njit(cache=True)

@@ -9,10 +9,11 @@ import math
 from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from iceg.features.config import FeatureConfig
-from iceg.features.geometry import norm
+from iceg.features.geometry import dot2
 from iceg.features.lines import fit_lines
 from iceg.features.points import BeamPoints
 from iceg.features.segmentation import breakpoints, split_and_merge
@@ -46,55 +47,59 @@ def segment_point_ranges(beams: BeamPoints, cfg: FeatureConfig) -> IntArray:
     Returns:
         ``(M, 2)`` int64 ``[start, stop)`` indices into ``beams.points``, in point order.
     """
-    points, beam_index = beams.points, beams.beam_index
-    bounds = breakpoints(
-        points,
+    return _segment_point_ranges(
+        beams.points,
         beams.point_ranges,
         beams.angles[beams.valid],
-        beam_index,
-        cfg.sigma_range_m,
-        math.radians(cfg.breakpoint_lambda_deg),
+        beams.beam_index,
+        _SegmentationSettings(
+            cfg.sigma_range_m,
+            math.radians(cfg.breakpoint_lambda_deg),
+            cfg.dropout_max_beams,
+            cfg.split_distance_m,
+            cfg.merge_distance_m,
+            cfg.min_segment_points,
+        ),
     )
-    inner = bounds[1:-1]
-    gap_beams = beam_index[inner] - beam_index[inner - 1] - 1
-    joinable = (gap_beams >= 1) & (gap_beams <= cfg.dropout_max_beams)
+
+
+class _SegmentationSettings(NamedTuple):
+    """:func:`segment_point_ranges`'s thresholds for its kernel."""
+
+    sigma_range_m: float
+    lambda_rad: float
+    dropout_max_beams: int
+    split_distance_m: float
+    merge_distance_m: float
+    min_segment_points: int
+
+
+@njit(cache=True, nogil=True)
+def _segment_point_ranges(
+    points: FloatArray,
+    ranges: FloatArray,
+    bearings: FloatArray,
+    beam_index: IntArray,
+    s: _SegmentationSettings,
+) -> IntArray:
+    """:func:`segment_point_ranges`, compiled: clusters joinable across a dropout of 1 to
+    ``dropout_max_beams`` invalid beams."""
+    bounds = breakpoints(points, ranges, bearings, beam_index, s.sigma_range_m, s.lambda_rad)
+    n_inner = max(bounds.shape[0] - 2, 0)
+    joinable = np.empty(n_inner, dtype=np.bool_)
+    for c in range(n_inner):
+        at = bounds[c + 1]
+        gap_beams = beam_index[at] - beam_index[at - 1] - 1
+        joinable[c] = 1 <= gap_beams <= s.dropout_max_beams
     return split_and_merge(
         np.ascontiguousarray(points[:, 0]),
         np.ascontiguousarray(points[:, 1]),
         bounds,
         joinable,
-        cfg.split_distance_m,
-        cfg.merge_distance_m,
-        cfg.min_segment_points,
+        s.split_distance_m,
+        s.merge_distance_m,
+        s.min_segment_points,
     )
-
-
-def endpoint_spacing(
-    beams: BeamPoints, end_beam: IntArray, normals: FloatArray, cfg: FeatureConfig
-) -> FloatArray:
-    """Along-wall distance between consecutive beams at each segment endpoint.
-
-    ``r dphi / max(|cos incidence|, cos(eow_max_incidence_deg))`` with ``r`` the endpoint
-    beam's range, ``dphi`` the mean beam step and the incidence measured from the wall
-    normal: at grazing incidence consecutive beams land far apart, so gaps near an endpoint
-    scale with it.
-
-    Args:
-        beams: The scan's beams.
-        end_beam: ``(M, 2)`` int64 beam index of each segment's first and last point.
-        normals: ``(M, 2)`` float64 unit normals of the segments' lines.
-        cfg: ``eow_max_incidence_deg`` is read.
-
-    Returns:
-        ``(M, 2)`` float64 metres.
-    """
-    angles = beams.angles
-    n_beams = angles.shape[0]
-    dphi = (angles[-1] - angles[0]) / max(n_beams - 1, 1)
-    cos_max_inc = math.cos(math.radians(cfg.eow_max_incidence_deg))
-    cos_inc_end = np.abs(np.einsum("mj,mej->me", normals, beams.dirs[end_beam]))
-    spacing: FloatArray = beams.ranges[end_beam] * dphi / np.maximum(cos_inc_end, cos_max_inc)
-    return spacing
 
 
 def line_segments(beams: BeamPoints, cfg: FeatureConfig) -> Segments:
@@ -122,17 +127,61 @@ def line_segments(beams: BeamPoints, cfg: FeatureConfig) -> Segments:
         math.radians(cfg.sigma_bearing_deg),
         cfg.line_variance_from_residuals,
     )
-    keep = norm(endpoints[:, 1] - endpoints[:, 0]) >= cfg.min_segment_length_m
-    seg_range, lines = seg_range[keep], lines[keep]
-    normals = np.stack([np.cos(lines[:, 0]), np.sin(lines[:, 0])], axis=1)
-    bi = beams.beam_index
-    end_beam = np.stack([bi[seg_range[:, 0]], bi[seg_range[:, 1] - 1]], axis=1)
+    angles = beams.angles
+    dphi = (angles[-1] - angles[0]) / max(angles.shape[0] - 1, 1)
+    cos_max_inc = math.cos(math.radians(cfg.eow_max_incidence_deg))
     return Segments(
-        point_range=seg_range,
-        lines=lines,
-        cov=seg_cov[keep],
-        endpoints=endpoints[keep],
-        end_beam=end_beam,
-        spacing=endpoint_spacing(beams, end_beam, normals, cfg),
-        normals=normals,
+        *_kept_segments(
+            seg_range,
+            lines,
+            seg_cov,
+            endpoints,
+            beams.beam_index,
+            beams.ranges,
+            beams.dirs,
+            np.array([cfg.min_segment_length_m, dphi, cos_max_inc]),
+        )
     )
+
+
+@njit(cache=True, nogil=True)
+def _kept_segments(
+    seg_range: IntArray,
+    lines: FloatArray,
+    cov: FloatArray,
+    endpoints: FloatArray,
+    beam_index: IntArray,
+    ranges: FloatArray,
+    dirs: FloatArray,
+    settings: FloatArray,
+) -> tuple[IntArray, FloatArray, FloatArray, FloatArray, IntArray, FloatArray, FloatArray]:
+    """The fields of :class:`Segments` for the fitted segments at least ``settings[0]``
+    metres long between their projected endpoints. ``settings[1]`` is the mean beam step
+    (rad) and ``settings[2]`` the cosine of ``eow_max_incidence_deg``: the along-wall
+    distance between consecutive beams at an endpoint is ``r dphi / max(|cos incidence|,
+    cos(eow_max_incidence_deg))`` with ``r`` the endpoint beam's range and the incidence
+    measured from the wall normal (at grazing incidence consecutive beams land far apart,
+    so gaps near an endpoint scale with it)."""
+    min_length, dphi, cos_max_inc = settings[0], settings[1], settings[2]
+    m = seg_range.shape[0]
+    keep = np.empty(m, dtype=np.bool_)
+    for k in range(m):
+        dx = endpoints[k, 1, 0] - endpoints[k, 0, 0]
+        dy = endpoints[k, 1, 1] - endpoints[k, 0, 1]
+        keep[k] = math.hypot(dx, dy) >= min_length
+    seg_range, lines, cov, endpoints = seg_range[keep], lines[keep], cov[keep], endpoints[keep]
+    n = seg_range.shape[0]
+    normals = np.empty((n, 2))
+    end_beam = np.empty((n, 2), dtype=np.int64)
+    spacing = np.empty((n, 2))
+    for k in range(n):
+        normals[k, 0], normals[k, 1] = math.cos(lines[k, 0]), math.sin(lines[k, 0])
+        end_beam[k, 0] = beam_index[seg_range[k, 0]]
+        end_beam[k, 1] = beam_index[seg_range[k, 1] - 1]
+        for e in range(2):
+            b = end_beam[k, e]
+            cos_inc = abs(dot2(normals[k, 0], normals[k, 1], dirs[b, 0], dirs[b, 1]))
+            spacing[k, e] = (
+                ranges[b] * dphi / (cos_inc if not cos_inc < cos_max_inc else cos_max_inc)
+            )
+    return seg_range, lines, cov, endpoints, end_beam, spacing, normals
