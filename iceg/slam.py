@@ -105,6 +105,11 @@ _POINT_FALLBACK_REASONS = frozenset(
 #: Failure category of a match whose reason is empty.
 _UNKNOWN_REASON = "unknown"
 
+#: At most this many keyframes placed without a match keep their features for the offline
+#: second match (:meth:`Slam._rematch_unmatched_keyframes`); the others are extracted again.
+#: MIT CSAIL has 11 such keyframes of 1814.
+KEPT_UNMATCHED_FEATURES = 256
+
 __all__ = [
     "Anchor",
     "LoopClosureStats",
@@ -327,6 +332,8 @@ class Slam:
         self.point_matcher = PlIcpMatcher(self.config.matching)
         self._node_points: dict[int, FloatArray] = {}  # recent nodes' scan points (cache)
         self._last_features: tuple[int, ScanFeatures] | None = None  # newest node, features
+        # keyframes placed without a match: their features, for the offline second match
+        self._unmatched_features: dict[int, ScanFeatures] = {}
         self._feature_map = FeatureMap(self.config.feature_map)
         self.loop_closer = LoopCloser(
             self.config.loop_closure, self.matcher, self._feature_map, self.config.odometry_noise
@@ -964,10 +971,15 @@ class Slam:
         return move_point_blocks(relative, counts, np.concatenate(points))
 
     def _remember_points(self, node_id: int, feats: ScanFeatures) -> None:
-        """Keep the new node's scan points for :meth:`_point_match`; forget those of nodes
-        that left the local map."""
+        """Keep the new node's scan points for :meth:`_point_match`, and its features where
+        no match placed it (:data:`KEPT_UNMATCHED_FEATURES`, for the offline second match:
+        the same features as an extraction, which the calling process may not have loaded
+        the kernels of); forget the points of nodes that left the local map."""
         self._node_points[node_id] = feats.points_xy
         self._last_features = (node_id, feats)
+        unmatched = self._unmatched_features
+        if not self._s.node_matched[node_id] and len(unmatched) < KEPT_UNMATCHED_FEATURES:
+            unmatched[node_id] = feats
         for old in [
             i for i in self._node_points if i <= node_id - self.config.slam.local_map_nodes
         ]:
@@ -1209,7 +1221,9 @@ class Slam:
             last = node - 1
             predicted = se2.between(self._graph.estimate(last), self._graph.estimate(node))
             motion = _Motion(s.node_odom[node], predicted, link.cov, is_keyframe=True)
-            feats = extract(s.scans[s.node_scan_index[node]], self.config.features)
+            feats = self._unmatched_features.get(node)
+            if feats is None:  # not kept (past the cap, or a loaded session's keyframe)
+                feats = extract(s.scans[s.node_scan_index[node]], self.config.features)
             local = self._match_local(feats, motion, last, log_start)
             if local.result.success and consistent_with_prediction(
                 local.result, link.measured, link.cov

@@ -10,7 +10,9 @@ import pytest
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
+import iceg.slam as slam_module
 from frontends import open_log
+from frontends.scan import LaserScan
 from frontends.simulate import (
     ACCURATE_ODOMETRY,
     box_world,
@@ -25,6 +27,7 @@ from graph import FactorKind
 from graph.pose_graph import STEP_UPDATE
 from iceg.config import IcegConfig, SlamConfig
 from iceg.evaluation import position_errors
+from iceg.features import FeatureConfig, extract
 from iceg.pipeline import run_scans
 from iceg.slam import (
     CONSISTENCY_PROBABILITY,
@@ -37,7 +40,7 @@ from iceg.slam import (
     remap_weak_directions,
     sign_test_rejects,
 )
-from iceg.types import MatchResult
+from iceg.types import MatchResult, ScanFeatures
 from iceg_common import se2
 from iceg_common.errors import ScanError
 from tests.conftest import shared_file
@@ -488,12 +491,9 @@ def test_point_match_that_contradicts_the_prediction_is_refused() -> None:
     assert not consistent_with_prediction(far, np.zeros(3), cov)
 
 
-def test_keyframes_unmatched_online_are_matched_at_finish(office_run) -> None:  # type: ignore[no-untyped-def]
-    # Three keyframes lose their local match online (a failure injected once per node, as a
-    # passing occlusion would); finish() matches them again against the same local map from
-    # the current estimate and adds the scan-match factor each would have had. Truth: the
-    # simulator's poses.
-    lost = {20, 40, 60}
+def _flaky_run(run, lost: set[int]) -> Slam:  # type: ignore[no-untyped-def]
+    """``run``'s scans through a Slam whose local match fails once at each node of ``lost``
+    (a failure injected, as a passing occlusion would make it)."""
 
     class Flaky(Slam):
         def _match_local(self, feats, motion, last, log_start):  # type: ignore[no-untyped-def]
@@ -505,8 +505,17 @@ def test_keyframes_unmatched_online_are_matched_at_finish(office_run) -> None:  
             return local
 
     slam = Flaky()
-    for scan in office_run.scans:
+    for scan in run.scans:
         slam.process(scan)
+    return slam
+
+
+def test_keyframes_unmatched_online_are_matched_at_finish(office_run) -> None:  # type: ignore[no-untyped-def]
+    # Three keyframes lose their local match online (a failure injected once per node, as a
+    # passing occlusion would); finish() matches them again against the same local map from
+    # the current estimate and adds the scan-match factor each would have had. Truth: the
+    # simulator's poses.
+    slam = _flaky_run(office_run, {20, 40, 60})
     assert slam.export_state().match_failures["injected"] == 3
     online = {(f.i, f.j) for f in slam.graph.factors if f.kind == FactorKind.SCAN_MATCH}
     assert not online & {(19, 20), (39, 40), (59, 60)}
@@ -516,6 +525,34 @@ def test_keyframes_unmatched_online_are_matched_at_finish(office_run) -> None:  
     for i, j in ((19, 20), (39, 40), (59, 60)):
         e = se2.between(se2.between(truth[i], truth[j]), matched[(i, j)].measured)
         assert np.hypot(e[0], e[1]) < 0.02 and abs(e[2]) < np.radians(0.5)
+
+
+def test_the_second_match_uses_the_features_its_keyframe_had_online(
+    office_run, monkeypatch: pytest.MonkeyPatch
+) -> None:  # type: ignore[no-untyped-def]
+    # The unmatched keyframes keep their features for finish(): it extracts none again
+    # (a process whose features came from a worker need not load the extraction's kernels),
+    # and the factors are those of a run that extracts them again, bit for bit.
+    extracted: list[float] = []
+
+    def counted(scan: LaserScan, config: FeatureConfig) -> ScanFeatures:
+        extracted.append(scan.stamp_s)
+        return extract(scan, config)
+
+    monkeypatch.setattr(slam_module, "extract", counted)
+    kept = _flaky_run(office_run, {20, 40, 60})
+    n_online = len(extracted)
+    kept_factors = kept.finish().factors
+    assert len(extracted) == n_online
+    monkeypatch.setattr(slam_module, "KEPT_UNMATCHED_FEATURES", 0)
+    again = _flaky_run(office_run, {20, 40, 60})
+    n_online = len(extracted)
+    again_factors = again.finish().factors
+    assert len(extracted) == n_online + 3
+    assert len(kept_factors) == len(again_factors)
+    for a, b in zip(kept_factors, again_factors, strict=True):
+        assert (a.kind, a.i, a.j) == (b.kind, b.i, b.j)
+        assert a.measured.tobytes() == b.measured.tobytes() and a.cov.tobytes() == b.cov.tobytes()
 
 
 def test_tracking_recovers_from_odometry_that_jumped_ahead_and_stalled() -> None:
