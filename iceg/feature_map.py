@@ -47,7 +47,12 @@ from iceg.landmark_frames import (
 from iceg.matching.geometry import PolarProfile, transform_line_rows
 from iceg.matching.matcher import walls_seen_through
 from iceg.types import FeatureKind, MatchResult, ScanFeatures
-from iceg.visibility import count_observations, expected_landmarks, pruned_landmarks
+from iceg.visibility import (
+    count_observations,
+    expected_landmarks,
+    pruned_landmarks,
+    visibility_geometry,
+)
 from iceg_common.errors import FeatureMapError
 from iceg_common.ids import sorted_unique
 from iceg_common.se2 import compose
@@ -724,7 +729,8 @@ _VisibilityGeometry = tuple[FloatArray, FloatArray, FloatArray, FloatArray]
 
 
 def _geometry(features: ScanFeatures, offset_m: float) -> _VisibilityGeometry:
-    """Visibility geometry of each feature in its scan's frame (NaN-padded).
+    """Visibility geometry of each feature in its scan's frame (NaN-padded; compiled,
+    :func:`~iceg.visibility.visibility_geometry`).
 
     Returns:
         ``support`` ``(K, 3, 2)``: points that must be in view and not occluded: the point
@@ -734,21 +740,16 @@ def _geometry(features: ScanFeatures, offset_m: float) -> _VisibilityGeometry:
         ``wall_side`` ``(K, 2)``: on which side of each wall the sensor stood (+1 / -1): a
         wall is extracted from the side it was seen from.
     """
-    k = features.n_features
-    support = np.full((k, 3, 2), np.nan)
-    wall_p = np.full((k, 2, 2), np.nan)
-    wall_d = np.full((k, 2, 2), np.nan)
-    if k == 0:
-        return support, wall_p, wall_d, np.full((k, 2), np.nan)
-    xy, d = features.xy, features.directions
-    direct = features.kind != INTERSECTION
-    support[direct, 0] = xy[direct]
-    support[direct, 1] = xy[direct] + offset_m * d[direct, 0]
-    support[direct, 2] = xy[direct] + offset_m * d[direct, 1]  # NaN for EOWs
-    wall_p[direct] = xy[direct, None, :]
-    wall_d[direct] = d[direct]
-    _intersection_geometry(features, offset_m, support, wall_p, wall_d)
-    return support, wall_p, wall_d, _side_of_walls(wall_p, wall_d)
+    return visibility_geometry(
+        np.ascontiguousarray(features.kind, dtype=np.int64),
+        np.ascontiguousarray(features.xy, dtype=np.float64).reshape(-1, 2),
+        np.ascontiguousarray(features.directions, dtype=np.float64).reshape(-1, 2, 2),
+        np.ascontiguousarray(features.segment_ids, dtype=np.int64).reshape(-1, 2),
+        np.ascontiguousarray(features.seg_endpoints, dtype=np.float64).reshape(-1, 2, 2),
+        float(offset_m),
+        INTERSECTION,
+        _MIN_NORM,
+    )
 
 
 class VisibilityInputs(NamedTuple):
@@ -789,44 +790,6 @@ def remember_visibility_inputs(
     :func:`visibility_inputs` computed for them (or for copies of them, bit for bit: a
     worker's), instead of computing them again."""
     _AHEAD[features] = (scan, inputs)
-
-
-def _intersection_geometry(
-    features: ScanFeatures,
-    offset_m: float,
-    support: FloatArray,
-    wall_p: FloatArray,
-    wall_d: FloatArray,
-) -> None:
-    """Fill the Intersections' rows: per segment, its end nearest the feature and the
-    direction away from it (in place)."""
-    inter = np.flatnonzero(features.kind == INTERSECTION)
-    if not (inter.shape[0] and features.n_segments):
-        return
-    xy = features.xy
-    for slot in (0, 1):
-        sid = features.segment_ids[inter, slot]
-        ok = (sid >= 0) & (sid < features.n_segments)
-        rows = inter[ok]
-        ep = features.seg_endpoints[sid[ok]]  # (n, 2, 2)
-        dist = np.linalg.norm(ep - xy[rows, None, :], axis=2)
-        near_k = np.argmin(dist, axis=1)
-        ar = np.arange(rows.shape[0])
-        near = ep[ar, near_k]
-        far = ep[ar, 1 - near_k]
-        u = far - near
-        u /= np.maximum(np.linalg.norm(u, axis=1), _MIN_NORM)[:, None]
-        support[rows, slot] = near + offset_m * u
-        wall_p[rows, slot] = near
-        wall_d[rows, slot] = u
-
-
-def _side_of_walls(wall_p: FloatArray, wall_d: FloatArray) -> FloatArray:
-    """``(..., 2)`` side (+1 / -1, NaN without a wall) of each wall (a point ``wall_p`` on it
-    and its direction ``wall_d``, ``(..., 2, 2)``, one frame) on which that frame's origin
-    (the sensor) lies."""
-    with np.errstate(invalid="ignore"):
-        return np.sign(wall_d[..., 1] * wall_p[..., 0] - wall_d[..., 0] * wall_p[..., 1])
 
 
 class FeatureMap:

@@ -27,12 +27,87 @@ from numba import njit
 
 @njit(cache=True, nogil=True)
 def _sign(v: float) -> float:
-    """``np.sign`` of a float (NaN stays NaN)."""
+    """``np.sign`` of a float (NaN stays NaN; -0.0 gives +0.0, as numpy's does)."""
     if v > 0.0:
         return 1.0
     if v < 0.0:
         return -1.0
-    return v  # 0.0, -0.0 or NaN
+    return 0.0 if v == 0.0 else v
+
+
+@njit(cache=True, nogil=True)
+def visibility_geometry(
+    kind: np.ndarray,
+    xy: np.ndarray,
+    directions: np.ndarray,
+    segment_ids: np.ndarray,
+    seg_endpoints: np.ndarray,
+    offset_m: float,
+    intersection: int,
+    min_norm: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Visibility geometry of each of a scan's ``K`` features in its frame (NaN-padded;
+    ``iceg.feature_map`` keeps it with the landmarks the features become).
+
+    Args:
+        kind, xy, directions, segment_ids: The features' ``(K,)`` int64 kinds, ``(K, 2)``
+            float64 positions (m), ``(K, 2, 2)`` float64 unit edge directions and ``(K, 2)``
+            int64 segments, robot frame.
+        seg_endpoints: ``(M, 2, 2)`` float64 the scan's segment endpoints, metres.
+        offset_m: How far along a wall its support point lies, metres.
+        intersection: The Intersection kind's code.
+        min_norm: Floor of a segment's length where its direction is normalised, metres.
+
+    Returns:
+        ``support`` ``(K, 3, 2)``: points that must be in view and not occluded: the point
+        and ``offset_m`` along each wall for Corners and EOWs (the second wall NaN for an
+        EOW); for an Intersection a point ``offset_m`` inside each of its two segments from
+        the end nearest to it (a segment id outside the scan's leaves its rows NaN).
+        ``wall_p``, ``wall_d`` ``(K, 2, 2)``: a point on each wall and the wall's direction.
+        ``wall_side`` ``(K, 2)``: on which side of each wall the sensor stood (+1 / -1): a
+        wall is extracted from the side it was seen from. The values of the numpy
+        expressions this replaced (``np.linalg.norm``'s sum of squares, ``np.argmin``'s
+        first nearest end, ``np.sign``) bit for bit.
+    """
+    k = kind.shape[0]
+    m = seg_endpoints.shape[0]
+    support = np.full((k, 3, 2), np.nan)
+    wall_p = np.full((k, 2, 2), np.nan)
+    wall_d = np.full((k, 2, 2), np.nan)
+    wall_side = np.full((k, 2), np.nan)
+    for f in range(k):
+        x, y = xy[f, 0], xy[f, 1]
+        if kind[f] != intersection:
+            support[f, 0, 0], support[f, 0, 1] = x, y
+            for w in range(2):
+                dx, dy = directions[f, w, 0], directions[f, w, 1]
+                support[f, w + 1, 0] = x + offset_m * dx
+                support[f, w + 1, 1] = y + offset_m * dy
+                wall_p[f, w, 0], wall_p[f, w, 1] = x, y
+                wall_d[f, w, 0], wall_d[f, w, 1] = dx, dy
+        else:
+            for w in range(2):
+                sid = segment_ids[f, w]
+                if sid < 0 or sid >= m:
+                    continue
+                ep = seg_endpoints[sid]
+                d0 = math.sqrt((ep[0, 0] - x) ** 2 + (ep[0, 1] - y) ** 2)
+                d1 = math.sqrt((ep[1, 0] - x) ** 2 + (ep[1, 1] - y) ** 2)
+                near = 1 if d1 < d0 or (math.isnan(d1) and not math.isnan(d0)) else 0
+                ux = ep[1 - near, 0] - ep[near, 0]
+                uy = ep[1 - near, 1] - ep[near, 1]
+                length = math.sqrt(ux**2 + uy**2)
+                scale = length if not length < min_norm else min_norm  # np.maximum
+                ux, uy = ux / scale, uy / scale
+                support[f, w, 0] = ep[near, 0] + offset_m * ux
+                support[f, w, 1] = ep[near, 1] + offset_m * uy
+                wall_p[f, w, 0], wall_p[f, w, 1] = ep[near, 0], ep[near, 1]
+                wall_d[f, w, 0], wall_d[f, w, 1] = ux, uy
+        for w in range(2):
+            wall_side[f, w] = _sign(
+                wall_d[f, w, 1] * wall_p[f, w, 0] - wall_d[f, w, 0] * wall_p[f, w, 1]
+            )
+    return support, wall_p, wall_d, wall_side
 
 
 @njit(cache=True, nogil=True)
