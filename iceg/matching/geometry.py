@@ -14,7 +14,13 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from iceg.landmark_frames import move_lines
-from iceg.matching._kernels import beam_directions, feature_angles, segment_arrays
+from iceg.matching._kernels import (
+    beam_directions,
+    feature_angles,
+    point_segments,
+    polar_profile,
+    segment_arrays,
+)
 from iceg.types import FeatureKind, ScanFeatures
 from iceg_common.se2 import rotation_matrix as rot
 
@@ -201,36 +207,19 @@ class PolarProfile:
 
     @classmethod
     def from_points(cls, points_xy: FloatArray, range_max_m: float) -> PolarProfile:
-        """Profile of points ``(P, 2)`` (metres) seen from the frame's origin."""
-        pts = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
-        b = np.arctan2(pts[:, 1], pts[:, 0])
-        r = np.hypot(pts[:, 0], pts[:, 1])
-        order = np.argsort(b, kind="stable")
-        b, r = b[order], r[order]
-        if b.shape[0] >= 3:
-            gaps = np.diff(b)
-            spacing = float(np.median(gaps[gaps > 1e-9])) if np.any(gaps > 1e-9) else 0.01
-        else:
-            spacing = math.radians(1.0)
-        return cls(b, r, spacing, float(range_max_m))
+        """Profile of points ``(P, 2)`` (metres) seen from the frame's origin: bearings in
+        stable order, the median gap between distinct bearings as the spacing (compiled,
+        :func:`~iceg.matching._kernels.polar_profile`)."""
+        pts = np.ascontiguousarray(points_xy, dtype=np.float64).reshape(-1, 2)
+        bearing, rng, spacing = polar_profile(pts)
+        return cls(bearing, rng, float(spacing), float(range_max_m))
 
 
 def point_segment_index(features: ScanFeatures) -> IntArray:
     """``(P,)`` int64: the segment each point of ``features.points_xy`` belongs to (-1 if
     none), from ``seg_point_range``."""
-    n_pts = features.points_xy.shape[0]
-    out = np.full(n_pts, -1, dtype=np.int64)
-    spr = np.asarray(features.seg_point_range, dtype=np.int64).reshape(-1, 2)
-    ok = (spr[:, 0] >= 0) & (spr[:, 1] > spr[:, 0]) & (spr[:, 1] <= n_pts)
-    if not np.any(ok):
-        return out
-    seg = np.flatnonzero(ok)
-    lengths = spr[seg, 1] - spr[seg, 0]
-    idx = np.repeat(spr[seg, 0], lengths) + (
-        np.arange(lengths.sum()) - np.repeat(np.cumsum(lengths) - lengths, lengths)
-    )
-    out[idx] = np.repeat(seg, lengths)
-    return out
+    spr = np.ascontiguousarray(features.seg_point_range, dtype=np.int64).reshape(-1, 2)
+    return point_segments(spr, features.points_xy.shape[0])
 
 
 @dataclass(frozen=True, eq=False)

@@ -2306,3 +2306,34 @@ def test_feasible_pairs_are_the_numpy_expression(seed: int) -> None:
     got_i, got_j = feasible_pair_indices(pred, ref, radius, codes.astype(np.int64))
     assert np.array_equal(got_i, i[keep]) and np.array_equal(got_j, j[keep])
     assert got_i.dtype == np.int64 and got_j.dtype == np.int64
+
+
+def test_polar_profile_and_point_segments_are_the_numpy_expressions_bit_for_bit() -> None:
+    # PolarProfile.from_points and point_segment_index are compiled; against the numpy
+    # expressions they replaced (stable bearing order, the median gap of distinct
+    # bearings; each point's segment), bit for bit: a simulated run's scans, random point
+    # sets of 0 to 400 points (even and odd counts of gaps) and a bearing repeated.
+    rng = np.random.default_rng(12)
+    point_sets = [extract(scan).points_xy for scan in simulate(office_world(), seed=2).scans[::15]]
+    point_sets += [rng.normal(size=(n, 2)) * 5.0 for n in (0, 1, 2, 3, 4, 57, 400)]
+    point_sets.append(np.array([[1.0, 1.0], [2.0, 2.0], [0.0, 3.0], [-1.0, 0.5]]))
+    for pts in point_sets:
+        b = np.arctan2(pts[:, 1], pts[:, 0])
+        r = np.hypot(pts[:, 0], pts[:, 1])
+        order = np.argsort(b, kind="stable")
+        b, r = b[order], r[order]
+        gaps = np.diff(b)
+        if b.shape[0] < 3:
+            spacing = math.radians(1.0)
+        else:
+            spacing = float(np.median(gaps[gaps > 1e-9])) if np.any(gaps > 1e-9) else 0.01
+        prof = PolarProfile.from_points(pts, 20.0)
+        assert prof.bearing.tobytes() == b.tobytes() and prof.range.tobytes() == r.tobytes()
+        assert np.float64(prof.spacing).tobytes() == np.float64(spacing).tobytes()
+    for scan in simulate(office_world(), seed=3).scans[::15]:
+        f = extract(scan)
+        want = np.full(f.points_xy.shape[0], -1, dtype=np.int64)
+        for k, (start, stop) in enumerate(f.seg_point_range.tolist()):
+            want[start:stop] = k
+        assert point_segment_index(f).tolist() == want.tolist()
+        assert int(np.count_nonzero(want >= 0)) > 0
