@@ -48,6 +48,7 @@ from iceg.matching.geometry import PolarProfile, transform_line_rows
 from iceg.matching.matcher import walls_seen_through
 from iceg.types import FeatureKind, MatchResult, ScanFeatures
 from iceg.visibility import (
+    beam_profile,
     count_observations,
     expected_landmarks,
     pruned_landmarks,
@@ -630,15 +631,15 @@ class _BeamProfile:
 
     @classmethod
     def of_scan(cls, scan: LaserScan) -> _BeamProfile:
-        """Every beam of ``scan``: invalid returns block the view, max-range ones do not."""
-        order = np.argsort(scan.angles_rad, kind="stable")
-        ang = scan.angles_rad[order]
-        rng = scan.ranges_m[order]
-        valid = scan.valid_mask()[order]
-        with np.errstate(invalid="ignore"):
-            beyond = np.isfinite(rng) & (rng >= scan.range_max_m)
-        beam_r = np.where(valid, rng, np.where(beyond, np.inf, 0.0))
-        spacing = float(np.median(np.diff(ang))) if ang.shape[0] > 1 else _FALLBACK_SPACING_RAD
+        """Every beam of ``scan``: invalid returns block the view, max-range ones do not
+        (compiled, :func:`~iceg.visibility.beam_profile`)."""
+        ang, beam_r, spacing = beam_profile(  # own copies: one compiled array type
+            np.array(scan.angles_rad, dtype=np.float64),
+            np.array(scan.ranges_m, dtype=np.float64),
+            float(scan.range_min_m),
+            float(scan.range_max_m),
+        )
+        spacing = float(spacing) if ang.shape[0] > 1 else _FALLBACK_SPACING_RAD
         return cls(ang, beam_r, spacing, np.asarray(scan.laser_offset, dtype=np.float64))
 
     @classmethod

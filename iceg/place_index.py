@@ -24,10 +24,12 @@ global ICE match and a consistency check (:mod:`iceg.loop_closure`).
 from __future__ import annotations
 
 import functools
+import math
 import weakref
 from collections.abc import Callable, Sequence
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 from threadpoolctl import ThreadpoolController
@@ -58,35 +60,63 @@ class PlaceIndexConfig(BaseModel):
 def _soft_histogram(values: FloatArray, n_bins: int, max_value: float) -> FloatArray:
     """Histogram of ``values`` over ``[0, max_value]`` with linear interpolation between the
     two nearest bin centres (values beyond ``max_value`` are dropped), unit L2 norm (zeros
-    when empty)."""
-    hist = np.zeros(n_bins)
-    v = values[(values >= 0) & (values <= max_value)]
-    if v.size == 0:
-        return hist
-    pos = np.clip(v / max_value * n_bins - 0.5, 0.0, n_bins - 1.0)
-    lo = np.floor(pos).astype(np.int64)
-    hi = np.minimum(lo + 1, n_bins - 1)
-    w_hi = pos - lo
-    np.add.at(hist, lo, 1.0 - w_hi)
-    np.add.at(hist, hi, w_hi)
+    when empty): the counts compiled (:func:`_soft_counts`), the norm numpy's."""
+    if not max_value > 0.0:  # no span to bin over
+        return np.zeros(n_bins)
+    hist = _soft_counts(values, n_bins, max_value)
     norm = float(np.linalg.norm(hist))
     return hist / norm if norm > 0 else hist
+
+
+@njit(cache=True, nogil=True)
+def _soft_counts(values: FloatArray, n_bins: int, max_value: float) -> FloatArray:
+    """:func:`_soft_histogram` before its norm: each value in ``[0, max_value]`` adds
+    ``1 - w`` to the bin below its position and ``w`` to the bin above, all lower bins' terms
+    first, in the order of the values (``np.add.at``'s order, so the numpy sums' bits)."""
+    hist = np.zeros(n_bins)
+    pos = np.empty(values.shape[0])
+    n = 0
+    for v in values:
+        if v >= 0 and v <= max_value:
+            p = v / max_value * n_bins - 0.5
+            pos[n] = min(max(p, 0.0), n_bins - 1.0)  # np.clip (no NaN: v is in range)
+            n += 1
+    for k in range(n):
+        lo = math.floor(pos[k])
+        hist[int(lo)] += 1.0 - (pos[k] - lo)
+    for k in range(n):
+        lo = math.floor(pos[k])
+        hist[min(int(lo) + 1, n_bins - 1)] += pos[k] - lo
+    return hist
+
+
+@njit(cache=True, nogil=True)
+def _pair_distances(xy: FloatArray) -> FloatArray:
+    """``(K (K - 1) / 2,)`` distances of every pair ``i < j`` of the points ``(K, 2)``, in
+    ``np.triu_indices`` order (metres)."""
+    k = xy.shape[0]
+    out = np.empty(k * (k - 1) // 2)
+    n = 0
+    for i in range(k):
+        for j in range(i + 1, k):
+            out[n] = math.hypot(xy[i, 0] - xy[j, 0], xy[i, 1] - xy[j, 1])
+            n += 1
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _ranges(points: FloatArray) -> FloatArray:
+    """``(P,)`` distances of the points ``(P, 2)`` from their frame's origin (metres)."""
+    out = np.empty(points.shape[0])
+    for p in range(points.shape[0]):
+        out[p] = math.hypot(points[p, 0], points[p, 1])
+    return out
 
 
 @functools.cache
 def _blas() -> ThreadpoolController:
     """The process's thread pools (threadpoolctl), inspected once."""
     return ThreadpoolController()
-
-
-@functools.lru_cache(maxsize=256)
-def _pairs(n: int) -> tuple[IntArray, IntArray]:
-    """Indices ``(i, j)`` of every pair ``i < j`` of ``n`` items (``np.triu_indices``, built
-    once per count: it costs more than the descriptor's arithmetic), read-only."""
-    i, j = np.triu_indices(n, k=1)
-    i.flags.writeable = False
-    j.flags.writeable = False
-    return i, j
 
 
 #: Descriptors computed ahead (:func:`remember_place_descriptor`), by features object (dropped
@@ -115,11 +145,10 @@ def place_descriptor(features: ScanFeatures, config: PlaceIndexConfig | None = N
     if ahead is not None and ahead[0] == cfg:
         return ahead[1]
     r_max = float(features.range_max_m)
-    xy = np.asarray(features.xy, dtype=np.float64).reshape(-1, 2)
-    i, j = _pairs(xy.shape[0])
-    pair = _soft_histogram(np.hypot(*(xy[i] - xy[j]).T), cfg.pair_bins, 2.0 * r_max)
-    pts = np.asarray(features.points_xy, dtype=np.float64).reshape(-1, 2)
-    ranges = _soft_histogram(np.hypot(pts[:, 0], pts[:, 1]), cfg.range_bins, r_max)
+    xy = np.ascontiguousarray(features.xy, dtype=np.float64).reshape(-1, 2)
+    pair = _soft_histogram(_pair_distances(xy), cfg.pair_bins, 2.0 * r_max)
+    pts = np.ascontiguousarray(features.points_xy, dtype=np.float64).reshape(-1, 2)
+    ranges = _soft_histogram(_ranges(pts), cfg.range_bins, r_max)
     desc = np.concatenate([pair, cfg.range_weight * ranges])
     norm = float(np.linalg.norm(desc))
     return desc / norm if norm > 0 else desc

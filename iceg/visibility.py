@@ -36,6 +36,35 @@ def _sign(v: float) -> float:
 
 
 @njit(cache=True, nogil=True)
+def beam_profile(
+    angles: np.ndarray, ranges: np.ndarray, range_min_m: float, range_max_m: float
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """A scan's beams by bearing for the visibility test: ``(N,)`` bearings (rad, stable
+    order) and ranges (metres: a valid return's range, ``inf`` for a finite return at or
+    beyond ``range_max_m``, which blocks nothing, 0 for any other invalid beam, which
+    blocks the view), and the median step between consecutive bearings (rad; NaN under two
+    beams). The numpy expressions' values (``feature_map._BeamProfile.of_scan``)."""
+    n = angles.shape[0]
+    order = np.argsort(angles, kind="mergesort")
+    bearing = angles[order]
+    beam_r = np.empty(n)
+    for i in range(n):
+        r = ranges[order[i]]
+        if math.isfinite(r) and range_min_m < r < range_max_m:
+            beam_r[i] = r
+        elif math.isfinite(r) and r >= range_max_m:
+            beam_r[i] = np.inf
+        else:
+            beam_r[i] = 0.0
+    if n < 2:
+        return bearing, beam_r, np.nan
+    steps = np.sort(bearing[1:] - bearing[:-1])
+    half = (n - 1) // 2
+    spacing = steps[half] if (n - 1) % 2 else (steps[half - 1] + steps[half]) / 2.0
+    return bearing, beam_r, spacing
+
+
+@njit(cache=True, nogil=True)
 def visibility_geometry(
     kind: np.ndarray,
     xy: np.ndarray,

@@ -1218,3 +1218,31 @@ def test_visibility_geometry_equals_the_numpy_expressions_bit_for_bit() -> None:
                 assert (a.shape, a.tobytes()) == (b.shape, b.tobytes())
             n_inter += int(np.count_nonzero(f.kind == int(FeatureKind.INTERSECTION)))
     assert n_inter > 100
+
+
+def test_beam_profile_equals_the_numpy_expressions_bit_for_bit() -> None:
+    # A scan's beams by bearing for the visibility test, compiled, against the numpy
+    # expressions they replaced: valid returns keep their range, a finite return at or
+    # beyond the maximum range is inf (it blocks nothing), other invalid beams 0; the
+    # median step between bearings (odd and even counts of steps).
+    run = simulate(office_world(), seed=7)
+    n_inf = 0
+    for scan in run.scans[::20]:
+        blocked = np.where(np.arange(scan.n_beams) % 7 == 0, np.inf, 30.0)
+        for ranges in (scan.ranges_m, blocked):
+            for n in (scan.n_beams, scan.n_beams - 1):
+                s = dataclasses.replace(
+                    scan, ranges_m=np.array(ranges[:n]), angles_rad=scan.angles_rad[:n]
+                )
+                got = feature_map._BeamProfile.of_scan(s)
+                order = np.argsort(s.angles_rad, kind="stable")
+                rng = s.ranges_m[order]
+                with np.errstate(invalid="ignore"):
+                    beyond = np.isfinite(rng) & (rng >= s.range_max_m)
+                want = np.where(s.valid_mask()[order], rng, np.where(beyond, np.inf, 0.0))
+                assert got.bearing.tobytes() == s.angles_rad[order].tobytes()
+                assert got.range_m.tobytes() == want.tobytes()
+                step = float(np.median(np.diff(s.angles_rad[order])))
+                assert np.float64(got.spacing_rad).tobytes() == np.float64(step).tobytes()
+                n_inf += int(np.count_nonzero(np.isinf(got.range_m)))
+    assert n_inf > 100

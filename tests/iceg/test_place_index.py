@@ -144,3 +144,39 @@ def test_index_retrieves_the_true_place_on_simulated_revisits(two_loop_features)
     assert revisits > 150
     assert hits[1] / revisits >= 0.8
     assert hits[3] / revisits >= 0.9
+
+
+def _numpy_soft_histogram(values: np.ndarray, n_bins: int, max_value: float) -> np.ndarray:
+    hist = np.zeros(n_bins)
+    v = values[(values >= 0) & (values <= max_value)]
+    if v.size == 0:
+        return hist
+    pos = np.clip(v / max_value * n_bins - 0.5, 0.0, n_bins - 1.0)
+    lo = np.floor(pos).astype(np.int64)
+    w_hi = pos - lo
+    np.add.at(hist, lo, 1.0 - w_hi)
+    np.add.at(hist, np.minimum(lo + 1, n_bins - 1), w_hi)
+    norm = float(np.linalg.norm(hist))
+    return hist / norm if norm > 0 else hist
+
+
+def test_descriptor_equals_the_numpy_expressions_bit_for_bit() -> None:
+    # The pair distances, ranges and soft counts are compiled; the descriptor is the numpy
+    # expressions' (np.hypot over np.triu_indices pairs, np.add.at), bit for bit, on a
+    # simulated run's keyframes and on scans with none, one and many features.
+    cfg = PlaceIndexConfig()
+    run = simulate_scenario("office", seed=4)
+    feats = [extract(scan) for scan in run.scans[::10]]
+    feats.append(dataclasses.replace(feats[0], xy=feats[0].xy[:1], kind=feats[0].kind[:1]))
+    feats.append(dataclasses.replace(feats[0], xy=np.zeros((0, 2)), points_xy=np.zeros((0, 2))))
+    for f in feats:
+        r_max = float(f.range_max_m)
+        i, j = np.triu_indices(f.xy.shape[0], k=1)
+        pair = _numpy_soft_histogram(np.hypot(*(f.xy[i] - f.xy[j]).T), cfg.pair_bins, 2 * r_max)
+        pts = f.points_xy
+        rng = _numpy_soft_histogram(np.hypot(pts[:, 0], pts[:, 1]), cfg.range_bins, r_max)
+        want = np.concatenate([pair, cfg.range_weight * rng])
+        norm = float(np.linalg.norm(want))
+        want = want / norm if norm > 0 else want
+        assert place_descriptor(f, cfg).tobytes() == want.tobytes()
+    assert sum(f.xy.shape[0] for f in feats) > 200
