@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from frontends.scan import LaserScan
@@ -38,8 +40,7 @@ def check_bearings(scan: LaserScan) -> None:
         ScanError: two consecutive beams' bearings do not increase (the reader's angle
             convention is wrong; every later step assumes beam order is bearing order).
     """
-    angles = scan.angles_rad
-    if angles.shape[0] > 1 and np.any(np.diff(angles) <= 0.0):
+    if not _increasing(np.array(scan.angles_rad, dtype=np.float64)):  # own copy: one type
         raise ScanError(
             f"{scan.source}: beam bearings must increase strictly (got a non-increasing step); "
             "fix the reader's angle convention"
@@ -63,20 +64,70 @@ def beam_points(scan: LaserScan, range_max_m: float) -> BeamPoints:
     # Own writable copies (a reader may hand out read-only arrays): the compiled stages
     # then see one array type whatever the reader.
     ranges = np.array(scan.ranges_m, dtype=np.float64)
-    with np.errstate(invalid="ignore"):
-        no_return = np.isposinf(ranges) | (np.isfinite(ranges) & (ranges >= range_max_m))
-        valid = np.isfinite(ranges) & (ranges > scan.range_min_m) & (ranges < range_max_m)
-    bearing_robot = scan.angles_rad + scan.laser_offset[2]
+    angles = np.array(scan.angles_rad, dtype=np.float64)
+    origin = np.array(scan.laser_offset, dtype=np.float64)
+    valid, no_return, beam_index, points, dirs, bearing_robot = _beams(
+        ranges, angles, origin, float(scan.range_min_m), float(range_max_m)
+    )
     return BeamPoints(
         ranges=ranges,
-        angles=np.array(scan.angles_rad, dtype=np.float64),
+        angles=angles,
         valid=valid,
         no_return=no_return,
-        beam_index=np.flatnonzero(valid).astype(np.int64),
-        points=scan.points_xy(valid),
-        point_ranges=ranges[valid],
-        dirs=np.stack([np.cos(bearing_robot), np.sin(bearing_robot)], axis=1),
+        beam_index=beam_index,
+        points=points,
+        point_ranges=ranges[beam_index],
+        dirs=dirs,
         bearing_robot=bearing_robot,
-        origin=np.array(scan.laser_offset[:2], dtype=np.float64),
+        origin=origin[:2].copy(),
         range_max=range_max_m,
     )
+
+
+@njit(cache=True, nogil=True)
+def _increasing(angles: FloatArray) -> bool:
+    """Whether no step of ``angles`` ``(N,)`` is ``<= 0`` (a NaN step is not, as in the
+    numpy test this replaced; a LaserScan's bearings are finite)."""
+    for i in range(1, angles.shape[0]):  # noqa: SIM110 (all(> 0) would refuse a NaN step)
+        if angles[i] - angles[i - 1] <= 0.0:
+            return False
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _beams(
+    ranges: FloatArray,
+    angles: FloatArray,
+    offset: FloatArray,
+    range_min_m: float,
+    range_max_m: float,
+) -> tuple[BoolArray, BoolArray, IntArray, FloatArray, FloatArray, FloatArray]:
+    """:func:`beam_points`' arrays in one pass: ``valid`` and ``no_return`` ``(N,)``, the
+    valid beams' indices ``(P,)``, their points ``(P, 2)`` as
+    :meth:`~frontends.scan.LaserScan.points_xy` gives them (``r (cos a, sin a) + offset_xy``
+    with ``a`` the robot-frame bearing), every beam's unit direction ``(N, 2)`` and
+    robot-frame bearing ``(N,)``."""
+    n = ranges.shape[0]
+    valid = np.empty(n, dtype=np.bool_)
+    no_return = np.empty(n, dtype=np.bool_)
+    bearing = np.empty(n)
+    dirs = np.empty((n, 2))
+    n_valid = 0
+    for i in range(n):
+        r = ranges[i]
+        finite = math.isfinite(r)
+        valid[i] = finite and range_min_m < r < range_max_m
+        no_return[i] = (r == np.inf) or (finite and r >= range_max_m)
+        n_valid += valid[i]
+        bearing[i] = angles[i] + offset[2]
+        dirs[i, 0], dirs[i, 1] = math.cos(bearing[i]), math.sin(bearing[i])
+    beam_index = np.empty(n_valid, dtype=np.int64)
+    points = np.empty((n_valid, 2))
+    k = 0
+    for i in range(n):
+        if valid[i]:
+            beam_index[k] = i
+            points[k, 0] = ranges[i] * dirs[i, 0] + offset[0]
+            points[k, 1] = ranges[i] * dirs[i, 1] + offset[1]
+            k += 1
+    return valid, no_return, beam_index, points, dirs, bearing

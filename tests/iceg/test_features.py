@@ -1243,3 +1243,36 @@ def test_large_scan_features_are_bounded_neighbourhood_and_true(
     g = extract(scan, cfg)
     for name in ("kind", "xy", "cov", "segment_ids", "opening_rad"):
         np.testing.assert_array_equal(getattr(f, name), getattr(g, name))
+
+
+def test_beam_points_are_the_numpy_expressions_bit_for_bit() -> None:
+    # beam_points is one compiled pass; its arrays against the numpy expressions it
+    # replaced (the points those of LaserScan.points_xy), on simulated scans with a laser
+    # off the robot's centre and ranges made invalid every way a reader can give them.
+    run = simulate(office_world(), seed=8)
+    bad = np.array([np.nan, np.inf, -np.inf, 0.0, -1.0, 19.99, 20.0, 25.0])
+    for k, scan in enumerate(run.scans[::25]):
+        ranges = scan.ranges_m.copy()
+        ranges[k % 5 :: 9] = bad[np.arange(ranges[k % 5 :: 9].shape[0]) % bad.shape[0]]
+        s = replace(scan, ranges_m=ranges, laser_offset=np.array([0.25, -0.1, 0.2]))
+        for range_max in (20.0, 8.0):
+            got = beam_points(s, range_max)
+            with np.errstate(invalid="ignore"):
+                no_return = np.isposinf(ranges) | (np.isfinite(ranges) & (ranges >= range_max))
+                valid = np.isfinite(ranges) & (ranges > s.range_min_m) & (ranges < range_max)
+            bearing = s.angles_rad + s.laser_offset[2]
+            want = (
+                ranges,
+                s.angles_rad,
+                valid,
+                no_return,
+                np.flatnonzero(valid),
+                s.points_xy(valid),
+                ranges[valid],
+                np.stack([np.cos(bearing), np.sin(bearing)], axis=1),
+                bearing,
+                s.laser_offset[:2],
+            )
+            _same_fields(got[:-1], want)
+            assert got.range_max == range_max
+            assert 0 < int(valid.sum()) < valid.shape[0] and bool(no_return.any())
