@@ -1,5 +1,6 @@
-"""Sums in numpy's order for compiled kernels: a kernel that sums what numpy summed before
-gives the same bits (issue 13; docs/design.md, "Exact rewrites, second round")."""
+"""Sums and medians as numpy takes them, for compiled kernels: a kernel that sums what numpy
+summed before gives the same bits (issue 13; docs/design.md, "Exact rewrites, second
+round")."""
 
 from __future__ import annotations
 
@@ -65,3 +66,12 @@ def pairwise_sum(a: np.ndarray, lo: int, n: int) -> float:
             todo_lo[top + 2], todo_n[top + 2], todo_join[top + 2] = at, half, False
             top += 3
     return sums[0]
+
+
+@njit(cache=True, nogil=True)
+def median(a: np.ndarray) -> float:
+    """``np.median`` of ``a`` ``(n,)`` float64 without NaN, ``n >= 1``: the middle value, or
+    the mean of the middle two (their sum over 2, as ``np.mean`` takes it)."""
+    s = np.sort(a)
+    half = s.shape[0] // 2
+    return s[half] if s.shape[0] % 2 else (s[half - 1] + s[half]) / 2.0

@@ -24,6 +24,8 @@ import math
 import numpy as np
 from numba import njit
 
+from iceg.numpy_sums import median
+
 
 @njit(cache=True, nogil=True)
 def _sign(v: float) -> float:
@@ -58,10 +60,7 @@ def beam_profile(
             beam_r[i] = 0.0
     if n < 2:
         return bearing, beam_r, np.nan
-    steps = np.sort(bearing[1:] - bearing[:-1])
-    half = (n - 1) // 2
-    spacing = steps[half] if (n - 1) % 2 else (steps[half - 1] + steps[half]) / 2.0
-    return bearing, beam_r, spacing
+    return bearing, beam_r, median(bearing[1:] - bearing[:-1])
 
 
 @njit(cache=True, nogil=True)

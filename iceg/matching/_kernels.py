@@ -18,7 +18,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from iceg.numpy_sums import pairwise_sum
+from iceg.numpy_sums import median, pairwise_sum
 
 #: Fewest associated points for a noise estimate from the residuals (else the previous one).
 MIN_POINTS_FOR_SIGMA = 6
@@ -1813,10 +1813,7 @@ def polar_profile(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
             m += 1
     if m == 0:
         return bearing, rng, 0.01
-    gaps = np.sort(gaps[:m])
-    half = m // 2
-    spacing = gaps[half] if m % 2 else (gaps[half - 1] + gaps[half]) / 2.0
-    return bearing, rng, spacing
+    return bearing, rng, median(gaps[:m])
 
 
 @njit(cache=True, nogil=True)
