@@ -108,28 +108,3 @@ def line_intersections(
 def norm(v: FloatArray) -> FloatArray:
     """Euclidean norm over the last axis of ``(..., 2)`` vectors (cheaper than linalg.norm)."""
     return np.hypot(v[..., 0], v[..., 1])
-
-
-def unit(v: FloatArray) -> FloatArray:
-    """``(..., 2)`` vectors scaled to unit length (zero vectors give NaN, no error)."""
-    return v / norm(v)[..., None]
-
-
-def point_segment_distance(p: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
-    """Distance of points ``p`` ``(Q, 2)`` to segments ``a``-``b`` ``(Q, 2)`` each, metres."""
-    e = b - a
-    s = np.clip(np.einsum("qi,qi->q", p - a, e) / np.einsum("qi,qi->q", e, e), 0.0, 1.0)
-    return norm(p - (a + s[:, None] * e))
-
-
-def max_eigenvalue(cov: FloatArray) -> FloatArray:
-    """Largest eigenvalue of symmetric ``(Q, 2, 2)`` matrices, closed form; ``(Q,)``."""
-    a = cov[:, 0, 0]
-    d = cov[:, 1, 1]
-    b = cov[:, 0, 1]
-    return 0.5 * (a + d) + np.sqrt(0.25 * (a - d) ** 2 + b * b)
-
-
-def opening_angle(ray_a: FloatArray, ray_b: FloatArray) -> FloatArray:
-    """Angle between unit vectors ``(Q, 2)`` each, radians in ``[0, pi]``; ``(Q,)``."""
-    return np.arccos(np.clip(np.einsum("ki,ki->k", ray_a, ray_b), -1.0, 1.0))

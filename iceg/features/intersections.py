@@ -76,8 +76,9 @@ def _acceptable(
     max_var_m2: float,
 ) -> BoolArray:
     """:func:`acceptable` but for the distance to the corners, pair by pair (``corner_code``:
-    the corners' pairs ``first * M + second``, sorted); the values of the numpy expressions
-    it replaced (``geometry.point_segment_distance``, ``geometry.max_eigenvalue``)."""
+    the corners' pairs ``first * M + second``, sorted): the meeting point's distance to both
+    segments, its distance from the laser and the largest eigenvalue of its covariance
+    (closed form), with the values of the numpy expressions they replaced."""
     m = endpoints.shape[0]
     q = pairs.first.shape[0]
     ok = np.empty(q, dtype=np.bool_)

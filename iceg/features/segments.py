@@ -139,9 +139,17 @@ def line_segments(beams: BeamPoints, cfg: FeatureConfig) -> Segments:
             beams.beam_index,
             beams.ranges,
             beams.dirs,
-            np.array([cfg.min_segment_length_m, dphi, cos_max_inc]),
+            _FrameSettings(cfg.min_segment_length_m, float(dphi), cos_max_inc),
         )
     )
+
+
+class _FrameSettings(NamedTuple):
+    """:func:`_kept_segments`' settings."""
+
+    min_length_m: float  # shortest segment kept, between its projected endpoints
+    beam_step_rad: float  # the scan's mean beam step
+    cos_max_incidence: float  # cosine of eow_max_incidence_deg
 
 
 @njit(cache=True, nogil=True)
@@ -153,16 +161,15 @@ def _kept_segments(
     beam_index: IntArray,
     ranges: FloatArray,
     dirs: FloatArray,
-    settings: FloatArray,
+    settings: _FrameSettings,
 ) -> tuple[IntArray, FloatArray, FloatArray, FloatArray, IntArray, FloatArray, FloatArray]:
-    """The fields of :class:`Segments` for the fitted segments at least ``settings[0]``
-    metres long between their projected endpoints. ``settings[1]`` is the mean beam step
-    (rad) and ``settings[2]`` the cosine of ``eow_max_incidence_deg``: the along-wall
-    distance between consecutive beams at an endpoint is ``r dphi / max(|cos incidence|,
-    cos(eow_max_incidence_deg))`` with ``r`` the endpoint beam's range and the incidence
-    measured from the wall normal (at grazing incidence consecutive beams land far apart,
-    so gaps near an endpoint scale with it)."""
-    min_length, dphi, cos_max_inc = settings[0], settings[1], settings[2]
+    """The fields of :class:`Segments` for the fitted segments at least
+    ``settings.min_length_m`` long between their projected endpoints. The along-wall distance
+    between consecutive beams at an endpoint is ``r dphi / max(|cos incidence|,
+    cos(eow_max_incidence_deg))``, ``r`` the endpoint beam's range, ``dphi`` the mean beam
+    step and the incidence measured from the wall normal (at grazing incidence consecutive
+    beams land far apart, so gaps near an endpoint scale with it)."""
+    min_length, dphi, cos_max_inc = settings
     m = seg_range.shape[0]
     keep = np.empty(m, dtype=np.bool_)
     for k in range(m):
