@@ -14,7 +14,9 @@ the same bit for bit (``tests/iceg/test_feature_map.py``).
 
 Each scan's matches and expectations update the counters (:func:`count_observations`), and
 the counters then decide which landmarks go (:func:`pruned_landmarks`): the ratio and
-time-validity tests of paper §III-C3 in one pass over them.
+time-validity tests of paper §III-C3 in one pass over them. What the test reads of a new scan
+alone is computed once per scan, also compiled: its features' support points and walls
+(:func:`visibility_geometry`) and its beams by bearing (:func:`beam_profile`).
 """
 
 from __future__ import annotations
