@@ -67,6 +67,18 @@ _HEADER: dict[str, tuple[type, tuple[int, ...]]] = {
 }
 
 
+#: The scans stores gave out lately (:meth:`ScanStore.__getitem__`, iteration), by ``id``:
+#: the bytes of their ranges then and their encoding there, ``(bytes, encoding index,
+#: encoded array)``. A store that appends such a scan, its ranges' bytes unchanged, stores
+#: that encoding instead of encoding them again (a run's store takes its scans from the
+#: store its log was read into, a few scans behind). The bytes decide, not the ``id``: equal
+#: bytes have the same encoding whatever object holds them.
+_GIVEN: dict[int, tuple[bytes, int, np.ndarray]] = {}
+
+#: The most scans :data:`_GIVEN` remembers (the oldest forgotten first).
+_GIVEN_MAX = 64
+
+
 def _split_line(source: str) -> tuple[str, int]:
     """``"path:123"`` -> ``("path", 123)`` when that round-trips exactly, else ``(source, -1)``."""
     head, sep, tail = source.rpartition(":")
@@ -107,7 +119,14 @@ class ScanStore(Sequence[LaserScan]):
         n, b = self._n, int(scan.ranges_m.shape[0])
         if n == self._head["stamp_s"].shape[0]:
             self._head = {k: _grown(v, 2 * n) for k, v in self._head.items()}
-        encoding, encoded = _encode(np.asarray(scan.ranges_m, dtype=np.float64))
+        ranges = np.asarray(scan.ranges_m, dtype=np.float64)
+        known = _GIVEN.pop(id(scan), None)
+        if known is not None and known[0] == ranges.tobytes():
+            # read from a store: its encoding is the one _encode would choose (the ranges are
+            # that encoding's exact decoding, so the same first encoding gives them back)
+            encoding, encoded = known[1], known[2]
+        else:
+            encoding, encoded = _encode(ranges)
         h = self._head
         h["block"][n], h["byte_offset"][n] = self._put(encoded)
         h["encoding"][n] = encoding
@@ -141,15 +160,18 @@ class ScanStore(Sequence[LaserScan]):
     def _ranges(self, k: int, count: int | None = None) -> FloatArray:
         """The ``count`` ranges (default: scan ``k``'s) stored from scan ``k``'s on in its
         block, decoded with its encoding (a new float64 array)."""
+        return _decode(self._stored(k, count), RANGE_ENCODINGS[int(self._head["encoding"][k])][1])
+
+    def _stored(self, k: int, count: int | None = None) -> np.ndarray:
+        """The ``count`` encoded ranges (default: scan ``k``'s) from scan ``k``'s on, a
+        read-only view into its block."""
         h = self._head
-        dtype, scale = RANGE_ENCODINGS[int(h["encoding"][k])]
-        stored: np.ndarray = np.frombuffer(
+        return np.frombuffer(
             self._blocks[int(h["block"][k])],
-            dtype=dtype,
+            dtype=RANGE_ENCODINGS[int(h["encoding"][k])][0],
             count=int(h["n_beams"][k]) if count is None else count,
             offset=int(h["byte_offset"][k]),
         )
-        return _decode(stored, scale)
 
     def _angles_index(self, angles: FloatArray) -> int:
         """Index of the bearing array with the same bits in the table (the last one used is
@@ -205,9 +227,12 @@ class ScanStore(Sequence[LaserScan]):
         h = self._head
         line = int(h["line"][k])
         prefix = self._source_table[int(h["source"][k])]
-        return LaserScan(
+        encoding = int(h["encoding"][k])
+        stored = self._stored(k)
+        ranges = _decode(stored, RANGE_ENCODINGS[encoding][1])
+        scan = LaserScan(
             stamp_s=float(h["stamp_s"][k]),
-            ranges_m=self._ranges(k),
+            ranges_m=ranges,
             angles_rad=self._angle_table[int(h["angles"][k])].copy(),
             range_min_m=float(h["range_min_m"][k]),
             range_max_m=float(h["range_max_m"][k]),
@@ -216,6 +241,11 @@ class ScanStore(Sequence[LaserScan]):
             source=prefix if line < 0 else f"{prefix}:{line}",
             odom_break=bool(h["odom_break"][k]),
         )
+        _GIVEN.pop(id(scan), None)  # an id freed and taken again: the newest entry comes last
+        _GIVEN[id(scan)] = (ranges.tobytes(), encoding, stored.copy())
+        if len(_GIVEN) > _GIVEN_MAX:
+            del _GIVEN[next(iter(_GIVEN))]
+        return scan
 
     def stamp_s(self, index: int) -> float:
         """Timestamp of scan ``index`` (s; negative indices count from the end)."""

@@ -105,6 +105,52 @@ def test_scans_round_trip_exactly(scans: list[LaserScan]) -> None:
         np.testing.assert_array_equal(offsets, np.stack([s.laser_offset for s in scans]))
 
 
+def _contents(
+    store: ScanStore,
+) -> tuple[dict[str, np.ndarray], list[bytes], list[bytes], list[str]]:
+    """Everything a store holds: its header rows, each scan's encoded ranges (bytes), its
+    bearing and source tables."""
+    n = len(store)
+    head = {k: v[:n] for k, v in store._head.items()}
+    data = [store._stored(k).tobytes() for k in range(n)]
+    return head, data, list(store._angle_bits), list(store._source_table)
+
+
+@settings(max_examples=40, deadline=None)
+@given(_scans())
+def test_a_scan_read_from_a_store_is_stored_again_without_encoding(
+    scans: list[LaserScan],
+) -> None:
+    """A run's store takes its scans from the store the log was read into: it takes their
+    encoding from there (no ``_encode``) and holds exactly what encoding them gives."""
+    source = ScanStore(scans)
+    encoded = ScanStore(scans)  # by _encode, scan by scan
+    calls = []
+    real = scan_store._encode
+    try:
+        scan_store._encode = lambda r: calls.append(1) or real(r)  # type: ignore[assignment]
+        copied = ScanStore(source)
+    finally:
+        scan_store._encode = real
+    assert not calls
+    want, got = _contents(encoded), _contents(copied)
+    assert want[0].keys() == got[0].keys()
+    for k in want[0]:
+        assert want[0][k].tobytes() == got[0][k].tobytes(), k
+    assert want[1:] == got[1:]
+    assert all(_same(a, b) for a, b in zip(copied, scans, strict=True))
+
+
+def test_a_scan_changed_after_it_was_read_is_encoded_again() -> None:
+    """Ranges written in place after a scan left its store are the ones stored."""
+    source = ScanStore([_ranges_scan(np.array([1.25, 2.5, 7.75]))])
+    scan = source[0]
+    scan.ranges_m[1] = 2.004  # millimetres now: int32, not int16
+    copy = ScanStore([scan])
+    assert copy._head["encoding"][0] == 1
+    np.testing.assert_array_equal(copy[0].ranges_m, [1.25, 2.004, 7.75])
+
+
 def test_store_is_compact_and_renders_the_same_map() -> None:
     run = simulate(office_world(), seed=0)
     scans = run.scans[:150]
