@@ -163,8 +163,8 @@ class ScanStore(Sequence[LaserScan]):
         return _decode(self._stored(k, count), RANGE_ENCODINGS[int(self._head["encoding"][k])][1])
 
     def _stored(self, k: int, count: int | None = None) -> np.ndarray:
-        """The ``count`` encoded ranges (default: scan ``k``'s) from scan ``k``'s on, a
-        read-only view into its block."""
+        """The ``count`` encoded ranges (default: scan ``k``'s) from scan ``k``'s on: a view
+        into its block, never to be written."""
         h = self._head
         return np.frombuffer(
             self._blocks[int(h["block"][k])],
