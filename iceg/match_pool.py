@@ -158,6 +158,7 @@ class MatchPool:
         not on Linux). Read the results with :meth:`collect` before the next ``submit``."""
         sent = SentMatches([])
         helper = self._open and self.want_helper and sys.platform == "linux"
+        held: ScanFeatures | None = None  # the new scan's features the helper has this batch
         for k, job in enumerate(jobs):
             sent.jobs.append(job)
             if not helper:
@@ -170,12 +171,15 @@ class MatchPool:
             if not sent.remote:
                 self._batch += 1
                 sent.batch = self._batch
+            # a search's jobs share the new scan's features: sent with the first only
+            features = None if job.features is held else job.features
             try:
-                self._conn.send((self._batch, k, job))
+                self._conn.send((self._batch, k, features, job[1:]))
             except (OSError, ValueError):
                 self._conn, helper = None, False
                 continue
             sent.remote.append(k)
+            held = job.features
         return sent
 
     def collect(self, sent: SentMatches) -> list[MatchResult]:
@@ -258,19 +262,23 @@ class MatchPool:
 def _serve(
     conn: Connection, parent_end: Connection, parent_pid: int, matcher: Matcher, taken: Any
 ) -> None:
-    """Helper loop: jobs ``(batch, k, job)`` in, ``(batch, k, result or None, CPU seconds of
-    the match)`` out, except for a job the calling process has taken (``taken``, shared
+    """Helper loop: jobs ``(batch, k, features or None, the job's other arguments)`` in
+    (None: the features of the batch's previous job, which one object serves, so its
+    pose-independent quantities are derived once), ``(batch, k, result or None, CPU seconds
+    of the match)`` out, except for a job the calling process has taken (``taken``, shared
     ``[batch, first index]``): it runs that one itself. None, the end of the pipe or the
     parent's exit stops it."""
     forked.helper_signals()
     parent_end.close()
+    features: ScanFeatures | None = None
     while (msg := forked.next_message(conn, parent_pid)) is not None:
-        batch, k, job = cast(tuple[int, int, MatchJob], msg)
+        batch, k, sent, rest = cast(tuple[int, int, ScanFeatures | None, tuple[Any, ...]], msg)
+        features = features if sent is None else sent
         if taken[0] == batch and k >= taken[1]:
             continue
         t0 = time.thread_time()
         try:
-            result: MatchResult | None = matcher.match(*job)
+            result: MatchResult | None = matcher.match(cast(ScanFeatures, features), *rest)
         except Exception:  # the calling process runs it again and raises it there
             result = None
         try:

@@ -115,15 +115,15 @@ def test_without_a_helper_every_match_runs_here(jobs: list[MatchJob]) -> None:
 def test_the_helper_skips_the_jobs_the_calling_process_has_taken(jobs: list[MatchJob]) -> None:
     # The helper loop, run here on a pipe: of batch 1 the calling process has taken jobs 2
     # and 3 (shared [batch, first index]); the helper answers 0 and 1 of it and every job
-    # of batch 2, each with the matcher's result.
+    # of batch 2, each with the matcher's result. Jobs 2k and 2k + 1 share their features,
+    # which come with the first of them only (None: the previous job's).
     matcher = IceMatcher(MatchingConfig())
     here, there = multiprocessing.Pipe(duplex=True)
     parent_end, _ = multiprocessing.Pipe(duplex=True)
     taken = multiprocessing.RawArray("q", [1, 2])
-    for msg in [(1, 0, jobs[0]), (1, 1, jobs[1]), (1, 2, jobs[2]), (1, 3, jobs[3])]:
-        here.send(msg)
-    here.send((2, 0, jobs[4]))
-    here.send((2, 1, jobs[5]))
+    assert all(jobs[i].features is jobs[i + 1].features for i in (0, 2, 4))
+    for batch, k, i in [(1, 0, 0), (1, 1, 1), (1, 2, 2), (1, 3, 3), (2, 0, 4), (2, 1, 5)]:
+        here.send((batch, k, None if i % 2 else jobs[i].features, jobs[i][1:]))
     here.send(None)
     previous = signal.getsignal(signal.SIGINT)
     try:
