@@ -1926,6 +1926,129 @@ def ray_wall_check(
     return see, cons
 
 
+class Rays(NamedTuple):
+    """A scan's returns by bearing for the free-space tests (``geometry.PolarProfile``).
+
+    Attributes:
+        bearing: ``(B,)`` float64 bearings (radians) of the returns, ascending.
+        cos_b, sin_b: ``(B,)`` float64 their cosines and sines (:func:`beam_directions`).
+        range: ``(B,)`` float64 their ranges, metres.
+        spacing: Typical angular spacing of consecutive beams, radians.
+        range_max_m: Beams at or beyond this were invalid (not in the profile).
+    """
+
+    bearing: np.ndarray
+    cos_b: np.ndarray
+    sin_b: np.ndarray
+    range: np.ndarray
+    spacing: float
+    range_max_m: float
+
+
+@njit(cache=True, nogil=True)
+def walls_seen_through_length(
+    ep: np.ndarray, rays: Rays, tol_m: float, cos_max_incidence: float
+) -> tuple[float, float]:
+    """Total wall length (metres) of the segments ``ep`` ``(M, 2, 2)`` (the scan's frame)
+    seen through and confirmed by the scan of ``rays`` (:func:`ray_wall_check`, each sum in
+    numpy's order); ``(0, 0)`` without segments or returns."""
+    m = ep.shape[0]
+    if m == 0 or rays.bearing.shape[0] == 0:
+        return 0.0, 0.0
+    see, cons = ray_wall_check(
+        ep, rays.bearing, rays.cos_b, rays.sin_b, rays.range, rays.spacing,
+        rays.range_max_m, tol_m, cos_max_incidence,
+    )  # fmt: skip
+    return pairwise_sum(see, 0, m), pairwise_sum(cons, 0, m)
+
+
+@njit(cache=True, nogil=True)
+def far_bracket_range(rays: Rays, bearing: float, max_gap_beams: float) -> float:
+    """The range (metres) of the farther of the two returns bracketing ``bearing``
+    (radians); NaN outside the returns' bearings or where the bracket spans a gap of more
+    than ``max_gap_beams`` beam spacings. A NaN range propagates (``np.maximum``'s)."""
+    n = rays.bearing.shape[0]
+    k = np.searchsorted(rays.bearing, bearing)
+    if k == 0 or k == n:
+        return math.nan
+    if not rays.bearing[k] - rays.bearing[k - 1] <= max_gap_beams * rays.spacing:
+        return math.nan
+    r0, r1 = rays.range[k - 1], rays.range[k]
+    return r0 if (r0 >= r1 or math.isnan(r0)) else r1
+
+
+@njit(cache=True, nogil=True)
+def _origin_behind_wall(x: float, y: float, rays: Rays, tol_m: float, gap: float) -> bool:
+    """Whether the point ``(x, y)`` (the other scan's origin, this scan's frame) lies more
+    than ``tol_m`` behind the farther return bracketing its bearing."""
+    if rays.bearing.shape[0] == 0:
+        return False
+    hi = far_bracket_range(rays, math.atan2(y, x), gap)
+    return math.isfinite(hi) and hi < math.hypot(x, y) - tol_m
+
+
+@njit(cache=True, nogil=True)
+def free_space_check(
+    pose: np.ndarray,
+    ref_in_new: np.ndarray,
+    new_in_ref: np.ndarray,
+    ref_ep: np.ndarray,
+    new_ep: np.ndarray,
+    new_rays: Rays,
+    ref_rays: Rays,
+    two_sided: bool,
+    tol_m: float,
+    cos_max_incidence: float,
+    max_gap_beams: float,
+) -> tuple[float, float, float, bool]:
+    """The free-space consistency of a pose (docs/design.md step 10) in one call.
+
+    Args:
+        pose: ``(3,)`` float64 pose of the new scan in the reference frame.
+        ref_in_new: ``(M, 2, 2)`` float64 the reference segments in the new scan's frame;
+            ``new_in_ref`` ``(N, 2, 2)`` the new segments in the reference frame (read only
+            when ``two_sided``).
+        ref_ep, new_ep: The segments ``(M, 2, 2)``, ``(N, 2, 2)`` in their own frames.
+        new_rays: The new scan's returns; ``ref_rays`` the reference's, when ``two_sided``
+            (its points are one scan seen from its origin).
+        tol_m: The see-through tolerance, metres.
+        cos_max_incidence: Walls met at a larger incidence are not judged.
+        max_gap_beams: A bracket of returns wider than this many spacings is a gap.
+
+    Returns:
+        ``(fraction, length_m, clearance_m, origins_visible)``: the fraction and length
+        (metres) of the judged walls that one scan places where the other sees free space
+        (the reference's along the new scan's beams, and the new scan's along the
+        reference's when ``two_sided``; ``(0, 0)`` when no wall is judged); the distance from
+        each scan's sensor to the nearest wall of the other (the smaller, inf without
+        segments); and whether neither sensor lies behind a wall the other scan sees.
+    """
+    see, cons = walls_seen_through_length(ref_in_new, new_rays, tol_m, cos_max_incidence)
+    length = 0.0 + see
+    confirmed = 0.0 + cons
+    if two_sided:
+        see, cons = walls_seen_through_length(new_in_ref, ref_rays, tol_m, cos_max_incidence)
+        length += see
+        confirmed += cons
+    total = length + confirmed
+    if total <= 0.0:
+        fraction, length = 0.0, 0.0
+    else:
+        fraction = length / total
+    x, y, t = pose[0], pose[1], pose[2]
+    c, s = math.cos(t), math.sin(t)
+    origin = np.empty(2)  # the reference's origin in the new frame (se2.inverse's)
+    origin[0] = -(c * x + s * y)
+    origin[1] = -(-s * x + c * y)
+    clearance = min(
+        nearest_segment_distance(pose[:2], ref_ep), nearest_segment_distance(origin, new_ep)
+    )
+    behind = _origin_behind_wall(origin[0], origin[1], new_rays, tol_m, max_gap_beams)
+    if two_sided and not behind:
+        behind = _origin_behind_wall(x, y, ref_rays, tol_m, max_gap_beams)
+    return fraction, length, clearance, not behind
+
+
 #: Kernel density terms beyond this many kernel widths are dropped: ``exp(-0.5 * 12**2)``
 #: is below 1e-31, under half an ulp of any partial sum (each starts at its own weight).
 DENSITY_WINDOW_WIDTHS = 12.0

@@ -15,6 +15,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from iceg.landmark_frames import move_lines
 from iceg.matching._kernels import (
+    Rays,
     beam_directions,
     feature_angles,
     point_segments,
@@ -204,6 +205,19 @@ class PolarProfile:
         """Cosines and sines ``(B,)`` float64 of ``bearing``, computed once per profile (a
         scan's free-space checks cast walls along its beams many times)."""
         return beam_directions(self.bearing)
+
+    @functools.cached_property
+    def rays(self) -> Rays:
+        """The profile as the compiled free-space tests take it (built once per profile)."""
+        cos_b, sin_b = self.directions
+        return Rays(
+            np.ascontiguousarray(self.bearing, dtype=np.float64),
+            cos_b,
+            sin_b,
+            np.ascontiguousarray(self.range, dtype=np.float64),
+            float(self.spacing),
+            float(self.range_max_m),
+        )
 
     @classmethod
     def from_points(cls, points_xy: FloatArray, range_max_m: float) -> PolarProfile:

@@ -22,7 +22,7 @@ from iceg.matching._kernels import (
     PointCloud,
     PosePrior,
     SegmentPoints,
-    nearest_segment_distance,
+    free_space_check,
     ray_wall_check,
 )
 from iceg.matching.config import MatchBounds, MatchingConfig
@@ -55,7 +55,7 @@ from iceg.matching.refine import (
 )
 from iceg.types import MatchResult, ScanFeatures
 from iceg_common.errors import MatchingError
-from iceg_common.se2 import inverse, wrap_float
+from iceg_common.se2 import wrap_float
 
 log = logging.getLogger(__name__)
 
@@ -87,6 +87,9 @@ START_MIN_SUPPORT_M = 1.0
 START_MAX_DEVIATION_RAD = math.pi / 2
 #: Walls met at more than this incidence (degrees) are not judged by the ray check.
 MAX_INCIDENCE_DEG = 70.0
+_COS_MAX_INCIDENCE = math.cos(math.radians(MAX_INCIDENCE_DEG))
+#: No segments: the second side of a one-sided free-space check.
+_NO_SEGMENTS = np.zeros((0, 2, 2))
 #: A bearing decrease larger than this (radians) between consecutive points breaks beam
 #: order (the points are not one scan).
 _BEARING_BACKSTEP_RAD = 0.05
@@ -420,9 +423,7 @@ class IceMatcher:
         pred = _checked_prediction(features, features, pose)
         ctx = MatchContext(features, features, pred, bounds, self.config)
         covariance_at(self._refine_problem(ctx), pose)
-        self._see_through(ctx, pose)
-        self._origins_visible(ctx, pose)
-        nearest_segment_distance(pose[:2], features.seg_endpoints)
+        self._free_space(ctx, pose)
 
     # ------------------------------------------------------------------------------------
     def match(
@@ -710,8 +711,7 @@ class IceMatcher:
         answer and no rival either): little wall seen through, no wall through a robot,
         neither origin behind a wall. Sets ``cand.see_through``."""
         v = ctx.config.validation
-        pose = cand.refined.pose
-        frac, length = self._see_through(ctx, pose)
+        frac, length, clear, origins_visible = self._free_space(ctx, cand.refined.pose)
         cand.see_through = frac
         if (
             frac > v.max_see_through_fraction and length >= v.see_through_min_length_m
@@ -720,16 +720,12 @@ class IceMatcher:
                 f"{REASON_INCONSISTENT}: {frac:.0%} ({length:.1f} m) of the walls lie where "
                 "the other scan sees free space"
             )
-        clear = min(
-            nearest_segment_distance(pose[:2], ctx.reference.seg_endpoints),
-            nearest_segment_distance(inverse(pose)[:2], ctx.features.seg_endpoints),
-        )
         if clear < v.robot_clearance_m:
             return (
                 f"{REASON_INCONSISTENT}: a wall of one scan passes {clear:.2f} m from the other "
                 f"scan's sensor (< {v.robot_clearance_m} m)"
             )
-        if not self._origins_visible(ctx, pose):
+        if not origins_visible:
             return (
                 f"{REASON_INCONSISTENT}: one scan's origin lies behind a wall the other scan sees"
             )
@@ -840,48 +836,33 @@ class IceMatcher:
             reason="",
         )
 
-    # --- free-space helpers ---------------------------------------------------------------
-    def _origins_visible(self, ctx: MatchContext, pose: FloatArray) -> bool:
-        """Neither scan's origin lies behind a wall the other scan sees (a robot stands in
-        free space): the other scan's beams around its bearing must not be shorter than its
-        distance minus the see-through tolerance. Untestable cases pass."""
-        tol = ctx.config.validation.see_through_tolerance_m
-        checks = [(inverse(pose)[:2], ctx.profile)]
-        if ctx.ref_profile is not None:
-            checks.append((pose[:2], ctx.ref_profile))
-        for xy, prof in checks:
-            if prof.bearing.shape[0] == 0:
-                continue
-            dist = math.hypot(xy[0], xy[1])
-            hi = _far_bracket_range(prof, math.atan2(xy[1], xy[0]))
-            if math.isfinite(hi) and hi < dist - tol:
-                return False
-        return True
-
-    def _see_through(self, ctx: MatchContext, pose: FloatArray) -> tuple[float, float]:
-        """Free-space consistency: the fraction (and length, metres) of checked wall that
-        one scan places where the other scan's beams pass through. The reference segments
-        are cast along the new scan's beams; when the reference has points (a scan), the new
-        segments along the reference's beams too."""
-        tol = ctx.config.validation.see_through_tolerance_m
-        len_see = 0.0
-        len_cons = 0.0
+    # --- free-space helper ----------------------------------------------------------------
+    @staticmethod
+    def _free_space(ctx: MatchContext, pose: FloatArray) -> tuple[float, float, float, bool]:
+        """:func:`~iceg.matching._kernels.free_space_check` of ``pose``: the fraction and
+        length (metres) of checked wall that one scan places where the other scan's beams
+        pass through, the clearance (metres) between each scan's sensor and the other's
+        walls, and whether neither sensor lies behind a wall the other sees. The reference
+        segments are cast along the new scan's beams; when the reference has points (a
+        scan), the new segments along the reference's beams too."""
         # R(theta) from libm's cosine and sine (numpy's, bit for bit), the products numpy's
         c, s = math.cos(pose[2]), math.sin(pose[2])
         r = np.array([[c, -s], [s, c]])
-        ep_ref_new = (ctx.reference.seg_endpoints - pose[:2]) @ r
-        checks = [(ep_ref_new, ctx.profile)]
-        if ctx.ref_profile is not None:
-            ep_new_ref = ctx.features.seg_endpoints @ r.T + pose[:2]
-            checks.append((ep_new_ref, ctx.ref_profile))
-        for ep, prof in checks:
-            see, cons = _ray_check(ep, prof, tol)
-            len_see += see
-            len_cons += cons
-        total = len_see + len_cons
-        if total <= 0.0:
-            return 0.0, 0.0
-        return len_see / total, len_see
+        ref_ep, new_ep = ctx.reference.seg_endpoints, ctx.features.seg_endpoints
+        two_sided = ctx.ref_profile is not None
+        return free_space_check(
+            pose,
+            (ref_ep - pose[:2]) @ r,
+            new_ep @ r.T + pose[:2] if two_sided else _NO_SEGMENTS,
+            ref_ep,
+            new_ep,
+            ctx.profile.rays,
+            (ctx.ref_profile or ctx.profile).rays,
+            two_sided,
+            ctx.config.validation.see_through_tolerance_m,
+            _COS_MAX_INCIDENCE,
+            MAX_GAP_BEAMS,
+        )
 
 
 def _prediction_start(ctx: MatchContext) -> FloatArray:
@@ -953,29 +934,6 @@ def walls_seen_through(
         profile.spacing,
         profile.range_max_m,
         tolerance_m,
-        math.cos(math.radians(MAX_INCIDENCE_DEG)),
+        _COS_MAX_INCIDENCE,
     )
     return see, cons
-
-
-def _ray_check(ep: FloatArray, prof: PolarProfile, tol_m: float) -> tuple[float, float]:
-    """Total wall length (metres) of the segments ``ep`` (M, 2, 2) seen through and confirmed
-    by the scan of ``prof`` (:func:`walls_seen_through`); each beam counts once, however many
-    copies of the wall a map reference holds."""
-    see, cons = walls_seen_through(ep, prof, tol_m)
-    return float(see.sum()), float(cons.sum())
-
-
-def _far_bracket_range(prof: PolarProfile, bearing: float) -> float:
-    """The range (metres) of the farther of the two returns bracketing ``bearing`` (radians);
-    NaN outside the profile's bearings or where the bracket spans a gap of more than
-    ``MAX_GAP_BEAMS`` beam spacings. In floats: one bearing costs less than numpy's calls."""
-    n = prof.bearing.shape[0]
-    k = int(np.searchsorted(prof.bearing, bearing))
-    if k == 0 or k == n:
-        return math.nan
-    b0, b1 = float(prof.bearing[k - 1]), float(prof.bearing[k])
-    if not b1 - b0 <= MAX_GAP_BEAMS * prof.spacing:
-        return math.nan
-    r0, r1 = float(prof.range[k - 1]), float(prof.range[k])
-    return r0 if (r0 >= r1 or math.isnan(r0)) else r1  # np.maximum's: NaN propagates

@@ -50,8 +50,10 @@ from iceg.matching._kernels import (
     cloud_nearest,
     covariance_rows,
     density_peak,
+    far_bracket_range,
     feasible_pair_indices,
     final_covariances,
+    free_space_check,
     lattice_covariance,
     nearest_segment_distance,
     nearest_walls,
@@ -88,9 +90,9 @@ from iceg.matching.hypotheses import (
     vote,
 )
 from iceg.matching.matcher import (
+    MAX_GAP_BEAMS,
     REASON_DEGENERATE,
     MatchContext,
-    _far_bracket_range,
     largest_std_exceeds,
     walls_seen_through,
 )
@@ -986,15 +988,103 @@ def test_far_bracket_range_hand_values() -> None:
     # Returns at -0.1, 0, 0.1 and 0.5 rad, spaced 0.1 rad: a bracket wider than 1.6 spacings
     # spans a gap, a bearing outside the returns has no bracket; a NaN range propagates.
     prof = PolarProfile(np.array([-0.1, 0.0, 0.1, 0.5]), np.array([2.0, 3.0, 1.0, 4.0]), 0.1, 20.0)
-    assert _far_bracket_range(prof, 0.05) == 3.0
-    assert _far_bracket_range(prof, 0.0) == 3.0  # on a return: it and the one before
-    assert _far_bracket_range(prof, -0.05) == 3.0
+    assert far_bracket_range(prof.rays, 0.05, MAX_GAP_BEAMS) == 3.0
+    assert far_bracket_range(prof.rays, 0.0, MAX_GAP_BEAMS) == 3.0  # a return and the one before
+    assert far_bracket_range(prof.rays, -0.05, MAX_GAP_BEAMS) == 3.0
     for outside in (0.3, -0.2, 0.6):
-        assert math.isnan(_far_bracket_range(prof, outside))
-    with_nan = PolarProfile(np.array([0.0, 0.1]), np.array([np.nan, 3.0]), 0.1, 20.0)
-    assert math.isnan(_far_bracket_range(with_nan, 0.05))
-    with_nan = PolarProfile(np.array([0.0, 0.1]), np.array([3.0, np.nan]), 0.1, 20.0)
-    assert math.isnan(_far_bracket_range(with_nan, 0.05))
+        assert math.isnan(far_bracket_range(prof.rays, outside, MAX_GAP_BEAMS))
+    for ranges in ([np.nan, 3.0], [3.0, np.nan]):
+        with_nan = PolarProfile(np.array([0.0, 0.1]), np.array(ranges), 0.1, 20.0)
+        assert math.isnan(far_bracket_range(with_nan.rays, 0.05, MAX_GAP_BEAMS))
+
+
+def _free_space_written_out(
+    pose: np.ndarray,
+    ref_ep: np.ndarray,
+    new_ep: np.ndarray,
+    new_prof: PolarProfile,
+    ref_prof: PolarProfile | None,
+    tol: float,
+) -> tuple[float, float, float, bool]:
+    """The free-space check as numpy and Python floats state it: the ray sums of
+    ``walls_seen_through``, ``inverse`` and ``nearest_segment_distance`` per side, the
+    far bracket of each sensor's bearing by ``np.searchsorted``."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    r = np.array([[c, -s], [s, c]])
+    sides = [((ref_ep - pose[:2]) @ r, new_prof)]
+    if ref_prof is not None:
+        sides.append((new_ep @ r.T + pose[:2], ref_prof))
+    see = cons = 0.0
+    for ep, prof in sides:
+        a, b = walls_seen_through(ep, prof, tol)
+        see += float(a.sum())
+        cons += float(b.sum())
+    total = see + cons
+    frac, length = (0.0, 0.0) if total <= 0.0 else (see / total, see)
+    origin = inverse(pose)[:2]
+    clear = min(
+        nearest_segment_distance(pose[:2], ref_ep), nearest_segment_distance(origin, new_ep)
+    )
+    visible = True
+    for xy, maybe in ((origin, new_prof), (pose[:2], ref_prof)):
+        if maybe is None or maybe.bearing.shape[0] == 0:
+            continue
+        k = int(np.searchsorted(maybe.bearing, math.atan2(xy[1], xy[0])))
+        if k == 0 or k == maybe.bearing.shape[0]:
+            continue
+        if not maybe.bearing[k] - maybe.bearing[k - 1] <= MAX_GAP_BEAMS * maybe.spacing:
+            continue
+        far = float(np.maximum(maybe.range[k - 1], maybe.range[k]))
+        if math.isfinite(far) and far < math.hypot(xy[0], xy[1]) - tol:
+            visible = False
+    return frac, length, clear, visible
+
+
+def _random_scan(rng: np.random.Generator) -> np.ndarray:
+    """``(B, 2)`` points of a scan of up to 360 beams over a random field of view, ranges
+    0.3-4 m at random, a few beams without a return."""
+    n = int(rng.integers(0, 360))
+    bearing = np.linspace(-1.0, 1.0, n) * rng.uniform(1.0, math.pi)
+    ranges = rng.uniform(0.3, 4.0, n)
+    keep = rng.uniform(0.0, 1.0, n) > 0.05
+    return np.stack([ranges * np.cos(bearing), ranges * np.sin(bearing)], axis=1)[keep]
+
+
+def test_free_space_check_equals_the_expressions_written_out() -> None:
+    # Random rooms of segments seen by two scans at random poses, one- and two-sided, with
+    # and without segments: the compiled check gives the same bits as the numpy expressions.
+    rng = np.random.default_rng(11)
+    cos_max = math.cos(math.radians(70.0))
+    seen_through = blocked = 0
+    for trial in range(300):
+        n_ref, n_new = (0, 0) if trial % 50 == 0 else (rng.integers(1, 15), rng.integers(1, 15))
+        ref_ep = rng.uniform(-6.0, 6.0, (n_ref, 2, 2))
+        new_ep = rng.uniform(-6.0, 6.0, (n_new, 2, 2))
+        pose = np.array([*rng.uniform(-3.0, 3.0, 2), rng.uniform(-math.pi, math.pi)])
+        new_prof = PolarProfile.from_points(_random_scan(rng), 8.0)
+        ref_prof = PolarProfile.from_points(_random_scan(rng), 8.0) if trial % 2 else None
+        tol = float(rng.uniform(0.05, 0.5))
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        r = np.array([[c, -s], [s, c]])
+        got = free_space_check(
+            pose,
+            (ref_ep - pose[:2]) @ r,
+            new_ep @ r.T + pose[:2],
+            ref_ep,
+            new_ep,
+            new_prof.rays,
+            (ref_prof or new_prof).rays,
+            ref_prof is not None,
+            tol,
+            cos_max,
+            MAX_GAP_BEAMS,
+        )
+        want = _free_space_written_out(pose, ref_ep, new_ep, new_prof, ref_prof, tol)
+        assert got == want
+        seen_through += got[1] > 0.0
+        blocked += not got[3]
+    assert seen_through > 100  # the cases cover walls seen through and sensors behind walls
+    assert blocked > 20
 
 
 def test_nearest_segment_distance_hand_values() -> None:
