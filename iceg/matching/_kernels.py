@@ -1656,6 +1656,24 @@ def _gauss_newton_phase(
 
 
 @njit(cache=True, nogil=True)
+def matched_pairs(match: np.ndarray) -> np.ndarray:
+    """``(Q, 2)`` int64 feature pairs ``[new, ref]`` of one pairing ``match`` ``(K_new,)``
+    int64 (the reference feature of each new feature, -1: none), by new index."""
+    n = 0
+    for i in range(match.shape[0]):
+        if match[i] >= 0:
+            n += 1
+    pairs = np.empty((n, 2), np.int64)
+    n = 0
+    for i in range(match.shape[0]):
+        if match[i] >= 0:
+            pairs[n, 0] = i
+            pairs[n, 1] = match[i]
+            n += 1
+    return pairs
+
+
+@njit(cache=True, nogil=True)
 def _pairs_at(pose: np.ndarray, p: FeaturePairing) -> np.ndarray:
     """``(Q, 2)`` int64 feature pairs ``[new, ref]`` at one ``(3,)`` pose, by new index
     (:func:`pair_nearest`)."""
@@ -1665,18 +1683,7 @@ def _pairs_at(pose: np.ndarray, p: FeaturePairing) -> np.ndarray:
         poses, p.new_xy, p.new_heading, p.new_edge, p.new_opening, p.ref_xy, p.ref_heading,
         p.ref_edge, p.ref_opening, p.codes, p.gate_distance_m, p.gate_angle_rad,
     )  # fmt: skip
-    n = 0
-    for i in range(match.shape[1]):
-        if match[0, i] >= 0:
-            n += 1
-    pairs = np.empty((n, 2), np.int64)
-    n = 0
-    for i in range(match.shape[1]):
-        if match[0, i] >= 0:
-            pairs[n, 0] = i
-            pairs[n, 1] = match[0, i]
-            n += 1
-    return pairs
+    return matched_pairs(match[0])
 
 
 @njit(cache=True, nogil=True)

@@ -23,6 +23,7 @@ from iceg.matching._kernels import (
     PosePrior,
     SegmentPoints,
     free_space_check,
+    matched_pairs,
     ray_wall_check,
 )
 from iceg.matching.config import MatchBounds, MatchingConfig
@@ -566,9 +567,7 @@ class IceMatcher:
                 continue
             if any(_same_pose(starts.poses[k], o.refined.pose, near_d, near_a) for o in cands):
                 continue
-            i0 = np.flatnonzero(corr0.match[k] >= 0)
-            pairs0 = np.column_stack([i0, corr0.match[k][i0]]).astype(np.int64)
-            ref = refine(problem, starts.poses[k], pairs0)
+            ref = refine(problem, starts.poses[k], matched_pairs(corr0.match[k]))
             if any(
                 _same_pose(ref.pose, o.refined.pose, DUPLICATE_DISTANCE_M, DUPLICATE_ANGLE_RAD)
                 for o in cands
@@ -822,8 +821,6 @@ class IceMatcher:
         m = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
         cov_body = m @ cov_param @ m.T
         cov_body = 0.5 * (cov_body + cov_body.T)
-        mt = best.corr.match[0]
-        i = np.flatnonzero(mt >= 0)
         pose = ref.pose.copy()
         pose[2] = wrap_float(float(pose[2]))
         return MatchResult(
@@ -831,7 +828,7 @@ class IceMatcher:
             pose=pose,
             cov=cov_body,
             correlation=float(best.corr.score[0]),
-            inlier_pairs=np.stack((i, mt[i]), axis=1).astype(np.int64, copy=False),
+            inlier_pairs=matched_pairs(best.corr.match[0]),
             n_hypotheses=n_hyp,
             reason="",
         )

@@ -55,6 +55,7 @@ from iceg.matching._kernels import (
     final_covariances,
     free_space_check,
     lattice_covariance,
+    matched_pairs,
     nearest_segment_distance,
     nearest_walls,
     no_segment_grid,
@@ -1085,6 +1086,15 @@ def test_free_space_check_equals_the_expressions_written_out() -> None:
         blocked += not got[3]
     assert seen_through > 100  # the cases cover walls seen through and sensors behind walls
     assert blocked > 20
+
+
+def test_matched_pairs_hand_values() -> None:
+    # The reference feature of each new feature (-1: none) as [new, ref] rows, by new index.
+    got = matched_pairs(np.array([-1, 3, 0, -1, 2], dtype=np.int64))
+    assert got.dtype == np.int64
+    assert got.tolist() == [[1, 3], [2, 0], [4, 2]]
+    assert matched_pairs(np.full(4, -1, dtype=np.int64)).shape == (0, 2)
+    assert matched_pairs(np.zeros(0, dtype=np.int64)).shape == (0, 2)
 
 
 def test_nearest_segment_distance_hand_values() -> None:
