@@ -1795,6 +1795,62 @@ def nearest_walls(
 
 
 @njit(cache=True, nogil=True)
+def is_one_scan(points: np.ndarray, backstep_rad: float) -> bool:
+    """Whether points ``(P, 2)`` float64 look like one scan from the frame's origin: their
+    bearings (libm's ``atan2``) decrease by more than ``backstep_rad`` from one point to the
+    next at most once, and then by more than pi (the wrap-around); fewer than 3 points do
+    not. Stops at the second backstep."""
+    n = points.shape[0]
+    if n < 3:
+        return False
+    prev = math.atan2(points[0, 1], points[0, 0])
+    n_back = 0
+    first_back = 0.0
+    for i in range(1, n):
+        b = math.atan2(points[i, 1], points[i, 0])
+        d = b - prev
+        prev = b
+        if d < -backstep_rad:
+            n_back += 1
+            if n_back > 1:
+                return False
+            first_back = d
+    return n_back == 0 or first_back < -math.pi
+
+
+@njit(cache=True, nogil=True)
+def local_lines(points: np.ndarray, max_gap_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """For points ``(R, 2)`` float64 in beam order: the distance to the nearer beam
+    neighbour ``(R,)`` (inf without one; ``np.minimum``'s NaN) and the unit normal
+    ``(R, 2)`` of the local line through the previous and next points when both are within
+    ``max_gap_m``, else through the nearer one within it (NaN: none within it, or the
+    two points closer than 1e-6 m)."""
+    n = points.shape[0]
+    nn = np.empty(n)
+    normal = np.full((n, 2), np.nan)
+    for i in range(n):
+        g_prev = np.inf
+        g_next = np.inf
+        if i > 0:
+            g_prev = math.hypot(points[i, 0] - points[i - 1, 0], points[i, 1] - points[i - 1, 1])
+        if i < n - 1:
+            g_next = math.hypot(points[i + 1, 0] - points[i, 0], points[i + 1, 1] - points[i, 1])
+        if math.isnan(g_prev) or math.isnan(g_next):
+            nn[i] = np.nan
+        else:
+            nn[i] = min(g_prev, g_next)
+        a = i - 1 if i > 0 and g_prev <= max_gap_m else i
+        b = i + 1 if i < n - 1 and g_next <= max_gap_m else i
+        tx = points[b, 0] - points[a, 0]
+        ty = points[b, 1] - points[a, 1]
+        tl = math.hypot(tx, ty)
+        if tl > 1e-6:
+            normal[i, 0] = -ty / tl
+            normal[i, 1] = tx / tl
+    return nn, normal
+
+
+@njit(cache=True, nogil=True)
 def polar_profile(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """Points ``(P, 2)`` float64 (metres) seen from their frame's origin, by bearing: ``(P,)``
     bearings (rad, libm's ``atan2``) and ranges (m, ``hypot``) in stable bearing order, and

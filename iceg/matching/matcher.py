@@ -23,6 +23,8 @@ from iceg.matching._kernels import (
     PosePrior,
     SegmentPoints,
     free_space_check,
+    is_one_scan,
+    local_lines,
     matched_pairs,
     ray_wall_check,
 )
@@ -257,22 +259,14 @@ def reference_derived(reference: ScanFeatures) -> RefDerived:
         r = reference
         profile = (
             PolarProfile.from_points(r.points_xy, float(r.range_max_m))
-            if _is_one_scan(r.points_xy)
+            if is_one_scan(
+                np.ascontiguousarray(r.points_xy, dtype=np.float64), _BEARING_BACKSTEP_RAD
+            )
             else None
         )
         got = (feature_geometry(r), profile)
         _REF_DERIVED[reference] = got
     return got
-
-
-def _is_one_scan(points_xy: FloatArray) -> bool:
-    """Whether points look like one scan from the frame's origin: bearings increase along
-    the array (beam order), with at most one wrap-around."""
-    if points_xy.shape[0] < 3:
-        return False
-    d = np.diff(np.arctan2(points_xy[:, 1], points_xy[:, 0]))
-    back = d < -_BEARING_BACKSTEP_RAD
-    return int(back.sum()) == 0 or (int(back.sum()) == 1 and float(d[back][0]) < -math.pi)
 
 
 def _lengths(endpoints: FloatArray) -> FloatArray:
@@ -312,6 +306,20 @@ def _same_pose(a: FloatArray, b: FloatArray, dist_m: float, angle_rad: float) ->
 
 def _check_features(f: ScanFeatures, what: str) -> None:
     k = f.kind.shape[0]
+    m = f.seg_endpoints.shape[0]
+    if (
+        f.xy.shape == (k, 2)
+        and f.cov.shape == (k, 2, 2)
+        and f.directions.shape == (k, 2, 2)
+        and f.opening_rad.shape == (k,)
+        and f.ids.shape == (k,)
+        and f.seg_endpoints.shape == (m, 2, 2)
+        and f.seg_lines.shape == (m, 2)
+        and f.seg_cov.shape == (m, 2, 2)
+        and f.points_xy.ndim == 2
+        and f.points_xy.shape[1] == 2
+    ):
+        return
     shapes = {
         "xy": (f.xy.shape, (k, 2)),
         "cov": (f.cov.shape, (k, 2, 2)),
@@ -319,7 +327,6 @@ def _check_features(f: ScanFeatures, what: str) -> None:
         "opening_rad": (f.opening_rad.shape, (k,)),
         "ids": (f.ids.shape, (k,)),
     }
-    m = f.seg_endpoints.shape[0]
     shapes.update(
         {
             "seg_endpoints": (f.seg_endpoints.shape, (m, 2, 2)),
@@ -367,7 +374,7 @@ def _checked_prediction(
         MatchingError: a non-finite or mis-shaped prediction, or inconsistent features.
     """
     pred = np.asarray(prediction, dtype=np.float64).reshape(-1)
-    if pred.shape != (3,) or not np.all(np.isfinite(pred)):
+    if pred.shape != (3,) or not all(map(math.isfinite, pred.tolist())):
         raise MatchingError(f"prediction must be a finite (3,) pose, got {prediction!r}")
     _check_features(features, "features")
     _check_features(reference, "reference")
@@ -647,7 +654,9 @@ class IceMatcher:
         if new_off.shape[0] > c.max_points // 2:
             pick = np.linspace(0, new_off.shape[0] - 1, c.max_points // 2).astype(np.int64)
             new_off = new_off[pick]
-        spacing, normal = _local_lines(rp, c.local_line_max_gap_m)
+        spacing, normal = local_lines(
+            np.ascontiguousarray(rp, dtype=np.float64), c.local_line_max_gap_m
+        )
         points = ctx.features.points_xy[new_off]
         return build_cloud(points, rp, spacing, normal, c.association_gate_m)
 
@@ -881,28 +890,6 @@ def _prediction_start(ctx: MatchContext) -> FloatArray:
     if th is not None:
         start[2] = th
     return start
-
-
-def _local_lines(rp: FloatArray, max_gap_m: float) -> tuple[FloatArray, FloatArray]:
-    """For reference points ``(R, 2)`` in beam order: the distance to the nearer beam
-    neighbour ``(R,)`` and the unit normal ``(R, 2)`` of the local line through the previous
-    and next points when both are within ``max_gap_m``, else through the nearer one (NaN:
-    no neighbour within the gap)."""
-    d = np.diff(rp, axis=0)
-    gaps = np.hypot(d[:, 0], d[:, 1])
-    g_prev = np.insert(gaps, 0, np.inf)
-    g_next = np.append(gaps, np.inf)
-    nn = np.minimum(g_prev, g_next)
-    prev_pt = np.vstack([rp[:1], rp[:-1]])
-    next_pt = np.vstack([rp[1:], rp[-1:]])
-    a = np.where((g_prev <= max_gap_m)[:, None], prev_pt, rp)
-    b = np.where((g_next <= max_gap_m)[:, None], next_pt, rp)
-    t = b - a
-    tl = np.hypot(t[:, 0], t[:, 1])
-    has = tl > 1e-6
-    normal = np.full(rp.shape, np.nan)
-    normal[has] = np.stack([-t[has, 1], t[has, 0]], axis=1) / tl[has, None]
-    return nn, normal
 
 
 def walls_seen_through(

@@ -20,10 +20,16 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from iceg.matching._kernels import PointCloud, PosePrior, SegmentPoints, cloud_nearest
+from iceg.matching._kernels import (
+    PointCloud,
+    PosePrior,
+    SegmentPoints,
+    cloud_nearest,
+    local_lines,
+)
 from iceg.matching.config import MatchBounds, MatchingConfig
 from iceg.matching.geometry import SegmentSet, feature_geometry, rot
-from iceg.matching.matcher import _local_lines, _refine_settings, largest_std_exceeds
+from iceg.matching.matcher import _refine_settings, largest_std_exceeds
 from iceg.matching.refine import (
     RefineProblem,
     RefineSettings,
@@ -88,7 +94,9 @@ def reference_cloud(
 ) -> PointCloud:
     """The PL-ICP rows' data: the new points against the reference points with the normals
     of their local lines (through beam neighbours within ``local_line_max_gap_m``)."""
-    spacing, normal = _local_lines(ref_points, config.refinement.local_line_max_gap_m)
+    spacing, normal = local_lines(
+        np.ascontiguousarray(ref_points, dtype=np.float64), config.refinement.local_line_max_gap_m
+    )
     return build_cloud(new_points, ref_points, spacing, normal, cell_m)
 
 

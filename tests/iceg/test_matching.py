@@ -54,7 +54,9 @@ from iceg.matching._kernels import (
     feasible_pair_indices,
     final_covariances,
     free_space_check,
+    is_one_scan,
     lattice_covariance,
+    local_lines,
     matched_pairs,
     nearest_segment_distance,
     nearest_walls,
@@ -1086,6 +1088,45 @@ def test_free_space_check_equals_the_expressions_written_out() -> None:
         blocked += not got[3]
     assert seen_through > 100  # the cases cover walls seen through and sensors behind walls
     assert blocked > 20
+
+
+def test_scan_order_and_local_lines_equal_the_numpy_expressions() -> None:
+    # Scans in beam order (with and without a wrap-around) and shuffled or merged points:
+    # the compiled beam-order test and local lines give what numpy's expressions give.
+    rng = np.random.default_rng(5)
+    orders = set()
+    for trial in range(200):
+        n = int(rng.integers(0, 400))
+        start = rng.uniform(-math.pi, math.pi)
+        bearing = np.sort(rng.uniform(start, start + rng.uniform(0.5, 2 * math.pi), n))
+        pts = rng.uniform(0.5, 8.0, n)[:, None] * np.stack([np.cos(bearing), np.sin(bearing)], 1)
+        if trial % 3 == 1:
+            pts = pts[rng.permutation(n)]
+        elif trial % 3 == 2:
+            pts = np.concatenate([pts, pts[: n // 2] + 0.01])
+        d = np.diff(np.arctan2(pts[:, 1], pts[:, 0]))
+        back = d < -0.05
+        want = pts.shape[0] >= 3 and (
+            int(back.sum()) == 0 or (int(back.sum()) == 1 and float(d[back][0]) < -math.pi)
+        )
+        assert is_one_scan(pts, 0.05) == want
+        orders.add(want)
+        if pts.shape[0] < 2:
+            continue
+        gap = float(rng.uniform(0.05, 0.5))
+        gaps = np.hypot(*np.diff(pts, axis=0).T)
+        g_prev, g_next = np.insert(gaps, 0, np.inf), np.append(gaps, np.inf)
+        a = np.where((g_prev <= gap)[:, None], np.vstack([pts[:1], pts[:-1]]), pts)
+        b = np.where((g_next <= gap)[:, None], np.vstack([pts[1:], pts[-1:]]), pts)
+        t = b - a
+        tl = np.hypot(t[:, 0], t[:, 1])
+        normal = np.full(pts.shape, np.nan)
+        has = tl > 1e-6
+        normal[has] = np.stack([-t[has, 1], t[has, 0]], axis=1) / tl[has, None]
+        got_nn, got_normal = local_lines(pts, gap)
+        assert np.array_equal(got_nn, np.minimum(g_prev, g_next))
+        assert np.array_equal(got_normal, normal, equal_nan=True)
+    assert orders == {True, False}
 
 
 def test_matched_pairs_hand_values() -> None:
