@@ -860,35 +860,67 @@ def pair_code_matrix(
 
 @njit(cache=True, nogil=True)
 def feasible_pair_indices(
-    pred_xy: np.ndarray, ref_xy: np.ndarray, radius: np.ndarray, codes: np.ndarray
+    new_xy_rotated: np.ndarray,
+    offset: np.ndarray,
+    dist: np.ndarray,
+    max_translation_m: float,
+    chord: float,
+    margin_m: float,
+    ref_xy: np.ndarray,
+    codes: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The (new, reference) pairs with a non-zero code whose reference feature lies within
-    its new feature's radius of the predicted position (``hypotheses.feasible_pairs``):
-    ``dx * dx + dy * dy <= radius * radius``, numpy's expression, in row-major order.
+    its new feature's radius of the predicted position (``hypotheses.feasible_pairs``): the
+    position ``new_xy_rotated + offset``, the radius ``max_translation_m + dist * chord +
+    margin_m``, the test ``dx * dx + dy * dy <= radius * radius``; numpy's expressions, in
+    row-major order.
 
     Args:
-        pred_xy: ``(K_new, 2)`` float64 new features at the prediction, reference frame, m.
+        new_xy_rotated: ``(K_new, 2)`` float64 new features rotated by the prediction, m.
+        offset: ``(2,)`` float64 the prediction's translation, m.
+        dist: ``(K_new,)`` float64 each new feature's distance from the new scan's origin, m.
+        max_translation_m: The bounds' translation; ``chord`` the largest displacement of a
+            unit-distance point under the bounds' rotation; ``margin_m`` the noise allowance.
         ref_xy: ``(K_ref, 2)`` float64 reference features, m.
-        radius: ``(K_new,)`` float64 feasible radius of each new feature, m.
         codes: ``(K_new, K_ref)`` int64 pair codes (0: incompatible).
 
     Returns:
         ``(Q,)`` int64 new and ``(Q,)`` int64 reference indices.
     """
-    kn, kr = pred_xy.shape[0], ref_xy.shape[0]
+    kn, kr = new_xy_rotated.shape[0], ref_xy.shape[0]
     out_i = np.empty(kn * kr, dtype=np.int64)
     out_j = np.empty(kn * kr, dtype=np.int64)
     q = 0
     for i in range(kn):
-        r2 = radius[i] * radius[i]
+        px = new_xy_rotated[i, 0] + offset[0]
+        py = new_xy_rotated[i, 1] + offset[1]
+        radius = (max_translation_m + dist[i] * chord) + margin_m
+        r2 = radius * radius
         for j in range(kr):
-            dx = pred_xy[i, 0] - ref_xy[j, 0]
-            dy = pred_xy[i, 1] - ref_xy[j, 1]
+            dx = px - ref_xy[j, 0]
+            dy = py - ref_xy[j, 1]
             if dx * dx + dy * dy <= r2 and codes[i, j] != 0:
                 out_i[q] = i
                 out_j[q] = j
                 q += 1
     return out_i[:q].copy(), out_j[:q].copy()
+
+
+@njit(cache=True, nogil=True)
+def pairs_of_kind(
+    i: np.ndarray, j: np.ndarray, new_kind: np.ndarray, ref_kind: np.ndarray, kind: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs ``(i[q], j[q])`` ``(Q,)`` int64 whose new and reference features are both
+    of ``kind``, in order: ``(Q',)`` int64 each."""
+    out_i = np.empty(i.shape[0], dtype=np.int64)
+    out_j = np.empty(i.shape[0], dtype=np.int64)
+    n = 0
+    for q in range(i.shape[0]):
+        if new_kind[i[q]] == kind and ref_kind[j[q]] == kind:
+            out_i[n] = i[q]
+            out_j[n] = j[q]
+            n += 1
+    return out_i[:n].copy(), out_j[:n].copy()
 
 
 #: :func:`pair_nearest` skips ``hypot`` for a pair whose squared distance exceeds the

@@ -14,6 +14,7 @@ from iceg.matching._kernels import (
     feasible_pair_indices,
     intersection_pair_poses,
     pair_code_matrix,
+    pairs_of_kind,
     poses_within_bounds,
     segment_rotation_peak,
     vote_clusters,
@@ -97,16 +98,20 @@ def feasible_pairs(
     if math.isinf(bounds.max_translation_m):
         i, j = np.nonzero(codes)
         return i.astype(np.int64), j.astype(np.int64)
-    r0 = rot(prediction[2])
-    pred_xy = gn.xy @ r0.T + prediction[:2]
-    radius = bounds.max_translation_m + gn.dist * rotation_chord(bounds.max_rotation_rad) + margin_m
+    # R(theta) from libm's cosine and sine (numpy's, bit for bit), the product numpy's
+    c, s = math.cos(prediction[2]), math.sin(prediction[2])
+    r0 = np.array([[c, -s], [s, c]])
     # All (new, reference) pairs in one pass: a few dozen by a few hundred features, cheaper
     # than a KD-tree. Squared distances against squared radii, as cKDTree.query_ball_point
     # tests them, in row-major (sorted) order.
     return feasible_pair_indices(
-        np.ascontiguousarray(pred_xy),
+        gn.xy @ r0.T,
+        np.ascontiguousarray(prediction[:2], dtype=np.float64),
+        gn.dist,
+        float(bounds.max_translation_m),
+        rotation_chord(bounds.max_rotation_rad),
+        float(margin_m),
         np.ascontiguousarray(gr.xy, dtype=np.float64),
-        np.ascontiguousarray(radius, dtype=np.float64),
         np.ascontiguousarray(codes, dtype=np.int64),
     )
 
@@ -176,8 +181,7 @@ def intersection_hypotheses(
     Returns:
         ``(N, 3)`` float64 poses (unfiltered).
     """
-    sel = (gn.kind[i] == INTERSECTION) & (gr.kind[j] == INTERSECTION)
-    i, j = i[sel], j[sel]
+    i, j = pairs_of_kind(i, j, gn.kind, gr.kind, INTERSECTION)
     if i.shape[0] < 2:
         return np.zeros((0, 3))
     if i.shape[0] > max_pairs:

@@ -62,6 +62,7 @@ from iceg.matching._kernels import (
     nearest_walls,
     no_segment_grid,
     pair_nearest,
+    pairs_of_kind,
     point_line_system,
     poses_within_bounds,
     psd_max,
@@ -2433,20 +2434,31 @@ def test_largest_std_exceeds_is_the_eigenvalue_test(
 @pytest.mark.parametrize("seed", range(5))
 def test_feasible_pairs_are_the_numpy_expression(seed: int) -> None:
     # Features on a coarse lattice, so that many reference features lie exactly on a radius;
-    # a third of the codes incompatible. The compiled pass keeps numpy's pairs, in order.
+    # a third of the codes incompatible. The compiled pass keeps numpy's pairs, in order,
+    # with numpy's predicted positions and radii.
     rng = np.random.default_rng(seed)
     kn, kr = int(rng.integers(0, 40)), int(rng.integers(0, 200))
-    pred = rng.integers(-10, 10, (kn, 2)) * 0.5
+    rotated = rng.integers(-10, 10, (kn, 2)) * 0.5
+    offset = rng.integers(-4, 4, 2) * 0.25
     ref = rng.integers(-10, 10, (kr, 2)) * 0.5
-    radius = rng.integers(0, 8, kn) * 0.5
+    dist = rng.integers(0, 8, kn) * 0.5
+    max_t, chord, margin = 0.5, float(rng.choice([0.0, 0.25, 0.1])), 0.25
     codes = rng.integers(0, 3, (kn, kr)) * rng.integers(0, 2, (kn, kr))
+    pred = rotated + offset
+    radius = max_t + dist * chord + margin
     dx = pred[:, None, 0] - ref[None, :, 0]
     dy = pred[:, None, 1] - ref[None, :, 1]
     i, j = np.nonzero(dx * dx + dy * dy <= (radius * radius)[:, None])
     keep = codes[i, j] != 0
-    got_i, got_j = feasible_pair_indices(pred, ref, radius, codes.astype(np.int64))
+    got_i, got_j = feasible_pair_indices(
+        rotated, offset, dist, max_t, chord, margin, ref, codes.astype(np.int64)
+    )
     assert np.array_equal(got_i, i[keep]) and np.array_equal(got_j, j[keep])
     assert got_i.dtype == np.int64 and got_j.dtype == np.int64
+    kind_new, kind_ref = rng.integers(0, 3, kn), rng.integers(0, 3, kr)
+    sel = (kind_new[got_i] == 2) & (kind_ref[got_j] == 2)
+    both_i, both_j = pairs_of_kind(got_i, got_j, kind_new, kind_ref, 2)
+    assert np.array_equal(both_i, got_i[sel]) and np.array_equal(both_j, got_j[sel])
 
 
 def test_polar_profile_and_point_segments_are_the_numpy_expressions_bit_for_bit() -> None:
