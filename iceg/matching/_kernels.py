@@ -1244,6 +1244,19 @@ def segment_arrays(
 
 
 @njit(cache=True, nogil=True)
+def segment_lengths(endpoints: np.ndarray) -> np.ndarray:
+    """``(M,)`` float64 lengths (``hypot`` of the endpoints' difference) of the segments
+    ``endpoints`` ``(M, 2, 2)`` float64, as :func:`segment_arrays` computes them."""
+    m = endpoints.shape[0]
+    length = np.empty(m)
+    for j in range(m):
+        length[j] = math.hypot(
+            endpoints[j, 1, 0] - endpoints[j, 0, 0], endpoints[j, 1, 1] - endpoints[j, 0, 1]
+        )
+    return length
+
+
+@njit(cache=True, nogil=True)
 def line_covariances(
     a: np.ndarray,
     u: np.ndarray,

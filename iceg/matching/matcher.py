@@ -9,6 +9,7 @@ decision (docs/design.md step 10), covariance (Olson 2009, moved to the new scan
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import weakref
@@ -27,6 +28,7 @@ from iceg.matching._kernels import (
     local_lines,
     matched_pairs,
     ray_wall_check,
+    segment_lengths,
 )
 from iceg.matching.config import MatchBounds, MatchingConfig
 from iceg.matching.correlation import Correlation, CorrelationModel, CorrelationSettings
@@ -131,7 +133,7 @@ class _Starts:
     which of them is the prediction, the hypothesis count and the candidate pair count."""
 
     poses: FloatArray
-    from_prediction: NDArray[np.bool_]
+    from_prediction: list[bool]
     n_hypotheses: int
     n_pairs: int
 
@@ -183,6 +185,12 @@ class MatchContext:
             self.new_geom, self.ref_geom, codes, self.profile, settings
         )
         self.strict = IceMatcher.is_strict(c, self.bounds)
+
+    @functools.cached_property
+    def ref_segments(self) -> SegmentSet:
+        """The reference's segments prepared for point association (built once per match:
+        the prediction's rotation start reads their lengths, the refinement all of them)."""
+        return SegmentSet.from_features(self.reference)
 
     def fail(self, reason: str, n_hypotheses: int) -> MatchResult:
         """A failed :class:`~iceg.types.MatchResult` at the prediction with ``reason``."""
@@ -267,11 +275,6 @@ def reference_derived(reference: ScanFeatures) -> RefDerived:
         got = (feature_geometry(r), profile)
         _REF_DERIVED[reference] = got
     return got
-
-
-def _lengths(endpoints: FloatArray) -> FloatArray:
-    d = endpoints[:, 1] - endpoints[:, 0]
-    return np.hypot(d[:, 0], d[:, 1])
 
 
 #: Relative distance from the threshold beyond which :func:`largest_std_exceeds` trusts the
@@ -523,10 +526,10 @@ class IceMatcher:
         )
         clusters = vote(hyps.poses, v.vote_cell_m, math.radians(v.vote_cell_deg), v.max_clusters)
         starts = clusters.poses
-        from_prediction = np.zeros(starts.shape[0], dtype=bool)
+        from_prediction = [False] * starts.shape[0]
         if v.use_prediction_hypothesis and not ctx.bounds.is_global:
             starts = np.concatenate([starts, _prediction_start(ctx)[None]], axis=0)
-            from_prediction = np.append(from_prediction, True)
+            from_prediction.append(True)
         return _Starts(starts, from_prediction, int(hyps.poses.shape[0]), hyps.n_pairs)
 
     # --- step 7: correlation --------------------------------------------------------------
@@ -538,13 +541,14 @@ class IceMatcher:
         refined."""
         v = ctx.config.voting
         corr0 = ctx.correlation.score(starts.poses)
-        order = np.argsort(-corr0.score, kind="stable")
-        best0 = float(corr0.score[order[0]])
+        score = corr0.score.tolist()
+        order = np.argsort(-corr0.score, kind="stable").tolist()
+        best0 = score[order[0]]
         n_refine = v.max_refined_global if ctx.strict else v.max_refined
-        chosen = [int(k) for k in order if corr0.score[k] >= best0 - v.refine_correlation_margin]
+        chosen = [k for k in order if score[k] >= best0 - v.refine_correlation_margin]
         chosen = chosen[:n_refine]
-        if starts.from_prediction.any():
-            kp = int(np.flatnonzero(starts.from_prediction)[0])
+        if True in starts.from_prediction:
+            kp = starts.from_prediction.index(True)
             if kp not in chosen:
                 chosen.append(kp)
         return corr0, chosen
@@ -580,9 +584,7 @@ class IceMatcher:
                 for o in cands
             ):
                 continue
-            cand = _Candidate(
-                bool(starts.from_prediction[k]), ref, ctx.correlation.score(ref.pose[None])
-            )
+            cand = _Candidate(starts.from_prediction[k], ref, ctx.correlation.score(ref.pose[None]))
             cand.failure = self._validation(ctx, cand)
             cands.append(cand)
             if ctx.strict or cand.failure:
@@ -592,7 +594,7 @@ class IceMatcher:
                     other.failure = f"{REASON_WEAK_CLUSTER}: the prediction's basin passes too"
                     other.rival = False
                 break
-            if self._global_evidence(ctx, cand) or not starts.from_prediction.any():
+            if self._global_evidence(ctx, cand) or True not in starts.from_prediction:
                 break
             weak.append(cand)
         return cands
@@ -620,7 +622,7 @@ class IceMatcher:
             on_seg = on_seg[np.linspace(0, on_seg.shape[0] - 1, c.max_points).astype(np.int64)]
         points = features.points_xy[on_seg]
         point_alpha = features.seg_lines[pseg[on_seg], 0] if on_seg.shape[0] else np.zeros(0)
-        segs = SegmentSet.from_features(ctx.reference)
+        segs = ctx.ref_segments
         s = self._settings
         _, line_info = effective_line_info(segs, s.wall_end_sigma_m)
         b = ctx.bounds
@@ -879,9 +881,9 @@ def _prediction_start(ctx: MatchContext) -> FloatArray:
     start = ctx.prediction.copy()
     th = segment_rotation(
         f.seg_lines,
-        _lengths(f.seg_endpoints),
+        segment_lengths(np.ascontiguousarray(f.seg_endpoints, dtype=np.float64)),
         r.seg_lines,
-        _lengths(r.seg_endpoints),
+        ctx.ref_segments.length,
         float(start[2]),
         min(ctx.bounds.max_rotation_rad, START_MAX_DEVIATION_RAD),
         START_KERNEL_RAD,

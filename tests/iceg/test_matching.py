@@ -67,6 +67,7 @@ from iceg.matching._kernels import (
     poses_within_bounds,
     psd_max,
     segment_grid,
+    segment_lengths,
     stable_order,
 )
 from iceg.matching.config import CovarianceConfig
@@ -1128,6 +1129,13 @@ def test_scan_order_and_local_lines_equal_the_numpy_expressions() -> None:
         assert np.array_equal(got_nn, np.minimum(g_prev, g_next))
         assert np.array_equal(got_normal, normal, equal_nan=True)
     assert orders == {True, False}
+
+
+def test_segment_lengths_are_the_numpy_expression() -> None:
+    ep = np.random.default_rng(8).normal(0.0, 5.0, (50, 2, 2))
+    d = ep[:, 1] - ep[:, 0]
+    assert np.array_equal(segment_lengths(ep), np.hypot(d[:, 0], d[:, 1]))
+    assert segment_lengths(np.zeros((0, 2, 2))).shape == (0,)
 
 
 def test_matched_pairs_hand_values() -> None:
