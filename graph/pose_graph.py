@@ -1242,12 +1242,19 @@ class PoseGraph:
                 f"{ctx}: covariance must be a finite (3, 3) matrix in (x, y, theta) order, got "
                 f"shape {c.shape}"
             )
-        (_, a01, a02), (a10, _, a12), (a20, a21, _) = rows
+        (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = rows
         scale = max(abs(x) for row in rows for x in row)
         if max(abs(a01 - a10), abs(a02 - a20), abs(a12 - a21)) > 1e-9 * scale:
             raise GraphError(f"{ctx}: covariance is not symmetric: {rows}")
-        c = 0.5 * (c + c.T)
-        if not _clearly_positive_definite(c):
+        # 0.5 * (c + c.T), entry by entry (the same operations on the same floats)
+        s01, s02, s12 = 0.5 * (a01 + a10), 0.5 * (a02 + a20), 0.5 * (a12 + a21)
+        sym = [
+            [0.5 * (a00 + a00), s01, s02],
+            [s01, 0.5 * (a11 + a11), s12],
+            [s02, s12, 0.5 * (a22 + a22)],
+        ]
+        c = np.array(sym)
+        if not _clearly_positive_definite(sym):
             try:
                 np.linalg.cholesky(c)
             except np.linalg.LinAlgError:
@@ -1272,11 +1279,11 @@ class PoseGraph:
 _PIVOT_MARGIN = 1e-9
 
 
-def _clearly_positive_definite(c: FloatArray) -> bool:
-    """Whether the symmetric ``(3, 3)`` ``c`` is positive definite with every pivot of its
-    ``L D L^T`` elimination above :data:`_PIVOT_MARGIN` of its diagonal entry, in floats
-    (False: too close to call here; ``np.linalg.cholesky`` decides)."""
-    (a00, a01, a02), (_, a11, a12), (_, _, a22) = c.tolist()
+def _clearly_positive_definite(c: list[list[float]]) -> bool:
+    """Whether the symmetric ``(3, 3)`` ``c`` (rows of floats) is positive definite with
+    every pivot of its ``L D L^T`` elimination above :data:`_PIVOT_MARGIN` of its diagonal
+    entry, in floats (False: too close to call here; ``np.linalg.cholesky`` decides)."""
+    (a00, a01, a02), (_, a11, a12), (_, _, a22) = c
     if not a00 > 0.0:
         return False
     l10, l20 = a01 / a00, a02 / a00

@@ -1241,10 +1241,11 @@ class FeatureMap:
         self._chosen_memo = None  # the rows and their anchors change
         stamp = float(stamp_s)
         empty = np.zeros(0, dtype=np.int64)
-        book = _Bookkeeping(empty, empty, np.ones(features.n_features, dtype=bool), empty)
         if match is not None and match.success:
             ref = self._own(reference)
             book = self._bookkeep(node_id, features, stamp, ref, match, scan, node_poses, node_pose)
+        else:
+            book = _Bookkeeping(empty, empty, np.ones(features.n_features, dtype=bool), empty)
         self._part_memo = None  # the bookkeeping and what follows change the rows
         merged_ids = self._merge(book.merge_rows) if book.merge_rows.shape[0] else empty
         self._store_segments(node_id, features)

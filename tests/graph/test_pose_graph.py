@@ -384,10 +384,24 @@ def test_covariance_check_accepts_what_cholesky_accepts(  # type: ignore[no-unty
     eig = np.array([e0, e1, e2])
     c = q @ np.diag(eig) @ q.T
     c = 0.5 * (c + c.T)
-    if _clearly_positive_definite(c):
+    if _clearly_positive_definite(c.tolist()):
         np.linalg.cholesky(c)  # raises if not
     if eig.min() > 1e-6 * eig.max() > 0.0:
-        assert _clearly_positive_definite(c)
+        assert _clearly_positive_definite(c.tolist())
+
+
+def test_a_factor_keeps_the_symmetrised_covariance_numpy_gives() -> None:
+    # The covariance a factor keeps is 0.5 * (c + c.T) of the given one, bit for bit, for
+    # covariances asymmetric in the last bits as a product of matrices leaves them.
+    rng = np.random.default_rng(3)
+    g = _chain(2)
+    for _ in range(50):
+        a = rng.normal(size=(3, 3))
+        c = a @ a.T + np.eye(3) * 1e-3
+        c[0, 1] = np.nextafter(c[0, 1], np.inf)
+        c[2, 1] = np.nextafter(c[2, 1], -np.inf)
+        record = g.add_between(0, 1, [1.0, 0.0, 0.0], c, kind="scan_match")
+        assert np.array_equal(record.cov, 0.5 * (c + c.T))
 
 
 def test_structural_errors_name_the_node() -> None:
