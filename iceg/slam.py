@@ -1351,10 +1351,10 @@ def points_prefer_prediction(
     if reference_xy.shape[0] == 0 or points_xy.shape[0] == 0:
         return ""
     at_pose, at_prediction = points_within(
-        points_xy, np.stack([pose, prediction]), reference_xy, gate_m
+        points_xy, np.array([pose, prediction]), reference_xy, gate_m
     )
-    only_prediction = int(np.count_nonzero(at_prediction & ~at_pose))
-    only_pose = int(np.count_nonzero(at_pose & ~at_prediction))
+    only_prediction = int(np.count_nonzero(at_prediction > at_pose))
+    only_pose = int(np.count_nonzero(at_pose > at_prediction))
     if only_prediction <= only_pose or not sign_test_rejects(only_prediction, only_pose):
         return ""
     return (

@@ -1244,6 +1244,15 @@ def segment_arrays(
 
 
 @njit(cache=True, nogil=True)
+def all_finite(points: np.ndarray) -> bool:
+    """Whether every coordinate of ``points`` ``(R, 2)`` float64 is finite."""
+    for i in range(points.shape[0]):
+        if not (math.isfinite(points[i, 0]) and math.isfinite(points[i, 1])):
+            return False
+    return True
+
+
+@njit(cache=True, nogil=True)
 def segment_lengths(endpoints: np.ndarray) -> np.ndarray:
     """``(M,)`` float64 lengths (``hypot`` of the endpoints' difference) of the segments
     ``endpoints`` ``(M, 2, 2)`` float64, as :func:`segment_arrays` computes them."""

@@ -49,6 +49,7 @@ from iceg.matching._kernels import (
     PointCloud,
     PosePrior,
     SegmentPoints,
+    all_finite,
     final_covariances,
     finite_points_within,
     line_covariances,
@@ -315,7 +316,7 @@ def points_within(
         return np.zeros((np.shape(poses)[0], np.shape(points_xy)[0]), dtype=bool)
     points = np.ascontiguousarray(points_xy, dtype=np.float64)
     poses = np.ascontiguousarray(poses, dtype=np.float64)
-    if np.isfinite(ref).all():  # the grid and the query in one compiled call
+    if all_finite(ref):  # the grid and the query in one compiled call
         return finite_points_within(points, poses, ref, gate_m)
     origin, n_cells, key, order = grid_points(ref, gate_m)
     return points_explained(points, poses, ref, key, order, origin, n_cells, gate_m)

@@ -46,6 +46,7 @@ from iceg.matching._kernels import (
     SegmentPoints,
     _gls_normal_equations,
     _lattice_point_cost,
+    all_finite,
     associate,
     cloud_nearest,
     covariance_rows,
@@ -1136,6 +1137,15 @@ def test_segment_lengths_are_the_numpy_expression() -> None:
     d = ep[:, 1] - ep[:, 0]
     assert np.array_equal(segment_lengths(ep), np.hypot(d[:, 0], d[:, 1]))
     assert segment_lengths(np.zeros((0, 2, 2))).shape == (0,)
+
+
+def test_all_finite_hand_values() -> None:
+    assert all_finite(np.zeros((0, 2))) and all_finite(np.ones((4, 2)))
+    for bad in (np.nan, np.inf, -np.inf):
+        for at in ((0, 0), (3, 1)):
+            pts = np.ones((4, 2))
+            pts[at] = bad
+            assert not all_finite(pts)
 
 
 def test_matched_pairs_hand_values() -> None:
