@@ -95,7 +95,15 @@ class RefineSettings:
     lattice_cap_rad: float
 
     def kernel(self) -> GnSettings:
-        """The settings the compiled Gauss-Newton loop needs."""
+        """The settings the compiled Gauss-Newton loop needs (built once per settings)."""
+        return self._kernel
+
+    def lattice(self) -> LatticeSettings:
+        """The settings the compiled covariance lattice needs (built once per settings)."""
+        return self._lattice
+
+    @functools.cached_property
+    def _kernel(self) -> GnSettings:
         return GnSettings(
             float(self.end_tol_m),
             math.sin(self.normal_gate_rad),
@@ -107,8 +115,8 @@ class RefineSettings:
             int(EOW),
         )
 
-    def lattice(self) -> LatticeSettings:
-        """The settings the compiled covariance lattice needs."""
+    @functools.cached_property
+    def _lattice(self) -> LatticeSettings:
         return LatticeSettings(
             _unit_lattice(self.lattice_steps),
             float(self.lattice_sigmas),
