@@ -46,6 +46,7 @@ from iceg.landmark_frames import (
 )
 from iceg.matching.geometry import PolarProfile, transform_line_rows
 from iceg.matching.matcher import walls_seen_through
+from iceg.table_rows import drop_rows_in_place
 from iceg.types import FeatureKind, MatchResult, ScanFeatures
 from iceg.visibility import (
     beam_profile,
@@ -364,8 +365,6 @@ _C = TypeVar("_C", bound="_Columns")
 
 #: Initial row capacity of a growing column container (:class:`_Columns`).
 _MIN_CAPACITY = 64
-#: Above this many kept blocks, :meth:`_Columns.drop` gathers the kept rows by a mask.
-_MAX_DROP_BLOCKS = 32
 #: From this many landmarks on, a reference finds its landmarks through the ids its nodes
 #: touched (:class:`_Touched`) instead of a pass over every landmark. The pass streams
 #: through the table, the index reads it at random: on MIT CSAIL (about 1500 landmarks) the
@@ -392,6 +391,8 @@ class _Columns:
         self._bufs: dict[str, np.ndarray] = {name: getattr(self, name) for name in self.SPEC}
         self._cap = len(self)
         self._owned = False  # the buffers are the constructor's arrays (never written)
+        # The buffers as words for drop() (None: build them from the buffers first).
+        self._words: tuple[tuple[np.ndarray, ...], IntArray] | None = None
 
     @classmethod
     def empty(cls: type[_C]) -> _C:
@@ -417,6 +418,7 @@ class _Columns:
                 buf[:n] = mine
                 self._bufs[name] = buf
             self._cap, self._owned = cap, True
+            self._words = None
         for name in self.SPEC:
             buf = self._bufs[name]
             buf[n : n + m] = columns[name]
@@ -438,8 +440,9 @@ class _Columns:
     def drop(self, rows: IntArray) -> None:
         """Remove ``rows`` (indices), the others kept in order, in place: the kept rows move
         down within the container's buffers, so a drop allocates nothing (a fresh buffer of a
-        large table costs a page fault per page) and keeps the spare capacity. A few dropped
-        rows cost a block move between each two, not a gather of every row.
+        large table costs a page fault per page) and keeps the spare capacity; every column
+        in one compiled call (:func:`~iceg.table_rows.drop_rows_in_place`, which moves the
+        8-byte values' bits).
 
         Column arrays read from the container before the drop are stale after it. Arrays
         given to the constructor are never written: the first drop copies them.
@@ -447,28 +450,26 @@ class _Columns:
         n = len(self)
         gone = sorted_unique(rows)
         kept = n - gone.shape[0]
-        blocks = list(zip([0, *(gone + 1).tolist()], [*gone.tolist(), n], strict=True))
-        mask = None
-        if len(blocks) > _MAX_DROP_BLOCKS:
-            mask = np.ones(n, dtype=bool)
-            mask[gone] = False
         if not self._owned:
             self._bufs = {name: getattr(self, name).copy() for name in self.SPEC}
             self._cap, self._owned = n, True
+            self._words = None
+        if self._words is None:
+            self._words = _row_words(self._bufs, self.SPEC)
+        drop_rows_in_place(self._words[0], self._words[1], gone, n)
         for name in self.SPEC:
-            col = getattr(self, name)
-            buf = self._bufs[name]
-            if mask is not None:
-                buf[:kept] = col[mask]
-            else:
-                # A 1-D view, so numpy moves overlapping ranges itself (memmove), no temporary.
-                flat, width = buf.reshape(-1), math.prod(buf.shape[1:])
-                at = 0
-                for a, b in blocks:
-                    if at != a:
-                        flat[at * width : (at + b - a) * width] = flat[a * width : b * width]
-                    at += b - a
-            setattr(self, name, buf[:kept])
+            setattr(self, name, self._bufs[name][:kept])
+
+
+def _row_words(
+    bufs: dict[str, np.ndarray], spec: dict[str, tuple[type, tuple[int, ...]]]
+) -> tuple[tuple[np.ndarray, ...], IntArray]:
+    """Every column buffer as flat int64 words (views) and the words per row of each, for
+    :func:`~iceg.table_rows.drop_rows_in_place` (every field of a :class:`_Columns` holds
+    8-byte values)."""
+    words = tuple(bufs[name].reshape(-1).view(np.int64) for name in spec)
+    per_row = np.array([math.prod(shape) for _, shape in spec.values()], dtype=np.int64)
+    return words, per_row
 
 
 @dataclass
@@ -583,6 +584,15 @@ class _Touched(_Columns):
     SPEC: ClassVar[dict[str, tuple[type, tuple[int, ...]]]] = {"id": (np.int64, ())}
 
     id: IntArray  # (T,) landmark id
+
+
+def compile_table_moves() -> None:
+    """Drop the row of a one-row landmark table, so that the row moves' compiled kernel
+    (:func:`~iceg.table_rows.drop_rows_in_place`) loads, or compiles on a new numba cache,
+    before a run's first merge or pruning needs it (:mod:`iceg.kernel_warmup`)."""
+    table = _Landmarks.empty()
+    table.extend(1, **dict.fromkeys(_Landmarks.SPEC, 0))
+    table.drop(np.zeros(1, dtype=np.int64))
 
 
 #: Dtype and trailing shape of each :class:`PrunedLandmarks` field.

@@ -26,7 +26,7 @@ from numba import njit
 
 from frontends.scan import LaserScan
 from iceg.config import IcegConfig
-from iceg.feature_map import FeatureMap
+from iceg.feature_map import FeatureMap, compile_table_moves
 from iceg.grid import render_tiled_chunks
 from iceg.landmark_frames import move_point_blocks, poses_in_frame
 from iceg.matching.matcher import IceMatcher
@@ -135,4 +135,5 @@ def _feature_map(
     stamp_s = scan.stamp_s + 0.1
     fm.update(1, features, stamp_s, reference=ref, match=match, scan=scan, node_poses=(ids, poses))
     fm.reference((ids, poses), fm.reference_pose_nodes(ids), poses[1])
+    compile_table_moves()  # merges and pruning move the landmark table's rows
     fm.update_pose_nodes(2, ref)

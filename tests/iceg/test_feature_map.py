@@ -27,6 +27,8 @@ from iceg.feature_map import (
     PrunedLandmarks,
     _Landmarks,
     _Points,
+    _Segments,
+    _Touched,
 )
 from iceg.features import extract
 from iceg.landmark_association import (
@@ -567,8 +569,8 @@ def test_walls_the_newest_scan_sees_through_are_dropped_from_a_reference(removed
 @pytest.mark.parametrize("n_drop", [0, 1, 3, 40])
 def test_dropping_rows_keeps_the_others_in_order_and_the_spare_capacity(n_drop: int) -> None:
     # Dropping landmark rows (merged, pruned) leaves the rows a mask would keep, in order,
-    # whether moved block by block within the buffers (few rows) or gathered (many); the
-    # container keeps its buffers and capacity, so appending after it writes into them.
+    # moved down within the buffers (none, one, a few or many kept blocks); the container
+    # keeps its buffers and capacity, so appending after it writes into them.
     rng = np.random.default_rng(n_drop)
     cols = _Points(np.arange(100, dtype=np.int64), rng.normal(size=(100, 2)))
     cols.append(_Points(np.arange(100, 150, dtype=np.int64), rng.normal(size=(50, 2))))
@@ -597,6 +599,8 @@ def test_dropping_landmark_rows_moves_every_column_of_the_table() -> None:
         n,
         **{name: rng.normal(size=(n, *shape)) for name, (_, shape) in _Landmarks.SPEC.items()},
     )
+    table.first_miss_s[::7] = np.nan  # NaN and a NaN with a payload keep their bits
+    table.created_s[::11] = np.array([0x7FF4000000000123], dtype=np.int64).view(np.float64)[0]
     want = {name: getattr(table, name).copy() for name in _Landmarks.SPEC}
     for gone in ([0], [n - 2], list(range(10, 20)), [3, 4, 99, 150, 151, 200], []):
         rows = np.array(gone, dtype=np.int64)
@@ -607,6 +611,13 @@ def test_dropping_landmark_rows_moves_every_column_of_the_table() -> None:
         for name in _Landmarks.SPEC:
             assert getattr(table, name).tobytes() == want[name].tobytes(), name
     assert len(table) == n - 18
+
+
+def test_every_table_column_holds_eight_byte_values() -> None:
+    # A drop moves each column's rows as 8-byte words (iceg.table_rows).
+    for table in (_Landmarks, _Segments, _Points, _Touched):
+        for name, (dtype, _) in table.SPEC.items():
+            assert np.dtype(dtype).itemsize == 8, (table.__name__, name)
 
 
 def test_dropping_rows_never_writes_the_arrays_a_container_was_made_of() -> None:

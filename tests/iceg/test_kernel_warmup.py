@@ -17,7 +17,8 @@ _SCRIPT = r"""
 import json
 from numba.core.registry import CPUDispatcher
 import iceg.features.segmentation, iceg.grid, iceg.landmark_association, iceg.landmark_frames
-import iceg.matching._kernels, iceg.node_index, iceg.scan_store, iceg.visibility
+import iceg.matching._kernels, iceg.node_index, iceg.scan_store, iceg.table_rows
+import iceg.visibility
 from frontends.simulate import corridor_world, default_trajectory, simulate
 from iceg.config import IcegConfig
 from iceg.features import extract
@@ -27,7 +28,7 @@ from iceg.pipeline import run_scans
 
 MODULES = [iceg.features.segmentation, iceg.grid, iceg.landmark_association,
            iceg.landmark_frames, iceg.matching._kernels, iceg.node_index, iceg.scan_store,
-           iceg.visibility]
+           iceg.table_rows, iceg.visibility]
 
 def signatures():
     return {
@@ -72,7 +73,7 @@ def test_the_warm_up_compiles_the_later_stages_with_the_signatures_a_run_calls()
     # map, the node index and the grid in the worker ...
     later = {"final_covariances", "ray_wall_check", "finite_points_within"}
     later |= {"associate_scan", "keep_better", "count_observations", "expected_landmarks"}
-    later |= {"reference_geometry"}
+    later |= {"reference_geometry", "drop_rows_in_place"}
     later |= {"move_point_blocks", "sorted_union", "_trace_scans", "_mark_tiles", "_rows_within"}
     assert later <= warmed, later - warmed
     # ... the hypotheses, the correlation and the refinement in the main process, which the
