@@ -31,6 +31,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from frontends.scan import LaserScan
 from iceg.landmark_association import (
     associate_scan,
+    is_ascending,
     lookup_sorted,
     reference_geometry,
     rows_of_nodes,
@@ -700,7 +701,7 @@ def _node_pose_table(node_poses: NodePoses) -> tuple[IntArray, FloatArray]:
             f"node_poses: {ids.shape[0]} ids but {poses.shape[0]} poses; pass a dict "
             "{node_id: (3,) pose} or a tuple (ids (N,), poses (N, 3))"
         )
-    if ids.shape[0] < 2 or bool((ids[1:] >= ids[:-1]).all()):  # sorted already (tables usually are)
+    if is_ascending(ids):  # sorted already (tables usually are)
         return ids.copy(), poses.copy()
     order = np.argsort(ids, kind="stable")
     return ids[order], poses[order]

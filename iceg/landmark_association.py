@@ -91,6 +91,15 @@ def within_gate_of_any(
 
 
 @njit(cache=True, nogil=True)
+def is_ascending(ids: np.ndarray) -> bool:
+    """Whether the ``(n,)`` int64 ids never decrease (``(ids[1:] >= ids[:-1]).all()``)."""
+    for k in range(1, ids.shape[0]):  # noqa: SIM110 (numba compiles no generator in all())
+        if ids[k] < ids[k - 1]:
+            return False
+    return True
+
+
+@njit(cache=True, nogil=True)
 def lookup_sorted(table_ids: np.ndarray, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rows of ids in a sorted id table: for each query id the first row whose id is not
     below it (``np.searchsorted``, side left), clipped to the last row, and whether that row

@@ -33,6 +33,7 @@ from iceg.feature_map import (
 from iceg.features import extract
 from iceg.landmark_association import (
     associate_scan,
+    is_ascending,
     lookup_sorted,
     nearest_free_pairs,
     reference_geometry,
@@ -772,6 +773,14 @@ def test_association_kernels_equal_the_numpy_expressions() -> None:
             dd = np.linalg.norm(feature_xy[paired][:, None, :] - landmark_xy[None], axis=2)
             want = np.any(dd <= 0.3, axis=0)
         assert np.array_equal(within_gate_of_any(feature_xy, paired, landmark_xy, 0.3), want)
+
+
+def test_is_ascending_is_the_numpy_expression() -> None:
+    rng = np.random.default_rng(9)
+    for n in (0, 1, 2, 3, 10, 100):
+        for ids in (np.sort(rng.integers(0, 5, n)), rng.integers(0, 5, n), np.arange(n)[::-1]):
+            ids = np.ascontiguousarray(ids, dtype=np.int64)
+            assert is_ascending(ids) == (n < 2 or bool((ids[1:] >= ids[:-1]).all()))
 
 
 @pytest.mark.parametrize("seed", range(4))
