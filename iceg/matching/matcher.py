@@ -92,6 +92,7 @@ START_MIN_SUPPORT_M = 1.0
 START_MAX_DEVIATION_RAD = math.pi / 2
 #: Walls met at more than this incidence (degrees) are not judged by the ray check.
 MAX_INCIDENCE_DEG = 70.0
+#: Its cosine, as the compiled ray check takes it.
 _COS_MAX_INCIDENCE = math.cos(math.radians(MAX_INCIDENCE_DEG))
 #: No segments: the second side of a one-sided free-space check.
 _NO_SEGMENTS = np.zeros((0, 2, 2))
