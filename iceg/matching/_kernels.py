@@ -2139,6 +2139,7 @@ def free_space_check(
         reference's when ``two_sided``; ``(0, 0)`` when no wall is judged); the distance from
         each scan's sensor to the nearest wall of the other (the smaller, inf without
         segments); and whether neither sensor lies behind a wall the other scan sees.
+        Raises nothing.
     """
     see, cons = walls_seen_through_length(ref_in_new, new_rays, tol_m, cos_max_incidence)
     length = 0.0 + see

@@ -308,42 +308,31 @@ def _same_pose(a: FloatArray, b: FloatArray, dist_m: float, angle_rad: float) ->
     )
 
 
+#: The feature arrays whose shapes :func:`_check_features` checks.
+_SHAPED = ("xy", "cov", "directions", "opening_rad", "ids", "seg_endpoints", "seg_lines", "seg_cov")
+
+
 def _check_features(f: ScanFeatures, what: str) -> None:
     k = f.kind.shape[0]
     m = f.seg_endpoints.shape[0]
-    if (
-        f.xy.shape == (k, 2)
-        and f.cov.shape == (k, 2, 2)
-        and f.directions.shape == (k, 2, 2)
-        and f.opening_rad.shape == (k,)
-        and f.ids.shape == (k,)
-        and f.seg_endpoints.shape == (m, 2, 2)
-        and f.seg_lines.shape == (m, 2)
-        and f.seg_cov.shape == (m, 2, 2)
-        and f.points_xy.ndim == 2
-        and f.points_xy.shape[1] == 2
-    ):
-        return
-    shapes = {
-        "xy": (f.xy.shape, (k, 2)),
-        "cov": (f.cov.shape, (k, 2, 2)),
-        "directions": (f.directions.shape, (k, 2, 2)),
-        "opening_rad": (f.opening_rad.shape, (k,)),
-        "ids": (f.ids.shape, (k,)),
-    }
-    shapes.update(
-        {
-            "seg_endpoints": (f.seg_endpoints.shape, (m, 2, 2)),
-            "seg_lines": (f.seg_lines.shape, (m, 2)),
-            "seg_cov": (f.seg_cov.shape, (m, 2, 2)),
-        }
+    got = (
+        f.xy.shape,
+        f.cov.shape,
+        f.directions.shape,
+        f.opening_rad.shape,
+        f.ids.shape,
+        f.seg_endpoints.shape,
+        f.seg_lines.shape,
+        f.seg_cov.shape,
     )
-    for name, (got, want) in shapes.items():
-        if tuple(got) != want:
-            raise MatchingError(
-                f"{what}.{name} has shape {tuple(got)}, expected {want} "
-                "(see iceg.types.ScanFeatures)"
-            )
+    want = ((k, 2), (k, 2, 2), (k, 2, 2), (k,), (k,), (m, 2, 2), (m, 2), (m, 2, 2))
+    if got != want:  # one tuple comparison on the common path; the first mismatch named
+        for name, g, w in zip(_SHAPED, got, want, strict=True):
+            if tuple(g) != w:
+                raise MatchingError(
+                    f"{what}.{name} has shape {tuple(g)}, expected {w} "
+                    "(see iceg.types.ScanFeatures)"
+                )
     if f.points_xy.ndim != 2 or f.points_xy.shape[1] != 2:
         raise MatchingError(f"{what}.points_xy must have shape (P, 2), got {f.points_xy.shape}")
 
