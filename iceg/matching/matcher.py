@@ -96,6 +96,8 @@ MAX_INCIDENCE_DEG = 70.0
 _COS_MAX_INCIDENCE = math.cos(math.radians(MAX_INCIDENCE_DEG))
 #: No segments: the second side of a one-sided free-space check.
 _NO_SEGMENTS = np.zeros((0, 2, 2))
+#: The off-segment cloud of a match without one (every match reads it; no kernel writes it).
+_EMPTY_CLOUD = empty_cloud()
 #: A bearing decrease larger than this (radians) between consecutive points breaks beam
 #: order (the points are not one scan).
 _BEARING_BACKSTEP_RAD = 0.05
@@ -201,12 +203,16 @@ class MatchContext:
 
 class ScanDerived(NamedTuple):
     """What every match of one new scan derives from its features alone (pose-independent):
-    its feature geometry, its polar profile (range ``range_max_m``) and the segment of each
-    point (``(P,)`` int64, -1: none)."""
+    its feature geometry, its polar profile (range ``range_max_m``), the segment of each
+    point (``(P,)`` int64, -1: none), the points on a segment with their segment's line
+    angle (the refinement's point-to-line rows before any subsampling) and the indices
+    (``(Q,)`` int64, ascending) of the points on none."""
 
     geometry: FeatureGeometry
     profile: PolarProfile
     point_segment: IntArray
+    segment_points: SegmentPoints
+    off_segment: IntArray
 
 
 #: :func:`scan_derived` results by features object (identity; dropped with the object).
@@ -228,10 +234,15 @@ def scan_derived(features: ScanFeatures) -> ScanDerived:
 def compute_scan_derived(features: ScanFeatures) -> ScanDerived:
     """What :func:`scan_derived` caches, computed afresh (e.g. in a feature worker,
     :mod:`iceg.scan_products`)."""
+    pseg = point_segment_index(features)
+    on_segment = np.flatnonzero(pseg >= 0)
+    alpha = features.seg_lines[pseg[on_segment], 0] if on_segment.shape[0] else np.zeros(0)
     return ScanDerived(
         feature_geometry(features),
         PolarProfile.from_points(features.points_xy, float(features.range_max_m)),
-        point_segment_index(features),
+        pseg,
+        SegmentPoints(features.points_xy[on_segment], alpha),
+        np.flatnonzero(pseg < 0),
     )
 
 
@@ -299,6 +310,11 @@ def largest_std_exceeds(cov_xy: FloatArray, limit: float) -> bool:
     if abs(largest - bound) > _EIGENVALUE_MARGIN * (abs(a) + abs(b) + abs(d) + bound):
         return largest > bound
     return math.sqrt(max(float(np.linalg.eigvalsh(cov_xy)[-1]), 0.0)) > limit
+
+
+def _even_pick(n: int, k: int) -> IntArray:
+    """``(k,)`` int64 indices of ``k`` of ``n`` items, evenly spread (first and last kept)."""
+    return np.linspace(0, n - 1, k).astype(np.int64)
 
 
 def _same_pose(a: FloatArray, b: FloatArray, dist_m: float, angle_rad: float) -> bool:
@@ -605,13 +621,11 @@ class IceMatcher:
         (at most ``max_points``, evenly subsampled), the reference segments, the bounds'
         prior centred on the prediction and the off-segment point cloud."""
         c = ctx.config.refinement
-        features = ctx.features
-        pseg = scan_derived(features).point_segment
-        on_seg = np.flatnonzero(pseg >= 0)
-        if on_seg.shape[0] > c.max_points:
-            on_seg = on_seg[np.linspace(0, on_seg.shape[0] - 1, c.max_points).astype(np.int64)]
-        points = features.points_xy[on_seg]
-        point_alpha = features.seg_lines[pseg[on_seg], 0] if on_seg.shape[0] else np.zeros(0)
+        derived = scan_derived(ctx.features)
+        points = derived.segment_points
+        if points.xy.shape[0] > c.max_points:
+            pick = _even_pick(points.xy.shape[0], c.max_points)
+            points = SegmentPoints(points.xy[pick], points.alpha[pick])
         segs = ctx.ref_segments
         s = self._settings
         _, line_info = effective_line_info(segs, s.wall_end_sigma_m)
@@ -620,18 +634,18 @@ class IceMatcher:
             ctx.prediction, bounds_prior_information(b.max_translation_m, b.max_rotation_rad)
         )
         return RefineProblem(
-            SegmentPoints(points, point_alpha),
+            points,
             segs,
             line_info,
             ctx.new_geom,
             ctx.ref_geom,
             ctx.correlation.feature_pairing,
             prior,
-            self._cloud(ctx, pseg),
+            self._cloud(ctx, derived.off_segment),
             s,
         )
 
-    def _cloud(self, ctx: MatchContext, pseg: IntArray) -> PointCloud:
+    def _cloud(self, ctx: MatchContext, new_off: IntArray) -> PointCloud:
         """Off-segment points of the new scan (clutter, short structures) against all the
         reference's points, point-to-line on the local line through a reference point and
         its beam neighbours (Censi 2008, PL-ICP), so that points on walls add nothing along
@@ -640,12 +654,10 @@ class IceMatcher:
         fewer than 3 points or ``use_off_segment_points`` is off."""
         c = ctx.config.refinement
         rp = ctx.reference.points_xy
-        new_off = np.flatnonzero(pseg < 0)
         if not c.use_off_segment_points or rp.shape[0] < 3 or new_off.shape[0] == 0:
-            return empty_cloud()
+            return _EMPTY_CLOUD
         if new_off.shape[0] > c.max_points // 2:
-            pick = np.linspace(0, new_off.shape[0] - 1, c.max_points // 2).astype(np.int64)
-            new_off = new_off[pick]
+            new_off = new_off[_even_pick(new_off.shape[0], c.max_points // 2)]
         spacing, normal = local_lines(
             np.ascontiguousarray(rp, dtype=np.float64), c.local_line_max_gap_m
         )
@@ -663,9 +675,10 @@ class IceMatcher:
         is checked later only where a rival's ranking needs it (:meth:`_settle_rivals`), so
         every decision is the one of the checks in the order above; a failed match may name
         the evidence where that order named free space."""
-        if not np.all(np.isfinite(cand.refined.pose)):
+        pose = cand.refined.pose.tolist()
+        if not all(map(math.isfinite, pose)):
             return f"{REASON_DEGENERATE}: refinement diverged"
-        out_of_bounds = self._check_bounds(ctx, cand.refined.pose)
+        out_of_bounds = self._check_bounds(ctx, pose)
         if out_of_bounds or not ctx.strict:
             return (
                 out_of_bounds
@@ -692,11 +705,12 @@ class IceMatcher:
                 if self._check_free_space(ctx, cand):
                     cand.rival = False
 
-    def _check_bounds(self, ctx: MatchContext, pose: FloatArray) -> str:
-        """The refined pose lies within the bounds (plus the filter's noise allowances)."""
+    def _check_bounds(self, ctx: MatchContext, pose: list[float]) -> str:
+        """The refined pose ``[x_m, y_m, theta_rad]`` lies within the bounds (plus the
+        filter's noise allowances)."""
         f = ctx.config.filter
-        d = pose - ctx.prediction
-        dist, dth = math.hypot(d[0], d[1]), abs(wrap_float(float(d[2])))
+        d = [a - b for a, b in zip(pose, ctx.prediction.tolist(), strict=True)]
+        dist, dth = math.hypot(d[0], d[1]), abs(wrap_float(d[2]))
         if dist > ctx.bounds.max_translation_m + f.feasible_margin_m or dth > (
             ctx.bounds.max_rotation_rad + math.radians(f.direction_tolerance_deg)
         ):

@@ -30,6 +30,7 @@ from frontends.simulate import (
     default_trajectory,
     long_corridor_world,
     office_world,
+    outdoor_world,
     ray_ranges,
     simulate,
     simulate_pair,
@@ -1419,6 +1420,31 @@ def _office_pair() -> tuple[MatchContext, RefineProblem, np.ndarray]:
     matcher = IceMatcher()
     ctx = MatchContext(extract(sb), extract(sa), truth, MatchBounds.local(0.5, 15), matcher.config)
     return ctx, matcher._refine_problem(ctx), truth
+
+
+@pytest.mark.parametrize("max_points", [400, 20])
+def test_refinement_points_are_the_scan_s_points_on_segments(max_points: int) -> None:
+    # The refinement's point-to-line rows: the new scan's points on a segment with their
+    # segment's line angle, evenly subsampled to max_points (the scan derives them once,
+    # before any match); its off-segment cloud the points on none, subsampled to half. This
+    # outdoor scan has 36 points on walls and 32 on trees, so 20 subsamples both.
+    pa = np.array([30.0, 5.0, 0.3])
+    sa, sb = simulate_pair(outdoor_world(), pa, compose(pa, [0.4, 0.1, 0.08]), seed=3)
+    new, ref = extract(sb), extract(sa)
+    config = MatchingConfig.model_validate({"refinement": {"max_points": max_points}})
+    matcher = IceMatcher(config)
+    ctx = MatchContext(new, ref, np.zeros(3), MatchBounds.local(0.5, 15), config)
+    problem = matcher._refine_problem(ctx)
+    pseg = point_segment_index(new)
+    on, off = np.flatnonzero(pseg >= 0), np.flatnonzero(pseg < 0)
+    assert on.shape[0] == 36 and off.shape[0] == 32
+    if on.shape[0] > max_points:
+        on = on[np.linspace(0, on.shape[0] - 1, max_points).astype(np.int64)]
+    np.testing.assert_array_equal(problem.points.xy, new.points_xy[on])
+    np.testing.assert_array_equal(problem.points.alpha, new.seg_lines[pseg[on], 0])
+    if off.shape[0] > max_points // 2:
+        off = off[np.linspace(0, off.shape[0] - 1, max_points // 2).astype(np.int64)]
+    np.testing.assert_array_equal(problem.cloud.points, new.points_xy[off])
 
 
 def test_refine_pairs_the_features_at_the_start_when_not_given() -> None:
