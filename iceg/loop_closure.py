@@ -42,7 +42,7 @@ from graph import FactorKind, OdometryNoiseConfig, PoseGraph
 from iceg.feature_map import FeatureMap
 from iceg.match_pool import MatchJob, MatchPool, SentMatches
 from iceg.matching import MatchBounds, Matcher
-from iceg.node_index import NodeGrid
+from iceg.node_index import NodeGrid, nearest_within
 from iceg.place_index import PlaceIndex, PlaceIndexConfig, place_descriptor
 from iceg.types import MatchResult, ScanFeatures
 from iceg_common import se2
@@ -536,12 +536,8 @@ class _Nearby:
     def __init__(
         self, nodes: NodeGrid, poses: _Poses, center: FloatArray, n_older: int, reach_m: float
     ) -> None:
-        ids = nodes.query(center, reach_m + _INDEX_MARGIN_M)  # ascending
-        ids = ids[ids < n_older]
-        indexed = np.hypot(*(nodes.position(ids) - center).T)
-        order = np.argsort(indexed, kind="stable")
-        self._ids, self._indexed = ids[order], indexed[order]
-        self._dist = np.full(ids.shape[0], np.nan)  # exact distances, NaN: not read yet
+        self._ids, self._indexed = nodes.nearest_first(center, reach_m + _INDEX_MARGIN_M, n_older)
+        self._dist = np.full(self._ids.shape[0], np.nan)  # exact distances, NaN: not read yet
         self._poses, self._center = poses, center
 
     def __len__(self) -> int:
@@ -562,10 +558,8 @@ class _Nearby:
         """The nodes at most ``d`` (m, at most the reach) from the center, nearest first
         (ties by id), and their distances: ``(ids (k,) int64, dist (k,) m)``."""
         m = self._reads(d)
-        ids, dist = self._ids[:m], self._distances(slice(0, m))
-        keep = np.flatnonzero(dist <= d)
-        order = keep[np.lexsort((ids[keep], dist[keep]))]
-        return ids[order], dist[order]
+        self._distances(slice(0, m))
+        return nearest_within(self._ids, self._dist, m, d)
 
     def read_all(self, d: float) -> bool:
         """Whether :meth:`within` ``d`` reads every node the index returned (a larger

@@ -141,6 +141,26 @@ class NodeGrid:
         d = self._xy[ids] - c
         return ids[d[:, 0] ** 2 + d[:, 1] ** 2 <= r * r]
 
+    def nearest_first(
+        self, center_xy: FloatArray, radius_m: float, below: int
+    ) -> tuple[IntArray, FloatArray]:
+        """:meth:`query` of the ids below ``below``, ordered by their indexed distance to
+        ``center_xy`` (``(2,)`` float64 metres; ties by id), with those distances.
+
+        Returns:
+            ``ids`` ``(k,)`` int64 and ``dist`` ``(k,)`` float64 metres (``np.hypot`` of the
+            indexed position less the center).
+        """
+        c = np.asarray(center_xy, dtype=np.float64).reshape(2)
+        if self._n <= SCAN_ALL_ROWS and self._count and radius_m >= 0:
+            # the query's rows, those below ``below`` only
+            cx, cy, r = float(c[0]), float(c[1]), float(radius_m)
+            ids = _rows_within(self._xy, min(self._n, max(below, 0)), cx, cy, r * r)
+        else:
+            ids = self.query(c, radius_m)
+            ids = ids[ids < below]
+        return _by_distance(self._xy, ids, float(c[0]), float(c[1]))
+
     def position(self, node_ids: ArrayLike) -> FloatArray:
         """Indexed positions ``(k, 2)`` of indexed nodes (NaN rows for others)."""
         ids = np.asarray(node_ids, dtype=np.int64).reshape(-1)
@@ -201,4 +221,38 @@ def _rows_within(xy: np.ndarray, n: int, cx: float, cy: float, r2: float) -> np.
     return keep[:k].copy()
 
 
-__all__ = ["NodeGrid"]
+@njit(cache=True, nogil=True)
+def _by_distance(
+    xy: np.ndarray, ids: np.ndarray, cx: float, cy: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``ids`` ``(k,)`` int64 (ascending) ordered by the distance of their rows of ``xy`` to
+    ``(cx, cy)``, stably (ties by id), and those distances (``np.hypot`` of the differences,
+    as numpy computes them). Raises nothing."""
+    dist = np.empty(ids.shape[0])
+    for i in range(ids.shape[0]):
+        dist[i] = np.hypot(xy[ids[i], 0] - cx, xy[ids[i], 1] - cy)
+    order = np.argsort(dist, kind="mergesort")
+    return ids[order], dist[order]
+
+
+@njit(cache=True, nogil=True)
+def nearest_within(
+    ids: np.ndarray, dist: np.ndarray, count: int, d: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The first ``count`` of ``ids`` ``(n,)`` int64 and ``dist`` ``(n,)`` float64 whose
+    distance is at most ``d``, nearest first, ties by id (``np.lexsort((ids, dist))`` of
+    those), and their distances. Raises nothing."""
+    keep = np.empty(count, np.int64)
+    k = 0
+    for i in range(count):
+        if dist[i] <= d:
+            keep[k] = i
+            k += 1
+    kept_ids = ids[keep[:k]]
+    kept_dist = dist[keep[:k]]
+    by_id = np.argsort(kept_ids, kind="mergesort")
+    order = by_id[np.argsort(kept_dist[by_id], kind="mergesort")]
+    return kept_ids[order], kept_dist[order]
+
+
+__all__ = ["NodeGrid", "nearest_within"]

@@ -64,3 +64,58 @@ def test_query_equals_brute_force(
             assert grid.extent_m == span
     grid.clear()
     assert len(grid) == 0 and grid.query(c, radius).shape == (0,)
+
+
+@pytest.mark.parametrize("scan_all_rows", [node_index.SCAN_ALL_ROWS, 0])
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(st.tuples(coords, coords), min_size=0, max_size=80),
+    st.tuples(coords, coords),
+    st.floats(0.0, 120.0),
+    st.integers(-1, 90),
+)
+def test_nearest_first_equals_the_numpy_expressions(
+    scan_all_rows: int,
+    points: list[tuple[float, float]],
+    center: tuple[float, float],
+    radius: float,
+    below: int,
+) -> None:
+    # The loop-closure search's ordering of the nodes near a point (one compiled call), bit
+    # for bit the numpy expressions it replaced: the query, the ids below a bound, np.hypot
+    # of the indexed positions less the center, a stable argsort (ties by id). Repeated
+    # positions make ties.
+    xy = np.array(points + points[:5], dtype=np.float64).reshape(-1, 2)
+    grid = NodeGrid(1.0)
+    grid.add(np.arange(xy.shape[0]), xy)
+    c = np.array(center)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(node_index, "SCAN_ALL_ROWS", scan_all_rows)
+        ids, dist = grid.nearest_first(c, radius, below)
+        want = grid.query(c, radius)
+    want = want[want < below]
+    want_dist = np.hypot(*(grid.position(want) - c).T)
+    order = np.argsort(want_dist, kind="stable")
+    np.testing.assert_array_equal(ids, want[order])
+    np.testing.assert_array_equal(dist, want_dist[order])
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    st.lists(
+        st.tuples(st.integers(0, 60), st.integers(0, 12)), max_size=40, unique_by=lambda t: t[0]
+    ),
+    st.integers(0, 45),
+    st.integers(0, 13),
+)
+def test_nearest_within_equals_a_lexsort(rows: list[tuple[int, int]], count: int, d: int) -> None:
+    # The nodes of a prefix within a distance, nearest first and ties by id: the lexsort it
+    # replaced. Distances on a coarse lattice (ties), ids in no order, a count past the end.
+    ids = np.array([i for i, _ in rows], dtype=np.int64)
+    dist = np.array([0.25 * k for _, k in rows], dtype=np.float64)
+    count = min(count, ids.shape[0])
+    got_ids, got_dist = node_index.nearest_within(ids, dist, count, 0.25 * d)
+    keep = np.flatnonzero(dist[:count] <= 0.25 * d)
+    order = keep[np.lexsort((ids[keep], dist[keep]))]
+    np.testing.assert_array_equal(got_ids, ids[order])
+    np.testing.assert_array_equal(got_dist, dist[order])
