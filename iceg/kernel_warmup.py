@@ -31,7 +31,7 @@ from iceg.grid import render_tiled_chunks
 from iceg.landmark_frames import move_point_blocks, poses_in_frame
 from iceg.matching.matcher import IceMatcher
 from iceg.matching.refine import points_within
-from iceg.node_index import NodeGrid
+from iceg.node_index import NodeGrid, nearest_within
 from iceg.scan_store import ScanStore
 from iceg.types import MatchResult, ScanFeatures
 
@@ -69,7 +69,8 @@ def probed() -> bool:
 def compile_without_features(scan: LaserScan, config: IcegConfig) -> None:
     """Call the later stages' kernels that need no features on ``scan`` and drop the
     results: the grid of two copies of it, the contradiction test's point query and its
-    recent points moved node by node, the loop-closure search's node index.
+    recent points moved node by node, the loop-closure search's node index and its ordering
+    of the nodes near a point.
 
     Args:
         scan: A laser scan.
@@ -92,6 +93,8 @@ def compile_without_features(scan: LaserScan, config: IcegConfig) -> None:
     nodes = NodeGrid(1.0)
     nodes.add(np.arange(2), poses[:, :2])
     nodes.query(poses[1, :2], 1.0)
+    ids, dist = nodes.nearest_first(poses[1, :2], 1.0, 2)
+    nearest_within(ids, dist, ids.shape[0], 1.0)
 
 
 def compile_later_stages(scan: LaserScan, features: ScanFeatures, config: IcegConfig) -> None:
