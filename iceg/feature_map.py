@@ -35,6 +35,7 @@ from iceg.landmark_association import (
     lookup_sorted,
     reference_geometry,
     rows_of_nodes,
+    rows_taking_part,
     sorted_union,
 )
 from iceg.landmark_frames import (
@@ -90,6 +91,8 @@ _MIN_GAP_RAD = 1e-9
 _MAX_GAP_BEAMS = 1.6
 #: Floor of a vector norm before dividing by it, metres.
 _MIN_NORM = 1e-9
+#: No landmark ids (a bookkeeping without a reference).
+_NO_IDS = np.zeros(0, dtype=np.int64)
 
 #: How much a feature kind tells (a Corner has a position and two walls, an EOW a position
 #: and one wall, an Intersection a virtual position): a landmark takes the kind of a matched
@@ -1159,11 +1162,12 @@ class FeatureMap:
         if self.config.bookkeeping_recent_nodes is None:
             rows = np.arange(len(lm), dtype=np.int64)
         else:
-            part = lm.last_node >= node_id - self.config.bookkeeping_recent_nodes
-            if reference_ids is not None:
-                pos, found = lookup_sorted(lm.id, reference_ids)  # ids ascending: no full scan
-                part[pos[found]] = True
-            rows = np.flatnonzero(part)
+            rows = rows_taking_part(
+                lm.last_node,
+                node_id - self.config.bookkeeping_recent_nodes,
+                lm.id,
+                _NO_IDS if reference_ids is None else reference_ids,
+            )
         rows.flags.writeable = False
         self._part_memo = (node_id, key, rows)
         return rows

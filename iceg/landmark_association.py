@@ -163,6 +163,29 @@ def rows_of_nodes(want: np.ndarray, anchor: np.ndarray, last_node: np.ndarray) -
 
 
 @njit(cache=True, nogil=True)
+def rows_taking_part(
+    last_node: np.ndarray, first_node: int, ids: np.ndarray, reference_ids: np.ndarray
+) -> np.ndarray:
+    """Ascending rows whose ``last_node`` is ``first_node`` or later, or whose id is one of
+    ``reference_ids``: ``np.flatnonzero`` of ``last_node >= first_node`` with the rows of
+    ``lookup_sorted(ids, reference_ids)`` that hold their id set, in one pass.
+
+    Args:
+        last_node, ids: ``(L,)`` int64 each row's last matching node and its id (ascending).
+        reference_ids: ``(q,)`` int64 ids, any order (absent ones take no row).
+
+    Returns:
+        ``(k,)`` int64 rows. Raises nothing.
+    """
+    part = last_node >= first_node
+    for q in range(reference_ids.shape[0]):
+        r = _row_of(ids, reference_ids[q])
+        if r >= 0:
+            part[r] = True
+    return np.flatnonzero(part)
+
+
+@njit(cache=True, nogil=True)
 def sorted_union(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``np.union1d(a, b)``: the ids in either array, ascending, each once; one compiled
     pass instead of numpy's concatenation, sort and unique.

@@ -38,6 +38,7 @@ from iceg.landmark_association import (
     nearest_free_pairs,
     reference_geometry,
     rows_of_nodes,
+    rows_taking_part,
     sorted_union,
     within_gate_of_any,
 )
@@ -1046,6 +1047,29 @@ def test_rows_of_nodes_are_the_lookups_rows(seed: int) -> None:
         )
         assert np.array_equal(rows_of_nodes(want, anchor, last_node), expected)
     assert rows_of_nodes(np.arange(3, dtype=np.int64), anchor[:0], last_node[:0]).shape == (0,)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_rows_taking_part_are_the_numpy_expressions(seed: int) -> None:
+    # The bookkeeping's rows (one compiled pass): those last matched from a recent node, and
+    # the rows of the reference's ids (in any order, some absent), as the numpy mask built
+    # them; no table, no reference, a bound past every node.
+    rng = np.random.default_rng(seed)
+    ids = np.unique(rng.integers(0, 900, 300)).astype(np.int64)
+    last_node = rng.integers(0, 60, ids.shape[0]).astype(np.int64)
+    for first in (0, 45, 61):
+        for ref in (
+            rng.choice(ids, 25, replace=False),
+            rng.integers(0, 900, 25).astype(np.int64),
+            np.zeros(0, dtype=np.int64),
+        ):
+            part = last_node >= first
+            pos, found = lookup_sorted(ids, ref)
+            part[pos[found]] = True
+            got = rows_taking_part(last_node, first, ids, ref)
+            assert np.array_equal(got, np.flatnonzero(part))
+    none = np.zeros(0, dtype=np.int64)
+    assert rows_taking_part(none, 3, none, np.arange(3, dtype=np.int64)).shape == (0,)
 
 
 def test_poses_in_frame_are_the_bits_of_se2_between() -> None:

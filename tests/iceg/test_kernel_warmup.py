@@ -75,7 +75,7 @@ def test_the_warm_up_compiles_the_later_stages_with_the_signatures_a_run_calls()
     later |= {"associate_scan", "keep_better", "count_observations", "expected_landmarks"}
     later |= {"reference_geometry", "drop_rows_in_place"}
     later |= {"move_point_blocks", "sorted_union", "_trace_scans", "_mark_tiles", "_rows_within"}
-    later |= {"_by_distance", "nearest_within"}
+    later |= {"_by_distance", "nearest_within", "rows_taking_part"}
     assert later <= warmed, later - warmed
     # ... the hypotheses, the correlation and the refinement in the main process, which the
     # run then compiles (or loads) itself.
