@@ -1,8 +1,9 @@
 """A keyframe's pose-independent products, computed ahead beside its features (issue 13).
 
 Besides the ICE features, each keyframe's processing derives quantities from the scan and its
-features alone, never from the pose estimate: the matcher's feature geometry, polar profile
-and point-to-segment index (:func:`iceg.matching.matcher.scan_derived`), the feature map's
+features alone, never from the pose estimate: the matcher's feature geometry, polar profile,
+point-to-segment index and the refinement's points on and off segments
+(:func:`iceg.matching.matcher.scan_derived`), the feature map's
 visibility geometry and beam profile (:func:`iceg.feature_map.visibility_inputs`) and the
 place descriptor of the global loop-closure search
 (:func:`iceg.place_index.place_descriptor`). :class:`ScanPrecompute` computes them in a
