@@ -12,14 +12,20 @@ from iceg.node_index import NodeGrid
 
 #: Coordinates in micrometres (a squared distance of 1e-250 m would underflow to 0).
 coords = st.floats(-50.0, 50.0, allow_nan=False).map(lambda v: round(v, 6))
+#: Up to 80 node positions, a query's center and radius.
+positions = st.lists(st.tuples(coords, coords), min_size=0, max_size=80)
+centers = st.tuples(coords, coords)
+radii = st.floats(0.0, 120.0)
+#: Both query paths: every row's position in one compiled pass, and the cells.
+both_paths = pytest.mark.parametrize("scan_all_rows", [node_index.SCAN_ALL_ROWS, 0])
 
 
-@pytest.mark.parametrize("scan_all_rows", [node_index.SCAN_ALL_ROWS, 0])
+@both_paths
 @settings(max_examples=60, deadline=None)
 @given(
-    st.lists(st.tuples(coords, coords), min_size=0, max_size=80),
-    st.tuples(coords, coords),
-    st.floats(0.0, 120.0),
+    positions,
+    centers,
+    radii,
     st.floats(0.5, 10.0),
     st.lists(st.tuples(st.integers(0, 79), coords, coords), max_size=10),
 )
@@ -66,25 +72,19 @@ def test_query_equals_brute_force(
     assert len(grid) == 0 and grid.query(c, radius).shape == (0,)
 
 
-@pytest.mark.parametrize("scan_all_rows", [node_index.SCAN_ALL_ROWS, 0])
+@both_paths
 @settings(max_examples=60, deadline=None)
-@given(
-    st.lists(st.tuples(coords, coords), min_size=0, max_size=80),
-    st.tuples(coords, coords),
-    st.floats(0.0, 120.0),
-    st.integers(-1, 90),
-)
+@given(st.tuples(positions, centers, radii), st.integers(-1, 90))
 def test_nearest_first_equals_the_numpy_expressions(
     scan_all_rows: int,
-    points: list[tuple[float, float]],
-    center: tuple[float, float],
-    radius: float,
+    query: tuple[list[tuple[float, float]], tuple[float, float], float],
     below: int,
 ) -> None:
     # The loop-closure search's ordering of the nodes near a point (one compiled call), bit
     # for bit the numpy expressions it replaced: the query, the ids below a bound, np.hypot
     # of the indexed positions less the center, a stable argsort (ties by id). Repeated
     # positions make ties.
+    points, center, radius = query
     xy = np.array(points + points[:5], dtype=np.float64).reshape(-1, 2)
     grid = NodeGrid(1.0)
     grid.add(np.arange(xy.shape[0]), xy)
