@@ -145,11 +145,11 @@ class NodeGrid:
         self, center_xy: FloatArray, radius_m: float, below: int
     ) -> tuple[IntArray, FloatArray]:
         """:meth:`query` of the ids below ``below``, ordered by their indexed distance to
-        ``center_xy`` (``(2,)`` float64 metres; ties by id), with those distances.
+        ``center_xy`` (``(2,)`` float64 metres, map frame; ties by id), with those distances.
 
         Returns:
             ``ids`` ``(k,)`` int64 and ``dist`` ``(k,)`` float64 metres (``np.hypot`` of the
-            indexed position less the center).
+            indexed position less the center). Raises nothing.
         """
         c = np.asarray(center_xy, dtype=np.float64).reshape(2)
         if self._n <= SCAN_ALL_ROWS and self._count and radius_m >= 0:
