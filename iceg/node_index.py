@@ -152,14 +152,8 @@ class NodeGrid:
             indexed position less the center). Raises nothing.
         """
         c = np.asarray(center_xy, dtype=np.float64).reshape(2)
-        if self._n <= SCAN_ALL_ROWS and self._count and radius_m >= 0:
-            # the query's rows, those below ``below`` only
-            cx, cy, r = float(c[0]), float(c[1]), float(radius_m)
-            ids = _rows_within(self._xy, min(self._n, max(below, 0)), cx, cy, r * r)
-        else:
-            ids = self.query(c, radius_m)
-            ids = ids[ids < below]
-        return _by_distance(self._xy, ids, float(c[0]), float(c[1]))
+        ids = self.query(c, radius_m)
+        return _by_distance(self._xy, ids[ids < below], float(c[0]), float(c[1]))
 
     def position(self, node_ids: ArrayLike) -> FloatArray:
         """Indexed positions ``(k, 2)`` of indexed nodes (NaN rows for others)."""
