@@ -274,14 +274,20 @@ class SlamResult:
 
     def _write_core(self, folder: Path) -> None:
         write_tum(folder / "trajectory.tum", self.stamps_s, self.poses)
-        self.graph.write_g2o(folder / "graph.g2o")
         self._write_metrics(folder)
-        with atomic_write(folder / "config.yaml") as fh:
-            fh.write(self.config.to_yaml())
         if self.slam is not None:
+            from iceg.session import CONFIG, GRAPH
             from iceg.session import save as save_session
 
             save_session(self.slam, folder / SESSION_DIR)
+            if self.slam.graph is self.graph and self.slam.config is self.config:
+                # The session wrote the same graph (estimates and factors) and configuration
+                # under the same names: linked, not formatted and written twice.
+                _link_files(folder / SESSION_DIR, folder, (GRAPH, CONFIG))
+                return
+        self.graph.write_g2o(folder / "graph.g2o")
+        with atomic_write(folder / "config.yaml") as fh:
+            fh.write(self.config.to_yaml())
 
     def _write_metrics(self, folder: Path) -> None:
         target = folder / "metrics.json"

@@ -84,6 +84,21 @@ def test_save_replaces_the_whole_set_and_leaves_no_staging(
     assert _leftovers(out) == []
 
 
+@pytest.mark.parametrize("with_session", [True, False])
+def test_graph_and_config_files_are_the_graph_and_config_written_afresh(
+    result_a: SlamResult, tmp_path: Path, with_session: bool
+) -> None:
+    # With its session, the result links the session's graph and configuration files
+    # instead of writing them again; without one it writes them itself: the same bytes.
+    result = result_a if with_session else dataclasses.replace(result_a, slam=None)
+    out = tmp_path / "run"
+    result.save(out)
+    result.graph.write_g2o(tmp_path / "fresh.g2o")
+    assert (out / "graph.g2o").read_bytes() == (tmp_path / "fresh.g2o").read_bytes()
+    assert (out / "config.yaml").read_text() == result.config.to_yaml()
+    assert (out / SESSION_DIR).is_dir() is with_session
+
+
 def test_unrenderable_map_keeps_trajectory_graph_metrics(tmp_path: Path) -> None:
     # A grid limit far below the run's footprint: the map cannot be rendered.
     result = _result(config={"grid": {"max_cells": 1000}})
