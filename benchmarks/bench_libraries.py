@@ -62,6 +62,7 @@ def _samples(data: Path) -> list[tuple[float, str]]:
 
 
 def _print_shares(label: str, libraries: list[str], rate_hz: int) -> None:
+    """Print each library's share of ``libraries`` (one entry a sample), largest first."""
     counts = Counter(libraries)
     total = sum(counts.values())
     print(f"{label}: {total} samples (about {total / rate_hz:.2f} s of CPU)")
