@@ -23,8 +23,7 @@ import tempfile
 from collections import Counter
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-DEFAULT_LOG = REPO.parent / "shared" / "data" / "mit-csail" / "mit-csail.clf"
+from bench_pipeline import DATA, ROOT
 
 #: The run, in a child Python: the pipeline benchmark's configuration, nothing printed.
 _RUN = """
@@ -66,6 +65,8 @@ def _print_shares(label: str, libraries: list[str], rate_hz: int) -> None:
     counts = Counter(libraries)
     total = sum(counts.values())
     print(f"{label}: {total} samples (about {total / rate_hz:.2f} s of CPU)")
+    if not total:
+        return
     for name, n in counts.most_common():
         if n / total >= 0.005:
             print(f"  {100 * n / total:5.1f} %  {name}")
@@ -73,7 +74,7 @@ def _print_shares(label: str, libraries: list[str], rate_hz: int) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("log", nargs="?", type=Path, default=DEFAULT_LOG)
+    ap.add_argument("log", nargs="?", type=Path, default=DATA / "mit-csail.clf")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--start-s", type=float, default=2.6)
     ap.add_argument("--rate-hz", type=int, default=499)
@@ -84,7 +85,7 @@ def main() -> None:
     if not args.log.is_file():
         print(f"{args.log}: no such log: nothing measured")
         return
-    code = _RUN.format(bench=str(REPO / "benchmarks"), log=str(args.log), workers=args.workers)
+    code = _RUN.format(bench=str(ROOT / "benchmarks"), log=str(args.log), workers=args.workers)
     with tempfile.TemporaryDirectory() as tmp:
         data = Path(tmp) / "perf.data"
         record = ["perf", "record", "-F", str(args.rate_hz), "-i", "-o", str(data)]
