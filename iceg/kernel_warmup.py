@@ -18,8 +18,11 @@ process compiled it.
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import gc
 import logging
+from collections.abc import Iterator
 
 import numpy as np
 from numba import njit
@@ -47,6 +50,22 @@ def _probe(x: float) -> float:
     return x + 1.0
 
 
+@contextlib.contextmanager
+def _collector_paused() -> Iterator[None]:
+    """The cyclic garbage collector off for the block, then as it was: numba's registry,
+    installed at the first kernel call, adds some 60 000 objects that live as long as the
+    process, and the full collection they set off walks the whole heap (60-70 ms at the
+    start of a MIT CSAIL run, for about ten objects freed; the run then freezes the heap,
+    :func:`iceg.pipeline.helper_processes`)."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()
+
+
 @functools.cache
 def cache_is_new() -> bool:
     """Whether numba's cache lacked this module's probe kernel when this process first
@@ -54,7 +73,8 @@ def cache_is_new() -> bool:
     folder, or a new version of this module. The answer is kept for the process (and its
     forks). Where no kernel has run in the process yet, the first call installs numba's
     typing registry (about 0.3 s), which the run's first kernel would pay otherwise."""
-    _probe(0.0)
+    with _collector_paused():
+        _probe(0.0)
     stats = getattr(_probe, "stats", None)  # None where numba's JIT is off
     return stats is not None and sum(stats.cache_misses.values()) > 0
 

@@ -4,6 +4,7 @@ compiles are the ones a run calls."""
 
 from __future__ import annotations
 
+import gc
 import json
 import os
 import subprocess
@@ -97,3 +98,39 @@ def test_a_new_cache_is_told_from_one_that_holds_the_probe(tmp_path: Path) -> No
         for _ in range(2)
     ]
     assert answers == [["True", "True"], ["False", "False"]]
+
+
+def test_numba_s_registry_loads_without_a_full_collection() -> None:
+    # A fresh process as a run starts: the probe installs numba's registry (tens of
+    # thousands of long-lived objects) with the cyclic collector paused, so no full
+    # collection walks the heap for it, and the collector is on again afterwards.
+    root = Path(__file__).resolve().parents[2]
+    code = (
+        "import gc, iceg.pipeline\n"
+        "from iceg.kernel_warmup import cache_is_new\n"
+        "full = []\n"
+        "gc.callbacks.append(lambda phase, info: full.append(info['generation'] == 2))\n"
+        "before = len(gc.get_objects())\n"
+        "cache_is_new()\n"
+        "print(sum(full), len(gc.get_objects()) - before, gc.isenabled())\n"
+    )
+    env = dict(os.environ, PYTHONPATH=str(root))
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
+    ).stdout.split()
+    assert out[0] == "0" and out[2] == "True"
+    assert int(out[1]) > 10_000  # the registry's objects, which a full collection would walk
+
+
+def test_the_collector_is_left_as_it_was_found() -> None:
+    from iceg.kernel_warmup import _collector_paused
+
+    was = gc.isenabled()
+    try:
+        for enabled in (True, False):
+            (gc.enable if enabled else gc.disable)()
+            with _collector_paused():
+                assert not gc.isenabled()
+            assert gc.isenabled() is enabled
+    finally:
+        (gc.enable if was else gc.disable)()
