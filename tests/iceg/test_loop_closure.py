@@ -395,11 +395,33 @@ def test_odometry_rules_out_a_closure_it_contradicts_over_a_short_path() -> None
 
 def test_odometry_test_is_skipped_beyond_the_small_angle_regime() -> None:
     # 300 steps of 0.15 m (45 m): heading sigma 0.42 rad, where a first-order covariance
-    # of the composed pose no longer holds: no closure is ruled out, however far off.
+    # of the composed pose no longer holds: no closure is ruled out by its position, however
+    # far off (its heading, the odometry's, passes the heading test).
     steps = np.tile([0.15, 0.0, 0.0], (300, 1))
     closer = _odometry_chain_closer(steps)
     closure = LoopClosure(0, 300, np.zeros(3), np.eye(3) * 1e-4, 0.9, np.zeros(3))
     assert closer._contradicts_odometry(closure) is False
+
+
+def test_odometry_heading_rules_out_a_half_turn_over_any_path() -> None:
+    # The same 45 m, beyond the position test's regime. Headings add up along the chain, so
+    # the heading test still applies: the chain's heading sigma is the steps' (0.58 deg
+    # each) and 0.5 deg/m of systematic drift over 45 m, 0.43 rad in all; a closure is ruled
+    # out beyond 4.03 sigma (sqrt of consistency_chi2). One that says the robot turned half a
+    # turn (a symmetric room matched the wrong way round) is 7.3 sigma off, -170 deg 6.9:
+    # both ruled out; 60 deg (2.4 sigma) is not, nor is the odometry's own heading.
+    steps = np.tile([0.15, 0.0, 0.0], (300, 1))
+    closer = _odometry_chain_closer(steps)
+    steps_var = closer._odom_cov[:300, 2, 2].sum()
+    drift = closer.odometry_noise.sigma_theta_per_distance_rad_per_m * 45.0
+    assert np.sqrt(steps_var / 300) == pytest.approx(np.radians(0.575))
+    assert np.sqrt(steps_var + drift**2) == pytest.approx(0.43, abs=0.005)
+    cov = np.diag([1e-4, 1e-4, 1e-6])
+    for turn_deg, ruled_out in ((180.0, True), (-170.0, True), (60.0, False), (0.0, False)):
+        pose = np.array([45.0, 0.0, np.radians(turn_deg)])
+        closure = LoopClosure(0, 300, pose, cov, 0.9, np.zeros(3))
+        assert closer._contradicts_odometry(closure) is ruled_out, turn_deg
+    assert closer.stats.rejected_odometry == 2
 
 
 def test_a_closure_that_contradicts_an_accepted_one_is_ruled_out(
