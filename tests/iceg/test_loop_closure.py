@@ -13,6 +13,7 @@ import pytest
 
 from frontends import open_log
 from frontends.simulate import (
+    LaserModel,
     OdometryModel,
     World,
     long_corridor_world,
@@ -553,6 +554,22 @@ def test_identical_rooms_give_no_false_closure() -> None:
     stats = slam.loop_stats
     assert stats.global_searches > 0 and stats.global_attempts > 0
     _assert_true_closures(slam, run.true_poses)
+
+
+def test_a_symmetric_room_matched_the_wrong_way_round_is_not_closed() -> None:
+    # The office world driven with a 3 cm scanner (seed 2): three global matches put the
+    # robot in the room turned by half a turn, consistent with each other (the room is
+    # symmetric), and entered as a group: 6.9 m ATE. The odometry's heading between their
+    # nodes rules each out (docs/design.md "Loop closure"); the run keeps its one true
+    # closure and ends within 0.1 m of the truth (measured 0.034 m).
+    run = simulate_scenario("office", seed=2, laser=LaserModel(range_sigma_m=0.03))
+    slam = Slam(IcegConfig())
+    for scan in run.scans:
+        slam.process(scan)
+    poses = slam.finish().poses
+    assert slam.loop_stats.rejected_odometry >= 3
+    assert _assert_true_closures(slam, run.true_poses) >= 1
+    assert position_errors(poses, run.true_poses).rmse_m <= 0.1
 
 
 def test_two_loop_world_with_large_odometry_drift_closes_with_true_closures() -> None:
