@@ -1216,15 +1216,13 @@ class LoopCloser:
         u_match = se2.rotation_matrix(closure.measured[2]).T @ u_old
         var = u_end @ cov[:2, :2] @ u_end + u_match @ closure.cov[:2, :2] @ u_match
         error_m = float(u_old @ closure.measured[:2]) - distance_m
-        if error_m**2 <= self.config.consistency_chi2 * var:
-            return False
-        self.stats.rejected_odometry += 1
-        logger.debug(
+        return self._ruled_out_by_odometry(
+            error_m,
+            var,
             "loop closure %d->%d ruled out by the odometry between them: %.3f m along the "
             "odometry's %.3f m, sigma %.3f m",
-            *(lo, hi, error_m + distance_m, distance_m, np.sqrt(var)),
+            (lo, hi, error_m + distance_m, distance_m, np.sqrt(var)),
         )
-        return True
 
     def _turns_otherwise(self, closure: LoopClosure) -> bool:
         """Whether the heading the odometry measured between the closure's two nodes rules it
@@ -1251,14 +1249,24 @@ class LoopCloser:
         if not (math.isfinite(turn) and math.isfinite(var)):  # a step without odometry
             return False
         error = se2.wrap_float(float(closure.measured[2]) - turn)
+        return self._ruled_out_by_odometry(
+            error,
+            var,
+            "loop closure %d->%d ruled out by the odometry's heading between them: %.1f deg "
+            "against the odometry's %.1f deg, sigma %.1f deg",
+            (lo, hi, np.degrees(closure.measured[2]), np.degrees(turn), np.degrees(var**0.5)),
+        )
+
+    def _ruled_out_by_odometry(
+        self, error: float, var: float, message: str, args: tuple[object, ...]
+    ) -> bool:
+        """Whether an ``error`` (its variance ``var``) of a closure against the odometry lies
+        beyond ``sqrt(consistency_chi2)`` standard deviations; such a closure is counted
+        (``stats.rejected_odometry``) and logged (``message % args``)."""
         if error**2 <= self.config.consistency_chi2 * var:
             return False
         self.stats.rejected_odometry += 1
-        logger.debug(
-            "loop closure %d->%d ruled out by the odometry's heading between them: %.1f deg "
-            "against the odometry's %.1f deg, sigma %.1f deg",
-            *(lo, hi, np.degrees(closure.measured[2]), np.degrees(turn), np.degrees(var**0.5)),
-        )
+        logger.debug(message, *args)
         return True
 
     def _odometry_chain(self, lo: int, hi: int) -> tuple[FloatArray, FloatArray] | None:
