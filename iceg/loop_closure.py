@@ -1241,11 +1241,8 @@ class LoopCloser:
         true closures lie within 2.5. Skipped where a step has no odometry factor; a
         standard deviation so wide that no heading lies beyond it rules nothing out."""
         lo, hi = closure.node_from, closure.node_to
-        steps = self._odom_step[lo:hi]
-        turn = float(steps[:, 2].sum())
-        path_m = float(np.hypot(steps[:, 0], steps[:, 1]).sum())
-        rate = self.odometry_noise.sigma_theta_per_distance_rad_per_m
-        var = float(self._odom_cov[lo:hi, 2, 2].sum()) + (rate * path_m) ** 2 + closure.cov[2, 2]
+        turn = float(self._odom_step[lo:hi, 2].sum())
+        var = self._odometry_heading_var(lo, hi) + closure.cov[2, 2]
         if not (math.isfinite(turn) and math.isfinite(var)):  # a step without odometry
             return False
         error = se2.wrap_float(float(closure.measured[2]) - turn)
@@ -1269,6 +1266,15 @@ class LoopCloser:
         logger.debug(message, *args)
         return True
 
+    def _odometry_heading_var(self, lo: int, hi: int) -> float:
+        """Variance (rad²) of the odometry's heading from node ``lo`` to node ``hi > lo``: its
+        steps' heading variances plus the noise model's systematic drift over the path's
+        length; NaN where a step has no odometry factor."""
+        steps = self._odom_step[lo:hi]
+        path_m = float(np.hypot(steps[:, 0], steps[:, 1]).sum())
+        rate = self.odometry_noise.sigma_theta_per_distance_rad_per_m
+        return float(self._odom_cov[lo:hi, 2, 2].sum()) + (rate * path_m) ** 2
+
     def _odometry_chain(self, lo: int, hi: int) -> tuple[FloatArray, FloatArray] | None:
         """The odometry from node ``lo`` to node ``hi > lo``: ``(chain (n, 3), cov (3, 3))``,
         the poses of nodes ``lo..hi`` in the frame of ``lo`` (the odometry factors composed)
@@ -1279,12 +1285,10 @@ class LoopCloser:
         deviation (its steps' heading variances plus the systematic drift over its length)
         above :data:`_ODOMETRY_TEST_MAX_HEADING_SIGMA_RAD`."""
         noise = self.odometry_noise
+        if not self._odometry_heading_var(lo, hi) <= _ODOMETRY_TEST_MAX_HEADING_SIGMA_RAD**2:
+            return None  # also NaN: a gap
         steps = self._odom_step[lo:hi]
         covs = self._odom_cov[lo:hi]
-        path_m = float(np.hypot(steps[:, 0], steps[:, 1]).sum())
-        heading_var = covs[:, 2, 2].sum() + (noise.sigma_theta_per_distance_rad_per_m * path_m) ** 2
-        if not heading_var <= _ODOMETRY_TEST_MAX_HEADING_SIGMA_RAD**2:  # also NaN: a gap
-            return None
         chain = se2.accumulate(steps)
         cov = chain_covariance(chain, covs) + odometry_bias_covariance(
             chain, noise.sigma_xy_per_distance_m_per_m, noise.sigma_theta_per_distance_rad_per_m
