@@ -265,8 +265,9 @@ class AcceptedClosures:
         robust_kernel: M-estimator of their factors (``None``: Gaussian; closures accepted by
             pairwise agreement are their own outlier test).
         large_correction: The closures move the estimate far beyond its covariance (a group
-            of global closures): the pipeline re-solves in batch rather than leaving the
-            correction to iSAM2's incremental relinearisation.
+            with a global closure, or a global closure whose correction lies beyond its own
+            covariance): the pipeline re-solves in batch rather than leaving the correction
+            to iSAM2's incremental relinearisation.
     """
 
     closures: tuple[LoopClosure, ...]
@@ -1080,11 +1081,15 @@ class LoopCloser:
         (``results``, of :meth:`_global_jobs`). When two verified places
         contradict each other (:meth:`_unique`) the scene is aliased and all are dropped.
         Unless the odometry rules it out (:meth:`_contradicts_odometry`), the
-        best-correlated survivor is accepted (robust kernel) if it passes the chi-square
-        gate against the estimate under the current node's marginal and under the exact
-        relative covariance of its two nodes (:meth:`graph.PoseGraph.relative_covariance`;
-        an appearance match has no spatial prior, and the marginal grows with everything
-        before the old node: on a long log it admits look-alikes anywhere); otherwise it needs
+        best-correlated survivor is accepted if it passes the chi-square gate against the
+        estimate under the current node's marginal and under the exact relative covariance
+        of its two nodes (:meth:`graph.PoseGraph.relative_covariance`; an appearance match
+        has no spatial prior, and the marginal grows with everything before the old node: on
+        a long log it admits look-alikes anywhere): with the robust kernel, or, where its
+        correction is beyond its own covariance (the innovation's chi-square under the
+        match covariance alone exceeds the gate), without kernel as a large correction, as
+        a group enters (a kernel scaled by that covariance would leave the estimate where
+        the drift put it until the final refinement); otherwise it needs
         ``global_min_group - 1`` held closures consistent with it and with each other under
         :func:`pcm_chi2` (old nodes ``agreement_min_separation_m`` apart along the path); the
         group enters without kernel as a large correction. Else it is held for
@@ -1114,6 +1119,13 @@ class LoopCloser:
             d2 = max(d2, innovation_chi2(prediction, closure.measured, relative, closure.cov)[1])
         if d2 <= lc.consistency_chi2:
             logger.debug("global loop closure %d->%d accepted: chi2 %.1f", *_ends(closure), d2)
+            own = innovation_chi2(prediction, closure.measured, np.zeros((3, 3)), closure.cov)[1]
+            if own > lc.consistency_chi2:
+                # The drift the gate allowed for lies beyond the closure's own covariance: a
+                # kernel scaled by it would all but ignore the closure until the final
+                # refinement, and the next searches would look around where the drift left
+                # the estimate. It enters as a group's large correction does.
+                return self._accept([closure], None, large_correction=True)
             return self._accept([closure], lc.robust_kernel)
         agreeing = self._clique(closure, s.poses, path_m)
         if len(agreeing) + 1 >= lc.global_min_group:
@@ -1298,7 +1310,7 @@ class LoopCloser:
     def _contradicts_accepted(self, closure: LoopClosure, poses: _Poses) -> bool:
         """Whether the closure contradicts a closure accepted shortly before it.
 
-        An accepted closure enters with a robust kernel: drawn from far beyond its own
+        An accepted local closure enters with a robust kernel: drawn from far beyond its own
         covariance, it barely moves the estimate until the final refinement, so the
         marginal stays as wide as before and a second, wrong match to the same place a few
         nodes later passes the gate just as well (ACES: two closures to node 192, 3 nodes

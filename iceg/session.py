@@ -832,8 +832,8 @@ def _why_accepted(a: Mapping[str, np.ndarray], f: int) -> str:
     if int(a["g_origin"][f]) == ORIGIN_USER:
         return "added by the user"
     kernel = ROBUST_KERNELS[int(a["g_robust"][f])]
-    if kernel is None:
-        return "pairwise agreement with another closure"
+    if kernel is None:  # a group, or a global closure beyond its own covariance
+        return "without kernel: a group by pairwise agreement or a global large correction"
     return f"passed the chi-square gate ({kernel} kernel)"
 
 
