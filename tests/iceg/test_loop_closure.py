@@ -11,7 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from frontends import open_log
+from frontends import LaserScan, open_log
 from frontends.simulate import (
     LaserModel,
     OdometryModel,
@@ -523,6 +523,15 @@ def _identical_rooms_world() -> World:
     return World("identical_rooms", np.array(walls))
 
 
+def _run_default(scans: list[LaserScan]) -> tuple[Slam, np.ndarray]:
+    """A run of the default configuration over ``scans``: the pipeline and its ``(N, 3)``
+    final poses."""
+    slam = Slam(IcegConfig())
+    for scan in scans:
+        slam.process(scan)
+    return slam, slam.finish().poses
+
+
 def _assert_true_closures(slam: Slam, true_poses: np.ndarray) -> int:
     """Every loop-closure factor within 0.3 m / 3 deg of the true relative pose; their count."""
     loops = [f for f in slam.graph.factors if f.kind is FactorKind.LOOP_CLOSURE]
@@ -563,10 +572,7 @@ def test_a_symmetric_room_matched_the_wrong_way_round_is_not_closed() -> None:
     # nodes rules each out (docs/design.md "Loop closure"); the run keeps its one true
     # closure and ends within 0.1 m of the truth (measured 0.034 m).
     run = simulate_scenario("office", seed=2, laser=LaserModel(range_sigma_m=0.03))
-    slam = Slam(IcegConfig())
-    for scan in run.scans:
-        slam.process(scan)
-    poses = slam.finish().poses
+    slam, poses = _run_default(run.scans)
     assert slam.loop_stats.rejected_odometry >= 3
     assert _assert_true_closures(slam, run.true_poses) >= 1
     assert position_errors(poses, run.true_poses).rmse_m <= 0.1
@@ -580,14 +586,11 @@ def test_a_global_closure_beyond_its_own_covariance_moves_the_estimate_at_once()
     # repeats itself) agreed with each other around the stale estimate and entered as a
     # group: 6.09 m ATE. Entered as a large correction, the closure moves the estimate
     # before the next search; every accepted closure is true and the run ends within 0.5 m
-    # of the truth (measured 0.354 m; docs/design.md, "A 15 m alias accepted by pairwise
-    # agreement").
+    # of the truth (measured 0.354 m; docs/design.md, "A global closure beyond its own
+    # covariance is a large correction").
     laser = LaserModel(n_beams=1081, fov_deg=270.0, range_max_m=30.0)
     run = simulate_scenario("open_loops", seed=2, laser=laser)
-    slam = Slam(IcegConfig())
-    for scan in run.scans:
-        slam.process(scan)
-    poses = slam.finish().poses
+    slam, poses = _run_default(run.scans)
     assert slam.loop_stats.global_accepted >= 1
     assert _assert_true_closures(slam, run.true_poses) >= 10
     assert position_errors(poses, run.true_poses).rmse_m <= 0.5
