@@ -1111,7 +1111,7 @@ class LoopCloser:
         if self._contradicts_odometry(closure) or self._contradicts_accepted(closure, s.poses):
             return None
         prediction = se2.between(s.poses[closure.node_from], s.poses[s.node_id])
-        _, d2 = innovation_chi2(prediction, closure.measured, s.marginal, closure.cov)
+        innovation, d2 = innovation_chi2(prediction, closure.measured, s.marginal, closure.cov)
         if d2 <= lc.consistency_chi2:
             # and under the two nodes' relative covariance (its joint marginal costs a walk
             # through the Bayes tree: only for a closure the marginal would let through)
@@ -1119,8 +1119,8 @@ class LoopCloser:
             d2 = max(d2, innovation_chi2(prediction, closure.measured, relative, closure.cov)[1])
         if d2 <= lc.consistency_chi2:
             logger.debug("global loop closure %d->%d accepted: chi2 %.1f", *_ends(closure), d2)
-            own = innovation_chi2(prediction, closure.measured, np.zeros((3, 3)), closure.cov)[1]
-            if own > lc.consistency_chi2:
+            # the same innovation under the match covariance alone
+            if innovation @ np.linalg.solve(closure.cov, innovation) > lc.consistency_chi2:
                 # The drift the gate allowed for lies beyond the closure's own covariance: a
                 # kernel scaled by it would all but ignore the closure until the final
                 # refinement, and the next searches would look around where the drift left
