@@ -23,7 +23,8 @@ reports, in one table:
 - ``time s``: SLAM wall time (all scans plus ``finish``).
 
 Cases: the simulated scenarios of ``frontends.simulate.SCENARIOS`` (office, corridor,
-office_biased, long_corridor, two_loop, outdoor; exact truth), MIT CSAIL with its raw
+office_biased, long_corridor, two_loop, open_loops, outdoor, office_people: the office loop
+with ten people walking its corridors; exact truth), MIT CSAIL with its raw
 odometry and with a synthetic 0.4 deg/m heading drift added on top of it (relations), and
 the corrected ACES / csail.log / csail-corrected logs with synthetic biased odometry (1 %
 scale error, 0.4 deg/m heading drift, default white noise; reference = corrected poses;

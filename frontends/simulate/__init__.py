@@ -41,6 +41,7 @@ from frontends.simulate.worlds import (
     WORLDS,
     DynamicWalls,
     Junctions,
+    Pedestrian,
     World,
     box_world,
     corridor_recesses,
@@ -55,6 +56,7 @@ from frontends.simulate.worlds import (
     tree_walls,
     two_loop_world,
     wall_with_doors,
+    with_pedestrians,
     world_by_name,
 )
 
@@ -72,6 +74,7 @@ __all__ = [
     "Junctions",
     "LaserModel",
     "OdometryModel",
+    "Pedestrian",
     "Scenario",
     "SimulatedRun",
     "SyntheticOdometry",
@@ -102,6 +105,7 @@ __all__ = [
     "visible_mask",
     "visible_wall_ends",
     "wall_with_doors",
+    "with_pedestrians",
     "world_by_name",
     "write_synthetic_log",
 ]

@@ -6,7 +6,8 @@ pipeline failed on unseen logs: ``long_corridor`` (a 200 m corridor with door re
 accurate odometry), ``office_biased`` (the office loop with 1.5 % scale error and
 0.4 deg/m heading drift), ``two_loop`` (odometry drift > 20 m at the return to the start,
 in a building), ``open_loops`` (the same over open ground, where the laser cannot correct
-the drift) and ``outdoor`` (trees and posts, few walls).
+the drift) and ``outdoor`` (trees and posts, few walls). ``office_people`` is the office
+loop with people walking its corridors (moving legs in every scan, as in a real building).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from frontends.simulate.worlds import (
     open_loops_world,
     outdoor_world,
     two_loop_world,
+    with_pedestrians,
 )
 from iceg_common.errors import ConfigError
 
@@ -55,6 +57,10 @@ class Scenario:
         trajectory = default_trajectory(world, speed_mps=self.speed_mps)
         return simulate(world, trajectory, laser=laser, odometry=self.odometry, seed=seed)
 
+
+#: People walking the office loop in the ``office_people`` scenario (one per 6 m of its 58 m
+#: route: each pair of legs is a moving landmark the static-world matcher can latch on).
+OFFICE_PEOPLE = 10
 
 #: Scenarios by name.
 SCENARIOS: dict[str, Scenario] = {
@@ -92,6 +98,12 @@ SCENARIOS: dict[str, Scenario] = {
             outdoor_world,
             OdometryModel(),
             description="trees and posts, two long walls, 100 m loop",
+        ),
+        Scenario(
+            "office_people",
+            lambda: with_pedestrians(office_world(), OFFICE_PEOPLE, seed=1),
+            OdometryModel(),
+            description=f"office loop with {OFFICE_PEOPLE} people walking its corridors",
         ),
     )
 }

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import numpy as np
@@ -72,6 +72,82 @@ class DynamicWalls:
         return self.present_from_s <= stamp_s < self.present_until_s
 
 
+#: Leg of a simulated pedestrian: a circle of this radius at laser height, metres.
+LEG_RADIUS_M = 0.06
+#: Lateral distance between a pedestrian's two legs, metres.
+LEG_SPACING_M = 0.26
+
+
+@dataclass(frozen=True, eq=False)
+class Pedestrian:
+    """A person walking a polyline back and forth at constant speed, seen at laser height as
+    two legs (circles of :data:`LEG_RADIUS_M`, :data:`LEG_SPACING_M` apart across the walking
+    direction) that swing ``±stride_m / 2`` along it in antiphase at ``step_hz``.
+
+    The walk reflects at both ends of the path, so the person stays on it for any time.
+    Legs are drawn as 16-gons like tree trunks (no ground-truth corners). A pedestrian walks
+    through walls and the robot alike: the path is the caller's to choose.
+
+    Attributes:
+        path_xy: ``(P, 2)`` float64 waypoints in metres, world frame, ``P >= 2``.
+        speed_mps: Walking speed along the path, m/s (> 0).
+        start_m: Distance along the path at ``stamp_s = 0``, metres (any real: it wraps).
+        stride_m: Peak-to-peak swing of each leg along the walking direction, metres.
+        step_hz: Gait frequency (one swing back and forth per period), Hz.
+
+    Raises:
+        ConfigError: a path of the wrong shape, non-finite or with two consecutive waypoints
+            the same, or a speed that is not positive.
+    """
+
+    path_xy: FloatArray
+    speed_mps: float = 1.2
+    start_m: float = 0.0
+    stride_m: float = 0.4
+    step_hz: float = 0.9
+
+    def __post_init__(self) -> None:
+        path = np.array(self.path_xy, dtype=np.float64)
+        if path.ndim != 2 or path.shape[1] != 2 or path.shape[0] < 2:
+            raise ConfigError(f"Pedestrian: path_xy must have shape (P >= 2, 2), got {path.shape}")
+        if not np.isfinite(path).all() or not (np.hypot(*np.diff(path, axis=0).T) > 0.0).all():
+            raise ConfigError("Pedestrian: path_xy must be finite, consecutive waypoints distinct")
+        if not self.speed_mps > 0.0:
+            raise ConfigError(f"Pedestrian: speed_mps must be > 0, got {self.speed_mps}")
+        path.setflags(write=False)
+        object.__setattr__(self, "path_xy", path)
+
+    @staticmethod
+    def _length(path: FloatArray) -> FloatArray:
+        """``(P,)`` float64 distance along the path at each waypoint, metres."""
+        return np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(path, axis=0).T))])
+
+    def pose_at(self, stamp_s: float) -> tuple[FloatArray, FloatArray]:
+        """Where the person is at ``stamp_s`` (seconds): ``(2,)`` float64 position (metres)
+        and ``(2,)`` float64 unit walking direction, world frame."""
+        along = self._length(self.path_xy)
+        total = float(along[-1])
+        s = (self.start_m + self.speed_mps * stamp_s) % (2.0 * total)
+        backwards = s > total
+        if backwards:
+            s = 2.0 * total - s
+        k = min(int(np.searchsorted(along, s, side="right")) - 1, along.shape[0] - 2)
+        a, b = self.path_xy[k], self.path_xy[k + 1]
+        u = (b - a) / (along[k + 1] - along[k])
+        return a + u * (s - along[k]), -u if backwards else u
+
+    def legs_at(self, stamp_s: float) -> FloatArray:
+        """``(2 * TREE_SIDES, 2, 2)`` float64 walls of the two legs at ``stamp_s``, metres."""
+        p, u = self.pose_at(stamp_s)
+        across = np.array([-u[1], u[0]])
+        swing = 0.5 * self.stride_m * math.sin(2.0 * math.pi * self.step_hz * stamp_s)
+        legs = [
+            [*(p + side * (0.5 * LEG_SPACING_M * across + swing * u)), LEG_RADIUS_M]
+            for side in (1.0, -1.0)
+        ]
+        return tree_walls(np.array(legs))
+
+
 @dataclass(frozen=True, eq=False)
 class World:
     """A 2D polygon world.
@@ -81,6 +157,8 @@ class World:
         walls: ``(W, 2, 2)`` float64 static wall segments in metres, world frame;
             ``walls[w, 0]`` and ``walls[w, 1]`` are the endpoints.
         dynamic_walls: Walls that exist only during a time window (see :class:`DynamicWalls`).
+        pedestrians: People walking through the world (see :class:`Pedestrian`); their legs
+            are walls at any given time.
         route_xy: ``(R, 2)`` float64 waypoints in metres (world frame) of the world's default
             route, or ``None``; see :func:`frontends.simulate.default_trajectory`.
         start_heading_rad: Heading at the first waypoint of the route (``None``: face the
@@ -94,6 +172,7 @@ class World:
     name: str
     walls: FloatArray
     dynamic_walls: tuple[DynamicWalls, ...] = ()
+    pedestrians: tuple[Pedestrian, ...] = ()
     route_xy: FloatArray | None = None
     start_heading_rad: float | None = None
     description: str = field(default="", compare=False)
@@ -101,6 +180,7 @@ class World:
     def __post_init__(self) -> None:
         object.__setattr__(self, "walls", _as_walls(self.walls, f"World {self.name!r}"))
         object.__setattr__(self, "dynamic_walls", tuple(self.dynamic_walls))
+        object.__setattr__(self, "pedestrians", tuple(self.pedestrians))
         if self.route_xy is not None:
             route = np.array(self.route_xy, dtype=np.float64)
             if route.ndim != 2 or route.shape[1] != 2 or route.shape[0] < 2:
@@ -114,14 +194,21 @@ class World:
         """Walls present at ``stamp_s``: ``(W', 2, 2)`` float64 metres, world frame.
 
         Args:
-            stamp_s: Time in seconds; ``None`` returns the static walls only.
+            stamp_s: Time in seconds (the dynamic walls present then and the pedestrians'
+                legs are included); ``None`` returns the static walls only.
         """
-        if stamp_s is None or not self.dynamic_walls:
+        if stamp_s is None or not self.is_dynamic:
             return self.walls
         active = [d.walls for d in self.dynamic_walls if d.present_at(stamp_s)]
+        active += [p.legs_at(stamp_s) for p in self.pedestrians]
         if not active:
             return self.walls
         return np.concatenate([self.walls, *active], axis=0)
+
+    @property
+    def is_dynamic(self) -> bool:
+        """Whether anything in the world changes with time (dynamic walls, pedestrians)."""
+        return bool(self.dynamic_walls or self.pedestrians)
 
     def bounds(self) -> FloatArray:
         """``(2, 2)`` float64 ``[[x_min, y_min], [x_max, y_max]]`` of all walls, metres."""
@@ -138,9 +225,10 @@ class World:
         """All wall endpoints with the walls leaving them (see :class:`Junctions`).
 
         Args:
-            stamp_s: Include the dynamic walls present at this time; ``None``: static only.
+            stamp_s: Include the dynamic walls and pedestrians' legs at this time;
+                ``None``: static only.
         """
-        if stamp_s is None or not self.dynamic_walls:
+        if stamp_s is None or not self.is_dynamic:
             return self._static_junctions
         return _junctions(self.walls_at(stamp_s))
 
@@ -154,7 +242,8 @@ class World:
         :func:`frontends.simulate.visible_corners`.
 
         Args:
-            stamp_s: Include the dynamic walls present at this time; ``None``: static only.
+            stamp_s: Include the dynamic walls and pedestrians' legs at this time;
+                ``None``: static only.
         """
         j = self.junctions(stamp_s)
         return j.points[j.is_corner]
@@ -164,7 +253,8 @@ class World:
         frame. An end is a wall endpoint that touches no other wall (paper §III-B: End of Wall).
 
         Args:
-            stamp_s: Include the dynamic walls present at this time; ``None``: static only.
+            stamp_s: Include the dynamic walls and pedestrians' legs at this time;
+                ``None``: static only.
         """
         j = self.junctions(stamp_s)
         return j.points[j.is_end]
@@ -173,6 +263,7 @@ class World:
         return (
             f"World({self.name!r}, walls={self.walls.shape[0]}, "
             f"dynamic={sum(d.walls.shape[0] for d in self.dynamic_walls)}, "
+            f"pedestrians={len(self.pedestrians)}, "
             f"corners={self.corners().shape[0]}, wall_ends={self.wall_ends().shape[0]})"
         )
 
@@ -634,6 +725,45 @@ def tree_walls(trees: FloatArray) -> FloatArray:
     ring = np.stack([np.cos(phi), np.sin(phi)], axis=1)  # (S + 1, 2)
     pts = trees[:, None, :2] + trees[:, None, 2:3] * ring[None]  # (T, S + 1, 2)
     return np.stack([pts[:, :-1], pts[:, 1:]], axis=2).reshape(-1, 2, 2)
+
+
+def with_pedestrians(
+    world: World,
+    n_people: int,
+    seed: int = 0,
+    speed_range_mps: tuple[float, float] = (0.9, 1.4),
+    max_offset_m: float = 0.6,
+) -> World:
+    """``world`` with ``n_people`` people walking its default route back and forth: each on
+    the route moved by a random offset of at most ``max_offset_m`` in x and in y (so they
+    share the robot's corridors and pass it on either side), from a random point in a random
+    direction, at a speed drawn from ``speed_range_mps``. Deterministic under ``seed``.
+
+    Raises:
+        ConfigError: the world has no default route, ``n_people < 0``, or a speed range that
+            is not positive and ascending.
+    """
+    if world.route_xy is None:
+        raise ConfigError(f"world {world.name!r} has no default route for pedestrians")
+    lo, hi = speed_range_mps
+    if n_people < 0 or not 0.0 < lo <= hi:
+        raise ConfigError(
+            f"with_pedestrians: need n_people >= 0 and 0 < speed_range_mps[0] <= [1], got "
+            f"{n_people}, {speed_range_mps}"
+        )
+    rng = np.random.default_rng(seed)
+    route = world.route_xy
+    keep = np.concatenate([[True], np.hypot(*np.diff(route, axis=0).T) > 0.0])
+    length = float(np.hypot(*np.diff(route[keep], axis=0).T).sum())
+    people = tuple(
+        Pedestrian(
+            route[keep] + rng.uniform(-max_offset_m, max_offset_m, size=2),
+            speed_mps=float(rng.uniform(lo, hi)),
+            start_m=float(rng.uniform(0.0, 2.0 * length)),
+        )
+        for _ in range(n_people)
+    )
+    return replace(world, pedestrians=world.pedestrians + people)
 
 
 def outdoor_world(seed: int = 3) -> World:

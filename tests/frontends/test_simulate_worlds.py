@@ -14,6 +14,8 @@ from frontends.simulate import (
     SCENARIOS,
     LaserModel,
     OdometryModel,
+    Pedestrian,
+    World,
     cast_rays,
     corridor_recesses,
     default_trajectory,
@@ -25,9 +27,12 @@ from frontends.simulate import (
     simulate_scenario,
     tree_walls,
     two_loop_world,
+    with_pedestrians,
     world_by_name,
 )
 from frontends.simulate.worlds import (
+    LEG_RADIUS_M,
+    LEG_SPACING_M,
     POST_HALF_SIDE_M,
     RECESS_DEPTH_RANGE_M,
     RECESS_SPACING_RANGE_M,
@@ -283,3 +288,80 @@ def test_a_scenario_driven_with_another_laser() -> None:
     np.testing.assert_allclose(np.degrees(scan.angles_rad[[180, 900]]), [-90.0, 90.0])
     np.testing.assert_allclose(scan.ranges_m[[180, 900]], 1.0, atol=0.05)
     assert scan.ranges_m[540] >= scan.range_max_m == 30.0
+
+
+# ------------------------------------------------------------------------ pedestrians
+
+
+def test_a_pedestrian_walks_its_path_back_and_forth() -> None:
+    # A 7 m path (4 m east, then 3 m north) at 1 m/s from its start: at 2 s 2 m along the
+    # first leg heading east, at 5.5 s 1.5 m up the second heading north, at 8 s on the way
+    # back (14 - 8 = 6 m along: 2 m up the second leg) heading south, and at 14 s back at
+    # the start heading east again; a start of -1 m is 13 m along the there-and-back walk.
+    walker = Pedestrian(np.array([[0.0, 0.0], [4.0, 0.0], [4.0, 3.0]]), speed_mps=1.0)
+    for t, xy, heading in (
+        (2.0, [2.0, 0.0], [1.0, 0.0]),
+        (5.5, [4.0, 1.5], [0.0, 1.0]),
+        (8.0, [4.0, 2.0], [0.0, -1.0]),
+        (14.0, [0.0, 0.0], [1.0, 0.0]),
+    ):
+        p, u = walker.pose_at(t)
+        np.testing.assert_allclose(p, xy, atol=1e-12)
+        np.testing.assert_allclose(u, heading, atol=1e-12)
+    back = Pedestrian(walker.path_xy, speed_mps=1.0, start_m=-1.0)
+    np.testing.assert_allclose(back.pose_at(0.0)[0], [1.0, 0.0], atol=1e-12)
+
+
+def test_a_pedestrian_is_two_legs_a_beam_hits() -> None:
+    # Walking north along x = 2 and at (2, 0) at 0 s, with no swing: the legs' centres are
+    # LEG_SPACING_M / 2 either side across the walk, at x = 1.87 and 2.13. The 16-gon of the
+    # nearer leg has a vertex pointing at the laser, so the beam along +x from the origin
+    # ends exactly LEG_RADIUS_M before its centre; without the time (static walls only) it
+    # reaches the wall at x = 10.
+    walker = Pedestrian(
+        np.array([[2.0, -1.0], [2.0, 1.0]]), speed_mps=1.0, start_m=1.0, stride_m=0.0
+    )
+    legs = walker.legs_at(0.0).reshape(2, -1, 2, 2)
+    centres = legs[:, :, 0].mean(axis=1)
+    np.testing.assert_allclose(
+        centres, [[2.0 - LEG_SPACING_M / 2, 0.0], [2.0 + LEG_SPACING_M / 2, 0.0]], atol=1e-12
+    )
+    world = World("lane", np.array([[[10.0, -5.0], [10.0, 5.0]]]), pedestrians=(walker,))
+    ahead = int(np.flatnonzero(EXACT.angles_rad() == 0.0)[0])
+    assert world.is_dynamic
+    assert cast_rays(world, [0.0, 0.0, 0.0], EXACT, stamp_s=0.0)[ahead] == pytest.approx(
+        2.0 - LEG_SPACING_M / 2 - LEG_RADIUS_M, abs=1e-12
+    )
+    assert cast_rays(world, [0.0, 0.0, 0.0], EXACT)[ahead] == pytest.approx(10.0, abs=1e-12)
+
+
+def test_a_pedestrian_needs_a_path_and_a_speed() -> None:
+    with pytest.raises(ConfigError, match="consecutive waypoints"):
+        Pedestrian(np.array([[0.0, 0.0], [0.0, 0.0], [1.0, 0.0]]))
+    with pytest.raises(ConfigError, match="shape"):
+        Pedestrian(np.array([[0.0, 0.0]]))
+    with pytest.raises(ConfigError, match="speed_mps"):
+        Pedestrian(np.array([[0.0, 0.0], [1.0, 0.0]]), speed_mps=0.0)
+    with pytest.raises(ConfigError, match="default route"):
+        with_pedestrians(World("bare", np.array([[[0.0, 0.0], [1.0, 0.0]]])), 2)
+
+
+def test_people_walk_the_route_within_their_offset() -> None:
+    # Each person walks the route moved by at most 0.6 m in x and in y: at any time within
+    # 0.6 * sqrt(2) of the route; the same seed gives the same people.
+    world = with_pedestrians(world_by_name("office"), 6, seed=3)
+    again = with_pedestrians(world_by_name("office"), 6, seed=3)
+    route = world.route_xy
+    assert route is not None and len(world.pedestrians) == 6
+    for walker, twin in zip(world.pedestrians, again.pedestrians, strict=True):
+        np.testing.assert_array_equal(walker.legs_at(12.3), twin.legs_at(12.3))
+        for t in np.linspace(0.0, 200.0, 41):
+            p, _ = walker.pose_at(float(t))
+            a, b = route[:-1], route[1:]
+            s = np.clip(
+                np.einsum("wk,wk->w", p - a, b - a) / np.einsum("wk,wk->w", b - a, b - a), 0, 1
+            )
+            gap = np.hypot(*(a + s[:, None] * (b - a) - p).T).min()
+            assert gap <= 0.6 * math.sqrt(2.0) + 1e-9
+    assert "office_people" in SCENARIOS
+    assert len(simulate_scenario("office_people", seed=0).world.pedestrians) == 10

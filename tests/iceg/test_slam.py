@@ -22,9 +22,11 @@ from frontends.simulate import (
     office_world,
     outdoor_world,
     simulate,
+    simulate_scenario,
 )
 from graph import FactorKind
 from graph.pose_graph import STEP_UPDATE
+from iceg.batch_run import false_loop_closures
 from iceg.config import IcegConfig, SlamConfig
 from iceg.evaluation import position_errors
 from iceg.features import FeatureConfig, extract
@@ -295,6 +297,33 @@ def test_recess_corridor_with_accurate_odometry_keeps_its_length() -> None:
         e = se2.between(se2.between(truth[node[f.i]], truth[node[f.j]]), f.measured)
         nees.append(e[0] ** 2 / f.cov[0, 0])
     assert 1.0 <= np.mean(nees) <= 4.0
+
+
+def test_people_walking_the_corridors_leave_the_closures_true_and_get_pruned() -> None:
+    # Ten people walk the office loop's corridors (two legs each, in every scan that sees
+    # them; seed 0: ATE 0.016 m, 0.011 m without them). The run stays within 3 cm of the
+    # truth, closes the loop with true closures only, and the landmarks that time-validity
+    # pruning (paper §III-C3) removes are mostly the people: more of them lie over 0.25 m
+    # from every static wall (out in the corridors, where only people stand) than on one.
+    run = simulate_scenario("office_people", seed=0)
+    slam = Slam()
+    for scan in run.scans:
+        slam.process(scan)
+    res = slam.finish()
+    truth = np.asarray(run.true_poses)
+    errors = position_errors(res.poses, truth)
+    assert errors.rmse_m <= 0.03
+    assert res.loop_closures.accepted >= 1 and false_loop_closures(res, truth) == 0
+    pruned = slam.feature_map.pruned
+    node = {int(k): i for i, k in enumerate(res.node_ids)}
+    anchors = res.node_poses[[node[int(a)] for a in pruned.anchor]]
+    in_map = se2.compose(anchors, np.column_stack([pruned.xy, np.zeros(len(pruned.xy))]))
+    in_world = se2.compose(np.array(errors.alignment), in_map)[:, :2]
+    walls = run.world.walls
+    a, e = walls[:, 0], walls[:, 1] - walls[:, 0]
+    t = np.clip(np.einsum("pwk,wk->pw", in_world[:, None] - a, e) / (e * e).sum(1), 0.0, 1.0)
+    to_wall = np.linalg.norm(in_world[:, None] - (a + t[..., None] * e), axis=2).min(axis=1)
+    assert pruned.ids.shape[0] >= 2 and np.count_nonzero(to_wall > 0.25) > pruned.ids.shape[0] / 2
 
 
 def test_point_fallback_gives_feature_poor_outdoor_keyframes_a_factor() -> None:
