@@ -94,6 +94,8 @@ LASERS: dict[str, LaserModel] = {
     "hokuyo_utm30": LaserModel(n_beams=1081, fov_deg=270.0, range_max_m=30.0),
     "hokuyo_urg04": LaserModel(n_beams=683, fov_deg=240.0, range_max_m=5.6, range_sigma_m=0.02),
     "lds_360": LaserModel(n_beams=361, fov_deg=360.0, range_max_m=8.0, range_sigma_m=0.02),
+    # the default scanner with 5 % of its beams returning nothing, in runs of 3 (dark patches)
+    "sick_lms200_dropouts": LaserModel(dropout_fraction=0.05, dropout_run_beams=3),
 }
 
 

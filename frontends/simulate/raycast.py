@@ -65,6 +65,19 @@ class LaserModel(BaseModel):
         default=(0.0, 0.0, 0.0),
         description="Laser pose in the robot frame [x_m, y_m, theta_rad].",
     )
+    dropout_fraction: float = Field(
+        default=0.0,
+        ge=0.0,
+        lt=1.0,
+        description="Fraction of the beams that return nothing although they hit a wall (dark "
+        "or glossy patches, weak echoes), in runs of dropout_run_beams beams placed at random "
+        "in each scan.",
+    )
+    dropout_run_beams: int = Field(
+        default=1,
+        ge=1,
+        description="Length of each run of dropped beams (1: single-beam dropouts).",
+    )
 
     def angles_rad(self) -> FloatArray:
         """``(n_beams,)`` float64 beam bearings in the laser frame, radians, CCW from ahead."""
@@ -155,7 +168,8 @@ def cast_rays(
 
     Returns:
         ``(n_beams,)`` float64 ranges in metres, beam order of ``model.angles_rad()``. A beam
-        that hits nothing within ``range_max_m`` (or whose noisy range reaches it) reads
+        that hits nothing within ``range_max_m`` (or whose noisy range reaches it), or that
+        drops out (``model.dropout_fraction``, drawn from ``rng`` after the noise), reads
         exactly ``range_max_m`` (invalid under ``LaserScan``'s strict ``r < range_max_m``).
     """
     model = LaserModel() if model is None else model
@@ -165,7 +179,21 @@ def cast_rays(
     if rng is not None and model.range_sigma_m > 0.0:
         noise = rng.normal(0.0, model.range_sigma_m, size=ranges.shape)
         ranges = np.maximum(ranges + noise, 0.0)  # inf stays inf
+    if rng is not None and model.dropout_fraction > 0.0:
+        ranges = np.where(_dropped(ranges.shape[0], model, rng), np.inf, ranges)
     return np.where(ranges < model.range_max_m, ranges, model.range_max_m)
+
+
+def _dropped(n_beams: int, model: LaserModel, rng: np.random.Generator) -> BoolArray:
+    """``(n_beams,)`` bool: the beams of one scan that drop out, in runs of
+    ``model.dropout_run_beams`` starting at beams drawn with probability
+    ``dropout_fraction / dropout_run_beams`` (runs may overlap or be cut by the scan's end)."""
+    run = model.dropout_run_beams
+    starts = np.flatnonzero(rng.uniform(size=n_beams) < model.dropout_fraction / run)
+    dropped = np.zeros(n_beams, dtype=bool)
+    for k in range(run):
+        dropped[np.minimum(starts + k, n_beams - 1)] = True
+    return dropped
 
 
 def visible_mask(

@@ -126,6 +126,15 @@ class FeatureConfig(BaseModel):
         "extension at a larger incidence angle (from the wall normal) the wall may continue "
         "unseen (grazing), so the endpoint is not an EOW.",
     )
+    eow_dropout_max_gap_m: float = Field(
+        default=0.0,
+        ge=0.0,
+        description="End of wall: beams without a return beyond an endpoint, after which the "
+        "wall's line returns within this distance of the endpoint, are a dropout patch in the "
+        "wall (a dark or glossy surface), not a view past its end; a wider gap is an opening "
+        "(a doorway is 0.7 m or more) and is seen past even when nothing returns through it. "
+        "0: every returnless beam sees past.",
+    )
     intersection_max_distance_m: float = Field(
         default=3.0,
         gt=0.0,

@@ -59,9 +59,12 @@ def find_ends_of_wall(
     A beam sees past the line when the range ``r_pred`` at which it meets the line (from the
     laser origin) is positive, below ``range_max - eow_range_margin_m`` and at an incidence
     of at most ``eow_max_incidence_deg`` from the normal, and the beam returns farther than
-    ``r_pred + eow_range_margin_m``, or nothing. So an endpoint next to nearer returns
-    (occlusion), at the scan's angular limit, or where the wall's extension would lie beyond
-    the usable range or at grazing incidence is no EOW.
+    ``r_pred + eow_range_margin_m``, or nothing, unless the first return past its run of
+    returnless beams lies on the line again within ``eow_dropout_max_gap_m`` of the endpoint:
+    the wall goes on past a dropout (a wider gap is an opening). So an endpoint
+    next to nearer returns (occlusion), next to a dropout in its own wall, at the scan's
+    angular limit, or where the wall's extension would lie beyond the usable range or at
+    grazing incidence is no EOW.
 
     Position: the wall ends between the ray of the endpoint's beam and the ray of the first
     beam beyond; both meet the wall's line and the EOW is the middle of the two meeting
@@ -88,6 +91,7 @@ def find_ends_of_wall(
         beams.range_max - cfg.eow_range_margin_m,
         math.cos(math.radians(cfg.eow_max_incidence_deg)),
         cfg.corner_gap_m,
+        cfg.eow_dropout_max_gap_m,
     )
     seg, end, xy, cov, wall_dir, beyond = _ends_of_wall(
         beams, segs, dist_to_line, np.ascontiguousarray(in_corner, dtype=np.bool_), settings
@@ -104,6 +108,7 @@ class _EowSettings(NamedTuple):
     range_limit_m: float  # range_max - range_margin_m
     cos_max_incidence: float
     corner_gap_m: float
+    dropout_max_gap_m: float
 
 
 @njit(cache=True, nogil=True)
@@ -128,14 +133,16 @@ def _junctions(segs: Segments, window: int, corner_gap_m: float) -> BoolArray:
 
 
 @njit(cache=True, nogil=True)
-def _sees_past(
+def _meeting_range(
     beams: BeamPoints, normal: FloatArray, dist_to_line: float, beam: int, s: _EowSettings
-) -> bool:
-    """Whether ``beam`` sees past the line of unit ``normal`` at ``dist_to_line`` from the
-    laser (:func:`find_ends_of_wall`)."""
+) -> float:
+    """The range (metres) at which ``beam`` meets the line of unit ``normal`` at
+    ``dist_to_line`` from the laser; NaN where the line is not judged along it (the beam
+    runs along it or away from it, meets it at more than ``eow_max_incidence_deg`` or beyond
+    ``range_max - eow_range_margin_m``)."""
     n_dot_u = dot2(normal[0], normal[1], beams.dirs[beam, 0], beams.dirs[beam, 1])
     if n_dot_u == 0.0:  # the beam runs along the line: no meeting range
-        return False
+        return math.nan
     r_pred = dist_to_line / n_dot_u
     if not (
         math.isfinite(r_pred)
@@ -143,9 +150,49 @@ def _sees_past(
         and abs(n_dot_u) >= s.cos_max_incidence
         and r_pred < s.range_limit_m
     ):
+        return math.nan
+    return r_pred
+
+
+@njit(cache=True, nogil=True)
+def _sees_past(
+    beams: BeamPoints,
+    normal: FloatArray,
+    dist_to_line: float,
+    end_xy: FloatArray,
+    beam: int,
+    outward: int,
+    s: _EowSettings,
+) -> bool:
+    """Whether ``beam``, a step ``outward`` (-1 or +1 in beam order) beyond a segment's
+    endpoint ``end_xy`` ``(2,)`` (robot frame, metres), sees past the line of unit ``normal``
+    at ``dist_to_line`` from the laser (:func:`find_ends_of_wall`): it returns farther than
+    where it meets the line, or nothing, unless the first return past its run of returnless
+    beams lies on the line (within ``eow_range_margin_m``) and within
+    ``eow_dropout_max_gap_m`` of the endpoint: there the wall visibly goes on, and the beams
+    without a return are dropouts on it (a dark or glossy patch), not a view past its
+    end."""
+    r_pred = _meeting_range(beams, normal, dist_to_line, beam, s)
+    if math.isnan(r_pred):
         return False
-    farther = beams.valid[beam] and beams.ranges[beam] > r_pred + s.range_margin_m
-    return farther or beams.no_return[beam]
+    if beams.valid[beam]:
+        return beams.ranges[beam] > r_pred + s.range_margin_m
+    if not beams.no_return[beam]:
+        return False
+    n_beams = beams.ranges.shape[0]
+    b = beam + outward
+    while 0 <= b < n_beams and not beams.valid[b]:
+        b += outward
+    if not 0 <= b < n_beams:
+        return True
+    r_next = _meeting_range(beams, normal, dist_to_line, b, s)
+    if not abs(beams.ranges[b] - r_next) <= s.range_margin_m:
+        return True
+    gap = math.hypot(
+        beams.origin[0] + beams.ranges[b] * beams.dirs[b, 0] - end_xy[0],
+        beams.origin[1] + beams.ranges[b] * beams.dirs[b, 1] - end_xy[1],
+    )
+    return not gap <= s.dropout_max_gap_m
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -173,7 +220,18 @@ def _ends_of_wall(
             for step in range(1, s.check_beams + 1):
                 b = segs.end_beam[k, e] + outward * step
                 inside = 0 <= b < n_beams
-                if not (inside and _sees_past(beams, segs.normals[k], dist_to_line[k], b, s)):
+                if not (
+                    inside
+                    and _sees_past(
+                        beams,
+                        segs.normals[k],
+                        dist_to_line[k],
+                        segs.endpoints[k, e],
+                        b,
+                        outward,
+                        s,
+                    )
+                ):
                     ok = False
                     break
             if ok:

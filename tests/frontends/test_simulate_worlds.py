@@ -365,3 +365,20 @@ def test_people_walk_the_route_within_their_offset() -> None:
             assert gap <= 0.6 * math.sqrt(2.0) + 1e-9
     assert "office_people" in SCENARIOS
     assert len(simulate_scenario("office_people", seed=0).world.pedestrians) == 10
+
+
+def test_a_scanner_drops_beams_in_runs() -> None:
+    # dropout_fraction 0.05 in runs of 3: run starts drawn with probability 0.05 / 3 per
+    # beam, so about 5 % of the beams of a closed room (every beam hits a wall) read no
+    # return, and no dropped beam inside the scan stands alone (runs of three; only a run
+    # cut by the scan's end can be shorter). Without dropouts nothing is dropped.
+    room = World("room", np.array(rectangle(-3.0, -3.0, 3.0, 3.0)))
+    laser = LaserModel(dropout_fraction=0.05, dropout_run_beams=3)
+    rng = np.random.default_rng(4)
+    drops = [cast_rays(room, np.zeros(3), laser, rng) >= laser.range_max_m for _ in range(200)]
+    assert np.mean(drops) == pytest.approx(0.05, abs=0.01)
+    for d in drops:
+        inner = d[1:-1] & ~d[:-2] & ~d[2:]
+        assert not inner.any()
+    clean = cast_rays(room, np.zeros(3), LaserModel(), np.random.default_rng(4))
+    assert np.all(clean < LaserModel().range_max_m)

@@ -482,6 +482,31 @@ def test_single_dropout_does_not_cut_a_wall() -> None:
     assert np.sum(f.kind == EOW) == 2
 
 
+def test_a_dropout_patch_is_not_an_end_of_wall_but_a_doorway_is() -> None:
+    # A wall x = 3 (y -2 to 2) whose three beams straight ahead return nothing (a dark patch:
+    # beyond one dropout the wall is cut in two). By default the beams without a return count
+    # as seeing past, so both sides of the patch are ends of wall: four EOWs. With
+    # eow_dropout_max_gap_m the wall's line returns 4 beams (0.21 m) past each side, so the
+    # patch is a dropout: only the two true ends at y = +-2 (nothing behind them) are left.
+    # A 0.9 m doorway in the same wall with nothing behind it stays an opening: its two
+    # frames are EOWs with the option too (0.9 m > 0.5 m).
+    laser = LaserModel(range_sigma_m=0.0)
+    ahead = int(np.flatnonzero(laser.angles_rad() == 0.0)[0])
+    wall = World("wall", np.array([[[3.0, -2.0], [3.0, 2.0]]]))
+    ranges = cast_rays(wall, np.zeros(3), laser)
+    ranges[ahead - 1 : ahead + 2] = laser.range_max_m
+    patch = _scan(ranges, laser)
+    option = FeatureConfig(eow_dropout_max_gap_m=0.5)
+    assert np.sum(extract(patch).kind == EOW) == 4
+    f = extract(patch, option)
+    d, _ = _nearest(np.array([[3.0, -2.0], [3.0, 2.0]]), f.xy[f.kind == EOW])
+    assert np.sum(f.kind == EOW) == 2 and np.all(d <= 0.0757)
+    door = World("door", np.array([[[3.0, -2.0], [3.0, -0.45]], [[3.0, 0.45], [3.0, 2.0]]]))
+    f = extract(_scan(cast_rays(door, np.zeros(3), laser), laser), option)
+    d, _ = _nearest(np.array([[3.0, -0.45], [3.0, 0.45]]), f.xy[f.kind == EOW])
+    assert np.sum(f.kind == EOW) == 4 and np.all(d <= 0.03)
+
+
 def test_max_range_gap_is_not_an_end_of_wall() -> None:
     # A wall y = 2 from x = 0 to x = 30 seen with a 10 m usable range: it leaves the range at
     # x = sqrt(10² - 2²) = 9.80 m, where the beams beyond read no return. The wall continues,
