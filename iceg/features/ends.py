@@ -61,10 +61,10 @@ def find_ends_of_wall(
     of at most ``eow_max_incidence_deg`` from the normal, and the beam returns farther than
     ``r_pred + eow_range_margin_m``, or nothing, unless the first return past its run of
     returnless beams lies on the line again within ``eow_dropout_max_gap_m`` of the endpoint:
-    the wall goes on past a dropout (a wider gap is an opening). So an endpoint
-    next to nearer returns (occlusion), next to a dropout in its own wall, at the scan's
-    angular limit, or where the wall's extension would lie beyond the usable range or at
-    grazing incidence is no EOW.
+    the wall goes on past a dropout (a wider gap is an opening). So an endpoint next to
+    nearer returns (occlusion), next to a dropout in its own wall, at the scan's angular
+    limit, or where the wall's extension would lie beyond the usable range or at grazing
+    incidence is no EOW.
 
     Position: the wall ends between the ray of the endpoint's beam and the ray of the first
     beam beyond; both meet the wall's line and the EOW is the middle of the two meeting
@@ -179,6 +179,8 @@ def _sees_past(
         return beams.ranges[beam] > r_pred + s.range_margin_m
     if not beams.no_return[beam]:
         return False
+    if s.dropout_max_gap_m <= 0.0:
+        return True
     n_beams = beams.ranges.shape[0]
     b = beam + outward
     while 0 <= b < n_beams and not beams.valid[b]:
