@@ -1,6 +1,8 @@
-"""A 2D laser simulator with exact ground truth: polygon worlds, a trajectory through them,
-vectorized ray casting (beams x walls) with the paper's SICK LMS200 model, noisy wheel
-odometry, and export to CARMEN / TUM files. Deterministic under a seed.
+"""A 2D laser simulator with exact ground truth: polygon worlds (with people walking through
+them, :func:`with_pedestrians`), a trajectory through them, vectorized ray casting (beams x
+walls) with the paper's SICK LMS200 model (or another scanner's range, field of view, noise
+and dropouts), noisy wheel odometry, and export to CARMEN / TUM files. Deterministic under a
+seed.
 
 Example::
 
