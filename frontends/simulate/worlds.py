@@ -117,15 +117,15 @@ class Pedestrian:
         path.setflags(write=False)
         object.__setattr__(self, "path_xy", path)
 
-    @staticmethod
-    def _length(path: FloatArray) -> FloatArray:
+    @cached_property
+    def _along(self) -> FloatArray:
         """``(P,)`` float64 distance along the path at each waypoint, metres."""
-        return np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(path, axis=0).T))])
+        return np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(self.path_xy, axis=0).T))])
 
     def pose_at(self, stamp_s: float) -> tuple[FloatArray, FloatArray]:
         """Where the person is at ``stamp_s`` (seconds): ``(2,)`` float64 position (metres)
         and ``(2,)`` float64 unit walking direction, world frame."""
-        along = self._length(self.path_xy)
+        along = self._along
         total = float(along[-1])
         s = (self.start_m + self.speed_mps * stamp_s) % (2.0 * total)
         backwards = s > total

@@ -31,6 +31,7 @@ from iceg.batch_run import false_loop_closures
 from iceg.config import IcegConfig, SlamConfig
 from iceg.evaluation import position_errors
 from iceg.features import FeatureConfig, extract
+from iceg.matching._kernels import nearest_segment_distance
 from iceg.pipeline import run_scans
 from iceg.slam import (
     CONSISTENCY_PROBABILITY,
@@ -320,10 +321,7 @@ def test_people_walking_the_corridors_leave_the_closures_true_and_get_pruned() -
     anchors = res.node_poses[[node[int(a)] for a in pruned.anchor]]
     in_map = se2.compose(anchors, np.column_stack([pruned.xy, np.zeros(len(pruned.xy))]))
     in_world = se2.compose(np.array(errors.alignment), in_map)[:, :2]
-    walls = run.world.walls
-    a, e = walls[:, 0], walls[:, 1] - walls[:, 0]
-    t = np.clip(np.einsum("pwk,wk->pw", in_world[:, None] - a, e) / (e * e).sum(1), 0.0, 1.0)
-    to_wall = np.linalg.norm(in_world[:, None] - (a + t[..., None] * e), axis=2).min(axis=1)
+    to_wall = np.array([nearest_segment_distance(p, run.world.walls) for p in in_world])
     assert pruned.ids.shape[0] >= 2 and np.count_nonzero(to_wall > 0.25) > pruned.ids.shape[0] / 2
 
 
