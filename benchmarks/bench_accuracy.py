@@ -96,6 +96,14 @@ LASERS: dict[str, LaserModel] = {
     "lds_360": LaserModel(n_beams=361, fov_deg=360.0, range_max_m=8.0, range_sigma_m=0.02),
     # the default scanner with 5 % of its beams returning nothing, in runs of 3 (dark patches)
     "sick_lms200_dropouts": LaserModel(dropout_fraction=0.05, dropout_run_beams=3),
+    # a 360° lidar among four posts on the robot (its own body in every scan)
+    "lds_360_posts": LaserModel(
+        n_beams=361,
+        fov_deg=360.0,
+        range_max_m=8.0,
+        range_sigma_m=0.02,
+        body_posts_deg=(45.0, 135.0, -135.0, -45.0),
+    ),
 }
 
 

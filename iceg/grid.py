@@ -437,7 +437,11 @@ class TiledGrid:
 
 
 def render(
-    scans: Sequence[LaserScan], poses: ArrayLike, config: GridConfig | None = None
+    scans: Sequence[LaserScan],
+    poses: ArrayLike,
+    config: GridConfig | None = None,
+    *,
+    range_min_m: float = 0.0,
 ) -> OccupancyGrid:
     """Render an occupancy grid from scans and one robot pose per scan.
 
@@ -454,6 +458,8 @@ def render(
         poses: ``(N, 3)`` float robot poses ``[x_m, y_m, theta_rad]``, robot frame -> world,
             one per scan (e.g. the optimized trajectory).
         config: Grid parameters; defaults to :class:`GridConfig()`.
+        range_min_m: A floor on every scan's ``range_min_m``: returns at or within it draw
+            nothing (the robot's own body, ``FeatureConfig.robot_body_range_m``).
 
     Returns:
         The grid, bounded automatically by the poses and the traced beams plus
@@ -464,11 +470,15 @@ def render(
             finite, or the grid would exceed ``config.max_cells``.
     """
     cfg = config or GridConfig()
-    return render_tiled(scans, poses, cfg).to_dense(cfg.max_cells)
+    return render_tiled(scans, poses, cfg, range_min_m=range_min_m).to_dense(cfg.max_cells)
 
 
 def render_tiled(
-    scans: Sequence[LaserScan], poses: ArrayLike, config: GridConfig | None = None
+    scans: Sequence[LaserScan],
+    poses: ArrayLike,
+    config: GridConfig | None = None,
+    *,
+    range_min_m: float = 0.0,
 ) -> TiledGrid:
     """:func:`render` into a sparse :class:`TiledGrid`: memory follows the area the beams
     cross (``config.max_cells`` bounds the stored cells), so any real building renders at
@@ -486,7 +496,7 @@ def render_tiled(
     ranges = np.concatenate([s.ranges_m for s in scans])
     angles = np.concatenate([s.angles_rad for s in scans])
     offsets = np.stack([s.laser_offset for s in scans])
-    rmin = np.repeat(np.array([s.range_min_m for s in scans]), counts)
+    rmin = np.repeat(np.maximum([s.range_min_m for s in scans], range_min_m), counts)
     rmax = np.repeat(np.array([s.range_max_m for s in scans]), counts)
     return _render_flat(p, offsets, counts, ranges, angles, rmin, rmax, cfg)
 
@@ -529,6 +539,8 @@ def render_tiled_chunks(
     chunks: ChunkReader,
     config: GridConfig | None = None,
     chunk_scans: int = CHUNK_SCANS,
+    *,
+    range_min_m: float = 0.0,
 ) -> TiledGrid:
     """:func:`render_tiled` in bounded memory: the beams are read and traced in chunks of
     ``chunk_scans`` consecutive scans (same cell values as one pass over all beams).
@@ -543,11 +555,15 @@ def render_tiled_chunks(
         chunks: ``chunks(lo, hi)`` returns the :class:`BeamChunk` of scans ``[lo, hi)``.
         config: Grid parameters.
         chunk_scans: Scans per chunk (>= 1).
+        range_min_m: As for :func:`render`.
 
     Raises:
         GridError: as :func:`render_tiled`.
     """
     cfg = config or GridConfig()
+    if range_min_m > 0.0:
+        chunks = _with_range_min(chunks, range_min_m)
+
     p = np.asarray(poses, dtype=np.float64)
     p = _check_poses(p, p.shape[0] if p.ndim == 2 else 0)
     if p.shape[0] == 0:
@@ -776,6 +792,16 @@ class BeamChunk(NamedTuple):
 
 #: Reads the beams of scans ``[lo, hi)`` (a :class:`BeamChunk`).
 ChunkReader = Callable[[int, int], BeamChunk]
+
+
+def _with_range_min(chunks: ChunkReader, range_min_m: float) -> ChunkReader:
+    """``chunks`` with every beam's ``range_min_m`` at least ``range_min_m``."""
+
+    def read(lo: int, hi: int) -> BeamChunk:
+        c = chunks(lo, hi)
+        return c._replace(range_min_m=np.maximum(c.range_min_m, range_min_m))
+
+    return read
 
 
 class _ChunkBeams(NamedTuple):

@@ -1112,6 +1112,11 @@ def save_localization(
         fh.write("\n")
     if render_map:
         _, poses = session.trajectory()
-        grid = render_tiled(read_scans(session), poses, session.config.grid)
+        grid = render_tiled(
+            read_scans(session),
+            poses,
+            session.config.grid,
+            range_min_m=session.config.features.robot_body_range_m,
+        )
         write_png(grid, folder / "map.png", trajectory=result.poses[ok])
     return folder

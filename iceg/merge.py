@@ -597,7 +597,12 @@ def write_merged_map(merged: Session, folder: Path) -> bool:
 
     _, poses = merged.trajectory()
     try:
-        grid = render_tiled(read_scans(merged), poses, merged.config.grid)
+        grid = render_tiled(
+            read_scans(merged),
+            poses,
+            merged.config.grid,
+            range_min_m=merged.config.features.robot_body_range_m,
+        )
     except GridError as exc:
         logger.warning("merge: no map written: %s", exc)
         return False

@@ -27,6 +27,7 @@ from iceg.kernel_warmup import cache_is_new, probed
 from iceg.match_pool import MatchPool
 from iceg.odometry_timing import odometry_time_offset
 from iceg.results import SlamResult
+from iceg.robot_body import robot_body_range
 from iceg.scan_products import ScanPrecompute
 from iceg.scan_store import ScanStore
 from iceg.slam import Slam
@@ -201,7 +202,9 @@ def run_log(
     (:func:`~frontends.odometry_shift.shift_odometry`);
     ``result.metrics["odometry_time_offset"]`` holds that value and the offset the run's
     matches measure (:func:`~iceg.odometry_timing.odometry_time_offset`), with a warning
-    when the measured one is significant.
+    when the measured one is significant; ``result.metrics["robot_body"]`` what the scans
+    show of the robot's own body (:func:`~iceg.robot_body.robot_body_range`), with a warning
+    when ``features.robot_body_range_m`` leaves some of it in.
 
     Raises:
         LogFormatError: missing, unreadable or empty log, disordered timestamps under
@@ -224,6 +227,7 @@ def run_log(
     result.metrics["odometry_time_offset"] = _time_offset_metrics(
         path, odometry_time_offset_s, result
     )
+    result.metrics["robot_body"] = _robot_body_metrics(path, scans, result)
     if rel is not None:
         summary, _ = relation_errors(
             result.stamps_s, result.poses, rel.stamps_s, rel.deltas, RELATION_TOLERANCE_S
@@ -262,6 +266,31 @@ def _time_offset_metrics(path: str | Path, applied_s: float, result: SlamResult)
         "applied_s": applied_s,
         "measured": None if measured is None else measured.as_dict(),
     }
+
+
+def _robot_body_metrics(
+    path: str | Path, scans: ScanStore, result: SlamResult
+) -> dict[str, Any] | None:
+    """What the scans show of the robot's own body along the run's trajectory (None: too
+    few turns to tell), warned when the configured ``features.robot_body_range_m`` leaves
+    some of it in."""
+    measured = robot_body_range(scans, result.poses)
+    configured = result.config.features.robot_body_range_m
+    if measured is not None and measured.range_m is not None and measured.range_m > configured:
+        logger.warning(
+            "%s: returns at %d bearings (%.0f to %.0f deg) stay within %.2f m of the laser "
+            "as the robot turns, in %.0f%% or more of %d turns: the robot's own body; to "
+            "leave them out, set features.robot_body_range_m: %.2f",
+            path,
+            len(measured.bearings_deg),
+            min(measured.bearings_deg),
+            max(measured.bearings_deg),
+            measured.range_m,
+            100.0 * min(measured.agreement),
+            measured.pairs,
+            measured.range_m,
+        )
+    return None if measured is None else measured.as_dict()
 
 
 def check_log_file(path: Path) -> None:

@@ -190,12 +190,15 @@ class SlamResult:
             self.metrics["map"] = {"rendered": False, "reason": "no scans"}
             return None
         t0 = time.perf_counter()
+        body = self.config.features.robot_body_range_m
         try:
             if isinstance(self.scans, ScanStore):
                 # Chunk by chunk: the grid pass adds a constant, not a copy of every beam.
-                self._map = render_tiled_chunks(self.poses, self.scans.beam_chunk, self.config.grid)
+                self._map = render_tiled_chunks(
+                    self.poses, self.scans.beam_chunk, self.config.grid, range_min_m=body
+                )
             else:
-                self._map = render_tiled(self.scans, self.poses, self.config.grid)
+                self._map = render_tiled(self.scans, self.poses, self.config.grid, range_min_m=body)
         except GridError as exc:
             logger.warning("no map written: %s", exc)
             self.metrics["map"] = {"rendered": False, "reason": str(exc)}

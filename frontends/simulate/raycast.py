@@ -78,6 +78,18 @@ class LaserModel(BaseModel):
         ge=1,
         description="Length of each run of dropped beams (1: single-beam dropouts).",
     )
+    body_posts_deg: tuple[float, ...] = Field(
+        default=(),
+        description="Bearings (laser frame, degrees) of posts on the robot around the laser "
+        "(a lidar under a plate on standoffs): each a flat face body_post_range_m from the "
+        "laser, facing it, 2 body_post_half_width_m wide, that moves with the robot.",
+    )
+    body_post_range_m: float = Field(
+        default=0.18, gt=0.0, description="Distance of each post's face from the laser, metres."
+    )
+    body_post_half_width_m: float = Field(
+        default=0.03, gt=0.0, description="Half the width of each post's face, metres."
+    )
 
     def angles_rad(self) -> FloatArray:
         """``(n_beams,)`` float64 beam bearings in the laser frame, radians, CCW from ahead."""
@@ -88,6 +100,14 @@ class LaserModel(BaseModel):
     def offset(self) -> FloatArray:
         """``(3,)`` float64 laser pose in the robot frame."""
         return np.asarray(self.laser_offset, dtype=np.float64)
+
+    def body_walls(self, laser_pose: FloatArray) -> FloatArray:
+        """``(P, 2, 2)`` float64 the faces of :attr:`body_posts_deg` in the world frame for a
+        laser at ``laser_pose`` ``(3,)`` (world frame), metres."""
+        b = laser_pose[2] + np.radians(np.asarray(self.body_posts_deg, dtype=np.float64))
+        centre = laser_pose[:2] + self.body_post_range_m * np.stack([np.cos(b), np.sin(b)], 1)
+        across = self.body_post_half_width_m * np.stack([-np.sin(b), np.cos(b)], 1)
+        return np.stack([centre - across, centre + across], axis=1)
 
 
 def ray_ranges(origin_xy: ArrayLike, directions_rad: ArrayLike, walls: FloatArray) -> FloatArray:
@@ -159,7 +179,8 @@ def cast_rays(
     """Simulate one scan: the ranges the laser on a robot at ``pose`` measures.
 
     Args:
-        world: The world; its dynamic walls present at ``stamp_s`` are included.
+        world: The world; its dynamic walls present at ``stamp_s`` are included, and the
+            robot's own posts (``model.body_posts_deg``).
         pose: ``(3,)`` true robot pose ``[x_m, y_m, theta_rad]``, world frame. The laser sits
             at ``pose ∘ model.laser_offset``.
         model: Laser model (default: SICK LMS200, see :class:`LaserModel`).
@@ -175,6 +196,8 @@ def cast_rays(
     model = LaserModel() if model is None else model
     laser_pose = compose(np.asarray(pose, dtype=np.float64), model.offset())
     walls = _reachable_walls(world.walls_at(stamp_s), laser_pose, model)
+    if model.body_posts_deg:
+        walls = np.concatenate([walls, model.body_walls(laser_pose)])
     ranges = ray_ranges(laser_pose[:2], laser_pose[2] + model.angles_rad(), walls)
     if rng is not None and model.range_sigma_m > 0.0:
         noise = rng.normal(0.0, model.range_sigma_m, size=ranges.shape)

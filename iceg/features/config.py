@@ -25,6 +25,16 @@ class FeatureConfig(BaseModel):
         "remembered as 'no return' for the end-of-wall test; it is also "
         "ScanFeatures.range_max_m (paper eq. 3).",
     )
+    robot_body_range_m: float = Field(
+        default=0.0,
+        ge=0.0,
+        description="Returns at or within this range of the laser are the robot itself (the "
+        "posts or mast around a lidar, the chassis): they give no point, feature or map cell, "
+        "and they occlude (an end of wall is not seen past them), unlike the scan's own "
+        "range_min_m, below which a ROS driver's beam is a no-return. 0: none. A run measures "
+        "the robot's body from the log and warns with the value to set "
+        "(iceg.robot_body.robot_body_range; docs/design.md, 'The robot's own body').",
+    )
     sigma_range_m: float = Field(
         default=0.01,
         gt=0.0,

@@ -47,16 +47,21 @@ def check_bearings(scan: LaserScan) -> None:
         )
 
 
-def beam_points(scan: LaserScan, range_max_m: float) -> BeamPoints:
+def beam_points(
+    scan: LaserScan, range_max_m: float, range_min_m: float | None = None
+) -> BeamPoints:
     """Valid beams to robot-frame points, and every beam's direction (docs/design.md step 1).
 
-    A beam is valid when ``range_min < r < range_max_m`` and is a "no return" when its range is
-    ``+inf`` or at least ``range_max_m`` (NaN is neither). Points are
+    A beam is valid when ``range_min_m < r < range_max_m`` and is a "no return" when its range
+    is ``+inf`` or at least ``range_max_m`` (NaN is neither; nor is a return at or within
+    ``range_min_m``, which occludes what lies behind it). Points are
     ``offset_xy + r (cos(b + offset_yaw), sin(b + offset_yaw))`` for bearing ``b``.
 
     Args:
         scan: One laser scan with increasing bearings (see :func:`check_bearings`).
         range_max_m: Usable maximum range, metres: ``min(config, scan.range_max_m)``.
+        range_min_m: Usable minimum range, metres (``None``: ``scan.range_min_m``; the
+            robot's own body may reach farther, ``FeatureConfig.robot_body_range_m``).
 
     Returns:
         :class:`BeamPoints` (shapes and units listed there).
@@ -67,7 +72,11 @@ def beam_points(scan: LaserScan, range_max_m: float) -> BeamPoints:
     angles = np.array(scan.angles_rad, dtype=np.float64)
     origin = np.array(scan.laser_offset, dtype=np.float64)
     valid, no_return, beam_index, points, dirs, bearing_robot = _beams(
-        ranges, angles, origin, float(scan.range_min_m), float(range_max_m)
+        ranges,
+        angles,
+        origin,
+        float(scan.range_min_m if range_min_m is None else range_min_m),
+        float(range_max_m),
     )
     return BeamPoints(
         ranges=ranges,

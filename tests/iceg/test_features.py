@@ -507,6 +507,29 @@ def test_a_dropout_patch_is_not_an_end_of_wall_but_a_doorway_is() -> None:
     assert np.sum(f.kind == EOW) == 4 and np.all(d <= 0.03)
 
 
+def test_the_robot_s_own_body_gives_no_point_and_hides_no_end_of_wall() -> None:
+    # A wall x = 3 (y -2 to 2) behind a post of the robot straight ahead: a face 0.18 m from
+    # the laser, 6 cm wide, hides the beams within atan(0.03 / 0.18) = 9.5 deg of ahead.
+    # Without the option the post's returns are points. With robot_body_range_m they are
+    # none, and the wall's pieces either side of the post's shadow keep no end of wall there
+    # (the post occludes the wall, it does not reveal its end): only the true ends at
+    # y = +-2 are EOWs. Read as no-returns instead (what a driver's range_min would make of
+    # them), the shadow's two edges would be EOWs too.
+    laser = LaserModel(range_sigma_m=0.0, body_posts_deg=(0.0,))
+    wall = World("wall", np.array([[[3.0, -2.0], [3.0, 2.0]]]))
+    ranges = cast_rays(wall, np.zeros(3), laser)
+    shadow = ranges < 0.25
+    assert 15 <= np.count_nonzero(shadow) <= 20  # 19 beams at 1 deg
+    scan = _scan(ranges, laser)
+    assert np.count_nonzero(np.linalg.norm(extract(scan).points_xy, axis=1) < 0.25) > 0
+    f = extract(scan, FeatureConfig(robot_body_range_m=0.25))
+    assert np.all(np.linalg.norm(f.points_xy, axis=1) > 0.25)
+    d, _ = _nearest(np.array([[3.0, -2.0], [3.0, 2.0]]), f.xy[f.kind == EOW])
+    assert np.sum(f.kind == EOW) == 2 and np.all(d <= 0.0757)
+    ranges[shadow] = laser.range_max_m
+    assert np.sum(extract(_scan(ranges, laser)).kind == EOW) == 4
+
+
 def test_max_range_gap_is_not_an_end_of_wall() -> None:
     # A wall y = 2 from x = 0 to x = 30 seen with a 10 m usable range: it leaves the range at
     # x = sqrt(10² - 2²) = 9.80 m, where the beams beyond read no return. The wall continues,

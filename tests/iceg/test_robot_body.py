@@ -1,0 +1,100 @@
+"""The robot's own body in its scans: turns chosen by hand, posts on a simulated robot found
+at their bearings and range (and nothing found without them), and a run that warns with the
+value that leaves them out of its points, features and map."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from frontends.carmen import write_carmen
+from frontends.simulate import LaserModel, office_world, simulate
+from iceg.config import IcegConfig
+from iceg.grid import render
+from iceg.pipeline import run_log
+from iceg.robot_body import AGREEMENT_M, robot_body_range, turn_pairs
+from iceg.scan_store import ScanStore
+
+POSTS_DEG = (45.0, 135.0, -135.0, -45.0)
+#: A 360° lidar under a plate on four standoffs, 0.18 m from it.
+AMONG_POSTS = LaserModel(
+    n_beams=361, fov_deg=360.0, range_max_m=8.0, range_sigma_m=0.02, body_posts_deg=POSTS_DEG
+)
+
+
+def test_turn_pairs_by_hand() -> None:
+    # Ten scans turning 0.2 rad (11.5 deg) a step in place, then five driving 0.5 m a step
+    # straight on. A pair needs 30-90 deg of turn within 1 m of travel: scan k pairs with
+    # k + 3 (0.6 rad = 34 deg) up to scan 6 -> 9; scans 7 and 8 reach at most 0.4 rad
+    # before the turn ends, and the drive does not turn.
+    spin = [[0.0, 0.0, 0.2 * k] for k in range(10)]
+    drive = [[0.5 * k, 0.0, 1.8] for k in range(1, 6)]
+    pairs = turn_pairs(np.array(spin + drive))
+    np.testing.assert_array_equal(pairs, [[k, k + 3] for k in range(7)])
+    # A turn of more than three times 30 deg between two scans is not taken (the world may
+    # have come round to look the same); neither is one across more than 1 m of travel.
+    assert turn_pairs(np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 1.7]])).shape == (0, 2)
+    assert turn_pairs(np.array([[0.0, 0.0, 0.0], [1.1, 0.0, 0.6]])).shape == (0, 2)
+
+
+@pytest.fixture(scope="module")
+def among_posts() -> tuple[list, np.ndarray]:  # type: ignore[type-arg]
+    run = simulate(office_world(), laser=AMONG_POSTS, seed=0)
+    return run.scans, run.true_poses
+
+
+def test_posts_on_the_robot_are_found_and_a_world_alone_is_not(among_posts) -> None:  # type: ignore[no-untyped-def]
+    scans, poses = among_posts
+    est = robot_body_range(ScanStore(scans), poses)
+    assert est is not None and est.pairs >= 100
+    # Every post is found, and every bin found lies on a post (a face 6 cm wide at 0.18 m
+    # spans 19 deg: its 2-deg bins lie within 9.5 + 2 deg of its bearing).
+    found = np.array(est.bearings_deg)
+    gap = np.abs((found[:, None] - np.array(POSTS_DEG)[None] + 180.0) % 360.0 - 180.0)
+    assert np.all(gap.min(axis=1) <= 11.5)
+    assert np.all(gap.min(axis=0) <= 2.0)
+    # The value to set: the faces' range (0.18-0.19 m to their edges, 2 cm noise) plus the
+    # agreement margin, rounded up to the centimetre.
+    assert 0.18 + AGREEMENT_M <= est.range_m <= 0.19 + AGREEMENT_M + 0.02
+    # The same world and route without posts: many turns compared, no body.
+    plain = simulate(office_world(), laser=AMONG_POSTS.model_copy(update={"body_posts_deg": ()}))
+    none = robot_body_range(ScanStore(plain.scans), plain.true_poses)
+    assert none is not None and none.range_m is None and none.pairs == est.pairs
+    # Scans without a single return (open ground) are compared too, and show no body.
+    dark = [replace(s, ranges_m=np.full(s.n_beams, np.inf)) for s in plain.scans]
+    empty = robot_body_range(ScanStore(dark), plain.true_poses)
+    assert empty is not None and empty.range_m is None
+
+
+def test_a_run_among_posts_warns_with_the_value_that_leaves_them_out(
+    among_posts,  # type: ignore[no-untyped-def]
+    tmp_path: Path,
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    scans, poses = among_posts
+    log = tmp_path / "posts.clf"
+    write_carmen(log, scans[:300], laser_record="ROBOTLASER1")
+    cfg = IcegConfig.model_validate({"slam": {"workers": 1}})
+    with caplog.at_level(logging.WARNING, logger="iceg.pipeline"):
+        first = run_log(log, cfg)
+    value = first.metrics["robot_body"]["range_m"]
+    assert value is not None and f"features.robot_body_range_m: {value:.2f}" in caplog.text
+    caplog.clear()
+    body = cfg.model_copy(
+        update={"features": cfg.features.model_copy(update={"robot_body_range_m": value})}
+    )
+    with caplog.at_level(logging.WARNING, logger="iceg.pipeline"):
+        again = run_log(log, body)
+    assert "robot_body_range_m" not in caplog.text
+    assert again.metrics["robot_body"]["range_m"] == value
+    # The map of one scan: the posts' faces are occupied cells 0.18 m from the robot, unless
+    # the option's range leaves them out (over a run, the rays of the next scans clear them).
+    for floor_m, drawn in ((0.0, True), (value, False)):
+        grid = render(scans[:1], poses[:1], range_min_m=floor_m)
+        xy = grid.cell_to_world(np.argwhere(grid.binary()))
+        near = np.linalg.norm(xy - poses[0, :2], axis=1) < 0.25
+        assert (np.count_nonzero(near) >= 4) == drawn
