@@ -82,8 +82,9 @@ def turn_pairs(poses: FloatArray) -> IntArray:
         return np.zeros((0, 2), dtype=np.int64)
     step = np.hypot(np.diff(p[:, 0]), np.diff(p[:, 1]))
     path = np.concatenate([[0.0], np.cumsum(np.nan_to_num(step, nan=np.inf))])
-    heading = np.unwrap(np.nan_to_num(p[:, 2]))
-    heading[np.isnan(p[:, 2])] = np.nan
+    heading = np.full(n, np.nan)
+    known = np.isfinite(p[:, 2])
+    heading[known] = np.unwrap(p[known, 2])
     end = np.searchsorted(path, path + MAX_PATH_M, side="right")  # scans within reach
     lo, hi = math.radians(TURN_DEG), 3.0 * math.radians(TURN_DEG)
     pairs = []

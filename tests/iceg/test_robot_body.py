@@ -39,6 +39,11 @@ def test_turn_pairs_by_hand() -> None:
     # have come round to look the same); neither is one across more than 1 m of travel.
     assert turn_pairs(np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 1.7]])).shape == (0, 2)
     assert turn_pairs(np.array([[0.0, 0.0, 0.0], [1.1, 0.0, 0.6]])).shape == (0, 2)
+    # A scan without a pose pairs with nothing, nor does a turn across it (its travel is
+    # unknown); the headings after it are unwrapped as before.
+    hole = np.array(spin + drive)
+    hole[4] = np.nan
+    np.testing.assert_array_equal(turn_pairs(hole), [[0, 3], [5, 8], [6, 9]])
 
 
 @pytest.fixture(scope="module")
