@@ -81,7 +81,8 @@ def turn_pairs(poses: FloatArray) -> IntArray:
     if n < 2:
         return np.zeros((0, 2), dtype=np.int64)
     step = np.hypot(np.diff(p[:, 0]), np.diff(p[:, 1]))
-    path = np.concatenate([[0.0], np.cumsum(np.nan_to_num(step, nan=np.inf))])
+    # a step to or from a scan without a pose counts as beyond reach (its travel is unknown)
+    path = np.concatenate([[0.0], np.cumsum(np.nan_to_num(step, nan=2.0 * MAX_PATH_M))])
     heading = np.full(n, np.nan)
     known = np.isfinite(p[:, 2])
     heading[known] = np.unwrap(p[known, 2])
@@ -155,13 +156,12 @@ def robot_body_range(store: ScanStore, poses: FloatArray) -> RobotBodyEstimate |
     with np.errstate(invalid="ignore"):
         agreement = (np.abs(a - b) <= AGREEMENT_M).mean(axis=0)
     body = np.flatnonzero(agreement >= MIN_AGREEMENT)
-    centres = -180.0 + (body + 0.5) * BIN_DEG
     if body.shape[0] == 0:
         return RobotBodyEstimate(None, (), int(pairs.shape[0]), ())
     reach = float(np.nanmax(np.nanmedian(nearest[:, body], axis=0))) + AGREEMENT_M
     return RobotBodyEstimate(
         math.ceil(reach * 100.0) / 100.0,
-        tuple(float(c) for c in centres),
+        tuple(float(c) for c in -180.0 + (body + 0.5) * BIN_DEG),
         int(pairs.shape[0]),
         tuple(float(x) for x in agreement[body]),
     )

@@ -44,6 +44,8 @@ def test_turn_pairs_by_hand() -> None:
     hole = np.array(spin + drive)
     hole[4] = np.nan
     np.testing.assert_array_equal(turn_pairs(hole), [[0, 3], [5, 8], [6, 9]])
+    far = np.array([[0.0, 0.0, 0.0], [np.nan] * 3, [0.0, 0.0, 0.0], [5.0, 0.0, 0.6]])
+    assert turn_pairs(far).shape == (0, 2)  # 5 m of travel after the hole
 
 
 @pytest.fixture(scope="module")
