@@ -8,9 +8,10 @@ the range at that bearing changes (a wall seen head-on is ``1 / cos(30°) - 1`` 
 after such a turn, a wall seen obliquely more). So a bearing bin whose nearest return stays
 within :data:`AGREEMENT_M` across almost every such turn (:data:`MIN_AGREEMENT`) holds the
 robot's body. Those returns give points and features that move with the robot and pull each
-match toward "no motion" (a lidar among four posts: the simulated 200 m recess corridor
-0.03-0.09 m -> 0.48-0.58 m ATE); ``features.robot_body_range_m`` removes them, and a run
-that sees a body warns with the value to set (docs/design.md, "The robot's own body").
+match toward "no motion" (a lidar among four posts: the simulated 200 m recess corridor,
+seeds 0-3, 0.03-0.11 m -> 0.36-0.58 m ATE); ``features.robot_body_range_m`` removes them,
+and a run that sees a body warns with the value to set (docs/design.md, "The robot's own
+body").
 """
 
 from __future__ import annotations

@@ -30,8 +30,9 @@ class FeatureConfig(BaseModel):
         ge=0.0,
         description="Returns at or within this range of the laser are the robot itself (the "
         "posts or mast around a lidar, the chassis): they give no point, feature or map cell, "
-        "and they occlude (an end of wall is not seen past them), unlike the scan's own "
-        "range_min_m, below which a ROS driver's beam is a no-return. 0: none. A run measures "
+        "they occlude (an end of wall is not seen past them, unlike the scan's own "
+        "range_min_m, below which a ROS driver's beam is a no-return), and a wall is one "
+        "segment across them. 0: none. A run measures "
         "the robot's body from the log and warns with the value to set "
         "(iceg.robot_body.robot_body_range; docs/design.md, 'The robot's own body').",
     )

@@ -37,12 +37,14 @@ class Segments(NamedTuple):
 def segment_point_ranges(beams: BeamPoints, cfg: FeatureConfig) -> IntArray:
     """Point ranges of the segments: adaptive breakpoints (Borges & Aldon 2004, eq. 8), then
     split-and-merge inside clusters (paper §III-C1; Nguyen et al. 2005, Alg. 1), merging
-    across at most ``cfg.dropout_max_beams`` invalid beams.
+    across at most ``cfg.dropout_max_beams`` invalid beams, or across beams that all return
+    from the robot's own body (``cfg.robot_body_range_m``).
 
     Args:
         beams: The scan's points (:func:`iceg.features.points.beam_points`).
         cfg: ``sigma_range_m``, ``breakpoint_lambda_deg``, ``dropout_max_beams``,
-            ``split_distance_m``, ``merge_distance_m``, ``min_segment_points`` are read.
+            ``split_distance_m``, ``merge_distance_m``, ``min_segment_points`` and
+            ``robot_body_range_m`` are read.
 
     Returns:
         ``(M, 2)`` int64 ``[start, stop)`` indices into ``beams.points``, in point order.
@@ -52,6 +54,7 @@ def segment_point_ranges(beams: BeamPoints, cfg: FeatureConfig) -> IntArray:
         beams.point_ranges,
         beams.angles[beams.valid],
         beams.beam_index,
+        beams.ranges,
         _SegmentationSettings(
             cfg.sigma_range_m,
             math.radians(cfg.breakpoint_lambda_deg),
@@ -59,6 +62,7 @@ def segment_point_ranges(beams: BeamPoints, cfg: FeatureConfig) -> IntArray:
             cfg.split_distance_m,
             cfg.merge_distance_m,
             cfg.min_segment_points,
+            cfg.robot_body_range_m,
         ),
     )
 
@@ -72,6 +76,7 @@ class _SegmentationSettings(NamedTuple):
     split_distance_m: float
     merge_distance_m: float
     min_segment_points: int
+    robot_body_range_m: float
 
 
 @njit(cache=True, nogil=True)
@@ -80,17 +85,23 @@ def _segment_point_ranges(
     ranges: FloatArray,
     bearings: FloatArray,
     beam_index: IntArray,
+    all_ranges: FloatArray,
     s: _SegmentationSettings,
 ) -> IntArray:
     """:func:`segment_point_ranges`, compiled: clusters joinable across a dropout of 1 to
-    ``dropout_max_beams`` invalid beams."""
+    ``dropout_max_beams`` invalid beams, or across beams that all return from the robot's
+    own body (``0 < r <= robot_body_range_m``, ``all_ranges`` ``(N,)`` every beam's range):
+    the body hides the wall behind it, it does not end it."""
     bounds = breakpoints(points, ranges, bearings, beam_index, s.sigma_range_m, s.lambda_rad)
     n_inner = max(bounds.shape[0] - 2, 0)
     joinable = np.empty(n_inner, dtype=np.bool_)
     for c in range(n_inner):
         at = bounds[c + 1]
         gap_beams = beam_index[at] - beam_index[at - 1] - 1
-        joinable[c] = 1 <= gap_beams <= s.dropout_max_beams
+        body = gap_beams >= 1
+        for b in range(beam_index[at - 1] + 1, beam_index[at]):
+            body = body and 0.0 < all_ranges[b] <= s.robot_body_range_m
+        joinable[c] = 1 <= gap_beams <= s.dropout_max_beams or body
     return split_and_merge(
         np.ascontiguousarray(points[:, 0]),
         np.ascontiguousarray(points[:, 1]),

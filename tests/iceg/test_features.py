@@ -509,21 +509,25 @@ def test_a_dropout_patch_is_not_an_end_of_wall_but_a_doorway_is() -> None:
 
 def test_the_robot_s_own_body_gives_no_point_and_hides_no_end_of_wall() -> None:
     # A wall x = 3 (y -2 to 2) behind a post of the robot straight ahead: a face 0.18 m from
-    # the laser, 6 cm wide, hides the beams within atan(0.03 / 0.18) = 9.5 deg of ahead.
-    # Without the option the post's returns are points. With robot_body_range_m they are
-    # none, and the wall's pieces either side of the post's shadow keep no end of wall there
-    # (the post occludes the wall, it does not reveal its end): only the true ends at
-    # y = +-2 are EOWs. Read as no-returns instead (what a driver's range_min would make of
-    # them), the shadow's two edges would be EOWs too.
+    # the laser, 6 cm wide, hides the beams within atan(0.03 / 0.18) = 9.5 deg of ahead
+    # (the wall from y = -0.5 to 0.5). Without the option the post's returns are points and
+    # the wall two segments. With robot_body_range_m they are none, the wall is one segment
+    # across the shadow (the body hides it, it does not cut it) and has no end of wall there:
+    # only the true ends at y = +-2 are EOWs. Read as no-returns instead (what a driver's
+    # range_min would make of them), the shadow's two edges would be EOWs too.
     laser = LaserModel(range_sigma_m=0.0, body_posts_deg=(0.0,))
     wall = World("wall", np.array([[[3.0, -2.0], [3.0, 2.0]]]))
     ranges = cast_rays(wall, np.zeros(3), laser)
     shadow = ranges < 0.25
     assert 15 <= np.count_nonzero(shadow) <= 20  # 19 beams at 1 deg
     scan = _scan(ranges, laser)
-    assert np.count_nonzero(np.linalg.norm(extract(scan).points_xy, axis=1) < 0.25) > 0
+    plain = extract(scan)
+    assert np.count_nonzero(np.linalg.norm(plain.points_xy, axis=1) < 0.25) > 0
+    assert plain.n_segments == 2
     f = extract(scan, FeatureConfig(robot_body_range_m=0.25))
     assert np.all(np.linalg.norm(f.points_xy, axis=1) > 0.25)
+    assert f.n_segments == 1
+    np.testing.assert_allclose(f.seg_endpoints[0, :, 1], [-2.0, 2.0], atol=0.0757)
     d, _ = _nearest(np.array([[3.0, -2.0], [3.0, 2.0]]), f.xy[f.kind == EOW])
     assert np.sum(f.kind == EOW) == 2 and np.all(d <= 0.0757)
     ranges[shadow] = laser.range_max_m
