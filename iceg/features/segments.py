@@ -98,9 +98,11 @@ def _segment_point_ranges(
     for c in range(n_inner):
         at = bounds[c + 1]
         gap_beams = beam_index[at] - beam_index[at - 1] - 1
-        body = gap_beams >= 1
-        for b in range(beam_index[at - 1] + 1, beam_index[at]):
-            body = body and 0.0 < all_ranges[b] <= s.robot_body_range_m
+        body = gap_beams >= 1 and s.robot_body_range_m > 0.0
+        b = beam_index[at - 1] + 1
+        while body and b < beam_index[at]:
+            body = 0.0 < all_ranges[b] <= s.robot_body_range_m
+            b += 1
         joinable[c] = 1 <= gap_beams <= s.dropout_max_beams or body
     return split_and_merge(
         np.ascontiguousarray(points[:, 0]),
