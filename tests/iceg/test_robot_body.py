@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from frontends import LaserScan
 from frontends.carmen import write_carmen
 from frontends.simulate import LaserModel, office_world, simulate
 from iceg.config import IcegConfig
@@ -49,7 +50,7 @@ def test_turn_pairs_by_hand() -> None:
 
 
 @pytest.fixture(scope="module")
-def among_posts() -> tuple[list, np.ndarray]:  # type: ignore[type-arg]
+def among_posts() -> tuple[list[LaserScan], np.ndarray]:
     run = simulate(office_world(), laser=AMONG_POSTS, seed=0)
     return run.scans, run.true_poses
 
