@@ -20,6 +20,8 @@ reports, in one table:
   its p-value either way (``odom_time_offset_best_s``, ``odom_time_offset_p``);
 - ``LC acc`` / ``LC false``: loop closures accepted, and those whose measured relative pose
   differs from the true one by more than 0.3 m or 3 deg (only where a reference exists);
+- ``body m``: the range left out as the robot's own body (``features.robot_body_range_m``
+  after :func:`iceg.robot_body.with_measured_body`, as ``iceg run`` measures it);
 - ``time s``: SLAM wall time (all scans plus ``finish``).
 
 Cases: the simulated scenarios of ``frontends.simulate.SCENARIOS`` (office, corridor,
@@ -74,6 +76,8 @@ from iceg.config import IcegConfig, config_from_yaml
 from iceg.evaluation import position_errors, relation_errors
 from iceg.odometry_timing import odometry_time_offset
 from iceg.results import SlamResult
+from iceg.robot_body import with_measured_body
+from iceg.scan_store import ScanStore
 from iceg.slam import Slam
 
 FloatArray = NDArray[np.float64]
@@ -313,7 +317,8 @@ def run_case(
     n = min(len(case.scans), QUICK_SCANS) if quick else len(case.scans)
     scans = case.scans[:n]
     t0 = time.perf_counter()
-    slam = Slam(config or IcegConfig())
+    run_config, _ = with_measured_body(config or IcegConfig(), ScanStore(scans))  # as iceg run
+    slam = Slam(run_config)
     online = np.array([slam.process(scan) for scan in scans], dtype=np.float64)
     result = slam.finish()
     seconds = time.perf_counter() - t0
@@ -326,6 +331,7 @@ def run_case(
         "seconds": seconds,
         "lc_accepted": int(result.loop_closures.accepted),
         "sm_per_kf": _scan_match_fraction(result),
+        "body_m": run_config.features.robot_body_range_m,
     }
     timing = odometry_time_offset(result)
     if timing is not None:
@@ -359,6 +365,7 @@ _COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("odom_time_offset_s", "odo dt s", "{:+.2f}"),
     ("lc_accepted", "LC acc", "{:d}"),
     ("lc_false", "LC false", "{:d}"),
+    ("body_m", "body m", "{:.2f}"),
     ("seconds", "time s", "{:.1f}"),
 )
 

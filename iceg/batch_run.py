@@ -35,6 +35,8 @@ from iceg.evaluation import position_errors, relation_errors
 from iceg.odometry_timing import odometry_time_offset
 from iceg.pipeline import check_log_file
 from iceg.results import SlamResult
+from iceg.robot_body import with_measured_body
+from iceg.scan_store import ScanStore
 from iceg.slam import Slam
 from iceg_common import se2
 from iceg_common.atomic import atomic_write
@@ -186,9 +188,12 @@ def _tum_reference(path: str, scans: list[LaserScan]) -> FloatArray:
 
 
 def run_slam(task: RunTask, scans: list[LaserScan], t0: float) -> tuple[SlamResult, FloatArray]:
-    """The SLAM run; the online pose of every scan. Raises :class:`RunTimeout` once the
-    budget is spent (checked after every scan)."""
-    slam = Slam(config_from_dict(task.config, source=f"batch variant {task.variant!r}"))
+    """The SLAM run, with the robot's own body measured along the odometry first
+    (:func:`~iceg.robot_body.with_measured_body`, as :func:`iceg.pipeline.run_log` does);
+    the online pose of every scan. Raises :class:`RunTimeout` once the budget is spent
+    (checked after every scan)."""
+    config = config_from_dict(task.config, source=f"batch variant {task.variant!r}")
+    slam = Slam(with_measured_body(config, ScanStore(scans))[0])
     online = []
     for k, scan in enumerate(scans):
         online.append(slam.process(scan))
@@ -272,7 +277,8 @@ def run_metrics(result: SlamResult, data: _Input, online: FloatArray) -> dict[st
     ``odom_ate_m`` and ``lc_false``; with odometry the time offset its matches show
     (:func:`~iceg.odometry_timing.odometry_time_offset`): ``odom_time_offset_s`` where
     significant (else NaN), the best fit ``odom_time_offset_best_s`` and its
-    ``odom_time_offset_p``."""
+    ``odom_time_offset_p``; ``robot_body_range_m``, the range left out as the robot's own
+    body."""
     n_nodes = int(result.node_ids.shape[0])
     matched = {f.j for f in result.factors if f.kind == FactorKind.SCAN_MATCH}
     out: dict[str, Any] = {
@@ -281,6 +287,7 @@ def run_metrics(result: SlamResult, data: _Input, online: FloatArray) -> dict[st
         "sm_per_kf": len(matched) / (n_nodes - 1) if n_nodes > 1 else math.nan,
         "match_failures": int(sum(result.match_failures.values())),
         "lc_accepted": int(result.loop_closures.accepted),
+        "robot_body_range_m": result.config.features.robot_body_range_m,
     }
     timing = odometry_time_offset(result)
     if timing is not None:

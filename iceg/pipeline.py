@@ -27,7 +27,12 @@ from iceg.kernel_warmup import cache_is_new, probed
 from iceg.match_pool import MatchPool
 from iceg.odometry_timing import odometry_time_offset
 from iceg.results import SlamResult
-from iceg.robot_body import robot_body_range
+from iceg.robot_body import (
+    BIN_DEG,
+    RobotBodyEstimate,
+    robot_body_range,
+    with_measured_body,
+)
 from iceg.scan_products import ScanPrecompute
 from iceg.scan_store import ScanStore
 from iceg.slam import Slam
@@ -202,9 +207,12 @@ def run_log(
     (:func:`~frontends.odometry_shift.shift_odometry`);
     ``result.metrics["odometry_time_offset"]`` holds that value and the offset the run's
     matches measure (:func:`~iceg.odometry_timing.odometry_time_offset`), with a warning
-    when the measured one is significant; ``result.metrics["robot_body"]`` what the scans
-    show of the robot's own body (:func:`~iceg.robot_body.robot_body_range`), with a warning
-    when ``features.robot_body_range_m`` leaves some of it in.
+    when the measured one is significant. Before the first scan, the robot's own body is
+    measured along the odometry and left out (``features.measure_robot_body``:
+    :func:`~iceg.robot_body.with_measured_body`, warned); ``result.metrics["robot_body"]``
+    holds the range left out and what the scans show of the body along the odometry and
+    along the trajectory (:func:`~iceg.robot_body.robot_body_range`), with a warning when
+    the latter reaches beyond the range.
 
     Raises:
         LogFormatError: missing, unreadable or empty log, disordered timestamps under
@@ -216,18 +224,33 @@ def run_log(
     reader = open_log(path, stamps=stamps, **(reader_options or {}))
     rel = read_relations(relations) if relations is not None else None
     slam = Slam(config)
+    result: SlamResult | None = None
     with _started(slam, lambda: _read(reader, odometry_time_offset_s)) as (read, prefetch):
         scans, report = read
         if not scans:
             raise LogFormatError(f"{path}: the log holds no laser scans")
         if rel is not None:
             check_relations_match(rel, scans.stamps_s)
-        result = _process(slam, prefetch, scans, progress, len(scans))
+        run_config, body = with_measured_body(slam.config, scans)
+        if run_config is slam.config:
+            result = _process(slam, prefetch, scans, progress, len(scans))
+    if result is None:  # the helpers were started with the features before the body was known
+        assert body is not None
+        logger.warning(
+            "%s: %s; they are left out (features.robot_body_range_m: %.2f; "
+            "features.measure_robot_body: false keeps them)",
+            path,
+            _body_seen(body),
+            run_config.features.robot_body_range_m,
+        )
+        slam = Slam(run_config)
+        with helper_processes(slam) as prefetch:
+            result = _process(slam, prefetch, scans, progress, len(scans))
     result.metrics["stamps"] = report.as_dict() if report is not None else {"policy": stamps}
     result.metrics["odometry_time_offset"] = _time_offset_metrics(
         path, odometry_time_offset_s, result
     )
-    result.metrics["robot_body"] = _robot_body_metrics(path, scans, result)
+    result.metrics["robot_body"] = _robot_body_metrics(path, scans, result, body)
     if rel is not None:
         summary, _ = relation_errors(
             result.stamps_s, result.poses, rel.stamps_s, rel.deltas, RELATION_TOLERANCE_S
@@ -269,28 +292,47 @@ def _time_offset_metrics(path: str | Path, applied_s: float, result: SlamResult)
 
 
 def _robot_body_metrics(
-    path: str | Path, scans: ScanStore, result: SlamResult
-) -> dict[str, Any] | None:
-    """What the scans show of the robot's own body along the run's trajectory (None: too
-    few turns to tell), warned when the configured ``features.robot_body_range_m`` leaves
-    some of it in."""
-    measured = robot_body_range(scans, result.poses)
-    configured = result.config.features.robot_body_range_m
-    if measured is not None and measured.range_m is not None and measured.range_m > configured:
+    path: str | Path, scans: ScanStore, result: SlamResult, on_odometry: RobotBodyEstimate | None
+) -> dict[str, Any]:
+    """The range left out as the robot's own body, what the scans show of it along the
+    odometry (``on_odometry``, measured before the run; None: not measured, or too few turns
+    to tell) and along the run's trajectory, warned when the latter reaches beyond the
+    range."""
+    on_trajectory = robot_body_range(scans, result.poses)
+    applied = result.config.features.robot_body_range_m
+    if (
+        on_trajectory is not None
+        and on_trajectory.range_m is not None
+        and on_trajectory.range_m > applied
+    ):
         logger.warning(
-            "%s: returns at %d bearings (%.0f to %.0f deg) stay within %.2f m of the laser "
-            "as the robot turns, in %.0f%% or more of %d turns: the robot's own body; to "
-            "leave them out, set features.robot_body_range_m: %.2f",
+            "%s: %s; to leave them out, set features.robot_body_range_m: %.2f",
             path,
-            len(measured.bearings_deg),
-            min(measured.bearings_deg),
-            max(measured.bearings_deg),
-            measured.range_m,
-            100.0 * min(measured.agreement),
-            measured.pairs,
-            measured.range_m,
+            _body_seen(on_trajectory),
+            on_trajectory.range_m,
         )
-    return None if measured is None else measured.as_dict()
+    return {
+        "range_m": applied,
+        "on_odometry": None if on_odometry is None else on_odometry.as_dict(),
+        "on_trajectory": None if on_trajectory is None else on_trajectory.as_dict(),
+    }
+
+
+def _body_seen(body: RobotBodyEstimate) -> str:
+    """What ``body`` (a body was found) says, in words: its bearings as runs of adjacent
+    bins."""
+    runs: list[list[float]] = []
+    for bearing in body.bearings_deg:
+        if runs and bearing - runs[-1][-1] <= BIN_DEG + 1e-9:
+            runs[-1].append(bearing)
+        else:
+            runs.append([bearing])
+    where = ", ".join(f"{r[0]:.0f}" if len(r) == 1 else f"{r[0]:.0f} to {r[-1]:.0f}" for r in runs)
+    return (
+        f"returns at {len(body.bearings_deg)} bearings ({where} deg) stay within "
+        f"{body.range_m:.2f} m of the laser as the robot turns, in "
+        f"{100.0 * min(body.agreement):.0f}% or more of {body.pairs} turns: the robot's own body"
+    )
 
 
 def check_log_file(path: Path) -> None:

@@ -9,21 +9,25 @@ after such a turn, a wall seen obliquely more). So a bearing bin whose nearest r
 within :data:`AGREEMENT_M` across almost every such turn (:data:`MIN_AGREEMENT`) holds the
 robot's body. Those returns give points and features that move with the robot and pull each
 match toward "no motion" (a lidar among four posts: the simulated 200 m recess corridor,
-seeds 0-3, 0.03-0.11 m -> 0.36-0.58 m ATE); ``features.robot_body_range_m`` removes them,
-and a run that sees a body warns with the value to set (docs/design.md, "The robot's own
-body").
+seeds 0-3, 0.03-0.11 m -> 0.36-0.58 m ATE); ``features.robot_body_range_m`` removes them.
+The run of a log measures the body along its odometry before its first scan and sets that
+range (:func:`with_measured_body`), and warns where its optimized trajectory shows more
+(docs/design.md, "The robot's own body").
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from iceg.scan_store import ScanStore
+
+if TYPE_CHECKING:
+    from iceg.config import IcegConfig
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -166,3 +170,27 @@ def robot_body_range(store: ScanStore, poses: FloatArray) -> RobotBodyEstimate |
         int(pairs.shape[0]),
         tuple(float(x) for x in agreement[body]),
     )
+
+
+def with_measured_body(
+    config: IcegConfig, store: ScanStore
+) -> tuple[IcegConfig, RobotBodyEstimate | None]:
+    """``config`` with ``features.robot_body_range_m`` raised to the robot's body that
+    ``store``'s scans show along their odometry (:func:`robot_body_range`), where it reaches
+    farther; and that estimate. Odometry is good enough to find turns in place: a pair only
+    needs the robot to have turned by 30-90° over at most 1 m of travel. ``config`` itself
+    (the same object) when ``features.measure_robot_body`` is off, when the scans show no
+    body (or too few turns to tell), or when the configured range already holds it.
+    """
+    if not config.features.measure_robot_body:
+        return config, None
+    _, odometry, _ = store.odometry
+    estimate = robot_body_range(store, odometry)
+    if (
+        estimate is None
+        or estimate.range_m is None
+        or estimate.range_m <= config.features.robot_body_range_m
+    ):
+        return config, estimate
+    features = config.features.model_copy(update={"robot_body_range_m": estimate.range_m})
+    return config.model_copy(update={"features": features}), estimate

@@ -10,8 +10,9 @@ class FeatureConfig(BaseModel):
 
     Every distance is in metres and every angle in degrees (converted to radians by the
     stage of :func:`iceg.features.extract` that reads it; degrees never reach the
-    arithmetic). Every field is read by one of the stages. The defaults suit a SICK
-    LMS200-class scanner (1 cm range noise, 0.5°-1° beam spacing) indoors.
+    arithmetic). Every field is read by one of the stages, except ``measure_robot_body``,
+    which the run of a log reads before them. The defaults suit a SICK LMS200-class scanner
+    (1 cm range noise, 0.5°-1° beam spacing) indoors.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -32,9 +33,17 @@ class FeatureConfig(BaseModel):
         "posts or mast around a lidar, the chassis): they give no point, feature or map cell, "
         "they occlude (an end of wall is not seen past them, unlike the scan's own "
         "range_min_m, below which a ROS driver's beam is a no-return), and a wall is one "
-        "segment across them. 0: none. A run measures "
-        "the robot's body from the log and warns with the value to set "
+        "segment across them. 0: none. A run of a log raises it to the body its scans show "
+        "(measure_robot_body), and warns where its trajectory shows more "
         "(iceg.robot_body.robot_body_range; docs/design.md, 'The robot's own body').",
+    )
+    measure_robot_body: bool = Field(
+        default=True,
+        description="Before a log's first scan (iceg run, iceg batch), measure the robot's "
+        "own body from its scans along its odometry (returns that keep their bearing and "
+        "range as the robot turns in place: iceg.robot_body.robot_body_range) and raise "
+        "robot_body_range_m to it where it reaches farther. A robot that never turns in "
+        "place (within 1 m of travel) shows nothing, and keeps robot_body_range_m.",
     )
     sigma_range_m: float = Field(
         default=0.01,

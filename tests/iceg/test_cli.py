@@ -135,9 +135,12 @@ def test_mit_csail_benchmark(csail_run: Path) -> None:
     assert r["n_matched"] == 1172
     assert r["trans_mean_m"] <= 0.10, r
     assert r["rot_mean_deg"] <= 1.0, r
-    # A SICK on the front of the robot sees nothing of the robot: no body bin in 200 turns.
+    # A SICK on the front of the robot sees nothing of the robot: no body bin in 200 turns,
+    # along the odometry before the run or along its trajectory, and nothing is left out.
     body = json.loads((out / "metrics.json").read_text())["robot_body"]
-    assert body["range_m"] is None and body["pairs"] == 200, body
+    assert body["range_m"] == 0.0, body
+    for seen in (body["on_odometry"], body["on_trajectory"]):
+        assert seen["range_m"] is None and seen["pairs"] == 200, body
     # eval on the written trajectory reproduces the figure
     ev = runner.invoke(app, ["eval", str(out / "trajectory.tum"), str(rel)])
     assert ev.exit_code == 0

@@ -14,6 +14,7 @@ import pytest
 from frontends import LaserScan
 from frontends.carmen import write_carmen
 from frontends.simulate import LaserModel, office_world, simulate
+from iceg.batch_run import RunTask, execute_run
 from iceg.config import IcegConfig
 from iceg.grid import render
 from iceg.pipeline import run_log
@@ -78,31 +79,80 @@ def test_posts_on_the_robot_are_found_and_a_world_alone_is_not(among_posts) -> N
     assert empty is not None and empty.range_m is None
 
 
-def test_a_run_among_posts_warns_with_the_value_that_leaves_them_out(
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_run_among_posts_leaves_them_out_as_if_the_value_were_set(
     among_posts,  # type: ignore[no-untyped-def]
     tmp_path: Path,
     caplog: pytest.LogCaptureFixture,
+    workers: int,
 ) -> None:
-    scans, poses = among_posts
+    scans, _ = among_posts
     log = tmp_path / "posts.clf"
     write_carmen(log, scans[:300], laser_record="ROBOTLASER1")
-    cfg = IcegConfig.model_validate({"slam": {"workers": 1}})
+    cfg = IcegConfig.model_validate({"slam": {"workers": workers}})
+    # Measured along the odometry before the first scan, the posts are left out, with a
+    # warning that names the value; the trajectory then shows nothing beyond it.
     with caplog.at_level(logging.WARNING, logger="iceg.pipeline"):
-        first = run_log(log, cfg)
-    value = first.metrics["robot_body"]["range_m"]
-    assert value is not None and f"features.robot_body_range_m: {value:.2f}" in caplog.text
+        auto = run_log(log, cfg)
+    body = auto.metrics["robot_body"]
+    value = body["range_m"]
+    assert value == body["on_odometry"]["range_m"] == auto.config.features.robot_body_range_m
+    assert 0.18 + AGREEMENT_M <= value <= 0.19 + AGREEMENT_M + 0.02
+    assert f"they are left out (features.robot_body_range_m: {value:.2f}" in caplog.text
+    assert body["on_trajectory"]["range_m"] <= value
+    assert "to leave them out" not in caplog.text
+    # The run is the one of that value set by hand (the helpers restarted with it): the
+    # same trajectory, bit for bit, and no warning.
     caplog.clear()
-    body = cfg.model_copy(
-        update={"features": cfg.features.model_copy(update={"robot_body_range_m": value})}
-    )
+    features = cfg.features.model_copy(update={"robot_body_range_m": value})
     with caplog.at_level(logging.WARNING, logger="iceg.pipeline"):
-        again = run_log(log, body)
+        by_hand = run_log(log, cfg.model_copy(update={"features": features}))
     assert "robot_body_range_m" not in caplog.text
-    assert again.metrics["robot_body"]["range_m"] == value
+    assert by_hand.poses.tobytes() == auto.poses.tobytes()
+    # Not measured, the posts stay in: the run differs, and its trajectory warns with the
+    # value to set.
+    caplog.clear()
+    kept = cfg.features.model_copy(update={"measure_robot_body": False})
+    with caplog.at_level(logging.WARNING, logger="iceg.pipeline"):
+        off = run_log(log, cfg.model_copy(update={"features": kept}))
+    assert off.metrics["robot_body"]["range_m"] == 0.0
+    assert off.metrics["robot_body"]["on_odometry"] is None
+    found = off.metrics["robot_body"]["on_trajectory"]["range_m"]
+    assert f"to leave them out, set features.robot_body_range_m: {found:.2f}" in caplog.text
+    assert off.poses.tobytes() != auto.poses.tobytes()
+
+
+def test_the_map_of_one_scan_draws_the_posts_unless_left_out(among_posts) -> None:  # type: ignore[no-untyped-def]
+    scans, poses = among_posts
     # The map of one scan: the posts' faces are occupied cells 0.18 m from the robot, unless
     # the option's range leaves them out (over a run, the rays of the next scans clear them).
-    for floor_m, drawn in ((0.0, True), (value, False)):
+    for floor_m, drawn in ((0.0, True), (0.25, False)):
         grid = render(scans[:1], poses[:1], range_min_m=floor_m)
         xy = grid.cell_to_world(np.argwhere(grid.binary()))
         near = np.linalg.norm(xy - poses[0, :2], axis=1) < 0.25
         assert (np.count_nonzero(near) >= 4) == drawn
+
+
+def test_a_batch_run_among_posts_measures_them_too(among_posts, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    scans, _ = among_posts
+    log = tmp_path / "posts.clf"
+    write_carmen(log, scans[:300], laser_record="ROBOTLASER1")
+    rows = {}
+    for variant, features in (("auto", {}), ("kept", {"measure_robot_body": False})):
+        task = RunTask(
+            run_id=variant,
+            key=variant,
+            log_name="posts",
+            variant=variant,
+            seed=None,
+            source=str(log),
+            config={"features": features},
+            folder=str(tmp_path / variant),
+            outputs="metrics",
+        )
+        rows[variant] = execute_run(task)
+    # the same range as iceg run measures on the same log (the test above), and none kept
+    assert rows["auto"]["status"] == rows["kept"]["status"] == "ok"
+    body_m = rows["auto"]["metrics"]["robot_body_range_m"]
+    assert 0.18 + AGREEMENT_M <= body_m <= 0.19 + AGREEMENT_M + 0.02
+    assert rows["kept"]["metrics"]["robot_body_range_m"] == 0.0
