@@ -212,7 +212,7 @@ def run_log(
     :func:`~iceg.robot_body.with_measured_body`, warned); ``result.metrics["robot_body"]``
     holds the range left out and what the scans show of the body along the odometry and
     along the trajectory (:func:`~iceg.robot_body.robot_body_range`), with a warning when
-    the latter reaches beyond the range.
+    the latter finds a body the former did not, beyond the range.
 
     Raises:
         LogFormatError: missing, unreadable or empty log, disordered timestamps under
@@ -296,14 +296,16 @@ def _robot_body_metrics(
 ) -> dict[str, Any]:
     """The range left out as the robot's own body, what the scans show of it along the
     odometry (``on_odometry``, measured before the run; None: not measured, or too few turns
-    to tell) and along the run's trajectory, warned when the latter reaches beyond the
-    range."""
+    to tell) and along the run's trajectory. Warned when the trajectory shows a body that
+    reaches beyond the range and the odometry showed none (its turns are other scans, whose
+    farthest body return may differ by a centimetre)."""
     on_trajectory = robot_body_range(scans, result.poses)
     applied = result.config.features.robot_body_range_m
     if (
         on_trajectory is not None
         and on_trajectory.range_m is not None
         and on_trajectory.range_m > applied
+        and (on_odometry is None or on_odometry.range_m is None)
     ):
         logger.warning(
             "%s: %s; to leave them out, set features.robot_body_range_m: %.2f",

@@ -18,6 +18,7 @@ range (:func:`with_measured_body`), and warns where its optimized trajectory sho
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -55,8 +56,8 @@ class RobotBodyEstimate:
 
     Attributes:
         range_m: The ``features.robot_body_range_m`` that removes every body return found
-            (the largest body bin's median range plus :data:`AGREEMENT_M`, rounded up to the
-            centimetre), metres; ``None`` when no bin is a body.
+            (:func:`body_reach` over the compared scans, rounded up to the centimetre),
+            metres; ``None`` when no bin is a body.
         bearings_deg: Centre of each body bin, laser frame, degrees.
         pairs: Scan pairs compared (turns of :data:`TURN_DEG`; at most :data:`MAX_PAIRS`).
         agreement: Share of the pairs in which each body bin's returns agreed.
@@ -102,15 +103,14 @@ def turn_pairs(poses: FloatArray) -> IntArray:
     return np.array(pairs, dtype=np.int64).reshape(-1, 2)
 
 
-def nearest_by_bearing(store: ScanStore, scans: IntArray) -> FloatArray:
-    """``(len(scans), B)`` float64 the nearest valid return (``range_min < r < range_max``)
-    of each of the scans ``scans`` (sorted, unique indices into ``store``) in each laser-frame
-    bearing bin of :data:`BIN_DEG` (``B = 360 / BIN_DEG``, bin ``b`` centred at
-    ``-180 + (b + 0.5) BIN_DEG`` degrees), metres; NaN where the bin has none. The beams are
-    read a run of consecutive scans at a time."""
+def _binned_returns(store: ScanStore, scans: IntArray) -> Iterator[tuple[IntArray, FloatArray]]:
+    """The valid returns (``range_min < r < range_max``) of the scans ``scans`` (sorted,
+    unique indices into ``store``), a run of consecutive scans at a time: each return's key
+    ``i * B + b`` (``i`` its scan's position in ``scans``, ``b`` its laser-frame bearing bin of
+    :data:`BIN_DEG`, ``B = 360 / BIN_DEG``, bin ``b`` centred at ``-180 + (b + 0.5) BIN_DEG``
+    degrees) and its range, metres."""
     n_bins = round(360.0 / BIN_DEG)
     width = math.radians(BIN_DEG)
-    out = np.full(scans.shape[0] * n_bins, np.inf)
     breaks = np.flatnonzero(np.diff(scans) != 1) + 1
     firsts, lasts = np.concatenate([[0], breaks]), np.append(breaks, scans.shape[0])
     for first, last in zip(firsts.tolist(), lasts.tolist(), strict=True):
@@ -121,14 +121,51 @@ def nearest_by_bearing(store: ScanStore, scans: IntArray) -> FloatArray:
             ok = np.isfinite(r) & (r > c.range_min_m) & (r < c.range_max_m)
         bearing = c.angles_rad + np.repeat(c.laser_offsets[:, 2], c.beam_counts)
         b = np.floor((bearing[ok] + math.pi) / width).astype(np.int64) % n_bins
-        key = row[ok] * n_bins + b
-        order = np.lexsort((r[ok], key))  # by key, nearest first
-        key, nearest = key[order], r[ok][order]
+        yield row[ok] * n_bins + b, r[ok]
+
+
+def nearest_by_bearing(store: ScanStore, scans: IntArray) -> FloatArray:
+    """``(len(scans), B)`` float64 the nearest valid return (``range_min < r < range_max``)
+    of each of the scans ``scans`` (sorted, unique indices into ``store``) in each laser-frame
+    bearing bin of :data:`BIN_DEG` (``B = 360 / BIN_DEG``, bin ``b`` centred at
+    ``-180 + (b + 0.5) BIN_DEG`` degrees), metres; NaN where the bin has none."""
+    n_bins = round(360.0 / BIN_DEG)
+    out = np.full(scans.shape[0] * n_bins, np.inf)
+    for key, r in _binned_returns(store, scans):
+        order = np.lexsort((r, key))  # by key, nearest first
+        key, nearest = key[order], r[order]
         head = np.ones(key.shape, dtype=bool)
         head[1:] = key[1:] != key[:-1]
         out[key[head]] = nearest[head]
     out[np.isinf(out)] = np.nan
     return out.reshape(scans.shape[0], n_bins)
+
+
+def body_reach(store: ScanStore, scans: IntArray, body_bins: IntArray) -> float:
+    """The farthest return of the robot's body in the scans ``scans`` (sorted, unique indices
+    into ``store``), metres: in each bearing bin of ``body_bins`` (bin indices as in
+    :func:`nearest_by_bearing`) of each scan, the returns from the nearest one up to the
+    first gap wider than :data:`AGREEMENT_M` between two in range order (the body's surface,
+    with all of its range noise; past the gap the beams see past the body, to the world).
+    The nearest return of a bin alone would fall short: it is the least of several noisy
+    returns. NaN when the bins hold no return."""
+    n_bins = round(360.0 / BIN_DEG)
+    reach = math.nan
+    for key, r in _binned_returns(store, scans):
+        keep = np.isin(key % n_bins, body_bins)
+        order = np.lexsort((r[keep], key[keep]))  # by key, nearest first
+        key, near = key[keep][order], r[keep][order]
+        if key.shape[0] == 0:
+            continue
+        head = np.ones(key.shape, dtype=bool)
+        head[1:] = key[1:] != key[:-1]
+        # a run of one bin's returns ends at a gap; the body's is each bin's first run
+        step = np.ones(key.shape, dtype=bool)
+        step[1:] = head[1:] | (np.diff(near) > AGREEMENT_M)
+        run = np.cumsum(step)
+        body = np.isin(run, run[head])
+        reach = float(np.fmax(reach, near[body].max()))
+    return reach
 
 
 def robot_body_range(store: ScanStore, poses: FloatArray) -> RobotBodyEstimate | None:
@@ -163,9 +200,9 @@ def robot_body_range(store: ScanStore, poses: FloatArray) -> RobotBodyEstimate |
     body = np.flatnonzero(agreement >= MIN_AGREEMENT)
     if body.shape[0] == 0:
         return RobotBodyEstimate(None, (), int(pairs.shape[0]), ())
-    reach = float(np.nanmax(np.nanmedian(nearest[:, body], axis=0))) + AGREEMENT_M
+    reach = body_reach(store, scans, body)
     return RobotBodyEstimate(
-        math.ceil(reach * 100.0) / 100.0,
+        math.ceil(round(reach * 100.0, 6)) / 100.0,
         tuple(float(c) for c in -180.0 + (body + 0.5) * BIN_DEG),
         int(pairs.shape[0]),
         tuple(float(x) for x in agreement[body]),
