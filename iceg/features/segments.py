@@ -63,6 +63,7 @@ def segment_point_ranges(beams: BeamPoints, cfg: FeatureConfig) -> IntArray:
             cfg.merge_distance_m,
             cfg.min_segment_points,
             cfg.robot_body_range_m,
+            cfg.min_segment_length_m,
         ),
     )
 
@@ -77,6 +78,7 @@ class _SegmentationSettings(NamedTuple):
     merge_distance_m: float
     min_segment_points: int
     robot_body_range_m: float
+    min_segment_length_m: float
 
 
 @njit(cache=True, nogil=True)
@@ -91,10 +93,12 @@ def _segment_point_ranges(
     """:func:`segment_point_ranges`, compiled: clusters joinable across a dropout of 1 to
     ``dropout_max_beams`` invalid beams, or across beams that all return from the robot's
     own body (``0 < r <= robot_body_range_m``, ``all_ranges`` ``(N,)`` every beam's range):
-    the body hides the wall behind it, it does not end it."""
+    the body hides the wall behind it, it does not end it. A wall joined across the body
+    must stand on each side of it (:func:`_stands_on_each_side`)."""
     bounds = breakpoints(points, ranges, bearings, beam_index, s.sigma_range_m, s.lambda_rad)
     n_inner = max(bounds.shape[0] - 2, 0)
     joinable = np.empty(n_inner, dtype=np.bool_)
+    body_gap = np.zeros(points.shape[0], dtype=np.bool_)  # a body's shadow before point i
     for c in range(n_inner):
         at = bounds[c + 1]
         gap_beams = beam_index[at] - beam_index[at - 1] - 1
@@ -103,8 +107,9 @@ def _segment_point_ranges(
         while body and b < beam_index[at]:
             body = 0.0 < all_ranges[b] <= s.robot_body_range_m
             b += 1
+        body_gap[at] = body
         joinable[c] = 1 <= gap_beams <= s.dropout_max_beams or body
-    return split_and_merge(
+    segments = split_and_merge(
         np.ascontiguousarray(points[:, 0]),
         np.ascontiguousarray(points[:, 1]),
         bounds,
@@ -113,6 +118,48 @@ def _segment_point_ranges(
         s.merge_distance_m,
         s.min_segment_points,
     )
+    if s.robot_body_range_m <= 0.0:
+        return segments
+    return _stands_on_each_side(points, segments, body_gap, s)
+
+
+@njit(cache=True, nogil=True)
+def _stands_on_each_side(
+    points: FloatArray, segments: IntArray, body_gap: NDArray[np.bool_], s: _SegmentationSettings
+) -> IntArray:
+    """``segments`` (``(M, 2)`` ``[start, stop)`` point ranges), each one that spans the
+    robot's body (``body_gap[i]``: the body's shadow lies between points ``i - 1`` and
+    ``i``) cut there unless the wall stands on both sides: each run of its points between
+    shadows holds ``min_segment_points`` points and spans ``min_segment_length_m`` (first to
+    last point), as a segment must. Two short runs (a few beams beside the shadow, a sliver
+    at the edge of the view) always fit one line, seen or not, and the line would reach
+    across the hidden span on their say alone. Pieces cut to fewer than
+    ``min_segment_points`` points are dropped, as :func:`split_and_merge` drops them; the
+    rest meet :func:`line_segments`'s length test as any segment."""
+    out = np.empty((segments.shape[0] + points.shape[0], 2), dtype=np.int64)
+    n = 0
+    for k in range(segments.shape[0]):
+        start, stop = segments[k, 0], segments[k, 1]
+        run_start, piece_start = start, start
+        for i in range(start + 1, stop + 1):
+            if i < stop and not body_gap[i]:
+                continue
+            # points [run_start, i) are a run between shadows (or the segment's ends)
+            length = math.hypot(
+                points[i - 1, 0] - points[run_start, 0], points[i - 1, 1] - points[run_start, 1]
+            )
+            if i - run_start < s.min_segment_points or length < s.min_segment_length_m:
+                # cut on both sides of the short run: the pieces before it and the run itself
+                for lo, hi in ((piece_start, run_start), (run_start, i)):
+                    if hi - lo >= s.min_segment_points:
+                        out[n, 0], out[n, 1] = lo, hi
+                        n += 1
+                piece_start = i
+            run_start = i
+        if stop - piece_start >= s.min_segment_points:
+            out[n, 0], out[n, 1] = piece_start, stop
+            n += 1
+    return out[:n]
 
 
 def line_segments(beams: BeamPoints, cfg: FeatureConfig) -> Segments:

@@ -534,6 +534,26 @@ def test_the_robot_s_own_body_gives_no_point_and_hides_no_end_of_wall() -> None:
     assert np.sum(extract(_scan(ranges, laser)).kind == EOW) == 4
 
 
+def test_a_wall_joined_across_the_robot_s_body_stands_on_each_side() -> None:
+    # The same post straight ahead hides the beams within 9.5 deg. Beside its shadow: six
+    # beams (10-15 deg) on a wall x = 1 (9 cm of it) and three (-12 to -10 deg) on another
+    # wall x = 2, a metre behind. Alone each is too short to be a segment (0.2 m, 5 points),
+    # and with the post's returns as points they stay apart. Two short runs always fit one
+    # line, so joined across the shadow they would make a 1.2 m wall, with two ends of wall,
+    # that no beam saw: the join needs a segment on each side, and here there is none.
+    laser = LaserModel(range_sigma_m=0.0, body_posts_deg=(0.0,))
+    slivers = World(
+        "slivers", np.array([[[1.0, 0.17], [1.0, 0.275]], [[2.0, -0.43], [2.0, -0.34]]])
+    )
+    ranges = cast_rays(slivers, np.zeros(3), laser)
+    assert np.count_nonzero(np.abs(ranges - 1.02) < 0.02) == 6
+    assert np.count_nonzero(np.abs(ranges - 2.03) < 0.02) == 3
+    scan = _scan(ranges, laser)
+    assert extract(scan).n_segments == 0
+    f = extract(scan, FeatureConfig(robot_body_range_m=0.25))
+    assert f.n_segments == 0 and f.kind.shape == (0,)
+
+
 def test_max_range_gap_is_not_an_end_of_wall() -> None:
     # A wall y = 2 from x = 0 to x = 30 seen with a 10 m usable range: it leaves the range at
     # x = sqrt(10² - 2²) = 9.80 m, where the beams beyond read no return. The wall continues,
