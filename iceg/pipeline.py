@@ -225,14 +225,15 @@ def run_log(
     rel = read_relations(relations) if relations is not None else None
     slam = Slam(config)
     result: SlamResult | None = None
-    with _started(slam, lambda: _read(reader, odometry_time_offset_s)) as (read, prefetch):
-        scans, report = read
+    with _started(slam, lambda: _read(reader, odometry_time_offset_s, slam.config)) as (
+        (scans, report, (run_config, body)),
+        prefetch,
+    ):
         if not scans:
             raise LogFormatError(f"{path}: the log holds no laser scans")
         if rel is not None:
             check_relations_match(rel, scans.stamps_s)
-        run_config, body = with_measured_body(slam.config, scans)
-        if run_config is slam.config:
+        if run_config == slam.config:
             result = _process(slam, prefetch, scans, progress, len(scans))
     if result is None:  # the helpers were started with the features before the body was known
         assert body is not None
@@ -259,14 +260,22 @@ def run_log(
     return result
 
 
-def _read(reader: Iterable[LaserScan], offset_s: float) -> tuple[ScanStore, StampReport | None]:
+def _read(
+    reader: Iterable[LaserScan], offset_s: float, config: IcegConfig
+) -> tuple[ScanStore, StampReport | None, tuple[IcegConfig, RobotBodyEstimate | None]]:
     """The log of ``reader`` (not yet iterated) in a store, compact (no LaserScan object per
     scan held during the run), each scan's odometry read at its stamp plus ``offset_s``;
-    and the reader's stamp report (out-of-order and duplicate stamps, odometry breaks; None
-    for a reader without one)."""
+    the reader's stamp report (out-of-order and duplicate stamps, odometry breaks; None for
+    a reader without one); and ``config`` with the robot's body its odometry shows
+    (:func:`~iceg.robot_body.with_measured_body`, numpy alone: it runs in the process that
+    reads, beside the start)."""
     store = ScanStore(shift_odometry(while_caller_runs(reader), offset_s))
     report = getattr(reader, "stamp_report", None)
-    return store, report if isinstance(report, StampReport) else None
+    return (
+        store,
+        report if isinstance(report, StampReport) else None,
+        with_measured_body(config, store) if len(store) else (config, None),
+    )
 
 
 def _time_offset_metrics(path: str | Path, applied_s: float, result: SlamResult) -> dict[str, Any]:

@@ -20,6 +20,7 @@ from frontends import open_log
 from frontends.odometry_shift import shift_odometry
 from iceg import aside, pipeline
 from iceg.aside import compute_aside
+from iceg.config import IcegConfig
 from iceg.scan_store import ScanStore
 from iceg_common.errors import LogFormatError
 from tests.conftest import flaser_line, shared_file, write_odometry_jump_log
@@ -46,11 +47,14 @@ def _assert_same_store(a: ScanStore, b: ScanStore) -> None:
 def test_the_store_read_aside_is_the_store_read_here_bit_for_bit() -> None:
     path = shared_file("mit-csail/mit-csail.clf")
     here = ScanStore(shift_odometry(open_log(path), -0.12))
-    with compute_aside(lambda: pipeline._read(open_log(path), -0.12)) as reading:
+    config = IcegConfig()
+    with compute_aside(lambda: pipeline._read(open_log(path), -0.12, config)) as reading:
         assert reading._proc is not None  # it is read in another process
-        store, report = reading.result()
+        store, report, (run_config, body) = reading.result()
     _assert_same_store(store, here)
     assert report is not None and report.as_dict()["out_of_order"] == 0
+    # the robot's body is measured there too: a SICK that sees none of its robot
+    assert run_config == config and body is not None and body.range_m is None
     assert np.array_equal(store.beams()[1], here.beams()[1])
     # its arrays are its own and writable: the store grows on as one read here
     for scan in here[:3]:
@@ -76,9 +80,9 @@ def test_the_readers_findings_and_log_records_come_back(
     path = write_odometry_jump_log(tmp_path / "jump.clf")
     with (
         caplog.at_level(logging.WARNING),
-        compute_aside(lambda: pipeline._read(open_log(path), 0.0)) as reading,
+        compute_aside(lambda: pipeline._read(open_log(path), 0.0, IcegConfig())) as reading,
     ):
-        store, report = reading.result()
+        store, report, _ = reading.result()
     assert [store[k].odom_break for k in range(len(store))] == [False, False, False, True, False]
     assert f"{path}:4: odometry jumps 50.00 m" in caplog.text
     assert report is not None and report.odometry_breaks[0][0] == f"{path}:4"
@@ -87,7 +91,7 @@ def test_the_readers_findings_and_log_records_come_back(
 def test_a_log_that_fails_to_read_raises_here_with_its_line(tmp_path: Path) -> None:
     path = tmp_path / "bad.clf"
     path.write_text(flaser_line(0.0, 10.0) + "\nFLASER 3 1.0 oops 3.0 0 0 0 0 0 0 11.0 h 11.0\n")
-    reading = compute_aside(lambda: pipeline._read(open_log(path), 0.0))
+    reading = compute_aside(lambda: pipeline._read(open_log(path), 0.0, IcegConfig()))
     with reading, pytest.raises(LogFormatError, match=":2"):
         reading.result()
 
