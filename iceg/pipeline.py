@@ -235,15 +235,15 @@ def run_log(
             check_relations_match(rel, scans.stamps_s)
         if run_config == slam.config:
             result = _process(slam, prefetch, scans, progress, len(scans))
+        elif body is not None:
+            logger.warning(
+                "%s: %s; they are left out (features.robot_body_range_m: %.2f; "
+                "features.measure_robot_body: false keeps them)",
+                path,
+                _body_seen(body),
+                run_config.features.robot_body_range_m,
+            )
     if result is None:  # the helpers were started with the features before the body was known
-        assert body is not None
-        logger.warning(
-            "%s: %s; they are left out (features.robot_body_range_m: %.2f; "
-            "features.measure_robot_body: false keeps them)",
-            path,
-            _body_seen(body),
-            run_config.features.robot_body_range_m,
-        )
         slam = Slam(run_config)
         with helper_processes(slam) as prefetch:
             result = _process(slam, prefetch, scans, progress, len(scans))
