@@ -30,6 +30,7 @@ from iceg.results import SlamResult
 from iceg.robot_body import (
     BIN_DEG,
     RobotBodyEstimate,
+    leaving_out,
     robot_body_range,
     with_measured_body,
 )
@@ -237,11 +238,10 @@ def run_log(
             result = _process(slam, prefetch, scans, progress, len(scans))
         elif body is not None:
             logger.warning(
-                "%s: %s; they are left out (features.robot_body_range_m: %.2f; "
-                "features.measure_robot_body: false keeps them)",
+                "%s: %s; they are left out (%s; features.measure_robot_body: false keeps them)",
                 path,
                 _body_seen(body),
-                run_config.features.robot_body_range_m,
+                _body_settings(run_config),
             )
     if result is None:  # the helpers were started with the features before the body was known
         slam = Slam(run_config)
@@ -306,44 +306,62 @@ def _robot_body_metrics(
     """The range left out as the robot's own body, what the scans show of it along the
     odometry (``on_odometry``, measured before the run; None: not measured, or too few turns
     to tell) and along the run's trajectory. Warned when the trajectory shows a body that
-    reaches beyond the range and the odometry showed none (its turns are other scans, whose
-    farthest body return may differ by a centimetre)."""
+    the configuration leaves in and the odometry showed none (its turns are other scans,
+    whose farthest body return may differ by a centimetre)."""
     on_trajectory = robot_body_range(scans, result.poses)
-    applied = result.config.features.robot_body_range_m
-    if (
-        on_trajectory is not None
-        and on_trajectory.range_m is not None
-        and on_trajectory.range_m > applied
-        and (on_odometry is None or on_odometry.range_m is None)
-    ):
+    applied = result.config.features
+    odometry_found = on_odometry is not None and (
+        on_odometry.range_m is not None or bool(on_odometry.dark_deg)
+    )
+    suggested = leaving_out(result.config, on_trajectory)
+    if on_trajectory is not None and suggested is not result.config and not odometry_found:
         logger.warning(
-            "%s: %s; to leave them out, set features.robot_body_range_m: %.2f",
+            "%s: %s; to leave them out, set %s",
             path,
             _body_seen(on_trajectory),
-            on_trajectory.range_m,
+            _body_settings(suggested),
         )
     return {
-        "range_m": applied,
+        "range_m": applied.robot_body_range_m,
+        "dark_deg": applied.robot_body_dark_deg,
         "on_odometry": None if on_odometry is None else on_odometry.as_dict(),
         "on_trajectory": None if on_trajectory is None else on_trajectory.as_dict(),
     }
 
 
 def _body_seen(body: RobotBodyEstimate) -> str:
-    """What ``body`` (a body was found) says, in words: its bearings as runs of adjacent
-    bins."""
-    runs: list[list[float]] = []
-    for bearing in body.bearings_deg:
-        if runs and bearing - runs[-1][-1] <= BIN_DEG + 1e-9:
-            runs[-1].append(bearing)
-        else:
-            runs.append([bearing])
-    where = ", ".join(f"{r[0]:.0f}" if len(r) == 1 else f"{r[0]:.0f} to {r[-1]:.0f}" for r in runs)
-    return (
-        f"returns at {len(body.bearings_deg)} bearings ({where} deg) stay within "
-        f"{body.range_m:.2f} m of the laser as the robot turns, in "
-        f"{100.0 * min(body.agreement):.0f}% or more of {body.pairs} turns: the robot's own body"
-    )
+    """What ``body`` (a body was found) says, in words: the bearings of its returns as runs
+    of adjacent bins, and its bearings without a return."""
+    seen = []
+    if body.range_m is not None:
+        runs: list[list[float]] = []
+        for bearing in body.bearings_deg:
+            if runs and bearing - runs[-1][-1] <= BIN_DEG + 1e-9:
+                runs[-1].append(bearing)
+            else:
+                runs.append([bearing])
+        where = ", ".join(
+            f"{r[0]:.0f}" if len(r) == 1 else f"{r[0]:.0f} to {r[-1]:.0f}" for r in runs
+        )
+        seen.append(
+            f"returns at {len(body.bearings_deg)} bearings ({where} deg) stay within "
+            f"{body.range_m:.2f} m of the laser as the robot turns, in "
+            f"{100.0 * min(body.agreement):.0f}% or more of {body.pairs} turns"
+        )
+    if body.dark_deg:
+        where = ", ".join(f"{lo:.1f} to {hi:.1f}" for lo, hi in body.dark_deg)
+        seen.append(f"the beams at {where} deg hold no return where the turned scans see the world")
+    return " and ".join(seen) + ": the robot's own body"
+
+
+def _body_settings(config: IcegConfig) -> str:
+    """The configuration's robot-body settings, as a YAML user writes them."""
+    f = config.features
+    settings = [f"features.robot_body_range_m: {f.robot_body_range_m:.2f}"]
+    if f.robot_body_dark_deg:
+        pairs = ", ".join(f"[{lo:.2f}, {hi:.2f}]" for lo, hi in f.robot_body_dark_deg)
+        settings.append(f"features.robot_body_dark_deg: [{pairs}]")
+    return ", ".join(settings)
 
 
 def check_log_file(path: Path) -> None:

@@ -32,6 +32,7 @@ if TYPE_CHECKING:
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+BoolArray = NDArray[np.bool_]
 
 #: Width of a bearing bin, degrees (the nearest return of each bin is compared).
 BIN_DEG = 2.0
@@ -48,6 +49,9 @@ MIN_AGREEMENT = 0.9
 MIN_PAIRS = 20
 #: Most pairs compared, evenly spread over the log (a share's standard error about 2 %).
 MAX_PAIRS = 200
+#: Width of a bearing bin in the search for the body's dark bearings, degrees: finer than a
+#: beam of the scanners here (0.25-1°), so that a bin holds the beams of one bearing.
+DARK_BIN_DEG = 0.25
 
 
 @dataclass(frozen=True)
@@ -61,12 +65,16 @@ class RobotBodyEstimate:
         bearings_deg: Centre of each body bin, laser frame, degrees.
         pairs: Scan pairs compared (turns of :data:`TURN_DEG`; at most :data:`MAX_PAIRS`).
         agreement: Share of the pairs in which each body bin's returns agreed.
+        dark_deg: Bearing intervals ``(from, to)`` (degrees, robot frame) where the body
+            hides the view and the scans hold no return (``+inf``) for it
+            (:func:`dark_bearings`): ``features.robot_body_dark_deg``.
     """
 
     range_m: float | None
     bearings_deg: tuple[float, ...]
     pairs: int
     agreement: tuple[float, ...]
+    dark_deg: tuple[tuple[float, float], ...] = ()
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready fields."""
@@ -103,14 +111,18 @@ def turn_pairs(poses: FloatArray) -> IntArray:
     return np.array(pairs, dtype=np.int64).reshape(-1, 2)
 
 
-def _binned_returns(store: ScanStore, scans: IntArray) -> Iterator[tuple[IntArray, FloatArray]]:
-    """The valid returns (``range_min < r < range_max``) of the scans ``scans`` (sorted,
-    unique indices into ``store``), a run of consecutive scans at a time: each return's key
-    ``i * B + b`` (``i`` its scan's position in ``scans``, ``b`` its laser-frame bearing bin of
-    :data:`BIN_DEG`, ``B = 360 / BIN_DEG``, bin ``b`` centred at ``-180 + (b + 0.5) BIN_DEG``
-    degrees) and its range, metres."""
-    n_bins = round(360.0 / BIN_DEG)
-    width = math.radians(BIN_DEG)
+def _binned_beams(
+    store: ScanStore, scans: IntArray, width_deg: float = BIN_DEG
+) -> Iterator[tuple[IntArray, FloatArray, BoolArray, BoolArray]]:
+    """Every beam of the scans ``scans`` (sorted, unique indices into ``store``), a run of
+    consecutive scans at a time: its key ``i * B + b`` (``i`` its scan's position in
+    ``scans``, ``b`` its bearing bin of ``width_deg``, ``B = 360 / width_deg``, bin ``b``
+    centred at ``-180 + (b + 0.5) width_deg`` degrees; the bearing is the robot frame's: the
+    beam's plus the laser's mounting yaw), its range (metres), and whether it is a valid
+    return (``range_min < r < range_max``) or no return (``+inf``, or at least
+    ``range_max``)."""
+    n_bins = round(360.0 / width_deg)
+    width = math.radians(width_deg)
     breaks = np.flatnonzero(np.diff(scans) != 1) + 1
     firsts, lasts = np.concatenate([[0], breaks]), np.append(breaks, scans.shape[0])
     for first, last in zip(firsts.tolist(), lasts.tolist(), strict=True):
@@ -119,9 +131,16 @@ def _binned_returns(store: ScanStore, scans: IntArray) -> Iterator[tuple[IntArra
         r = c.ranges_m
         with np.errstate(invalid="ignore"):
             ok = np.isfinite(r) & (r > c.range_min_m) & (r < c.range_max_m)
+            none = r >= c.range_max_m  # +inf included, NaN excluded
         bearing = c.angles_rad + np.repeat(c.laser_offsets[:, 2], c.beam_counts)
-        b = np.floor((bearing[ok] + math.pi) / width).astype(np.int64) % n_bins
-        yield row[ok] * n_bins + b, r[ok]
+        b = np.floor((bearing + math.pi) / width).astype(np.int64) % n_bins
+        yield row * n_bins + b, r, ok, none
+
+
+def _binned_returns(store: ScanStore, scans: IntArray) -> Iterator[tuple[IntArray, FloatArray]]:
+    """The valid returns of :func:`_binned_beams` (bins of :data:`BIN_DEG`): keys, ranges."""
+    for key, r, ok, _ in _binned_beams(store, scans):
+        yield key[ok], r[ok]
 
 
 def nearest_by_bearing(store: ScanStore, scans: IntArray) -> FloatArray:
@@ -168,6 +187,62 @@ def body_reach(store: ScanStore, scans: IntArray, body_bins: IntArray) -> float:
     return reach
 
 
+def dark_bearings(
+    store: ScanStore, scans: IntArray, pairs: IntArray, turn_rad: FloatArray
+) -> tuple[tuple[float, float], ...]:
+    """Bearings where the robot's own body hides the view and the scans hold no return for
+    it (``+inf`` or at least ``range_max``: a driver's reading of a body inside its
+    ``range_min``), as intervals
+    ``(from, to)`` in degrees, robot frame: the outer edges of a run of bins of
+    :data:`DARK_BIN_DEG` (the bins between two beams, which hold none, join their
+    neighbours).
+
+    In a turn ``(k, l)`` of ``turn_rad`` the world direction that scan ``k`` sees at bearing
+    ``b`` is at ``b - turn`` in scan ``l``. A bin whose beams all hold no return in one scan
+    while the other scan has a return in that world direction (its :data:`BIN_DEG` bin) is
+    dark where the world is not: evidence of the body; a return in the bin is evidence
+    against. A bin is the body's when it has at least :data:`MIN_PAIRS` pieces of evidence
+    and they make at least :data:`MIN_AGREEMENT` of both. Open ground, dark in both scans,
+    gives neither.
+
+    Args:
+        store: The run's scans.
+        scans: ``(S,)`` sorted, unique indices into ``store`` of the compared scans.
+        pairs: ``(P, 2)`` int64 positions in ``scans`` of each turn's two scans.
+        turn_rad: ``(P,)`` float64 heading change from the first scan to the second, rad.
+    """
+    n_fine = round(360.0 / DARK_BIN_DEG)
+    per = round(BIN_DEG / DARK_BIN_DEG)
+    n_coarse = n_fine // per
+    dark = np.zeros(scans.shape[0] * n_fine, dtype=bool)
+    lit = np.zeros(scans.shape[0] * n_fine, dtype=bool)
+    beam = np.zeros(n_fine, dtype=bool)  # the bins that hold a beam of some scan
+    for key, _, ok, none in _binned_beams(store, scans, DARK_BIN_DEG):
+        lit[key[ok]] = True
+        dark[key[none]] = True
+        beam[key % n_fine] = True
+    dark = (dark & ~lit).reshape(-1, n_fine)
+    lit = lit.reshape(-1, n_fine)
+    seen = np.any(lit.reshape(-1, n_coarse, per), axis=2)  # a return per 2-degree bin
+    shift = np.rint(np.asarray(turn_rad) / math.radians(BIN_DEG)).astype(np.int64)
+    coarse = np.arange(n_coarse)
+    # world direction of scan k's bin c lies in scan l's bin c - shift, and conversely
+    seen_by_l = np.take_along_axis(seen[pairs[:, 1]], (coarse - shift[:, None]) % n_coarse, 1)
+    seen_by_k = np.take_along_axis(seen[pairs[:, 0]], (coarse + shift[:, None]) % n_coarse, 1)
+    evidence = (dark[pairs[:, 0]] & np.repeat(seen_by_l, per, axis=1)).sum(axis=0) + (
+        dark[pairs[:, 1]] & np.repeat(seen_by_k, per, axis=1)
+    ).sum(axis=0)
+    against = lit[pairs[:, 0]].sum(axis=0) + lit[pairs[:, 1]].sum(axis=0)
+    body = (evidence >= MIN_PAIRS) & (evidence >= MIN_AGREEMENT * (evidence + against))
+    # runs of body bins among the bins that hold a beam (the bins between beams join them)
+    held = np.flatnonzero(beam)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], body[held].astype(np.int64), [0]])))
+    return tuple(
+        (float(-180.0 + held[lo] * DARK_BIN_DEG), float(-180.0 + (held[hi - 1] + 1) * DARK_BIN_DEG))
+        for lo, hi in zip(edges[::2].tolist(), edges[1::2].tolist(), strict=True)
+    )
+
+
 def robot_body_range(store: ScanStore, poses: FloatArray) -> RobotBodyEstimate | None:
     """The robot's own body in ``store``'s scans (module docstring): bearing bins whose
     nearest return agrees within :data:`AGREEMENT_M` across at least :data:`MIN_AGREEMENT`
@@ -197,15 +272,18 @@ def robot_body_range(store: ScanStore, poses: FloatArray) -> RobotBodyEstimate |
     a, b = nearest[row[:, 0]], nearest[row[:, 1]]
     with np.errstate(invalid="ignore"):
         agreement = (np.abs(a - b) <= AGREEMENT_M).mean(axis=0)
+    turn = np.angle(np.exp(1j * (p[pairs[:, 1], 2] - p[pairs[:, 0], 2])))
+    dark = dark_bearings(store, scans, row, turn)
     body = np.flatnonzero(agreement >= MIN_AGREEMENT)
     if body.shape[0] == 0:
-        return RobotBodyEstimate(None, (), int(pairs.shape[0]), ())
+        return RobotBodyEstimate(None, (), int(pairs.shape[0]), (), dark)
     reach = body_reach(store, scans, body)
     return RobotBodyEstimate(
         math.ceil(round(reach * 100.0, 6)) / 100.0,
         tuple(float(c) for c in -180.0 + (body + 0.5) * BIN_DEG),
         int(pairs.shape[0]),
         tuple(float(x) for x in agreement[body]),
+        dark,
     )
 
 
@@ -214,20 +292,31 @@ def with_measured_body(
 ) -> tuple[IcegConfig, RobotBodyEstimate | None]:
     """``config`` with ``features.robot_body_range_m`` raised to the robot's body that
     ``store``'s scans show along their odometry (:func:`robot_body_range`), where it reaches
-    farther; and that estimate. Odometry is good enough to find turns in place: a pair only
-    needs the robot to have turned by 30-90° over at most 1 m of travel. ``config`` itself
-    (the same object) when ``features.measure_robot_body`` is off, when the scans show no
-    body (or too few turns to tell), or when the configured range already holds it.
+    farther, and ``features.robot_body_dark_deg`` set to its dark bearings where empty; and
+    that estimate. Odometry is good enough to find turns in place: a pair only needs the
+    robot to have turned by 30-90° over at most 1 m of travel. ``config`` itself (the same
+    object) when ``features.measure_robot_body`` is off, when the scans show no body (or
+    too few turns to tell), or when the configuration already holds it.
     """
     if not config.features.measure_robot_body:
         return config, None
     _, odometry, _ = store.odometry
     estimate = robot_body_range(store, odometry)
-    if (
-        estimate is None
-        or estimate.range_m is None
-        or estimate.range_m <= config.features.robot_body_range_m
-    ):
-        return config, estimate
-    features = config.features.model_copy(update={"robot_body_range_m": estimate.range_m})
-    return config.model_copy(update={"features": features}), estimate
+    return leaving_out(config, estimate), estimate
+
+
+def leaving_out(config: IcegConfig, estimate: RobotBodyEstimate | None) -> IcegConfig:
+    """``config`` with ``features.robot_body_range_m`` raised to ``estimate``'s range where
+    that reaches farther, and ``features.robot_body_dark_deg`` set to its dark bearings
+    where empty; ``config`` itself (the same object) where that changes nothing."""
+    if estimate is None:
+        return config
+    update: dict[str, Any] = {}
+    f = config.features
+    if estimate.range_m is not None and estimate.range_m > f.robot_body_range_m:
+        update["robot_body_range_m"] = estimate.range_m
+    if estimate.dark_deg and not f.robot_body_dark_deg:
+        update["robot_body_dark_deg"] = estimate.dark_deg
+    if not update:
+        return config
+    return config.model_copy(update={"features": f.model_copy(update=update)})

@@ -37,13 +37,25 @@ class FeatureConfig(BaseModel):
         "(measure_robot_body), and warns where its trajectory shows more "
         "(iceg.robot_body.robot_body_range; docs/design.md, 'The robot's own body').",
     )
+    robot_body_dark_deg: tuple[tuple[float, float], ...] = Field(
+        default=(),
+        description="Bearings [from, to] (degrees, robot frame: the beam's bearing plus the "
+        "laser's mounting yaw, in -180..180) where the robot's own body hides the view and "
+        "the driver reports no return (+inf, or range_max) for it: there a beam without a "
+        "return is read as "
+        "a return too close to measure (-inf, ROS REP 117), which occludes (no end of wall "
+        "at its edges) and across which a wall is one segment, as across the body's "
+        "returns. A run of a log measures them with robot_body_range_m (measure_robot_body).",
+    )
     measure_robot_body: bool = Field(
         default=True,
         description="Before a log's first scan (iceg run, iceg batch), measure the robot's "
         "own body from its scans along its odometry (returns that keep their bearing and "
-        "range as the robot turns in place: iceg.robot_body.robot_body_range) and raise "
-        "robot_body_range_m to it where it reaches farther. A robot that never turns in "
-        "place (within 1 m of travel) shows nothing, and keeps robot_body_range_m.",
+        "range as the robot turns in place, and bearings without a return where the turned "
+        "scan sees the world: iceg.robot_body.robot_body_range), raise robot_body_range_m "
+        "to it where it reaches farther and set robot_body_dark_deg where it is empty. A "
+        "robot that never turns in place (within 1 m of travel) shows nothing, and keeps "
+        "both.",
     )
     sigma_range_m: float = Field(
         default=0.01,

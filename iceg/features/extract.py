@@ -64,7 +64,7 @@ def extract(scan: LaserScan, config: FeatureConfig | None = None) -> ScanFeature
     check_bearings(scan)
     range_max = float(min(cfg.range_max_m, scan.range_max_m))
     stamp = float(scan.stamp_s)
-    beams = beam_points(scan, range_max, _range_min(scan, cfg))
+    beams = beam_points(scan, range_max, _range_min(scan, cfg), _dark_body(cfg))
     if beams.points.shape[0] < cfg.min_segment_points:
         return ScanFeatures.empty(beams.points, range_max, stamp)
     segs = line_segments(beams, cfg)
@@ -94,7 +94,8 @@ def extract_points(scan: LaserScan, config: FeatureConfig | None = None) -> np.n
 
     Args:
         scan: One laser scan.
-        config: Thresholds (only ``range_max_m`` and ``robot_body_range_m`` are read); defaults to
+        config: Thresholds (only ``range_max_m``, ``robot_body_range_m`` and
+            ``robot_body_dark_deg`` are read); defaults to
             :class:`FeatureConfig`.
 
     Returns:
@@ -106,13 +107,20 @@ def extract_points(scan: LaserScan, config: FeatureConfig | None = None) -> np.n
     cfg = FeatureConfig() if config is None else config
     check_bearings(scan)
     range_max = float(min(cfg.range_max_m, scan.range_max_m))
-    return beam_points(scan, range_max, _range_min(scan, cfg)).points
+    return beam_points(scan, range_max, _range_min(scan, cfg), _dark_body(cfg)).points
 
 
 def _range_min(scan: LaserScan, cfg: FeatureConfig) -> float:
     """A beam is a point only beyond this range: the scan's ``range_min_m``, or the robot's
     own body (``cfg.robot_body_range_m``) where that reaches farther."""
     return float(max(scan.range_min_m, cfg.robot_body_range_m))
+
+
+def _dark_body(cfg: FeatureConfig) -> np.ndarray | None:
+    """``cfg.robot_body_dark_deg`` as ``(K, 2)`` float64 radians, or None where empty."""
+    if not cfg.robot_body_dark_deg:
+        return None
+    return np.radians(np.array(cfg.robot_body_dark_deg, dtype=np.float64).reshape(-1, 2))
 
 
 #: The feature kinds in :func:`assemble`'s order.

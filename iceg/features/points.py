@@ -48,7 +48,10 @@ def check_bearings(scan: LaserScan) -> None:
 
 
 def beam_points(
-    scan: LaserScan, range_max_m: float, range_min_m: float | None = None
+    scan: LaserScan,
+    range_max_m: float,
+    range_min_m: float | None = None,
+    dark_body_rad: FloatArray | None = None,
 ) -> BeamPoints:
     """Valid beams to robot-frame points, and every beam's direction (docs/design.md step 1).
 
@@ -62,6 +65,11 @@ def beam_points(
         range_max_m: Usable maximum range, metres: ``min(config, scan.range_max_m)``.
         range_min_m: Usable minimum range, metres (``None``: ``scan.range_min_m``; the
             robot's own body may reach farther, ``FeatureConfig.robot_body_range_m``).
+        dark_body_rad: ``(K, 2)`` float64 robot-frame bearing intervals ``[from, to]``
+            (radians, in ``[-pi, pi]``) where the robot's body hides the view
+            (``FeatureConfig.robot_body_dark_deg``): a beam without a return there
+            (``+inf``, or at least ``range_max_m``) is read as ``-inf``, a return too close to
+            measure (ROS REP 117), which occludes.
 
     Returns:
         :class:`BeamPoints` (shapes and units listed there).
@@ -71,6 +79,11 @@ def beam_points(
     ranges = np.array(scan.ranges_m, dtype=np.float64)
     angles = np.array(scan.angles_rad, dtype=np.float64)
     origin = np.array(scan.laser_offset, dtype=np.float64)
+    if dark_body_rad is not None:
+        bearing = np.angle(np.exp(1j * (angles + origin[2])))  # robot frame, in [-pi, pi]
+        lo, hi = dark_body_rad[:, 0], dark_body_rad[:, 1]
+        inside = ((bearing[:, None] >= lo) & (bearing[:, None] <= hi)).any(axis=1)
+        ranges[inside & (ranges >= range_max_m)] = -np.inf  # no return: +inf or beyond
     valid, no_return, beam_index, points, dirs, bearing_robot = _beams(
         ranges,
         angles,

@@ -38,7 +38,8 @@ def segment_point_ranges(beams: BeamPoints, cfg: FeatureConfig) -> IntArray:
     """Point ranges of the segments: adaptive breakpoints (Borges & Aldon 2004, eq. 8), then
     split-and-merge inside clusters (paper §III-C1; Nguyen et al. 2005, Alg. 1), merging
     across at most ``cfg.dropout_max_beams`` invalid beams, or across beams that all return
-    from the robot's own body (``cfg.robot_body_range_m``).
+    from the robot's own body (``cfg.robot_body_range_m``) or too close to measure (``-inf``,
+    as ``cfg.robot_body_dark_deg`` reads the body's dark bearings).
 
     Args:
         beams: The scan's points (:func:`iceg.features.points.beam_points`).
@@ -92,9 +93,10 @@ def _segment_point_ranges(
 ) -> IntArray:
     """:func:`segment_point_ranges`, compiled: clusters joinable across a dropout of 1 to
     ``dropout_max_beams`` invalid beams, or across beams that all return from the robot's
-    own body (``0 < r <= robot_body_range_m``, ``all_ranges`` ``(N,)`` every beam's range):
-    the body hides the wall behind it, it does not end it. A wall joined across the body
-    must stand on each side of it (:func:`_stands_on_each_side`)."""
+    own body (``0 < r <= robot_body_range_m``, ``all_ranges`` ``(N,)`` every beam's range) or
+    too close to measure (``-inf``: :func:`~iceg.features.points.beam_points` reads the
+    body's dark bearings so): the body hides the wall behind it, it does not end it. A wall
+    joined across the body must stand on each side of it (:func:`_stands_on_each_side`)."""
     bounds = breakpoints(points, ranges, bearings, beam_index, s.sigma_range_m, s.lambda_rad)
     n_inner = max(bounds.shape[0] - 2, 0)
     joinable = np.empty(n_inner, dtype=np.bool_)
@@ -102,10 +104,11 @@ def _segment_point_ranges(
     for c in range(n_inner):
         at = bounds[c + 1]
         gap_beams = beam_index[at] - beam_index[at - 1] - 1
-        body = gap_beams >= 1 and s.robot_body_range_m > 0.0
+        body = gap_beams >= 1
         b = beam_index[at - 1] + 1
         while body and b < beam_index[at]:
-            body = 0.0 < all_ranges[b] <= s.robot_body_range_m
+            r = all_ranges[b]
+            body = r == -np.inf or 0.0 < r <= s.robot_body_range_m
             b += 1
         body_gap[at] = body
         joinable[c] = 1 <= gap_beams <= s.dropout_max_beams or body
@@ -118,7 +121,7 @@ def _segment_point_ranges(
         s.merge_distance_m,
         s.min_segment_points,
     )
-    if s.robot_body_range_m <= 0.0:
+    if not body_gap.any():
         return segments
     return _stands_on_each_side(points, segments, body_gap, s)
 

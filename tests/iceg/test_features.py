@@ -534,6 +534,32 @@ def test_the_robot_s_own_body_gives_no_point_and_hides_no_end_of_wall() -> None:
     assert np.sum(extract(_scan(ranges, laser)).kind == EOW) == 4
 
 
+def test_the_robot_s_body_read_as_no_return_is_too_close_where_its_bearings_are_known() -> None:
+    # The wall x = 3 behind the post straight ahead, as a driver reports a body inside its
+    # range_min: +inf, no return (the TurtleBot 4 bag here has two such wedges). Read so, the
+    # shadow's edges are ends of wall (the view seems to go on past them): four EOWs on two
+    # segments. With the post's bearings known (robot frame, -10 to 10 deg) its beams are
+    # returns too close to measure (-inf): they occlude, the wall is one segment across them
+    # and only its true ends at y = +-2 are EOWs.
+    laser = LaserModel(range_sigma_m=0.0, body_posts_deg=(0.0,))
+    wall = World("wall", np.array([[[3.0, -2.0], [3.0, 2.0]]]))
+    ranges = cast_rays(wall, np.zeros(3), laser)
+    dark = np.where(ranges < 0.25, np.inf, ranges)
+    scan = _scan(dark, laser)
+    plain = extract(scan)
+    assert plain.n_segments == 2 and np.sum(plain.kind == EOW) == 4
+    f = extract(scan, FeatureConfig(robot_body_dark_deg=((-10.0, 10.0),)))
+    assert f.n_segments == 1 and np.sum(f.kind == EOW) == 2
+    np.testing.assert_allclose(f.seg_endpoints[0, :, 1], [-2.0, 2.0], atol=0.0757)
+    # the same beams as the body's returns with robot_body_range_m: the same features
+    body = extract(_scan(ranges, laser), FeatureConfig(robot_body_range_m=0.25))
+    np.testing.assert_array_equal(body.kind, f.kind)
+    np.testing.assert_allclose(body.xy, f.xy, atol=1e-12)
+    # bearings elsewhere change nothing
+    elsewhere = extract(scan, FeatureConfig(robot_body_dark_deg=((40.0, 60.0),)))
+    np.testing.assert_array_equal(elsewhere.kind, plain.kind)
+
+
 def test_a_wall_joined_across_the_robot_s_body_stands_on_each_side() -> None:
     # The same post straight ahead hides the beams within 9.5 deg. Beside its shadow: six
     # beams (10-15 deg) on a wall x = 1 (9 cm of it) and three (-12 to -10 deg) on another

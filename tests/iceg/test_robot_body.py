@@ -18,7 +18,7 @@ from iceg.batch_run import RunTask, execute_run
 from iceg.config import IcegConfig
 from iceg.grid import render
 from iceg.pipeline import run_log
-from iceg.robot_body import BIN_DEG, body_reach, robot_body_range, turn_pairs
+from iceg.robot_body import BIN_DEG, DARK_BIN_DEG, body_reach, robot_body_range, turn_pairs
 from iceg.scan_store import ScanStore
 
 POSTS_DEG = (45.0, 135.0, -135.0, -45.0)
@@ -104,6 +104,53 @@ def test_posts_on_the_robot_are_found_and_a_world_alone_is_not(among_posts) -> N
     dark = [replace(s, ranges_m=np.full(s.n_beams, np.inf)) for s in plain.scans]
     empty = robot_body_range(ScanStore(dark), plain.true_poses)
     assert empty is not None and empty.range_m is None
+
+
+def _dark(scans: list[LaserScan]) -> list[LaserScan]:
+    """The posts as a driver reports a body inside its range_min: no return (+inf)."""
+    return [replace(s, ranges_m=np.where(s.ranges_m < 0.3, np.inf, s.ranges_m)) for s in scans]
+
+
+def test_posts_read_as_no_return_are_found_by_their_dark_bearings(among_posts) -> None:  # type: ignore[no-untyped-def]
+    scans, poses = among_posts
+    est = robot_body_range(ScanStore(_dark(scans)), poses)
+    assert est is not None and est.range_m is None  # no return of the posts is left
+    # Four intervals, one per post, each within its shadow (a face 6 cm wide at 0.18 m hides
+    # 9.5 deg either side of its bearing) and covering most of it.
+    assert len(est.dark_deg) == 4
+    for (lo, hi), post in zip(sorted(est.dark_deg), sorted(POSTS_DEG), strict=True):
+        assert post - 9.5 - DARK_BIN_DEG <= lo < hi <= post + 9.5 + DARK_BIN_DEG
+        assert hi - lo >= 15.0
+    # Open ground is dark in both scans of a turn: no evidence. Without posts, nothing.
+    plain = simulate(office_world(), laser=AMONG_POSTS.model_copy(update={"body_posts_deg": ()}))
+    none = robot_body_range(ScanStore(plain.scans), plain.true_poses)
+    assert none is not None and none.dark_deg == ()
+    dark = [replace(s, ranges_m=np.full(s.n_beams, np.inf)) for s in plain.scans]
+    empty = robot_body_range(ScanStore(dark), plain.true_poses)
+    assert empty is not None and empty.dark_deg == ()
+
+
+def test_a_run_among_dark_posts_reads_them_as_too_close(
+    among_posts,  # type: ignore[no-untyped-def]
+    tmp_path: Path,
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    scans, _ = among_posts
+    log = tmp_path / "dark.clf"
+    write_carmen(log, _dark(scans[:300]), laser_record="ROBOTLASER1")
+    cfg = IcegConfig.model_validate({"slam": {"workers": 2}})
+    with caplog.at_level(logging.WARNING, logger="iceg.pipeline"):
+        auto = run_log(log, cfg)
+    body = auto.metrics["robot_body"]
+    assert len(body["dark_deg"]) == 4 and body["range_m"] == 0.0
+    assert "hold no return where the turned scans see the world" in caplog.text
+    assert "features.robot_body_dark_deg: [[" in caplog.text
+    # the run of those bearings set by hand, bit for bit
+    features = cfg.features.model_copy(
+        update={"robot_body_dark_deg": auto.config.features.robot_body_dark_deg}
+    )
+    by_hand = run_log(log, cfg.model_copy(update={"features": features}))
+    assert by_hand.poses.tobytes() == auto.poses.tobytes()
 
 
 @pytest.mark.parametrize("workers", [1, 2])
