@@ -10,9 +10,11 @@ within :data:`AGREEMENT_M` across almost every such turn (:data:`MIN_AGREEMENT`)
 robot's body. Those returns give points and features that move with the robot and pull each
 match toward "no motion" (a lidar among four posts: the simulated 200 m recess corridor,
 seeds 0-3, 0.03-0.11 m -> 0.36-0.58 m ATE); ``features.robot_body_range_m`` removes them.
-The run of a log measures the body along its odometry before its first scan and sets that
-range (:func:`with_measured_body`), and warns where its optimized trajectory shows more
-(docs/design.md, "The robot's own body").
+A driver that reports the body as no return (``+inf``) leaves bearings dark in every scan,
+where a turned scan sees the world (:func:`dark_bearings`); ``features.robot_body_dark_deg``
+reads them as returns too close to measure. The run of a log measures the body along its
+odometry before its first scan and sets both (:func:`with_measured_body`), and warns where
+its optimized trajectory shows more (docs/design.md, "The robot's own body").
 """
 
 from __future__ import annotations

@@ -124,10 +124,15 @@ def test_the_measured_latency_of_a_real_robot_makes_its_scans_match() -> None:
     again = run_log(shared_file("rosbag/turtlebot4-ros2"), cfg, odometry_time_offset_s=est.offset_s)
     left = again.metrics["odometry_time_offset"]
 
-    def matched(result: SlamResult) -> int:
-        return sum(f.kind == FactorKind.SCAN_MATCH for f in result.factors)
+    def unmatched(result: SlamResult) -> int:
+        """Keyframes after the first without a scan-match factor."""
+        matched = sum(f.kind == FactorKind.SCAN_MATCH for f in result.factors)
+        return int(result.node_ids.shape[0]) - 1 - matched
 
-    assert matched(again) > 1.5 * matched(first)
+    # Read at its latency, the keyframes left without a scan-match factor are at least
+    # halved: 17 of 102 -> 6 of 101 (with its blind wedges read as the robot's body; before
+    # that, 53 of 102 -> 6 of 101).
+    assert unmatched(again) <= unmatched(first) / 2
     assert left["applied_s"] == est.offset_s and not left["measured"]["significant"]
 
 
