@@ -42,10 +42,11 @@ class FeatureConfig(BaseModel):
         description="Bearings [from, to] (degrees, robot frame: the beam's bearing plus the "
         "laser's mounting yaw, in -180..180) where the robot's own body hides the view and "
         "the driver reports no return (+inf, or range_max) for it: there a beam without a "
-        "return is read as "
-        "a return too close to measure (-inf, ROS REP 117), which occludes (no end of wall "
-        "at its edges) and across which a wall is one segment, as across the body's "
-        "returns. A run of a log measures them with robot_body_range_m (measure_robot_body).",
+        "return is read as a return too close to measure (-inf, ROS REP 117), which "
+        "occludes (no end of wall at its edges) and across which a wall is one segment, as "
+        "across the body's returns. A run of a log measures them with robot_body_range_m "
+        "(measure_robot_body). The grid does not read them: with grid.no_return_clear_m set, "
+        "such beams clear the cells behind the body.",
     )
     measure_robot_body: bool = Field(
         default=True,
