@@ -204,8 +204,9 @@ def dark_bearings(
     while the other scan has a return in that world direction (its :data:`BIN_DEG` bin) is
     dark where the world is not: evidence of the body; a return in the bin is evidence
     against. A bin is the body's when it has at least :data:`MIN_PAIRS` pieces of evidence
-    and they make at least :data:`MIN_AGREEMENT` of both. Open ground, dark in both scans,
-    gives neither.
+    and they make at least :data:`MIN_AGREEMENT` of both; a run of them grows over the bins
+    beside it that never hold a return and are dark where the world is at least once. Open
+    ground, dark in both scans, gives neither.
 
     Args:
         store: The run's scans.
@@ -236,9 +237,17 @@ def dark_bearings(
     ).sum(axis=0)
     against = lit[pairs[:, 0]].sum(axis=0) + lit[pairs[:, 1]].sum(axis=0)
     body = (evidence >= MIN_PAIRS) & (evidence >= MIN_AGREEMENT * (evidence + against))
-    # runs of body bins among the bins that hold a beam (the bins between beams join them)
+    # runs of body bins among the bins that hold a beam (the bins between beams join them),
+    # grown over the bins beside them that never held a return and were dark where the world
+    # was at least once (the edges of a shadow that little of the world vouched for)
     held = np.flatnonzero(beam)
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], body[held].astype(np.int64), [0]])))
+    grown = body[held]
+    never_lit = (against[held] == 0) & (evidence[held] > 0)
+    for order in (range(1, held.shape[0]), range(held.shape[0] - 2, -1, -1)):
+        step = 1 if order.step == 1 else -1
+        for i in order:
+            grown[i] |= grown[i - step] and never_lit[i]
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], grown.astype(np.int64), [0]])))
     return tuple(
         (float(-180.0 + held[lo] * DARK_BIN_DEG), float(-180.0 + (held[hi - 1] + 1) * DARK_BIN_DEG))
         for lo, hi in zip(edges[::2].tolist(), edges[1::2].tolist(), strict=True)
