@@ -194,10 +194,9 @@ def dark_bearings(
 ) -> tuple[tuple[float, float], ...]:
     """Bearings where the robot's own body hides the view and the scans hold no return for
     it (``+inf`` or at least ``range_max``: a driver's reading of a body inside its
-    ``range_min``), as intervals
-    ``(from, to)`` in degrees, robot frame: the outer edges of a run of bins of
-    :data:`DARK_BIN_DEG` (the bins between two beams, which hold none, join their
-    neighbours).
+    ``range_min``), as intervals ``(from, to)`` in degrees, robot frame: the outer edges of
+    a run of bins of :data:`DARK_BIN_DEG` (the bins between two beams, which hold none, join
+    their neighbours).
 
     In a turn ``(k, l)`` of ``turn_rad`` the world direction that scan ``k`` sees at bearing
     ``b`` is at ``b - turn`` in scan ``l``. A bin whose beams all hold no return in one scan
