@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from iceg.scan_store import ScanStore
+from iceg_common.se2 import wrap_angle
 
 if TYPE_CHECKING:
     from iceg.config import IcegConfig
@@ -64,11 +65,13 @@ class RobotBodyEstimate:
         range_m: The ``features.robot_body_range_m`` that removes every body return found
             (:func:`body_reach` over the compared scans, rounded up to the centimetre),
             metres; ``None`` when no bin is a body.
-        bearings_deg: Centre of each body bin, laser frame, degrees.
+        bearings_deg: Centre of each body bin, robot frame (the beam's bearing plus the
+            laser's mounting yaw), degrees.
         pairs: Scan pairs compared (turns of :data:`TURN_DEG`; at most :data:`MAX_PAIRS`).
         agreement: Share of the pairs in which each body bin's returns agreed.
         dark_deg: Bearing intervals ``(from, to)`` (degrees, robot frame) where the body
-            hides the view and the scans hold no return (``+inf``) for it
+            hides the view and the scans hold no return (``+inf`` or at least
+            ``range_max``) for it
             (:func:`dark_bearings`): ``features.robot_body_dark_deg``.
     """
 
@@ -147,9 +150,10 @@ def _binned_returns(store: ScanStore, scans: IntArray) -> Iterator[tuple[IntArra
 
 def nearest_by_bearing(store: ScanStore, scans: IntArray) -> FloatArray:
     """``(len(scans), B)`` float64 the nearest valid return (``range_min < r < range_max``)
-    of each of the scans ``scans`` (sorted, unique indices into ``store``) in each laser-frame
-    bearing bin of :data:`BIN_DEG` (``B = 360 / BIN_DEG``, bin ``b`` centred at
-    ``-180 + (b + 0.5) BIN_DEG`` degrees), metres; NaN where the bin has none."""
+    of each of the scans ``scans`` (sorted, unique indices into ``store``) in each bearing
+    bin of :data:`BIN_DEG` (robot frame, as in :func:`_binned_beams`; ``B = 360 / BIN_DEG``,
+    bin ``b`` centred at ``-180 + (b + 0.5) BIN_DEG`` degrees), metres; NaN where the bin
+    has none."""
     n_bins = round(360.0 / BIN_DEG)
     out = np.full(scans.shape[0] * n_bins, np.inf)
     for key, r in _binned_returns(store, scans):
@@ -240,12 +244,10 @@ def dark_bearings(
     # grown over the bins beside them that never held a return and were dark where the world
     # was at least once (the edges of a shadow that little of the world vouched for)
     held = np.flatnonzero(beam)
-    grown = body[held]
-    never_lit = (against[held] == 0) & (evidence[held] > 0)
-    for order in (range(1, held.shape[0]), range(held.shape[0] - 2, -1, -1)):
-        step = 1 if order.step == 1 else -1
-        for i in order:
-            grown[i] |= grown[i - step] and never_lit[i]
+    found = body[held]
+    joined = found | ((against[held] == 0) & (evidence[held] > 0))
+    run = np.cumsum(joined & ~np.concatenate([[False], joined[:-1]]))  # runs of joined bins
+    grown = joined & np.isin(run, run[found])  # the runs that hold a body bin
     edges = np.flatnonzero(np.diff(np.concatenate([[0], grown.astype(np.int64), [0]])))
     return tuple(
         (float(-180.0 + held[lo] * DARK_BIN_DEG), float(-180.0 + (held[hi - 1] + 1) * DARK_BIN_DEG))
@@ -282,7 +284,7 @@ def robot_body_range(store: ScanStore, poses: FloatArray) -> RobotBodyEstimate |
     a, b = nearest[row[:, 0]], nearest[row[:, 1]]
     with np.errstate(invalid="ignore"):
         agreement = (np.abs(a - b) <= AGREEMENT_M).mean(axis=0)
-    turn = np.angle(np.exp(1j * (p[pairs[:, 1], 2] - p[pairs[:, 0], 2])))
+    turn = wrap_angle(p[pairs[:, 1], 2] - p[pairs[:, 0], 2])
     dark = dark_bearings(store, scans, row, turn)
     body = np.flatnonzero(agreement >= MIN_AGREEMENT)
     if body.shape[0] == 0:
@@ -300,13 +302,10 @@ def robot_body_range(store: ScanStore, poses: FloatArray) -> RobotBodyEstimate |
 def with_measured_body(
     config: IcegConfig, store: ScanStore
 ) -> tuple[IcegConfig, RobotBodyEstimate | None]:
-    """``config`` with ``features.robot_body_range_m`` raised to the robot's body that
-    ``store``'s scans show along their odometry (:func:`robot_body_range`), where it reaches
-    farther, and ``features.robot_body_dark_deg`` set to its dark bearings where empty; and
-    that estimate. Odometry is good enough to find turns in place: a pair only needs the
-    robot to have turned by 30-90° over at most 1 m of travel. ``config`` itself (the same
-    object) when ``features.measure_robot_body`` is off, when the scans show no body (or
-    too few turns to tell), or when the configuration already holds it.
+    """:func:`leaving_out` the robot's body that ``store``'s scans show along their
+    odometry (:func:`robot_body_range`), and that estimate; ``(config, None)`` when
+    ``features.measure_robot_body`` is off. Odometry is good enough to find turns in place:
+    a pair only needs the robot to have turned by 30-90° over at most 1 m of travel.
     """
     if not config.features.measure_robot_body:
         return config, None

@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 
 from frontends.scan import LaserScan
 from iceg_common.errors import ScanError
+from iceg_common.se2 import wrap_angle
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -66,7 +67,7 @@ def beam_points(
         range_min_m: Usable minimum range, metres (``None``: ``scan.range_min_m``; the
             robot's own body may reach farther, ``FeatureConfig.robot_body_range_m``).
         dark_body_rad: ``(K, 2)`` float64 robot-frame bearing intervals ``[from, to]``
-            (radians, in ``[-pi, pi]``) where the robot's body hides the view
+            (radians, in ``[-pi, pi)``) where the robot's body hides the view
             (``FeatureConfig.robot_body_dark_deg``): a beam without a return there
             (``+inf``, or at least ``range_max_m``) is read as ``-inf``, a return too close to
             measure (ROS REP 117), which occludes.
@@ -80,7 +81,7 @@ def beam_points(
     angles = np.array(scan.angles_rad, dtype=np.float64)
     origin = np.array(scan.laser_offset, dtype=np.float64)
     if dark_body_rad is not None:
-        bearing = np.angle(np.exp(1j * (angles + origin[2])))  # robot frame, in [-pi, pi]
+        bearing = wrap_angle(angles + origin[2])  # robot frame, in [-pi, pi)
         lo, hi = dark_body_rad[:, 0], dark_body_rad[:, 1]
         inside = ((bearing[:, None] >= lo) & (bearing[:, None] <= hi)).any(axis=1)
         ranges[inside & (ranges >= range_max_m)] = -np.inf  # no return: +inf or beyond
