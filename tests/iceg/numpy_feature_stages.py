@@ -16,6 +16,7 @@ from iceg.features.neighbours import close_to_any, segment_pairs_within
 from iceg.features.pairs import SegmentPairs, pair_search_radius
 from iceg.features.points import BeamPoints
 from iceg.features.segments import Segments
+from tests.iceg import libm
 
 
 def norm(v: np.ndarray) -> np.ndarray:
@@ -27,7 +28,7 @@ def unit(v: np.ndarray) -> np.ndarray:
 
 
 def opening_angle(ray_a: np.ndarray, ray_b: np.ndarray) -> np.ndarray:
-    return np.arccos(np.clip(np.einsum("ki,ki->k", ray_a, ray_b), -1.0, 1.0))
+    return libm.arccos(np.clip(np.einsum("ki,ki->k", ray_a, ray_b), -1.0, 1.0))
 
 
 def meet(lines_a: np.ndarray, lines_b: np.ndarray) -> tuple[np.ndarray, ...]:

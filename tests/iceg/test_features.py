@@ -67,6 +67,7 @@ from iceg.types import FeatureKind, ScanFeatures
 from iceg_common.errors import IcegError, ScanError
 from iceg_common.se2 import compose, inverse, transform_points
 from tests.conftest import shared_file
+from tests.iceg import libm
 from tests.iceg import numpy_feature_stages as numpy_stages
 
 MAX_DIST_M = 8.0
@@ -365,14 +366,14 @@ def _numpy_fit_lines(
         return sw, mx, my, *sums
 
     _, _, _, sxx, syy, sxy = moments(np.ones_like(x))
-    alpha0 = 0.5 * np.arctan2(-2.0 * sxy, syy - sxx)
+    alpha0 = 0.5 * libm.arctan2(-2.0 * sxy, syy - sxx)
     dirs = beam_dirs[idx]
     cos_b = dirs[:, 0] * np.cos(alpha0)[seg_of] + dirs[:, 1] * np.sin(alpha0)[seg_of]
     cos2 = cos_b * cos_b
     var = sigma_range_m**2 * cos2 + (ranges_m[idx] * sigma_bearing_rad) ** 2 * (1.0 - cos2)
     w = 1.0 / np.maximum(var, 1e-6 * sigma_range_m**2)
     sw, mx, my, sxx, syy, sxy = moments(w)
-    alpha = 0.5 * np.arctan2(-2.0 * sxy, syy - sxx)
+    alpha = 0.5 * libm.arctan2(-2.0 * sxy, syy - sxx)
     ca, sa = np.cos(alpha), np.sin(alpha)
     rho = ca * mx + sa * my
     flip = rho < 0.0
