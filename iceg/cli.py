@@ -22,7 +22,7 @@ from collections.abc import Callable
 from datetime import datetime
 from enum import Enum
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any, Literal, TypeVar
 
 import typer
 
@@ -188,11 +188,12 @@ LaserOffsetOption = Annotated[
     typer.Option(help="ROS bag: laser pose in the base frame 'X_M,Y_M,YAW_DEG' (not tf)."),
 ]
 OdometryTimeOffsetOption = Annotated[
-    float,
+    str,
     typer.Option(
         help="Read each scan's odometry at its stamp plus this many seconds (negative: the "
         "scans were measured before their stamps). A run measures it: metrics.json, "
-        "odometry_time_offset.",
+        "odometry_time_offset. 'auto': run, and where the run measures a significant "
+        "offset, run again with the odometry read there (twice the time).",
     ),
 ]
 ContinueOption = Annotated[
@@ -239,7 +240,7 @@ def run(
     odom_frame: OdomFrameOption = None,
     base_frame: BaseFrameOption = None,
     laser_frame_offset: LaserOffsetOption = None,
-    odometry_time_offset: OdometryTimeOffsetOption = 0.0,
+    odometry_time_offset: OdometryTimeOffsetOption = "0",
     continue_: ContinueOption = None,
     initial_pose: InitialPoseOption = None,
 ) -> None:
@@ -254,7 +255,8 @@ def run(
     cfg = _load_config(config)
     if out is not None:
         check_output_dir(out)
-    _check_log_run_option(odometry_time_offset != 0.0, log is not None and continue_ is None)
+    offset = _time_offset(odometry_time_offset)
+    _check_log_run_option(offset != 0.0, log is not None and continue_ is None)
     reader_options = _bag_options(
         scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset
     )
@@ -273,7 +275,7 @@ def run(
                 out_dir,
                 saved.append,
                 cont,
-                odometry_time_offset,
+                offset,
             ),
             lambda: _on_interrupt(out_dir, saved, remove_empty=out is None),
         )
@@ -285,6 +287,25 @@ def run(
         _link_latest(out_dir)
     typer.echo(f"iceg run: {log if log is not None else 'built-in simulated office world'}")
     _print_table(_summary_rows(result, out_dir, time.perf_counter() - started))
+
+
+def _time_offset(value: str) -> float | Literal["auto"]:
+    """``--odometry-time-offset``: seconds, or ``auto``.
+
+    Raises:
+        ConfigError: neither a number nor ``auto``.
+    """
+    from iceg.pipeline import AUTO_OFFSET
+    from iceg_common.errors import ConfigError
+
+    if value.strip().lower() == AUTO_OFFSET:
+        return "auto"
+    try:
+        return float(value)
+    except ValueError:
+        raise ConfigError(
+            f"--odometry-time-offset takes seconds (e.g. -0.1) or 'auto', not {value!r}"
+        ) from None
 
 
 def _check_log_run_option(given: bool, log_run: bool) -> None:
@@ -311,7 +332,7 @@ def _run_and_save(
     out_dir: Path,
     on_saved: Callable[[str], None],
     cont: tuple[Path, tuple[float, float, float] | None] | None = None,
-    odometry_time_offset_s: float = 0.0,
+    odometry_time_offset_s: float | Literal["auto"] = 0.0,
 ) -> SlamResult:
     from iceg.pipeline import run_log, run_simulated_demo
 

@@ -11,7 +11,7 @@ import os
 import stat
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 
@@ -37,7 +37,7 @@ from iceg.robot_body import (
 from iceg.scan_products import ScanPrecompute
 from iceg.scan_store import ScanStore
 from iceg.slam import Slam
-from iceg_common.errors import EvaluationError, LogFormatError
+from iceg_common.errors import ConfigError, EvaluationError, LogFormatError
 
 logger = logging.getLogger(__name__)
 
@@ -45,6 +45,8 @@ T = TypeVar("T")
 
 #: Timestamp tolerance for matching relation stamps to scans (relations carry 5 decimals).
 RELATION_TOLERANCE_S = 1e-3
+#: ``run_log``'s odometry time offset that the run measures itself (two passes).
+AUTO_OFFSET = "auto"
 
 
 def run_scans(
@@ -195,7 +197,7 @@ def run_log(
     progress: bool = False,
     stamps: StampPolicy = "sort",
     reader_options: Mapping[str, Any] | None = None,
-    odometry_time_offset_s: float = 0.0,
+    odometry_time_offset_s: float | Literal["auto"] = 0.0,
 ) -> SlamResult:
     """Run SLAM over a log file and, if given, score it with a ``.relations`` file.
 
@@ -208,7 +210,11 @@ def run_log(
     (:func:`~frontends.odometry_shift.shift_odometry`);
     ``result.metrics["odometry_time_offset"]`` holds that value and the offset the run's
     matches measure (:func:`~iceg.odometry_timing.odometry_time_offset`), with a warning
-    when the measured one is significant. Before the first scan, the robot's own body is
+    when the measured one is significant. With ``"auto"`` (:data:`AUTO_OFFSET`) the log
+    runs once at its stamps and, where that run measures a significant offset, once more
+    with the odometry read there (twice the time; docs/design.md "Readers", the latency);
+    the metrics then also hold the first run's measurement (``first_run``). Before the
+    first scan, the robot's own body is
     measured along the odometry and left out (``features.measure_robot_body``:
     :func:`~iceg.robot_body.with_measured_body`, warned); ``result.metrics["robot_body"]``
     holds the range left out and what the scans show of the body along the odometry and
@@ -219,8 +225,61 @@ def run_log(
         LogFormatError: missing, unreadable or empty log, disordered timestamps under
             ``"refuse"``, malformed relations.
         EvaluationError: the relations match no scan of the log.
-        ConfigError: a non-finite ``odometry_time_offset_s``.
+        ConfigError: a non-finite ``odometry_time_offset_s``, or a string other than
+            ``"auto"``.
     """
+    if isinstance(odometry_time_offset_s, str):
+        if odometry_time_offset_s != AUTO_OFFSET:
+            raise ConfigError(
+                f"odometry_time_offset_s: seconds or {AUTO_OFFSET!r}, "
+                f"not {odometry_time_offset_s!r}"
+            )
+        return _run_at_measured_offset(path, config, relations, progress, stamps, reader_options)
+    return _run_log(
+        path, config, relations, progress, stamps, reader_options, odometry_time_offset_s
+    )
+
+
+def _run_at_measured_offset(
+    path: str | Path,
+    config: IcegConfig | None,
+    relations: str | Path | None,
+    progress: bool,
+    stamps: StampPolicy,
+    reader_options: Mapping[str, Any] | None,
+) -> SlamResult:
+    """:func:`run_log` with ``"auto"``: a run at the stamps, then, where it measures a
+    significant offset, a run with the odometry read there."""
+    args = (path, config, relations, progress, stamps, reader_options)
+    first = _run_log(*args, 0.0, advise_offset=False)
+    measured = first.metrics["odometry_time_offset"]["measured"]
+    if measured is None or not measured["significant"]:
+        first.metrics["odometry_time_offset"]["first_run"] = None
+        return first
+    del first  # its graph, map and scans: a second run of a long log needs the memory
+    logger.info(
+        "%s: the scans' rotations match the odometry %+.2f s from their stamps: running "
+        "again with the odometry read there",
+        path,
+        measured["offset_s"],
+    )
+    result = _run_log(*args, measured["offset_s"])
+    result.metrics["odometry_time_offset"]["first_run"] = measured
+    return result
+
+
+def _run_log(
+    path: str | Path,
+    config: IcegConfig | None,
+    relations: str | Path | None,
+    progress: bool,
+    stamps: StampPolicy,
+    reader_options: Mapping[str, Any] | None,
+    odometry_time_offset_s: float,
+    advise_offset: bool = True,
+) -> SlamResult:
+    """:func:`run_log` at a given offset; ``advise_offset``: warn where the run measures a
+    significant offset left."""
     check_log_file(Path(path))
     reader = open_log(path, stamps=stamps, **(reader_options or {}))
     rel = read_relations(relations) if relations is not None else None
@@ -249,7 +308,7 @@ def run_log(
             result = _process(slam, prefetch, scans, progress, len(scans))
     result.metrics["stamps"] = report.as_dict() if report is not None else {"policy": stamps}
     result.metrics["odometry_time_offset"] = _time_offset_metrics(
-        path, odometry_time_offset_s, result
+        path, odometry_time_offset_s, result, advise_offset
     )
     result.metrics["robot_body"] = _robot_body_metrics(path, scans, result, body)
     if rel is not None:
@@ -278,15 +337,19 @@ def _read(
     )
 
 
-def _time_offset_metrics(path: str | Path, applied_s: float, result: SlamResult) -> dict[str, Any]:
+def _time_offset_metrics(
+    path: str | Path, applied_s: float, result: SlamResult, advise: bool
+) -> dict[str, Any]:
     """The applied odometry time offset and the one the run measures (warned when
-    significant: the odometry and the scans disagree on when the robot turned)."""
+    significant and ``advise``: the odometry and the scans disagree on when the robot
+    turned)."""
     measured = odometry_time_offset(result)
-    if measured is not None and measured.significant:
+    if advise and measured is not None and measured.significant:
         logger.warning(
             "%s: the scans' rotations match the odometry %+.2f s from their stamps (mean "
             "heading error per step %.2f -> %.2f deg over %d steps); to read it there, "
-            "pass --odometry-time-offset %.2f",
+            "pass --odometry-time-offset %.2f (or auto: measured and read there in a second "
+            "run)",
             path,
             measured.offset_s,
             measured.heading_error_at_zero_deg,

@@ -375,11 +375,25 @@ def test_odometry_time_offset_is_applied_and_recorded(tmp_path: Path) -> None:
     assert recorded["measured"]["steps"] > 0
 
 
+def test_an_odometry_time_offset_measured_by_the_run(tmp_path: Path) -> None:
+    # The Gazebo TurtleBot 3 bag shows no offset: 'auto' keeps its one run.
+    bag = shared_file("rosbag/turtlebot3-gazebo-ros2")
+    out = tmp_path / "o"
+    args = ["run", str(bag), "--odometry-time-offset", "auto", "--out", str(out)]
+    result = runner.invoke(app, [*args, "--no-progress"])
+    assert result.exit_code == 0, result.output
+    recorded = json.loads((out / "metrics.json").read_text())["odometry_time_offset"]
+    assert recorded["applied_s"] == 0.0 and recorded["first_run"] is None
+    assert recorded["measured"]["steps"] > 0
+
+
 @pytest.mark.parametrize(
     ("args", "needle"),
     [
         (["--odometry-time-offset", "0.1"], "applies to a log run"),  # the demo
         (["LOG", "--odometry-time-offset", "nan"], "finite"),
+        (["LOG", "--odometry-time-offset", "later"], "or 'auto'"),
+        (["--odometry-time-offset", "auto"], "applies to a log run"),  # the demo
     ],
 )
 def test_bad_odometry_time_offset(tmp_path: Path, args: list[str], needle: str) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -20,6 +21,7 @@ from iceg.odometry_timing import (
 from iceg.pipeline import run_log
 from iceg.results import SlamResult
 from iceg.slam import Slam
+from iceg_common.errors import ConfigError
 from tests.conftest import shared_file
 
 
@@ -159,3 +161,39 @@ def test_odometry_noise_alone_is_no_delay(scenario: str) -> None:
         slam.process(scan)
     est = odometry_time_offset(slam.finish())
     assert est is not None and not est.significant
+
+
+def test_auto_reads_the_odometry_at_a_simulated_latency(tmp_path: Path) -> None:
+    """``odometry_time_offset_s="auto"`` on a log whose odometry is read 0.1 s after each scan
+    was taken (the simulated office, written as a CARMEN log): the first run measures -0.1 s,
+    the second reads the odometry there and measures nothing left."""
+    from frontends.carmen import write_carmen
+
+    run = simulate_scenario("office", seed=0)
+    log = tmp_path / "late.clf"
+    write_carmen(log, shift_odometry(run.scans, 0.1))
+    cfg = IcegConfig.model_validate({"slam": {"workers": 1}})
+    result = run_log(log, cfg, odometry_time_offset_s="auto")
+    offset = result.metrics["odometry_time_offset"]
+    assert offset["first_run"]["significant"]
+    assert offset["applied_s"] == offset["first_run"]["offset_s"]
+    assert offset["applied_s"] == pytest.approx(-0.1, abs=OFFSET_RESOLUTION_S)
+    assert not offset["measured"]["significant"]
+
+
+def test_auto_runs_a_log_without_a_latency_once() -> None:
+    """The Gazebo TurtleBot 3 bag shows no offset: ``"auto"`` keeps its one run, the same
+    poses as a run at the stamps, bit for bit."""
+    cfg = IcegConfig.model_validate({"slam": {"workers": 1}})
+    bag = shared_file("rosbag/turtlebot3-gazebo-ros2")
+    auto = run_log(bag, cfg, odometry_time_offset_s="auto")
+    plain = run_log(bag, cfg)
+    assert auto.metrics["odometry_time_offset"]["first_run"] is None
+    assert auto.metrics["odometry_time_offset"]["applied_s"] == 0.0
+    assert auto.poses.tobytes() == plain.poses.tobytes()
+
+
+def test_an_odometry_time_offset_is_seconds_or_auto() -> None:
+    with pytest.raises(ConfigError, match="seconds or 'auto'"):
+        bag = shared_file("rosbag/turtlebot3-gazebo-ros2")
+        run_log(bag, odometry_time_offset_s="later")  # type: ignore[arg-type]
