@@ -214,8 +214,8 @@ def run_log(
     runs once at its stamps and, where that run measures a significant offset, once more
     with the odometry read there (twice the time; docs/design.md "Readers", the latency);
     the metrics then also hold the first run's measurement (``first_run``). Before the
-    first scan, the robot's own body is
-    measured along the odometry and left out (``features.measure_robot_body``:
+    first scan, the robot's own body is measured along the odometry and left out
+    (``features.measure_robot_body``:
     :func:`~iceg.robot_body.with_measured_body`, warned); ``result.metrics["robot_body"]``
     holds the range left out and what the scans show of the body along the odometry and
     along the trajectory (:func:`~iceg.robot_body.robot_body_range`), with a warning when
