@@ -44,7 +44,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import yaml
 from pydantic import (
@@ -120,11 +120,12 @@ class LogEntry(BaseModel):
         "log_odometry the reference is the odometry read first: e.g. motion-capture poses "
         "in a bag's /tf, read with reader_options odom_frame and base_frame.",
     )
-    odometry_time_offset_s: float = Field(
+    odometry_time_offset_s: Annotated[float, Field(allow_inf_nan=False)] | Literal["auto"] = Field(
         default=0.0,
-        allow_inf_nan=False,
         description="Read each scan's odometry at its stamp plus this many seconds "
-        "(frontends.odometry_shift.shift_odometry; iceg run --odometry-time-offset).",
+        "(frontends.odometry_shift.shift_odometry; iceg run --odometry-time-offset). "
+        "'auto': run at the stamps and, where the run measures a significant offset, "
+        "again with the odometry read there (the row's odom_time_offset_applied_s).",
     )
 
     @model_validator(mode="after")
