@@ -228,29 +228,13 @@ def run_log(
         ConfigError: a non-finite ``odometry_time_offset_s``, or a string other than
             ``"auto"``.
     """
-    if isinstance(odometry_time_offset_s, str):
-        if odometry_time_offset_s != AUTO_OFFSET:
-            raise ConfigError(
-                f"odometry_time_offset_s: seconds or {AUTO_OFFSET!r}, "
-                f"not {odometry_time_offset_s!r}"
-            )
-        return _run_at_measured_offset(path, config, relations, progress, stamps, reader_options)
-    return _run_log(
-        path, config, relations, progress, stamps, reader_options, odometry_time_offset_s
-    )
-
-
-def _run_at_measured_offset(
-    path: str | Path,
-    config: IcegConfig | None,
-    relations: str | Path | None,
-    progress: bool,
-    stamps: StampPolicy,
-    reader_options: Mapping[str, Any] | None,
-) -> SlamResult:
-    """:func:`run_log` with ``"auto"``: a run at the stamps, then, where it measures a
-    significant offset, a run with the odometry read there."""
     args = (path, config, relations, progress, stamps, reader_options)
+    if not isinstance(odometry_time_offset_s, str):
+        return _run_log(*args, odometry_time_offset_s)
+    if odometry_time_offset_s != AUTO_OFFSET:
+        raise ConfigError(
+            f"odometry_time_offset_s: seconds or {AUTO_OFFSET!r}, not {odometry_time_offset_s!r}"
+        )
     first = _run_log(*args, 0.0, advise_offset=False)
     measured = first.metrics["odometry_time_offset"]["measured"]
     if measured is None or not measured["significant"]:
