@@ -166,6 +166,12 @@ def _summary_rows(result: SlamResult, out: Path, wall_s: float) -> list[tuple[st
                 f"heading {g['rot_mean_deg']:.3f} deg",
             )
         )
+    offset = result.metrics.get("odometry_time_offset")
+    if offset is not None and (offset["applied_s"] or "first_run" in offset):
+        how = ""
+        if "first_run" in offset:  # --odometry-time-offset auto
+            how = " (auto: measured by a first run)" if offset["first_run"] else " (auto: none)"
+        rows.append(("odometry time offset", f"{offset['applied_s']:+.2f} s{how}"))
     rows.append(("output", str(out)))
     return rows
 

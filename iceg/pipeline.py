@@ -241,9 +241,9 @@ def run_log(
         first.metrics["odometry_time_offset"]["first_run"] = None
         return first
     del first  # its graph, map and scans: a second run of a long log needs the memory
-    logger.info(
+    logger.warning(
         "%s: the scans' rotations match the odometry %+.2f s from their stamps: running "
-        "again with the odometry read there",
+        "again with the odometry read there (--odometry-time-offset auto)",
         path,
         measured["offset_s"],
     )

@@ -379,6 +379,7 @@ def test_odometry_time_offset_is_applied_and_recorded(
     assert recorded["measured"]["steps"] > 0
     if offset == "auto":
         assert recorded["first_run"] is None
+    assert f"odometry time offset  {applied_s:+.2f} s" in result.output
 
 
 @pytest.mark.parametrize(
