@@ -194,6 +194,6 @@ def test_auto_runs_a_log_without_a_latency_once() -> None:
 
 
 def test_an_odometry_time_offset_is_seconds_or_auto() -> None:
+    bag = shared_file("rosbag/turtlebot3-gazebo-ros2")
     with pytest.raises(ConfigError, match="seconds or 'auto'"):
-        bag = shared_file("rosbag/turtlebot3-gazebo-ros2")
         run_log(bag, odometry_time_offset_s="later")  # type: ignore[arg-type]
