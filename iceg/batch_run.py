@@ -32,8 +32,8 @@ from frontends.tum import read_tum
 from graph import FactorKind
 from iceg.config import config_from_dict
 from iceg.evaluation import position_errors, relation_errors
-from iceg.odometry_timing import odometry_time_offset
-from iceg.pipeline import AUTO_OFFSET, check_log_file
+from iceg.odometry_timing import odometry_time_offset, scan_pairs_time_offset
+from iceg.pipeline import check_log_file
 from iceg.results import SlamResult
 from iceg.robot_body import with_measured_body
 from iceg.scan_store import ScanStore
@@ -95,8 +95,7 @@ class RunTask:
             taken from it).
         odometry_time_offset_s: Read each scan's odometry at its stamp plus this
             (:func:`~frontends.odometry_shift.shift_odometry`; 0: as logged); ``"auto"``:
-            run at the stamps and, where the run measures a significant offset, again with
-            the odometry read there (:func:`execute_run`).
+            at the offset measured before the run where significant (:func:`load_input`).
         timeout_s: Time budget of the run (checked after every scan), or None.
         outputs: ``"full"`` (result files in ``output/``) or ``"metrics"`` (``run.json`` only).
     """
@@ -125,14 +124,16 @@ class _Input:
     scans: list[LaserScan]
     reference: FloatArray | None = None  # (N, 3) per scan, NaN rows where unknown
     relations: Relations | None = None
-    info: dict[str, Any] = field(default_factory=dict)
+    offset_applied_s: float | None = None  # "auto": the odometry time offset applied
 
 
 # ---------------------------------------------------------------------------- input
 
 
 def load_input(task: RunTask) -> _Input:
-    """Scans, reference and relations of a task.
+    """Scans, reference and relations of a task; with the odometry time offset ``"auto"``,
+    the log's odometry read at the offset measured before the run where significant
+    (``offset_applied_s``).
 
     Raises:
         IcegError: unknown scenario, unreadable log or relations, no scans.
@@ -145,9 +146,11 @@ def load_input(task: RunTask) -> _Input:
     else:
         check_log_file(Path(task.source))  # a file, or a ROS 2 bag folder
         scans, reference = open_log(task.source, **task.reader_options), None
-    offset = task.odometry_time_offset_s
-    at_s = 0.0 if isinstance(offset, str) else offset  # "auto": the first run is at the stamps
-    data = _Input(list(shift_odometry(scans, at_s)), reference)
+    offset, measured = task.odometry_time_offset_s, None
+    if isinstance(offset, str):  # "auto": measured on the scans the run uses, at the stamps
+        scans = list(scans)
+        offset = measured = _measured_offset(task, scans[: task.max_scans])
+    data = _Input(list(shift_odometry(scans, offset)), reference, offset_applied_s=measured)
     if not data.scans:
         raise LogFormatError(f"{task.source}: the log holds no laser scans")
     if task.max_scans is not None:
@@ -170,6 +173,17 @@ def load_input(task: RunTask) -> _Input:
     if task.relations is not None:
         data.relations = read_relations(_existing(task.relations))
     return data
+
+
+def _measured_offset(task: RunTask, scans: list[LaserScan]) -> float:
+    """The odometry time offset of ``scans`` (odometry at their stamps) measured before the
+    run (:func:`~iceg.odometry_timing.scan_pairs_time_offset`, as :func:`iceg.pipeline.run_log`
+    does), where significant; else 0 (also without scans)."""
+    if not scans:
+        return 0.0
+    config = config_from_dict(task.config, source=f"batch variant {task.variant!r}")
+    timing = scan_pairs_time_offset(scans, with_measured_body(config, ScanStore(scans))[0])
+    return timing.offset_s if timing is not None and timing.significant else 0.0
 
 
 def _existing(path: str) -> Path:
@@ -208,9 +222,8 @@ def run_slam(task: RunTask, scans: list[LaserScan], t0: float) -> tuple[SlamResu
 
 def execute_run(task: RunTask) -> dict[str, Any]:
     """Run one task and write its folder; never raises for a failing run. With the
-    odometry time offset ``"auto"`` the log runs at its stamps and, where that run measures
-    a significant offset, once more with the odometry read there (the time budget covers
-    both); the row's metrics are the last run's, with ``odom_time_offset_applied_s``.
+    odometry time offset ``"auto"`` the row's metrics hold the offset the odometry was read
+    at (``odom_time_offset_applied_s``, measured before the run by :func:`load_input`).
 
     Returns:
         The row (also in ``folder/run.json``): ``run_id``, ``key``, ``log``, ``variant``,
@@ -227,18 +240,9 @@ def execute_run(task: RunTask) -> dict[str, Any]:
     try:
         data = load_input(task)
         result, online = run_slam(task, data.scans, t0)
-        auto, applied = task.odometry_time_offset_s == AUTO_OFFSET, 0.0
-        if auto:
-            timing = odometry_time_offset(result)
-            if timing is not None and timing.significant:
-                applied = timing.offset_s
-                second = replace(task, odometry_time_offset_s=applied)
-                del result, data, online  # a second run of a long log needs the memory
-                data = load_input(second)
-                result, online = run_slam(second, data.scans, t0)
         metrics = run_metrics(result, data, online)
-        if auto:
-            metrics["odom_time_offset_applied_s"] = applied
+        if data.offset_applied_s is not None:
+            metrics["odom_time_offset_applied_s"] = data.offset_applied_s
         if task.outputs == "full":
             result.save(folder / "output")
     except RunTimeout as exc:

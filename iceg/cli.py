@@ -167,10 +167,10 @@ def _summary_rows(result: SlamResult, out: Path, wall_s: float) -> list[tuple[st
             )
         )
     offset = result.metrics.get("odometry_time_offset")
-    if offset is not None and (offset["applied_s"] or "first_run" in offset):
+    if offset is not None and (offset["applied_s"] or "before_run" in offset):
         how = ""
-        if "first_run" in offset:  # --odometry-time-offset auto
-            how = " (auto: measured by a first run)" if offset["first_run"] else " (auto: none)"
+        if "before_run" in offset:  # --odometry-time-offset auto
+            how = " (auto: measured before the run)" if offset["applied_s"] else " (auto: none)"
         rows.append(("odometry time offset", f"{offset['applied_s']:+.2f} s{how}"))
     rows.append(("output", str(out)))
     return rows
@@ -198,8 +198,8 @@ OdometryTimeOffsetOption = Annotated[
     typer.Option(
         help="Read each scan's odometry at its stamp plus this many seconds (negative: the "
         "scans were measured before their stamps). A run measures it: metrics.json, "
-        "odometry_time_offset. 'auto': run, and where the run measures a significant "
-        "offset, run again with the odometry read there (twice the time).",
+        "odometry_time_offset. 'auto': measure it before the run, each scan matched against "
+        "the one before it, and read the odometry there where significant.",
     ),
 ]
 ContinueOption = Annotated[

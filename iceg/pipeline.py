@@ -25,7 +25,11 @@ from iceg.evaluation import position_errors, relation_errors
 from iceg.features.prefetch import FeaturePrefetcher, auto_workers
 from iceg.kernel_warmup import cache_is_new, probed
 from iceg.match_pool import MatchPool
-from iceg.odometry_timing import odometry_time_offset
+from iceg.odometry_timing import (
+    TimeOffsetEstimate,
+    odometry_time_offset,
+    scan_pairs_time_offset,
+)
 from iceg.results import SlamResult
 from iceg.robot_body import (
     BIN_DEG,
@@ -210,10 +214,11 @@ def run_log(
     (:func:`~frontends.odometry_shift.shift_odometry`);
     ``result.metrics["odometry_time_offset"]`` holds that value and the offset the run's
     matches measure (:func:`~iceg.odometry_timing.odometry_time_offset`), with a warning
-    when the measured one is significant. With ``"auto"`` (:data:`AUTO_OFFSET`) the log
-    runs once at its stamps and, where that run measures a significant offset, once more
-    with the odometry read there (twice the time; docs/design.md "Readers", the latency);
-    the metrics then also hold the first run's measurement (``first_run``). Before the
+    when the measured one is significant. With ``"auto"`` (:data:`AUTO_OFFSET`) the offset
+    is measured before the run, each scan matched against the one before it
+    (:func:`~iceg.odometry_timing.scan_pairs_time_offset`), and where significant the
+    odometry is read there (docs/design.md "Readers", the latency); the metrics then also
+    hold that measurement (``before_run``). Before the
     first scan, the robot's own body is measured along the odometry and left out
     (``features.measure_robot_body``:
     :func:`~iceg.robot_body.with_measured_body`, warned); ``result.metrics["robot_body"]``
@@ -228,53 +233,42 @@ def run_log(
         ConfigError: a non-finite ``odometry_time_offset_s``, or a string other than
             ``"auto"``.
     """
-    args = (path, config, relations, progress, stamps, reader_options)
-    if not isinstance(odometry_time_offset_s, str):
-        return _run_log(*args, odometry_time_offset_s)
-    if odometry_time_offset_s != AUTO_OFFSET:
+    if isinstance(odometry_time_offset_s, str) and odometry_time_offset_s != AUTO_OFFSET:
         raise ConfigError(
             f"odometry_time_offset_s: seconds or {AUTO_OFFSET!r}, not {odometry_time_offset_s!r}"
         )
-    first = _run_log(*args, 0.0, advise_offset=False)
-    measured = first.metrics["odometry_time_offset"]["measured"]
-    if measured is None or not measured["significant"]:
-        first.metrics["odometry_time_offset"]["first_run"] = None
-        return first
-    del first  # its graph, map and scans: a second run of a long log needs the memory
-    logger.warning(
-        "%s: the scans' rotations match the odometry %+.2f s from their stamps: running "
-        "again with the odometry read there (--odometry-time-offset auto)",
-        path,
-        measured["offset_s"],
-    )
-    result = _run_log(*args, measured["offset_s"])
-    result.metrics["odometry_time_offset"]["first_run"] = measured
-    return result
-
-
-def _run_log(
-    path: str | Path,
-    config: IcegConfig | None,
-    relations: str | Path | None,
-    progress: bool,
-    stamps: StampPolicy,
-    reader_options: Mapping[str, Any] | None,
-    odometry_time_offset_s: float,
-    advise_offset: bool = True,
-) -> SlamResult:
-    """:func:`run_log` at a given offset; ``advise_offset``: warn where the run measures a
-    significant offset left."""
     check_log_file(Path(path))
     reader = open_log(path, stamps=stamps, **(reader_options or {}))
     rel = read_relations(relations) if relations is not None else None
     slam = Slam(config)
     result: SlamResult | None = None
-    with _started(slam, lambda: _read(reader, odometry_time_offset_s, slam.config)) as (
+    auto = odometry_time_offset_s == AUTO_OFFSET
+    applied_s = 0.0 if isinstance(odometry_time_offset_s, str) else odometry_time_offset_s
+    before_run: TimeOffsetEstimate | None = None
+    with _started(slam, lambda: _read(reader, applied_s, slam.config)) as (
         (scans, report, (run_config, body)),
         prefetch,
     ):
         if not scans:
             raise LogFormatError(f"{path}: the log holds no laser scans")
+        if auto:
+            before_run = scan_pairs_time_offset(
+                scans, run_config, slam.config.slam.workers or auto_workers()
+            )
+            if before_run is not None and before_run.significant:
+                applied_s = before_run.offset_s
+                logger.warning(
+                    "%s: consecutive scans turn as the odometry does %+.2f s from their "
+                    "stamps (mean heading error per step %.2f -> %.2f deg over %d steps): "
+                    "the odometry is read there (--odometry-time-offset auto)",
+                    path,
+                    applied_s,
+                    before_run.heading_error_at_zero_deg,
+                    before_run.heading_error_at_offset_deg,
+                    before_run.steps,
+                )
+                scans = ScanStore(shift_odometry(scans, applied_s))
+                run_config, body = with_measured_body(slam.config, scans)
         if rel is not None:
             check_relations_match(rel, scans.stamps_s)
         if run_config == slam.config:
@@ -291,9 +285,11 @@ def _run_log(
         with helper_processes(slam) as prefetch:
             result = _process(slam, prefetch, scans, progress, len(scans))
     result.metrics["stamps"] = report.as_dict() if report is not None else {"policy": stamps}
-    result.metrics["odometry_time_offset"] = _time_offset_metrics(
-        path, odometry_time_offset_s, result, advise_offset
-    )
+    result.metrics["odometry_time_offset"] = _time_offset_metrics(path, applied_s, result)
+    if auto:
+        result.metrics["odometry_time_offset"]["before_run"] = (
+            None if before_run is None else before_run.as_dict()
+        )
     result.metrics["robot_body"] = _robot_body_metrics(path, scans, result, body)
     if rel is not None:
         summary, _ = relation_errors(
@@ -321,19 +317,16 @@ def _read(
     )
 
 
-def _time_offset_metrics(
-    path: str | Path, applied_s: float, result: SlamResult, advise: bool
-) -> dict[str, Any]:
+def _time_offset_metrics(path: str | Path, applied_s: float, result: SlamResult) -> dict[str, Any]:
     """The applied odometry time offset and the one the run measures (warned when
-    significant and ``advise``: the odometry and the scans disagree on when the robot
-    turned)."""
+    significant: the odometry and the scans disagree on when the robot turned)."""
     measured = odometry_time_offset(result)
-    if advise and measured is not None and measured.significant:
+    if measured is not None and measured.significant:
         logger.warning(
             "%s: the scans' rotations match the odometry %+.2f s from their stamps (mean "
             "heading error per step %.2f -> %.2f deg over %d steps); to read it there, "
-            "pass --odometry-time-offset %.2f (or auto: measured and read there in a second "
-            "run)",
+            "pass --odometry-time-offset %.2f (or auto: measured from consecutive scans before "
+            "the run)",
             path,
             measured.offset_s,
             measured.heading_error_at_zero_deg,

@@ -314,22 +314,22 @@ def test_cli_batch_on_a_local_pool(tmp_path: Path) -> None:
 
 
 def test_auto_reads_the_odometry_where_the_run_measures_its_offset(tmp_path: Path) -> None:
-    # The simulated office written with its odometry read 0.1 s after each scan was taken:
-    # 'auto' runs it again at the measured -0.1 s, where nothing is left to measure; the
-    # office as simulated runs once, at its stamps.
+    # The simulated office written with its odometry read 0.2 s after each scan was taken:
+    # 'auto' measures -0.2 s before the run and reads the odometry there, where the run
+    # measures nothing left; the office as simulated runs at its stamps.
     from frontends.carmen import write_carmen
     from frontends.odometry_shift import shift_odometry
     from frontends.simulate import simulate_scenario
 
     log = tmp_path / "late.clf"
-    write_carmen(log, shift_odometry(simulate_scenario("office", 0).scans, 0.1))
+    write_carmen(log, shift_odometry(simulate_scenario("office", 0).scans, 0.2))
     logs = [
         {"path": str(log), "name": "late", "odometry_time_offset_s": "auto"},
         {"path": "sim:office", "name": "on_time", "odometry_time_offset_s": "auto"},
     ]
     late, on_time = expand(spec_from_dict({"logs": logs, "outputs": "metrics"}), tmp_path, tmp_path)
     rows = {t.log_name: execute_run(t) for t in (late, on_time)}
-    assert rows["late"]["metrics"]["odom_time_offset_applied_s"] == pytest.approx(-0.1, abs=0.01)
+    assert rows["late"]["metrics"]["odom_time_offset_applied_s"] == pytest.approx(-0.2, abs=0.01)
     assert math.isnan(rows["late"]["metrics"]["odom_time_offset_s"])  # none left
     assert rows["late"]["task"]["odometry_time_offset_s"] == "auto"
     assert rows["on_time"]["metrics"]["odom_time_offset_applied_s"] == 0.0
