@@ -257,16 +257,7 @@ def run_log(
             )
             if before_run is not None and before_run.significant:
                 applied_s = before_run.offset_s
-                logger.warning(
-                    "%s: consecutive scans turn as the odometry does %+.2f s from their "
-                    "stamps (mean heading error per step %.2f -> %.2f deg over %d steps): "
-                    "the odometry is read there (--odometry-time-offset auto)",
-                    path,
-                    applied_s,
-                    before_run.heading_error_at_zero_deg,
-                    before_run.heading_error_at_offset_deg,
-                    before_run.steps,
-                )
+                _warn_offset_read(path, before_run)
                 scans = ScanStore(shift_odometry(scans, applied_s))
                 run_config, body = with_measured_body(slam.config, scans)
         if rel is not None:
@@ -314,6 +305,20 @@ def _read(
         store,
         report if isinstance(report, StampReport) else None,
         with_measured_body(config, store) if len(store) else (config, None),
+    )
+
+
+def _warn_offset_read(path: str | Path, before_run: TimeOffsetEstimate) -> None:
+    """Tell the user the odometry is read at the offset ``auto`` measured."""
+    logger.warning(
+        "%s: consecutive scans turn as the odometry does %+.2f s from their stamps (mean "
+        "heading error per step %.2f -> %.2f deg over %d steps): the odometry is read there "
+        "(--odometry-time-offset auto)",
+        path,
+        before_run.offset_s,
+        before_run.heading_error_at_zero_deg,
+        before_run.heading_error_at_offset_deg,
+        before_run.steps,
     )
 
 
