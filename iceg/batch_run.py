@@ -32,7 +32,7 @@ from frontends.tum import read_tum
 from graph import FactorKind
 from iceg.config import config_from_dict
 from iceg.evaluation import position_errors, relation_errors
-from iceg.odometry_timing import odometry_time_offset, scan_pairs_time_offset
+from iceg.odometry_timing import odometry_time_offset, offset_to_read
 from iceg.pipeline import check_log_file
 from iceg.results import SlamResult
 from iceg.robot_body import with_measured_body
@@ -176,14 +176,13 @@ def load_input(task: RunTask) -> _Input:
 
 
 def _measured_offset(task: RunTask, scans: list[LaserScan]) -> float:
-    """The odometry time offset of ``scans`` (odometry at their stamps) measured before the
-    run (:func:`~iceg.odometry_timing.scan_pairs_time_offset`, as :func:`iceg.pipeline.run_log`
-    does), where significant; else 0 (also without scans)."""
+    """The odometry time offset ``"auto"`` reads ``scans`` at (odometry at their stamps):
+    :func:`~iceg.odometry_timing.offset_to_read` with the task's configuration and the
+    robot's body measured, as :func:`iceg.pipeline.run_log` does; 0 without scans."""
     if not scans:
         return 0.0
     config = config_from_dict(task.config, source=f"batch variant {task.variant!r}")
-    timing = scan_pairs_time_offset(scans, with_measured_body(config, ScanStore(scans))[0])
-    return timing.offset_s if timing is not None and timing.significant else 0.0
+    return offset_to_read(scans, with_measured_body(config, ScanStore(scans))[0])[0]
 
 
 def _existing(path: str) -> Path:

@@ -166,14 +166,19 @@ def _summary_rows(result: SlamResult, out: Path, wall_s: float) -> list[tuple[st
                 f"heading {g['rot_mean_deg']:.3f} deg",
             )
         )
-    offset = result.metrics.get("odometry_time_offset")
-    if offset is not None and (offset["applied_s"] or "before_run" in offset):
-        how = ""
-        if "before_run" in offset:  # --odometry-time-offset auto
-            how = " (auto: measured before the run)" if offset["applied_s"] else " (auto: none)"
-        rows.append(("odometry time offset", f"{offset['applied_s']:+.2f} s{how}"))
+    rows += _time_offset_rows(result.metrics.get("odometry_time_offset"))
     rows.append(("output", str(out)))
     return rows
+
+
+def _time_offset_rows(offset: dict[str, Any] | None) -> list[tuple[str, str]]:
+    """The summary's row of the odometry time offset read, where one was given (none at 0)."""
+    if offset is None or not (offset["applied_s"] or "before_run" in offset):
+        return []
+    how = ""
+    if "before_run" in offset:  # --odometry-time-offset auto
+        how = " (auto: measured before the run)" if offset["applied_s"] else " (auto: none)"
+    return [("odometry time offset", f"{offset['applied_s']:+.2f} s{how}")]
 
 
 # ROS bag options of ``iceg run`` (typer reads the help from the annotation).
@@ -262,7 +267,7 @@ def run(
     if out is not None:
         check_output_dir(out)
     offset = _time_offset(odometry_time_offset)
-    _check_log_run_option(offset != 0.0, log is not None and continue_ is None)
+    _check_log_run_option(offset != 0.0, log is not None)
     reader_options = _bag_options(
         scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset
     )
@@ -315,17 +320,15 @@ def _time_offset(value: str) -> float | Literal["auto"]:
 
 
 def _check_log_run_option(given: bool, log_run: bool) -> None:
-    """``--odometry-time-offset`` reads a log's odometry: a plain log run only.
+    """``--odometry-time-offset`` reads a log's odometry: not for the demo.
 
     Raises:
-        ConfigError: it is given for the demo or with ``--continue``.
+        ConfigError: it is given for the demo.
     """
     from iceg_common.errors import ConfigError
 
     if given and not log_run:
-        raise ConfigError(
-            "--odometry-time-offset applies to a log run, not to --continue or the demo"
-        )
+        raise ConfigError("--odometry-time-offset applies to a log run, not to the demo")
 
 
 def _run_and_save(
@@ -343,7 +346,9 @@ def _run_and_save(
     from iceg.pipeline import run_log, run_simulated_demo
 
     if cont is not None:
-        result = _continue(log, cont[0], cont[1], relations, progress, stamps, reader_options)
+        result = _continue(
+            log, cont, relations, progress, stamps, reader_options, odometry_time_offset_s
+        )
     elif log is None:
         result = run_simulated_demo(cfg, progress=progress)
     else:
@@ -646,30 +651,37 @@ def localize(
     stamps: Annotated[StampChoice, typer.Option(help="Disordered log stamps.")] = (
         StampChoice.sort
     ),
+    scan_topic: ScanTopicOption = None,
+    odom_topic: OdomTopicOption = None,
+    odom_frame: OdomFrameOption = None,
+    base_frame: BaseFrameOption = None,
+    laser_frame_offset: LaserOffsetOption = None,
+    odometry_time_offset: OdometryTimeOffsetOption = "0",
 ) -> None:
     """Localize a log in a saved map (nothing is added to it): trajectory with per-pose
     covariance (localization.csv), trajectory.tum and a map.png overlay."""
     import numpy as np
 
-    from frontends import open_log
     from iceg import session as sess
     from iceg.localize import fixed_map_of_session, localize_scans, save_localization
-    from iceg.pipeline import check_log_file
+    from iceg.pipeline import read_log_scans
 
+    options = _bag_options(scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset)
+    offset_s = _time_offset(odometry_time_offset)
     s = sess.read(map_)
-    check_log_file(log)
-    scans = list(open_log(log, stamps=stamps.value))
+    scans, offset = read_log_scans(log, s.config, stamps.value, options, offset_s)
     pose = None
     if initial_pose is not None:
         pose = np.array([initial_pose[0], initial_pose[1], math.radians(initial_pose[2])])
     result = localize_scans(fixed_map_of_session(s), scans, initial_pose=pose)
     out_dir = out if out is not None else _default_out_dir()
     try:
-        save_localization(result, s, out_dir)
+        save_localization(result, s, out_dir, metrics={"odometry_time_offset": offset})
     except OSError as exc:
         raise OutputError(f"{out_dir}: cannot write the results ({exc})") from exc
     rows = [(k, str(v)) for k, v in result.summary.items()]
     rows.append(("relocalizations", str(result.relocalizations)))
+    rows += _time_offset_rows(offset)
     if relations is not None:
         ok = ~np.isnan(result.poses[:, 0])
         rows += _relation_rows_of(result.stamps_s[ok], result.poses[ok], relations)
@@ -718,24 +730,34 @@ def merge(
 
 def _continue(
     log: Path | None,
-    session_dir: Path,
-    initial_pose: tuple[float, float, float] | None,
+    cont: tuple[Path, tuple[float, float, float] | None],
     relations: Path | None,
     progress: bool,
     stamps: Any,
     reader_options: dict[str, Any],
+    odometry_time_offset_s: float | Literal["auto"],
 ) -> SlamResult:
-    """``iceg run LOG --continue SESSION``."""
+    """``iceg run LOG --continue SESSION [--initial-pose X Y THETA_DEG]``."""
     from iceg.continuation import continue_log
 
     if log is None:
         from iceg_common.errors import ConfigError
 
         raise ConfigError("--continue needs a LOG to extend the session with")
+    session_dir, initial_pose = cont
     pose = None
     if initial_pose is not None:
         pose = (initial_pose[0], initial_pose[1], math.radians(initial_pose[2]))
-    return continue_log(log, session_dir, relations, pose, progress, stamps, reader_options)
+    return continue_log(
+        log,
+        session_dir,
+        relations,
+        pose,
+        progress,
+        stamps,
+        reader_options,
+        odometry_time_offset_s,
+    )
 
 
 def _relation_rows(s: Any, relations: Path | None) -> list[tuple[str, str]]:

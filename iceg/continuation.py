@@ -15,13 +15,14 @@ import logging
 import os
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from tqdm.auto import tqdm
 
 from frontends import LaserScan
+from frontends.scan import StampPolicy
 from iceg import session as sess
 from iceg.features import extract
 from iceg.localize import FixedMap, Localizer, LocalizeSettings, Placement, Status
@@ -85,9 +86,7 @@ def place_start(
     st = settings or LocalizeSettings()
     guess = None if initial_pose is None else np.asarray(initial_pose, dtype=np.float64)
     unconfirmed: list[str] = []
-    for k, scan in enumerate(scans[:START_SCANS]):
-        if k and (scan.odom_pose is None or scan.odom_break):
-            break  # no odometry back to the first scan
+    for k, scan in enumerate(scans[: odometry_run_end(scans, START_SCANS)]):
         search = k % START_STEP == 0  # a global search is costly: every START_STEP-th scan
         if guess is None and not search:
             continue
@@ -109,13 +108,29 @@ def place_start(
     raise SessionError(
         f"{scans[0].source}: the log cannot be placed in the map (no unambiguous ICE match of "
         f"enough correlation and fit, confirmed by tracking, in its first "
-        f"{min(len(scans), START_SCANS)} scans{detail}); is it from this building? Give "
-        "--initial-pose X Y THETA_DEG if it is"
+        f"{odometry_run_end(scans, START_SCANS)} scans{detail}); is it from this building? "
+        "Give --initial-pose X Y THETA_DEG if it is"
     )
 
 
+def odometry_run_end(scans: Sequence[LaserScan], limit: int) -> int:
+    """The scans from the first on that odometry links to it, at most ``limit``: the index of
+    the first later scan without odometry or after an odometry break (1 when the first scan
+    has no odometry), else ``min(limit, len(scans))``."""
+    end = min(limit, len(scans))
+    if end and scans[0].odom_pose is None:
+        return 1
+    for k in range(1, end):
+        if scans[k].odom_pose is None or scans[k].odom_break:
+            return k
+    return end
+
+
 def _odometry(scans: Sequence[LaserScan], i: int, j: int) -> FloatArray:
-    """Odometry motion from scan ``i`` to scan ``j`` (``(3,)``, frame of scan ``i``)."""
+    """Odometry motion from scan ``i`` to scan ``j`` (``(3,)``, frame of scan ``i``; none
+    from a scan to itself, with or without odometry)."""
+    if i == j:
+        return np.zeros(3)
     return se2.between(scans[i].odom_pose, scans[j].odom_pose)  # type: ignore[arg-type]
 
 
@@ -209,29 +224,37 @@ def continue_log(
     relations: str | Path | None = None,
     initial_pose: ArrayLike | None = None,
     progress: bool = False,
-    stamps: str = "sort",
+    stamps: StampPolicy = "sort",
     reader_options: dict[str, Any] | None = None,
+    odometry_time_offset_s: float | Literal["auto"] = 0.0,
 ) -> SlamResult:
     """:func:`continue_scans` over a log file, scored with ``relations`` like
     :func:`iceg.pipeline.run_log` (the relations that fall on either log's scans count).
+    The log's odometry is read at each scan's stamp plus ``odometry_time_offset_s``
+    (``"auto"``: measured with the session's configuration,
+    :func:`iceg.pipeline.read_log_scans`); ``result.metrics["odometry_time_offset"]`` holds
+    it.
 
     Raises:
         LogFormatError: missing, unreadable or empty log.
         SessionError: unreadable session, or a log that cannot be placed.
         EvaluationError: the relations match no scan.
+        ConfigError: an offset neither finite seconds nor ``"auto"``.
     """
-    from frontends import open_log
     from frontends.relations import read_relations
     from iceg.evaluation import relation_errors
-    from iceg.pipeline import RELATION_TOLERANCE_S, check_log_file, check_relations_match
+    from iceg.pipeline import RELATION_TOLERANCE_S, check_relations_match, read_log_scans
 
-    check_log_file(Path(path))
-    scans = list(open_log(path, stamps=stamps, **(reader_options or {})))
+    config = sess.read(session_path).config
+    scans, offset = read_log_scans(path, config, stamps, reader_options, odometry_time_offset_s)
     rel = read_relations(relations) if relations is not None else None
     if rel is not None:
         check_relations_match(rel, np.array([s.stamp_s for s in scans]))
     result = continue_scans(session_path, scans, initial_pose, progress)
+    if result.slam is not None:
+        sess.record_reading(result.slam, path, reader_options, offset["applied_s"])
     result.metrics["continued_from"] = str(Path(session_path).resolve())
+    result.metrics["odometry_time_offset"] = offset
     if rel is not None:
         summary, _ = relation_errors(
             result.stamps_s, result.poses, rel.stamps_s, rel.deltas, RELATION_TOLERANCE_S

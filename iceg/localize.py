@@ -19,10 +19,11 @@ import dataclasses
 import itertools
 import json
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -799,7 +800,7 @@ def _localize_in_session(
     of the current scan disagrees with the estimate (a kidnapping). Scans that cannot be
     placed are LOST; the next placement is searched after them.
     """
-    from iceg.continuation import START_SCANS, place_start
+    from iceg.continuation import START_SCANS, START_STEP, odometry_run_end, place_start
     from iceg_common.errors import SessionError
 
     n = len(scans)
@@ -814,8 +815,11 @@ def _localize_in_session(
         try:
             k, placement = place_start(fixed, scans[i:], guess, st)
         except SessionError as exc:
-            logger.info("scans %d-%d not placed: %s", i, min(n, i + START_SCANS) - 1, exc)
-            guess, i = None, i + START_SCANS
+            # place_start tried the scans odometry links to scan i; without odometry, every
+            # START_STEP-th scan is searched, as within a run of odometry
+            tried = max(odometry_run_end(scans[i:], START_SCANS), START_STEP)
+            logger.info("scans %d-%d not placed: %s", i, i + tried - 1, exc)
+            guess, i = None, i + tried
             continue
         relocalizations += guess is None or _far(placement.pose, guess, st)
         guess = None
@@ -1077,11 +1081,16 @@ LOCALIZATION_COLUMNS = (
 
 
 def save_localization(
-    result: LocalizationResult, session: Session, out: str | Path, render_map: bool = True
+    result: LocalizationResult,
+    session: Session,
+    out: str | Path,
+    render_map: bool = True,
+    metrics: Mapping[str, Any] | None = None,
 ) -> Path:
     """Write ``trajectory.tum`` (localized scans only), ``localization.csv`` (every scan,
-    with covariance and status), ``metrics.json`` and ``map.png`` (the session's map with
-    the new trajectory drawn over it) into ``out``, each atomically.
+    with covariance and status), ``metrics.json`` (with the entries of ``metrics``, e.g.
+    the odometry time offset read) and ``map.png`` (the session's map with the new
+    trajectory drawn over it) into ``out``, each atomically.
 
     Raises:
         OSError: the folder cannot be written.
@@ -1105,6 +1114,7 @@ def save_localization(
                 "status": result.summary,
                 "relocalizations": result.relocalizations,
                 "session": str(session.path.resolve()),
+                **(metrics or {}),
             },
             fh,
             indent=2,

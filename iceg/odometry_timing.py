@@ -234,6 +234,16 @@ def scan_pairs_time_offset(
     )
 
 
+def offset_to_read(
+    scans: Sequence[LaserScan], config: IcegConfig, processes: int = 1
+) -> tuple[float, TimeOffsetEstimate | None]:
+    """What ``--odometry-time-offset auto`` reads the odometry at: the offset
+    :func:`scan_pairs_time_offset` measures (arguments as there) where significant, else 0
+    (seconds); and that measurement (None: nothing to compare)."""
+    est = scan_pairs_time_offset(scans, config, processes)
+    return (est.offset_s if est is not None and est.significant else 0.0), est
+
+
 def _matched_turns(
     store: ScanStore, config: IcegConfig, lo: int, hi: int
 ) -> tuple[IntArray, FloatArray]:

@@ -25,11 +25,7 @@ from iceg.evaluation import position_errors, relation_errors
 from iceg.features.prefetch import FeaturePrefetcher, auto_workers
 from iceg.kernel_warmup import cache_is_new, probed
 from iceg.match_pool import MatchPool
-from iceg.odometry_timing import (
-    TimeOffsetEstimate,
-    odometry_time_offset,
-    scan_pairs_time_offset,
-)
+from iceg.odometry_timing import TimeOffsetEstimate, odometry_time_offset, offset_to_read
 from iceg.results import SlamResult
 from iceg.robot_body import (
     BIN_DEG,
@@ -113,7 +109,7 @@ def helper_processes(slam: Slam, workers: int | None = None) -> Iterator[Feature
     (:func:`~iceg.kernel_warmup.cache_is_new`, logged as a warning), the first feature worker
     compiles the later stages' kernels while this process compiles the first ones."""
     if workers is None:
-        workers = slam.config.slam.workers or auto_workers()
+        workers = _processes(slam.config)
     precompute = ScanPrecompute(slam.config)
     new_cache = cache_is_new()
     if new_cache:
@@ -142,7 +138,7 @@ def _started(slam: Slam, make_input: Callable[[], T]) -> Iterator[tuple[T, Featu
     (its first run), the input is made meanwhile in a forked process
     (:func:`~iceg.aside.compute_aside`); the run's processes are counted before that
     process keeps a core busy (:func:`~iceg.features.prefetch.auto_workers` watches them)."""
-    workers = slam.config.slam.workers or auto_workers()
+    workers = _processes(slam.config)
     with (
         compute_aside(make_input, fork=not probed()) as aside,
         helper_processes(slam, workers) as prefetch,
@@ -233,10 +229,7 @@ def run_log(
         ConfigError: a non-finite ``odometry_time_offset_s``, or a string other than
             ``"auto"``.
     """
-    if isinstance(odometry_time_offset_s, str) and odometry_time_offset_s != AUTO_OFFSET:
-        raise ConfigError(
-            f"odometry_time_offset_s: seconds or {AUTO_OFFSET!r}, not {odometry_time_offset_s!r}"
-        )
+    _check_offset(odometry_time_offset_s)
     check_log_file(Path(path))
     reader = open_log(path, stamps=stamps, **(reader_options or {}))
     rel = read_relations(relations) if relations is not None else None
@@ -252,12 +245,9 @@ def run_log(
         if not scans:
             raise LogFormatError(f"{path}: the log holds no laser scans")
         if auto:
-            before_run = scan_pairs_time_offset(
-                scans, run_config, slam.config.slam.workers or auto_workers()
-            )
-            if before_run is not None and before_run.significant:
-                applied_s = before_run.offset_s
-                _warn_offset_read(path, before_run)
+            applied_s, before_run = offset_to_read(scans, run_config, _processes(slam.config))
+            _warn_offset_read(path, before_run)
+            if applied_s:
                 scans = ScanStore(shift_odometry(scans, applied_s))
                 run_config, body = with_measured_body(slam.config, scans)
         if rel is not None:
@@ -275,6 +265,10 @@ def run_log(
         slam = Slam(run_config)
         with helper_processes(slam) as prefetch:
             result = _process(slam, prefetch, scans, progress, len(scans))
+    if result.slam is not None:
+        from iceg.session import record_reading  # 23 ms of imports a run without a session skips
+
+        record_reading(result.slam, path, reader_options, applied_s)
     result.metrics["stamps"] = report.as_dict() if report is not None else {"policy": stamps}
     result.metrics["odometry_time_offset"] = _time_offset_metrics(path, applied_s, result)
     if auto:
@@ -308,8 +302,60 @@ def _read(
     )
 
 
-def _warn_offset_read(path: str | Path, before_run: TimeOffsetEstimate) -> None:
-    """Tell the user the odometry is read at the offset ``auto`` measured."""
+def read_log_scans(
+    path: str | Path,
+    config: IcegConfig,
+    stamps: StampPolicy = "sort",
+    reader_options: Mapping[str, Any] | None = None,
+    odometry_time_offset_s: float | Literal["auto"] = 0.0,
+) -> tuple[list[LaserScan], dict[str, Any]]:
+    """A log's scans, each one's odometry read at its stamp plus ``odometry_time_offset_s``
+    (``"auto"``: :func:`~iceg.odometry_timing.offset_to_read` with ``config``, as
+    :func:`run_log` measures it), for the runs that take a list of scans (a session's
+    continuation, a localization).
+
+    Returns:
+        The scans, and the offset's record for ``metrics.json``: ``applied_s`` and, with
+        ``"auto"``, ``before_run`` (the measurement's fields, None without one).
+
+    Raises:
+        LogFormatError: missing or unreadable log.
+        ConfigError: a non-finite offset, or a string other than ``"auto"``.
+    """
+    _check_offset(odometry_time_offset_s)
+    check_log_file(Path(path))
+    scans = list(open_log(path, stamps=stamps, **(reader_options or {})))
+    record: dict[str, Any] = {}
+    applied_s = odometry_time_offset_s
+    if isinstance(applied_s, str):
+        applied_s, before_run = offset_to_read(scans, config, _processes(config))
+        _warn_offset_read(path, before_run)
+        record["before_run"] = None if before_run is None else before_run.as_dict()
+    record["applied_s"] = applied_s
+    return list(shift_odometry(scans, applied_s)), record
+
+
+def _check_offset(odometry_time_offset_s: float | str) -> None:
+    """Seconds or ``"auto"`` (the seconds are checked where they are applied).
+
+    Raises:
+        ConfigError: another string.
+    """
+    if isinstance(odometry_time_offset_s, str) and odometry_time_offset_s != AUTO_OFFSET:
+        raise ConfigError(
+            f"odometry_time_offset_s: seconds or {AUTO_OFFSET!r}, not {odometry_time_offset_s!r}"
+        )
+
+
+def _processes(config: IcegConfig) -> int:
+    """Processes a run of ``config`` uses (``slam.workers``, 0: :func:`auto_workers`)."""
+    return config.slam.workers or auto_workers()
+
+
+def _warn_offset_read(path: str | Path, before_run: TimeOffsetEstimate | None) -> None:
+    """Tell the user the odometry is read at the offset ``auto`` measured, if significant."""
+    if before_run is None or not before_run.significant:
+        return
     logger.warning(
         "%s: consecutive scans turn as the odometry does %+.2f s from their stamps (mean "
         "heading error per step %.2f -> %.2f deg over %d steps): the odometry is read there "

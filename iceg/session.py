@@ -60,6 +60,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from frontends import LaserScan, open_log
+from frontends.odometry_shift import shift_odometry
 from graph import FactorKind, FactorRecord, GraphConfig, PoseGraph
 from graph.g2o import write_g2o_file
 from graph.pose_graph import (
@@ -306,10 +307,13 @@ def _split_source(source: str, resolved: dict[str, str | None]) -> tuple[str, st
 
 
 def scan_arrays(
-    scans: Sequence[LaserScan], session_dir: Path
-) -> tuple[dict[str, np.ndarray], list[dict[str, str]]]:
+    scans: Sequence[LaserScan],
+    session_dir: Path,
+    readings: Mapping[str, Mapping[str, Any]] | None = None,
+) -> tuple[dict[str, np.ndarray], list[dict[str, Any]]]:
     """Scan references (``s_log``, ``s_key``, ``s_hash``) and inline scans, and the logs table
-    of the manifest (``{"path": absolute, "relative": from the session folder}``)."""
+    of the manifest (``{"path": absolute, "relative": from the session folder}``, with the
+    entries of ``readings[absolute path]``: how the log was read, :data:`READING_KEYS`)."""
     logs: dict[str, int] = {}
     log_idx: list[int] = []
     keys: list[str] = []
@@ -333,8 +337,50 @@ def scan_arrays(
         "s_hash": np.array(hashes, dtype=np.str_),
         **_inline_arrays(inline),
     }
-    table = [{"path": p, "relative": os.path.relpath(p, session_dir.resolve())} for p in logs]
+    table = [
+        {
+            "path": p,
+            "relative": os.path.relpath(p, session_dir.resolve()),
+            **_reading(p, readings or {}),
+        }
+        for p in logs
+    ]
     return out, table
+
+
+#: How a log was read, in its entry of the manifest's logs table: the keyword options of
+#: :func:`frontends.open_log` (a bag's topics, frames, laser offset) and the odometry time
+#: offset (:func:`frontends.odometry_shift.shift_odometry`). Without them the log is read
+#: as it is: a session's scans must be read again as they were, or their hashes differ.
+READING_KEYS = ("reader_options", "odometry_time_offset_s")
+
+
+def record_reading(
+    slam: Slam,
+    path: str | os.PathLike[str],
+    reader_options: Mapping[str, Any] | None,
+    odometry_time_offset_s: float,
+) -> None:
+    """Note in ``slam.log_readings`` how the log at ``path`` was read (:data:`READING_KEYS`),
+    for its session (:func:`save`) to read the scans again the same way."""
+    slam.log_readings[str(Path(path).resolve())] = {
+        "reader_options": dict(reader_options or {}),
+        "odometry_time_offset_s": odometry_time_offset_s,
+    }
+
+
+def _reading(path: str, readings: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
+    """The :data:`READING_KEYS` entries of log ``path`` (absolute) that differ from a plain
+    read, JSON-ready."""
+    got = readings.get(path, {})
+    out: dict[str, Any] = {}
+    if got.get("reader_options"):
+        out["reader_options"] = {
+            k: list(v) if isinstance(v, tuple) else v for k, v in got["reader_options"].items()
+        }
+    if got.get("odometry_time_offset_s"):
+        out["odometry_time_offset_s"] = float(got["odometry_time_offset_s"])
+    return out
 
 
 def _inline_arrays(scans: Sequence[LaserScan]) -> dict[str, np.ndarray]:
@@ -405,9 +451,12 @@ def read_scans(session: Session, rows: Sequence[int] | None = None) -> list[Lase
 
 
 def _read_log(session: Session, li: int) -> dict[str, LaserScan]:
+    """The scans of log ``li`` by record key, read as the run read them (:data:`READING_KEYS`)."""
     path = session.log_path(li)
+    entry = session.manifest["logs"][li]
     try:
-        scans = list(open_log(path))
+        reader = open_log(path, **entry.get("reader_options", {}))
+        scans = list(shift_odometry(reader, entry.get("odometry_time_offset_s", 0.0)))
     except IcegError as exc:
         raise SessionError(f"{session.path}: cannot re-read its log {path}: {exc}") from exc
     return {s.source.rpartition(":")[2]: s for s in scans}
@@ -702,6 +751,9 @@ def load(path: str | os.PathLike[str], *, scans: Sequence[LaserScan] | None = No
     slam.loop_closer.pending = _pending(a)
     slam.loop_closer.places.restore_state({"rows": a["lc_places_rows"], "ids": a["lc_places_ids"]})
     slam.odometry_calibrator.restore_state(a["cal_state"])
+    slam.log_readings = {
+        e["path"]: {k: e[k] for k in READING_KEYS if k in e} for e in session.manifest["logs"]
+    }
     return slam
 
 
@@ -717,7 +769,7 @@ def save(slam: Slam, folder: str | os.PathLike[str]) -> Path:
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
     s = slam.export_state()
-    refs, logs = scan_arrays(s.scans, out)
+    refs, logs = scan_arrays(s.scans, out, slam.log_readings)
     arrays = {
         **graph_arrays(slam.graph, s.correlations),
         **_slam_arrays(slam),
@@ -739,7 +791,7 @@ def write_folder(
     out: Path,
     arrays: Mapping[str, np.ndarray],
     config: IcegConfig,
-    logs: list[dict[str, str]],
+    logs: list[dict[str, Any]],
     extra: Mapping[str, Any],
     edited: bool = False,
 ) -> None:

@@ -23,7 +23,7 @@ from array import array
 from collections import defaultdict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -343,6 +343,9 @@ class Slam:
         self._s = SlamState()
         self._result: SlamResult | None = None
         self._online_factors: int | None = None  # factors before the final refinement
+        # How each log (absolute path) was read, for a saved session to read its scans again
+        # (iceg.session): ``reader_options`` of frontends.open_log, ``odometry_time_offset_s``.
+        self.log_readings: dict[str, dict[str, Any]] = {}
 
     @property
     def graph(self) -> PoseGraph:

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,13 +14,15 @@ from frontends.carmen import write_carmen
 from frontends.simulate import office_world, simulate, simulate_scenario
 from iceg import session
 from iceg.cli import app
-from iceg.continuation import continue_scans, fixed_map_of, place_start
+from iceg.config import IcegConfig
+from iceg.continuation import START_STEP, continue_scans, fixed_map_of, place_start
 from iceg.evaluation import position_errors
 from iceg.features import extract
 from iceg.localize import LocalizeSettings, Status, fixed_map_of_session, localize_scans
 from iceg.slam import Slam
 from iceg_common import se2
 from iceg_common.errors import SessionError
+from tests.conftest import shared_file
 
 K, N = 260, 450  # the session covers scans [0, K); the second "log" is [K, N)
 OTHER_FRAME = np.array([3.0, -7.0, 1.0])  # the second log's odometry frame
@@ -143,14 +147,18 @@ def test_cli_continue_and_localize(office, tmp_path) -> None:  # type: ignore[no
     assert {"trajectory.tum", "localization.csv", "map.png", "metrics.json"} <= {
         p.name for p in (tmp_path / "l").iterdir()
     }
-    r = runner.invoke(
-        app,
-        ["run", str(log), "--continue", str(folder), "--out", str(tmp_path / "c"), "--no-progress"],
-    )
+    # continued with the log's odometry read 0.05 s after each stamp: the session reads it
+    # again so (the scans' hashes hold)
+    args = ["run", str(log), "--continue", str(folder), "--out", str(tmp_path / "c")]
+    r = runner.invoke(app, [*args, "--odometry-time-offset", "0.05", "--no-progress"])
     assert r.exit_code == 0, r.output
     cont = session.read(tmp_path / "c")
     assert cont.arrays["s_stamp"].shape[0] == N
     assert len(cont.manifest["logs"]) == 1  # the first half came from memory (inline)
+    assert cont.manifest["logs"][0]["odometry_time_offset_s"] == 0.05
+    assert len(session.read_scans(cont)) == N
+    metrics = json.loads((tmp_path / "c" / "metrics.json").read_text())
+    assert metrics["odometry_time_offset"] == {"applied_s": 0.05}
     # the new log's first node, found again from the graph when the session is loaded
     assert session.segment_start(cont.arrays) == session.read(folder).manifest["nodes"]
 
@@ -175,3 +183,75 @@ def test_scans_before_the_placed_one_are_tracked_backwards(office) -> None:  # t
     assert _err(poses[-9:], truth).max() < 0.05
     heading = np.degrees(np.abs(np.angle(np.exp(1j * (poses[-9:, 2] - truth[:, 2])))))
     assert heading.max() < 1.0
+
+
+def test_a_log_whose_first_scans_lack_odometry_is_localized_from_the_next(office) -> None:  # type: ignore[no-untyped-def]
+    # The new log's first three scans without odometry (a bag's scans before its first
+    # odometry message): nothing links them to the next scans, so the placement is searched
+    # again right after them, not a whole START_SCANS later (60 scans were LOST); an
+    # initial pose for the first scan was an IndexError.
+    run, folder = office
+    new = _reframe(run.scans[120:K])
+    new[:3] = [dataclasses.replace(s, odom_pose=None) for s in new[:3]]
+    truth = run.true_poses[120:K]
+    for initial_pose in (None, truth[0]):
+        fixed = fixed_map_of_session(session.read(folder))
+        result = localize_scans(fixed, new, initial_pose=initial_pose)
+        lost = result.status == Status.LOST
+        assert lost.sum() <= START_STEP
+        assert _err(result.poses[~lost], truth[~lost]).max() < 0.05
+
+
+NEATO = "rosbag/neato-ros1/neato-obstacle-avoid.bag"
+
+
+@pytest.fixture(scope="module")
+def neato_run(tmp_path_factory):  # type: ignore[no-untyped-def]
+    # The Neato bag holds two LaserScan topics (the reader needs one chosen) and its scans
+    # turn as the odometry does 0.24 s before their stamps: a session that must read its
+    # log again with both.
+    from iceg.pipeline import run_log
+
+    bag = shared_file(NEATO)
+    cfg = IcegConfig.model_validate({"slam": {"workers": 1}})
+    result = run_log(bag, cfg, reader_options={"scan_topic": "/scan"}, odometry_time_offset_s=-0.24)
+    folder = tmp_path_factory.mktemp("neato") / "run"
+    result.save(folder)
+    return bag, folder, result
+
+
+def test_a_bag_session_reads_its_scans_again_as_they_were_read(neato_run) -> None:  # type: ignore[no-untyped-def]
+    # Read again plainly, the bag names two scan topics and refuses, and the odometry
+    # differs from the saved scans' hashes; the manifest keeps how the run read it.
+    bag, folder, result = neato_run
+    saved = session.read(folder)
+    assert saved.manifest["logs"][0]["reader_options"] == {"scan_topic": "/scan"}
+    assert saved.manifest["logs"][0]["odometry_time_offset_s"] == -0.24
+    scans = session.read_scans(saved)  # raises where a scan's hash differs
+    assert len(scans) == result.n_scans
+    assert [s.odom_pose.tolist() for s in scans] == [s.odom_pose.tolist() for s in result.scans]
+    reading = {"reader_options": {"scan_topic": "/scan"}, "odometry_time_offset_s": -0.24}
+    assert session.load(folder).log_readings == {str(bag.resolve()): reading}  # for its next save
+
+
+def test_cli_localize_takes_a_bag_s_options_and_the_odometry_time_offset(  # type: ignore[no-untyped-def]
+    neato_run, tmp_path: Path
+) -> None:
+    bag, folder, result = neato_run
+    out = tmp_path / "l"
+    args = ["localize", str(bag), "--map", str(folder), "--out", str(out)]
+    r = CliRunner().invoke(app, [*args, "--scan-topic", "/scan", "--odometry-time-offset", "auto"])
+    assert r.exit_code == 0, r.output
+    offset = json.loads((out / "metrics.json").read_text())["odometry_time_offset"]
+    assert offset["before_run"]["significant"]
+    assert offset["applied_s"] == -0.24  # as the run measured and read it
+    # The log localized in its own map: every scan, near where the run put it (measured:
+    # 0.068 m at the median, 0.14 m at the 90th percentile; the Neato's low-cost scanner
+    # sees few features, so the frozen map's reference and the run's local map differ).
+    loc = np.loadtxt(out / "localization.csv", delimiter=",", skiprows=1, usecols=(1, 2))
+    ok = ~np.isnan(loc[:, 0])
+    assert ok.mean() > 0.95
+    assert np.median(_err(loc[ok], result.poses[ok])) < 0.1
+    r = CliRunner().invoke(app, [*args])  # no topic chosen: the option the message names
+    assert r.exit_code == 1
+    assert "choose one with --scan-topic" in r.output
