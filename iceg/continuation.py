@@ -245,7 +245,7 @@ def continue_log(
     from iceg.evaluation import relation_errors
     from iceg.pipeline import RELATION_TOLERANCE_S, check_relations_match, read_log_scans
 
-    config = sess.read(session_path).config
+    config = sess.read_config(session_path)
     scans, offset = read_log_scans(path, config, stamps, reader_options, odometry_time_offset_s)
     rel = read_relations(relations) if relations is not None else None
     if rel is not None:

@@ -629,15 +629,33 @@ class Session:
         return self.arrays["s_stamp"][self.arrays["n_scan"]]
 
 
+def _session_folder(path: str | os.PathLike[str]) -> Path:
+    """The session folder of a session or of a run folder holding ``session/``."""
+    folder = Path(path)
+    if not (folder / MANIFEST).is_file() and (folder / SESSION_DIR / MANIFEST).is_file():
+        return folder / SESSION_DIR
+    return folder
+
+
+def read_config(path: str | os.PathLike[str]) -> IcegConfig:
+    """A session's configuration alone (its ``config.yaml``; :func:`read` reads it all).
+
+    Raises:
+        SessionError: no readable configuration there.
+    """
+    try:
+        return config_from_yaml(_session_folder(path) / CONFIG)
+    except (OSError, IcegError) as exc:
+        raise SessionError(f"{path}: not a readable iceg session ({exc})") from exc
+
+
 def read(path: str | os.PathLike[str]) -> Session:
     """Read a session folder (or a run folder holding ``session/``).
 
     Raises:
         SessionError: not a session, an unknown format version, or a missing/corrupt file.
     """
-    folder = Path(path)
-    if not (folder / MANIFEST).is_file() and (folder / SESSION_DIR / MANIFEST).is_file():
-        folder = folder / SESSION_DIR
+    folder = _session_folder(path)
     try:
         manifest = json.loads((folder / MANIFEST).read_text(encoding="utf-8"))
     except (OSError, ValueError) as exc:
