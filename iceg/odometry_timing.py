@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graph import FactorKind
-from iceg.aside import compute_aside
+from iceg.aside import compute_aside, while_caller_runs
 from iceg.features.extract import extract
 from iceg.matching.config import MatchBounds
 from iceg.matching.matcher import IceMatcher
@@ -258,7 +258,7 @@ def _matched_turns(
     step_from: list[int] = []
     turns: list[float] = []
     before = None  # the previous scan's features
-    for k in range(max(lo - 1, 0), hi):
+    for k in while_caller_runs(range(max(lo - 1, 0), hi)):
         features = extract(store[k], config.features) if segment[k] >= 0 else None
         if features is not None and before is not None and segment[k] == segment[k - 1]:
             result = matcher.match(features, before, se2.between(odom[k - 1], odom[k]), bounds)
