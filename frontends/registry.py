@@ -136,8 +136,14 @@ def _choose(p: Path, format: str | None) -> ReaderSpec:
         for spec in _READERS.values():
             if spec.sniff_dir is not None and spec.sniff_dir(p):
                 return spec
+        logs = sorted(
+            f.name
+            for f in p.iterdir()
+            if f.is_file() and any(f.name.lower().endswith(x) for x in _claimed_suffixes())
+        )
+        inside = f"; it holds {', '.join(logs[:5])}: pass the log file itself" if logs else ""
         raise LogFormatError(
-            f"{p}: a folder no reader recognises (a ROS 2 bag folder holds metadata.yaml)"
+            f"{p}: a folder no reader recognises (a ROS 2 bag folder holds metadata.yaml){inside}"
         )
     if not p.is_file():
         raise LogFormatError(f"{p}: no such log file")
@@ -154,6 +160,12 @@ def _choose(p: Path, format: str | None) -> ReaderSpec:
         f"{p}: not a recognised laser log (suffix {suffix!r}, and no reader recognised the "
         f"first lines); pass format= one of {', '.join(available_formats())}"
     )
+
+
+def _claimed_suffixes() -> set[str]:
+    """The file suffixes some reader claims (``.clf``, ``.bag``, ...), with ``.gz`` forms."""
+    out = {x for spec in _READERS.values() for x in spec.suffixes if x}
+    return out | {x + ".gz" for x in out}
 
 
 def describe_log(reader: LogReader) -> list[tuple[str, str]]:

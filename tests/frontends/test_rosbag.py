@@ -513,3 +513,16 @@ def test_without_rosbags_opening_a_bag_names_the_extra(
         monkeypatch.setitem(sys.modules, name, None)
     with pytest.raises(LogFormatError, match=r"the 'ros' extra: pip install 'iceg\[ros\]'"):
         list(open_log(path))
+
+
+def test_a_folder_holding_a_log_names_it(tmp_path: Path) -> None:
+    # A ROS 1 bag's folder (the shared data's RC car) is no log: the error names the logs
+    # it holds, not its other files.
+    write_rosbag(tmp_path / "overtakes.bag", _scans(), "ros1")
+    (tmp_path / "LICENSE.upstream").write_text("license\n")
+    with pytest.raises(LogFormatError, match=r"it holds overtakes\.bag: pass the log file itself"):
+        open_log(tmp_path)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(LogFormatError, match=r"metadata\.yaml\)$"):  # nothing to name
+        open_log(empty)
