@@ -33,10 +33,11 @@ from graph import FactorKind
 from iceg.config import config_from_dict
 from iceg.evaluation import position_errors, relation_errors
 from iceg.odometry_timing import odometry_time_offset, offset_to_read
-from iceg.pipeline import check_log_file
+from iceg.pipeline import AUTO_OFFSET, check_log_file
 from iceg.results import SlamResult
 from iceg.robot_body import with_measured_body
 from iceg.scan_store import ScanStore
+from iceg.session import record_reading
 from iceg.slam import Slam
 from iceg_common import se2
 from iceg_common.atomic import atomic_write
@@ -124,7 +125,7 @@ class _Input:
     scans: list[LaserScan]
     reference: FloatArray | None = None  # (N, 3) per scan, NaN rows where unknown
     relations: Relations | None = None
-    offset_applied_s: float | None = None  # "auto": the odometry time offset applied
+    offset_s: float = 0.0  # the odometry time offset the scans' odometry is read at
 
 
 # ---------------------------------------------------------------------------- input
@@ -133,7 +134,7 @@ class _Input:
 def load_input(task: RunTask) -> _Input:
     """Scans, reference and relations of a task; with the odometry time offset ``"auto"``,
     the log's odometry read at the offset measured before the run where significant
-    (``offset_applied_s``).
+    (``offset_s``).
 
     Raises:
         IcegError: unknown scenario, unreadable log or relations, no scans.
@@ -146,11 +147,11 @@ def load_input(task: RunTask) -> _Input:
     else:
         check_log_file(Path(task.source))  # a file, or a ROS 2 bag folder
         scans, reference = open_log(task.source, **task.reader_options), None
-    offset, measured = task.odometry_time_offset_s, None
+    offset = task.odometry_time_offset_s
     if isinstance(offset, str):  # "auto": measured on the scans the run uses, at the stamps
         scans = list(scans)
-        offset = measured = _measured_offset(task, scans[: task.max_scans])
-    data = _Input(list(shift_odometry(scans, offset)), reference, offset_applied_s=measured)
+        offset = _measured_offset(task, scans[: task.max_scans])
+    data = _Input(list(shift_odometry(scans, offset)), reference, offset_s=offset)
     if not data.scans:
         raise LogFormatError(f"{task.source}: the log holds no laser scans")
     if task.max_scans is not None:
@@ -239,9 +240,13 @@ def execute_run(task: RunTask) -> dict[str, Any]:
     try:
         data = load_input(task)
         result, online = run_slam(task, data.scans, t0)
+        if result.slam is not None and not task.source.startswith(SIM_PREFIX):
+            # how its session reads the log again (scans changed after reading: stored)
+            changed = task.odometry is not None or task.laser_only
+            record_reading(result.slam, task.source, task.reader_options, data.offset_s, changed)
         metrics = run_metrics(result, data, online)
-        if data.offset_applied_s is not None:
-            metrics["odom_time_offset_applied_s"] = data.offset_applied_s
+        if task.odometry_time_offset_s == AUTO_OFFSET:
+            metrics["odom_time_offset_applied_s"] = data.offset_s
         if task.outputs == "full":
             result.save(folder / "output")
     except RunTimeout as exc:

@@ -313,7 +313,9 @@ def scan_arrays(
 ) -> tuple[dict[str, np.ndarray], list[dict[str, Any]]]:
     """Scan references (``s_log``, ``s_key``, ``s_hash``) and inline scans, and the logs table
     of the manifest (``{"path": absolute, "relative": from the session folder}``, with the
-    entries of ``readings[absolute path]``: how the log was read, :data:`READING_KEYS`)."""
+    entries of ``readings[absolute path]``: how the log was read, :data:`READING_KEYS`).
+    Scans from memory, and those of a log whose reading is marked :data:`STORED_INLINE`,
+    are stored inline."""
     logs: dict[str, int] = {}
     log_idx: list[int] = []
     keys: list[str] = []
@@ -323,7 +325,7 @@ def scan_arrays(
     for scan in scans:  # one pass: a ScanStore builds each scan as it is read
         hashes.append(scan_hash(scan))
         split = _split_source(scan.source, resolved)
-        if split is None:
+        if split is None or (readings or {}).get(split[0], {}).get(STORED_INLINE):
             log_idx.append(-1)
             keys.append(str(len(inline)))
             inline.append(scan)
@@ -354,18 +356,26 @@ def scan_arrays(
 #: as it is: a session's scans must be read again as they were, or their hashes differ.
 READING_KEYS = ("reader_options", "odometry_time_offset_s")
 
+#: A log's reading key: its scans were changed after reading (synthetic odometry replacing
+#: the log's, the odometry dropped: ``iceg batch``), so no reading gives them back; the
+#: session stores them inline.
+STORED_INLINE = "stored_inline"
+
 
 def record_reading(
     slam: Slam,
     path: str | os.PathLike[str],
     reader_options: Mapping[str, Any] | None,
     odometry_time_offset_s: float,
+    changed: bool = False,
 ) -> None:
     """Note in ``slam.log_readings`` how the log at ``path`` was read (:data:`READING_KEYS`),
-    for its session (:func:`save`) to read the scans again the same way."""
+    for its session (:func:`save`) to read the scans again the same way; ``changed``: the
+    scans were changed after reading, and the session stores them (:data:`STORED_INLINE`)."""
     slam.log_readings[str(Path(path).resolve())] = {
         "reader_options": dict(reader_options or {}),
         "odometry_time_offset_s": odometry_time_offset_s,
+        STORED_INLINE: changed,
     }
 
 

@@ -335,3 +335,34 @@ def test_auto_reads_the_odometry_where_the_run_measures_its_offset(tmp_path: Pat
     assert rows["on_time"]["metrics"]["odom_time_offset_applied_s"] == 0.0
     with pytest.raises(ConfigError, match="odometry_time_offset_s"):
         spec_from_dict({"logs": [{"path": "a.clf", "odometry_time_offset_s": "later"}]})
+
+
+def test_a_batch_run_s_session_reads_its_scans_again(tmp_path: Path) -> None:
+    # A bag read with its scan topic and an odometry time offset is read again so; a log
+    # whose odometry a batch replaced (synthetic) cannot be read back: its scans are stored.
+    from iceg import session
+
+    logs = [
+        {
+            "path": str(shared_file("rosbag/neato-ros1/neato-obstacle-avoid.bag")),
+            "name": "neato",
+            "reader_options": {"scan_topic": "/scan"},
+            "odometry_time_offset_s": -0.24,
+        },
+        {
+            "path": str(shared_file("rosbag/turtlebot3-gazebo-ros2")),
+            "name": "tb3",
+            "synthetic_odometry": {"scale_error": 0.01, "heading_drift_deg_per_m": 0.4},
+        },
+    ]
+    tasks = expand(spec_from_dict({"logs": logs, "outputs": "full"}), tmp_path, tmp_path)
+    for task in tasks:
+        row = execute_run(task)
+        assert row["status"] == "ok", row["error"]
+        saved = session.read(Path(task.folder) / "output")
+        assert len(session.read_scans(saved)) == row["metrics"]["scans"]  # the hashes hold
+        if task.log_name == "neato":
+            assert saved.manifest["logs"][0]["reader_options"] == {"scan_topic": "/scan"}
+            assert saved.manifest["logs"][0]["odometry_time_offset_s"] == -0.24
+        else:
+            assert saved.manifest["logs"] == []  # every scan stored inline
