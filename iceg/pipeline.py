@@ -370,20 +370,21 @@ def _warn_offset_read(path: str | Path, before_run: TimeOffsetEstimate | None) -
 
 def _time_offset_metrics(path: str | Path, applied_s: float, result: SlamResult) -> dict[str, Any]:
     """The applied odometry time offset and the one the run measures (warned when
-    significant: the odometry and the scans disagree on when the robot turned)."""
+    significant: the odometry and the scans disagree on when the robot turned; the offset
+    named is from the stamps, the applied one included)."""
     measured = odometry_time_offset(result)
     if measured is not None and measured.significant:
         logger.warning(
             "%s: the scans' rotations match the odometry %+.2f s from their stamps (mean "
             "heading error per step %.2f -> %.2f deg over %d steps); to read it there, "
-            "pass --odometry-time-offset %.2f (or auto: measured from consecutive scans before "
-            "the run)",
+            "pass --odometry-time-offset %.2f%s",
             path,
-            measured.offset_s,
+            applied_s + measured.offset_s,
             measured.heading_error_at_zero_deg,
             measured.heading_error_at_offset_deg,
             measured.steps,
             applied_s + measured.offset_s,
+            "" if applied_s else " (or auto: measured from consecutive scans before the run)",
         )
     return {
         "applied_s": applied_s,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -216,6 +217,27 @@ def test_auto_reads_the_odometry_at_a_simulated_latency(tmp_path: Path) -> None:
     assert not offset["measured"]["significant"]
     given = run_log(log, cfg, odometry_time_offset_s=offset["applied_s"])
     assert result.poses.tobytes() == given.poses.tobytes()
+
+
+def test_the_warning_names_the_offset_from_the_stamps(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The simulated office's odometry read 0.2 s late, run with half of it given: the run
+    measures the -0.1 s left and names the whole -0.2 s to pass (not ``auto``, as an offset
+    was given)."""
+    from frontends.carmen import write_carmen
+
+    log = tmp_path / "late.clf"
+    write_carmen(log, shift_odometry(simulate_scenario("office", seed=0).scans, 0.2))
+    cfg = IcegConfig.model_validate({"slam": {"workers": 1}})
+    with caplog.at_level(logging.WARNING, logger="iceg.pipeline"):
+        result = run_log(log, cfg, odometry_time_offset_s=-0.1)
+    measured = result.metrics["odometry_time_offset"]["measured"]
+    assert measured["significant"]
+    assert measured["offset_s"] == pytest.approx(-0.1, abs=OFFSET_RESOLUTION_S)
+    assert "match the odometry -0.20 s from their stamps" in caplog.text
+    assert "pass --odometry-time-offset -0.20" in caplog.text
+    assert "or auto" not in caplog.text
 
 
 def test_auto_reads_a_log_without_a_latency_at_its_stamps() -> None:
