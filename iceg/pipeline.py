@@ -214,9 +214,8 @@ def run_log(
     is measured before the run, each scan matched against the one before it
     (:func:`~iceg.odometry_timing.scan_pairs_time_offset`), and where significant the
     odometry is read there (docs/design.md "Readers", the latency); the metrics then also
-    hold that measurement (``before_run``). Before the
-    first scan, the robot's own body is measured along the odometry and left out
-    (``features.measure_robot_body``:
+    hold that measurement (``before_run``). Before the first scan, the robot's own body is
+    measured along the odometry and left out (``features.measure_robot_body``:
     :func:`~iceg.robot_body.with_measured_body`, warned); ``result.metrics["robot_body"]``
     holds the range left out and what the scans show of the body along the odometry and
     along the trajectory (:func:`~iceg.robot_body.robot_body_range`), with a warning when
@@ -235,9 +234,8 @@ def run_log(
     rel = read_relations(relations) if relations is not None else None
     slam = Slam(config)
     result: SlamResult | None = None
-    auto = odometry_time_offset_s == AUTO_OFFSET
+    auto, before_run = odometry_time_offset_s == AUTO_OFFSET, None
     applied_s = 0.0 if isinstance(odometry_time_offset_s, str) else odometry_time_offset_s
-    before_run: TimeOffsetEstimate | None = None
     with _started(slam, lambda: _read(reader, applied_s, slam.config)) as (
         (scans, report, (run_config, body)),
         prefetch,
@@ -245,11 +243,9 @@ def run_log(
         if not scans:
             raise LogFormatError(f"{path}: the log holds no laser scans")
         if auto:
-            applied_s, before_run = offset_to_read(scans, run_config, _processes(slam.config))
-            _warn_offset_read(path, before_run)
-            if applied_s:
-                scans = ScanStore(shift_odometry(scans, applied_s))
-                run_config, body = with_measured_body(slam.config, scans)
+            scans, (run_config, body), applied_s, before_run = _at_measured_offset(
+                path, scans, slam.config, (run_config, body)
+            )
         if rel is not None:
             check_relations_match(rel, scans.stamps_s)
         if run_config == slam.config:
@@ -269,19 +265,58 @@ def run_log(
         from iceg.session import record_reading  # 23 ms of imports a run without a session skips
 
         record_reading(result.slam, path, reader_options, applied_s)
-    result.metrics["stamps"] = report.as_dict() if report is not None else {"policy": stamps}
     result.metrics["odometry_time_offset"] = _time_offset_metrics(path, applied_s, result)
     if auto:
-        result.metrics["odometry_time_offset"]["before_run"] = (
-            None if before_run is None else before_run.as_dict()
-        )
+        result.metrics["odometry_time_offset"]["before_run"] = _as_dict(before_run)
+    _log_metrics(result, path, (report, stamps), scans, body, rel)
+    return result
+
+
+def _log_metrics(
+    result: SlamResult,
+    path: str | Path,
+    stamps: tuple[StampReport | None, StampPolicy],
+    scans: ScanStore,
+    body: RobotBodyEstimate | None,
+    rel: Relations | None,
+) -> None:
+    """A log run's metrics on its input: the stamps' report (or policy), the robot's body
+    (:func:`_robot_body_metrics`) and, with ``rel``, the relation error."""
+    report, policy = stamps
+    result.metrics["stamps"] = report.as_dict() if report is not None else {"policy": policy}
     result.metrics["robot_body"] = _robot_body_metrics(path, scans, result, body)
     if rel is not None:
         summary, _ = relation_errors(
             result.stamps_s, result.poses, rel.stamps_s, rel.deltas, RELATION_TOLERANCE_S
         )
         result.metrics["relations"] = summary.as_dict()
-    return result
+
+
+#: A run's configuration with the robot's body measured, and the measurement (None: none).
+_WithBody = tuple[IcegConfig, RobotBodyEstimate | None]
+
+
+def _at_measured_offset(
+    path: str | Path,
+    scans: ScanStore,
+    config: IcegConfig,
+    run_config: _WithBody,
+) -> tuple[ScanStore, _WithBody, float, TimeOffsetEstimate | None]:
+    """``"auto"``: the scans (read at their stamps) with their odometry read at the offset
+    :func:`~iceg.odometry_timing.offset_to_read` measures, and ``config`` with the robot's
+    body measured along it (``run_config`` where the offset is 0: the scans are unchanged);
+    the offset applied and the measurement."""
+    applied_s, before_run = offset_to_read(scans, run_config[0], _processes(config))
+    _warn_offset_read(path, before_run)
+    if not applied_s:
+        return scans, run_config, applied_s, before_run
+    shifted = ScanStore(shift_odometry(scans, applied_s))
+    return shifted, with_measured_body(config, shifted), applied_s, before_run
+
+
+def _as_dict(estimate: TimeOffsetEstimate | None) -> dict[str, Any] | None:
+    """An offset measurement's JSON-ready fields (None: none)."""
+    return None if estimate is None else estimate.as_dict()
 
 
 def _read(
@@ -330,7 +365,7 @@ def read_log_scans(
     if isinstance(applied_s, str):
         applied_s, before_run = offset_to_read(scans, config, _processes(config))
         _warn_offset_read(path, before_run)
-        record["before_run"] = None if before_run is None else before_run.as_dict()
+        record["before_run"] = _as_dict(before_run)
     record["applied_s"] = applied_s
     return list(shift_odometry(scans, applied_s)), record
 
