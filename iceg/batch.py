@@ -124,8 +124,8 @@ class LogEntry(BaseModel):
         default=0.0,
         description="Read each scan's odometry at its stamp plus this many seconds "
         "(frontends.odometry_shift.shift_odometry; iceg run --odometry-time-offset). "
-        "'auto': run at the stamps and, where the run measures a significant offset, "
-        "again with the odometry read there (the row's odom_time_offset_applied_s).",
+        "'auto': measured before the run, each scan matched against the one before it, and "
+        "read there where significant (the row's odom_time_offset_applied_s).",
     )
 
     @model_validator(mode="after")

@@ -9,7 +9,7 @@ import gc
 import logging
 import os
 import stat
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal, TypeVar
 
@@ -45,7 +45,7 @@ T = TypeVar("T")
 
 #: Timestamp tolerance for matching relation stamps to scans (relations carry 5 decimals).
 RELATION_TOLERANCE_S = 1e-3
-#: ``run_log``'s odometry time offset that the run measures itself (two passes).
+#: ``run_log``'s odometry time offset measured before the run (``--odometry-time-offset auto``).
 AUTO_OFFSET = "auto"
 
 
@@ -306,8 +306,7 @@ def _at_measured_offset(
     :func:`~iceg.odometry_timing.offset_to_read` measures, and ``config`` with the robot's
     body measured along it (``run_config`` where the offset is 0: the scans are unchanged);
     the offset applied and the measurement."""
-    applied_s, before_run = offset_to_read(scans, run_config[0], _processes(config))
-    _warn_offset_read(path, before_run)
+    applied_s, before_run = _offset_to_read(path, scans, run_config[0])
     if not applied_s:
         return scans, run_config, applied_s, before_run
     shifted = ScanStore(shift_odometry(scans, applied_s))
@@ -363,8 +362,7 @@ def read_log_scans(
     record: dict[str, Any] = {}
     applied_s = odometry_time_offset_s
     if isinstance(applied_s, str):
-        applied_s, before_run = offset_to_read(scans, config, _processes(config))
-        _warn_offset_read(path, before_run)
+        applied_s, before_run = _offset_to_read(path, scans, config)
         record["before_run"] = _as_dict(before_run)
     record["applied_s"] = applied_s
     return list(shift_odometry(scans, applied_s)), record
@@ -387,10 +385,14 @@ def _processes(config: IcegConfig) -> int:
     return config.slam.workers or auto_workers()
 
 
-def _warn_offset_read(path: str | Path, before_run: TimeOffsetEstimate | None) -> None:
-    """Tell the user the odometry is read at the offset ``auto`` measured, if significant."""
+def _offset_to_read(
+    path: str | Path, scans: Sequence[LaserScan], config: IcegConfig
+) -> tuple[float, TimeOffsetEstimate | None]:
+    """:func:`~iceg.odometry_timing.offset_to_read` of a log's scans with ``config`` (its
+    workers), the user told where the odometry is read at a significant offset."""
+    applied_s, before_run = offset_to_read(scans, config, _processes(config))
     if before_run is None or not before_run.significant:
-        return
+        return applied_s, before_run
     logger.warning(
         "%s: consecutive scans turn as the odometry does %+.2f s from their stamps (mean "
         "heading error per step %.2f -> %.2f deg over %d steps): the odometry is read there "
@@ -401,6 +403,7 @@ def _warn_offset_read(path: str | Path, before_run: TimeOffsetEstimate | None) -
         before_run.heading_error_at_offset_deg,
         before_run.steps,
     )
+    return applied_s, before_run
 
 
 def _time_offset_metrics(path: str | Path, applied_s: float, result: SlamResult) -> dict[str, Any]:
