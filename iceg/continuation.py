@@ -105,11 +105,18 @@ def place_start(
     detail = (
         f"; {len(unconfirmed)} placement(s) refused, first: {unconfirmed[0]}" if unconfirmed else ""
     )
+    if guess is None:
+        ask = "is it from this building? Give --initial-pose X Y THETA_DEG if it is"
+    else:
+        x, y, th = guess.tolist()
+        ask = (
+            f"tried around the initial pose {x:.2f} {y:.2f} {np.degrees(th):.1f} and globally: "
+            "is the log from this building, and that pose its first scan's in the map's frame?"
+        )
     raise SessionError(
         f"{scans[0].source}: the log cannot be placed in the map (no unambiguous ICE match of "
         f"enough correlation and fit, confirmed by tracking, in its first "
-        f"{odometry_run_end(scans, START_SCANS)} scans{detail}); is it from this building? "
-        "Give --initial-pose X Y THETA_DEG if it is"
+        f"{odometry_run_end(scans, START_SCANS)} scans{detail}); {ask}"
     )
 
 

@@ -109,8 +109,12 @@ def test_a_log_of_another_building_is_refused(office) -> None:  # type: ignore[n
     _, folder = office
     other = simulate_scenario("outdoor", seed=2).scans[:40]
     later = [dataclasses.replace(s, stamp_s=s.stamp_s + 1000.0) for s in other]
-    with pytest.raises(SessionError, match="cannot be placed"):
+    with pytest.raises(SessionError, match="cannot be placed") as refused:
         continue_scans(folder, later)
+    assert "Give --initial-pose" in str(refused.value)
+    # with an initial pose, the message names it instead of asking for one
+    with pytest.raises(SessionError, match=r"around the initial pose 1\.00 2\.00 90\.0 "):
+        continue_scans(folder, later, initial_pose=[1.0, 2.0, np.pi / 2])
     result = localize_scans(fixed_map_of_session(session.read(folder)), later)
     assert np.all(result.status == Status.LOST)
 
