@@ -836,17 +836,38 @@ def _frozen_slam(fixed: FixedMap) -> Slam:
     The saved estimates are the run's final ones (``Session.node_poses``: the trajectory and
     map it exported, and the frame of the global placements), not the online ones that
     :func:`iceg.session.load` replays so that a continued run is the uninterrupted one; on
-    MIT CSAIL those lie 0.15 m from the final ones at the median."""
+    MIT CSAIL those lie 0.15 m from the final ones at the median.
+
+    Its loop-closure search starts from half the matcher's tracking bounds
+    (``matching.validation.tracking_max_*``) instead of the run's ``search_radius_m`` and
+    ``max_rotation_deg`` (2 m, 30°, for an estimate that may have drifted; wider than tracking,
+    they always ask for the global evidence). The search grows them by ``search_n_sigma``
+    marginal sigmas, so while the track's uncertainty fills less than the other half, a
+    closure to the map is a tracking match (:meth:`~iceg.matching.IceMatcher.is_strict`: one
+    feature pair, the bounded correlation), as tracking against the map is; an uncertain
+    track still needs the global evidence. The chi-square gate and the kernels are the run's.
+    """
     from iceg import session as sess
 
     if fixed.session is None:
         raise GraphError("a frozen map needs a map read from a saved session")
     slam = sess.load(fixed.session.path)
+    tracking = slam.config.matching.validation
+    closing = slam.config.loop_closure.model_copy(
+        update={
+            "search_radius_m": 0.5 * tracking.tracking_max_translation_m,
+            "max_rotation_deg": 0.5 * tracking.tracking_max_rotation_deg,
+        }
+    )
     # Every keyframe a node: the segment's statuses, covariances and kidnapping checks are
     # read off its own nodes (a scan hanging from a map node would have none).
     slam.config = slam.config.model_copy(
-        update={"slam": slam.config.slam.model_copy(update={"reuse_nodes": False})}
+        update={
+            "slam": slam.config.slam.model_copy(update={"reuse_nodes": False}),
+            "loop_closure": closing,
+        }
     )
+    slam.loop_closer.config = closing
     ids, saved = fixed.session.node_poses  # final estimates (the loaded graph's: online)
     g = slam.config.graph
     hold = np.diag([g.prior_sigma_xy_m**2] * 2 + [g.prior_sigma_theta_rad**2])

@@ -246,16 +246,20 @@ def test_cli_localize_takes_a_bag_s_options_and_the_odometry_time_offset(  # typ
     args = ["localize", str(bag), "--map", str(folder), "--out", str(out)]
     r = CliRunner().invoke(app, [*args, "--scan-topic", "/scan", "--odometry-time-offset", "auto"])
     assert r.exit_code == 0, r.output
-    offset = json.loads((out / "metrics.json").read_text())["odometry_time_offset"]
+    metrics = json.loads((out / "metrics.json").read_text())
+    offset = metrics["odometry_time_offset"]
     assert offset["before_run"]["significant"]
     assert offset["applied_s"] == -0.24  # as the run measured and read it
-    # The log localized in its own map: every scan, near where the run put it (measured:
-    # 0.068 m at the median, 0.14 m at the 90th percentile; the Neato's low-cost scanner
-    # sees few features, so the frozen map's reference and the run's local map differ).
+    # The log localized in its own map: every scan, near where the run put it, its track
+    # closed to the map (measured: 0.026 m at the median, 0.086 m at the 90th percentile,
+    # 42 keyframes closed to the map; with the run's loop-closure bounds none was, every
+    # wide match of its sparse scans lacking the global evidence, and the unanchored track
+    # lay 0.068 m off at the median).
+    assert metrics["status"]["tracked"] > 0
     loc = np.loadtxt(out / "localization.csv", delimiter=",", skiprows=1, usecols=(1, 2))
     ok = ~np.isnan(loc[:, 0])
     assert ok.mean() > 0.95
-    assert np.median(_err(loc[ok], result.poses[ok])) < 0.1
+    assert np.median(_err(loc[ok], result.poses[ok])) < 0.05
     r = CliRunner().invoke(app, [*args])  # no topic chosen: the option the message names
     assert r.exit_code == 1
     assert "choose one with --scan-topic" in r.output
