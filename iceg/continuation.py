@@ -152,7 +152,7 @@ def _place_one(
     if guess is not None:
         bounds = MatchBounds.local(st.initial_translation_m, st.initial_rotation_deg)
         p = fixed.match_at(feats, guess, bounds, st.reference_nodes)
-        if p is not None and p.match.correlation >= st.min_correlation:
+        if p is not None and p.match.correlation >= st.correlation_floor(fixed.config):
             return p
     return fixed.place(feats, st) if search else None
 

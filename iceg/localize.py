@@ -69,7 +69,9 @@ class LocalizeSettings:
         reference_nodes: map nodes nearest the predicted pose whose landmarks are matched.
         track_translation_m / track_rotation_deg: bounds of a tracking match.
         initial_translation_m / initial_rotation_deg: bounds around a given initial pose.
-        min_correlation: least ICE correlation (eq. 1) of an accepted match.
+        min_correlation: least ICE correlation (eq. 1) of an accepted match; None: the
+            matcher's own global threshold (``matching.validation.min_correlation_global``,
+            :meth:`correlation_floor`), no floor of the localization's above it.
         lost_after: consecutive keyframe scans matching neither the map nor the local
             tracking map before a global search.
         min_fit: least fraction of a globally placed scan's points (within the map's
@@ -95,7 +97,7 @@ class LocalizeSettings:
     track_rotation_deg: float = 20.0
     initial_translation_m: float = 2.0
     initial_rotation_deg: float = 45.0
-    min_correlation: float = 0.5
+    min_correlation: float | None = None
     lost_after: int = 6
     confirm_keyframes: int = 3
     min_fit: float = 0.6
@@ -109,6 +111,12 @@ class LocalizeSettings:
     lost_retry_scans: int = 5
     search_n_sigma: float = 3.0
     check_every_nodes: int = 10
+
+    def correlation_floor(self, config: IcegConfig) -> float:
+        """The least correlation of an accepted match with the run configuration ``config``."""
+        if self.min_correlation is not None:
+            return self.min_correlation
+        return config.matching.validation.min_correlation_global
 
 
 @dataclass(frozen=True, eq=False)
@@ -213,22 +221,26 @@ class FixedMap:
         The best match by correlation is returned when it reaches ``min_correlation``, its
         points fit the map's segments (:func:`segment_fit` ``>= min_fit``), and no distinct
         place matches almost as well (``ambiguity_margin``); otherwise None (never a guess).
+        Every place the matcher accepted is a rival, whether or not it reaches the floors: a
+        place that looks the same is an ambiguity even where its fit or correlation falls
+        short of a placement's.
         """
         st = settings
-        found = []
-        for row in self.candidates(st.candidate_spacing_m).tolist():
-            p = self._match_place(feats, row, st.reference_nodes)
-            if (
-                p is not None
-                and p.match.correlation >= st.min_correlation
-                and segment_fit(feats, p, st.fit_tolerance_m) >= st.min_fit
-            ):
-                found.append(p)
-        found.sort(key=lambda p: -p.match.correlation)
+        matched = [
+            p
+            for row in self.candidates(st.candidate_spacing_m).tolist()
+            if (p := self._match_place(feats, row, st.reference_nodes)) is not None
+        ]
+        found = [
+            p
+            for p in matched
+            if p.match.correlation >= st.correlation_floor(self.config)
+            and segment_fit(feats, p, st.fit_tolerance_m) >= st.min_fit
+        ]
         if not found:
             return None
-        best = found[0]
-        for other in found[1:]:
+        best = max(found, key=lambda p: p.match.correlation)
+        for other in sorted(matched, key=lambda p: -p.match.correlation):
             d = se2.between(best.pose, other.pose)
             distinct = np.hypot(d[0], d[1]) > st.distinct_place_m or abs(d[2]) > np.radians(10)
             if distinct and other.match.correlation >= best.match.correlation - st.ambiguity_margin:
@@ -460,7 +472,7 @@ class Localizer:
         pose, self._initial = self._initial, None
         bounds = MatchBounds.local(st.initial_translation_m, st.initial_rotation_deg)
         p = self.fixed.match_at(feats, pose, bounds, st.reference_nodes)  # type: ignore[arg-type]
-        if p is None or p.match.correlation < st.min_correlation:
+        if p is None or p.match.correlation < st.correlation_floor(self.fixed.config):
             logger.info("the initial pose does not match the map; searching globally")
             p = self.fixed.place(feats, st)
             if p is None or _far(p.pose, pose, st):  # type: ignore[arg-type]
@@ -614,7 +626,7 @@ class Localizer:
         """A map match is kept when well correlated, or when its points fit the map
         (a refinement on few features, correlation 0, can still be exact)."""
         st = self.settings
-        if p.match.correlation >= st.min_correlation:
+        if p.match.correlation >= st.correlation_floor(self.fixed.config):
             return True
         return segment_fit(feats, p, st.fit_tolerance_m) >= st.min_fit
 

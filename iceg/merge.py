@@ -303,7 +303,7 @@ def _densify(
         feats = extract(scan, fixed.config.features)
         for bnd, out_list in ((bounds, found), (MatchBounds.global_(), wide)):
             p = fixed.match_at(feats, poses[row], bnd, loc.reference_nodes)
-            if p is None or p.match.correlation < loc.min_correlation:
+            if p is None or p.match.correlation < loc.correlation_floor(fixed.config):
                 continue
             if segment_fit(feats, p, loc.fit_tolerance_m) >= loc.min_fit:
                 t = se2.compose(p.pose, se2.inverse(poses[row]))
