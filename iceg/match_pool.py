@@ -64,6 +64,13 @@ class MatchJob(NamedTuple):
 #: any match's duration is known (a cost setting only: the results are the same).
 FIRST_PATIENCE_S = 0.01
 
+#: Most results the helper may have sent that :meth:`MatchPool.submit` has not read: beyond
+#: it, submit reads one before sending more. The helper blocks on a full pipe (a socket
+#: pair, 208 KiB each way on Linux by default; a result pickles to about 0.8 KiB) and stops
+#: reading jobs, so a batch whose results outgrew it deadlocked both processes, each waiting
+#: to send (560 matches in ``tests/iceg/test_match_pool.py``; a search sends a few).
+MAX_UNREAD_RESULTS = 32
+
 
 @dataclass(eq=False)
 class SentMatches:
@@ -115,6 +122,7 @@ class MatchPool:
         self._started = False  # the helper was forked (or failed to be)
         self._batch = 0  # the current batch's number: a late result names an older one
         self._match_cpu_s = [0.0, 0]  # CPU seconds of the helper's matches, their number
+        self._early: dict[int, MatchResult | None] = {}  # results submit read: job -> result
         # [batch, k]: the calling process runs the jobs k.. of that batch (shared with the
         # helper, which skips them; a job both run costs time, not a different result)
         self._taken: Any = None
@@ -155,8 +163,11 @@ class MatchPool:
     def submit(self, jobs: Iterable[MatchJob]) -> SentMatches:
         """Send every job to the helper (forked on first use), each as soon as the iterable
         gives it, and return; nothing is sent without a helper (outside the with-block, or
-        not on Linux). Read the results with :meth:`collect` before the next ``submit``."""
+        not on Linux). Read the results with :meth:`collect` before the next ``submit``. With
+        more than :data:`MAX_UNREAD_RESULTS` of the helper's results unread, it waits for one
+        and keeps it for :meth:`collect` before sending the next job."""
         sent = SentMatches([])
+        self._early = {}
         helper = self._open and self.want_helper and sys.platform == "linux"
         held: ScanFeatures | None = None  # the new scan's features the helper has this batch
         for k, job in enumerate(jobs):
@@ -180,6 +191,11 @@ class MatchPool:
                 continue
             sent.remote.append(k)
             held = job.features
+            while len(sent.remote) - len(self._early) > MAX_UNREAD_RESULTS:
+                got = self._arrived(None, sent.batch)
+                if got is None:  # the helper is gone: collect runs the rest here
+                    break
+                self._early[got[0]] = got[1]
         return sent
 
     def collect(self, sent: SentMatches) -> list[MatchResult]:
@@ -198,9 +214,15 @@ class MatchPool:
         """
         results: list[MatchResult | None] = [None] * len(sent.jobs)
         missing = set(sent.remote) if sent.batch == self._batch else set()
+        early = self._early if sent.batch == self._batch else {}
         for k, job in enumerate(sent.jobs):
             if k not in missing:
                 results[k] = self._here(job)
+            elif k in early:  # read by submit (None: failed there, run here)
+                missing.discard(k)
+                got_early = early[k]
+                self.remote += got_early is not None
+                results[k] = got_early if got_early is not None else self._here(job)
         while missing:
             if self.wait:
                 timeout_s: float | None = None

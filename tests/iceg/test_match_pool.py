@@ -60,6 +60,29 @@ def test_submitted_matches_equal_the_matcher_s(jobs: list[MatchJob]) -> None:
     assert all(_same(a, b) for a, b in zip(got_all, want, strict=True))
 
 
+def _hung(signum: int, frame: object) -> None:
+    raise TimeoutError("the pool hung")
+
+
+def test_a_batch_of_more_results_than_the_pipe_holds_completes(jobs: list[MatchJob]) -> None:
+    # 560 matches: their results (about 0.8 KiB pickled each) outgrow the pipe's buffers (a
+    # socket pair, 208 KiB each way here). Sent all before any was read, the helper blocked
+    # on its full pipe and the caller on the jobs': both hung (measured: this test timed out).
+    many = jobs * 40
+    matcher = IceMatcher(MatchingConfig())
+    want = [matcher.match(*job) for job in many]
+    before = signal.signal(signal.SIGALRM, _hung)
+    signal.alarm(120)
+    try:
+        with MatchPool(IceMatcher(MatchingConfig()), wait=True) as pool:
+            got = pool.collect(pool.submit(many))
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, before)
+    assert (pool.remote, pool.local) == (len(many), 0)
+    assert all(_same(a, b) for a, b in zip(got, want, strict=True))
+
+
 class _MisbehavesInHelper:
     """IceMatcher's matches; in any other process than the one that made it (the helper),
     half a second late (``slow``) or raising."""
