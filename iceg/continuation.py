@@ -3,7 +3,8 @@
 The session is loaded exactly (:func:`iceg.session.load`); the new log's first scan is placed
 in the old map by ICE matching, around ``initial_pose`` when given, else globally
 (:meth:`iceg.localize.FixedMap.place`), and the placement must be confirmed by tracking the
-next scans in the fixed map (:class:`iceg.localize.Localizer`). The first scan then becomes a
+next scans in the fixed map (:class:`iceg.localize.Localizer`) and, when global, corroborated
+by another scan's global placement (:class:`StartSearch`). The first scan then becomes a
 node linked to the map by the placement match (:meth:`iceg.slam.Slam.start_segment`) and the
 run goes on in the same graph and feature map. A log that cannot be placed is refused
 (:class:`~iceg_common.errors.SessionError`), never guessed.
@@ -14,6 +15,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
@@ -25,7 +27,14 @@ from frontends import LaserScan
 from frontends.scan import StampPolicy
 from iceg import session as sess
 from iceg.features import extract
-from iceg.localize import FixedMap, Localizer, LocalizeSettings, Placement, Status
+from iceg.localize import (
+    FixedMap,
+    Localizer,
+    LocalizeSettings,
+    Placement,
+    Status,
+    distinct_places,
+)
 from iceg.matching import MatchBounds
 from iceg.results import SlamResult
 from iceg.slam import Slam
@@ -65,9 +74,11 @@ def place_start(
 ) -> tuple[int, Placement]:
     """The first scan among the first :data:`START_SCANS` that can be placed in the map
     (around ``initial_pose``, carried along by odometry, when given; else globally), placed
-    and confirmed by tracking the next scans (:func:`_unconfirmed`); a placement they refuse
-    (a wrong match, or a right one whose next scans cannot be tracked, as in a fast turn) is
-    dropped and the search goes on with the next scans.
+    and confirmed by tracking the next scans (:func:`_unconfirmed`), and, when the
+    placement was global, corroborated by the global placement of another scan
+    (:class:`StartSearch`); a placement they refuse (a wrong match, or a right one whose
+    next scans cannot be tracked, as in a fast turn) is dropped and the search goes on with
+    the next scans.
 
     Args:
         fixed: the map.
@@ -80,44 +91,130 @@ def place_start(
         it) and its placement (``match.pose`` in the frame of node ``anchor``).
 
     Raises:
-        SessionError: no scan placed and confirmed (the message says why the refused
-            placements were refused).
+        SessionError: no scan placed, confirmed and corroborated (the message says why the
+            refused placements were refused).
     """
-    st = settings or LocalizeSettings()
-    guess = None if initial_pose is None else np.asarray(initial_pose, dtype=np.float64)
-    unconfirmed: list[str] = []
-    for k, scan in enumerate(scans[: odometry_run_end(scans, START_SCANS)]):
-        search = k % START_STEP == 0  # a global search is costly: every START_STEP-th scan
-        if guess is None and not search:
-            continue
-        feats = extract(scan, fixed.config.features)
-        if feats.n_features < 2:
-            continue
-        here = None if guess is None else se2.compose(guess, _odometry(scans, 0, k))
-        placement = _place_one(fixed, feats, here, st, search)
-        if placement is None:
-            continue
-        refused = _unconfirmed(fixed, scans[k:], placement, st)
-        if refused:
-            unconfirmed.append(refused)
-            continue
-        return k, placement
-    detail = (
-        f"; {len(unconfirmed)} placement(s) refused, first: {unconfirmed[0]}" if unconfirmed else ""
-    )
-    if guess is None:
-        ask = "is it from this building? Give --initial-pose X Y THETA_DEG if it is"
-    else:
-        x, y, th = guess.tolist()
-        ask = (
-            f"tried around the initial pose {x:.2f} {y:.2f} {np.degrees(th):.1f} and globally: "
-            "is the log from this building, and that pose its first scan's in the map's frame?"
+    _, k, placement = StartSearch(fixed, scans, settings).place(0, initial_pose)
+    return k, placement
+
+
+@dataclass(frozen=True)
+class _Tried:
+    """A global placement tried for a segment's start."""
+
+    scan: int  # index in the log
+    window: int  # the first scan of the search that found it
+    placement: Placement
+    confirmed: bool  # the next scans, tracked from it, confirmed it
+
+
+class StartSearch:
+    """The search for a segment's first placement in one log (:func:`place_start`), keeping
+    the global placements it tried until one is accepted.
+
+    A global placement compares a scan with every candidate place of the map, and a log
+    that cannot be placed tries again every :data:`START_STEP` scans, so in a large map a
+    log of another building eventually gets a placement that is unambiguous and whose next
+    scans track it: the Neato bag in MIT CSAIL's map after 285 scans, at correlation 0.75,
+    confirmed by the next three scans, which see what the placed one saw. A global
+    placement is therefore accepted only when it is **corroborated**: the global placement
+    of another scan, taken at a place distinct from it by the odometry between them
+    (:func:`~iceg.localize.distinct_places`: another view), lands at the same place through
+    that odometry. Two coincidences that agree are far rarer than one, whatever the number
+    of tries; this is the consistency of consecutive loop candidates that ORB-SLAM asks of
+    a place recognition (Mur-Artal et al. 2015, §VI-A), with the views apart by motion. The
+    corroborating placement need not be confirmed itself (its next scans may be a fast
+    turn), nor later: the TurtleBot 4's placement at scan 205 in its own map is corroborated
+    by scan 5's, through 200 scans of odometry. A placement around the initial pose is the
+    user's guess confirmed and needs no corroboration.
+
+    Args:
+        fixed: the map.
+        scans: the log's scans in time order.
+        settings: localization tuning.
+    """
+
+    def __init__(
+        self, fixed: FixedMap, scans: Sequence[LaserScan], settings: LocalizeSettings | None
+    ) -> None:
+        self.fixed = fixed
+        self.scans = scans
+        self.settings = settings or LocalizeSettings()
+        self._tried: list[_Tried] = []
+
+    def place(self, i: int, initial_pose: ArrayLike | None) -> tuple[int, int, Placement]:
+        """The search from scan ``i`` over the scans odometry links to it (at most
+        :data:`START_SCANS`), as :func:`place_start` describes.
+
+        Returns:
+            ``(first, k, placement)``: the placed scan ``k`` and the first scan of the search
+            that found it (``first <= k``; earlier than ``i`` when this search corroborated
+            a confirmed placement of an earlier one); the scans from ``first`` to ``k`` are
+            the segment's, tracked backwards from ``k``.
+
+        Raises:
+            SessionError: none placed, confirmed and corroborated in these scans; the
+                placements tried stay for the next search.
+        """
+        st, scans = self.settings, self.scans[i:]
+        guess = None if initial_pose is None else np.asarray(initial_pose, dtype=np.float64)
+        end = odometry_run_end(scans, START_SCANS)
+        unconfirmed: list[str] = []
+        for k, scan in enumerate(scans[:end]):
+            search = k % START_STEP == 0  # a global search is costly: every START_STEP-th scan
+            if guess is None and not search:
+                continue
+            feats = extract(scan, self.fixed.config.features)
+            if feats.n_features < 2:
+                continue
+            here = None if guess is None else se2.compose(guess, _odometry(scans, 0, k))
+            placement, is_global = _place_one(self.fixed, feats, here, st, search)
+            if placement is None:
+                continue
+            refused = _unconfirmed(self.fixed, scans[k:], placement, st)
+            if not is_global and not refused:
+                self._tried.clear()
+                return i, i + k, placement
+            self._tried.append(_Tried(i + k, i, placement, not refused))
+            for tried in self._tried:
+                if tried.confirmed and self._corroborated(tried):
+                    self._tried.clear()
+                    return tried.window, tried.scan, tried.placement
+            unconfirmed.append(
+                refused
+                or f"{_where(scan, placement)} but no other scan's global placement agreed with it"
+            )
+        detail = (
+            f"; {len(unconfirmed)} placement(s) refused, first: {unconfirmed[0]}"
+            if unconfirmed
+            else ""
         )
-    raise SessionError(
-        f"{scans[0].source}: the log cannot be placed in the map (no unambiguous ICE match of "
-        f"enough correlation and fit, confirmed by tracking, in its first "
-        f"{odometry_run_end(scans, START_SCANS)} scans{detail}); {ask}"
-    )
+        if guess is None:
+            ask = "is it from this building? Give --initial-pose X Y THETA_DEG if it is"
+        else:
+            x, y, th = guess.tolist()
+            ask = (
+                f"tried around the initial pose {x:.2f} {y:.2f} {np.degrees(th):.1f} and "
+                "globally: is the log from this building, and that pose its first scan's in the "
+                "map's frame?"
+            )
+        raise SessionError(
+            f"{scans[0].source}: the log cannot be placed in the map (no unambiguous ICE match "
+            f"of enough correlation and fit, confirmed by tracking and corroborated by another "
+            f"scan, in its first {end} scans{detail}); {ask}"
+        )
+
+    def _corroborated(self, tried: _Tried) -> bool:
+        """Whether the global placement of another scan, at a place distinct from ``tried``'s
+        by the odometry between them, lands at ``tried``'s place through that odometry."""
+        st, at = self.settings, tried.placement.pose
+        for other in self._tried:
+            motion = _odometry_linked(self.scans, other.scan, tried.scan)
+            if motion is None or not distinct_places(np.zeros(3), motion, st):
+                continue  # no odometry between them, or the same view
+            if not distinct_places(se2.compose(other.placement.pose, motion), at, st):
+                return True
+        return False
 
 
 def odometry_run_end(scans: Sequence[LaserScan], limit: int) -> int:
@@ -141,20 +238,40 @@ def _odometry(scans: Sequence[LaserScan], i: int, j: int) -> FloatArray:
     return se2.between(scans[i].odom_pose, scans[j].odom_pose)  # type: ignore[arg-type]
 
 
+def _odometry_linked(scans: Sequence[LaserScan], i: int, j: int) -> FloatArray | None:
+    """Odometry motion from scan ``i`` to scan ``j`` (either order; ``(3,)``, frame of scan
+    ``i``), or None when a scan between them (both included) has no odometry or one after
+    the earlier of them starts an odometry break."""
+    lo, hi = min(i, j), max(i, j)
+    if scans[lo].odom_pose is None or any(
+        s.odom_pose is None or s.odom_break for s in scans[lo + 1 : hi + 1]
+    ):
+        return None
+    return se2.between(scans[i].odom_pose, scans[j].odom_pose)  # type: ignore[arg-type]
+
+
 def _place_one(
     fixed: FixedMap,
     feats: ScanFeatures,
     guess: FloatArray | None,
     st: LocalizeSettings,
     search: bool = True,
-) -> Placement | None:
-    """Around ``guess`` when given, else (or when that fails) globally if ``search``."""
+) -> tuple[Placement | None, bool]:
+    """Around ``guess`` when given, else (or when that fails) globally if ``search``; and
+    whether the placement is a global one."""
     if guess is not None:
         bounds = MatchBounds.local(st.initial_translation_m, st.initial_rotation_deg)
         p = fixed.match_at(feats, guess, bounds, st.reference_nodes)
         if p is not None and p.match.correlation >= st.correlation_floor(fixed.config):
-            return p
-    return fixed.place(feats, st) if search else None
+            return p, False
+    return (fixed.place(feats, st) if search else None), True
+
+
+def _where(scan: LaserScan, p: Placement) -> str:
+    return (
+        f"{scan.source} matched the map at {np.round(p.pose, 2).tolist()} (correlation "
+        f"{p.match.correlation:.2f})"
+    )
 
 
 def _unconfirmed(
@@ -165,10 +282,7 @@ def _unconfirmed(
     are tracked on the map (an empty string: confirmed, or nothing left to confirm it with)."""
     loc = Localizer(fixed, st, initial_pose=p.pose)
     tracked = 0
-    where = (
-        f"{scans[0].source} matched the map at {np.round(p.pose, 2).tolist()} (correlation "
-        f"{p.match.correlation:.2f})"
-    )
+    where = _where(scans[0], p)
     for scan in scans[:CONFIRM_SCANS]:
         _, _, status, _ = loc.process(scan)
         if loc.relocalizations or status == Status.LOST:

@@ -818,15 +818,16 @@ def _localize_in_session(
 ) -> LocalizationResult:
     """Localization against a frozen saved map, segment by segment.
 
-    A segment starts where a scan is placed in the map and the placement is confirmed by
-    the next scans (:func:`iceg.continuation.place_start`: around ``initial_pose`` for
-    the first segment when given, else by global matching; an offline run may look ahead).
+    A segment starts where a scan is placed in the map, the placement confirmed by the next
+    scans and, when global, corroborated by another scan's global placement
+    (:class:`iceg.continuation.StartSearch`: around ``initial_pose`` for the first segment
+    when given, else by global matching; an offline run may look ahead).
     It runs the session's own SLAM with the map frozen (:func:`_run_segment`) until the
     track is lost: ``lost_after`` keyframes in a row matched nothing and a global placement
     of the current scan disagrees with the estimate (a kidnapping). Scans that cannot be
     placed are LOST; the next placement is searched after them.
     """
-    from iceg.continuation import START_SCANS, START_STEP, odometry_run_end, place_start
+    from iceg.continuation import START_SCANS, START_STEP, StartSearch, odometry_run_end
     from iceg_common.errors import SessionError
 
     n = len(scans)
@@ -836,12 +837,13 @@ def _localize_in_session(
     corr = np.full(n, np.nan)
     relocalizations = 0
     guess = None if initial_pose is None else np.asarray(initial_pose, dtype=np.float64)
+    search = StartSearch(fixed, scans, st)
     i = 0
     while i < n:
         try:
-            k, placement = place_start(fixed, scans[i:], guess, st)
+            first, placed, placement = search.place(i, guess)
         except SessionError as exc:
-            # place_start tried the scans odometry links to scan i; without odometry, every
+            # the search tried the scans odometry links to scan i; without odometry, every
             # START_STEP-th scan is searched, as within a run of odometry
             tried = max(odometry_run_end(scans[i:], START_SCANS), START_STEP)
             logger.info("scans %d-%d not placed: %s", i, i + tried - 1, exc)
@@ -849,8 +851,8 @@ def _localize_in_session(
             continue
         relocalizations += guess is None or _far(placement.pose, guess, st)
         guess = None
-        stop = _run_segment(fixed, scans, (i, i + k), placement, st, (poses, covs, status, corr))
-        i = stop
+        out = (poses, covs, status, corr)
+        i = _run_segment(fixed, scans, (first, placed), placement, st, out)
     return _result(scans, poses, covs, status, corr, relocalizations)
 
 

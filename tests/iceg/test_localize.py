@@ -155,6 +155,32 @@ def test_a_placement_at_the_same_place_is_no_kidnapping(office, monkeypatch) -> 
     assert _err(result.poses, run.true_poses[120:K]).max() < 0.05
 
 
+def test_a_log_placed_by_one_coincidence_is_refused(office, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    # Every global placement after the first lands another 5 m away (the n-th 5n m along x):
+    # as in a map of another building, where placements are coincidences that agree with
+    # nothing. The first, confirmed by tracking the next scans, was accepted alone; now a
+    # placement needs another scan's placement, from another view, at the same place.
+    run, folder = office
+    fixed = fixed_map_of_session(session.read(folder))
+    place, calls = fixed.place, []
+
+    def scattered(feats, settings):  # type: ignore[no-untyped-def]
+        p = place(feats, settings)
+        calls.append(p is not None)
+        if p is None or len(calls) == 1:
+            return p
+        return dataclasses.replace(p, pose=p.pose + np.array([5.0 * len(calls), 0.0, 0.0]))
+
+    monkeypatch.setattr(fixed, "place", scattered)
+    result = localize_scans(fixed, _reframe(run.scans[120:K]))
+    assert sum(calls) >= 3
+    assert np.all(result.status == Status.LOST)
+    # the same log with the true placements is corroborated (by the next search's scan)
+    monkeypatch.setattr(fixed, "place", place)
+    result = localize_scans(fixed, _reframe(run.scans[120:K]))
+    assert result.status[0] == Status.PLACED
+
+
 def test_a_log_of_another_building_is_refused(office) -> None:  # type: ignore[no-untyped-def]
     _, folder = office
     other = simulate_scenario("outdoor", seed=2).scans[:40]
