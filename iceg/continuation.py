@@ -247,7 +247,7 @@ def _odometry_linked(scans: Sequence[LaserScan], i: int, j: int) -> FloatArray |
         s.odom_pose is None or s.odom_break for s in scans[lo + 1 : hi + 1]
     ):
         return None
-    return se2.between(scans[i].odom_pose, scans[j].odom_pose)  # type: ignore[arg-type]
+    return _odometry(scans, i, j)
 
 
 def _place_one(
