@@ -80,7 +80,9 @@ class LocalizeSettings:
             within this correlation of the best.
         distinct_place_m / distinct_place_deg: two placements more than this far apart, in
             position or heading, are distinct places (:func:`distinct_places`); nearer, they
-            are the same place, however confident their covariances.
+            are the same place, however confident their covariances. A global placement is
+            corroborated by another scan's, taken at a distinct place, that lands at the
+            same place (:class:`iceg.continuation.StartSearch`).
         confirm_keyframes: tracked keyframes that confirm a global placement.
         candidate_spacing_m: global search: one candidate place per square of this side.
         keyframe_distance_m / keyframe_rotation_deg: odometry motion between matched scans.
