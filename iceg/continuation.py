@@ -141,6 +141,7 @@ class StartSearch:
         self.scans = scans
         self.settings = settings or LocalizeSettings()
         self._tried: list[_Tried] = []
+        self._global: dict[int, Placement | None] = {}  # a scan's global placement
 
     def place(self, i: int, initial_pose: ArrayLike | None) -> tuple[int, int, Placement]:
         """The search from scan ``i`` over the scans odometry links to it (at most
@@ -164,11 +165,8 @@ class StartSearch:
             search = k % START_STEP == 0  # a global search is costly: every START_STEP-th scan
             if guess is None and not search:
                 continue
-            feats = extract(scan, self.fixed.config.features)
-            if feats.n_features < 2:
-                continue
             here = None if guess is None else se2.compose(guess, _odometry(scans, 0, k))
-            placement, is_global = _place_one(self.fixed, feats, here, st, search)
+            placement, is_global = self._placement(i + k, here, search)
             if placement is None:
                 continue
             refused = _unconfirmed(self.fixed, scans[k:], placement, st)
@@ -176,14 +174,14 @@ class StartSearch:
                 self._tried.clear()
                 return i, i + k, placement
             self._tried.append(_Tried(i + k, i, placement, not refused))
-            for tried in self._tried:
-                if tried.confirmed and self._corroborated(tried):
-                    self._tried.clear()
-                    return tried.window, tried.scan, tried.placement
+            if accepted := self._accepted(self._tried):
+                return accepted
             unconfirmed.append(
                 refused
                 or f"{_where(scan, placement)} but no other scan's global placement agreed with it"
             )
+        if accepted := self._look_ahead(i, end):
+            return accepted
         detail = (
             f"; {len(unconfirmed)} placement(s) refused, first: {unconfirmed[0]}"
             if unconfirmed
@@ -203,6 +201,50 @@ class StartSearch:
             f"of enough correlation and fit, confirmed by tracking and corroborated by another "
             f"scan, in its first {end} scans{detail}); {ask}"
         )
+
+    def _placement(
+        self, k: int, here: FloatArray | None, search: bool
+    ) -> tuple[Placement | None, bool]:
+        """Scan ``k``'s placement (:func:`_place_one`) and whether it is global; a global
+        search's result is kept, so a scan is placed globally once per log."""
+        if here is None and k in self._global:
+            return self._global[k], True
+        feats = extract(self.scans[k], self.fixed.config.features)
+        if feats.n_features < 2:
+            return None, here is None
+        placement, is_global = _place_one(self.fixed, feats, here, self.settings, search)
+        if here is None:
+            self._global[k] = placement
+        return placement, is_global
+
+    def _accepted(self, candidates: list[_Tried]) -> tuple[int, int, Placement] | None:
+        """The first confirmed and corroborated of ``candidates`` as ``(first, k,
+        placement)``; the placements tried are then forgotten."""
+        for tried in candidates:
+            if tried.confirmed and self._corroborated(tried):
+                self._tried.clear()
+                return tried.window, tried.scan, tried.placement
+        return None
+
+    def _look_ahead(self, i: int, end: int) -> tuple[int, int, Placement] | None:
+        """After the search from scan ``i`` (its first ``end`` scans), a placement it
+        confirmed but nothing corroborated yet: the global placements of the next scans
+        (every :data:`START_STEP`-th, up to :data:`CONFIRM_SCANS` after it, as far as
+        odometry links them) may corroborate it, as its confirmation looked ahead. The
+        placements they give stay for the next search."""
+        waiting = [t for t in self._tried if t.confirmed and t.window == i]
+        if not waiting:
+            return None
+        scans = self.scans[i:]
+        stop = min(odometry_run_end(scans, len(scans)), waiting[-1].scan - i + CONFIRM_SCANS)
+        for k in range(-(-end // START_STEP) * START_STEP, stop, START_STEP):
+            placement, _ = self._placement(i + k, None, True)
+            if placement is None:
+                continue
+            self._tried.append(_Tried(i + k, i, placement, False))
+            if accepted := self._accepted(waiting):
+                return accepted
+        return None
 
     def _corroborated(self, tried: _Tried) -> bool:
         """Whether the global placement of another scan, at a place distinct from ``tried``'s
