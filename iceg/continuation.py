@@ -145,7 +145,8 @@ class StartSearch:
 
     def place(self, i: int, initial_pose: ArrayLike | None) -> tuple[int, int, Placement]:
         """The search from scan ``i`` over the scans odometry links to it (at most
-        :data:`START_SCANS`), as :func:`place_start` describes.
+        :data:`START_SCANS`), as :func:`place_start` describes; a placement confirmed there
+        may be corroborated by the next scans' global placements (:meth:`_look_ahead`).
 
         Returns:
             ``(first, k, placement)``: the placed scan ``k`` and the first scan of the search
