@@ -1138,8 +1138,10 @@ class Slam:
         return np.zeros(3)
 
     def _constant_velocity_delta(self, last: int) -> FloatArray:
-        """Motion of the last node pair (estimates), as the prediction of the next one."""
-        if last == 0:
+        """Motion of the last node pair (estimates), as the prediction of the next one; none
+        from the first node of the log (:attr:`SlamState.segment_start`: the node before it
+        is another log's, in a continued or localizing run)."""
+        if last <= self._s.segment_start:
             return np.zeros(3)
         return se2.between(self._graph.estimate(last - 1), self._graph.estimate(last))
 
