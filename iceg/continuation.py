@@ -15,7 +15,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -106,6 +106,7 @@ class _Tried:
     window: int  # the first scan of the search that found it
     placement: Placement
     confirmed: bool  # the next scans, tracked from it, confirmed it
+    track: dict[int, FloatArray] = field(default_factory=dict)  # scan -> pose (no odometry)
 
 
 class StartSearch:
@@ -170,11 +171,13 @@ class StartSearch:
             placement, is_global = self._placement(i + k, here, search)
             if placement is None:
                 continue
-            refused = _unconfirmed(self.fixed, scans[k:], placement, st)
+            follow = scan.odom_pose is None  # no odometry: corroborated along the track
+            refused, track = _unconfirmed(self.fixed, scans[k:], placement, st, follow)
             if not is_global and not refused:
                 self._tried.clear()
                 return i, i + k, placement
-            self._tried.append(_Tried(i + k, i, placement, not refused))
+            along = dict(enumerate(track, start=i + k)) if follow else {}
+            self._tried.append(_Tried(i + k, i, placement, not refused, along))
             if accepted := self._accepted(self._tried):
                 return accepted
             unconfirmed.append(
@@ -237,7 +240,11 @@ class StartSearch:
         if not waiting:
             return None
         scans = self.scans[i:]
-        stop = min(odometry_run_end(scans, len(scans)), waiting[-1].scan - i + CONFIRM_SCANS)
+        linked = odometry_run_end(scans, len(scans))
+        stop = max(
+            max(t.track) + 1 - i if t.track else min(linked, t.scan - i + CONFIRM_SCANS)
+            for t in waiting
+        )
         for k in range(-(-end // START_STEP) * START_STEP, stop, START_STEP):
             placement, _ = self._placement(i + k, None, True)
             if placement is None:
@@ -249,14 +256,26 @@ class StartSearch:
 
     def _corroborated(self, tried: _Tried) -> bool:
         """Whether the global placement of another scan, at a place distinct from ``tried``'s
-        by the odometry between them, lands at ``tried``'s place through that odometry."""
-        st, at = self.settings, tried.placement.pose
+        by the odometry between them (or, without odometry, along the track from one of the
+        two placements to the other's scan), lands at ``tried``'s place that way."""
+        st = self.settings
         for other in self._tried:
             motion = _odometry_linked(self.scans, other.scan, tried.scan)
-            if motion is None or not distinct_places(np.zeros(3), motion, st):
-                continue  # no odometry between them, or the same view
-            if not distinct_places(se2.compose(other.placement.pose, motion), at, st):
-                return True
+            if motion is not None:
+                moved = distinct_places(np.zeros(3), motion, st)
+                if moved and not distinct_places(
+                    se2.compose(other.placement.pose, motion), tried.placement.pose, st
+                ):
+                    return True
+                continue
+            for a, b in ((tried, other), (other, tried)):  # a's track reaching b's scan
+                at = a.track.get(b.scan)
+                if (
+                    at is not None
+                    and distinct_places(a.placement.pose, at, st)
+                    and not distinct_places(at, b.placement.pose, st)
+                ):
+                    return True
         return False
 
 
@@ -318,24 +337,36 @@ def _where(scan: LaserScan, p: Placement) -> str:
 
 
 def _unconfirmed(
-    fixed: FixedMap, scans: Sequence[LaserScan], p: Placement, st: LocalizeSettings
-) -> str:
+    fixed: FixedMap,
+    scans: Sequence[LaserScan],
+    p: Placement,
+    st: LocalizeSettings,
+    follow: bool = False,
+) -> tuple[str, list[FloatArray]]:
     """Why the placement ``p`` of ``scans[0]`` is refused: the next :data:`CONFIRM_SCANS`
     scans, tracked from it, are lost or placed elsewhere before ``confirm_keyframes`` of them
-    are tracked on the map (an empty string: confirmed, or nothing left to confirm it with)."""
+    are tracked on the map (an empty string: confirmed, or nothing left to confirm it with);
+    and the track: the map-frame pose ``(3,)`` of each scan tracked from ``scans[0]`` on,
+    with ``follow`` up to the :data:`CONFIRM_SCANS`-th or the first not followed (a log
+    without odometry corroborates a placement along it, :class:`StartSearch`), else until
+    the confirmation ends."""
     loc = Localizer(fixed, st, initial_pose=p.pose)
     tracked = 0
     where = _where(scans[0], p)
+    track: list[FloatArray] = []
     for scan in scans[:CONFIRM_SCANS]:
-        _, _, status, _ = loc.process(scan)
+        pose, _, status, _ = loc.process(scan)
         if loc.relocalizations or status == Status.LOST:
-            return f"{where} but the next scans do not follow it there"
+            if tracked >= st.confirm_keyframes:
+                return "", track
+            return f"{where} but the next scans do not follow it there", track
+        track.append(pose)
         tracked += status == Status.TRACKED
-        if tracked >= st.confirm_keyframes:
-            return ""
-    if len(scans) > 1:
-        return f"{where} but the next {min(len(scans), CONFIRM_SCANS)} scans did not confirm it"
-    return ""
+        if tracked >= st.confirm_keyframes and not follow:
+            return "", track
+    if tracked >= st.confirm_keyframes or len(scans) <= 1:
+        return "", track
+    return f"{where} but the next {min(len(scans), CONFIRM_SCANS)} scans did not confirm it", track
 
 
 def continue_scans(
