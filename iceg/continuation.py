@@ -126,8 +126,11 @@ class StartSearch:
     a place recognition (Mur-Artal et al. 2015, §VI-A), with the views apart by motion. The
     corroborating placement need not be confirmed itself (its next scans may be a fast
     turn), nor later: the TurtleBot 4's placement at scan 205 in its own map is corroborated
-    by scan 5's, through 200 scans of odometry. A placement around the initial pose is the
-    user's guess confirmed and needs no corroboration.
+    by scan 5's, through 200 scans of odometry. Without odometry between the two scans, the
+    track that confirmed one placement (:func:`_unconfirmed`, followed up to
+    :data:`CONFIRM_SCANS` scans) gives the motion to the other's scan: the RC car bag, laser
+    only, is placed in its own map and refused in five others. A placement around the
+    initial pose is the user's guess confirmed and needs no corroboration.
 
     Args:
         fixed: the map.
