@@ -237,8 +237,8 @@ class StartSearch:
         """After the search from scan ``i`` (its first ``end`` scans), a placement it
         confirmed but nothing corroborated yet: the global placements of the next scans
         (every :data:`START_STEP`-th, up to :data:`CONFIRM_SCANS` after it, as far as
-        odometry links them) may corroborate it, as its confirmation looked ahead. The
-        placements they give stay for the next search."""
+        odometry links them, or its track reaches without odometry) may corroborate it, as
+        its confirmation looked ahead. The placements they give stay for the next search."""
         waiting = [t for t in self._tried if t.confirmed and t.window == i]
         if not waiting:
             return None
