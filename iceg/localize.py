@@ -502,10 +502,19 @@ class Localizer:
     def _bounds(self, cov: FloatArray, on_map: bool) -> MatchBounds:
         """Match bounds around a prediction of covariance ``cov``: ``search_n_sigma`` of its
         standard deviations, at least the tracking bounds (the map's, or the run's local
-        match bounds for the local map), at most ``loop_closure.max_search_radius_m``."""
+        match bounds for the local map), at most ``loop_closure.max_search_radius_m``.
+
+        For a scan without odometry, the tracking bounds: its covariance holds the
+        no-odometry sigmas (``slam.no_odometry_sigma_*``, 0.5 m and 20° a scan), a weak prior
+        that keeps a graph connected, not the motion between two scans; three of them (1.5 m,
+        60°) are beyond the matcher's tracking bounds, so every match asked for the global
+        evidence and a laser-only log's placement was withdrawn at its first corridor scan.
+        A laser-only run's own tracking matches within its local bounds the same way."""
         st, cfg = self.settings, self.fixed.config
         base_m = st.track_translation_m if on_map else cfg.slam.match_max_translation_m
         base_deg = st.track_rotation_deg if on_map else cfg.slam.match_max_rotation_deg
+        if self._scan.odom_pose is None:
+            return MatchBounds.local(base_m, base_deg)
         sxy = float(np.sqrt(max(np.linalg.eigvalsh(cov[:2, :2]).max(), 0.0)))
         sth = float(np.sqrt(max(cov[2, 2], 0.0)))
         trans = min(max(base_m, st.search_n_sigma * sxy), cfg.loop_closure.max_search_radius_m)
