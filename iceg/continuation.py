@@ -146,11 +146,18 @@ class StartSearch:
         self.settings = settings or LocalizeSettings()
         self._tried: list[_Tried] = []
         self._global: dict[int, Placement | None] = {}  # a scan's global placement
+        # scans up to each one (included) without odometry or starting an odometry break
+        self._unlinked = np.cumsum([s.odom_pose is None or s.odom_break for s in scans])
 
     def place(self, i: int, initial_pose: ArrayLike | None) -> tuple[int, int, Placement]:
         """The search from scan ``i`` over the scans odometry links to it (at most
         :data:`START_SCANS`), as :func:`place_start` describes; a placement confirmed there
         may be corroborated by the next scans' global placements (:meth:`_look_ahead`).
+
+        Args:
+            i: The first scan of the search (index in the log).
+            initial_pose: ``(3,)`` map-frame guess of scan ``i`` ``[x_m, y_m, theta_rad]``,
+                or None.
 
         Returns:
             ``(first, k, placement)``: the placed scan ``k`` and the first scan of the search
@@ -257,13 +264,22 @@ class StartSearch:
                 return accepted
         return None
 
+    def _odometry_between(self, i: int, j: int) -> FloatArray | None:
+        """Odometry motion from scan ``i`` to scan ``j`` (either order; ``(3,)``, frame of
+        scan ``i``), or None when a scan between them (both included) has no odometry or one
+        after the earlier of them starts an odometry break."""
+        lo, hi = min(i, j), max(i, j)
+        if self.scans[lo].odom_pose is None or self._unlinked[hi] != self._unlinked[lo]:
+            return None
+        return _odometry(self.scans, i, j)
+
     def _corroborated(self, tried: _Tried) -> bool:
         """Whether the global placement of another scan, at a place distinct from ``tried``'s
         by the odometry between them (or, without odometry, along the track from one of the
         two placements to the other's scan), lands at ``tried``'s place that way."""
         st = self.settings
         for other in self._tried:
-            motion = _odometry_linked(self.scans, other.scan, tried.scan)
+            motion = self._odometry_between(other.scan, tried.scan)
             if motion is not None:
                 moved = distinct_places(np.zeros(3), motion, st)
                 if moved and not distinct_places(
@@ -301,18 +317,6 @@ def _odometry(scans: Sequence[LaserScan], i: int, j: int) -> FloatArray:
     if i == j:
         return np.zeros(3)
     return se2.between(scans[i].odom_pose, scans[j].odom_pose)  # type: ignore[arg-type]
-
-
-def _odometry_linked(scans: Sequence[LaserScan], i: int, j: int) -> FloatArray | None:
-    """Odometry motion from scan ``i`` to scan ``j`` (either order; ``(3,)``, frame of scan
-    ``i``), or None when a scan between them (both included) has no odometry or one after
-    the earlier of them starts an odometry break."""
-    lo, hi = min(i, j), max(i, j)
-    if scans[lo].odom_pose is None or any(
-        s.odom_pose is None or s.odom_break for s in scans[lo + 1 : hi + 1]
-    ):
-        return None
-    return _odometry(scans, i, j)
 
 
 def _place_one(
