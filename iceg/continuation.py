@@ -249,13 +249,11 @@ class StartSearch:
         waiting = [t for t in self._tried if t.confirmed and t.window == i]
         if not waiting:
             return None
-        scans = self.scans[i:]
-        linked = odometry_run_end(scans, len(scans))
         stop = max(
-            max(t.track) + 1 - i if t.track else min(linked, t.scan - i + CONFIRM_SCANS)
+            max(t.track) + 1 if t.track else min(self._linked_end(t.scan), t.scan + CONFIRM_SCANS)
             for t in waiting
         )
-        for k in range(-(-end // START_STEP) * START_STEP, stop, START_STEP):
+        for k in range(-(-end // START_STEP) * START_STEP, stop - i, START_STEP):
             placement, _ = self._placement(i + k, None, True)
             if placement is None:
                 continue
@@ -263,6 +261,11 @@ class StartSearch:
             if accepted := self._accepted(waiting):
                 return accepted
         return None
+
+    def _linked_end(self, k: int) -> int:
+        """The first scan after scan ``k`` (which has odometry) that odometry does not link
+        to it: the first without odometry or starting a break, else the log's length."""
+        return int(np.searchsorted(self._unlinked, self._unlinked[k], side="right"))
 
     def _odometry_between(self, i: int, j: int) -> FloatArray | None:
         """Odometry motion from scan ``i`` to scan ``j`` (either order; ``(3,)``, frame of
