@@ -78,7 +78,8 @@ def place_start(
     placement was global, corroborated by the global placement of another scan
     (:class:`StartSearch`); a placement they refuse (a wrong match, or a right one whose
     next scans cannot be tracked, as in a fast turn) is dropped and the search goes on with
-    the next scans.
+    the next scans. One search spans the scans odometry links to its first; in a log
+    without odometry (one scan), the next search starts :data:`START_STEP` scans later.
 
     Args:
         fixed: the map.
@@ -88,14 +89,32 @@ def place_start(
 
     Returns:
         ``(k, placement)``: the placed scan's index (odometry runs unbroken from scan 0 to
-        it) and its placement (``match.pose`` in the frame of node ``anchor``).
+        it, or no scan up to it has odometry) and its placement (``match.pose`` in the
+        frame of node ``anchor``).
 
     Raises:
         SessionError: no scan placed, confirmed and corroborated (the message says why the
             refused placements were refused).
     """
-    _, k, placement = StartSearch(fixed, scans, settings).place(0, initial_pose)
-    return k, placement
+    search = StartSearch(fixed, scans, settings)
+    i, refusals = 0, []
+    while True:
+        try:
+            _, k, placement = search.place(i, initial_pose if i == 0 else None)
+            return k, placement
+        except SessionError as exc:
+            refusals.append(exc)
+        # Each search spans the scans odometry links to its first; scans without odometry
+        # are searched from every START_STEP-th, as a stretch of odometry is. The scans
+        # before the placed one are tracked backwards from it, which odometry must not break.
+        i += max(odometry_run_end(scans[i:], START_SCANS), START_STEP)
+        if i >= min(len(scans), START_SCANS) or any(s.odom_pose is not None for s in scans[:i]):
+            if len(refusals) == 1:
+                raise refusals[0]
+            raise SessionError(
+                f"{refusals[0]}; {len(refusals) - 1} more search(es) from later scans, up to "
+                f"scan {i - 1}, placed none either"
+            )
 
 
 @dataclass(frozen=True)

@@ -422,8 +422,9 @@ class Slam:
         to ``anchor`` by a loop-closure factor and to nothing by odometry (the new log is a
         new odometry frame); its features join the map. ``before``: the new log's scans
         before ``scan`` (none could be placed), in order, with odometry unbroken up to
-        ``scan``: they hang off the node as scans between nodes do, each placed by tracking
-        backwards from it (:meth:`_track_backwards`). Later scans go to :meth:`process`.
+        ``scan`` (or none of them with odometry): they hang off the node as scans between
+        nodes do, each placed by tracking backwards from it (:meth:`_track_backwards`).
+        Later scans go to :meth:`process`.
         Returns the node's pose estimate ``(3,)``, map frame.
 
         Raises:

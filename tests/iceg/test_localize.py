@@ -218,6 +218,30 @@ def test_a_log_without_odometry_is_corroborated_along_its_track(office) -> None:
     assert _err(result.poses, run.true_poses[120:K]).max() < 0.05
 
 
+def test_a_log_without_odometry_is_continued_from_a_later_scan(office) -> None:  # type: ignore[no-untyped-def]
+    # A laser-only log whose first scans see nothing (a covered sensor): each search spans the
+    # scans odometry links to its first, one scan here, so only scan 0 was tried and the log
+    # was refused. The first START_SCANS scans are searched, from every START_STEP-th.
+    run, folder = office
+    blind = START_STEP + 2
+    scans = [
+        dataclasses.replace(
+            s,
+            odom_pose=None,
+            stamp_s=s.stamp_s + 1000.0,
+            ranges_m=np.full_like(s.ranges_m, s.range_max_m) if i < blind else s.ranges_m,
+        )
+        for i, s in enumerate(run.scans[120:K])
+    ]
+    result = continue_scans(folder, scans)
+    n_old = session.read(folder).arrays["g_node_ids"].shape[0]
+    n = len(scans)
+    assert result.poses.shape[0] == K + n
+    assert _err(result.poses[K + blind :], run.true_poses[120 + blind : K]).max() < 0.05
+    first = [f for f in result.factors if f.j == n_old]
+    assert [f.kind.value for f in first] == ["loop_closure"]
+
+
 def test_a_log_of_another_building_is_refused(office) -> None:  # type: ignore[no-untyped-def]
     _, folder = office
     other = simulate_scenario("outdoor", seed=2).scans[:40]
