@@ -104,10 +104,9 @@ def place_start(
             return k, placement
         except SessionError as exc:
             refusals.append(exc)
-        # Each search spans the scans odometry links to its first; scans without odometry
-        # are searched from every START_STEP-th, as a stretch of odometry is. The scans
-        # before the placed one are tracked backwards from it, which odometry must not break.
-        i += max(odometry_run_end(scans[i:], START_SCANS), START_STEP)
+        # The scans before the placed one are tracked backwards from it, which odometry
+        # must not break: a log with odometry is searched once.
+        i = next_search(scans, i)
         if i >= min(len(scans), START_SCANS) or any(s.odom_pose is not None for s in scans[:i]):
             if len(refusals) == 1:
                 raise refusals[0]
@@ -318,6 +317,13 @@ class StartSearch:
                 ):
                     return True
         return False
+
+
+def next_search(scans: Sequence[LaserScan], i: int) -> int:
+    """The first scan of the search after the one from scan ``i``: a search spans the scans
+    odometry links to its first (at most :data:`START_SCANS`); scans without odometry are
+    searched from every :data:`START_STEP`-th, as a stretch of odometry is."""
+    return i + max(odometry_run_end(scans[i:], START_SCANS), START_STEP)
 
 
 def odometry_run_end(scans: Sequence[LaserScan], limit: int) -> int:

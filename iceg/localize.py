@@ -838,7 +838,7 @@ def _localize_in_session(
     of the current scan disagrees with the estimate (a kidnapping). Scans that cannot be
     placed are LOST; the next placement is searched after them.
     """
-    from iceg.continuation import START_SCANS, START_STEP, StartSearch, odometry_run_end
+    from iceg.continuation import StartSearch, next_search
     from iceg_common.errors import SessionError
 
     n = len(scans)
@@ -854,11 +854,9 @@ def _localize_in_session(
         try:
             first, placed, placement = search.place(i, guess)
         except SessionError as exc:
-            # the search tried the scans odometry links to scan i; without odometry, every
-            # START_STEP-th scan is searched, as within a run of odometry
-            tried = max(odometry_run_end(scans[i:], START_SCANS), START_STEP)
-            logger.info("scans %d-%d not placed: %s", i, i + tried - 1, exc)
-            guess, i = None, i + tried
+            after = next_search(scans, i)
+            logger.info("scans %d-%d not placed: %s", i, after - 1, exc)
+            guess, i = None, after
             continue
         relocalizations += guess is None or _far(placement.pose, guess, st)
         guess = None
