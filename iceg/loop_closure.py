@@ -701,6 +701,7 @@ class LoopCloser:
         features: ScanFeatures,
         graph: PoseGraph,
         path_m: Sequence[float],
+        log_start: int = 0,
     ) -> OpenSearch | None:
         """Begin a search of older nodes for a loop closure of ``node_id``, near its estimate
         and, when due, by appearance: its candidates, and their matches built and handed to
@@ -709,17 +710,17 @@ class LoopCloser:
         starts (:mod:`iceg.slam` tracks the next keyframe in between, while the helper runs
         the matches).
 
-        Local search: candidates are nodes at least ``min_node_gap`` nodes and ``min_path_m``
-        metres of path back, within ``radius = base + n_sigma * sqrt(lambda_max(cov_xy))`` of
-        the current estimate (``cov_xy`` from the current node's marginal, capped at
+        Local search: candidates are nodes at least ``min_node_gap`` nodes and
+        ``min_path_m`` metres of path back, or of an earlier log (before ``log_start``),
+        within ``radius = base + n_sigma * sqrt(lambda_max(cov_xy))`` of the current
+        estimate (``cov_xy`` from the current node's marginal, capped at
         ``max_search_radius_m``); up to ``max_candidates`` of the nearest, from distinct
         places, are matched against the landmarks of the ``reference_nodes`` old nodes
         nearest each candidate, and the best-correlated match is kept. Unless the odometry
-        rules it out (:meth:`_contradicts_odometry`), it is accepted (robust
-        kernel) when it passes the chi-square gate (:func:`innovation_chi2`), or together with
-        held closures it agrees with (no kernel; :meth:`_agreeing`: held local closures that
-        agree, else a clique of ``global_min_group`` with held global ones); otherwise it is
-        held.
+        rules it out (:meth:`_contradicts_odometry`), it is accepted (robust kernel) when it
+        passes the chi-square gate (:func:`innovation_chi2`), or together with held closures
+        it agrees with (no kernel; :meth:`_agreeing`: held local closures that agree, else a
+        clique of ``global_min_group`` with held global ones); otherwise it is held.
 
         Global search (when nothing was accepted, every ``global_every_n_searches``-th
         search): see :meth:`_global`.
@@ -731,6 +732,9 @@ class LoopCloser:
             graph: The pose graph (estimates, marginals and the sequential factors' covariances
                 are read, nothing is added).
             path_m: Odometry path length at each node, metres, indexed by node id.
+            log_start: The first node of the current log (:meth:`iceg.slam.Slam.start_segment`;
+                0 for a single run): every node before it is a candidate, another log's
+                path, which this one never drove.
 
         Returns:
             The search for :meth:`finish_search`, or ``None`` when the node has no older
@@ -739,7 +743,7 @@ class LoopCloser:
         Raises:
             GraphError: the graph cannot give the current node's marginal covariance.
         """
-        n_older = self._n_older(node_id, path_m)
+        n_older = max(self._n_older(node_id, path_m), log_start)
         if n_older == 0:
             return None
         self.stats.searches += 1

@@ -522,6 +522,7 @@ def _slam_state(session: Session, a: Mapping[str, np.ndarray], scans: list[Laser
         match_failures=defaultdict(int, session.manifest.get("match_failures", {})),
         point_fallbacks=defaultdict(int, session.manifest.get("point_fallbacks", {})),
         segment_start=segment_start(a),
+        log_start=log_start(a),
         anchor=_anchor_of(a, "reuse_anchor"),
         reuse_from=_anchor_of(a, "reuse_from"),
         reused_keyframes=int(a["reuse_count"][0]) if "reuse_count" in a else 0,
@@ -564,6 +565,16 @@ def segment_start(a: Mapping[str, np.ndarray]) -> int:
     before it (:meth:`iceg.slam.Slam.start_segment`; 0 for a single run)."""
     odo = a["g_kind"] == FACTOR_KINDS.index(FactorKind.ODOMETRY)
     odo &= a["g_ij"][:, 1] == a["g_ij"][:, 0] + 1  # not from an old node (slam.reuse_nodes)
+    linked = set(a["g_ij"][odo, 1].tolist())
+    starts = [int(n) for n in a["g_node_ids"].tolist() if n > 0 and n not in linked]
+    return max(starts, default=0)
+
+
+def log_start(a: Mapping[str, np.ndarray]) -> int:
+    """First node of the session's last log: the last node without an odometry factor to it
+    (:meth:`iceg.slam.Slam.start_segment` links it by its placement only; 0 for a single
+    run)."""
+    odo = a["g_kind"] == FACTOR_KINDS.index(FactorKind.ODOMETRY)
     linked = set(a["g_ij"][odo, 1].tolist())
     starts = [int(n) for n in a["g_node_ids"].tolist() if n > 0 and n not in linked]
     return max(starts, default=0)

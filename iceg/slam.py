@@ -299,6 +299,9 @@ class SlamState:
     # first node of the current log (Slam.start_segment) or of the path after a revisit
     # (slam.reuse_nodes): the local map's oldest node
     segment_start: int = 0
+    # first node of the current log (Slam.start_segment; 0 for a single run): the nodes
+    # before it are another log's, never the path just driven
+    log_start: int = 0
     # slam.reuse_nodes: the old node the scans hang from while a revisit follows old nodes,
     # and the newest node placed in an old node's frame (by a loop closure just accepted, or
     # on leaving the old nodes), from which the next keyframe tries that old place
@@ -456,7 +459,7 @@ class Slam:
         # The local map of the new log holds its own nodes only: the old log's last nodes
         # are another trajectory, linked to this one only through the map (which may not yet
         # agree with itself where that log left a loop open).
-        self._s.segment_start = new_id
+        self._s.segment_start = self._s.log_start = new_id
         self._s.anchor = self._s.reuse_from = None
         self._graph.update()
         # All its features become its own landmarks, as the first node of a run: the next
@@ -1060,7 +1063,9 @@ class Slam:
         keyframe's local match run while the helper runs its matches, and
         :meth:`_finish_search` decides it before the graph changes again. Otherwise (or
         with no match to run) it is decided now."""
-        begun = self.loop_closer.start_search(node_id, feats, self._graph, self._s.node_path_m)
+        begun = self.loop_closer.start_search(
+            node_id, feats, self._graph, self._s.node_path_m, self._s.log_start
+        )
         if begun is None:
             return
         self._open = _OpenSearch(begun, (node_id, feats, scan, local))

@@ -242,6 +242,24 @@ def test_a_log_without_odometry_is_continued_from_a_later_scan(office) -> None: 
     assert [f.kind.value for f in first] == ["loop_closure"]
 
 
+def test_a_map_shorter_than_the_loop_closure_path_is_tracked(office, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    # Loop-closure candidates are nodes far back along the path (min_path_m, 10 m): not the
+    # corridor just driven. A localizing log's path went on from the map's, so a map of
+    # 7.5 m of path gave no candidate and no scan was matched to the map (TRACKED none, the
+    # track on its own local map). Another log's nodes are never the path just driven.
+    run, _ = office
+    slam = Slam()
+    for scan in run.scans[:100]:
+        slam.process(scan)
+    slam.finish()
+    session.save(slam, tmp_path / "short")
+    scans = _reframe(run.scans[:100])
+    fixed = fixed_map_of_session(session.read(tmp_path / "short"))
+    result = localize_scans(fixed, scans, initial_pose=run.true_poses[0])
+    assert np.count_nonzero(result.status == Status.TRACKED) >= 10
+    assert _err(result.poses, run.true_poses[:100]).max() < 0.05
+
+
 def test_a_log_of_another_building_is_refused(office) -> None:  # type: ignore[no-untyped-def]
     _, folder = office
     other = simulate_scenario("outdoor", seed=2).scans[:40]
