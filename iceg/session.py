@@ -563,18 +563,22 @@ def segment_start(a: Mapping[str, np.ndarray]) -> int:
     """First node of the session's last log, or of its path after a revisit left the old
     nodes (``slam.reuse_nodes``): the last node without an odometry factor from the node
     before it (:meth:`iceg.slam.Slam.start_segment`; 0 for a single run)."""
-    odo = a["g_kind"] == FACTOR_KINDS.index(FactorKind.ODOMETRY)
-    odo &= a["g_ij"][:, 1] == a["g_ij"][:, 0] + 1  # not from an old node (slam.reuse_nodes)
-    linked = set(a["g_ij"][odo, 1].tolist())
-    starts = [int(n) for n in a["g_node_ids"].tolist() if n > 0 and n not in linked]
-    return max(starts, default=0)
+    return _last_without_odometry(a, from_previous=True)
 
 
 def log_start(a: Mapping[str, np.ndarray]) -> int:
     """First node of the session's last log: the last node without an odometry factor to it
     (:meth:`iceg.slam.Slam.start_segment` links it by its placement only; 0 for a single
     run)."""
+    return _last_without_odometry(a, from_previous=False)
+
+
+def _last_without_odometry(a: Mapping[str, np.ndarray], from_previous: bool) -> int:
+    """The last node (id > 0) no odometry factor leads to; with ``from_previous`` only
+    factors from the node before it count (not from an old node, ``slam.reuse_nodes``)."""
     odo = a["g_kind"] == FACTOR_KINDS.index(FactorKind.ODOMETRY)
+    if from_previous:
+        odo &= a["g_ij"][:, 1] == a["g_ij"][:, 0] + 1
     linked = set(a["g_ij"][odo, 1].tolist())
     starts = [int(n) for n in a["g_node_ids"].tolist() if n > 0 and n not in linked]
     return max(starts, default=0)
