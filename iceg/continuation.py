@@ -34,6 +34,7 @@ from iceg.localize import (
     Placement,
     Status,
     distinct_places,
+    match_helper,
 )
 from iceg.matching import MatchBounds
 from iceg.results import SlamResult
@@ -426,7 +427,8 @@ def continue_scans(
             f"session's last scan ({last:.6f} s); the map's time-validity needs the new log "
             "to come later"
         )
-    k, placement = place_start(fixed_map_of(slam), scans, initial_pose)
+    with match_helper(fixed_map_of(slam)) as fixed:
+        k, placement = place_start(fixed, scans, initial_pose)
     logger.info(
         "scan %d placed at %s near node %d (correlation %.2f)",
         k,

@@ -242,6 +242,29 @@ class MatchPool:
                 results[k] = self._here(sent.jobs[k])
         return [r for r in results if r is not None]
 
+    def run_all(self, jobs: Iterable[MatchJob]) -> list[MatchResult]:
+        """The match of every job, in order, for a batch larger than a search's (a global
+        placement against every place of a map): the jobs alternate between the helper and
+        this process, each sent as this process takes up the one after it, so neither waits
+        on the other (:meth:`submit` alone would block on the full pipe while the helper
+        works through the batch). Without a helper every job runs here.
+
+        Raises:
+            Whatever the matcher raises.
+        """
+        here: dict[int, MatchResult] = {}
+
+        def every_other() -> Iterable[MatchJob]:
+            for k, job in enumerate(jobs):
+                if k % 2:
+                    here[k] = self._here(job)
+                else:
+                    yield job
+
+        sent = self.submit(every_other())
+        helped = iter(self.collect(sent))  # the even jobs, in order
+        return [here[k] if k % 2 else next(helped) for k in range(len(sent.jobs) + len(here))]
+
     def _take(self, batch: int, k: int) -> None:
         """Tell the helper that this process runs job ``k`` of ``batch`` and the later ones
         (taken from the last back). The index is written before the batch, so the helper

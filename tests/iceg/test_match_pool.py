@@ -83,6 +83,22 @@ def test_a_batch_of_more_results_than_the_pipe_holds_completes(jobs: list[MatchJ
     assert all(_same(a, b) for a, b in zip(got, want, strict=True))
 
 
+def test_a_large_batch_is_shared_with_the_helper_in_order(jobs: list[MatchJob]) -> None:
+    # run_all: a global placement's batch (every place of a map), every other match sent to
+    # the helper as this process runs the one between; odd and even sizes, and without a
+    # helper. The results in the jobs' order, the matcher's bit for bit.
+    matcher = IceMatcher(MatchingConfig())
+    want = [matcher.match(*job) for job in jobs]
+    with MatchPool(IceMatcher(MatchingConfig()), wait=True) as pool:
+        got = pool.run_all(iter(jobs))
+        got_odd = pool.run_all(jobs[:7])
+    assert (pool.remote, pool.local) == ((len(jobs) + 1) // 2 + 4, len(jobs) // 2 + 3)
+    without = MatchPool(IceMatcher(MatchingConfig()), helper=False).run_all(jobs)
+    for results, expect in ((got, want), (got_odd, want[:7]), (without, want)):
+        assert len(results) == len(expect)
+        assert all(_same(a, b) for a, b in zip(results, expect, strict=True))
+
+
 class _MisbehavesInHelper:
     """IceMatcher's matches; in any other process than the one that made it (the helper),
     half a second late (``slow``) or raising."""
