@@ -31,6 +31,7 @@ from iceg.localize import (
     LocalizeSettings,
     Placement,
     fixed_map_of_session,
+    match_helper,
     segment_fit,
 )
 from iceg.loop_closure import LoopClosureConfig
@@ -110,8 +111,8 @@ def find_closures(
         SessionError: B's scans cannot be re-read, or fewer than ``min_closures`` agree.
     """
     st = settings or MergeSettings()
-    fixed = fixed_map_of_session(a)
-    found = _placements(fixed, b, st)
+    with match_helper(fixed_map_of_session(a)) as fixed:
+        found = _placements(fixed, b, st)
     best, rival = _consistent(found, st)
     if len(best) < st.min_closures:
         raise SessionError(
