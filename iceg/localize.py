@@ -295,9 +295,10 @@ def match_helper(fixed: FixedMap) -> Iterator[FixedMap]:
     """``fixed`` with its global placements' matches shared with a forked helper process
     (:class:`~iceg.match_pool.MatchPool`) while in the block, where the session's
     configuration runs more than one process (``slam.workers``, 0:
-    :func:`~iceg.features.prefetch.auto_workers`): the same placements, in about half the
-    wall time on two cores. A placement compares a scan with every candidate place of the
-    map, the cost of localizing (its kidnapping checks) and of starting a continued log."""
+    :func:`~iceg.features.prefetch.auto_workers`): the same placements, in about two thirds
+    of the wall time on two cores. A placement compares a scan with every candidate place of
+    the map: most of a localization's time (its kidnapping checks), and a continued log's
+    start and a merge's placements."""
     workers = fixed.config.slam.workers or auto_workers()
     with MatchPool(fixed.matcher, helper=workers > 1) as pool:
         fixed.match_pool = pool

@@ -11,7 +11,9 @@ last of them itself (the helper works from the first and skips a match taken her
 waits for the one left about as long as a match takes before running that one too (the
 helper's late result is dropped): a helper starved of CPU costs little. Either process
 computes the same result from the same inputs, so the run is the same bit for bit whatever
-the timing and with or without a helper (``tests/iceg/test_match_pool.py``).
+the timing and with or without a helper (``tests/iceg/test_match_pool.py``). A global
+placement in a saved map, a batch of a match per place of the map, shares its matches with the
+helper through :meth:`MatchPool.run_all` (:func:`iceg.localize.match_helper`).
 
 The helper is forked at the first submitted search, when the calling process has loaded the
 matcher's compiled kernels, so it starts warm; it holds the matcher and its configuration
