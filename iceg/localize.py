@@ -201,12 +201,6 @@ class FixedMap:
         """Match around a predicted map-frame ``pose`` (None: failed)."""
         return self._match_reference(feats, *self.reference_near(pose, k), pose, bounds)
 
-    def _match_place(self, feats: ScanFeatures, row: int, k: int) -> Placement | None:
-        """Global match against the place of node row ``row`` (its ``k`` nearest nodes):
-        :meth:`match_at` at the node's pose, with the place's reference built once."""
-        anchor, ref = self._place_reference(row, k)
-        return self._match_reference(feats, anchor, ref, self.poses[row], MatchBounds.global_())
-
     def _place_reference(self, row: int, k: int) -> tuple[int, MapReference]:
         """:meth:`reference_near` the pose of node row ``row``, kept for the next global
         placements (at most ``_MAX_CACHED_PLACES``)."""
@@ -239,15 +233,19 @@ class FixedMap:
             return None
         return Placement(int(self.ids[anchor]), ref, res, se2.compose(self.poses[anchor], res.pose))
 
-    def place(self, feats: ScanFeatures, settings: LocalizeSettings) -> Placement | None:
-        """Global placement: the scan matched (no prediction) against every candidate place.
+    def placements(self, feats: ScanFeatures, settings: LocalizeSettings) -> list[Placement]:
+        """The scan matched globally (no prediction) against the place of every candidate
+        node (:meth:`candidates` at ``settings.candidate_spacing_m``; a place is its
+        ``reference_nodes`` nearest nodes, its reference built once): the placements the
+        matcher accepted, in the candidates' order. With :attr:`match_pool` set the matches
+        are shared with its helper; the same placements either way.
 
-        The best match by correlation is returned when it reaches ``min_correlation``, its
-        points fit the map's segments (:func:`segment_fit` ``>= min_fit``), and no distinct
-        place matches almost as well (``ambiguity_margin``); otherwise None (never a guess).
-        Every place the matcher accepted is a rival, whether or not it reaches the floors: a
-        place that looks the same is an ambiguity even where its fit or correlation falls
-        short of a placement's.
+        Args:
+            feats: The scan's features, robot frame.
+            settings: localization tuning.
+
+        Returns:
+            The accepted placements, each with ``match.pose`` in its anchor node's frame.
         """
         st = settings
         places: list[tuple[int, MapReference]] = []
@@ -264,11 +262,24 @@ class FixedMap:
             results = pool.run_all(jobs())
         else:
             results = [self.matcher.match(*job) for job in jobs()]
-        matched = [
+        return [
             p
             for (anchor, ref), res in zip(places, results, strict=True)
             if (p := self._placement(anchor, ref, res)) is not None
         ]
+
+    def place(self, feats: ScanFeatures, settings: LocalizeSettings) -> Placement | None:
+        """Global placement: the scan matched (no prediction) against every candidate place.
+
+        The best match by correlation is returned when it reaches ``min_correlation``, its
+        points fit the map's segments (:func:`segment_fit` ``>= min_fit``), and no distinct
+        place matches almost as well (``ambiguity_margin``); otherwise None (never a guess).
+        Every place the matcher accepted is a rival, whether or not it reaches the floors: a
+        place that looks the same is an ambiguity even where its fit or correlation falls
+        short of a placement's.
+        """
+        st = settings
+        matched = self.placements(feats, st)
         found = [
             p
             for p in matched

@@ -89,8 +89,7 @@ def test_a_rival_below_the_floor_still_makes_a_placement_ambiguous(office) -> No
     fixed = fixed_map_of_session(session.read(folder))
     st = LocalizeSettings()
     feats = extract(run.scans[168], fixed.config.features)
-    rows = fixed.candidates(st.candidate_spacing_m).tolist()
-    matched = [p for r in rows if (p := fixed._match_place(feats, r, st.reference_nodes))]
+    matched = fixed.placements(feats, st)
     matched.sort(key=lambda p: -p.match.correlation)
     best = matched[0]
     rival = next(
