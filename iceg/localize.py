@@ -1037,9 +1037,12 @@ def _track_segment(
     """Run the frozen-map SLAM on the scans after ``first`` (stamps shifted by ``shift``
     seconds) until a kidnapping is confirmed; return the stop index (the first scan of the
     confirming placements, or the log's end). Every ``check_every_nodes`` nodes, and while
-    keyframes go unmatched, the scan is also placed globally in ``fixed``."""
+    keyframes go unmatched, the scan is also placed globally in ``fixed``, unless the
+    keyframe has just closed a loop to a map node: the map has confirmed the track there
+    (a kidnapped robot's scans do not match the map where its track is)."""
     fails, stop, checked = 0, len(scans), 0
     chi2 = slam.config.loop_closure.consistency_chi2
+    n_map = int(fixed.ids.max()) + 1  # the map's nodes; the segment's come after them
     doubts: list[tuple[int, FloatArray, Placement]] = []  # placements against the track
     for j in range(first + 1, len(scans)):
         n_nodes, n_factors = slam.graph.n_nodes, slam.graph.n_factors
@@ -1052,6 +1055,10 @@ def _track_segment(
         checked += 1
         unmatched = fails >= st.lost_after and (fails - st.lost_after) % st.lost_retry_scans == 0
         if not (unmatched or checked % st.check_every_nodes == 0):
+            continue
+        if any(f.kind is FactorKind.LOOP_CLOSURE and f.i < n_map <= f.j for f in added):
+            # the track closed to the map just now, where it is: no global check needed
+            doubts.clear()
             continue
         node = slam.graph.n_nodes - 1
         est = slam.graph.estimate(node)
