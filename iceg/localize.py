@@ -1056,7 +1056,7 @@ def _track_segment(
         unmatched = fails >= st.lost_after and (fails - st.lost_after) % st.lost_retry_scans == 0
         if not (unmatched or checked % st.check_every_nodes == 0):
             continue
-        if any(f.kind is FactorKind.LOOP_CLOSURE and f.i < n_map <= f.j for f in added):
+        if any(f.kind is FactorKind.LOOP_CLOSURE and f.i < n_map <= (f.j or 0) for f in added):
             # the track closed to the map just now, where it is: no global check needed
             doubts.clear()
             continue
