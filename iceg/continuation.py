@@ -323,7 +323,15 @@ class StartSearch:
 def next_search(scans: Sequence[LaserScan], i: int) -> int:
     """The first scan of the search after the one from scan ``i``: a search spans the scans
     odometry links to its first (at most :data:`START_SCANS`); scans without odometry are
-    searched from every :data:`START_STEP`-th, as a stretch of odometry is."""
+    searched from every :data:`START_STEP`-th, as a stretch of odometry is.
+
+    Args:
+        scans: the log's scans in time order.
+        i: the first scan of the current search (index in ``scans``).
+
+    Returns:
+        The index of the next search's first scan (``> i``; may be past the log's end).
+    """
     return i + max(odometry_run_end(scans[i:], START_SCANS), START_STEP)
 
 

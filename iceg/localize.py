@@ -245,7 +245,11 @@ class FixedMap:
             settings: localization tuning.
 
         Returns:
-            The accepted placements, each with ``match.pose`` in its anchor node's frame.
+            The accepted placements, each with ``match.pose`` in its anchor node's frame
+            and ``pose`` ``(3,)`` in the map frame ``[x_m, y_m, theta_rad]``.
+
+        Raises:
+            MatchingError: inconsistent features (from the matcher).
         """
         st = settings
         places: list[tuple[int, MapReference]] = []
@@ -1056,7 +1060,10 @@ def _track_segment(
         unmatched = fails >= st.lost_after and (fails - st.lost_after) % st.lost_retry_scans == 0
         if not (unmatched or checked % st.check_every_nodes == 0):
             continue
-        if any(f.kind is FactorKind.LOOP_CLOSURE and f.i < n_map <= (f.j or 0) for f in added):
+        if any(
+            f.kind is FactorKind.LOOP_CLOSURE and f.j is not None and f.i < n_map <= f.j
+            for f in added
+        ):
             # the track closed to the map just now, where it is: no global check needed
             doubts.clear()
             continue
