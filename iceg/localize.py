@@ -645,14 +645,8 @@ class Localizer:
         ``consistency_chi2`` gate of the run's loop closure under the prediction's and the
         match's covariances (both body frame)."""
         t = self._t
-        e = se2.between(t.pose, p.pose)  # type: ignore[arg-type]
-        ad = se2.adjoint(se2.inverse(e))
-        s = ad @ t.cov @ ad.T + p.match.cov
-        try:
-            d2 = float(e @ np.linalg.solve(s, e))
-        except np.linalg.LinAlgError:
-            return False
-        return d2 <= self.fixed.config.loop_closure.consistency_chi2
+        chi2 = self.fixed.config.loop_closure.consistency_chi2
+        return _agrees(t.pose, t.cov, p, chi2)  # type: ignore[arg-type]
 
     def _match_local(
         self, feats: ScanFeatures
