@@ -21,7 +21,10 @@ reports, in one table:
 - ``LC acc`` / ``LC false``: loop closures accepted, and those whose measured relative pose
   differs from the true one by more than 0.3 m or 3 deg (only where a reference exists);
 - ``body m``: the range left out as the robot's own body (``features.robot_body_range_m``
-  after :func:`iceg.robot_body.with_measured_body`, as ``iceg run`` measures it);
+  after :func:`iceg.pipeline.measure_scanner`, as ``iceg run`` measures it);
+- ``drops/k`` / ``drop gap``: the scanner's patches of lost returns on walls per 1000
+  returns (:mod:`iceg.wall_dropouts`), and the ``features.eow_dropout_max_gap_m`` the run
+  used (0.5 where they switched the dropout rule on);
 - ``time s``: SLAM wall time (all scans plus ``finish``).
 
 Cases: the simulated scenarios of ``frontends.simulate.SCENARIOS`` (office, corridor,
@@ -43,11 +46,15 @@ is one ``iceg batch`` spec (:func:`batch_spec`): ``--batch DIR`` runs it through
 ``--write-spec PATH`` writes it as YAML for ``iceg batch PATH``.
 
 Run: ``python benchmarks/bench_accuracy.py [--only NAME ...] [--quick] [--json PATH]
-[--maps DIR] [--seed N] [--config YAML] [--laser NAME] [--batch DIR [--local] [--workers N]]
-[--write-spec PATH]``.
+[--maps DIR] [--seed N] [--config YAML] [--laser NAME] [--degrade NAME]
+[--batch DIR [--local] [--workers N]] [--write-spec PATH]``.
 ``--quick`` stops every case after its first 300 scans (a smoke
 test: loops are not closed). ``--laser`` drives the simulated scenarios with another scanner
 (:data:`LASERS`: the defaults are tuned for none of them; the real-log cases are unchanged).
+``--degrade`` does the same for the real logs: their scans degraded as a lesser scanner would
+have measured them (:data:`DEGRADATIONS`: fewer scans, a shorter reach, a narrower field of
+view, more range noise, dropouts; :func:`frontends.simulate.degrade_scans`), scored against
+the same reference or relations at the scans kept; the simulated scenarios are unchanged.
 """
 
 from __future__ import annotations
@@ -68,15 +75,22 @@ from numpy.typing import NDArray
 
 from frontends import LaserScan, open_log
 from frontends.relations import Relations, read_relations
-from frontends.simulate import SCENARIOS, OdometryModel, simulate_scenario, synthetic_odometry
+from frontends.simulate import (
+    SCENARIOS,
+    OdometryModel,
+    ScannerDegradation,
+    degrade_scans,
+    simulate_scenario,
+    synthetic_odometry,
+)
 from frontends.simulate.raycast import LaserModel
 from graph import FactorKind
 from iceg.batch_run import false_loop_closures
 from iceg.config import IcegConfig, config_from_yaml
 from iceg.evaluation import position_errors, relation_errors
 from iceg.odometry_timing import odometry_time_offset
+from iceg.pipeline import measure_scanner
 from iceg.results import SlamResult
-from iceg.robot_body import with_measured_body
 from iceg.scan_store import ScanStore
 from iceg.slam import Slam
 
@@ -108,6 +122,20 @@ LASERS: dict[str, LaserModel] = {
         range_sigma_m=0.02,
         body_posts_deg=(45.0, 135.0, -135.0, -45.0),
     ),
+}
+
+#: Scanner degradations of the real logs for ``--degrade`` (the same building and reference,
+#: another scanner; :mod:`frontends.simulate.degraded_scans`).
+DEGRADATIONS: dict[str, ScannerDegradation] = {
+    "half_rate": ScannerDegradation(every_nth=2),
+    "third_rate": ScannerDegradation(every_nth=3),
+    # a scanner that reaches 8 m but declares the log's maximum (as many drivers overstate it)
+    "reach_8m": ScannerDegradation(reach_m=8.0),
+    "reach_8m_declared": ScannerDegradation(reach_m=8.0, declare_reach=True),
+    "reach_5.6m_declared": ScannerDegradation(reach_m=5.6, declare_reach=True),
+    "fov_120": ScannerDegradation(fov_deg=120.0),
+    "noise_2cm": ScannerDegradation(range_sigma_m=0.02),
+    "dropouts": ScannerDegradation(dropout_fraction=0.05, dropout_run_beams=3),
 }
 
 
@@ -280,6 +308,7 @@ def run_case(
     maps_dir: Path | None = None,
     config: IcegConfig | None = None,
     laser: str | None = None,
+    degrade: str | None = None,
 ) -> dict[str, Any]:
     """Run one benchmark case with the default pipeline and return its row.
 
@@ -293,6 +322,9 @@ def run_case(
             measures; another one is for experiments).
         laser: A key of :data:`LASERS`: a simulated scenario is driven with that scanner
             (other cases ignore it).
+        degrade: A key of :data:`DEGRADATIONS`: a real log's scans are degraded so (with
+            ``seed``; its reference and relations score the scans kept; the simulated
+            scenarios ignore it).
 
     Returns:
         A JSON-ready dict: ``name``, ``description``, ``scans``, ``nodes``, ``seconds``,
@@ -314,10 +346,15 @@ def run_case(
             case = CASES[name](seed)
     except CaseSkipped as exc:
         return {"name": name, "skipped": str(exc)}
+    if degrade is not None and name not in SCENARIOS:
+        kept, degraded = degrade_scans(case.scans, DEGRADATIONS[degrade], seed)
+        reference = None if case.reference is None else case.reference[kept]
+        case = replace(case, scans=degraded, reference=reference)
     n = min(len(case.scans), QUICK_SCANS) if quick else len(case.scans)
     scans = case.scans[:n]
     t0 = time.perf_counter()
-    run_config, _ = with_measured_body(config or IcegConfig(), ScanStore(scans))  # as iceg run
+    measured = measure_scanner(config or IcegConfig(), ScanStore(scans))  # as iceg run does
+    run_config = measured.config
     slam = Slam(run_config)
     online = np.array([slam.process(scan) for scan in scans], dtype=np.float64)
     result = slam.finish()
@@ -332,6 +369,10 @@ def run_case(
         "lc_accepted": int(result.loop_closures.accepted),
         "sm_per_kf": _scan_match_fraction(result),
         "body_m": run_config.features.robot_body_range_m,
+        "dropout_patches_per_1000": (
+            None if measured.dropouts is None else measured.dropouts.patches_per_1000
+        ),
+        "dropout_gap_m": run_config.features.eow_dropout_max_gap_m,
     }
     timing = odometry_time_offset(result)
     if timing is not None:
@@ -366,6 +407,8 @@ _COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("lc_accepted", "LC acc", "{:d}"),
     ("lc_false", "LC false", "{:d}"),
     ("body_m", "body m", "{:.2f}"),
+    ("dropout_patches_per_1000", "drops/k", "{:.1f}"),
+    ("dropout_gap_m", "drop gap", "{:.1f}"),
     ("seconds", "time s", "{:.1f}"),
 )
 
@@ -482,14 +525,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--config", type=Path, help="a config YAML instead of the default")
     ap.add_argument("--laser", choices=sorted(LASERS), help="scanner of the simulated scenarios")
+    ap.add_argument(
+        "--degrade", choices=sorted(DEGRADATIONS), help="scanner degradation of the real logs"
+    )
     ap.add_argument("--batch", type=Path, help="run the cases as one iceg batch in BATCH")
     ap.add_argument("--local", action="store_true", help="--batch on a process pool, not Ray")
     ap.add_argument("--workers", type=int, help="--batch: parallel runs")
     ap.add_argument("--write-spec", type=Path, help="write the batch spec (YAML) here")
     args = ap.parse_args(argv)
     if args.batch is not None or args.write_spec is not None:
-        if args.laser is not None:
-            ap.error("--laser runs in this process only (not with --batch / --write-spec)")
+        if args.laser is not None or args.degrade is not None:
+            ap.error(
+                "--laser and --degrade run in this process only (not with --batch / --write-spec)"
+            )
         return _run_as_batch(args)
     config = config_from_yaml(args.config) if args.config is not None else None
     rows = []
@@ -502,6 +550,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 maps_dir=args.maps,
                 config=config,
                 laser=args.laser,
+                degrade=args.degrade,
             )
         )
         sys.stderr.write(f"done {name}\n")

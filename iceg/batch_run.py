@@ -33,9 +33,8 @@ from graph import FactorKind
 from iceg.config import config_from_dict
 from iceg.evaluation import position_errors, relation_errors
 from iceg.odometry_timing import odometry_time_offset, offset_to_read
-from iceg.pipeline import AUTO_OFFSET, check_log_file
+from iceg.pipeline import AUTO_OFFSET, check_log_file, measure_scanner
 from iceg.results import SlamResult
-from iceg.robot_body import with_measured_body
 from iceg.scan_store import ScanStore
 from iceg.session import record_reading
 from iceg.slam import Slam
@@ -179,11 +178,12 @@ def load_input(task: RunTask) -> _Input:
 def _measured_offset(task: RunTask, scans: list[LaserScan]) -> float:
     """The odometry time offset ``"auto"`` reads ``scans`` at (odometry at their stamps):
     :func:`~iceg.odometry_timing.offset_to_read` with the task's configuration and the
-    robot's body measured, as :func:`iceg.pipeline.run_log` does; 0 without scans."""
+    scanner measured (:func:`~iceg.pipeline.measure_scanner`), as
+    :func:`iceg.pipeline.run_log` does; 0 without scans."""
     if not scans:
         return 0.0
     config = config_from_dict(task.config, source=f"batch variant {task.variant!r}")
-    return offset_to_read(scans, with_measured_body(config, ScanStore(scans))[0])[0]
+    return offset_to_read(scans, measure_scanner(config, ScanStore(scans)).config)[0]
 
 
 def _existing(path: str) -> Path:
@@ -206,12 +206,13 @@ def _tum_reference(path: str, scans: list[LaserScan]) -> FloatArray:
 
 
 def run_slam(task: RunTask, scans: list[LaserScan], t0: float) -> tuple[SlamResult, FloatArray]:
-    """The SLAM run, with the robot's own body measured along the odometry first
-    (:func:`~iceg.robot_body.with_measured_body`, as :func:`iceg.pipeline.run_log` does);
+    """The SLAM run, with the scanner measured first (the robot's own body along the
+    odometry, the returns lost on walls: :func:`~iceg.pipeline.measure_scanner`, as
+    :func:`iceg.pipeline.run_log` does);
     the online pose of every scan. Raises :class:`RunTimeout` once the budget is spent
     (checked after every scan)."""
     config = config_from_dict(task.config, source=f"batch variant {task.variant!r}")
-    slam = Slam(with_measured_body(config, ScanStore(scans))[0])
+    slam = Slam(measure_scanner(config, ScanStore(scans)).config)
     online = []
     for k, scan in enumerate(scans):
         online.append(slam.process(scan))

@@ -11,7 +11,7 @@ import os
 import stat
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import Any, Literal, NamedTuple, TypeVar
 
 import numpy as np
 
@@ -37,6 +37,7 @@ from iceg.robot_body import (
 from iceg.scan_products import ScanPrecompute
 from iceg.scan_store import ScanStore
 from iceg.slam import Slam
+from iceg.wall_dropouts import WallDropouts, with_measured_dropouts
 from iceg_common.errors import ConfigError, EvaluationError, LogFormatError
 
 logger = logging.getLogger(__name__)
@@ -219,7 +220,11 @@ def run_log(
     :func:`~iceg.robot_body.with_measured_body`, warned); ``result.metrics["robot_body"]``
     holds the range left out and what the scans show of the body along the odometry and
     along the trajectory (:func:`~iceg.robot_body.robot_body_range`), with a warning when
-    the latter finds a body the former did not, beyond the range.
+    the latter finds a body the former did not, beyond the range. Then how often the scanner
+    loses its return on a wall is measured, and where often, a patch on a wall is read as a
+    dropout, not as two ends of wall (``features.measure_wall_dropouts``:
+    :func:`~iceg.wall_dropouts.with_measured_dropouts`, warned);
+    ``result.metrics["wall_dropouts"]`` holds the measurement (None: not measured).
 
     Raises:
         LogFormatError: missing, unreadable or empty log, disordered timestamps under
@@ -237,27 +242,23 @@ def run_log(
     auto, before_run = odometry_time_offset_s == AUTO_OFFSET, None
     applied_s = 0.0 if isinstance(odometry_time_offset_s, str) else odometry_time_offset_s
     with _started(slam, lambda: _read(reader, applied_s, slam.config)) as (
-        (scans, report, (run_config, body)),
+        (scans, report, measured),
         prefetch,
     ):
         if not scans:
             raise LogFormatError(f"{path}: the log holds no laser scans")
         if auto:
-            scans, (run_config, body), applied_s, before_run = _at_measured_offset(
-                path, scans, slam.config, (run_config, body)
+            scans, measured, applied_s, before_run = _at_measured_offset(
+                path, scans, slam.config, measured
             )
+        run_config = measured.config
         if rel is not None:
             check_relations_match(rel, scans.stamps_s)
         if run_config == slam.config:
             result = _process(slam, prefetch, scans, progress, len(scans))
-        elif body is not None:
-            logger.warning(
-                "%s: %s; they are left out (%s; features.measure_robot_body: false keeps them)",
-                path,
-                _body_seen(body),
-                _body_settings(run_config),
-            )
-    if result is None:  # the helpers were started with the features before the body was known
+        else:
+            _warn_measured(path, slam.config, measured)
+    if result is None:  # the helpers were started with the features before the scanner was known
         slam = Slam(run_config)
         with helper_processes(slam) as prefetch:
             result = _process(slam, prefetch, scans, progress, len(scans))
@@ -268,7 +269,7 @@ def run_log(
     result.metrics["odometry_time_offset"] = _time_offset_metrics(path, applied_s, result)
     if auto:
         result.metrics["odometry_time_offset"]["before_run"] = _as_dict(before_run)
-    _log_metrics(result, path, (report, stamps), scans, body, rel)
+    _log_metrics(result, path, (report, stamps), scans, measured, rel)
     return result
 
 
@@ -277,14 +278,16 @@ def _log_metrics(
     path: str | Path,
     stamps: tuple[StampReport | None, StampPolicy],
     scans: ScanStore,
-    body: RobotBodyEstimate | None,
+    measured: MeasuredScanner,
     rel: Relations | None,
 ) -> None:
     """A log run's metrics on its input: the stamps' report (or policy), the robot's body
-    (:func:`_robot_body_metrics`) and, with ``rel``, the relation error."""
+    (:func:`_robot_body_metrics`), the wall dropouts and, with ``rel``, the relation error."""
     report, policy = stamps
     result.metrics["stamps"] = report.as_dict() if report is not None else {"policy": policy}
-    result.metrics["robot_body"] = _robot_body_metrics(path, scans, result, body)
+    result.metrics["robot_body"] = _robot_body_metrics(path, scans, result, measured.body)
+    dropouts = measured.dropouts
+    result.metrics["wall_dropouts"] = None if dropouts is None else dropouts.as_dict()
     if rel is not None:
         summary, _ = relation_errors(
             result.stamps_s, result.poses, rel.stamps_s, rel.deltas, RELATION_TOLERANCE_S
@@ -292,25 +295,74 @@ def _log_metrics(
         result.metrics["relations"] = summary.as_dict()
 
 
-#: A run's configuration with the robot's body measured, and the measurement (None: none).
-_WithBody = tuple[IcegConfig, RobotBodyEstimate | None]
+class MeasuredScanner(NamedTuple):
+    """A run's configuration with what its scans show of the scanner applied, and those
+    measurements (None: not measured).
+
+    Attributes:
+        config: The configuration the run uses.
+        body: The robot's own body (:func:`~iceg.robot_body.with_measured_body`).
+        dropouts: The returns lost on walls (:func:`~iceg.wall_dropouts.with_measured_dropouts`).
+    """
+
+    config: IcegConfig
+    body: RobotBodyEstimate | None
+    dropouts: WallDropouts | None
+
+
+def measure_scanner(config: IcegConfig, scans: ScanStore) -> MeasuredScanner:
+    """``config`` with the robot's body the scans show along their odometry left out, then
+    with a patch on a wall read as a dropout where the scanner loses returns on walls (the
+    second measurement reads the beams as the first leaves them); ``config`` itself (the same
+    object) where neither changes anything or there is no scan. Numpy and one compiled kernel
+    (the features' step 1)."""
+    if not len(scans):
+        return MeasuredScanner(config, None, None)
+    config, body = with_measured_body(config, scans)
+    config, dropouts = with_measured_dropouts(config, scans)
+    return MeasuredScanner(config, body, dropouts)
+
+
+def _warn_measured(path: str | Path, config: IcegConfig, measured: MeasuredScanner) -> None:
+    """Say what the measurements changed in ``config``, the run's configuration before them."""
+    before, after = config.features, measured.config.features
+    body = (before.robot_body_range_m, before.robot_body_dark_deg)
+    if measured.body is not None and body != (after.robot_body_range_m, after.robot_body_dark_deg):
+        logger.warning(
+            "%s: %s; they are left out (%s; features.measure_robot_body: false keeps them)",
+            path,
+            _body_seen(measured.body),
+            _body_settings(measured.config),
+        )
+    dropout_gap_m = after.eow_dropout_max_gap_m
+    if measured.dropouts is not None and before.eow_dropout_max_gap_m != dropout_gap_m:
+        logger.warning(
+            "%s: the scanner loses its return on walls (%.1f patches per 1000 returns over %d "
+            "scans): a patch the wall spans is read as a dropout, not as two ends of wall "
+            "(features.eow_dropout_max_gap_m: %g; features.measure_wall_dropouts: false keeps "
+            "it 0)",
+            path,
+            measured.dropouts.patches_per_1000,
+            measured.dropouts.scans,
+            dropout_gap_m,
+        )
 
 
 def _at_measured_offset(
     path: str | Path,
     scans: ScanStore,
     config: IcegConfig,
-    run_config: _WithBody,
-) -> tuple[ScanStore, _WithBody, float, TimeOffsetEstimate | None]:
+    measured: MeasuredScanner,
+) -> tuple[ScanStore, MeasuredScanner, float, TimeOffsetEstimate | None]:
     """``"auto"``: the scans (read at their stamps) with their odometry read at the offset
-    :func:`~iceg.odometry_timing.offset_to_read` measures, and ``config`` with the robot's
-    body measured along it (``run_config`` where the offset is 0: the scans are unchanged);
-    the offset applied and the measurement."""
-    applied_s, before_run = _offset_to_read(path, scans, run_config[0])
+    :func:`~iceg.odometry_timing.offset_to_read` measures, and ``config`` with the scanner
+    measured along it (``measured`` where the offset is 0: the scans are unchanged); the
+    offset applied and the measurement."""
+    applied_s, before_run = _offset_to_read(path, scans, measured.config)
     if not applied_s:
-        return scans, run_config, applied_s, before_run
+        return scans, measured, applied_s, before_run
     shifted = ScanStore(shift_odometry(scans, applied_s))
-    return shifted, with_measured_body(config, shifted), applied_s, before_run
+    return shifted, measure_scanner(config, shifted), applied_s, before_run
 
 
 def _as_dict(estimate: TimeOffsetEstimate | None) -> dict[str, Any] | None:
@@ -320,20 +372,16 @@ def _as_dict(estimate: TimeOffsetEstimate | None) -> dict[str, Any] | None:
 
 def _read(
     reader: Iterable[LaserScan], offset_s: float, config: IcegConfig
-) -> tuple[ScanStore, StampReport | None, tuple[IcegConfig, RobotBodyEstimate | None]]:
+) -> tuple[ScanStore, StampReport | None, MeasuredScanner]:
     """The log of ``reader`` (not yet iterated) in a store, compact (no LaserScan object per
     scan held during the run), each scan's odometry read at its stamp plus ``offset_s``;
     the reader's stamp report (out-of-order and duplicate stamps, odometry breaks; None for
-    a reader without one); and ``config`` with the robot's body its odometry shows
-    (:func:`~iceg.robot_body.with_measured_body`, numpy alone: it runs in the process that
-    reads, beside the start)."""
+    a reader without one); and ``config`` with what the scans show of the scanner
+    (:func:`measure_scanner`: it runs in the process that reads, beside the start)."""
     store = ScanStore(shift_odometry(while_caller_runs(reader), offset_s))
     report = getattr(reader, "stamp_report", None)
-    return (
-        store,
-        report if isinstance(report, StampReport) else None,
-        with_measured_body(config, store) if len(store) else (config, None),
-    )
+    stamp_report = report if isinstance(report, StampReport) else None
+    return store, stamp_report, measure_scanner(config, store)
 
 
 def read_log_scans(

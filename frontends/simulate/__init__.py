@@ -1,8 +1,9 @@
 """A 2D laser simulator with exact ground truth: polygon worlds (with people walking through
 them, :func:`with_pedestrians`), a trajectory through them, vectorized ray casting (beams x
 walls) with the paper's SICK LMS200 model (or another scanner's range, field of view, noise
-and dropouts), noisy wheel odometry, and export to CARMEN / TUM files. Deterministic under a
-seed.
+and dropouts), noisy wheel odometry, and export to CARMEN / TUM files; and a real log's scans
+degraded as a lesser scanner would have measured them (:func:`degrade_scans`). Deterministic
+under a seed.
 
 Example::
 
@@ -11,6 +12,7 @@ Example::
     run.scans[0].points_xy(), run.true_poses[0], run.world.corners()
 """
 
+from frontends.simulate.degraded_scans import ScannerDegradation, degrade_scans
 from frontends.simulate.odometry import ACCURATE_ODOMETRY, OdometryModel
 from frontends.simulate.raycast import (
     APPARENT_END,
@@ -77,6 +79,7 @@ __all__ = [
     "LaserModel",
     "OdometryModel",
     "Pedestrian",
+    "ScannerDegradation",
     "Scenario",
     "SimulatedRun",
     "SyntheticOdometry",
@@ -88,6 +91,7 @@ __all__ = [
     "corridor_world",
     "default_trajectory",
     "default_trajectory_duration_s",
+    "degrade_scans",
     "long_corridor_world",
     "office_world",
     "open_loops_world",

@@ -203,18 +203,29 @@ def cast_rays(
         noise = rng.normal(0.0, model.range_sigma_m, size=ranges.shape)
         ranges = np.maximum(ranges + noise, 0.0)  # inf stays inf
     if rng is not None and model.dropout_fraction > 0.0:
-        ranges = np.where(_dropped(ranges.shape[0], model, rng), np.inf, ranges)
+        dropped = dropped_beams(
+            ranges.shape[0], model.dropout_fraction, model.dropout_run_beams, rng
+        )
+        ranges = np.where(dropped, np.inf, ranges)
     return np.where(ranges < model.range_max_m, ranges, model.range_max_m)
 
 
-def _dropped(n_beams: int, model: LaserModel, rng: np.random.Generator) -> BoolArray:
-    """``(n_beams,)`` bool: the beams of one scan that drop out, in runs of
-    ``model.dropout_run_beams`` starting at beams drawn with probability
-    ``dropout_fraction / dropout_run_beams`` (runs may overlap or be cut by the scan's end)."""
-    run = model.dropout_run_beams
-    starts = np.flatnonzero(rng.uniform(size=n_beams) < model.dropout_fraction / run)
+def dropped_beams(
+    n_beams: int, fraction: float, run_beams: int, rng: np.random.Generator
+) -> BoolArray:
+    """The beams of one scan that drop out: ``(n_beams,)`` bool, in runs of ``run_beams``
+    beams starting at beams drawn with probability ``fraction / run_beams`` (runs may
+    overlap or be cut by the scan's end, so slightly fewer than ``fraction`` drop).
+
+    Args:
+        n_beams: Beams in the scan.
+        fraction: Target fraction of dropped beams, in ``[0, 1)``.
+        run_beams: Length of each run (1: single-beam dropouts).
+        rng: Source of the run starts (one uniform draw per beam).
+    """
+    starts = np.flatnonzero(rng.uniform(size=n_beams) < fraction / run_beams)
     dropped = np.zeros(n_beams, dtype=bool)
-    for k in range(run):
+    for k in range(run_beams):
         dropped[np.minimum(starts + k, n_beams - 1)] = True
     return dropped
 

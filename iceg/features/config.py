@@ -10,9 +10,9 @@ class FeatureConfig(BaseModel):
 
     Every distance is in metres and every angle in degrees (converted to radians by the
     stage of :func:`iceg.features.extract` that reads it; degrees never reach the
-    arithmetic). Every field is read by one of the stages, except ``measure_robot_body``,
-    which the run of a log reads before them. The defaults suit a SICK LMS200-class scanner
-    (1 cm range noise, 0.5°-1° beam spacing) indoors.
+    arithmetic). Every field is read by one of the stages, except ``measure_robot_body`` and
+    ``measure_wall_dropouts``, which the run of a log reads before them. The defaults suit a
+    SICK LMS200-class scanner (1 cm range noise, 0.5°-1° beam spacing) indoors.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -166,7 +166,17 @@ class FeatureConfig(BaseModel):
         "wall's line returns within this distance of the endpoint, are a dropout patch in the "
         "wall (a dark or glossy surface), not a view past its end; a wider gap is an opening "
         "(a doorway is 0.7 m or more) and is seen past even when nothing returns through it. "
-        "0: every returnless beam sees past.",
+        "0: every returnless beam sees past. A run of a log sets it to 0.5 where its scanner "
+        "loses returns on walls (measure_wall_dropouts).",
+    )
+    measure_wall_dropouts: bool = Field(
+        default=True,
+        description="Before a log's first scan (iceg run, iceg batch), measure how often its "
+        "scanner loses the return on a wall (patches: runs of 2 or more beams without a "
+        "return between two returns under 0.5 m apart, per 1000 returns, over up to 400 "
+        "scans spread along the odometry's path: iceg.wall_dropouts) and, from 2.5, set "
+        "eow_dropout_max_gap_m to 0.5 where it is 0 (docs/design.md, 'A scanner that drops "
+        "returns on walls').",
     )
     intersection_max_distance_m: float = Field(
         default=3.0,

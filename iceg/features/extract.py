@@ -19,7 +19,7 @@ from iceg.features.corners import Corners, find_corners
 from iceg.features.ends import EndsOfWall, find_ends_of_wall
 from iceg.features.intersections import Intersections, find_intersections
 from iceg.features.pairs import meeting_pairs
-from iceg.features.points import beam_points, check_bearings
+from iceg.features.points import BeamPoints, beam_points, check_bearings
 from iceg.features.segments import Segments, line_segments
 from iceg.types import FeatureKind, ScanFeatures
 
@@ -61,10 +61,9 @@ def extract(scan: LaserScan, config: FeatureConfig | None = None) -> ScanFeature
         ScanError: the scan's beams are not in strictly increasing bearing order.
     """
     cfg = FeatureConfig() if config is None else config
-    check_bearings(scan)
-    range_max = float(min(cfg.range_max_m, scan.range_max_m))
+    beams = extract_beams(scan, cfg)
+    range_max = beams.range_max
     stamp = float(scan.stamp_s)
-    beams = beam_points(scan, range_max, _range_min(scan, cfg), _dark_body(cfg))
     if beams.points.shape[0] < cfg.min_segment_points:
         return ScanFeatures.empty(beams.points, range_max, stamp)
     segs = line_segments(beams, cfg)
@@ -104,10 +103,26 @@ def extract_points(scan: LaserScan, config: FeatureConfig | None = None) -> np.n
     Raises:
         ScanError: the scan's beams are not in strictly increasing bearing order.
     """
+    return extract_beams(scan, config).points
+
+
+def extract_beams(scan: LaserScan, config: FeatureConfig | None = None) -> BeamPoints:
+    """The scan's beams as :func:`extract`'s step 1 reads them: which are points, which are
+    no-returns (the usable range, the robot's body and its dark bearings applied), and the
+    points themselves (robot frame).
+
+    Args:
+        scan: One laser scan.
+        config: Thresholds (only ``range_max_m``, ``robot_body_range_m`` and
+            ``robot_body_dark_deg`` are read); defaults to :class:`FeatureConfig`.
+
+    Raises:
+        ScanError: the scan's beams are not in strictly increasing bearing order.
+    """
     cfg = FeatureConfig() if config is None else config
     check_bearings(scan)
     range_max = float(min(cfg.range_max_m, scan.range_max_m))
-    return beam_points(scan, range_max, _range_min(scan, cfg), _dark_body(cfg)).points
+    return beam_points(scan, range_max, _range_min(scan, cfg), _dark_body(cfg))
 
 
 def _range_min(scan: LaserScan, cfg: FeatureConfig) -> float:

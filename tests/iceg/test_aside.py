@@ -50,11 +50,13 @@ def test_the_store_read_aside_is_the_store_read_here_bit_for_bit() -> None:
     config = IcegConfig()
     with compute_aside(lambda: pipeline._read(open_log(path), -0.12, config)) as reading:
         assert reading._proc is not None  # it is read in another process
-        store, report, (run_config, body) = reading.result()
+        store, report, (run_config, body, dropouts) = reading.result()
     _assert_same_store(store, here)
     assert report is not None and report.as_dict()["out_of_order"] == 0
-    # the robot's body is measured there too: a SICK that sees none of its robot
+    # the scanner is measured there too: a SICK that sees none of its robot and loses few
+    # returns on walls
     assert run_config == config and body is not None and body.range_m is None
+    assert dropouts is not None and not dropouts.rule_on and dropouts.patches_per_1000 < 2.5
     assert np.array_equal(store.beams()[1], here.beams()[1])
     # its arrays are its own and writable: the store grows on as one read here
     for scan in here[:3]:
