@@ -26,12 +26,12 @@ Where the rate reaches :data:`PATCHES_PER_1000_MIN` and the recurrence stays bel
 :data:`PATCH_MAX_GAP_M`. Without odometry the recurrence is not measured and nothing changes.
 
 Measured (docs/design.md, "A scanner that loses returns at random"): patch rates of 0.1-1.4
-on the SICK logs MIT CSAIL, csail.log, csail-corrected and ACES and 0-0.8 on the simulated
+on the SICK logs MIT CSAIL, csail.log, csail-corrected and ACES and 0-1.1 on the simulated
 scanners without dropouts; with 5 % of the beams dropped at random in runs of three, 3.0-12.6
 on the simulated worlds and 10.7-14.1 on the SICK logs; the real low-cost lidars 7.0
-(TurtleBot 4), 8.4 (Neato), 18 (RC car). Recurrence: 0.05 among random dropouts (simulated
-office), 0.14-0.20 on the SICK logs with them; the real lidars' patches 0.64 (Neato) and 0.80
-(TurtleBot 4), MIT CSAIL's own 0.55: dark surfaces.
+(TurtleBot 4), 8.4 (Neato), 18 (RC car). Recurrence: 0.04-0.12 among random dropouts
+(simulated worlds), 0.15-0.19 on the SICK logs with them; the real lidars' patches 0.66
+(Neato) and 0.80 (TurtleBot 4), MIT CSAIL's own 0.54: dark surfaces.
 """
 
 from __future__ import annotations

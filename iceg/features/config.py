@@ -175,8 +175,9 @@ class FeatureConfig(BaseModel):
         "scanner loses the return on a wall (patches: runs of 2 or more beams without a "
         "return between two returns under 0.5 m apart, per 1000 returns, over up to 400 "
         "scans spread along the odometry's path: iceg.wall_dropouts) and, from 2.5, set "
-        "eow_dropout_max_gap_m to 0.5 where it is 0 (docs/design.md, 'A scanner that drops "
-        "returns on walls').",
+        "eow_dropout_max_gap_m to 0.5 where it is 0 and most patches are not lost again in "
+        "the next scan (at random, not a dark surface: docs/design.md, 'A scanner that loses "
+        "returns at random').",
     )
     intersection_max_distance_m: float = Field(
         default=3.0,
