@@ -83,7 +83,7 @@ class WallDropouts:
         patches: Their patches (see the module docstring).
         patches_per_1000: ``1000 * patches / returns`` (0 without returns).
         followed: Patches followed into the next scan (one with odometry, in the field of
-            view).
+            view); 0 where the rate is below :data:`PATCHES_PER_1000_MIN`.
         recurring: Of those, the ones lost there again.
         rule_on: Whether the losses switched the dropout rule on.
     """
@@ -165,25 +165,32 @@ def spread_scans(scans: Sequence[LaserScan], count: int) -> IntArray:
 
 
 def wall_dropouts(scans: Sequence[LaserScan], config: FeatureConfig) -> WallDropouts:
-    """The patch rate and recurrence of up to :data:`MAX_SCANS` of ``scans``
-    (:func:`spread_scans`), each followed into the next scan where both have odometry and no
-    odometry break lies between them.
+    """The patch rate of up to :data:`MAX_SCANS` of ``scans`` (:func:`spread_scans`) and,
+    where it reaches :data:`PATCHES_PER_1000_MIN`, their recurrence: each scan's patches
+    followed into the next scan where both have odometry and no odometry break lies between
+    them (``followed`` and ``recurring`` are 0 below the rate).
 
     Raises:
         ScanError: a measured scan's bearings do not increase strictly.
     """
-    picked = spread_scans(scans, MAX_SCANS)
+    picked = spread_scans(scans, MAX_SCANS).tolist()
     returns = patches = followed = recurring = 0
-    for k in picked.tolist():
-        scan = scans[k]
-        beams = extract_beams(scan, config)
+    found: list[tuple[int, FloatArray]] = []  # each measured scan with patches, its middles
+    for k in picked:
+        beams = extract_beams(scans[k], config)
         middles = patch_middles(beams, config)
         returns += int(beams.points.shape[0])
         patches += int(middles.shape[0])
-        if k + 1 >= len(scans) or not middles.shape[0]:
+        if middles.shape[0]:
+            found.append((k, middles))
+    rate = 1000.0 * patches / returns if returns else 0.0
+    if rate < PATCHES_PER_1000_MIN:
+        return WallDropouts(len(picked), returns, patches, rate, 0, 0, False)
+    for k, middles in found:
+        scan, after = scans[k], scans[min(k + 1, len(scans) - 1)]
+        if k + 1 >= len(scans) or scan.odom_pose is None or after.odom_pose is None:
             continue
-        after = scans[k + 1]
-        if scan.odom_pose is None or after.odom_pose is None or after.odom_break:
+        if after.odom_break:
             continue
         moved = se2.transform_points(
             se2.inverse(se2.between(scan.odom_pose, after.odom_pose)), middles
@@ -191,10 +198,8 @@ def wall_dropouts(scans: Sequence[LaserScan], config: FeatureConfig) -> WallDrop
         seen, lost = lost_again(extract_beams(after, config), moved, config)
         followed += int(np.count_nonzero(seen))
         recurring += int(np.count_nonzero(lost))
-    rate = 1000.0 * patches / returns if returns else 0.0
     at_random = followed >= MIN_FOLLOWED and recurring < MAX_RECURRENCE * followed
-    rule_on = rate >= PATCHES_PER_1000_MIN and at_random
-    return WallDropouts(len(picked), returns, patches, rate, followed, recurring, rule_on)
+    return WallDropouts(len(picked), returns, patches, rate, followed, recurring, at_random)
 
 
 def with_measured_dropouts(
