@@ -312,10 +312,10 @@ class MeasuredScanner(NamedTuple):
 
 def measure_scanner(config: IcegConfig, scans: ScanStore) -> MeasuredScanner:
     """``config`` with the robot's body the scans show along their odometry left out, then
-    with a patch on a wall read as a dropout where the scanner loses returns on walls (the
-    second measurement reads the beams as the first leaves them); ``config`` itself (the same
-    object) where neither changes anything or there is no scan. Numpy and one compiled kernel
-    (the features' step 1)."""
+    with a patch on a wall read as a dropout where the scanner loses returns on walls often
+    and at random (the second measurement reads the beams as the first leaves them);
+    ``config`` itself (the same object) where neither changes anything or there is no scan.
+    Numpy and one compiled kernel (the features' step 1)."""
     if not len(scans):
         return MeasuredScanner(config, None, None)
     config, body = with_measured_body(config, scans)

@@ -187,10 +187,10 @@ def wall_dropouts(scans: Sequence[LaserScan], config: FeatureConfig) -> WallDrop
     if rate < PATCHES_PER_1000_MIN:
         return WallDropouts(len(picked), returns, patches, rate, 0, 0, False)
     for k, middles in found:
-        scan, after = scans[k], scans[min(k + 1, len(scans) - 1)]
-        if k + 1 >= len(scans) or scan.odom_pose is None or after.odom_pose is None:
+        if k + 1 >= len(scans):
             continue
-        if after.odom_break:
+        scan, after = scans[k], scans[k + 1]
+        if scan.odom_pose is None or after.odom_pose is None or after.odom_break:
             continue
         moved = se2.transform_points(
             se2.inverse(se2.between(scan.odom_pose, after.odom_pose)), middles
