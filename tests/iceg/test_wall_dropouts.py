@@ -186,7 +186,7 @@ def test_a_run_reads_random_losses_as_dropouts(
 def test_real_scanners_keep_their_ends_of_wall(log: str, options: dict[str, str]) -> None:
     # MIT CSAIL's SICK loses few returns (1.4 patches per 1000); the TurtleBot 4's RPLIDAR
     # loses many (7.0), but on dark surfaces that it loses again where it looks again
-    # (80 %): neither run changes.
+    # (73 %): neither run changes.
     from frontends import open_log
 
     store = ScanStore(open_log(shared_file(log), **options))
