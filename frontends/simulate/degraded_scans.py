@@ -91,13 +91,10 @@ def degrade_scans(
     out = []
     for k in kept.tolist():
         scan = scans[k]
-        ranges, angles = scan.ranges_m, scan.angles_rad
+        ranges, angles, returns = scan.ranges_m, scan.angles_rad, scan.valid_mask()
         if d.fov_deg is not None:
             inside = np.abs(angles) <= math.radians(d.fov_deg) / 2.0 + 1e-9
-            ranges, angles = ranges[inside], angles[inside]
-        returns = scan.range_min_m < ranges
-        with np.errstate(invalid="ignore"):
-            returns &= np.isfinite(ranges) & (ranges < scan.range_max_m)
+            ranges, angles, returns = ranges[inside], angles[inside], returns[inside]
         ranges = np.array(ranges, dtype=np.float64)
         if d.range_sigma_m > 0.0:
             noise = rng.normal(0.0, d.range_sigma_m, size=ranges.shape)

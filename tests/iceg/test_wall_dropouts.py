@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -96,17 +97,7 @@ def _dark_patches(scans: list[LaserScan], truth: np.ndarray, spots: np.ndarray) 
         world = se2.transform_points(laser, np.where(finite[:, None], local, 0.0))
         near = np.min(np.hypot(*(world[:, None, :] - spots[None]).transpose(2, 0, 1)), axis=1)
         dark = finite & (near < 0.12)
-        out.append(
-            LaserScan(
-                scan.stamp_s,
-                np.where(dark, np.inf, r),
-                scan.angles_rad,
-                scan.range_min_m,
-                scan.range_max_m,
-                scan.odom_pose,
-                scan.laser_offset,
-            )
-        )
+        out.append(replace(scan, ranges_m=np.where(dark, np.inf, r)))
     return out
 
 
@@ -138,10 +129,7 @@ def test_a_log_without_odometry_is_not_judged() -> None:
     noisy = simulate_scenario(
         "office", seed=0, laser=LaserModel(dropout_fraction=0.05, dropout_run_beams=3)
     )
-    blind = [
-        LaserScan(s.stamp_s, s.ranges_m, s.angles_rad, s.range_min_m, s.range_max_m, None)
-        for s in noisy.scans
-    ]
+    blind = [replace(s, odom_pose=None) for s in noisy.scans]
     measured = wall_dropouts(blind, FeatureConfig())
     assert measured.patches_per_1000 > 5.0 and measured.followed == 0 and not measured.rule_on
 
