@@ -43,11 +43,16 @@ come from ``../shared/data`` (or
 Each row is one call of :func:`run_case`, reusable by a batch runner; and the whole benchmark
 is one ``iceg batch`` spec (:func:`batch_spec`): ``--batch DIR`` runs it through
 ``iceg.batch.run_batch`` (Ray, or ``--local``; resumable, one table in ``DIR/summary.md``) and
-``--write-spec PATH`` writes it as YAML for ``iceg batch PATH``.
+``--write-spec PATH`` writes it as YAML for ``iceg batch PATH``. There ``--seeds 0-9`` runs
+every case with a random input (simulation, synthetic odometry) at each seed, and
+``--variant NAME=YAML`` (repeatable) adds a configuration beside the default: ``summary.md``
+then compares them per case over the seeds (mean, median, worst; false closures summed), which
+is how a change is judged (one seed's closure found or missed outweighs most changes).
 
 Run: ``python benchmarks/bench_accuracy.py [--only NAME ...] [--quick] [--json PATH]
 [--maps DIR] [--seed N] [--config YAML] [--laser NAME] [--degrade NAME]
-[--batch DIR [--local] [--workers N]] [--write-spec PATH]``.
+[--batch DIR [--local] [--workers N] [--seeds N|A-B ...] [--variant NAME=YAML ...]]
+[--write-spec PATH]``.
 ``--quick`` stops every case after its first 300 scans (a smoke
 test: loops are not closed). ``--laser`` drives the simulated scenarios with another scanner
 (:data:`LASERS`: the defaults are tuned for none of them; the real-log cases are unchanged).
@@ -484,15 +489,69 @@ def _spec_log(name: str) -> dict[str, Any]:
 
 
 def batch_spec(
-    names: Sequence[str] | None = None, quick: bool = False, seeds: Sequence[int] = (0,)
+    names: Sequence[str] | None = None,
+    quick: bool = False,
+    seeds: Sequence[int] = (0,),
+    variants: dict[str, dict[str, Any]] | None = None,
 ) -> dict[str, Any]:
     """The benchmark as one ``iceg batch`` spec (a dict; :func:`iceg.batch.spec_from_dict`):
     every case of :data:`CASES` (or ``names``) with the default configuration, ``quick``:
-    the first :data:`QUICK_SCANS` scans. An absent real log is a failed run in the table."""
+    the first :data:`QUICK_SCANS` scans. ``variants``: named configurations (nested, as in a
+    config YAML) run beside the default (named ``default``). An absent real log is a failed
+    run in the table."""
     logs = [_spec_log(n) for n in (names or list(CASES))]
     if quick:
         logs = [{**entry, "max_scans": QUICK_SCANS} for entry in logs]
-    return {"name": "accuracy", "logs": logs, "seeds": list(seeds), "outputs": "metrics"}
+    spec: dict[str, Any] = {
+        "name": "accuracy",
+        "logs": logs,
+        "seeds": list(seeds),
+        "outputs": "metrics",
+    }
+    if variants:
+        spec["variants"] = {"default": {}} | {n: dotted(c) for n, c in variants.items()}
+    return spec
+
+
+def dotted(nested: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """A nested configuration mapping as the dotted-key overrides of a batch variant
+    (``{"a": {"b": 1}}`` -> ``{"a.b": 1}``): each leaf set, the rest of its section kept."""
+    out: dict[str, Any] = {}
+    for key, value in nested.items():
+        if isinstance(value, dict) and value:
+            out |= dotted(value, f"{prefix}{key}.")
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def parse_seeds(tokens: Sequence[str]) -> list[int]:
+    """``--seeds`` tokens as seeds: ``N`` or an inclusive range ``A-B``.
+
+    Raises:
+        ValueError: a token that is neither.
+    """
+    seeds: list[int] = []
+    for token in tokens:
+        first, sep, last = token.partition("-")
+        seeds += list(range(int(first), int(last) + 1)) if sep else [int(token)]
+    return seeds
+
+
+def _variant(text: str) -> tuple[str, dict[str, Any]]:
+    """``--variant NAME=YAML``: the name and the YAML file's mapping."""
+    import yaml
+
+    name, sep, path = text.partition("=")
+    if not sep or not name or not path:
+        raise argparse.ArgumentTypeError(f"--variant takes NAME=YAML, not {text!r}")
+    try:
+        data = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError) as exc:
+        raise argparse.ArgumentTypeError(f"--variant {name}: cannot read {path} ({exc})") from exc
+    if not isinstance(data, dict):
+        raise argparse.ArgumentTypeError(f"--variant {name}: {path} is not a mapping")
+    return name, data
 
 
 def _run_as_batch(args: argparse.Namespace) -> int:
@@ -501,7 +560,8 @@ def _run_as_batch(args: argparse.Namespace) -> int:
 
     from iceg.batch import run_batch, spec_from_dict
 
-    data = batch_spec(args.only, quick=args.quick, seeds=[args.seed])
+    seeds = parse_seeds(args.seeds) if args.seeds else [args.seed]
+    data = batch_spec(args.only, quick=args.quick, seeds=seeds, variants=dict(args.variant or []))
     if args.write_spec is not None:
         args.write_spec.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
     if args.batch is None:
@@ -532,13 +592,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--local", action="store_true", help="--batch on a process pool, not Ray")
     ap.add_argument("--workers", type=int, help="--batch: parallel runs")
     ap.add_argument("--write-spec", type=Path, help="write the batch spec (YAML) here")
+    ap.add_argument("--seeds", nargs="+", help="--batch: seeds, N or A-B (instead of --seed)")
+    ap.add_argument(
+        "--variant",
+        action="append",
+        type=_variant,
+        help="--batch: NAME=YAML, a configuration run beside the default (repeatable)",
+    )
     args = ap.parse_args(argv)
     if args.batch is not None or args.write_spec is not None:
         if args.laser is not None or args.degrade is not None:
             ap.error(
                 "--laser and --degrade run in this process only (not with --batch / --write-spec)"
             )
+        try:
+            parse_seeds(args.seeds or [])
+        except ValueError:
+            ap.error(f"--seeds takes N or A-B, not {' '.join(args.seeds)!r}")
         return _run_as_batch(args)
+    if args.seeds or args.variant:
+        ap.error("--seeds and --variant go with --batch or --write-spec")
     config = config_from_yaml(args.config) if args.config is not None else None
     rows = []
     for name in args.only or list(CASES):

@@ -3,8 +3,9 @@
 - ``summary.csv``: one row per run in spec order (log, variant, seed), its status, error and
   metrics; no wall times, so the same spec gives the same file with any number of workers;
 - ``timings.csv``: wall time of each run (seconds, ms per scan);
-- ``summary.md``: the runs' table (metrics, time, failures) and a per-variant table (means
-  over the successful runs, failure count);
+- ``summary.md``: the runs' table (metrics, time, failures), a per-variant table (means
+  over the successful runs, failure count) and a per-log table of each variant over its
+  seeds (mean, median and worst error; false loop closures summed);
 - ``variants.png``: the variants compared per log (trajectory or relation error, ms per scan).
 """
 
@@ -12,6 +13,7 @@ from __future__ import annotations
 
 import csv
 import math
+import statistics
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,6 +41,8 @@ METRIC_ORDER = (
 ID_COLUMNS = ("run_id", "log", "variant", "seed", "status", "error")
 #: Metrics compared in the plot, the first one the runs have.
 PLOT_METRICS = ("ate_m", "rel_trans_m")
+#: Errors summarised over the seeds of each log and variant (mean, median, worst).
+SPREAD_METRICS = ("rel_trans_m", "rel_rot_deg", "ate_m")
 #: Significant digits of the floats in the tables.
 DIGITS = 6
 
@@ -146,6 +150,8 @@ def markdown(name: str, rows: Sequence[dict[str, Any]], metrics: Sequence[str]) 
         + runs
         + "\n## Variants (means over successful runs)\n\n"
         + _variant_table(rows, metrics)
+        + "\n## Logs over seeds (successful runs: mean / median / worst)\n\n"
+        + _seed_table(rows)
     )
 
 
@@ -166,6 +172,37 @@ def _variant_table(rows: Sequence[dict[str, Any]], metrics: Sequence[str]) -> st
             + [fmt(_mean([_ms_per_scan(r) for r in ok]))]
         )
     return _md_table(["variant", "runs", "failed", *metrics, "ms/scan"], body)
+
+
+def _seed_table(rows: Sequence[dict[str, Any]]) -> str:
+    """One row per log and variant: its runs over the seeds, the failed ones, each of
+    :data:`SPREAD_METRICS` the log has as ``mean / median / worst`` over the successful runs
+    (one seed's luck is not a change's effect: a loop closure found or missed moves a log's
+    error by more than most changes do), and the false loop closures summed."""
+    metrics = [m for m in SPREAD_METRICS if any(m in r.get("metrics", {}) for r in rows)]
+    has_false = any("lc_false" in r.get("metrics", {}) for r in rows)
+    body = []
+    for log in dict.fromkeys(r["log"] for r in rows):
+        for v in dict.fromkeys(r["variant"] for r in rows if r["log"] == log):
+            mine = [r for r in rows if r["log"] == log and r["variant"] == v]
+            ok = [r for r in mine if r["status"] == "ok"]
+            cells = [log, v, str(len(mine)), str(len(mine) - len(ok))]
+            for m in metrics:
+                cells.append(_spread([r["metrics"].get(m) for r in ok]))
+            if has_false:
+                false = [r["metrics"]["lc_false"] for r in ok if "lc_false" in r["metrics"]]
+                cells.append(str(sum(false)) if false else "")
+            body.append(cells)
+    header = ["log", "variant", "runs", "failed", *metrics] + (["lc_false"] if has_false else [])
+    return _md_table(header, body)
+
+
+def _spread(values: Sequence[Any]) -> str:
+    """``mean / median / worst`` (largest) of the finite values, "" without one."""
+    ok = [float(v) for v in values if v is not None and math.isfinite(float(v))]
+    if not ok:
+        return ""
+    return " / ".join(fmt(x) for x in (statistics.fmean(ok), statistics.median(ok), max(ok)))
 
 
 def write_plot(name: str, rows: Sequence[dict[str, Any]], path: Path) -> Path | None:

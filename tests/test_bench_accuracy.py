@@ -89,6 +89,36 @@ def test_the_benchmark_is_one_batch_spec(bench: ModuleType, tmp_path: Path) -> N
     assert all(t.config == {} for t in tasks.values())  # the default configuration
 
 
+def test_seeds_and_variants_make_the_batch_that_compares_them(
+    bench: ModuleType, tmp_path: Path
+) -> None:
+    """``--seeds 0-2 5`` and ``--variant``: each random case at every seed, each case with the
+    default and the variant's configuration (its YAML's leaves set, the rest default)."""
+    from iceg.batch import expand, spec_from_dict
+
+    assert bench.parse_seeds(["0-2", "5"]) == [0, 1, 2, 5]
+    with pytest.raises(ValueError):
+        bench.parse_seeds(["two"])
+    variant = {"matching": {"correlation": {"fimp_range_m": 20.0}}, "slam": {"local_map_nodes": 6}}
+    assert bench.dotted(variant) == {
+        "matching.correlation.fimp_range_m": 20.0,
+        "slam.local_map_nodes": 6,
+    }
+    data = bench.batch_spec(
+        ["corridor", "csail_raw"], seeds=[0, 1, 2, 5], variants={"f20": variant}
+    )
+    tasks = expand(spec_from_dict(data), tmp_path, tmp_path)
+    runs = [(t.log_name, t.variant, t.seed) for t in tasks]
+    assert runs == [
+        *[("corridor", v, s) for v in ("default", "f20") for s in (0, 1, 2, 5)],
+        ("csail_raw", "default", None),  # a log without a random input runs once
+        ("csail_raw", "f20", None),
+    ]
+    f20 = next(t for t in tasks if t.variant == "f20")
+    assert f20.config == variant
+    assert all(t.config == {} for t in tasks if t.variant == "default")
+
+
 def test_a_batch_row_matches_run_case(bench: ModuleType, tmp_path: Path) -> None:
     """The batch run of a case gives the figures of :func:`run_case` (same input, same
     pipeline)."""

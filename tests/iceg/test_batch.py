@@ -240,6 +240,39 @@ def test_report_tables_and_plot(tmp_path: Path) -> None:
     assert report.n_failed == 1
 
 
+def test_each_log_and_variant_is_summarised_over_its_seeds(tmp_path: Path) -> None:
+    def run(log: str, variant: str, seed: int, status: str, **metrics: float) -> dict[str, Any]:
+        return {
+            "run_id": f"{log}-{variant}-{seed}",
+            "log": log,
+            "variant": variant,
+            "seed": seed,
+            "status": status,
+            "error": "" if status == "ok" else "SlamError: lost",
+            "metrics": {"scans": 10, **metrics} if status == "ok" else {},
+            "seconds": 1.0,
+        }
+
+    rows = [
+        run("aces", "a", 0, "ok", ate_m=0.1, lc_false=0),
+        run("aces", "a", 1, "ok", ate_m=0.4, lc_false=2),
+        run("aces", "a", 2, "ok", ate_m=0.2, lc_false=1),
+        run("aces", "b", 0, "ok", ate_m=0.3, lc_false=0),
+        run("aces", "b", 1, "failed"),
+        run("csail", "a", 0, "ok", rel_trans_m=0.03, rel_rot_deg=0.4),
+        run("csail", "a", 1, "ok", rel_trans_m=0.05, rel_rot_deg=0.6),
+    ]
+    md = write_report("seeds", rows, tmp_path).markdown.read_text(encoding="utf-8")
+    table = md.split("## Logs over seeds")[1]
+    header = "| log | variant | runs | failed | rel_trans_m | rel_rot_deg | ate_m | lc_false |"
+    assert header in table
+    # ATE 0.1, 0.4, 0.2: mean 0.7 / 3, median 0.2, worst 0.4; 0 + 2 + 1 false closures
+    assert "| aces | a | 3 | 0 |  |  | 0.233333 / 0.2 / 0.4 | 3 |" in table
+    assert "| aces | b | 2 | 1 |  |  | 0.3 / 0.3 / 0.3 | 0 |" in table  # the failed run left out
+    # two seeds: the median is their mean; no reference, so no false-closure count
+    assert "| csail | a | 2 | 0 | 0.04 / 0.04 / 0.05 | 0.5 / 0.5 / 0.6 |  |  |" in table
+
+
 # ---------------------------------------------------------------------------- Ray
 
 
