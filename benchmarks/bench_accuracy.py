@@ -43,16 +43,18 @@ come from ``../shared/data`` (or
 Each row is one call of :func:`run_case`, reusable by a batch runner; and the whole benchmark
 is one ``iceg batch`` spec (:func:`batch_spec`): ``--batch DIR`` runs it through
 ``iceg.batch.run_batch`` (Ray, or ``--local``; resumable, one table in ``DIR/summary.md``) and
-``--write-spec PATH`` writes it as YAML for ``iceg batch PATH``. There ``--seeds 0-9`` runs
-every case with a random input (simulation, synthetic odometry) at each seed, and
-``--variant NAME=YAML`` (repeatable) adds a configuration beside the default: ``summary.md``
-then compares them per case over the seeds (mean, median, worst; false closures summed), which
-is how a change is judged (one seed's closure found or missed outweighs most changes).
+``--write-spec PATH`` writes it as YAML for ``iceg batch PATH``.
+
+``--seeds 0-9`` runs every case with a random input (simulation, synthetic odometry, added
+range noise or dropouts) at each seed and ends with a table per case over the seeds (mean,
+median and worst error, false closures summed): one seed's loop closure found or missed
+outweighs most changes, so a change is judged over seeds. With ``--batch``,
+``--variant NAME=YAML`` (repeatable) adds configurations beside the default and
+``summary.md`` compares them so.
 
 Run: ``python benchmarks/bench_accuracy.py [--only NAME ...] [--quick] [--json PATH]
-[--maps DIR] [--seed N] [--config YAML] [--laser NAME] [--degrade NAME]
-[--batch DIR [--local] [--workers N] [--seeds N|A-B ...] [--variant NAME=YAML ...]]
-[--write-spec PATH]``.
+[--maps DIR] [--seed N | --seeds N|A-B ...] [--config YAML] [--laser NAME] [--degrade NAME]
+[--batch DIR [--local] [--workers N] [--variant NAME=YAML ...]] [--write-spec PATH]``.
 ``--quick`` stops every case after its first 300 scans (a smoke
 test: loops are not closed). ``--laser`` drives the simulated scenarios with another scanner
 (:data:`LASERS`: the defaults are tuned for none of them; the real-log cases are unchanged).
@@ -90,6 +92,7 @@ from frontends.simulate import (
 )
 from frontends.simulate.raycast import LaserModel
 from graph import FactorKind
+from iceg.batch_report import seed_table
 from iceg.batch_run import false_loop_closures
 from iceg.config import IcegConfig, config_from_yaml
 from iceg.evaluation import position_errors, relation_errors
@@ -128,6 +131,11 @@ LASERS: dict[str, LaserModel] = {
         body_posts_deg=(45.0, 135.0, -135.0, -45.0),
     ),
 }
+
+#: The real-log cases whose input depends on the seed (synthetic odometry).
+RANDOM_CASES = frozenset(
+    {"csail_raw_drift", "aces_synth", "csail_log_synth", "csail_corrected_synth"}
+)
 
 #: Scanner degradations of the real logs for ``--degrade`` (the same building and reference,
 #: another scanner; :mod:`frontends.simulate.degraded_scans`).
@@ -592,7 +600,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--local", action="store_true", help="--batch on a process pool, not Ray")
     ap.add_argument("--workers", type=int, help="--batch: parallel runs")
     ap.add_argument("--write-spec", type=Path, help="write the batch spec (YAML) here")
-    ap.add_argument("--seeds", nargs="+", help="--batch: seeds, N or A-B (instead of --seed)")
+    ap.add_argument("--seeds", nargs="+", help="seeds, N or A-B (instead of --seed)")
     ap.add_argument(
         "--variant",
         action="append",
@@ -610,28 +618,63 @@ def main(argv: Sequence[str] | None = None) -> int:
         except ValueError:
             ap.error(f"--seeds takes N or A-B, not {' '.join(args.seeds)!r}")
         return _run_as_batch(args)
-    if args.seeds or args.variant:
-        ap.error("--seeds and --variant go with --batch or --write-spec")
+    if args.variant:
+        ap.error("--variant goes with --batch or --write-spec (here: --config)")
+    try:
+        seeds = parse_seeds(args.seeds) if args.seeds else [args.seed]
+    except ValueError:
+        ap.error(f"--seeds takes N or A-B, not {' '.join(args.seeds)!r}")
     config = config_from_yaml(args.config) if args.config is not None else None
     rows = []
-    for name in args.only or list(CASES):
-        rows.append(
-            run_case(
+    for seed in seeds:
+        for name in args.only or list(CASES):
+            if seed != seeds[0] and not is_random(name, args.degrade):
+                continue  # the same run again
+            row = run_case(
                 name,
                 quick=args.quick,
-                seed=args.seed,
-                maps_dir=args.maps,
+                seed=seed,
+                maps_dir=args.maps if len(seeds) == 1 else None,
                 config=config,
                 laser=args.laser,
                 degrade=args.degrade,
             )
-        )
-        sys.stderr.write(f"done {name}\n")
-    table = format_table(rows)
-    sys.stdout.write(table + "\n")
+            rows.append(row | {"seed": seed})
+            sys.stderr.write(f"done {name} (seed {seed})\n")
+        mine = [r for r in rows if r["seed"] == seed]
+        sys.stdout.write((f"seed {seed}\n" if len(seeds) > 1 else "") + format_table(mine) + "\n")
+    if len(seeds) > 1:
+        variant = "default" if args.config is None else args.config.stem
+        sys.stdout.write("\nover the seeds (mean / median / worst)\n" + over_seeds(rows, variant))
     if args.json is not None:
         args.json.write_text(json.dumps(rows, indent=2) + "\n")
     return 0
+
+
+def is_random(name: str, degrade: str | None = None) -> bool:
+    """Whether case ``name`` (with the scanner degradation ``degrade``) depends on the seed:
+    a simulation, synthetic odometry, or added range noise or dropouts."""
+    if name in SCENARIOS or name in RANDOM_CASES:
+        return True
+    d = DEGRADATIONS.get(degrade or "")
+    return d is not None and (d.range_sigma_m > 0 or d.dropout_fraction > 0)
+
+
+def over_seeds(rows: Sequence[dict[str, Any]], variant: str = "default") -> str:
+    """The rows of :func:`run_case` over several seeds (of the configuration ``variant``)
+    as one table per case
+    (:func:`iceg.batch_report.seed_table`: mean / median / worst error, false closures
+    summed; a skipped case is a failed run)."""
+    runs = [
+        {
+            "log": r["name"],
+            "variant": variant,
+            "status": "skipped" if "skipped" in r else "ok",
+            "metrics": r,
+        }
+        for r in rows
+    ]
+    return seed_table(runs)
 
 
 if __name__ == "__main__":

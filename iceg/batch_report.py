@@ -151,7 +151,7 @@ def markdown(name: str, rows: Sequence[dict[str, Any]], metrics: Sequence[str]) 
         + "\n## Variants (means over successful runs)\n\n"
         + _variant_table(rows, metrics)
         + "\n## Logs over seeds (successful runs: mean / median / worst)\n\n"
-        + _seed_table(rows)
+        + seed_table(rows)
     )
 
 
@@ -174,8 +174,9 @@ def _variant_table(rows: Sequence[dict[str, Any]], metrics: Sequence[str]) -> st
     return _md_table(["variant", "runs", "failed", *metrics, "ms/scan"], body)
 
 
-def _seed_table(rows: Sequence[dict[str, Any]]) -> str:
-    """One row per log and variant: its runs over the seeds, the failed ones, each of
+def seed_table(rows: Sequence[dict[str, Any]]) -> str:
+    """A markdown table, one row per log and variant (rows as in :class:`BatchReport`; the
+    seed is not read): its runs over the seeds, the failed ones, each of
     :data:`SPREAD_METRICS` the log has as ``mean / median / worst`` over the successful runs
     (one seed's luck is not a change's effect: a loop closure found or missed moves a log's
     error by more than most changes do), and the false loop closures summed."""

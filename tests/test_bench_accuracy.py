@@ -119,6 +119,29 @@ def test_seeds_and_variants_make_the_batch_that_compares_them(
     assert all(t.config == {} for t in tasks if t.variant == "default")
 
 
+def test_in_process_seeds_repeat_only_the_random_cases_and_end_with_their_spread(
+    bench: ModuleType,
+) -> None:
+    """A seed changes a simulation, synthetic odometry and added noise or dropouts, not a real
+    log as recorded or a degradation without a draw; the rows of several seeds end in one line
+    per case: mean / median / worst and the false closures summed, a skipped case a failure."""
+    assert bench.is_random("office") and bench.is_random("aces_synth")
+    assert not bench.is_random("csail_raw") and not bench.is_random("turtlebot4")
+    assert bench.is_random("csail_raw", "noise_2cm") and bench.is_random("neato", "dropouts")
+    assert not bench.is_random("csail_raw", "reach_8m") and not bench.is_random(
+        "csail_raw", "half_rate"
+    )
+    rows = [
+        {"name": "aces_synth", "seed": 0, "ate_m": 0.2, "lc_false": 1},
+        {"name": "aces_synth", "seed": 1, "ate_m": 0.6, "lc_false": 0},
+        {"name": "aces_synth", "seed": 2, "ate_m": 0.1, "lc_false": 2},
+        {"name": "neato", "seed": 0, "skipped": "absent"},
+    ]
+    table = bench.over_seeds(rows, "f20")
+    assert "| aces_synth | f20 | 3 | 0 | 0.3 / 0.2 / 0.6 | 3 |" in table
+    assert "| neato | f20 | 1 | 1 |  |  |" in table
+
+
 def test_a_batch_row_matches_run_case(bench: ModuleType, tmp_path: Path) -> None:
     """The batch run of a case gives the figures of :func:`run_case` (same input, same
     pipeline)."""
