@@ -152,8 +152,10 @@ class LogEntry(BaseModel):
 
     @property
     def is_random(self) -> bool:
-        """Whether the input depends on the seed (simulation, synthetic odometry)."""
-        return self.path.startswith(SIM_PREFIX) or self.synthetic_odometry is not None
+        """Whether the input depends on the seed (simulation, synthetic odometry with noise;
+        a drift alone draws nothing)."""
+        odometry = self.synthetic_odometry
+        return self.path.startswith(SIM_PREFIX) or (odometry is not None and odometry.noise)
 
 
 class BatchSpec(BaseModel):

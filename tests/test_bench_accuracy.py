@@ -76,6 +76,7 @@ def test_the_benchmark_is_one_batch_spec(bench: ModuleType, tmp_path: Path) -> N
     assert tasks["csail_raw"].relations is not None and tasks["csail_raw"].seed is None
     drift = tasks["csail_raw_drift"].odometry
     assert drift is not None and drift.scale_error == 0.0 and not drift.noise
+    assert tasks["csail_raw_drift"].seed is None  # a drift without noise: one run
     synth = tasks["csail_corrected_synth"]
     assert synth.reference == "log_odometry" and synth.odometry is not None
     assert synth.odometry.restamp_hz == 1.0 and synth.odometry.scale_error == 0.01
@@ -127,6 +128,7 @@ def test_in_process_seeds_repeat_only_the_random_cases_and_end_with_their_spread
     per case: mean / median / worst and the false closures summed, a skipped case a failure."""
     assert bench.is_random("office") and bench.is_random("aces_synth")
     assert not bench.is_random("csail_raw") and not bench.is_random("turtlebot4")
+    assert not bench.is_random("csail_raw_drift")  # a drift without noise draws nothing
     assert bench.is_random("csail_raw", "noise_2cm") and bench.is_random("neato", "dropouts")
     assert not bench.is_random("csail_raw", "reach_8m") and not bench.is_random(
         "csail_raw", "half_rate"
