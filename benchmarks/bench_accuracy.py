@@ -561,13 +561,12 @@ def _variant(text: str) -> tuple[str, dict[str, Any]]:
     return name, data
 
 
-def _run_as_batch(args: argparse.Namespace) -> int:
+def _run_as_batch(args: argparse.Namespace, seeds: list[int]) -> int:
     """``--batch`` / ``--write-spec``: the benchmark through ``iceg.batch``."""
     import yaml
 
     from iceg.batch import run_batch, spec_from_dict
 
-    seeds = parse_seeds(args.seeds) if args.seeds else [args.seed]
     data = batch_spec(args.only, quick=args.quick, seeds=seeds, variants=dict(args.variant or []))
     if args.write_spec is not None:
         args.write_spec.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
@@ -588,7 +587,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--only", action="append", choices=sorted(CASES), help="case (repeatable)")
     ap.add_argument("--quick", action="store_true", help=f"first {QUICK_SCANS} scans per case")
     ap.add_argument("--json", type=Path, help="also write the rows as JSON here")
-    ap.add_argument("--maps", type=Path, help="save each run's output files in MAPS/<case>")
+    ap.add_argument(
+        "--maps", type=Path, help="save each run's files in MAPS/<case> (MAPS/s<seed>/<case>)"
+    )
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--config", type=Path, help="a config YAML instead of the default")
     ap.add_argument("--laser", choices=sorted(LASERS), help="scanner of the simulated scenarios")
@@ -607,22 +608,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="--batch: NAME=YAML, a configuration run beside the default (repeatable)",
     )
     args = ap.parse_args(argv)
+    try:
+        seeds = parse_seeds(args.seeds) if args.seeds else [args.seed]
+    except ValueError:
+        ap.error(f"--seeds takes N or A-B, not {' '.join(args.seeds)!r}")
     if args.batch is not None or args.write_spec is not None:
         if args.laser is not None or args.degrade is not None:
             ap.error(
                 "--laser and --degrade run in this process only (not with --batch / --write-spec)"
             )
-        try:
-            parse_seeds(args.seeds or [])
-        except ValueError:
-            ap.error(f"--seeds takes N or A-B, not {' '.join(args.seeds)!r}")
-        return _run_as_batch(args)
+        return _run_as_batch(args, seeds)
     if args.variant:
         ap.error("--variant goes with --batch or --write-spec (here: --config)")
-    try:
-        seeds = parse_seeds(args.seeds) if args.seeds else [args.seed]
-    except ValueError:
-        ap.error(f"--seeds takes N or A-B, not {' '.join(args.seeds)!r}")
     config = config_from_yaml(args.config) if args.config is not None else None
     rows = []
     for seed in seeds:
@@ -633,7 +630,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                 name,
                 quick=args.quick,
                 seed=seed,
-                maps_dir=args.maps if len(seeds) == 1 else None,
+                maps_dir=(
+                    args.maps if args.maps is None or len(seeds) == 1 else args.maps / f"s{seed}"
+                ),
                 config=config,
                 laser=args.laser,
                 degrade=args.degrade,
@@ -661,9 +660,8 @@ def is_random(name: str, degrade: str | None = None) -> bool:
 
 def over_seeds(rows: Sequence[dict[str, Any]], variant: str = "default") -> str:
     """The rows of :func:`run_case` over several seeds (of the configuration ``variant``)
-    as one table per case
-    (:func:`iceg.batch_report.seed_table`: mean / median / worst error, false closures
-    summed; a skipped case is a failed run)."""
+    as one table line per case (:func:`iceg.batch_report.seed_table`: mean / median / worst
+    error, false closures summed; a skipped case is a failed run)."""
     runs = [
         {
             "log": r["name"],
