@@ -132,10 +132,6 @@ LASERS: dict[str, LaserModel] = {
     ),
 }
 
-#: The real-log cases whose input depends on the seed: synthetic odometry with noise (MIT
-#: CSAIL's drift alone, SYNTH_DRIFT_ONLY, draws nothing).
-RANDOM_CASES = frozenset({"aces_synth", "csail_log_synth", "csail_corrected_synth"})
-
 #: Scanner degradations of the real logs for ``--degrade`` (the same building and reference,
 #: another scanner; :mod:`frontends.simulate.degraded_scans`).
 DEGRADATIONS: dict[str, ScannerDegradation] = {
@@ -651,8 +647,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def is_random(name: str, degrade: str | None = None) -> bool:
     """Whether case ``name`` (with the scanner degradation ``degrade``) depends on the seed:
-    a simulation, synthetic odometry, or added range noise or dropouts."""
-    if name in SCENARIOS or name in RANDOM_CASES:
+    its batch log does (:attr:`iceg.batch.LogEntry.is_random`: a simulation, synthetic
+    odometry with noise), or the degradation adds range noise or dropouts."""
+    from iceg.batch import LogEntry
+
+    if LogEntry.model_validate(_spec_log(name)).is_random:
         return True
     d = DEGRADATIONS.get(degrade or "")
     return d is not None and (d.range_sigma_m > 0 or d.dropout_fraction > 0)
