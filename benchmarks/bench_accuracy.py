@@ -47,9 +47,9 @@ is one ``iceg batch`` spec (:func:`batch_spec`): ``--batch DIR`` runs it through
 
 ``--seeds 0-9`` runs every case with a random input (simulation, synthetic odometry, added
 range noise or dropouts) at each seed and ends with a table per case over the seeds (mean,
-median and worst error, false closures summed): one seed's loop closure found or missed
-outweighs most changes, so a change is judged over seeds. With ``--batch``,
-``--variant NAME=YAML`` (repeatable) adds configurations beside the default and
+median and worst error and matched keyframes, false closures summed): one seed's loop
+closure found or missed outweighs most changes, so a change is judged over seeds. With
+``--batch``, ``--variant NAME=YAML`` (repeatable) adds configurations beside the default and
 ``summary.md`` compares them so.
 
 Run: ``python benchmarks/bench_accuracy.py [--only NAME ...] [--quick] [--json PATH]

@@ -5,7 +5,8 @@
 - ``timings.csv``: wall time of each run (seconds, ms per scan);
 - ``summary.md``: the runs' table (metrics, time, failures), a per-variant table (means
   over the successful runs, failure count) and a per-log table of each variant over its
-  seeds (mean, median and worst error; false loop closures summed);
+  seeds (mean, median and worst error and fraction of keyframes matched; false loop
+  closures summed);
 - ``variants.png``: the variants compared per log (trajectory or relation error, ms per scan).
 """
 
@@ -14,7 +15,7 @@ from __future__ import annotations
 import csv
 import math
 import statistics
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -41,8 +42,11 @@ METRIC_ORDER = (
 ID_COLUMNS = ("run_id", "log", "variant", "seed", "status", "error")
 #: Metrics compared in the plot, the first one the runs have.
 PLOT_METRICS = ("ate_m", "rel_trans_m")
-#: Errors summarised over the seeds of each log and variant (mean, median, worst).
+#: Errors summarised over the seeds of each log and variant (mean, median, worst: largest).
 SPREAD_METRICS = ("rel_trans_m", "rel_rot_deg", "ate_m")
+#: Fractions summarised so too, the worst the smallest: the keyframes with a scan-match
+#: factor, the one figure of a log without a reference.
+SPREAD_FRACTIONS = ("sm_per_kf",)
 #: Significant digits of the floats in the tables.
 DIGITS = 6
 
@@ -177,10 +181,15 @@ def _variant_table(rows: Sequence[dict[str, Any]], metrics: Sequence[str]) -> st
 def seed_table(rows: Sequence[dict[str, Any]]) -> str:
     """A markdown table, one row per log and variant (rows as in :class:`BatchReport`; the
     seed is not read): its runs over the seeds, the failed ones, each of
-    :data:`SPREAD_METRICS` the log has as ``mean / median / worst`` over the successful runs
-    (one seed's luck is not a change's effect: a loop closure found or missed moves a log's
-    error by more than most changes do), and the false loop closures summed."""
-    metrics = [m for m in SPREAD_METRICS if any(m in r.get("metrics", {}) for r in rows)]
+    :data:`SPREAD_METRICS` and :data:`SPREAD_FRACTIONS` the log has as
+    ``mean / median / worst`` over the successful runs (one seed's luck is not a change's
+    effect: a loop closure found or missed moves a log's error by more than most changes do),
+    and the false loop closures summed."""
+    present = [
+        m
+        for m in (*SPREAD_METRICS, *SPREAD_FRACTIONS)
+        if any(m in r.get("metrics", {}) for r in rows)
+    ]
     has_false = any("lc_false" in r.get("metrics", {}) for r in rows)
     body = []
     for log in dict.fromkeys(r["log"] for r in rows):
@@ -188,22 +197,23 @@ def seed_table(rows: Sequence[dict[str, Any]]) -> str:
             mine = [r for r in rows if r["log"] == log and r["variant"] == v]
             ok = [r for r in mine if r["status"] == "ok"]
             cells = [log, v, str(len(mine)), str(len(mine) - len(ok))]
-            for m in metrics:
-                cells.append(_spread([r["metrics"].get(m) for r in ok]))
+            for m in present:
+                worst = min if m in SPREAD_FRACTIONS else max
+                cells.append(_spread([r["metrics"].get(m) for r in ok], worst))
             if has_false:
                 false = [r["metrics"]["lc_false"] for r in ok if "lc_false" in r["metrics"]]
                 cells.append(str(sum(false)) if false else "")
             body.append(cells)
-    header = ["log", "variant", "runs", "failed", *metrics] + (["lc_false"] if has_false else [])
+    header = ["log", "variant", "runs", "failed", *present] + (["lc_false"] if has_false else [])
     return _md_table(header, body)
 
 
-def _spread(values: Sequence[Any]) -> str:
-    """``mean / median / worst`` (largest) of the finite values, "" without one."""
+def _spread(values: Sequence[Any], worst: Callable[[list[float]], float] = max) -> str:
+    """``mean / median / worst`` of the finite values, "" without one."""
     ok = [float(v) for v in values if v is not None and math.isfinite(float(v))]
     if not ok:
         return ""
-    return " / ".join(fmt(x) for x in (statistics.fmean(ok), statistics.median(ok), max(ok)))
+    return " / ".join(fmt(x) for x in (statistics.fmean(ok), statistics.median(ok), worst(ok)))
 
 
 def write_plot(name: str, rows: Sequence[dict[str, Any]], path: Path) -> Path | None:

@@ -261,16 +261,24 @@ def test_each_log_and_variant_is_summarised_over_its_seeds(tmp_path: Path) -> No
         run("aces", "b", 1, "failed"),
         run("csail", "a", 0, "ok", rel_trans_m=0.03, rel_rot_deg=0.4),
         run("csail", "a", 1, "ok", rel_trans_m=0.05, rel_rot_deg=0.6),
+        run("bag", "a", 0, "ok", sm_per_kf=0.9),
+        run("bag", "a", 1, "ok", sm_per_kf=0.6),
+        run("bag", "a", 2, "ok", sm_per_kf=0.75),
     ]
     md = write_report("seeds", rows, tmp_path).markdown.read_text(encoding="utf-8")
     table = md.split("## Logs over seeds")[1]
-    header = "| log | variant | runs | failed | rel_trans_m | rel_rot_deg | ate_m | lc_false |"
+    header = (
+        "| log | variant | runs | failed | rel_trans_m | rel_rot_deg | ate_m | sm_per_kf "
+        "| lc_false |"
+    )
     assert header in table
     # ATE 0.1, 0.4, 0.2: mean 0.7 / 3, median 0.2, worst 0.4; 0 + 2 + 1 false closures
-    assert "| aces | a | 3 | 0 |  |  | 0.233333 / 0.2 / 0.4 | 3 |" in table
-    assert "| aces | b | 2 | 1 |  |  | 0.3 / 0.3 / 0.3 | 0 |" in table  # the failed run left out
+    assert "| aces | a | 3 | 0 |  |  | 0.233333 / 0.2 / 0.4 |  | 3 |" in table
+    assert "| aces | b | 2 | 1 |  |  | 0.3 / 0.3 / 0.3 |  | 0 |" in table  # the failed run left out
     # two seeds: the median is their mean; no reference, so no false-closure count
-    assert "| csail | a | 2 | 0 | 0.04 / 0.04 / 0.05 | 0.5 / 0.5 / 0.6 |  |  |" in table
+    assert "| csail | a | 2 | 0 | 0.04 / 0.04 / 0.05 | 0.5 / 0.5 / 0.6 |  |  |  |" in table
+    # a matched fraction's worst is its smallest: 0.9, 0.6, 0.75 -> 0.75 / 0.75 / 0.6
+    assert "| bag | a | 3 | 0 |  |  |  | 0.75 / 0.75 / 0.6 |  |" in table
 
 
 # ---------------------------------------------------------------------------- Ray
