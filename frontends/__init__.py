@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 from frontends.carmen import CarmenReader, write_carmen
 from frontends.registry import (
     LogReader,
+    WithoutOdometry,
     available_formats,
     describe_log,
     open_log,
@@ -20,7 +21,8 @@ from frontends.relations import Relations, match_stamps, read_relations, write_r
 from frontends.rosbag import RosbagReader, write_rosbag
 from frontends.scan import LaserScan
 
-__all__ = ["LaserScan", "LogReader", "available_formats", "open_log", "register_reader"]
+__all__ = ["LaserScan", "LogReader", "WithoutOdometry", "available_formats", "open_log"]
+__all__ += ["register_reader"]
 
 # The simulator's types (the package frontends.simulate holds worlds and simulate()),
 # imported on first use.

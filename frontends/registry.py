@@ -12,7 +12,7 @@ import inspect
 import io
 import math
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -90,7 +90,9 @@ def _first_lines(path: Path, n: int = 50) -> list[str]:
     return lines
 
 
-def open_log(path: str | Path, format: str | None = None, **options: Any) -> LogReader:
+def open_log(
+    path: str | Path, format: str | None = None, *, laser_only: bool = False, **options: Any
+) -> LogReader:
     """Open a laser log for streaming.
 
     Args:
@@ -98,6 +100,9 @@ def open_log(path: str | Path, format: str | None = None, **options: Any) -> Log
             claims (a ROS 2 bag folder with ``metadata.yaml``).
         format: A registered reader name (see :func:`available_formats`); by default the
             reader is chosen from the suffix (ignoring ``.gz``), else from the first lines.
+        laser_only: A reading without the odometry (:class:`WithoutOdometry`): every scan
+            comes with ``odom_pose=None``, as from a log without odometry. The log is read as
+            it is otherwise (a bag's frames and laser mounting included).
         **options: Passed to the reader (e.g. ``strict=False`` for the CARMEN reader,
             ``scan_topic="/scan"`` for ROS bags).
 
@@ -120,7 +125,39 @@ def open_log(path: str | Path, format: str | None = None, **options: Any) -> Log
         raise ConfigError(
             f"{p}: the {spec.name} reader does not take these options ({exc})"
         ) from None
-    return spec.factory(p, **options)
+    reader = spec.factory(p, **options)
+    return WithoutOdometry(reader) if laser_only else reader
+
+
+class WithoutOdometry:
+    """A reader's scans with their odometry left out: ``odom_pose=None`` and no
+    ``odom_break`` (a laser-only run, e.g. of a log whose wheel odometry is wrong; the SLAM
+    predicts each scan by constant velocity). Ranges, stamps, laser mounting and sources are
+    the reader's.
+
+    Args:
+        reader: The log's own reader.
+
+    Attributes:
+        path: The log (the reader's).
+    """
+
+    def __init__(self, reader: LogReader) -> None:
+        self.reader = reader
+        self.path = reader.path
+
+    @property
+    def stamp_report(self) -> Any:
+        """The reader's report of disordered stamps (None for a reader without one)."""
+        return getattr(self.reader, "stamp_report", None)
+
+    def __iter__(self) -> Iterator[LaserScan]:
+        for scan in self.reader:
+            yield replace(scan, odom_pose=None, odom_break=False)
+
+    def count_scans(self) -> int:
+        """Number of scans in the log (the reader's count)."""
+        return self.reader.count_scans()
 
 
 def _choose(p: Path, format: str | None) -> ReaderSpec:

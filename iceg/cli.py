@@ -207,6 +207,14 @@ OdometryTimeOffsetOption = Annotated[
         "the one before it, and read the odometry there where significant.",
     ),
 ]
+LaserOnlyOption = Annotated[
+    bool,
+    typer.Option(
+        "--laser-only",
+        help="Leave the log's odometry out: each scan is predicted by constant velocity "
+        "and placed by its matches alone (for wheel odometry that is wrong or missing).",
+    ),
+]
 ContinueOption = Annotated[
     Path | None,
     typer.Option(
@@ -252,6 +260,7 @@ def run(
     base_frame: BaseFrameOption = None,
     laser_frame_offset: LaserOffsetOption = None,
     odometry_time_offset: OdometryTimeOffsetOption = "0",
+    laser_only: LaserOnlyOption = False,
     continue_: ContinueOption = None,
     initial_pose: InitialPoseOption = None,
 ) -> None:
@@ -267,9 +276,10 @@ def run(
     if out is not None:
         check_output_dir(out)
     offset = _time_offset(odometry_time_offset)
-    _check_log_run_option(offset != 0.0, log is not None)
+    _check_log_run_option("--odometry-time-offset", offset != 0.0, log is not None)
+    _check_log_run_option("--laser-only", laser_only, log is not None)
     reader_options = _bag_options(
-        scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset
+        scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset, laser_only
     )
     out_dir = out if out is not None else _default_out_dir()
     saved: list[str] = []
@@ -319,8 +329,9 @@ def _time_offset(value: str) -> float | Literal["auto"]:
         ) from None
 
 
-def _check_log_run_option(given: bool, log_run: bool) -> None:
-    """``--odometry-time-offset`` reads a log's odometry: not for the demo.
+def _check_log_run_option(option: str, given: bool, log_run: bool) -> None:
+    """``option`` (``--odometry-time-offset``, ``--laser-only``) changes how a log's
+    odometry is read: not for the demo.
 
     Raises:
         ConfigError: it is given for the demo.
@@ -328,7 +339,7 @@ def _check_log_run_option(given: bool, log_run: bool) -> None:
     from iceg_common.errors import ConfigError
 
     if given and not log_run:
-        raise ConfigError("--odometry-time-offset applies to a log run, not to the demo")
+        raise ConfigError(f"{option} applies to a log run, not to the demo")
 
 
 def _run_and_save(
@@ -495,8 +506,11 @@ def _bag_options(
     odom_frame: str | None,
     base_frame: str | None,
     laser_frame_offset: str | None,
+    laser_only: bool = False,
 ) -> dict[str, Any]:
-    """The ROS bag reader options that were given (degrees -> radians for the yaw)."""
+    """The reader options that were given: a ROS bag's topics, frames and laser offset
+    (degrees -> radians for the yaw), and ``laser_only`` (:func:`frontends.open_log`)
+    when given."""
     from iceg_common.errors import ConfigError
 
     options: dict[str, Any] = {
@@ -518,6 +532,8 @@ def _bag_options(
                 "e.g. -0.12,0,0"
             ) from None
         options["laser_frame_offset"] = (x, y, math.radians(yaw_deg))
+    if laser_only:
+        options["laser_only"] = True
     return options
 
 
@@ -657,6 +673,7 @@ def localize(
     base_frame: BaseFrameOption = None,
     laser_frame_offset: LaserOffsetOption = None,
     odometry_time_offset: OdometryTimeOffsetOption = "0",
+    laser_only: LaserOnlyOption = False,
 ) -> None:
     """Localize a log in a saved map (nothing is added to it): trajectory with per-pose
     covariance (localization.csv), trajectory.tum and a map.png overlay."""
@@ -666,7 +683,9 @@ def localize(
     from iceg.localize import fixed_map_of_session, localize_scans, save_localization
     from iceg.pipeline import read_log_scans
 
-    options = _bag_options(scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset)
+    options = _bag_options(
+        scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset, laser_only
+    )
     offset_s = _time_offset(odometry_time_offset)
     s = sess.read(map_)
     scans, offset = read_log_scans(log, s.config, stamps.value, options, offset_s)

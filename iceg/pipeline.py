@@ -233,7 +233,7 @@ def run_log(
         ConfigError: a non-finite ``odometry_time_offset_s``, or a string other than
             ``"auto"``.
     """
-    _check_offset(odometry_time_offset_s)
+    _check_offset(odometry_time_offset_s, reader_options)
     check_log_file(Path(path))
     reader = open_log(path, stamps=stamps, **(reader_options or {}))
     rel = read_relations(relations) if relations is not None else None
@@ -404,7 +404,7 @@ def read_log_scans(
         LogFormatError: missing or unreadable log.
         ConfigError: a non-finite offset, or a string other than ``"auto"``.
     """
-    _check_offset(odometry_time_offset_s)
+    _check_offset(odometry_time_offset_s, reader_options)
     check_log_file(Path(path))
     scans = list(open_log(path, stamps=stamps, **(reader_options or {})))
     record: dict[str, Any] = {}
@@ -416,15 +416,24 @@ def read_log_scans(
     return list(shift_odometry(scans, applied_s)), record
 
 
-def _check_offset(odometry_time_offset_s: float | str) -> None:
-    """Seconds or ``"auto"`` (the seconds are checked where they are applied).
+def _check_offset(
+    odometry_time_offset_s: float | str, reader_options: Mapping[str, Any] | None
+) -> None:
+    """Seconds or ``"auto"`` (the seconds are checked where they are applied), and 0 for a
+    laser-only reading (``reader_options`` ``laser_only: True``), which has no odometry to
+    read at an offset.
 
     Raises:
-        ConfigError: another string.
+        ConfigError: another string, or an offset with a laser-only reading.
     """
     if isinstance(odometry_time_offset_s, str) and odometry_time_offset_s != AUTO_OFFSET:
         raise ConfigError(
             f"odometry_time_offset_s: seconds or {AUTO_OFFSET!r}, not {odometry_time_offset_s!r}"
+        )
+    if (reader_options or {}).get("laser_only") and odometry_time_offset_s != 0.0:
+        raise ConfigError(
+            f"odometry_time_offset_s {odometry_time_offset_s!r} reads the log's odometry: "
+            "not with a laser-only reading (laser_only; --laser-only)"
         )
 
 

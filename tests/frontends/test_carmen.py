@@ -500,6 +500,21 @@ def test_second_odometry_frame_is_a_break(tmp_path: Path) -> None:
     assert "two odometry frames" in reader.stamp_report.odometry_breaks[0][1]
 
 
+def test_a_laser_only_reading_is_the_log_without_its_odometry(tmp_path: Path) -> None:
+    """``open_log(..., laser_only=True)``: the same scans in the same order, without odometry
+    poses or breaks, and the reader's own report of the log."""
+    path = write_odometry_jump_log(tmp_path / "jump.clf")
+    plain = list(open_log(path))
+    reader = open_log(path, laser_only=True)
+    scans = list(reader)
+    assert [s.source for s in scans] == [s.source for s in plain]
+    assert [s.stamp_s for s in scans] == [s.stamp_s for s in plain]
+    assert all(np.array_equal(a.ranges_m, b.ranges_m) for a, b in zip(scans, plain, strict=True))
+    assert all(s.odom_pose is None and not s.odom_break for s in scans)
+    assert reader.count_scans() == len(plain) == 5
+    assert reader.stamp_report.odometry_breaks[0][0] == f"{path}:4"  # the log's, as read
+
+
 def test_real_logs_have_no_false_breaks(mit_csail_scans: list[LaserScan]) -> None:
     assert not any(s.odom_break for s in mit_csail_scans)
 
