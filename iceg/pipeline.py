@@ -230,8 +230,9 @@ def run_log(
         LogFormatError: missing, unreadable or empty log, disordered timestamps under
             ``"refuse"``, malformed relations.
         EvaluationError: the relations match no scan of the log.
-        ConfigError: a non-finite ``odometry_time_offset_s``, or a string other than
-            ``"auto"``.
+        ConfigError: a non-finite ``odometry_time_offset_s``, a string other than
+            ``"auto"``, or an offset with ``reader_options`` ``laser_only`` (the log read
+            without its odometry: :func:`frontends.open_log`).
     """
     _check_offset(odometry_time_offset_s, reader_options)
     check_log_file(Path(path))
@@ -402,7 +403,8 @@ def read_log_scans(
 
     Raises:
         LogFormatError: missing or unreadable log.
-        ConfigError: a non-finite offset, or a string other than ``"auto"``.
+        ConfigError: a non-finite offset, a string other than ``"auto"``, or an offset
+            with ``reader_options`` ``laser_only``.
     """
     _check_offset(odometry_time_offset_s, reader_options)
     check_log_file(Path(path))
