@@ -231,8 +231,7 @@ def run_log(
             ``"refuse"``, malformed relations.
         EvaluationError: the relations match no scan of the log.
         ConfigError: a non-finite ``odometry_time_offset_s``, a string other than
-            ``"auto"``, or an offset with ``reader_options`` ``laser_only`` (the log read
-            without its odometry: :func:`frontends.open_log`).
+            ``"auto"``, or an offset with ``reader_options`` ``laser_only``.
     """
     _check_offset(odometry_time_offset_s, reader_options)
     check_log_file(Path(path))
