@@ -30,7 +30,8 @@ reports, in one table:
 Cases: the simulated scenarios of ``frontends.simulate.SCENARIOS`` (office, corridor,
 office_biased, long_corridor, two_loop, open_loops, outdoor, office_people: the office loop
 with ten people walking its corridors; exact truth), MIT CSAIL with its raw
-odometry and with a synthetic 0.4 deg/m heading drift added on top of it (relations), and
+odometry, with a synthetic 0.4 deg/m heading drift added on top of it and without its
+odometry (``csail_raw_laser_only``: each scan predicted by constant velocity; relations), and
 the corrected ACES / csail.log / csail-corrected logs with synthetic biased odometry (1 %
 scale error, 0.4 deg/m heading drift, default white noise; reference = corrected poses;
 ``frontends.simulate.synthetic_odometry``), and the RC car bag (``rc_car_mocap``: a 360°
@@ -183,10 +184,12 @@ def _sim_case(scenario: str) -> Callable[..., CaseInput]:
     return build
 
 
-def _csail_raw(drift: bool) -> Callable[[int], CaseInput]:
+def _csail_raw(drift: bool, laser_only: bool = False) -> Callable[[int], CaseInput]:
     def build(seed: int) -> CaseInput:
-        scans = list(open_log(_shared("mit-csail/mit-csail.clf")))
+        scans = list(open_log(_shared("mit-csail/mit-csail.clf"), laser_only=laser_only))
         rel = read_relations(_shared("mit-csail/mit-csail.relations"))
+        if laser_only:
+            return CaseInput(scans, None, rel, "MIT CSAIL without its odometry (laser only)")
         if drift:
             scans = synthetic_odometry(scans, SYNTH_DRIFT_ONLY, seed).scans
             return CaseInput(scans, None, rel, "MIT CSAIL raw odometry + 0.4 deg/m heading drift")
@@ -249,6 +252,7 @@ CASES: dict[str, Callable[..., CaseInput]] = {
     **{name: _sim_case(name) for name in SCENARIOS},
     "csail_raw": _csail_raw(drift=False),
     "csail_raw_drift": _csail_raw(drift=True),
+    "csail_raw_laser_only": _csail_raw(drift=False, laser_only=True),
     "aces_synth": _corrected("aces/aces-corrected.log.gz", None),
     "csail_log_synth": _corrected("mit-csail/csail.log", None),
     # csail-corrected prints its stamps as 1.13486e+09 (2 distinct values): re-stamp at 1 Hz.
@@ -482,6 +486,8 @@ def _spec_log(name: str) -> dict[str, Any]:
         return {"name": name, **csail, **rel}
     if name == "csail_raw_drift":
         return {"name": name, **csail, **rel, "synthetic_odometry": _SPEC_DRIFT_ONLY}
+    if name == "csail_raw_laser_only":
+        return {"name": name, **csail, **rel, "laser_only": True}
     relative, restamp = corrected[name]
     return {
         "name": name,

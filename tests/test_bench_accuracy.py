@@ -77,6 +77,8 @@ def test_the_benchmark_is_one_batch_spec(bench: ModuleType, tmp_path: Path) -> N
     drift = tasks["csail_raw_drift"].odometry
     assert drift is not None and drift.scale_error == 0.0 and not drift.noise
     assert tasks["csail_raw_drift"].seed is None  # a drift without noise: one run
+    laser_only = tasks["csail_raw_laser_only"]
+    assert laser_only.laser_only and laser_only.relations is not None and laser_only.seed is None
     synth = tasks["csail_corrected_synth"]
     assert synth.reference == "log_odometry" and synth.odometry is not None
     assert synth.odometry.restamp_hz == 1.0 and synth.odometry.scale_error == 0.01
