@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol
 
-from frontends.scan import LaserScan
+from frontends.scan import LaserScan, StampReport
 from iceg_common.errors import ConfigError, LogFormatError
 
 
@@ -147,9 +147,11 @@ class WithoutOdometry:
         self.path = reader.path
 
     @property
-    def stamp_report(self) -> Any:
-        """The reader's report of disordered stamps (None for a reader without one)."""
-        return getattr(self.reader, "stamp_report", None)
+    def stamp_report(self) -> StampReport | None:
+        """The reader's report of disordered stamps and odometry breaks, as it read the log
+        (None for a reader without one)."""
+        report = getattr(self.reader, "stamp_report", None)
+        return report if isinstance(report, StampReport) else None
 
     def __iter__(self) -> Iterator[LaserScan]:
         for scan in self.reader:

@@ -278,7 +278,7 @@ def run(
     offset = _time_offset(odometry_time_offset)
     _check_log_run_option("--odometry-time-offset", offset != 0.0, log is not None)
     _check_log_run_option("--laser-only", laser_only, log is not None)
-    reader_options = _bag_options(
+    reader_options = _reader_options(
         scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset, laser_only
     )
     out_dir = out if out is not None else _default_out_dir()
@@ -494,13 +494,13 @@ def info(
     limits, odometry source."""
     from frontends.registry import describe_log, open_log
 
-    options = _bag_options(scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset)
+    options = _reader_options(scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset)
     rows = describe_log(open_log(log, **options))
     typer.echo(f"iceg info: {log}")
     _print_table(rows)
 
 
-def _bag_options(
+def _reader_options(
     scan_topic: str | None,
     odom_topic: str | None,
     odom_frame: str | None,
@@ -683,7 +683,7 @@ def localize(
     from iceg.localize import fixed_map_of_session, localize_scans, save_localization
     from iceg.pipeline import read_log_scans
 
-    options = _bag_options(
+    options = _reader_options(
         scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset, laser_only
     )
     offset_s = _time_offset(odometry_time_offset)
