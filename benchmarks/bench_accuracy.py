@@ -223,7 +223,7 @@ RC_CAR_READER: dict[str, Any] = {
 def _rc_car(seed: int) -> CaseInput:
     scans = list(open_log(_shared(RC_CAR_BAG), **RC_CAR_READER))
     reference = np.array([s.odom_pose for s in scans], dtype=np.float64)
-    scans = [replace(s, odom_pose=None) for s in scans]
+    scans = [s.without_odometry() for s in scans]
     return CaseInput(scans, reference, None, "RC car, 360° lidar, no odometry, mocap truth")
 
 

@@ -12,7 +12,7 @@ import inspect
 import io
 import math
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -155,7 +155,7 @@ class WithoutOdometry:
 
     def __iter__(self) -> Iterator[LaserScan]:
         for scan in self.reader:
-            yield replace(scan, odom_pose=None, odom_break=False)
+            yield scan.without_odometry()
 
     def count_scans(self) -> int:
         """Number of scans in the log (the reader's count)."""

@@ -6,7 +6,7 @@ import heapq
 import logging
 import math
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal, TypeVar
 
 import numpy as np
@@ -89,6 +89,12 @@ class LaserScan:
         object.__setattr__(self, "laser_offset", _pose3(self.laser_offset, "laser_offset", self))
         if self.odom_pose is not None:
             object.__setattr__(self, "odom_pose", _pose3(self.odom_pose, "odom_pose", self))
+
+    def without_odometry(self) -> LaserScan:
+        """This scan as a log without odometry would give it: ``odom_pose=None`` and no
+        ``odom_break`` (a break has no meaning without odometry). Ranges, bearings, stamp,
+        laser mounting and source are kept."""
+        return replace(self, odom_pose=None, odom_break=False)
 
     @property
     def n_beams(self) -> int:

@@ -17,7 +17,7 @@ import time
 import traceback
 import warnings
 from collections.abc import Iterable
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -167,7 +167,7 @@ def load_input(task: RunTask) -> _Input:
     elif task.reference == LOG_ODOMETRY:
         data.reference = np.array([s.odom_pose for s in data.scans], dtype=np.float64)
     if task.laser_only:
-        data.scans = [replace(s, odom_pose=None) for s in data.scans]
+        data.scans = [s.without_odometry() for s in data.scans]
     if task.reference not in (None, LOG_ODOMETRY):
         data.reference = _tum_reference(task.reference, data.scans)
     if task.relations is not None:

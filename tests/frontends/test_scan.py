@@ -52,6 +52,17 @@ def test_odom_break_defaults_to_false() -> None:
     assert _scan(odom_break=True).odom_break is True
 
 
+def test_without_odometry_drops_the_pose_and_the_break_only() -> None:
+    scan = _scan(3.0, odom_pose=[1.0, 2.0, 0.5], odom_break=True, laser_offset=[0.2, 0.0, 0.1])
+    bare = scan.without_odometry()
+    assert bare.odom_pose is None and bare.odom_break is False
+    assert (bare.stamp_s, bare.source, bare.range_max_m) == (3.0, "log.clf:3", 30.0)
+    np.testing.assert_array_equal(bare.ranges_m, scan.ranges_m)
+    np.testing.assert_array_equal(bare.angles_rad, scan.angles_rad)
+    np.testing.assert_array_equal(bare.laser_offset, [0.2, 0.0, 0.1])
+    assert scan.odom_break is True and scan.odom_pose is not None  # the scan is unchanged
+
+
 def _order(stamps: list[float], policy: str, window: int = 100) -> tuple[list[float], StampReport]:
     report = StampReport(policy=policy)  # type: ignore[arg-type]
     items = [(i, _scan(t)) for i, t in enumerate(stamps)]

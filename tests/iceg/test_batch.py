@@ -123,7 +123,7 @@ def test_a_laser_only_run_is_scored_against_the_odometry_it_drops(tmp_path: Path
     data = load_input(task)
     mocap = list(open_log(bag, **options))
     assert len(data.scans) == len(mocap) == 338  # the first scan precedes the motion capture
-    assert all(s.odom_pose is None for s in data.scans)
+    assert all(s.odom_pose is None and not s.odom_break for s in data.scans)
     assert data.reference is not None
     np.testing.assert_array_equal(data.reference, [s.odom_pose for s in mocap])
     with pytest.raises(ConfigError, match="laser_only and synthetic_odometry"):
