@@ -14,6 +14,7 @@ if TYPE_CHECKING:
     from matplotlib.artist import Artist
     from matplotlib.axes import Axes
     from matplotlib.container import BarContainer
+    from matplotlib.lines import Line2D
 
     from iceg.grid import OccupancyGrid
 
@@ -226,3 +227,37 @@ def relation_errors(ax: Axes, per_relation: ArrayLike, bins: int = 40) -> list[A
     ax.set_xlabel("translational relation error [m]")
     ax.set_ylabel("relations")
     return list(cast("BarContainer", bars))
+
+
+def nees_cdf(ax: Axes, nees: ArrayLike, label: str, reference: bool = True) -> list[Line2D]:
+    """Empirical distribution of 3-dof NEES values against the chi-square distribution an
+    honest covariance gives them (:mod:`iceg.consistency`), on a logarithmic NEES axis: a
+    curve right of the reference is overconfident, left of it conservative.
+
+    Args:
+        ax: Matplotlib axes.
+        nees: ``(k,)`` float64 NEES values (non-finite values are left out), e.g.
+            ``FactorNees.nees[FactorNees.kind == "scan_match"]``.
+        label: Legend label of the curve.
+        reference: Also draw the chi-square (3 dof) CDF, dashed.
+
+    Returns:
+        The step line, and the reference line when drawn.
+    """
+    from scipy.stats import chi2  # lazy: scipy.stats is slow to import
+
+    v = np.sort(np.asarray(nees, dtype=np.float64).ravel())
+    v = v[np.isfinite(v) & (v > 0)]
+    fraction = np.arange(1, v.size + 1) / max(v.size, 1)
+    (line,) = ax.step(v, fraction, where="post", label=f"{label} ({v.size})")
+    artists = [line]
+    if reference:
+        lo = min(float(v[0]) if v.size else 1e-2, 1e-2)
+        hi = max(float(v[-1]) if v.size else 1e2, 1e2)
+        x = np.geomspace(lo, hi, 200)
+        (ref,) = ax.plot(x, chi2.cdf(x, 3), "k--", linewidth=1.0, label="chi-square, 3 dof")
+        artists.append(ref)
+    ax.set_xscale("log")
+    ax.set_xlabel("NEES")
+    ax.set_ylabel("fraction at most")
+    return artists

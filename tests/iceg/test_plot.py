@@ -26,3 +26,15 @@ def test_relation_error_histogram_counts_finite_rows() -> None:
     per = np.array([[0.01, 0.1], [0.02, 0.2], [np.nan, np.nan], [0.5, 1.0]])
     bars = plot.relation_errors(ax, per, bins=5)
     assert sum(b.get_height() for b in bars) == 3
+
+
+def test_nees_cdf_steps_through_the_finite_values_to_one() -> None:
+    ax = Figure().add_subplot()
+    line, ref = plot.nees_cdf(ax, [4.0, 1.0, np.nan, 2.0], "scan_match")
+    np.testing.assert_array_equal(line.get_xdata(), [1.0, 2.0, 4.0])
+    np.testing.assert_allclose(line.get_ydata(), [1 / 3, 2 / 3, 1.0])
+    assert line.get_label() == "scan_match (3)"
+    # the reference is the chi-square (3 dof) CDF: 0.95 at its 95 % quantile 7.8147
+    x, y = ref.get_xdata(), ref.get_ydata()
+    assert np.interp(7.8147, x, y) == pytest.approx(0.95, abs=2e-3)
+    assert ax.get_xscale() == "log"
