@@ -6,6 +6,7 @@ from graph.config import GraphConfig, OdometryNoiseConfig
 from graph.g2o import G2oGraph, G2oPrior, load_g2o
 from graph.noise import odometry_covariance
 from graph.pose_graph import BatchStats, FactorKind, FactorRecord, PoseGraph, UpdateStats
+from graph.tangent import local_coordinates
 
 __all__ = [
     "BatchStats",
@@ -18,5 +19,6 @@ __all__ = [
     "PoseGraph",
     "UpdateStats",
     "load_g2o",
+    "local_coordinates",
     "odometry_covariance",
 ]

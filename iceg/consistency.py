@@ -10,7 +10,7 @@ Kirubarajan, *Estimation with Applications to Tracking and Navigation*, Wiley 20
 
 Errors are taken in gtsam's convention, so a factor's NEES is twice its Gaussian error at the
 true poses: for a between-factor ``z`` with covariance ``Σ`` and true relative pose ``T``,
-``e = Log(z⁻¹ ∘ T)`` (``gtsam.Pose2.localCoordinates``); for a node estimate ``x`` with
+``e = Log(z⁻¹ ∘ T)`` (:func:`graph.local_coordinates`); for a node estimate ``x`` with
 marginal ``P`` (``pose = x ∘ Exp(ξ)``, ``PoseGraph.marginal_covariance``) and true pose
 ``t``, ``e = Log(x⁻¹ ∘ t)``. Robust kernels are left out: the NEES is that of the factor's
 Gaussian noise model, which the kernel only reweights.
@@ -21,12 +21,11 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
-import gtsam
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from frontends.relations import Relations, match_stamps
-from graph import FactorRecord
+from graph import FactorRecord, local_coordinates
 from iceg_common import se2
 from iceg_common.errors import EvaluationError
 
@@ -231,7 +230,7 @@ def pose_nees(
             f"node_covariances {cov.shape} (N, 3, 3)"
         )
     aligned = se2.compose(se2.compose(x[0], se2.inverse(t[0])), t)
-    error = np.array([_local(p, q) for p, q in zip(x, aligned, strict=True)]).reshape(-1, 3)
+    error = local_coordinates(x, aligned)
     out = _mahalanobis2(error, cov, "node marginal")
     if out.size:
         out[0] = np.nan
@@ -278,7 +277,7 @@ def _nees_of(
             continue
         kinds.append(f.kind.value)
         ends.append((f.i, f.j))
-        errors.append(_local(f.measured, truth))
+        errors.append(local_coordinates(f.measured, truth))
         covs.append(f.cov)
     error = np.array(errors, dtype=np.float64).reshape(-1, 3)
     ij = np.array(ends, dtype=np.int64).reshape(-1, 2)
@@ -289,12 +288,6 @@ def _nees_of(
         error=error,
         nees=_mahalanobis2(error, np.array(covs).reshape(-1, 3, 3), "factor"),
     )
-
-
-def _local(at: ArrayLike, to: ArrayLike) -> FloatArray:
-    """``Log(at⁻¹ ∘ to)`` ``(3,)``: gtsam's ``Pose2.localCoordinates``."""
-    a, b = (np.asarray(p, dtype=np.float64).tolist() for p in (at, to))
-    return np.asarray(gtsam.Pose2(*a).localCoordinates(gtsam.Pose2(*b)), dtype=np.float64)
 
 
 def _mahalanobis2(error: FloatArray, cov: FloatArray, what: str) -> FloatArray:

@@ -4,12 +4,14 @@ the benchmark scripts (``benchmarks/`` is no package)."""
 from __future__ import annotations
 
 import importlib.util
+import math
 import os
 import sys
 from pathlib import Path
 from types import ModuleType
 
 import matplotlib
+import numpy as np
 import pytest
 
 matplotlib.use("Agg")
@@ -25,6 +27,17 @@ def shared_file(relative: str) -> Path:
     if not path.exists():
         pytest.skip(f"benchmark data {path} is absent (it lives in ../shared/data beside the repo)")
     return path
+
+
+def se2_log(pose: object) -> np.ndarray:
+    """SE(2) logarithm of ``[x, y, theta]`` by its closed form, independent of the code under
+    test: ``[V(theta)^-1 [x, y], theta]`` with ``V = [[s, -c], [c, s]]``, ``s = sin(th) / th``,
+    ``c = (1 - cos(th)) / th``."""
+    x, y, th = np.asarray(pose, dtype=np.float64).tolist()
+    if abs(th) < 1e-12:
+        return np.array([x, y, th])
+    s, c = math.sin(th) / th, (1.0 - math.cos(th)) / th
+    return np.array([*np.linalg.solve([[s, -c], [c, s]], [x, y]), th])
 
 
 def flaser_line(x_m: float, stamp_s: float) -> str:

@@ -3,8 +3,6 @@ real benchmark relations."""
 
 from __future__ import annotations
 
-import math
-
 import gtsam
 import numpy as np
 import pytest
@@ -22,7 +20,7 @@ from iceg.consistency import (
 from iceg.pipeline import run_scans
 from iceg_common import se2
 from iceg_common.errors import EvaluationError
-from tests.conftest import shared_file
+from tests.conftest import se2_log, shared_file
 
 
 def _factor(
@@ -38,16 +36,6 @@ def _off_by(truth_relative: np.ndarray, delta: np.ndarray) -> np.ndarray:
     t = gtsam.Pose2(*truth_relative.tolist())
     z = t.compose(gtsam.Pose2.Expmap(np.asarray(delta, float)).inverse())
     return np.array([z.x(), z.y(), z.theta()])
-
-
-def _se2_log(p: np.ndarray) -> np.ndarray:
-    """SE(2) logarithm by its closed form (Lie group texts): ``[V(theta)^-1 t, theta]``."""
-    x, y, th = p
-    if abs(th) < 1e-9:
-        return np.array([x, y, th])
-    a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th
-    v = np.array([[a, -b], [b, a]])
-    return np.array([*np.linalg.solve(v, [x, y]), th])
 
 
 TRUTH = np.array([[0.0, 0.0, 0.0], [1.0, 0.5, 0.3], [2.0, 1.5, 1.2], [2.5, 3.0, 2.0]])
@@ -76,7 +64,7 @@ def test_the_error_is_the_se2_logarithm_of_the_measurement_to_the_truth() -> Non
     rel = se2.between(TRUTH[0], TRUTH[3])
     measured = se2.compose(rel, [0.3, -0.4, 0.6])
     out = factor_nees([_factor(0, FactorKind.LOOP_CLOSURE, 0, 3, measured, np.eye(3))], TRUTH)
-    np.testing.assert_allclose(out.error[0], _se2_log(se2.between(measured, rel)), atol=1e-12)
+    np.testing.assert_allclose(out.error[0], se2_log(se2.between(measured, rel)), atol=1e-12)
     assert not np.allclose(out.error[0], se2.between(measured, rel))  # not the plain difference
 
 
@@ -199,5 +187,5 @@ def test_mit_csail_relations_score_its_sequential_factors() -> None:
     for i, j, kind, nees in zip(out.i, out.j, out.kind, out.nees, strict=True):
         f = factors[(int(i), int(j), str(kind))]
         truth = by_stamps[(round(stamps[i], 3), round(stamps[j], 3))]
-        e = _se2_log(se2.between(f.measured, truth))
+        e = se2_log(se2.between(f.measured, truth))
         assert nees == pytest.approx(float(e @ np.linalg.solve(f.cov, e)), rel=1e-6)
