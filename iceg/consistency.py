@@ -265,22 +265,13 @@ def _nees_of(
 ) -> FactorNees:
     """The rows of :class:`FactorNees` for the between-factors ``true_relative(f)`` gives a
     true relative pose for (``None``: skipped)."""
-    kinds: list[str] = []
-    ends: list[tuple[int, int]] = []
-    errors: list[FloatArray] = []
-    covs: list[FloatArray] = []
-    for f in factors:
-        if f.j is None:
-            continue
-        truth = true_relative(f)
-        if truth is None:
-            continue
-        kinds.append(f.kind.value)
-        ends.append((f.i, f.j))
-        errors.append(local_coordinates(f.measured, truth))
-        covs.append(f.cov)
-    error = np.array(errors, dtype=np.float64).reshape(-1, 3)
-    ij = np.array(ends, dtype=np.int64).reshape(-1, 2)
+    scored = [(f, t) for f in factors if f.j is not None and (t := true_relative(f)) is not None]
+    measured = np.array([f.measured for f, _ in scored], dtype=np.float64).reshape(-1, 3)
+    truths = np.array([t for _, t in scored], dtype=np.float64).reshape(-1, 3)
+    error = local_coordinates(measured, truths)
+    ij = np.array([(f.i, f.j) for f, _ in scored], dtype=np.int64).reshape(-1, 2)
+    covs = [f.cov for f, _ in scored]
+    kinds = [f.kind.value for f, _ in scored]
     return FactorNees(
         kind=np.array(kinds, dtype=np.str_),
         i=ij[:, 0].copy(),
