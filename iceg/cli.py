@@ -467,6 +467,37 @@ def eval_(
     )
 
 
+@app.command("nees")
+@_one_line_errors
+def nees_(
+    run: Annotated[Path, typer.Argument(help="A run's output folder (or its session folder).")],
+    relations: Annotated[Path, typer.Argument(help="Kümmerle et al. 2009 .relations file.")],
+    tolerance_s: Annotated[float, typer.Option(help="Timestamp matching tolerance, s.")] = 1e-3,
+) -> None:
+    """NEES of a saved run's factors against benchmark relations, per factor kind: whether
+    their covariances are honest (mean 3 and 5 % beyond the 95 % bound if they are)."""
+    from frontends.relations import read_relations
+    from iceg import session
+    from iceg.consistency import relation_factor_nees
+
+    saved = session.read(run)
+    nees = relation_factor_nees(
+        session.factor_records(saved.arrays),
+        saved.node_stamps(),
+        read_relations(relations),
+        tolerance_s,
+    )
+    summaries = nees.summary()
+    bound = next(iter(summaries.values())).bound
+    head = f"  {'factors':<12} {'count':>6} {'mean':>9} {'median':>9} {'p90':>9}"
+    typer.echo(f"{head}  > {bound:.2f}")
+    for kind, s in summaries.items():
+        typer.echo(
+            f"  {kind:<12} {s.count:>6} {s.mean:>9.3g} {s.median:>9.3g} {s.p90:>9.3g}  "
+            f"{s.beyond_bound:.1%}"
+        )
+
+
 @app.command("dump-config")
 @_one_line_errors
 def dump_config(

@@ -145,6 +145,22 @@ def test_mit_csail_benchmark(csail_run: Path) -> None:
     ev = runner.invoke(app, ["eval", str(out / "trajectory.tum"), str(rel)])
     assert ev.exit_code == 0
     assert f"{r['trans_mean_m']:.6g}" in ev.stdout
+    # nees on the saved run: the sequential factors the relations span, as the library
+    # scores them from the session
+    from frontends.relations import read_relations
+    from iceg import session
+    from iceg.consistency import relation_factor_nees
+
+    ne = runner.invoke(app, ["nees", str(out), str(rel)])
+    assert ne.exit_code == 0, ne.output
+    saved = session.read(out)
+    want = relation_factor_nees(
+        session.factor_records(saved.arrays), saved.node_stamps(), read_relations(rel)
+    ).summary()
+    rows = {line.split()[0]: line.split()[1:] for line in ne.stdout.splitlines()[1:]}
+    assert set(rows) == set(want) == {"odometry", "scan_match"}
+    for kind, s in want.items():
+        assert rows[kind][:3] == [str(s.count), f"{s.mean:.3g}", f"{s.median:.3g}"]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -433,3 +449,12 @@ def test_bad_odometry_time_offset(tmp_path: Path, args: list[str], needle: str) 
     bag = shared_file("rosbag/turtlebot3-gazebo-ros2")
     args = [str(bag) if a == "LOG" else a for a in args]
     _assert_one_line_error(["run", *args], tmp_path / "o", needle)
+
+
+def test_nees_of_a_folder_without_a_session(tmp_path: Path) -> None:
+    rel = tmp_path / "r.relations"
+    rel.write_text("1.0 2.0 0.1 0 0 0 0 0\n")
+    result = runner.invoke(app, ["nees", str(tmp_path), str(rel)])
+    assert result.exit_code == 1
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "not a readable iceg session" in lines[0], result.stderr
