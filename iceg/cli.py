@@ -166,6 +166,14 @@ def _summary_rows(result: SlamResult, out: Path, wall_s: float) -> list[tuple[st
                 f"heading {g['rot_mean_deg']:.3f} deg",
             )
         )
+    if "factor_nees" in s:
+        nees = s["factor_nees"].items()
+        rows.append(
+            (
+                "factor NEES vs truth",
+                ", ".join(f"{k} {v['mean']:.2f}" for k, v in nees) + " (mean; 3 if honest)",
+            )
+        )
     rows += _time_offset_rows(result.metrics.get("odometry_time_offset"))
     rows.append(("output", str(out)))
     return rows

@@ -77,9 +77,9 @@ def summarize_nees(nees: ArrayLike, confidence: float = 0.95) -> NeesSummary:
     values = values[np.isfinite(values)]
     if values.size == 0:
         raise EvaluationError("no finite NEES value to summarize")
-    from scipy.stats import chi2  # lazy: scipy.stats is slow to import
+    from scipy.special import chdtri  # lazy; scipy.stats would take 0.6 s to import
 
-    bound = float(chi2.ppf(confidence, POSE_DOF))
+    bound = float(chdtri(POSE_DOF, 1.0 - confidence))  # the chi-square quantile
     mean = float(values.mean())
     return NeesSummary(
         count=int(values.size),

@@ -10,6 +10,7 @@ import logging
 import os
 import stat
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Literal, NamedTuple, TypeVar
 
@@ -21,6 +22,7 @@ from frontends.relations import Relations, match_stamps, read_relations
 from frontends.scan import StampPolicy, StampReport
 from iceg.aside import compute_aside, while_caller_runs
 from iceg.config import IcegConfig
+from iceg.consistency import factor_nees, node_truth_of_scans
 from iceg.evaluation import position_errors, relation_errors
 from iceg.features.prefetch import FeaturePrefetcher, auto_workers
 from iceg.kernel_warmup import cache_is_new, probed
@@ -580,12 +582,18 @@ def run_simulated_demo(
 
     The office run (``frontends.simulate.office_world`` with its default loop route, the
     SICK LMS200 laser model and noisy wheel odometry) starts at the true pose, so errors are
-    reported both without alignment and after a rigid SE(2) alignment.
+    reported both without alignment and after a rigid SE(2) alignment. ``metrics``
+    ``factor_nees`` holds the NEES of its factors against the truth, per factor kind
+    (:mod:`iceg.consistency`).
     """
     slam = Slam(config)
     with _started(slam, lambda: _simulated(seed)) as ((scans, true_poses, odom_poses), prefetch):
         result = _process(slam, prefetch, scans, progress, len(scans))
     result.metrics["ground_truth"] = position_errors(result.poses, true_poses).as_dict()
     result.metrics["odometry_vs_truth"] = position_errors(odom_poses, true_poses).as_dict()
+    truth = node_truth_of_scans(result.node_ids, result.node_scan_index, true_poses)
+    result.metrics["factor_nees"] = {
+        kind: asdict(s) for kind, s in factor_nees(result.factors, truth).summary().items()
+    }
     result.metrics["source"] = f"simulated office world, seed {seed}"
     return result

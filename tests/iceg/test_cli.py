@@ -47,6 +47,12 @@ def test_demo_error_against_ground_truth(demo_dir: Path) -> None:
     odom = metrics["odometry_vs_truth"]
     assert gt["mean_m"] < 0.10, f"SLAM {gt['mean_m']:.3f} m vs odometry {odom['mean_m']:.3f} m"
     assert gt["mean_m"] < odom["mean_m"]
+    # The factors' NEES against the same truth: one entry per between-factor kind, counting
+    # every factor of that kind (the simulator knows every node's pose).
+    nees = metrics["factor_nees"]
+    counts = {k: v for k, v in metrics["factors"].items() if k != "prior"}
+    assert {k: v["count"] for k, v in nees.items()} == counts
+    assert all(v["bound"] == pytest.approx(7.8147, abs=1e-3) for v in nees.values())
 
 
 def test_same_input_gives_identical_trajectory(demo_dir: Path, tmp_path: Path) -> None:
