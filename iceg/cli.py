@@ -235,6 +235,8 @@ InitialPoseOption = Annotated[
     tuple[float, float, float] | None,
     typer.Option(help="With --continue: first scan's pose in the map, X_M Y_M THETA_DEG."),
 ]
+RelationsArgument = Annotated[Path, typer.Argument(help="Kümmerle et al. 2009 .relations file.")]
+ToleranceOption = Annotated[float, typer.Option(help="Timestamp matching tolerance, s.")]
 
 
 @app.command()
@@ -458,8 +460,8 @@ class _Terminated(Exception):
 @_one_line_errors
 def eval_(
     trajectory: Annotated[Path, typer.Argument(help="Trajectory in TUM format.")],
-    relations: Annotated[Path, typer.Argument(help="Kümmerle et al. 2009 .relations file.")],
-    tolerance_s: Annotated[float, typer.Option(help="Timestamp matching tolerance, s.")] = 1e-3,
+    relations: RelationsArgument,
+    tolerance_s: ToleranceOption = 1e-3,
 ) -> None:
     """Score a TUM trajectory with benchmark relations (mean/std translational and
     rotational error)."""
@@ -479,8 +481,8 @@ def eval_(
 @_one_line_errors
 def nees_(
     run: Annotated[Path, typer.Argument(help="A run's output folder (or its session folder).")],
-    relations: Annotated[Path, typer.Argument(help="Kümmerle et al. 2009 .relations file.")],
-    tolerance_s: Annotated[float, typer.Option(help="Timestamp matching tolerance, s.")] = 1e-3,
+    relations: RelationsArgument,
+    tolerance_s: ToleranceOption = 1e-3,
 ) -> None:
     """NEES of a saved run's factors against benchmark relations, per factor kind: whether
     their covariances are honest (mean 3 and 5 % beyond the 95 % bound if they are)."""

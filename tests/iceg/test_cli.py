@@ -239,10 +239,14 @@ def test_eval_input_not_utf8(tmp_path: Path) -> None:
     tum.write_bytes(b"\x80\x81 binary\n")
     rel = tmp_path / "r.relations"
     rel.write_text("1.0 2.0 0.1 0 0 0 0 0\n")
-    result = runner.invoke(app, ["eval", str(tum), str(rel)])
+    _fails_in_one_line(["eval", str(tum), str(rel)], "not a text TUM trajectory")
+
+
+def _fails_in_one_line(args: list[str], needle: str) -> None:
+    result = runner.invoke(app, args)
     assert result.exit_code == 1
     lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1 and "not a text TUM trajectory" in lines[0], result.stderr
+    assert len(lines) == 1 and needle in lines[0], result.stderr
 
 
 def test_log_that_is_a_folder_or_fifo(tmp_path: Path) -> None:
@@ -460,7 +464,4 @@ def test_bad_odometry_time_offset(tmp_path: Path, args: list[str], needle: str) 
 def test_nees_of_a_folder_without_a_session(tmp_path: Path) -> None:
     rel = tmp_path / "r.relations"
     rel.write_text("1.0 2.0 0.1 0 0 0 0 0\n")
-    result = runner.invoke(app, ["nees", str(tmp_path), str(rel)])
-    assert result.exit_code == 1
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1 and "not a readable iceg session" in lines[0], result.stderr
+    _fails_in_one_line(["nees", str(tmp_path), str(rel)], "not a readable iceg session")
