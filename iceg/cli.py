@@ -166,11 +166,11 @@ def _summary_rows(result: SlamResult, out: Path, wall_s: float) -> list[tuple[st
                 f"heading {g['rot_mean_deg']:.3f} deg",
             )
         )
-    if "factor_nees" in s:
+    if s.get("factor_nees"):
         nees = s["factor_nees"].items()
         rows.append(
             (
-                "factor NEES vs truth",
+                "factor NEES vs " + ("relations" if "relations" in s else "truth"),
                 ", ".join(f"{k} {v['mean']:.2f}" for k, v in nees) + " (mean; 3 if honest)",
             )
         )

@@ -128,7 +128,7 @@ def factor_nees(factors: Iterable[FactorRecord], node_truth: ArrayLike) -> Facto
             ``n``, any fixed world frame; a row of NaN (or a node past the last row) marks a
             node without truth, whose factors are skipped. A simulated run gives it as
             ``true_poses[result.node_scan_index]`` over ``result.node_ids``
-            (:func:`node_truth_of_scans`).
+            (:func:`per_node`).
 
     Returns:
         :class:`FactorNees`, factors in the given order.
@@ -164,8 +164,8 @@ def relation_factor_nees(
 
     Args:
         factors: The run's factors (``SlamResult.factors``).
-        node_stamps_s: ``(N,)`` float64 stamp of node ``n``'s scan in row ``n`` (seconds;
-            ``result.stamps_s[result.node_scan_index]`` over ``result.node_ids``).
+        node_stamps_s: ``(N,)`` float64 stamp of node ``n``'s scan in row ``n``, seconds
+            (:func:`per_node` of ``result.stamps_s``); NaN for an id that is no node.
         relations: The log's relations (``frontends.relations.read_relations``).
         tolerance_s: Stamp matching tolerance, as :func:`iceg.evaluation.relation_errors`.
 
@@ -237,26 +237,26 @@ def pose_nees(
     return out
 
 
-def node_truth_of_scans(
-    node_ids: ArrayLike, node_scan_index: ArrayLike, true_scan_poses: ArrayLike
-) -> FloatArray:
-    """The ``node_truth`` table of :func:`factor_nees` from per-scan true poses (a simulated
-    run's ``true_poses``).
+def per_node(node_ids: ArrayLike, node_scan_index: ArrayLike, per_scan: ArrayLike) -> FloatArray:
+    """A per-scan array as a table by node id: the ``node_truth`` of :func:`factor_nees` from
+    a simulated run's true poses, or the ``node_stamps_s`` of :func:`relation_factor_nees`
+    from the scans' stamps.
 
     Args:
         node_ids: ``(M,)`` int node ids (``SlamResult.node_ids``).
         node_scan_index: ``(M,)`` int index of each node's scan (``SlamResult.node_scan_index``).
-        true_scan_poses: ``(S, 3)`` float64 true pose of each scan.
+        per_scan: ``(S,)`` or ``(S, k)`` float64, one row per scan (poses ``(S, 3)``
+            ``[x_m, y_m, theta_rad]``, stamps ``(S,)`` seconds).
 
     Returns:
-        ``(max(node_ids) + 1, 3)`` float64, row ``n`` the truth of node ``n`` (NaN for an id
-        that is not a node).
+        ``(max(node_ids) + 1,)`` or ``(max(node_ids) + 1, k)`` float64, row ``n`` the row of
+        node ``n``'s scan (NaN for an id that is not a node).
     """
     ids = np.asarray(node_ids, dtype=np.int64).ravel()
     scans = np.asarray(node_scan_index, dtype=np.int64).ravel()
-    poses = np.asarray(true_scan_poses, dtype=np.float64).reshape(-1, 3)
-    out = np.full((int(ids.max()) + 1 if ids.size else 0, 3), np.nan)
-    out[ids] = poses[scans]
+    rows = np.asarray(per_scan, dtype=np.float64)
+    out = np.full((int(ids.max()) + 1 if ids.size else 0, *rows.shape[1:]), np.nan)
+    out[ids] = rows[scans]
     return out
 
 

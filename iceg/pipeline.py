@@ -22,7 +22,7 @@ from frontends.relations import Relations, match_stamps, read_relations
 from frontends.scan import StampPolicy, StampReport
 from iceg.aside import compute_aside, while_caller_runs
 from iceg.config import IcegConfig
-from iceg.consistency import factor_nees, node_truth_of_scans
+from iceg.consistency import FactorNees, factor_nees, per_node, relation_factor_nees
 from iceg.evaluation import position_errors, relation_errors
 from iceg.features.prefetch import FeaturePrefetcher, auto_workers
 from iceg.kernel_warmup import cache_is_new, probed
@@ -295,6 +295,25 @@ def _log_metrics(
             result.stamps_s, result.poses, rel.stamps_s, rel.deltas, RELATION_TOLERANCE_S
         )
         result.metrics["relations"] = summary.as_dict()
+        result.metrics["factor_nees"] = _relation_nees(result, rel)
+
+
+def _relation_nees(result: SlamResult, rel: Relations) -> dict[str, dict[str, float]] | None:
+    """The NEES of the factors whose two nodes are a relation's two scans, per factor kind
+    (:func:`iceg.consistency.relation_factor_nees`); None where no relation joins two node
+    scans (relations between scans far apart)."""
+    stamps = per_node(result.node_ids, result.node_scan_index, result.stamps_s)
+    try:
+        nees = relation_factor_nees(result.factors, stamps, rel, RELATION_TOLERANCE_S)
+    except EvaluationError:
+        return None
+    return _nees_metrics(nees)
+
+
+def _nees_metrics(nees: FactorNees) -> dict[str, dict[str, float]]:
+    """``metrics.json`` ``factor_nees``: each factor kind's :class:`~iceg.consistency.NeesSummary`
+    as a dict."""
+    return {kind: asdict(summary) for kind, summary in nees.summary().items()}
 
 
 class MeasuredScanner(NamedTuple):
@@ -591,9 +610,7 @@ def run_simulated_demo(
         result = _process(slam, prefetch, scans, progress, len(scans))
     result.metrics["ground_truth"] = position_errors(result.poses, true_poses).as_dict()
     result.metrics["odometry_vs_truth"] = position_errors(odom_poses, true_poses).as_dict()
-    truth = node_truth_of_scans(result.node_ids, result.node_scan_index, true_poses)
-    result.metrics["factor_nees"] = {
-        kind: asdict(s) for kind, s in factor_nees(result.factors, truth).summary().items()
-    }
+    truth = per_node(result.node_ids, result.node_scan_index, true_poses)
+    result.metrics["factor_nees"] = _nees_metrics(factor_nees(result.factors, truth))
     result.metrics["source"] = f"simulated office world, seed {seed}"
     return result

@@ -167,6 +167,9 @@ def test_mit_csail_benchmark(csail_run: Path) -> None:
     assert set(rows) == set(want) == {"odometry", "scan_match"}
     for kind, s in want.items():
         assert rows[kind][:3] == [str(s.count), f"{s.mean:.3g}", f"{s.median:.3g}"]
+    # the run scored the same factors itself (metrics.json)
+    scored = json.loads((out / "metrics.json").read_text())["factor_nees"]
+    assert {k: v["count"] for k, v in scored.items()} == {k: s.count for k, s in want.items()}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -306,6 +309,7 @@ def test_stamps_sort_runs_and_records_the_policy(tmp_path: Path) -> None:
     assert metrics["stamps"]["policy"] == "sort"
     assert metrics["stamps"]["out_of_order"] == 1
     assert metrics["relations"]["n_matched"] == 1
+    assert metrics["factor_nees"] is None  # no factor joins scans 2 and 25: nothing to score
     written = [float(line.split()[0]) for line in (out / "trajectory.tum").read_text().splitlines()]
     assert written == sorted(written) == stamps
 

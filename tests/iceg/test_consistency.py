@@ -12,7 +12,7 @@ from frontends.relations import Relations, read_relations
 from graph import FactorKind, FactorRecord
 from iceg.consistency import (
     factor_nees,
-    node_truth_of_scans,
+    per_node,
     pose_nees,
     relation_factor_nees,
     summarize_nees,
@@ -104,12 +104,15 @@ def test_factors_of_nodes_without_truth_are_left_out() -> None:
     assert out.i.tolist() == [0] and out.nees.tolist() == pytest.approx([0.0])
 
 
-def test_node_truth_of_scans_indexes_the_scans_by_node() -> None:
+def test_per_node_indexes_the_scans_by_node() -> None:
     scans = np.arange(30, dtype=float).reshape(10, 3)
-    table = node_truth_of_scans([0, 1, 3], [0, 4, 9], scans)
+    table = per_node([0, 1, 3], [0, 4, 9], scans)
     assert table.shape == (4, 3)
     np.testing.assert_array_equal(table[[0, 1, 3]], scans[[0, 4, 9]])
     assert np.isnan(table[2]).all()
+    stamps = per_node([0, 2], [1, 3], [10.0, 10.1, 10.2, 10.3])  # a (S,) array: (N,)
+    np.testing.assert_array_equal(stamps[[0, 2]], [10.1, 10.3])
+    assert stamps.shape == (3,) and np.isnan(stamps[1])
 
 
 def test_relations_score_the_factors_joining_their_scans_either_way() -> None:
@@ -175,8 +178,7 @@ def test_mit_csail_relations_score_its_sequential_factors() -> None:
     scans = list(open_log(shared_file("mit-csail/mit-csail.clf")))[:300]
     relations = read_relations(shared_file("mit-csail/mit-csail.relations"))
     result = run_scans(scans)
-    stamps = np.full(int(result.node_ids.max()) + 1, np.nan)
-    stamps[result.node_ids] = result.stamps_s[result.node_scan_index]
+    stamps = per_node(result.node_ids, result.node_scan_index, result.stamps_s)
     out = relation_factor_nees(result.factors, stamps, relations)
     assert set(out.kind.tolist()) == {"odometry", "scan_match"}
     assert out.nees.size >= 40
