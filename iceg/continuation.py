@@ -482,8 +482,7 @@ def continue_log(
         ConfigError: an offset neither finite seconds nor ``"auto"``.
     """
     from frontends.relations import read_relations
-    from iceg.evaluation import relation_errors
-    from iceg.pipeline import RELATION_TOLERANCE_S, check_relations_match, read_log_scans
+    from iceg.pipeline import check_relations_match, read_log_scans, score_against_relations
 
     config = sess.read_config(session_path)
     scans, offset = read_log_scans(path, config, stamps, reader_options, odometry_time_offset_s)
@@ -496,8 +495,5 @@ def continue_log(
     result.metrics["continued_from"] = str(Path(session_path).resolve())
     result.metrics["odometry_time_offset"] = offset
     if rel is not None:
-        summary, _ = relation_errors(
-            result.stamps_s, result.poses, rel.stamps_s, rel.deltas, RELATION_TOLERANCE_S
-        )
-        result.metrics["relations"] = summary.as_dict()
+        score_against_relations(result, rel)
     return result

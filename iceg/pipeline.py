@@ -291,23 +291,30 @@ def _log_metrics(
     dropouts = measured.dropouts
     result.metrics["wall_dropouts"] = None if dropouts is None else dropouts.as_dict()
     if rel is not None:
-        summary, _ = relation_errors(
-            result.stamps_s, result.poses, rel.stamps_s, rel.deltas, RELATION_TOLERANCE_S
-        )
-        result.metrics["relations"] = summary.as_dict()
-        result.metrics["factor_nees"] = _relation_nees(result, rel)
+        score_against_relations(result, rel)
 
 
-def _relation_nees(result: SlamResult, rel: Relations) -> dict[str, dict[str, float]] | None:
-    """The NEES of the factors whose two nodes are a relation's two scans, per factor kind
-    (:func:`iceg.consistency.relation_factor_nees`); None where no relation joins two node
-    scans (relations between scans far apart)."""
+def score_against_relations(result: SlamResult, rel: Relations) -> None:
+    """Score a run with benchmark relations into its ``metrics``: ``relations``, the relation
+    error (:func:`iceg.evaluation.relation_errors`, Kümmerle et al. 2009), and
+    ``factor_nees``, the NEES of the factors whose two nodes are a relation's two scans per
+    factor kind (:func:`iceg.consistency.relation_factor_nees`; None where no relation joins
+    two node scans).
+
+    Raises:
+        EvaluationError: no relation matches the run's stamps.
+    """
+    summary, _ = relation_errors(
+        result.stamps_s, result.poses, rel.stamps_s, rel.deltas, RELATION_TOLERANCE_S
+    )
+    result.metrics["relations"] = summary.as_dict()
     stamps = per_node(result.node_ids, result.node_scan_index, result.stamps_s)
     try:
         nees = relation_factor_nees(result.factors, stamps, rel, RELATION_TOLERANCE_S)
     except EvaluationError:
-        return None
-    return _nees_metrics(nees)
+        result.metrics["factor_nees"] = None
+    else:
+        result.metrics["factor_nees"] = _nees_metrics(nees)
 
 
 def _nees_metrics(nees: FactorNees) -> dict[str, dict[str, float]]:
