@@ -37,6 +37,8 @@ METRIC_ORDER = (
     "end_m",
     "online_max_m",
     "odom_ate_m",
+    "sm_nees",
+    "odo_nees",
 )
 #: Identity columns of ``summary.csv``.
 ID_COLUMNS = ("run_id", "log", "variant", "seed", "status", "error")

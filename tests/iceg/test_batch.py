@@ -17,10 +17,11 @@ from frontends.simulate import corridor_world, office_world, simulate
 from frontends.tum import write_tum
 from iceg.batch import apply_overrides, expand, pending, run_batch, spec_from_dict, variants
 from iceg.batch_report import write_report
-from iceg.batch_run import execute_run, load_input, read_row
+from iceg.batch_run import execute_run, load_input, read_row, run_metrics, run_slam
 from iceg.cli import app
+from iceg_common import se2
 from iceg_common.errors import ConfigError
-from tests.conftest import shared_file
+from tests.conftest import se2_log, shared_file
 
 #: Scans per log of the Ray test (small: 8 runs on 2 workers well under a minute).
 N_SCANS = 40
@@ -407,3 +408,26 @@ def test_a_batch_run_s_session_reads_its_scans_again(tmp_path: Path) -> None:
             assert saved.manifest["logs"][0]["odometry_time_offset_s"] == -0.24
         else:
             assert saved.manifest["logs"] == []  # every scan stored inline
+
+
+def test_a_row_holds_the_median_nees_of_its_factors_against_the_reference(
+    tmp_path: Path,
+) -> None:
+    # Truth: the simulator's poses. Each factor's NEES recomputed here with the closed-form
+    # SE(2) logarithm; the row holds the medians of the scan-match and odometry factors.
+    spec = spec_from_dict({"logs": [{"path": "sim:office", "max_scans": 80, "name": "o"}]})
+    (task,) = expand(spec, tmp_path, tmp_path)
+    data = load_input(task)
+    result, online = run_slam(task, data.scans, 0.0)
+    row = run_metrics(result, data, online)
+    assert data.reference is not None
+    ref = data.reference[result.node_scan_index]
+    truth = dict(zip(result.node_ids.tolist(), ref, strict=True))
+    for kind, key in (("scan_match", "sm_nees"), ("odometry", "odo_nees")):
+        nees = []
+        for f in result.factors:
+            if f.kind.value == kind:
+                e = se2_log(se2.between(f.measured, se2.between(truth[f.i], truth[f.j])))
+                nees.append(float(e @ np.linalg.solve(f.cov, e)))
+        assert len(nees) > 20
+        assert row[key] == pytest.approx(float(np.median(nees)), rel=1e-9)
