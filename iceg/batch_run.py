@@ -31,17 +31,17 @@ from frontends.simulate import OdometryModel, simulate_scenario, synthetic_odome
 from frontends.tum import read_tum
 from graph import FactorKind
 from iceg.config import config_from_dict
-from iceg.consistency import factor_nees, per_node, relation_factor_nees
+from iceg.consistency import FactorNees, factor_nees, per_node
 from iceg.evaluation import position_errors, relation_errors
 from iceg.odometry_timing import odometry_time_offset, offset_to_read
-from iceg.pipeline import AUTO_OFFSET, check_log_file, measure_scanner
+from iceg.pipeline import AUTO_OFFSET, check_log_file, measure_scanner, relation_nees
 from iceg.results import SlamResult
 from iceg.scan_store import ScanStore
 from iceg.session import record_reading
 from iceg.slam import Slam
 from iceg_common import se2
 from iceg_common.atomic import atomic_write
-from iceg_common.errors import EvaluationError, IcegError, LogFormatError
+from iceg_common.errors import IcegError, LogFormatError
 
 FloatArray = NDArray[np.float64]
 
@@ -306,7 +306,7 @@ def run_metrics(result: SlamResult, data: _Input, online: FloatArray) -> dict[st
     (:func:`~iceg.odometry_timing.odometry_time_offset`): ``odom_time_offset_s`` where
     significant (else NaN), the best fit ``odom_time_offset_best_s`` and its
     ``odom_time_offset_p``; ``robot_body_range_m``, the range left out as the robot's own
-    body; ``sm_nees`` and ``odo_nees`` (:func:`_nees_metrics`)."""
+    body; ``sm_nees`` and ``odo_nees`` (:func:`_nees_medians`)."""
     n_nodes = int(result.node_ids.shape[0])
     matched = {f.j for f in result.factors if f.kind == FactorKind.SCAN_MATCH}
     out: dict[str, Any] = {
@@ -338,24 +338,21 @@ def run_metrics(result: SlamResult, data: _Input, online: FloatArray) -> dict[st
         with warnings.catch_warnings():  # a straight trajectory aligns poorly: not an error
             warnings.simplefilter("ignore", UserWarning)
             out |= _reference_metrics(result, data, online)
-    out |= _nees_metrics(result, data)
+    out |= _nees_medians(result, data)
     return out
 
 
-def _nees_metrics(result: SlamResult, data: _Input) -> dict[str, float]:
+def _nees_medians(result: SlamResult, data: _Input) -> dict[str, float]:
     """``sm_nees`` and ``odo_nees``: the median NEES of the scan-match and odometry factors
     (:mod:`iceg.consistency`; 2.37 for honest covariances) against the reference, else the
     relations (where one joins two node scans); none without either."""
+    nees: FactorNees | None = None
     if data.reference is not None:
         truth = per_node(result.node_ids, result.node_scan_index, data.reference)
         nees = factor_nees(result.factors, truth)
     elif data.relations is not None:
-        stamps = per_node(result.node_ids, result.node_scan_index, result.stamps_s)
-        try:
-            nees = relation_factor_nees(result.factors, stamps, data.relations, STAMP_TOLERANCE_S)
-        except EvaluationError:
-            return {}
-    else:
+        nees = relation_nees(result, data.relations)
+    if nees is None:
         return {}
     out = {}
     for kind, key in ((FactorKind.SCAN_MATCH, "sm_nees"), (FactorKind.ODOMETRY, "odo_nees")):

@@ -308,13 +308,19 @@ def score_against_relations(result: SlamResult, rel: Relations) -> None:
         result.stamps_s, result.poses, rel.stamps_s, rel.deltas, RELATION_TOLERANCE_S
     )
     result.metrics["relations"] = summary.as_dict()
+    nees = relation_nees(result, rel)
+    result.metrics["factor_nees"] = None if nees is None else _nees_metrics(nees)
+
+
+def relation_nees(result: SlamResult, rel: Relations) -> FactorNees | None:
+    """The NEES of a run's factors whose two nodes are a relation's two scans
+    (:func:`iceg.consistency.relation_factor_nees`), or None where no relation joins two
+    node scans (relations between scans far apart)."""
     stamps = per_node(result.node_ids, result.node_scan_index, result.stamps_s)
     try:
-        nees = relation_factor_nees(result.factors, stamps, rel, RELATION_TOLERANCE_S)
+        return relation_factor_nees(result.factors, stamps, rel, RELATION_TOLERANCE_S)
     except EvaluationError:
-        result.metrics["factor_nees"] = None
-    else:
-        result.metrics["factor_nees"] = _nees_metrics(nees)
+        return None
 
 
 def _nees_metrics(nees: FactorNees) -> dict[str, dict[str, float]]:
