@@ -111,12 +111,14 @@ def _tree(version: str, scratch: Path) -> tuple[Path, bool]:
     path = Path(version)
     if path.is_dir() and (path / "iceg").is_dir():
         return path.resolve(), False
-    sha = subprocess.run(
-        ["git", "-C", str(ROOT), "rev-parse", "--verify", f"{version}^{{commit}}"],
-        check=True,
+    found = subprocess.run(
+        ["git", "-C", str(ROOT), "rev-parse", "--verify", "--quiet", f"{version}^{{commit}}"],
         capture_output=True,
         text=True,
-    ).stdout.strip()
+    )
+    if found.returncode != 0:
+        raise SystemExit(f"{version}: neither a git revision nor a folder holding iceg/")
+    sha = found.stdout.strip()
     where = scratch / sha[:12]
     if not where.exists():
         subprocess.run(
@@ -128,9 +130,8 @@ def _tree(version: str, scratch: Path) -> tuple[Path, bool]:
 
 
 def _sample(tree: Path, log: str, workers: int) -> dict[str, float | str]:
-    env = dict(
-        os.environ, PYTHONPATH=os.pathsep.join([str(tree), os.environ.get("PYTHONPATH", "")])
-    )
+    paths = [str(tree), *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(paths))
     env.pop("PYTHONDONTWRITEBYTECODE", None)  # as after pip install: bytecode cached
     done = subprocess.run(
         [sys.executable, "-c", CHILD, str(tree), log, str(workers)],
