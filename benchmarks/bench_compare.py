@@ -85,7 +85,11 @@ class PairedSummary:
 
 
 def paired_summary(a: list[float], b: list[float]) -> PairedSummary:
-    """Summary of the paired samples ``a[i]``, ``b[i]`` (seconds, same length, positive)."""
+    """Summary of the paired samples ``a[i]``, ``b[i]`` (seconds, same length, positive).
+
+    Raises:
+        ValueError: the two lists differ in length or are empty.
+    """
     if len(a) != len(b) or not a:
         raise ValueError(f"paired samples need the same nonzero count, got {len(a)} and {len(b)}")
     ratios = [y / x for x, y in zip(a, b, strict=True)]
