@@ -39,7 +39,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "mit-csail" / "mit-csail.clf"
 
-#: What a sample runs in its child process (argv: the tree, the log, the workers).
+#: What a sample runs in its child process (argv: the tree, the log, the workers). It is
+#: self-contained rather than importing ``bench_pipeline``'s ``_config`` and
+#: ``_helpers_cpu_s``: it runs inside the version under test, whose benchmarks may differ
+#: or predate them; it uses only ``IcegConfig``, ``run_log`` and ``run_simulated_demo``.
 CHILD = """
 import hashlib, json, os, resource, sys, time
 tree, log, workers = sys.argv[1], sys.argv[2], int(sys.argv[3])
