@@ -332,11 +332,21 @@ class CarmenReader:
     strict mode. With ``strict=False`` it is skipped, listed in :attr:`malformed` as
     ``(line_number, reason)`` and summarized in one warning at the end of the iteration.
 
+    A log whose recording was interrupted (the logger killed, the disk full, a copy cut
+    short) ends inside a record. That is read in either mode up to the last complete record,
+    with one warning naming the file and line, and :attr:`truncated_at` set: a malformed
+    last line without a newline after it (the file ends inside it), or a ``.gz`` stream that
+    ends before its end-of-stream marker (the text after the last whole line decompressed
+    is lost with the missing bytes). A malformed line anywhere else stays malformed.
+
     Attributes:
         path: The log file.
         config: The validated :class:`CarmenReaderConfig`.
         skipped_records: ``Counter`` of skipped lines by type, filled during iteration.
         malformed: ``(line_number, reason)`` of lines skipped in lenient mode.
+        truncated_at: After an iteration over a log whose recording was cut short, the line
+            where it ends (the incomplete line left out, or the last line read before a
+            ``.gz`` stream ended early); None for a log that ends after a whole record.
         n_odom_records: ODOM records seen during the last iteration.
         stamp_report: timestamp disorder and odometry breaks of the last iteration
             (:class:`~frontends.scan.StampReport`).
@@ -373,8 +383,11 @@ class CarmenReader:
         self.path = Path(path)
         self.skipped_records: Counter[str] = Counter()
         self.malformed: list[tuple[int, str]] = []
+        self.truncated_at: int | None = None
         self.n_odom_records = 0
         self.stamp_report = StampReport(policy=self.config.stamps)
+        self._line_no = 0  # the last line read by _record_lines
+        self._unterminated = 0  # the line the file ends inside (no newline after it), or 0
 
     @property
     def strict(self) -> bool:
@@ -403,7 +416,9 @@ class CarmenReader:
                 for line in fh:
                     if match(line):
                         count += 1
-        except (OSError, EOFError, zlib.error) as exc:
+        except EOFError:  # a .gz cut short: the records before the cut (see the class)
+            return count
+        except (OSError, zlib.error) as exc:
             raise LogFormatError(f"{self.path}: cannot read the log ({exc})") from exc
         return count
 
@@ -463,6 +478,8 @@ class CarmenReader:
         """``(odometry frame, scan)`` in file order."""
         self.skipped_records = Counter()
         self.malformed = []
+        self.truncated_at = None
+        self._line_no = self._unterminated = 0
         self.n_odom_records = 0
         params = _Params()
         use_odom = self.config.odometry == "odom"
@@ -470,22 +487,34 @@ class CarmenReader:
         n_scans = 0
         try:
             with open_text(self.path) as fh:
-                for line_no, kind, tokens in self._record_lines(fh):
-                    try:
-                        item = self._parse_record(kind, tokens, params, line_no, use_odom)
-                    except _Malformed as exc:
-                        self._malformed(line_no, str(exc))
-                        continue
-                    if item is None:
-                        continue
-                    if isinstance(item, _PendingScan):
-                        ready = self._place_scan(item, odom, use_odom, line_no)
-                    else:
-                        ready = [
-                            ("ODOM", self._finish(sc, odom.t, odom.p)) for sc in odom.add(*item)
-                        ]
-                    n_scans += len(ready)
-                    yield from ready
+                try:
+                    for line_no, kind, tokens in self._record_lines(fh):
+                        try:
+                            item = self._parse_record(kind, tokens, params, line_no, use_odom)
+                        except _Malformed as exc:
+                            if line_no == self._unterminated:
+                                self._cut_short(
+                                    line_no, "the log ends inside this line: it is left out"
+                                )
+                            else:
+                                self._malformed(line_no, str(exc))
+                            continue
+                        if item is None:
+                            continue
+                        if isinstance(item, _PendingScan):
+                            ready = self._place_scan(item, odom, use_odom, line_no)
+                        else:
+                            ready = [
+                                ("ODOM", self._finish(sc, odom.t, odom.p)) for sc in odom.add(*item)
+                            ]
+                        n_scans += len(ready)
+                        yield from ready
+                except EOFError as exc:  # a .gz stream without its end: read up to the cut
+                    self._cut_short(
+                        self._line_no,
+                        f"the compressed log ends after this line ({exc}): the rest of "
+                        "the recording is not in the file",
+                    )
         except (OSError, EOFError, zlib.error) as exc:
             raise LogFormatError(f"{self.path}: cannot read the log ({exc})") from exc
         for scan in self._flush_pending(odom):
@@ -497,6 +526,9 @@ class CarmenReader:
         """``(line number, record name, tokens)`` of every line that is not blank or a comment
         (those are counted in :attr:`skipped_records`)."""
         for line_no, line in enumerate(fh, start=1):
+            self._line_no = line_no
+            if not line.endswith("\n"):  # only the last line can lack it
+                self._unterminated = line_no
             tokens = line.split()
             if not tokens:
                 self.skipped_records["blank"] += 1
@@ -585,6 +617,17 @@ class CarmenReader:
             )
 
     # -- helpers ---------------------------------------------------------------------------
+
+    def _cut_short(self, line_no: int, what: str) -> None:
+        """Note a log whose recording was cut short at ``line_no`` (see the class)."""
+        self.truncated_at = line_no
+        logger.warning(
+            "%s:%d: %s (an interrupted recording, or an incomplete copy?); every whole "
+            "record is read",
+            self.path,
+            line_no,
+            what,
+        )
 
     def _malformed(self, line_no: int, reason: str) -> None:
         if self.config.strict:

@@ -213,6 +213,83 @@ def test_lenient_reader_skips_lists_and_warns(
     assert len(warnings) == 1 and "skipped 2 malformed line(s)" in warnings[0].getMessage()
 
 
+# ---------------------------------------------------------------------------------------------
+# A recording cut short: read up to the last whole record
+# ---------------------------------------------------------------------------------------------
+
+
+def _flaser(stamp_s: float) -> str:
+    """A 3-beam FLASER line whose ranges and poses depend on its stamp."""
+    r = f"{1.0 + stamp_s:.3f} {2.0 + stamp_s:.3f} {3.0 + stamp_s:.3f}"
+    return f"FLASER 3 {r} {stamp_s:.3f} 0.2 0.3 {stamp_s:.3f} 0.2 0.3 {stamp_s:.6f} h {stamp_s:.6f}"
+
+
+def _carmen_warnings(caplog: pytest.LogCaptureFixture) -> list[str]:
+    return [
+        r.getMessage()
+        for r in caplog.records
+        if r.levelno == logging.WARNING and r.name == "frontends.carmen"
+    ]
+
+
+@pytest.mark.parametrize("strict", [True, False])
+def test_a_log_cut_inside_its_last_line_is_read_up_to_it(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, strict: bool
+) -> None:
+    path = tmp_path / "cut.clf"
+    whole = "".join(f"{_flaser(t)}\n" for t in (1.0, 2.0, 3.0))
+    path.write_text(whole + _flaser(4.0)[:40])  # the logger stopped 40 characters into line 4
+    reader = CarmenReader(path, strict=strict)
+    with caplog.at_level(logging.WARNING, logger="frontends.carmen"):
+        scans = list(reader)
+    assert [s.stamp_s for s in scans] == [1.0, 2.0, 3.0]
+    np.testing.assert_array_equal(scans[2].ranges_m, [4.0, 5.0, 6.0])  # 1 + 3, 2 + 3, 3 + 3
+    assert reader.truncated_at == 4 and reader.malformed == []
+    (warning,) = _carmen_warnings(caplog)
+    assert warning.startswith(f"{path}:4: the log ends inside this line")
+    assert "interrupted recording" in warning
+
+
+def test_only_the_unterminated_last_line_counts_as_cut_short(tmp_path: Path) -> None:
+    # The same incomplete record with its newline, or in the middle, is a malformed line.
+    for text, bad_line in (
+        (f"{_flaser(1.0)}\n{_flaser(2.0)[:40]}\n", 2),
+        (f"{_flaser(1.0)}\n{_flaser(2.0)[:40]}\n{_flaser(3.0)}", 2),
+    ):
+        path = tmp_path / "bad.clf"
+        path.write_text(text)
+        with pytest.raises(LogFormatError, match=rf"bad\.clf:{bad_line}: FLASER declares 3"):
+            list(CarmenReader(path))
+    # A whole last record without a newline after it is read as it is.
+    path.write_text(f"{_flaser(1.0)}\n{_flaser(2.0)}")
+    reader = CarmenReader(path)
+    assert [s.stamp_s for s in reader] == [1.0, 2.0] and reader.truncated_at is None
+
+
+def test_a_gz_log_cut_short_is_read_up_to_the_cut(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    stamps = [k / 100 for k in range(1, 2001)]
+    text = "".join(f"{_flaser(t)}\n" for t in stamps)
+    full = gzip.compress(text.encode())
+    path = tmp_path / "cut.clf.gz"
+    path.write_bytes(full[: len(full) // 2])
+    reader = CarmenReader(path)
+    with caplog.at_level(logging.WARNING, logger="frontends.carmen"):
+        scans = list(reader)
+    n = len(scans)
+    # a prefix of the log, each scan as the whole file has it (what zlib could decompress
+    # before the cut, less the line the cut fell in)
+    assert 0 < n < len(stamps)
+    assert [s.stamp_s for s in scans] == stamps[:n]
+    t = stamps[n - 1]
+    np.testing.assert_array_equal(scans[-1].ranges_m, [float(f"{a + t:.3f}") for a in (1, 2, 3)])
+    assert reader.truncated_at == n  # one scan per line: the last line read
+    (warning,) = _carmen_warnings(caplog)
+    assert warning.startswith(f"{path}:{n}: the compressed log ends after this line")
+    assert CarmenReader(path).count_scans() == n  # counted up to the cut, no error
+
+
 def test_bad_options_raise_config_error(hand_log: Path) -> None:
     with pytest.raises(ConfigError, match="odometry"):
         CarmenReader(hand_log, odometry="wheel")

@@ -6,6 +6,8 @@ NaN/inf in a pose or timestamp, NaN in a range) and empty lines are inserted. Th
 generator's own bookkeeping: which final line numbers are malformed, which are scans, and their
 ranges. The strict reader must raise LogFormatError naming the first malformed line (and no other
 exception); the lenient reader must yield every valid scan and list exactly the malformed lines.
+A malformed last line without a newline after it is a recording cut short: both readers read up
+to it and set ``truncated_at``.
 """
 
 from __future__ import annotations
@@ -117,7 +119,7 @@ def _record(draw: st.DrawFn, stamp: float) -> _Line:
 
 @st.composite
 def _mutated_log(draw: st.DrawFn) -> tuple[str, list[str], list[list[float]], int]:
-    """Returns (text, outcome per final line: scan/skip/malformed, ranges of expected scans,
+    """Returns (text, outcome per final line: scan/skip/malformed/cut, ranges of expected scans,
     number of lines whose first token is a laser record name)."""
     n_records = draw(st.integers(1, 10))
     stamp = 1000.0
@@ -182,6 +184,8 @@ def _mutated_log(draw: st.DrawFn) -> tuple[str, list[str], list[list[float]], in
         else:
             outcomes.append("skip")
     ending = draw(st.sampled_from(["\n", ""]))
+    if not ending and outcomes[-1] == "malformed":
+        outcomes[-1] = "cut"  # the file ends inside this line: an interrupted recording
     return "\n".join(texts) + ending, outcomes, expected_ranges, n_laser_lines
 
 
@@ -212,6 +216,7 @@ def test_mutated_logs(case: tuple[str, list[str], list[list[float]], int]) -> No
         reader = CarmenReader(path, strict=False)
         scans = list(reader)
         assert [line for line, _ in reader.malformed] == malformed_lines
+        assert reader.truncated_at == (len(outcomes) if outcomes[-1] == "cut" else None)
         assert [s.source for s in scans] == [f"{path}:{n}" for n in scan_lines]
         for scan, ranges in zip(scans, expected_ranges, strict=True):
             np.testing.assert_array_equal(scan.ranges_m, ranges)
