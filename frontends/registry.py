@@ -71,10 +71,11 @@ def available_formats() -> list[str]:
 
 
 def open_text(path: Path) -> io.TextIOBase:
-    """Open ``path`` for streaming text reading; ``.gz`` is decompressed transparently."""
+    """Open ``path`` for streaming text reading; ``.gz`` is decompressed transparently, and a
+    UTF-8 byte order mark at the start (which an editor on Windows may add) is dropped."""
     if path.suffix.lower() == ".gz":
-        return io.TextIOWrapper(gzip.open(path, "rb"), encoding="utf-8", errors="replace")
-    return open(path, encoding="utf-8", errors="replace")
+        return io.TextIOWrapper(gzip.open(path, "rb"), encoding="utf-8-sig", errors="replace")
+    return open(path, encoding="utf-8-sig", errors="replace")
 
 
 def _first_lines(path: Path, n: int = 50) -> list[str]:

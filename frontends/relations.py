@@ -148,7 +148,7 @@ def _read_rows(p: Path) -> tuple[list[tuple[float, ...]], list[int]]:
     rows: list[tuple[float, ...]] = []
     line_nos: list[int] = []
     try:
-        with open(p, encoding="utf-8", errors="replace") as fh:
+        with open(p, encoding="utf-8-sig", errors="replace") as fh:  # a BOM dropped
             for line_no, line in enumerate(fh, start=1):
                 tokens = line.split()
                 if not tokens or tokens[0].startswith("#"):

@@ -18,6 +18,7 @@ information matrix (inverse covariance) in the tangent space of the measurement.
 
 from __future__ import annotations
 
+import codecs
 import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -121,6 +122,13 @@ def _scan(path: Path) -> tuple[int, int, list[tuple[int, list[str]]]]:
     iceg: list[tuple[int, list[str]]] = []
     last_record = 0
     first_comment = 0
+    with open(path, "rb") as fh:
+        if fh.read(len(codecs.BOM_UTF8)) == codecs.BOM_UTF8:
+            raise GraphError(
+                f"{path}:1: the file starts with a UTF-8 byte order mark, which gtsam.readG2o "
+                "reads as part of the first record (it loses that record's pose); save the "
+                "file without it"
+            )
     lines = read_text_lines(path, "g2o file", GraphError)
     for line_no, line in enumerate(lines, start=1):
         tokens = line.split()

@@ -9,7 +9,8 @@ from iceg_common.errors import IcegError
 
 
 def read_text_lines(path: Path, what: str, error: type[IcegError]) -> list[str]:
-    """The lines of a UTF-8 text file.
+    """The lines of a UTF-8 text file (a byte order mark at its start, which an editor on
+    Windows may add, dropped).
 
     Args:
         path: The file.
@@ -20,7 +21,7 @@ def read_text_lines(path: Path, what: str, error: type[IcegError]) -> list[str]:
         error: the file is not UTF-8 text (naming the first bad byte) or cannot be read.
     """
     try:
-        return path.read_text(encoding="utf-8").splitlines()
+        return path.read_text(encoding="utf-8-sig").splitlines()
     except UnicodeDecodeError as exc:
         raise error(
             f"{path}: not a text {what} (byte {exc.start} is not UTF-8; a binary file?)"

@@ -323,6 +323,18 @@ def test_open_log_sniffs_unknown_suffix(tmp_path: Path) -> None:
         open_log(other)
 
 
+@pytest.mark.parametrize("name", ["bom.clf", "bom.txt", "bom.clf.gz"])
+def test_a_byte_order_mark_at_the_start_is_dropped(tmp_path: Path, name: str) -> None:
+    # An editor on Windows may save the log as UTF-8 with a BOM before its first line.
+    path = tmp_path / name
+    data = b"\xef\xbb\xbf" + HAND_LOG.encode()
+    path.write_bytes(gzip.compress(data) if name.endswith(".gz") else data)
+    reader = open_log(path)  # bom.txt: recognised from its first lines
+    assert isinstance(reader, CarmenReader)
+    assert [s.stamp_s for s in reader] == [10.5, 11.5, 12.0]
+    assert reader.skipped_records["comment"] == 1  # line 1 is still the comment
+
+
 # ---------------------------------------------------------------------------------------------
 # Real logs in ../shared/data (skipped when absent). Expected counts: ../shared/data/README.md.
 # ---------------------------------------------------------------------------------------------

@@ -87,6 +87,13 @@ def test_missing_file(tmp_path: Path) -> None:
         read_relations(tmp_path / "none.relations")
 
 
+def test_a_byte_order_mark_at_the_start_is_dropped(tmp_path: Path) -> None:
+    path = tmp_path / "bom.relations"  # saved as UTF-8 with a BOM (an editor on Windows)
+    path.write_bytes(b"\xef\xbb\xbf10.0 12.5 1.0 -0.5 0 0 0 0.25\n")
+    rel = read_relations(path)
+    assert rel.stamps_s.tolist() == [[10.0, 12.5]] and rel.deltas.tolist() == [[1.0, -0.5, 0.25]]
+
+
 def test_round_trip(tmp_path: Path) -> None:
     rng = np.random.default_rng(3)
     t1 = np.sort(1_134_864_600.0 + rng.uniform(0, 400, 50))

@@ -44,6 +44,13 @@ def test_hand_written_line_gives_yaw(tmp_path: Path) -> None:
     np.testing.assert_allclose(poses, [[2.0, 3.0, np.pi / 2]], atol=1e-12)
 
 
+def test_a_byte_order_mark_at_the_start_is_dropped(tmp_path: Path) -> None:
+    path = tmp_path / "t.tum"  # saved as UTF-8 with a BOM (an editor on Windows)
+    path.write_bytes(b"\xef\xbb\xbf1.5 2 3 0 0 0 0 1\n")
+    stamps, poses = read_tum(path)
+    assert stamps.tolist() == [1.5] and poses.tolist() == [[2.0, 3.0, 0.0]]
+
+
 def test_bad_line_names_file_and_line(tmp_path: Path) -> None:
     path = tmp_path / "t.tum"
     path.write_text("1 0 0 0 0 0 0 1\n2 0 0 0 0 0 1\n")

@@ -163,6 +163,15 @@ def test_malformed_files_raise_graph_error(tmp_path: Path, text: str, message: s
         load_g2o(path)
 
 
+def test_a_byte_order_mark_is_refused(tmp_path: Path) -> None:
+    # gtsam.readG2o reads the BOM as part of the first tag and loses that vertex's pose
+    # (node 0 at the origin, not at (5, 5, 0.5)): refused rather than read wrong.
+    path = tmp_path / "bom.g2o"
+    path.write_bytes(b"\xef\xbb\xbfVERTEX_SE2 0 5 5 0.5\nVERTEX_SE2 1 1 0 0\n")
+    with pytest.raises(GraphError, match=r"bom\.g2o:1: the file starts with a UTF-8 byte order"):
+        load_g2o(path)
+
+
 def test_missing_file_and_unwritable_destination(tmp_path: Path) -> None:
     with pytest.raises(GraphError, match="no such g2o file"):
         PoseGraph.read_g2o(tmp_path / "absent.g2o")
