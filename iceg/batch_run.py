@@ -34,7 +34,13 @@ from iceg.config import config_from_dict
 from iceg.consistency import FactorNees, factor_nees, per_node
 from iceg.evaluation import position_errors, relation_errors
 from iceg.odometry_timing import odometry_time_offset, offset_to_read
-from iceg.pipeline import AUTO_OFFSET, check_log_file, measure_scanner, relation_nees
+from iceg.pipeline import (
+    AUTO_OFFSET,
+    check_log_file,
+    measure_scanner,
+    motionless_odometry,
+    relation_nees,
+)
 from iceg.results import SlamResult
 from iceg.scan_store import ScanStore
 from iceg.session import record_reading
@@ -126,6 +132,7 @@ class _Input:
     reference: FloatArray | None = None  # (N, 3) per scan, NaN rows where unknown
     relations: Relations | None = None
     offset_s: float = 0.0  # the odometry time offset the scans' odometry is read at
+    odometry_dropped: bool = False  # it carried no motion (pipeline.motionless_odometry)
 
 
 # ---------------------------------------------------------------------------- input
@@ -167,6 +174,10 @@ def load_input(task: RunTask) -> _Input:
             data.reference = np.asarray(synth.reference_poses, dtype=np.float64)
     elif task.reference == LOG_ODOMETRY:
         data.reference = np.array([s.odom_pose for s in data.scans], dtype=np.float64)
+    reads_odometry = task.odometry is None and not task.laser_only  # the log's own
+    if reads_odometry and motionless_odometry(task.source, data.scans):
+        data.scans = [s.without_odometry() for s in data.scans]
+        data.odometry_dropped = True
     if task.laser_only:
         data.scans = [s.without_odometry() for s in data.scans]
     if task.reference not in (None, LOG_ODOMETRY):
@@ -244,7 +255,7 @@ def execute_run(task: RunTask) -> dict[str, Any]:
         result, online = run_slam(task, data.scans, t0)
         if result.slam is not None and not task.source.startswith(SIM_PREFIX):
             # how its session reads the log again (scans changed after reading: stored)
-            changed = task.odometry is not None or task.laser_only
+            changed = task.odometry is not None or task.laser_only or data.odometry_dropped
             record_reading(result.slam, task.source, task.reader_options, data.offset_s, changed)
         metrics = run_metrics(result, data, online)
         if task.odometry_time_offset_s == AUTO_OFFSET:

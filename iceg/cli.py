@@ -729,7 +729,7 @@ def localize(
     )
     offset_s = _time_offset(odometry_time_offset)
     s = sess.read(map_)
-    scans, offset = read_log_scans(log, s.config, stamps.value, options, offset_s)
+    scans, offset, _ = read_log_scans(log, s.config, stamps.value, options, offset_s)
     pose = None
     if initial_pose is not None:
         pose = np.array([initial_pose[0], initial_pose[1], math.radians(initial_pose[2])])

@@ -485,13 +485,15 @@ def continue_log(
     from iceg.pipeline import check_relations_match, read_log_scans, score_against_relations
 
     config = sess.read_config(session_path)
-    scans, offset = read_log_scans(path, config, stamps, reader_options, odometry_time_offset_s)
+    scans, offset, reading = read_log_scans(
+        path, config, stamps, reader_options, odometry_time_offset_s
+    )
     rel = read_relations(relations) if relations is not None else None
     if rel is not None:
         check_relations_match(rel, np.array([s.stamp_s for s in scans]))
     result = continue_scans(session_path, scans, initial_pose, progress)
     if result.slam is not None:
-        sess.record_reading(result.slam, path, reader_options, offset["applied_s"])
+        sess.record_reading(result.slam, path, reading, offset["applied_s"])
     result.metrics["continued_from"] = str(Path(session_path).resolve())
     result.metrics["odometry_time_offset"] = offset
     if rel is not None:

@@ -243,12 +243,15 @@ def run_log(
     result: SlamResult | None = None
     auto, before_run = odometry_time_offset_s == AUTO_OFFSET, None
     applied_s = 0.0 if isinstance(odometry_time_offset_s, str) else odometry_time_offset_s
-    with _started(slam, lambda: _read(reader, applied_s, slam.config)) as (
-        (scans, report, measured),
+    with _started(slam, lambda: _read(path, reader, applied_s, slam.config)) as (
+        (scans, report, measured, no_odometry),
         prefetch,
     ):
         if not scans:
             raise LogFormatError(f"{path}: the log holds no laser scans")
+        if no_odometry:  # read as --laser-only reads it, and so read again by its session
+            reader_options = {**(reader_options or {}), "laser_only": True}
+            auto, applied_s = False, 0.0
         if auto:
             scans, measured, applied_s, before_run = _at_measured_offset(
                 path, scans, slam.config, measured
@@ -404,18 +407,58 @@ def _as_dict(estimate: TimeOffsetEstimate | None) -> dict[str, Any] | None:
     return None if estimate is None else estimate.as_dict()
 
 
+def motionless_odometry(source: str | Path, scans: ScanStore | Sequence[LaserScan]) -> bool:
+    """Whether a log's odometry carries no motion at all: two or more scans, every one with
+    a finite odometry pose, all the same pose bit for bit (a log without odometry written
+    with zeros, a wheel odometry that never ran). Such odometry holds every scan in place:
+    a run would make a node only every ``slam.keyframe_max_interval_s`` (MIT CSAIL with its
+    odometry zeroed: 15 nodes, no scan-match factor, 0.43 m / 18.9 deg against its
+    relations). Where it does, a warning says the log is read without it, as
+    ``--laser-only`` reads it (each scan predicted by constant velocity, docs/design.md
+    "Readers").
+
+    Args:
+        source: The log, for the warning.
+        scans: Its scans, as read.
+    """
+    if isinstance(scans, ScanStore):
+        odom_poses = scans.odometry[1]
+    else:
+        nan = np.full(3, np.nan)
+        odom_poses = np.array([nan if s.odom_pose is None else s.odom_pose for s in scans])
+    n = len(scans)
+    if n < 2 or not np.isfinite(odom_poses).all() or not (odom_poses == odom_poses[0]).all():
+        return False
+    x, y, theta = odom_poses[0].tolist()
+    logger.warning(
+        "%s: the odometry is the same pose (%.3f m, %.3f m, %.1f deg) in all %d scans: it "
+        "carries no motion, so the log is read without it, as with --laser-only",
+        source,
+        x,
+        y,
+        np.degrees(theta),
+        n,
+    )
+    return True
+
+
 def _read(
-    reader: Iterable[LaserScan], offset_s: float, config: IcegConfig
-) -> tuple[ScanStore, StampReport | None, MeasuredScanner]:
-    """The log of ``reader`` (not yet iterated) in a store, compact (no LaserScan object per
-    scan held during the run), each scan's odometry read at its stamp plus ``offset_s``;
-    the reader's stamp report (out-of-order and duplicate stamps, odometry breaks; None for
-    a reader without one); and ``config`` with what the scans show of the scanner
-    (:func:`measure_scanner`: it runs in the process that reads, beside the start)."""
+    path: str | Path, reader: Iterable[LaserScan], offset_s: float, config: IcegConfig
+) -> tuple[ScanStore, StampReport | None, MeasuredScanner, bool]:
+    """The log at ``path`` (``reader``, not yet iterated) in a store, compact (no LaserScan
+    object per scan held during the run), each scan's odometry read at its stamp plus
+    ``offset_s``, or none where it carries no motion (:func:`motionless_odometry`); the
+    reader's stamp report (out-of-order and duplicate stamps, odometry breaks; None for a
+    reader without one); ``config`` with what the scans show of the scanner
+    (:func:`measure_scanner`: it runs in the process that reads, beside the start); and
+    whether the odometry was dropped."""
     store = ScanStore(shift_odometry(while_caller_runs(reader), offset_s))
+    dropped = motionless_odometry(path, store)
+    if dropped:
+        store = ScanStore(scan.without_odometry() for scan in store)
     report = getattr(reader, "stamp_report", None)
     stamp_report = report if isinstance(report, StampReport) else None
-    return store, stamp_report, measure_scanner(config, store)
+    return store, stamp_report, measure_scanner(config, store), dropped
 
 
 def read_log_scans(
@@ -424,15 +467,18 @@ def read_log_scans(
     stamps: StampPolicy = "sort",
     reader_options: Mapping[str, Any] | None = None,
     odometry_time_offset_s: float | Literal["auto"] = 0.0,
-) -> tuple[list[LaserScan], dict[str, Any]]:
+) -> tuple[list[LaserScan], dict[str, Any], dict[str, Any]]:
     """A log's scans, each one's odometry read at its stamp plus ``odometry_time_offset_s``
     (``"auto"``: :func:`~iceg.odometry_timing.offset_to_read` with ``config``, as
-    :func:`run_log` measures it), for the runs that take a list of scans (a session's
+    :func:`run_log` measures it), or without it where it carries no motion
+    (:func:`motionless_odometry`), for the runs that take a list of scans (a session's
     continuation, a localization).
 
     Returns:
-        The scans, and the offset's record for ``metrics.json``: ``applied_s`` and, with
-        ``"auto"``, ``before_run`` (the measurement's fields, None without one).
+        The scans; the offset's record for ``metrics.json``: ``applied_s`` and, with
+        ``"auto"``, ``before_run`` (the measurement's fields, None without one); and the
+        reader options as the log was read (``laser_only`` added where the odometry was
+        dropped), for its session to read it again.
 
     Raises:
         LogFormatError: missing or unreadable log.
@@ -442,13 +488,16 @@ def read_log_scans(
     _check_offset(odometry_time_offset_s, reader_options)
     check_log_file(Path(path))
     scans = list(open_log(path, stamps=stamps, **(reader_options or {})))
+    if motionless_odometry(path, scans):
+        options = {**(reader_options or {}), "laser_only": True}
+        return [s.without_odometry() for s in scans], {"applied_s": 0.0}, options
     record: dict[str, Any] = {}
     applied_s = odometry_time_offset_s
     if isinstance(applied_s, str):
         applied_s, before_run = _offset_to_read(path, scans, config)
         record["before_run"] = _as_dict(before_run)
     record["applied_s"] = applied_s
-    return list(shift_odometry(scans, applied_s)), record
+    return list(shift_odometry(scans, applied_s)), record, dict(reader_options or {})
 
 
 def _check_offset(

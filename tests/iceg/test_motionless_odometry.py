@@ -1,0 +1,85 @@
+"""A log whose odometry is one pose throughout is read without it, as ``--laser-only`` reads
+it (``iceg.pipeline.motionless_odometry``), by every path that reads a log: a run, a
+continuation or localization (``read_log_scans``) and a batch run (``load_input``). The run
+itself is compared bit for bit with ``--laser-only`` in ``test_cli.py``."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from frontends import LaserScan
+from frontends.carmen import write_carmen
+from frontends.simulate import office_world, simulate
+from iceg.batch import expand, spec_from_dict
+from iceg.batch_run import load_input
+from iceg.config import IcegConfig
+from iceg.pipeline import motionless_odometry, read_log_scans
+from iceg.scan_store import ScanStore
+
+
+@pytest.fixture(scope="module")
+def office_scans() -> list[LaserScan]:
+    return simulate(office_world(), seed=2).scans[:40]
+
+
+def _with_odometry(scans: list[LaserScan], poses: list[np.ndarray | None]) -> list[LaserScan]:
+    return [dataclasses.replace(s, odom_pose=p) for s, p in zip(scans, poses, strict=True)]
+
+
+def test_one_pose_throughout_carries_no_motion(
+    office_scans: list[LaserScan], caplog: pytest.LogCaptureFixture
+) -> None:
+    n = len(office_scans)
+    pose = np.array([1.5, -2.0, np.radians(30.0)])
+    stuck = _with_odometry(office_scans, [pose] * n)
+    with caplog.at_level(logging.WARNING, logger="iceg.pipeline"):
+        assert motionless_odometry("stuck.clf", stuck)
+    assert caplog.messages == [
+        f"stuck.clf: the odometry is the same pose (1.500 m, -2.000 m, 30.0 deg) in all {n} "
+        "scans: it carries no motion, so the log is read without it, as with --laser-only"
+    ]
+    assert motionless_odometry("stuck.clf", ScanStore(stuck))  # the store's arrays agree
+
+
+def test_odometry_that_moves_or_is_missing_is_kept(office_scans: list[LaserScan]) -> None:
+    n = len(office_scans)
+    zero = np.zeros(3)
+    one_step = [zero] * (n - 1) + [np.array([0.0, 0.0, 1e-9])]  # a nanoradian is a motion
+    for poses in (one_step, [zero] * (n - 1) + [None], [None] * n):
+        scans = _with_odometry(office_scans, poses)
+        assert not motionless_odometry("x.clf", scans)
+        assert not motionless_odometry("x.clf", ScanStore(scans))
+    assert not motionless_odometry("x.clf", office_scans[:1])  # one scan shows no motion
+    assert not motionless_odometry("x.clf", office_scans)  # the simulated odometry moves
+
+
+@pytest.fixture(scope="module")
+def stuck_log(tmp_path_factory: pytest.TempPathFactory, office_scans: list[LaserScan]) -> Path:
+    log = tmp_path_factory.mktemp("stuck") / "stuck.clf"
+    write_carmen(log, _with_odometry(office_scans, [np.zeros(3)] * len(office_scans)))
+    return log
+
+
+@pytest.mark.parametrize("offset", [0.0, -0.1, "auto"])
+def test_read_log_scans_reads_it_as_laser_only(stuck_log: Path, offset: float | str) -> None:
+    # An offset reads the odometry at other stamps: with none to read it is moot (0 applied).
+    scans, record, options = read_log_scans(
+        stuck_log,
+        IcegConfig(),
+        odometry_time_offset_s=offset,  # type: ignore[arg-type]
+    )
+    assert len(scans) == 40 and all(s.odom_pose is None and not s.odom_break for s in scans)
+    assert record == {"applied_s": 0.0} and options == {"laser_only": True}
+
+
+def test_a_batch_run_reads_it_as_laser_only(tmp_path: Path, stuck_log: Path) -> None:
+    spec = spec_from_dict({"logs": [{"path": str(stuck_log)}]})
+    (task,) = expand(spec, tmp_path, tmp_path)
+    data = load_input(task)
+    assert data.odometry_dropped
+    assert len(data.scans) == 40 and all(s.odom_pose is None for s in data.scans)
