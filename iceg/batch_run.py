@@ -37,6 +37,7 @@ from iceg.odometry_timing import odometry_time_offset, offset_to_read
 from iceg.pipeline import (
     AUTO_OFFSET,
     check_log_file,
+    check_returns,
     measure_scanner,
     motionless_odometry,
     relation_nees,
@@ -161,6 +162,7 @@ def load_input(task: RunTask) -> _Input:
     data = _Input(list(shift_odometry(scans, offset)), reference, offset_s=offset)
     if not data.scans:
         raise LogFormatError(f"{task.source}: the log holds no laser scans")
+    check_returns(task.source, data.scans)
     if task.max_scans is not None:
         data.scans = data.scans[: task.max_scans]
         if data.reference is not None:

@@ -407,6 +407,36 @@ def _as_dict(estimate: TimeOffsetEstimate | None) -> dict[str, Any] | None:
     return None if estimate is None else estimate.as_dict()
 
 
+def check_returns(source: str | Path, scans: Iterable[LaserScan]) -> None:
+    """Refuse a log in which no beam of any scan is a return (every range outside its scan's
+    ``(range_min_m, range_max_m)``): nothing could be matched or mapped, and the run would
+    end with odometry alone. Ranges written in millimetres do that (MIT CSAIL so written:
+    1814 nodes, no scan-match factor and an empty map, without a word). Reads up to the
+    first scan with a return: one scan of a usable log.
+
+    Raises:
+        LogFormatError: no return in the log, naming the range limits and the ranges read.
+    """
+    ranges: list[np.ndarray] = []
+    limits: set[tuple[float, float]] = set()
+    for scan in scans:
+        if scan.valid_mask().any():
+            return
+        ranges.append(scan.ranges_m[np.isfinite(scan.ranges_m)])
+        limits.add((scan.range_min_m, scan.range_max_m))
+    if not ranges:
+        return  # no scans: refused where the run starts
+    read = np.concatenate(ranges)
+    seen = f"from {read.min():.4g} to {read.max():.4g}" if read.size else "none finite"
+    bounds = ", ".join(f"{lo:g}..{hi:g} m" for lo, hi in sorted(limits))
+    raise LogFormatError(
+        f"{source}: none of its {len(ranges)} scans has a return: every range lies outside the "
+        f"scan's limits ({bounds}; the ranges read: {seen}); are the ranges in metres, and "
+        "is the scanner's maximum range right (PARAM robot_front_laser_max, or the reader's "
+        "default_range_max_m)?"
+    )
+
+
 def motionless_odometry(source: str | Path, scans: ScanStore | Sequence[LaserScan]) -> bool:
     """Whether a log's odometry carries no motion at all: two or more scans, every one with
     a finite odometry pose, all the same pose bit for bit (a log without odometry written
@@ -453,6 +483,7 @@ def _read(
     (:func:`measure_scanner`: it runs in the process that reads, beside the start); and
     whether the odometry was dropped."""
     store = ScanStore(shift_odometry(while_caller_runs(reader), offset_s))
+    check_returns(path, store)
     dropped = motionless_odometry(path, store)
     if dropped:
         store = ScanStore(scan.without_odometry() for scan in store)
@@ -488,6 +519,7 @@ def read_log_scans(
     _check_offset(odometry_time_offset_s, reader_options)
     check_log_file(Path(path))
     scans = list(open_log(path, stamps=stamps, **(reader_options or {})))
+    check_returns(path, scans)
     if motionless_odometry(path, scans):
         options = {**(reader_options or {}), "laser_only": True}
         return [s.without_odometry() for s in scans], {"applied_s": 0.0}, options

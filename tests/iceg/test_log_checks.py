@@ -1,12 +1,15 @@
-"""A log whose odometry is one pose throughout is read without it, as ``--laser-only`` reads
-it (``iceg.pipeline.motionless_odometry``), by every path that reads a log: a run, a
-continuation or localization (``read_log_scans``) and a batch run (``load_input``). The run
-itself is compared bit for bit with ``--laser-only`` in ``test_cli.py``."""
+"""What every path that reads a log (a run, a continuation or localization through
+``read_log_scans``, a batch run's ``load_input``) checks of it before a run: a log without a
+single return is refused (``iceg.pipeline.check_returns``), and a log whose odometry is one
+pose throughout is read without it, as ``--laser-only`` reads it
+(``iceg.pipeline.motionless_odometry``; the run itself is compared bit for bit with
+``--laser-only`` in ``test_cli.py``)."""
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+import re
 from pathlib import Path
 
 import numpy as np
@@ -18,8 +21,9 @@ from frontends.simulate import office_world, simulate
 from iceg.batch import expand, spec_from_dict
 from iceg.batch_run import load_input
 from iceg.config import IcegConfig
-from iceg.pipeline import motionless_odometry, read_log_scans
+from iceg.pipeline import check_returns, motionless_odometry, read_log_scans, run_log
 from iceg.scan_store import ScanStore
+from iceg_common.errors import LogFormatError
 
 
 @pytest.fixture(scope="module")
@@ -83,3 +87,34 @@ def test_a_batch_run_reads_it_as_laser_only(tmp_path: Path, stuck_log: Path) -> 
     data = load_input(task)
     assert data.odometry_dropped
     assert len(data.scans) == 40 and all(s.odom_pose is None for s in data.scans)
+
+
+def test_a_log_without_a_return_is_refused(tmp_path: Path, office_scans: list[LaserScan]) -> None:
+    # The office scans written in millimetres: every range beyond the 20 m maximum.
+    mm = [dataclasses.replace(s, ranges_m=s.ranges_m * 1000.0) for s in office_scans]
+    log = tmp_path / "mm.clf"
+    write_carmen(log, mm)
+    low = min(float(np.min(s.ranges_m)) for s in mm)
+    high = max(float(np.max(s.ranges_m)) for s in mm)
+    message = re.escape(
+        f"mm.clf: none of its 40 scans has a return: every range lies outside the scan's "
+        f"limits (0..20 m; the ranges read: from {low:.4g} to {high:.4g}); are the ranges in "
+        "metres"
+    )
+    with pytest.raises(LogFormatError, match=message):
+        run_log(log)
+    with pytest.raises(LogFormatError, match=message):
+        read_log_scans(log, IcegConfig())
+    (task,) = expand(spec_from_dict({"logs": [{"path": str(log)}]}), tmp_path, tmp_path)
+    with pytest.raises(LogFormatError, match=message):
+        load_input(task)
+
+
+def test_one_return_in_the_log_is_enough(office_scans: list[LaserScan]) -> None:
+    blind = [
+        dataclasses.replace(s, ranges_m=np.full_like(s.ranges_m, np.inf)) for s in office_scans
+    ]
+    with pytest.raises(LogFormatError, match=r"blind: none of its 40 .*ranges read: none finite"):
+        check_returns("blind", blind)
+    check_returns("last", [*blind[:-1], office_scans[-1]])  # one scan with returns: no error
+    check_returns("empty", [])  # no scans: refused where the run starts
