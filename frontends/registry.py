@@ -16,6 +16,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
+import numpy as np
+from numpy.typing import NDArray
+
 from frontends.scan import LaserScan, StampReport
 from iceg_common.errors import ConfigError, LogFormatError
 
@@ -222,27 +225,46 @@ def describe_log(reader: LogReader) -> list[tuple[str, str]]:
     if callable(describe):
         rows: list[tuple[str, str]] = describe()
         return rows
-    n, with_odom, first, last_stamp = 0, 0, None, math.nan
+    n, with_odom, n_beams, n_returns, moved = 0, 0, 0, 0, False
+    first: LaserScan | None = None
+    last_stamp = math.nan
     beams: set[int] = set()
     limits: set[tuple[float, float]] = set()
     for scan in reader:
         first = scan if first is None else first
         n += 1
         with_odom += scan.odom_pose is not None
+        moved = moved or not _same_pose(scan.odom_pose, first.odom_pose)
         beams.add(scan.n_beams)
+        n_beams += scan.n_beams
+        n_returns += int(np.count_nonzero(scan.valid_mask()))
         limits.add((scan.range_min_m, scan.range_max_m))
         last_stamp = scan.stamp_s
     if first is None:
         raise LogFormatError(f"{reader.path}: the log holds no laser scans")
+    odometry = f"{with_odom} of {n} scans have an odometry pose"
+    if with_odom == n > 1 and not moved:  # as iceg.pipeline.motionless_odometry finds it
+        odometry += "; the same pose in every scan: no motion (a run reads the log without it)"
     return [
         ("reader", type(reader).__name__),
         ("scans", str(n)),
         ("duration", f"{last_stamp - first.stamp_s:.1f} s"),
         ("beams", ", ".join(str(b) for b in sorted(beams))),
         ("range limits", ", ".join(f"{a:g} to {b:g} m" for a, b in sorted(limits))),
-        ("odometry", f"{with_odom} of {n} scans have an odometry pose"),
+        (
+            "returns",
+            f"{n_returns} of {n_beams} beams ({100.0 * n_returns / max(n_beams, 1):.1f} %)",
+        ),
+        ("odometry", odometry),
         *_record_rows(reader),
     ]
+
+
+def _same_pose(a: NDArray[np.float64] | None, b: NDArray[np.float64] | None) -> bool:
+    """Whether two odometry poses (None: none) are the same, bit for bit."""
+    if a is None or b is None:
+        return a is b
+    return bool(np.array_equal(a, b))
 
 
 def _record_rows(reader: object) -> list[tuple[str, str]]:
@@ -253,4 +275,7 @@ def _record_rows(reader: object) -> list[tuple[str, str]]:
     skipped = getattr(reader, "skipped_records", None)
     if skipped:
         rows.append(("other records", ", ".join(f"{k} {v}" for k, v in sorted(skipped.items()))))
+    cut = getattr(reader, "truncated_at", None)
+    if isinstance(cut, int):
+        rows.append(("cut short", f"the log ends inside a record at line {cut}"))
     return rows

@@ -12,6 +12,7 @@ import pytest
 
 from frontends import LaserScan, open_log
 from frontends.carmen import CarmenReader, flaser_angles, write_carmen
+from frontends.registry import describe_log
 from iceg_common import se2
 from iceg_common.errors import ConfigError, LogFormatError
 from tests.conftest import flaser_line, shared_file, write_odometry_jump_log
@@ -288,6 +289,28 @@ def test_a_gz_log_cut_short_is_read_up_to_the_cut(
     (warning,) = _carmen_warnings(caplog)
     assert warning.startswith(f"{path}:{n}: the compressed log ends after this line")
     assert CarmenReader(path).count_scans() == n  # counted up to the cut, no error
+
+
+def test_describe_log_counts_returns_and_says_what_a_run_will_do(
+    hand_log: Path, tmp_path: Path
+) -> None:
+    rows = dict(describe_log(CarmenReader(hand_log)))
+    # line 4: 4 beams, 2 returns (81.91 and nan are none); line 8: 5 returns below its 20 m;
+    # line 10: 181 returns of 3 m
+    assert rows["returns"] == "188 of 190 beams (98.9 %)"
+    assert rows["odometry"] == "3 of 3 scans have an odometry pose"
+    assert "cut short" not in rows
+    stuck = tmp_path / "stuck.clf"
+    stuck.write_text("".join(f"FLASER 3 1.0 2.0 3.0 0 0 0 0 0 0 {t} h {t}\n" for t in (1, 2)))
+    rows = dict(describe_log(CarmenReader(stuck)))
+    assert rows["odometry"] == (
+        "2 of 2 scans have an odometry pose; the same pose in every scan: no motion (a run "
+        "reads the log without it)"
+    )
+    cut = tmp_path / "cut.clf"
+    cut.write_text(f"{_flaser(1.0)}\n{_flaser(2.0)[:30]}")
+    rows = dict(describe_log(CarmenReader(cut)))
+    assert rows["scans"] == "1" and rows["cut short"] == "the log ends inside a record at line 2"
 
 
 def test_bad_options_raise_config_error(hand_log: Path) -> None:
