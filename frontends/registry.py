@@ -73,10 +73,22 @@ def available_formats() -> list[str]:
     return sorted(_READERS)
 
 
+#: The first two bytes of a gzip stream (RFC 1952).
+GZIP_MAGIC = b"\x1f\x8b"
+
+
 def open_text(path: Path) -> io.TextIOBase:
-    """Open ``path`` for streaming text reading; ``.gz`` is decompressed transparently, and a
-    UTF-8 byte order mark at the start (which an editor on Windows may add) is dropped."""
-    if path.suffix.lower() == ".gz":
+    """Open ``path`` for streaming text reading. Gzip data is decompressed on the fly, told
+    by its first two bytes (:data:`GZIP_MAGIC`), not by the suffix: a log saved compressed
+    under ``.clf`` and a ``.gz`` that a download already decompressed both read. A UTF-8
+    byte order mark at the start (which an editor on Windows may add) is dropped.
+
+    Raises:
+        OSError: the file cannot be opened.
+    """
+    with open(path, "rb") as fh:
+        compressed = fh.read(len(GZIP_MAGIC)) == GZIP_MAGIC
+    if compressed:
         return io.TextIOWrapper(gzip.open(path, "rb"), encoding="utf-8-sig", errors="replace")
     return open(path, encoding="utf-8-sig", errors="replace")
 

@@ -346,6 +346,19 @@ def test_open_log_sniffs_unknown_suffix(tmp_path: Path) -> None:
         open_log(other)
 
 
+@pytest.mark.parametrize(("name", "compressed"), [("a.clf", True), ("a.clf.gz", False)])
+def test_gzip_is_told_by_its_first_bytes_not_the_suffix(
+    tmp_path: Path, name: str, compressed: bool
+) -> None:
+    # a log saved compressed under .clf; a .gz that a download already decompressed
+    path = tmp_path / name
+    data = HAND_LOG.encode()
+    path.write_bytes(gzip.compress(data) if compressed else data)
+    reader = open_log(path)
+    assert reader.count_scans() == 3
+    assert [s.stamp_s for s in reader] == [10.5, 11.5, 12.0]
+
+
 @pytest.mark.parametrize("name", ["bom.clf", "bom.txt", "bom.clf.gz"])
 def test_a_byte_order_mark_at_the_start_is_dropped(tmp_path: Path, name: str) -> None:
     # An editor on Windows may save the log as UTF-8 with a BOM before its first line.
