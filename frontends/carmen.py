@@ -55,7 +55,10 @@ _LASER_RECORDS = ("FLASER", "RLASER", "ROBOTLASER1")
 _SNIFF = re.compile(r"\s*(?:FLASER|RLASER|ROBOTLASER1|ODOM|PARAM)(?:\s|$)")
 _LASER_LINE = re.compile(r"\s*(?:FLASER|RLASER|ROBOTLASER1)(?:\s|$)")
 _RECORD_NAME = re.compile(r"[A-Z][A-Z0-9_]*\Z")
-_FIX_HINT = "fix or delete the line, or open the log with strict=False to skip malformed lines"
+_FIX_HINT = (
+    "fix or delete the line, or skip malformed lines (iceg --skip-malformed; "
+    "CarmenReader(strict=False))"
+)
 
 # PARAM names this reader uses (anything else is skipped and counted as "PARAM").
 _PARAM_FRONT_OFFSET = "robot_frontlaser_offset"

@@ -223,6 +223,14 @@ LaserOnlyOption = Annotated[
         "and placed by its matches alone (for wheel odometry that is wrong or missing).",
     ),
 ]
+SkipMalformedOption = Annotated[
+    bool,
+    typer.Option(
+        "--skip-malformed",
+        help="CARMEN log: skip malformed lines (counted in one warning with the first "
+        "file:line) instead of stopping at the first one.",
+    ),
+]
 ContinueOption = Annotated[
     Path | None,
     typer.Option(
@@ -271,6 +279,7 @@ def run(
     laser_frame_offset: LaserOffsetOption = None,
     odometry_time_offset: OdometryTimeOffsetOption = "0",
     laser_only: LaserOnlyOption = False,
+    skip_malformed: SkipMalformedOption = False,
     continue_: ContinueOption = None,
     initial_pose: InitialPoseOption = None,
 ) -> None:
@@ -289,7 +298,13 @@ def run(
     _check_log_run_option("--odometry-time-offset", offset != 0.0, log is not None)
     _check_log_run_option("--laser-only", laser_only, log is not None)
     reader_options = _reader_options(
-        scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset, laser_only
+        scan_topic,
+        odom_topic,
+        odom_frame,
+        base_frame,
+        laser_frame_offset,
+        laser_only,
+        skip_malformed,
     )
     out_dir = out if out is not None else _default_out_dir()
     saved: list[str] = []
@@ -530,12 +545,15 @@ def info(
     laser_frame_offset: Annotated[
         str | None, typer.Option(help="ROS bag: laser pose 'X_M,Y_M,YAW_DEG'.")
     ] = None,
+    skip_malformed: SkipMalformedOption = False,
 ) -> None:
     """Print what a log holds: topics or record types, counts, duration, beams, range
-    limits, odometry source."""
+    limits, returns, odometry source."""
     from frontends.registry import describe_log, open_log
 
-    options = _reader_options(scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset)
+    options = _reader_options(
+        scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset, False, skip_malformed
+    )
     rows = describe_log(open_log(log, **options))
     typer.echo(f"iceg info: {log}")
     _print_table(rows)
@@ -548,10 +566,11 @@ def _reader_options(
     base_frame: str | None,
     laser_frame_offset: str | None,
     laser_only: bool = False,
+    skip_malformed: bool = False,
 ) -> dict[str, Any]:
     """The reader options that were given: a ROS bag's topics, frames and laser offset
-    (degrees -> radians for the yaw), and ``laser_only`` (:func:`frontends.open_log`)
-    when given."""
+    (degrees -> radians for the yaw), ``laser_only`` (:func:`frontends.open_log`) and a
+    CARMEN log's ``strict: False`` (``--skip-malformed``) when given."""
     from iceg_common.errors import ConfigError
 
     options: dict[str, Any] = {
@@ -575,6 +594,8 @@ def _reader_options(
         options["laser_frame_offset"] = (x, y, math.radians(yaw_deg))
     if laser_only:
         options["laser_only"] = True
+    if skip_malformed:
+        options["strict"] = False
     return options
 
 
@@ -715,6 +736,7 @@ def localize(
     laser_frame_offset: LaserOffsetOption = None,
     odometry_time_offset: OdometryTimeOffsetOption = "0",
     laser_only: LaserOnlyOption = False,
+    skip_malformed: SkipMalformedOption = False,
 ) -> None:
     """Localize a log in a saved map (nothing is added to it): trajectory with per-pose
     covariance (localization.csv), trajectory.tum and a map.png overlay."""
@@ -725,7 +747,13 @@ def localize(
     from iceg.pipeline import read_log_scans
 
     options = _reader_options(
-        scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset, laser_only
+        scan_topic,
+        odom_topic,
+        odom_frame,
+        base_frame,
+        laser_frame_offset,
+        laser_only,
+        skip_malformed,
     )
     offset_s = _time_offset(odometry_time_offset)
     s = sess.read(map_)

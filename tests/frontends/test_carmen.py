@@ -192,7 +192,7 @@ def test_strict_reader_names_file_line_and_problem(tmp_path: Path, bad: str, mes
     text = str(info.value)
     assert text.startswith(f"{path}:3: ")
     assert message in text
-    assert "strict=False" in text  # says what to do
+    assert "--skip-malformed" in text and "strict=False" in text  # says what to do
 
 
 def test_lenient_reader_skips_lists_and_warns(

@@ -412,6 +412,31 @@ def test_odometry_time_offset_is_applied_and_recorded(
     assert f"odometry time offset  {applied_s:+.2f} s" in result.output
 
 
+def test_skip_malformed_reads_past_a_broken_line(tmp_path: Path) -> None:
+    from frontends.carmen import write_carmen
+    from frontends.simulate import office_world, simulate
+    from iceg import session as sess
+
+    log = tmp_path / "broken.clf"
+    write_carmen(log, simulate(office_world(), seed=1).scans[:60])
+    lines = log.read_text().splitlines(keepends=True)
+    k = next(i for i, line in enumerate(lines) if line.startswith("FLASER")) + 30
+    lines[k] = lines[k][:80] + "\n"  # line k + 1 cut short, with its newline: malformed
+    log.write_text("".join(lines))
+    result = runner.invoke(app, ["run", str(log), "--out", str(tmp_path / "a"), "--no-progress"])
+    assert result.exit_code == 1
+    assert f"broken.clf:{k + 1}: FLASER declares 181 beams" in result.output
+    assert "--skip-malformed" in result.output
+    out = tmp_path / "b"
+    args = ["run", str(log), "--skip-malformed", "--out", str(out), "--no-progress"]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert "scans          59" in result.output
+    session = sess.read(out / "session")  # read again the same way
+    assert session.manifest["logs"][0]["reader_options"] == {"strict": False}
+    assert len(sess.read_scans(session)) == 59
+
+
 def test_a_stuck_odometry_is_read_as_laser_only(tmp_path: Path) -> None:
     """A log whose odometry reads one pose throughout (a stuck encoder, a log without
     odometry written with one pose): trusted, it would hold every scan at the start. The
