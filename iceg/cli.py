@@ -279,7 +279,7 @@ def run(
     laser_frame_offset: LaserOffsetOption = None,
     odometry_time_offset: OdometryTimeOffsetOption = "0",
     laser_only: LaserOnlyOption = False,
-    skip_malformed: SkipMalformedOption = False,
+    lenient: SkipMalformedOption = False,
     continue_: ContinueOption = None,
     initial_pose: InitialPoseOption = None,
 ) -> None:
@@ -298,13 +298,7 @@ def run(
     _check_log_run_option("--odometry-time-offset", offset != 0.0, log is not None)
     _check_log_run_option("--laser-only", laser_only, log is not None)
     reader_options = _reader_options(
-        scan_topic,
-        odom_topic,
-        odom_frame,
-        base_frame,
-        laser_frame_offset,
-        laser_only,
-        skip_malformed,
+        scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset, laser_only, lenient
     )
     out_dir = out if out is not None else _default_out_dir()
     saved: list[str] = []
@@ -545,14 +539,14 @@ def info(
     laser_frame_offset: Annotated[
         str | None, typer.Option(help="ROS bag: laser pose 'X_M,Y_M,YAW_DEG'.")
     ] = None,
-    skip_malformed: SkipMalformedOption = False,
+    lenient: SkipMalformedOption = False,
 ) -> None:
     """Print what a log holds: topics or record types, counts, duration, beams, range
     limits, returns, odometry source."""
     from frontends.registry import describe_log, open_log
 
     options = _reader_options(
-        scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset, False, skip_malformed
+        scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset, False, lenient
     )
     rows = describe_log(open_log(log, **options))
     typer.echo(f"iceg info: {log}")
@@ -566,7 +560,7 @@ def _reader_options(
     base_frame: str | None,
     laser_frame_offset: str | None,
     laser_only: bool = False,
-    skip_malformed: bool = False,
+    lenient: bool = False,
 ) -> dict[str, Any]:
     """The reader options that were given: a ROS bag's topics, frames and laser offset
     (degrees -> radians for the yaw), ``laser_only`` (:func:`frontends.open_log`) and a
@@ -594,7 +588,7 @@ def _reader_options(
         options["laser_frame_offset"] = (x, y, math.radians(yaw_deg))
     if laser_only:
         options["laser_only"] = True
-    if skip_malformed:
+    if lenient:
         options["strict"] = False
     return options
 
@@ -736,7 +730,7 @@ def localize(
     laser_frame_offset: LaserOffsetOption = None,
     odometry_time_offset: OdometryTimeOffsetOption = "0",
     laser_only: LaserOnlyOption = False,
-    skip_malformed: SkipMalformedOption = False,
+    lenient: SkipMalformedOption = False,
 ) -> None:
     """Localize a log in a saved map (nothing is added to it): trajectory with per-pose
     covariance (localization.csv), trajectory.tum and a map.png overlay."""
@@ -747,13 +741,7 @@ def localize(
     from iceg.pipeline import read_log_scans
 
     options = _reader_options(
-        scan_topic,
-        odom_topic,
-        odom_frame,
-        base_frame,
-        laser_frame_offset,
-        laser_only,
-        skip_malformed,
+        scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset, laser_only, lenient
     )
     offset_s = _time_offset(odometry_time_offset)
     s = sess.read(map_)
