@@ -297,6 +297,7 @@ def run(
     offset = _time_offset(odometry_time_offset)
     _check_log_run_option("--odometry-time-offset", offset != 0.0, log is not None)
     _check_log_run_option("--laser-only", laser_only, log is not None)
+    _check_log_run_option("--skip-malformed", lenient, log is not None)
     reader_options = _reader_options(
         scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset, laser_only, lenient
     )
@@ -349,8 +350,8 @@ def _time_offset(value: str) -> float | Literal["auto"]:
 
 
 def _check_log_run_option(option: str, given: bool, log_run: bool) -> None:
-    """``option`` (``--odometry-time-offset``, ``--laser-only``) changes how a log's
-    odometry is read: not for the demo.
+    """``option`` (``--odometry-time-offset``, ``--laser-only``, ``--skip-malformed``)
+    changes how a log is read: not for the demo.
 
     Raises:
         ConfigError: it is given for the demo.

@@ -477,6 +477,7 @@ def test_a_stuck_odometry_is_read_as_laser_only(tmp_path: Path) -> None:
     [
         (["--odometry-time-offset", "0.1"], "applies to a log run"),  # the demo
         (["--laser-only"], "--laser-only applies to a log run"),  # the demo
+        (["--skip-malformed"], "--skip-malformed applies to a log run"),  # the demo
         (["LOG", "--laser-only", "--odometry-time-offset", "0.1"], "laser-only reading"),
         (["LOG", "--laser-only", "--odometry-time-offset", "auto"], "laser-only reading"),
         (["LOG", "--odometry-time-offset", "nan"], "finite"),
