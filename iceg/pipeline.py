@@ -229,8 +229,9 @@ def run_log(
     ``result.metrics["wall_dropouts"]`` holds the measurement (None: not measured).
 
     Raises:
-        LogFormatError: missing, unreadable or empty log, disordered timestamps under
-            ``"refuse"``, malformed relations.
+        LogFormatError: missing, unreadable or empty log, a log without a single return
+            (:func:`check_returns`), disordered timestamps under ``"refuse"``, malformed
+            relations.
         EvaluationError: the relations match no scan of the log.
         ConfigError: a non-finite ``odometry_time_offset_s``, a string other than
             ``"auto"``, or an offset with ``reader_options`` ``laser_only``.
@@ -512,7 +513,8 @@ def read_log_scans(
         dropped), for its session to read it again.
 
     Raises:
-        LogFormatError: missing or unreadable log.
+        LogFormatError: missing or unreadable log, or one without a single return
+            (:func:`check_returns`).
         ConfigError: a non-finite offset, a string other than ``"auto"``, or an offset
             with ``reader_options`` ``laser_only``.
     """
