@@ -208,8 +208,10 @@ def run_log(
     (``"sort"``: reorder out-of-order scans, ``"refuse"``: fail at the first one, naming
     ``file:line``); the policy and what the reader found (out-of-order and duplicate stamps,
     odometry breaks) are in ``result.metrics["stamps"]``. ``reader_options`` go to
-    :func:`frontends.open_log` (e.g. ``scan_topic`` for ROS bags). Each scan's odometry is
-    read at its stamp plus ``odometry_time_offset_s``
+    :func:`frontends.open_log` (e.g. ``scan_topic`` for ROS bags); a log whose odometry is one
+    pose throughout is read without it, as ``laser_only`` reads it (:func:`motionless_odometry`,
+    recorded so for its session). Each scan's odometry is read at its stamp plus
+    ``odometry_time_offset_s``
     (:func:`~frontends.odometry_shift.shift_odometry`);
     ``result.metrics["odometry_time_offset"]`` holds that value and the offset the run's
     matches measure (:func:`~iceg.odometry_timing.odometry_time_offset`), with a warning
@@ -229,9 +231,8 @@ def run_log(
     ``result.metrics["wall_dropouts"]`` holds the measurement (None: not measured).
 
     Raises:
-        LogFormatError: missing, unreadable or empty log, a log without a single return
-            (:func:`check_returns`), disordered timestamps under ``"refuse"``, malformed
-            relations.
+        LogFormatError: missing, unreadable or empty log, no return in it (:func:`check_returns`),
+            disordered timestamps under ``"refuse"``, malformed relations.
         EvaluationError: the relations match no scan of the log.
         ConfigError: a non-finite ``odometry_time_offset_s``, a string other than
             ``"auto"``, or an offset with ``reader_options`` ``laser_only``.
@@ -248,8 +249,6 @@ def run_log(
         (scans, report, measured, no_odometry),
         prefetch,
     ):
-        if not scans:
-            raise LogFormatError(f"{path}: the log holds no laser scans")
         if no_odometry:  # read as --laser-only reads it, and so read again by its session
             reader_options = {**(reader_options or {}), "laser_only": True}
             auto, applied_s = False, 0.0
@@ -482,8 +481,14 @@ def _read(
     reader's stamp report (out-of-order and duplicate stamps, odometry breaks; None for a
     reader without one); ``config`` with what the scans show of the scanner
     (:func:`measure_scanner`: it runs in the process that reads, beside the start); and
-    whether the odometry was dropped."""
+    whether the odometry was dropped.
+
+    Raises:
+        LogFormatError: the log holds no scan, or no return (:func:`check_returns`).
+    """
     store = ScanStore(shift_odometry(while_caller_runs(reader), offset_s))
+    if not len(store):
+        raise LogFormatError(f"{path}: the log holds no laser scans")
     check_returns(path, store)
     dropped = motionless_odometry(path, store)
     if dropped:
