@@ -13,14 +13,10 @@ pair's ratio B / A, their median, range and how many pairs B was faster in, and 
 two versions gave the same trajectory bits (a hash of the poses).
 
 A version is a git revision (checked out into a temporary worktree, removed at the end) or
-a directory holding the project's packages (a working tree with uncommitted changes, or a
-copy built another way), copied into the same temporary folder without its caches. Both
-versions so run from new trees side by side, each with the numba cache and bytecode its
-first process writes: run from the checkout itself, the same code was 7-16 % faster than
-from a worktree (B / A 0.933 and 0.842 with B the checkout, 1.015 with both worktrees;
-docs/design.md "Two versions compared, alternated"). The child processes put the tree first
-on ``PYTHONPATH`` and check that ``iceg`` is imported from it. A new tree has no numba cache:
-its first process compiles every kernel (a minute or two, untimed and printed as such).
+a directory holding the project's packages (used as it is: a working tree with uncommitted
+changes, or a copy built another way). The child processes put it first on ``PYTHONPATH``
+and check that ``iceg`` is imported from it. A new worktree has no numba cache: its first
+process compiles every kernel (a minute or two, untimed and printed as such).
 
 Run: ``python benchmarks/bench_compare.py A [B] [--pairs N] [--workers N]
 [--log path/to/log | --log demo]`` (``B`` defaults to this checkout; ``--pairs`` 4,
@@ -33,7 +29,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import shutil
 import statistics
 import subprocess
 import sys
@@ -118,20 +113,11 @@ def run_order(pairs: int) -> list[str]:
     return order
 
 
-#: What a directory version's copy leaves out: caches, environments and outputs.
-_NOT_COPIED = shutil.ignore_patterns(
-    "__pycache__", ".git", ".venv", "*.egg-info", ".*_cache", ".hypothesis", "results"
-)
-
-
 def _tree(version: str, scratch: Path) -> tuple[Path, bool]:
-    """A new tree of a version in ``scratch`` (a directory's copy, or a revision's worktree)
-    and whether it is a git worktree (removed with ``git worktree remove``)."""
+    """The directory of a version and whether it is a worktree made here."""
     path = Path(version)
     if path.is_dir() and (path / "iceg").is_dir():
-        copy = Path(tempfile.mkdtemp(prefix="dir-", dir=scratch)) / path.resolve().name
-        shutil.copytree(path, copy, ignore=_NOT_COPIED)
-        return copy, False
+        return path.resolve(), False
     found = subprocess.run(
         ["git", "-C", str(ROOT), "rev-parse", "--verify", "--quiet", f"{version}^{{commit}}"],
         capture_output=True,
