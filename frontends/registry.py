@@ -135,11 +135,16 @@ def open_log(
 
     p = Path(path)
     spec = _choose(p, format)
+    signature = inspect.signature(spec.factory)
     try:
-        inspect.signature(spec.factory).bind(p, **options)
+        signature.bind(p, **options)
     except TypeError as exc:
+        takes = [name for name in list(signature.parameters)[1:] if name != "stamps"]
+        strict = "strict" in options and "strict" not in takes
         raise ConfigError(
-            f"{p}: the {spec.name} reader does not take these options ({exc})"
+            f"{p}: the {spec.name} reader does not take these options ({exc}); it takes "
+            f"{', '.join(takes)}"
+            + (" (strict: --skip-malformed, for CARMEN logs)" if strict else "")
         ) from None
     reader = spec.factory(p, **options)
     return WithoutOdometry(reader) if laser_only else reader
@@ -211,9 +216,11 @@ def _choose(p: Path, format: str | None) -> ReaderSpec:
     for spec in _READERS.values():
         if spec.sniff(head):
             return spec
+    own = sorted({x for spec in _READERS.values() for x in spec.suffixes if x})
     raise LogFormatError(
         f"{p}: not a recognised laser log (suffix {suffix!r}, and no reader recognised the "
-        f"first lines); pass format= one of {', '.join(available_formats())}"
+        f"first lines); if it is one, give it a reader's suffix ({', '.join(own)}) or open it "
+        f"with format= one of {', '.join(available_formats())}"
     )
 
 

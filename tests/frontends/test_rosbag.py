@@ -453,6 +453,24 @@ def test_wrong_type_on_the_chosen_topic_lists_candidates(tmp_path: Path) -> None
         list(open_log(path, scan_topic="/lidar"))
 
 
+def test_an_option_the_reader_does_not_take_lists_those_it_does(tmp_path: Path) -> None:
+    path = tmp_path / "x.bag"
+    write_rosbag(path, _scans(), "ros1")
+    message = (
+        r"x\.bag: the rosbag reader does not take these options \(.*'strict'\); it takes "
+        r"scan_topic, odom_topic, .* \(strict: --skip-malformed, for CARMEN logs\)"
+    )
+    with pytest.raises(ConfigError, match=message):
+        open_log(path, strict=False)
+    log = tmp_path / "x.clf"
+    log.write_text("FLASER 3 1.0 2.0 3.0 0 0 0 0 0 0 1.0 h 1.0\n")
+    with pytest.raises(
+        ConfigError, match=r"carmen reader .*'scan_topic'\); it takes strict, "
+    ) as info:
+        open_log(log, scan_topic="/scan")
+    assert "--skip-malformed" not in str(info.value)
+
+
 def test_bag_without_scans(tmp_path: Path) -> None:
     path = tmp_path / "empty.bag"
     write_rosbag(path, [], "ros1")
