@@ -235,7 +235,9 @@ def describe_log(reader: LogReader) -> list[tuple[str, str]]:
 
     A reader with a ``describe()`` method (ROS bags: topics, types, counts, frames) answers
     itself; otherwise the scans are streamed once and summarized: count, duration, beams,
-    range limits, odometry, and the reader's skipped record types if it keeps them.
+    range limits, returns (beams inside their scan's limits), odometry (and whether it is one
+    pose throughout), the reader's skipped record types and where a recording was cut short,
+    if it keeps them.
 
     Raises:
         LogFormatError: the log cannot be read or holds no scans.

@@ -267,15 +267,29 @@ def run_log(
         slam = Slam(run_config)
         with helper_processes(slam) as prefetch:
             result = _process(slam, prefetch, scans, progress, len(scans))
+    _note_reading(result, path, reader_options, applied_s, (auto, before_run))
+    _log_metrics(result, path, (report, stamps), scans, measured, rel)
+    return result
+
+
+def _note_reading(
+    result: SlamResult,
+    path: str | Path,
+    reader_options: Mapping[str, Any] | None,
+    applied_s: float,
+    measured_before: tuple[bool, TimeOffsetEstimate | None],
+) -> None:
+    """How a log run read its log: in its session (to read the log again the same way) and
+    in ``result.metrics["odometry_time_offset"]`` (the offset applied, and with ``"auto"``
+    the measurement before the run, ``measured_before`` = ``(auto, measurement)``)."""
     if result.slam is not None:
         from iceg.session import record_reading  # 23 ms of imports a run without a session skips
 
         record_reading(result.slam, path, reader_options, applied_s)
     result.metrics["odometry_time_offset"] = _time_offset_metrics(path, applied_s, result)
+    auto, before_run = measured_before
     if auto:
         result.metrics["odometry_time_offset"]["before_run"] = _as_dict(before_run)
-    _log_metrics(result, path, (report, stamps), scans, measured, rel)
-    return result
 
 
 def _log_metrics(
