@@ -17,7 +17,9 @@ Conventions (REP 103 / REP 105 / REP 117):
   A scan outside the odometry's time span gets ``odom_pose=None`` and is counted in
   :attr:`RosbagReader.scans_without_odometry` (one warning at the end).
 - The laser mounting pose is the tf chain base frame → the scan's ``frame_id``
-  (``/tf_static``, else the first ``/tf`` value), projected to SE(2). A laser tilted more than
+  (``/tf_static``, else the first ``/tf`` value), projected to SE(2). A bag with no odometry
+  whose tf names no laser frame has one frame only: the laser's is the base (identity mounting,
+  a warning; the trajectory is the laser's). A laser tilted more than
   ``max_laser_tilt_rad`` is refused; an upside-down laser (z axis down) is handled by mirroring
   its bearings (``a -> -a``, beams reversed so bearings increase).
 - ROS stores ranges and angles as float32. They are widened to the *simplest* float64 that
@@ -229,6 +231,11 @@ def _transform_of(msg: Any) -> Transform3:
 def _frame(name: str) -> str:
     """ROS 1 frame ids may carry a leading slash; tf2 ignores it."""
     return name.lstrip("/")
+
+
+def _in_tf(s: Survey, frame: str) -> bool:
+    """Whether a transform of the bag (``/tf_static`` or ``/tf``) names ``frame``."""
+    return any(frame in pair for pair in s.static_edges)
 
 
 def _chain(edges: dict[tuple[str, str], Transform3], src: str, dst: str) -> Transform3 | None:
@@ -507,10 +514,11 @@ class RosbagReader:
 
     See the module docstring for the conventions. Topic choice: the only LaserScan (or
     MultiEchoLaserScan, first echo) topic, else ``scan_topic``; odometry from the only
-    ``nav_msgs/Odometry`` topic, else ``odom_topic``, else (no Odometry topic) the ``/tf`` pair
-    ``odom_frame -> *`` (default odom frame ``"odom"``); with none, scans have no odometry.
-    The base frame is the Odometry's ``child_frame_id`` (or the tf child) unless
-    ``base_frame`` is given.
+    ``nav_msgs/Odometry`` topic holding messages, else ``odom_topic``, else (no such topic)
+    the ``/tf`` pair ``odom_frame -> *`` (default odom frame ``"odom"``); with none, scans have
+    no odometry. The base frame is the Odometry's ``child_frame_id`` (or the tf child) unless
+    ``base_frame`` is given; with no odometry and no tf naming the laser frame, the laser
+    frame itself.
 
     Args:
         path: ``.bag``, ``.db3``, ``.mcap`` file, or a ROS 2 bag folder.
@@ -623,6 +631,15 @@ class RosbagReader:
         self.stamp_report = StampReport(policy=self.stamp_report.policy)
         with _Bag(self.path) as bag:
             plan = self._plan(bag, survey(bag))
+            if plan.base_frame == plan.laser_frame and self.base_frame is None:
+                logger.warning(
+                    "%s: topic %s: no odometry, and no tf names laser frame %r: the trajectory "
+                    "is the laser's (pass --base-frame or --laser-frame-offset X_M,Y_M,YAW_DEG "
+                    "for the robot base's)",
+                    self.path,
+                    plan.scan_topic,
+                    plan.laser_frame,
+                )
             drop = self.outside_odometry == "drop" and plan.odom.kind != "none"
             tagged = ((None, scan) for scan in self._scans(bag, plan))
             for _, scan in order_by_stamp(tagged, self.stamp_report, self.max_reorder_scans):
@@ -664,7 +681,8 @@ class RosbagReader:
         return cands[0], topics[cands[0]][0]
 
     def _odom_source(self, s: Survey) -> OdomSource:
-        odom_topics = s.topics_of([ODOM_TYPE])
+        # A topic recorded without a message (its publisher never ran) is no odometry.
+        odom_topics = [t for t in s.topics_of([ODOM_TYPE]) if s.topics[t][1] > 0]
         if self.odom_topic is not None:
             typ = s.topics.get(self.odom_topic, ("no such topic", 0))[0]
             if typ != ODOM_TYPE:
@@ -706,6 +724,10 @@ class RosbagReader:
             base = self._first_frame(bag, odom.topic or "", "child_frame_id")
         if base is None and odom.kind == "tf":
             base = odom.child_frame
+        if base is None and odom.kind == "none" and not _in_tf(s, laser_frame):
+            # No odometry and no transform names the laser: its frame is the robot's only
+            # frame (the trajectory is the laser's; a mounting option gives the base's).
+            base = laser_frame
         child_to_base = None
         if odom.kind == "tf" and base is not None:
             child_to_base = _chain(s.static_edges, odom.child_frame or "", base)
@@ -934,9 +956,15 @@ def _plan_rows(plan: _Plan) -> list[tuple[str, str]]:
     return [
         ("scan topic", f"{plan.scan_topic} ({plan.scan_type})"),
         ("odometry", plan.odom.describe()),
-        ("base frame", plan.base_frame or "-"),
+        ("base frame", _base_row(plan)),
         ("laser frame", f"{plan.laser_frame}: {mount}"),
     ]
+
+
+def _base_row(plan: _Plan) -> str:
+    if plan.base_frame == plan.laser_frame and plan.odom.kind == "none":
+        return f"{plan.base_frame} (the laser's own: no odometry, no other frame in tf)"
+    return plan.base_frame or "-"
 
 
 def _scan_rows(scan: LaserScan) -> list[tuple[str, str]]:

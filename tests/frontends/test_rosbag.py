@@ -363,17 +363,45 @@ def test_neato_ros1_needs_a_scan_topic_and_reads_a_flipped_mount_from_dynamic_tf
     assert path == pytest.approx(17.6, abs=0.3) and turn == pytest.approx(21.0, abs=0.2)
 
 
-def test_rc_car_without_odometry_needs_a_frame_option() -> None:
+def test_rc_car_without_odometry_or_laser_tf_runs_in_the_laser_frame(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # No Odometry topic and no tf names frame 'laser' (README): the laser frame is the only
+    # frame there is, so it is the base, with a warning naming the options for the robot's.
     bag = _bag_dir("rc-car-mocap-ros1") / "overtakes.bag"
-    with pytest.raises(LogFormatError, match=r"overtakes\.bag: topic /scan: .*--base-frame"):
-        list(open_log(bag))
+    with caplog.at_level(logging.WARNING, logger="frontends.rosbag"):
+        own = list(open_log(bag))
+    assert "no tf names laser frame 'laser': the trajectory is the laser's" in caplog.text
+    assert "--laser-frame-offset" in caplog.text
+    assert len(own) == 339 and all(s.odom_pose is None for s in own)
+    np.testing.assert_array_equal(own[0].laser_offset, [0.0, 0.0, 0.0])
+    rows = dict(open_log(bag).describe())  # type: ignore[attr-defined]
+    assert rows["base frame"].startswith("laser (the laser's own")
     scans = list(open_log(bag, laser_frame_offset=(-0.12, 0.0, 0.0)))
+    for a, b in zip(own, scans, strict=True):  # the same scans, mounted as asked
+        assert a.stamp_s == b.stamp_s
+        np.testing.assert_array_equal(a.ranges_m, b.ranges_m)
     assert len(scans) == 339 and scans[0].n_beams == 360
     assert all(s.odom_pose is None for s in scans)
     np.testing.assert_array_equal(scans[0].laser_offset, [-0.12, 0.0, 0.0])
     assert (scans[0].range_min_m, scans[0].range_max_m) == (0.15, 8.0)
     valid = np.mean(np.concatenate([s.valid_mask() for s in scans]))
     assert valid == pytest.approx(0.46, abs=0.01)
+
+
+def test_no_odometry_with_the_laser_in_tf_needs_a_base_frame(tmp_path: Path) -> None:
+    # The writer records /odom without a message: no odometry. tf links the laser to
+    # base_link: which frame of the tree is the robot's is not the reader's guess, so the
+    # bag is refused with the options that say it.
+    path = tmp_path / "no_odom.bag"
+    write_rosbag(path, _scans(odom=False), "ros1")
+    with pytest.raises(LogFormatError, match=r"no_odom\.bag: topic /scan: no odometry .*--base"):
+        list(open_log(path))
+    got = list(open_log(path, base_frame="base_link"))
+    assert len(got) == 4 and all(s.odom_pose is None for s in got)
+    with pytest.raises(LogFormatError, match=r"topic /odom holds no messages"):
+        list(open_log(path, odom_topic="/odom"))  # named: the user asked for that one
+    np.testing.assert_allclose(got[0].laser_offset, [0.2, -0.1, 0.3], atol=1e-12)
 
 
 def test_turtlebot3_sim_time_and_chained_static_tf() -> None:
