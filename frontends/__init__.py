@@ -10,8 +10,8 @@ from typing import TYPE_CHECKING, Any
 
 from frontends.carmen import CarmenReader, write_carmen
 from frontends.registry import (
+    AdjustedReader,
     LogReader,
-    WithoutOdometry,
     available_formats,
     describe_log,
     open_log,
@@ -21,7 +21,7 @@ from frontends.relations import Relations, match_stamps, read_relations, write_r
 from frontends.rosbag import RosbagReader, write_rosbag
 from frontends.scan import LaserScan
 
-__all__ = ["LaserScan", "LogReader", "WithoutOdometry", "available_formats", "open_log"]
+__all__ = ["AdjustedReader", "LaserScan", "LogReader", "available_formats", "open_log"]
 __all__ += ["register_reader"]
 
 # The simulator's types (the package frontends.simulate holds worlds and simulate()),

@@ -107,7 +107,12 @@ def _first_lines(path: Path, n: int = 50) -> list[str]:
 
 
 def open_log(
-    path: str | Path, format: str | None = None, *, laser_only: bool = False, **options: Any
+    path: str | Path,
+    format: str | None = None,
+    *,
+    laser_only: bool = False,
+    mirror_beams: bool = False,
+    **options: Any,
 ) -> LogReader:
     """Open a laser log for streaming.
 
@@ -116,9 +121,12 @@ def open_log(
             claims (a ROS 2 bag folder with ``metadata.yaml``).
         format: A registered reader name (see :func:`available_formats`); by default the
             reader is chosen from the suffix (ignoring ``.gz``), else from the first lines.
-        laser_only: A reading without the odometry (:class:`WithoutOdometry`): every scan
+        laser_only: A reading without the odometry (:class:`AdjustedReader`): every scan
             comes with ``odom_pose=None``, as from a log without odometry. The log is read as
             it is otherwise (a bag's frames and laser mounting included).
+        mirror_beams: Every scan's beams mirrored in the laser frame
+            (:meth:`~frontends.scan.LaserScan.mirrored`): a laser mounted upside down that
+            the log does not say is (:mod:`iceg.mirrored_laser` finds one).
         **options: Passed to the reader (e.g. ``strict=False`` for the CARMEN reader,
             ``scan_topic="/scan"`` for ROS bags).
 
@@ -147,25 +155,41 @@ def open_log(
             + (" (strict: --skip-malformed, for CARMEN logs)" if strict else "")
         ) from None
     reader = spec.factory(p, **options)
-    return WithoutOdometry(reader) if laser_only else reader
+    if laser_only or mirror_beams:
+        return AdjustedReader(reader, laser_only=laser_only, mirror_beams=mirror_beams)
+    return reader
 
 
-class WithoutOdometry:
-    """A reader's scans with their odometry left out: ``odom_pose=None`` and no
-    ``odom_break`` (a laser-only run, e.g. of a log whose wheel odometry is wrong; the SLAM
-    predicts each scan by constant velocity). Ranges, stamps, laser mounting and sources are
-    the reader's.
+def adjust_scan(scan: LaserScan, laser_only: bool = False, mirror_beams: bool = False) -> LaserScan:
+    """``scan`` as :class:`AdjustedReader` reads it with these options."""
+    if laser_only:
+        scan = scan.without_odometry()
+    return scan.mirrored() if mirror_beams else scan
+
+
+class AdjustedReader:
+    """A reader's scans read otherwise than the log has them: with their odometry left out
+    (``laser_only``: ``odom_pose=None`` and no ``odom_break``; a laser-only run, e.g. of a
+    log whose wheel odometry is wrong; the SLAM predicts each scan by constant velocity),
+    and/or with their beams mirrored (``mirror_beams``: a laser mounted upside down).
+    Everything else (stamps, laser mounting, sources) is the reader's.
 
     Args:
         reader: The log's own reader.
+        laser_only: Leave the odometry out (:meth:`~frontends.scan.LaserScan.without_odometry`).
+        mirror_beams: Mirror the beams (:meth:`~frontends.scan.LaserScan.mirrored`).
 
     Attributes:
         path: The log (the reader's).
     """
 
-    def __init__(self, reader: LogReader) -> None:
+    def __init__(
+        self, reader: LogReader, laser_only: bool = False, mirror_beams: bool = False
+    ) -> None:
         self.reader = reader
         self.path = reader.path
+        self.laser_only = laser_only
+        self.mirror_beams = mirror_beams
 
     @property
     def stamp_report(self) -> StampReport | None:
@@ -176,7 +200,7 @@ class WithoutOdometry:
 
     def __iter__(self) -> Iterator[LaserScan]:
         for scan in self.reader:
-            yield scan.without_odometry()
+            yield adjust_scan(scan, self.laser_only, self.mirror_beams)
 
     def count_scans(self) -> int:
         """Number of scans in the log (the reader's count)."""

@@ -96,6 +96,13 @@ class LaserScan:
         laser mounting and source are kept."""
         return replace(self, odom_pose=None, odom_break=False)
 
+    def mirrored(self) -> LaserScan:
+        """This scan with its beams mirrored in the laser frame (bearing ``a -> -a``, the
+        beams reversed so that bearings increase): how a laser mounted upside down, or one
+        whose beams were written clockwise, is read the right way round. Twice gives the
+        scan back bit for bit. Stamp, odometry, laser mounting and source are kept."""
+        return replace(self, ranges_m=self.ranges_m[::-1].copy(), angles_rad=-self.angles_rad[::-1])
+
     @property
     def n_beams(self) -> int:
         """Number of beams ``N``."""

@@ -30,18 +30,12 @@ from frontends.relations import Relations, match_stamps, read_relations
 from frontends.simulate import OdometryModel, simulate_scenario, synthetic_odometry
 from frontends.tum import read_tum
 from graph import FactorKind
-from iceg.config import config_from_dict
+from iceg.config import IcegConfig, config_from_dict
 from iceg.consistency import FactorNees, factor_nees, per_node
 from iceg.evaluation import position_errors, relation_errors
+from iceg.log_checks import check_returns, reading_adjustments
 from iceg.odometry_timing import odometry_time_offset, offset_to_read
-from iceg.pipeline import (
-    AUTO_OFFSET,
-    check_log_file,
-    check_returns,
-    measure_scanner,
-    motionless_odometry,
-    relation_nees,
-)
+from iceg.pipeline import AUTO_OFFSET, check_log_file, measure_scanner, relation_nees
 from iceg.results import SlamResult
 from iceg.scan_store import ScanStore
 from iceg.session import record_reading
@@ -133,16 +127,17 @@ class _Input:
     reference: FloatArray | None = None  # (N, 3) per scan, NaN rows where unknown
     relations: Relations | None = None
     offset_s: float = 0.0  # the odometry time offset the scans' odometry is read at
-    odometry_dropped: bool = False  # it carried no motion (pipeline.motionless_odometry)
+    adjusted: dict[str, bool] = field(default_factory=dict)  # log_checks.reading_adjustments
 
 
 # ---------------------------------------------------------------------------- input
 
 
 def load_input(task: RunTask) -> _Input:
-    """Scans, reference and relations of a task; with the odometry time offset ``"auto"``,
-    the log's odometry read at the offset measured before the run where significant
-    (``offset_s``).
+    """Scans, reference and relations of a task; a log read as its scans say
+    (:func:`~iceg.log_checks.reading_adjustments`, where the run reads the log's own
+    odometry: ``adjusted``); with the odometry time offset ``"auto"``, the log's odometry
+    read at the offset measured before the run where significant (``offset_s``).
 
     Raises:
         IcegError: unknown scenario, unreadable log or relations, no scans.
@@ -155,18 +150,23 @@ def load_input(task: RunTask) -> _Input:
     else:
         check_log_file(Path(task.source))  # a file, or a ROS 2 bag folder
         scans, reference = open_log(task.source, **task.reader_options), None
-    offset = task.odometry_time_offset_s
-    if isinstance(offset, str):  # "auto": measured on the scans the run uses, at the stamps
-        scans = list(scans)
-        offset = _measured_offset(task, scans[: task.max_scans])
-    data = _Input(list(shift_odometry(scans, offset)), reference, offset_s=offset)
-    if not data.scans:
+    scans = list(scans)[: task.max_scans]
+    if reference is not None:
+        reference = reference[: task.max_scans]
+    if not scans:
         raise LogFormatError(f"{task.source}: the log holds no laser scans")
-    check_returns(task.source, data.scans)
-    if task.max_scans is not None:
-        data.scans = data.scans[: task.max_scans]
-        if data.reference is not None:
-            data.reference = data.reference[: task.max_scans]
+    check_returns(task.source, scans)
+    config = config_from_dict(task.config, source=f"batch variant {task.variant!r}")
+    reads_odometry = task.odometry is None and not task.laser_only  # the log's own
+    adjusted = reading_adjustments(task.source, scans, config) if reads_odometry else {}
+    if adjusted.get("mirror_beams"):
+        scans = [s.mirrored() for s in scans]
+    offset = task.odometry_time_offset_s
+    if adjusted.get("laser_only"):
+        offset = 0.0  # no motion to read at an offset
+    elif isinstance(offset, str):  # "auto": measured on the scans the run uses, at the stamps
+        offset = _measured_offset(config, scans)
+    data = _Input(list(shift_odometry(scans, offset)), reference, None, offset, adjusted)
     if task.odometry is not None:
         o = task.odometry
         model = OdometryModel.biased(o.scale_error, o.heading_drift_deg_per_m, noise=o.noise)
@@ -176,11 +176,7 @@ def load_input(task: RunTask) -> _Input:
             data.reference = np.asarray(synth.reference_poses, dtype=np.float64)
     elif task.reference == LOG_ODOMETRY:
         data.reference = np.array([s.odom_pose for s in data.scans], dtype=np.float64)
-    reads_odometry = task.odometry is None and not task.laser_only  # the log's own
-    if reads_odometry and motionless_odometry(task.source, data.scans):
-        data.scans = [s.without_odometry() for s in data.scans]
-        data.odometry_dropped = True
-    if task.laser_only:
+    if task.laser_only or adjusted.get("laser_only"):
         data.scans = [s.without_odometry() for s in data.scans]
     if task.reference not in (None, LOG_ODOMETRY):
         data.reference = _tum_reference(task.reference, data.scans)
@@ -189,14 +185,11 @@ def load_input(task: RunTask) -> _Input:
     return data
 
 
-def _measured_offset(task: RunTask, scans: list[LaserScan]) -> float:
+def _measured_offset(config: IcegConfig, scans: list[LaserScan]) -> float:
     """The odometry time offset ``"auto"`` reads ``scans`` at (odometry at their stamps):
     :func:`~iceg.odometry_timing.offset_to_read` with the task's configuration and the
     scanner measured (:func:`~iceg.pipeline.measure_scanner`), as
-    :func:`iceg.pipeline.run_log` does; 0 without scans."""
-    if not scans:
-        return 0.0
-    config = config_from_dict(task.config, source=f"batch variant {task.variant!r}")
+    :func:`iceg.pipeline.run_log` does."""
     return offset_to_read(scans, measure_scanner(config, ScanStore(scans)).config)[0]
 
 
@@ -257,7 +250,7 @@ def execute_run(task: RunTask) -> dict[str, Any]:
         result, online = run_slam(task, data.scans, t0)
         if result.slam is not None and not task.source.startswith(SIM_PREFIX):
             # how its session reads the log again (scans changed after reading: stored)
-            changed = task.odometry is not None or task.laser_only or data.odometry_dropped
+            changed = task.odometry is not None or task.laser_only or bool(data.adjusted)
             record_reading(result.slam, task.source, task.reader_options, data.offset_s, changed)
         metrics = run_metrics(result, data, online)
         if task.odometry_time_offset_s == AUTO_OFFSET:

@@ -18,6 +18,7 @@ import numpy as np
 
 from frontends import LaserScan, open_log
 from frontends.odometry_shift import shift_odometry
+from frontends.registry import adjust_scan
 from frontends.relations import Relations, match_stamps, read_relations
 from frontends.scan import StampPolicy, StampReport
 from iceg.aside import compute_aside, while_caller_runs
@@ -26,6 +27,7 @@ from iceg.consistency import FactorNees, factor_nees, per_node, relation_factor_
 from iceg.evaluation import position_errors, relation_errors
 from iceg.features.prefetch import FeaturePrefetcher, auto_workers
 from iceg.kernel_warmup import cache_is_new, probed
+from iceg.log_checks import check_returns, reading_adjustments
 from iceg.match_pool import MatchPool
 from iceg.odometry_timing import TimeOffsetEstimate, odometry_time_offset, offset_to_read
 from iceg.results import SlamResult
@@ -209,8 +211,10 @@ def run_log(
     ``file:line``); the policy and what the reader found (out-of-order and duplicate stamps,
     odometry breaks) are in ``result.metrics["stamps"]``. ``reader_options`` go to
     :func:`frontends.open_log` (e.g. ``scan_topic`` for ROS bags); a log whose odometry is one
-    pose throughout is read without it, as ``laser_only`` reads it (:func:`motionless_odometry`,
-    recorded so for its session). Each scan's odometry is read at its stamp plus
+    pose throughout is read without it, as ``laser_only`` reads it, and one whose beams turn
+    against its odometry with them mirrored, as ``mirror_beams`` reads it
+    (:func:`~iceg.log_checks.reading_adjustments`, recorded so for its session). Each scan's
+    odometry is read at its stamp plus
     ``odometry_time_offset_s``
     (:func:`~frontends.odometry_shift.shift_odometry`);
     ``result.metrics["odometry_time_offset"]`` holds that value and the offset the run's
@@ -231,7 +235,8 @@ def run_log(
     ``result.metrics["wall_dropouts"]`` holds the measurement (None: not measured).
 
     Raises:
-        LogFormatError: missing, unreadable or empty log, no return in it (:func:`check_returns`),
+        LogFormatError: missing, unreadable or empty log, no return in it
+            (:func:`~iceg.log_checks.check_returns`),
             disordered timestamps under ``"refuse"``, malformed relations.
         EvaluationError: the relations match no scan of the log.
         ConfigError: a non-finite ``odometry_time_offset_s``, a string other than
@@ -246,11 +251,12 @@ def run_log(
     auto, before_run = odometry_time_offset_s == AUTO_OFFSET, None
     applied_s = 0.0 if isinstance(odometry_time_offset_s, str) else odometry_time_offset_s
     with _started(slam, lambda: _read(path, reader, applied_s, slam.config)) as (
-        (scans, report, measured, no_odometry),
+        (scans, report, measured, adjusted),
         prefetch,
     ):
-        if no_odometry:  # read as --laser-only reads it, and so read again by its session
-            reader_options = {**(reader_options or {}), "laser_only": True}
+        if adjusted:  # so read again by its session
+            reader_options = {**(reader_options or {}), **adjusted}
+        if adjusted.get("laser_only"):  # as --laser-only reads it: no odometry to offset
             auto, applied_s = False, 0.0
         if auto:
             scans, measured, applied_s, before_run = _at_measured_offset(
@@ -421,95 +427,32 @@ def _as_dict(estimate: TimeOffsetEstimate | None) -> dict[str, Any] | None:
     return None if estimate is None else estimate.as_dict()
 
 
-def check_returns(source: str | Path, scans: Iterable[LaserScan]) -> None:
-    """Refuse a log in which no beam of any scan is a return (every range outside its scan's
-    ``(range_min_m, range_max_m)``): nothing could be matched or mapped, and the run would
-    end with odometry alone. Ranges written in millimetres do that (MIT CSAIL so written:
-    1814 nodes, no scan-match factor and an empty map, without a word). Reads up to the
-    first scan with a return: one scan of a usable log.
-
-    Raises:
-        LogFormatError: no return in the log, naming the range limits and the ranges read.
-    """
-    ranges: list[np.ndarray] = []
-    limits: set[tuple[float, float]] = set()
-    for scan in scans:
-        if scan.valid_mask().any():
-            return
-        ranges.append(scan.ranges_m[np.isfinite(scan.ranges_m)])
-        limits.add((scan.range_min_m, scan.range_max_m))
-    if not ranges:
-        return  # no scans: refused where the run starts
-    read = np.concatenate(ranges)
-    seen = f"from {read.min():.4g} to {read.max():.4g}" if read.size else "none finite"
-    bounds = ", ".join(f"{lo:g}..{hi:g} m" for lo, hi in sorted(limits))
-    raise LogFormatError(
-        f"{source}: none of its {len(ranges)} scans has a return: every range lies outside the "
-        f"scan's limits ({bounds}; the ranges read: {seen}); are the ranges in metres, and "
-        "is the scanner's maximum range right (PARAM robot_front_laser_max, or the reader's "
-        "default_range_max_m)?"
-    )
-
-
-def motionless_odometry(source: str | Path, scans: ScanStore | Sequence[LaserScan]) -> bool:
-    """Whether a log's odometry carries no motion at all: two or more scans, every one with
-    a finite odometry pose, all the same pose bit for bit (a log without odometry written
-    with zeros, a wheel odometry that never ran). Such odometry holds every scan in place:
-    a run would make a node only every ``slam.keyframe_max_interval_s`` (MIT CSAIL with its
-    odometry zeroed: 15 nodes, no scan-match factor, 0.43 m / 18.9 deg against its
-    relations). Where it does, a warning says the log is read without it, as
-    ``--laser-only`` reads it (each scan predicted by constant velocity, docs/design.md
-    "Readers").
-
-    Args:
-        source: The log, for the warning.
-        scans: Its scans, as read.
-    """
-    if isinstance(scans, ScanStore):
-        odom_poses = scans.odometry[1]
-    else:
-        nan = np.full(3, np.nan)
-        odom_poses = np.array([nan if s.odom_pose is None else s.odom_pose for s in scans])
-    n = len(scans)
-    if n < 2 or not np.isfinite(odom_poses).all() or not (odom_poses == odom_poses[0]).all():
-        return False
-    x, y, theta = odom_poses[0].tolist()
-    logger.warning(
-        "%s: the odometry is the same pose (%.3f m, %.3f m, %.1f deg) in all %d scans: it "
-        "carries no motion, so the log is read without it, as with --laser-only",
-        source,
-        x,
-        y,
-        np.degrees(theta),
-        n,
-    )
-    return True
-
-
 def _read(
     path: str | Path, reader: Iterable[LaserScan], offset_s: float, config: IcegConfig
-) -> tuple[ScanStore, StampReport | None, MeasuredScanner, bool]:
+) -> tuple[ScanStore, StampReport | None, MeasuredScanner, dict[str, bool]]:
     """The log at ``path`` (``reader``, not yet iterated) in a store, compact (no LaserScan
     object per scan held during the run), each scan's odometry read at its stamp plus
-    ``offset_s``, or none where it carries no motion (:func:`motionless_odometry`); the
-    reader's stamp report (out-of-order and duplicate stamps, odometry breaks; None for a
-    reader without one); ``config`` with what the scans show of the scanner
-    (:func:`measure_scanner`: it runs in the process that reads, beside the start); and
-    whether the odometry was dropped.
+    ``offset_s``, and read as the scans say it must be (:func:`~iceg.log_checks.
+    reading_adjustments`: without an odometry that carries no motion, with beams that turn
+    against the odometry mirrored); the reader's stamp report (out-of-order and duplicate
+    stamps, odometry breaks; None for a reader without one); ``config`` with what the scans
+    show of the scanner (:func:`measure_scanner`: it runs in the process that reads, beside
+    the start); and the reader options of those adjustments.
 
     Raises:
-        LogFormatError: the log holds no scan, or no return (:func:`check_returns`).
+        LogFormatError: the log holds no scan, or no return
+            (:func:`~iceg.log_checks.check_returns`).
     """
     store = ScanStore(shift_odometry(while_caller_runs(reader), offset_s))
     if not len(store):
         raise LogFormatError(f"{path}: the log holds no laser scans")
     check_returns(path, store)
-    dropped = motionless_odometry(path, store)
-    if dropped:
-        store = ScanStore(scan.without_odometry() for scan in store)
+    adjusted = reading_adjustments(path, store, config)
+    if adjusted:
+        store = ScanStore(adjust_scan(scan, **adjusted) for scan in store)
     report = getattr(reader, "stamp_report", None)
     stamp_report = report if isinstance(report, StampReport) else None
-    return store, stamp_report, measure_scanner(config, store), dropped
+    return store, stamp_report, measure_scanner(config, store), adjusted
 
 
 def read_log_scans(
@@ -521,19 +464,20 @@ def read_log_scans(
 ) -> tuple[list[LaserScan], dict[str, Any], dict[str, Any]]:
     """A log's scans, each one's odometry read at its stamp plus ``odometry_time_offset_s``
     (``"auto"``: :func:`~iceg.odometry_timing.offset_to_read` with ``config``, as
-    :func:`run_log` measures it), or without it where it carries no motion
-    (:func:`motionless_odometry`), for the runs that take a list of scans (a session's
-    continuation, a localization).
+    :func:`run_log` measures it), read as the scans say (:func:`~iceg.log_checks.
+    reading_adjustments`: without an odometry that carries no motion, with beams that turn
+    against it mirrored), for the runs that take a list of scans (a session's continuation,
+    a localization).
 
     Returns:
         The scans; the offset's record for ``metrics.json``: ``applied_s`` and, with
         ``"auto"``, ``before_run`` (the measurement's fields, None without one); and the
-        reader options as the log was read (``laser_only`` added where the odometry was
-        dropped), for its session to read it again.
+        reader options as the log was read (``laser_only`` or ``mirror_beams`` added where
+        the scans said so), for its session to read it again.
 
     Raises:
         LogFormatError: missing or unreadable log, or one without a single return
-            (:func:`check_returns`).
+            (:func:`~iceg.log_checks.check_returns`).
         ConfigError: a non-finite offset, a string other than ``"auto"``, or an offset
             with ``reader_options`` ``laser_only``.
     """
@@ -541,16 +485,18 @@ def read_log_scans(
     check_log_file(Path(path))
     scans = list(open_log(path, stamps=stamps, **(reader_options or {})))
     check_returns(path, scans)
-    if motionless_odometry(path, scans):
-        options = {**(reader_options or {}), "laser_only": True}
-        return [s.without_odometry() for s in scans], {"applied_s": 0.0}, options
+    adjusted = reading_adjustments(path, scans, config)
+    options = {**(reader_options or {}), **adjusted}
+    scans = [adjust_scan(s, **adjusted) for s in scans] if adjusted else scans
+    if adjusted.get("laser_only"):
+        return scans, {"applied_s": 0.0}, options
     record: dict[str, Any] = {}
     applied_s = odometry_time_offset_s
     if isinstance(applied_s, str):
         applied_s, before_run = _offset_to_read(path, scans, config)
         record["before_run"] = _as_dict(before_run)
     record["applied_s"] = applied_s
-    return list(shift_odometry(scans, applied_s)), record, dict(reader_options or {})
+    return list(shift_odometry(scans, applied_s)), record, options
 
 
 def _check_offset(

@@ -1,9 +1,10 @@
 """What every path that reads a log (a run, a continuation or localization through
-``read_log_scans``, a batch run's ``load_input``) checks of it before a run: a log without a
-single return is refused (``iceg.pipeline.check_returns``), and a log whose odometry is one
-pose throughout is read without it, as ``--laser-only`` reads it
-(``iceg.pipeline.motionless_odometry``; the run itself is compared bit for bit with
-``--laser-only`` in ``test_cli.py``)."""
+``read_log_scans``, a batch run's ``load_input``) checks of it before a run
+(``iceg.log_checks``): a log without a single return is refused (``check_returns``), a log
+whose odometry is one pose throughout is read without it, as ``--laser-only`` reads it
+(``motionless_odometry``; the run itself is compared bit for bit with ``--laser-only`` in
+``test_cli.py``), and a log whose beams turn against its odometry is read with them mirrored
+(``mirrored_beams``, ``iceg.mirrored_laser``)."""
 
 from __future__ import annotations
 
@@ -15,15 +16,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from frontends import LaserScan
+from frontends import LaserScan, open_log
 from frontends.carmen import write_carmen
 from frontends.simulate import office_world, simulate
 from iceg.batch import expand, spec_from_dict
 from iceg.batch_run import load_input
 from iceg.config import IcegConfig
-from iceg.pipeline import check_returns, motionless_odometry, read_log_scans, run_log
+from iceg.log_checks import check_returns, motionless_odometry
+from iceg.mirrored_laser import MirrorTest, mirror_test
+from iceg.pipeline import read_log_scans, run_log
 from iceg.scan_store import ScanStore
 from iceg_common.errors import LogFormatError
+from tests.conftest import shared_file
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +45,7 @@ def test_one_pose_throughout_carries_no_motion(
     n = len(office_scans)
     pose = np.array([1.5, -2.0, np.radians(30.0)])
     stuck = _with_odometry(office_scans, [pose] * n)
-    with caplog.at_level(logging.WARNING, logger="iceg.pipeline"):
+    with caplog.at_level(logging.WARNING, logger="iceg.log_checks"):
         assert motionless_odometry("stuck.clf", stuck)
     assert caplog.messages == [
         f"stuck.clf: the odometry is the same pose (1.500 m, -2.000 m, 30.0 deg) in all {n} "
@@ -85,7 +89,7 @@ def test_a_batch_run_reads_it_as_laser_only(tmp_path: Path, stuck_log: Path) -> 
     spec = spec_from_dict({"logs": [{"path": str(stuck_log)}]})
     (task,) = expand(spec, tmp_path, tmp_path)
     data = load_input(task)
-    assert data.odometry_dropped
+    assert data.adjusted == {"laser_only": True}
     assert len(data.scans) == 40 and all(s.odom_pose is None for s in data.scans)
 
 
@@ -118,3 +122,88 @@ def test_one_return_in_the_log_is_enough(office_scans: list[LaserScan]) -> None:
         check_returns("blind", blind)
     check_returns("last", [*blind[:-1], office_scans[-1]])  # one scan with returns: no error
     check_returns("empty", [])  # no scans: refused where the run starts
+
+
+def test_mirrored_beams_are_told_by_the_turns(office_scans: list[LaserScan]) -> None:
+    # The office's first 150 scans turn 61 times by 30-90 deg within a metre: in every one
+    # the walls turn as the odometry does, and in every one against it with the beams
+    # mirrored (p = 2^-61).
+    scans = simulate(office_world(), seed=2).scans[:150]
+    config = IcegConfig()
+    as_read = mirror_test(scans, config)
+    assert as_read == MirrorTest(turns=61, as_read=61, mirrored=0, p_value=1.0)
+    assert not as_read.beams_mirrored
+    mirrored = mirror_test([s.mirrored() for s in scans], config)
+    assert mirrored is not None and (mirrored.as_read, mirrored.mirrored) == (0, 61)
+    assert mirrored.p_value == pytest.approx(0.5**61) and mirrored.beams_mirrored
+    assert mirror_test(ScanStore([s.mirrored() for s in scans]), config) == mirrored
+    assert mirror_test(office_scans[:20], config) is None  # no turn of 30 deg yet
+    assert mirror_test([s.without_odometry() for s in scans], config) is None
+
+
+def test_mirroring_twice_gives_the_scan_back(office_scans: list[LaserScan]) -> None:
+    scan = office_scans[3]
+    once = scan.mirrored()
+    np.testing.assert_array_equal(once.ranges_m, scan.ranges_m[::-1])
+    np.testing.assert_array_equal(once.angles_rad, -scan.angles_rad[::-1])
+    assert np.all(np.diff(once.angles_rad) > 0)  # bearings still increase
+    twice = once.mirrored()
+    np.testing.assert_array_equal(twice.ranges_m, scan.ranges_m)
+    np.testing.assert_array_equal(twice.angles_rad, scan.angles_rad)
+    assert twice.odom_pose is scan.odom_pose and twice.stamp_s == scan.stamp_s
+
+
+@pytest.mark.parametrize("name", ["mit-csail/mit-csail.clf", "aces/aces-corrected.log.gz"])
+def test_real_logs_read_as_they_are_and_mirrored_are_told(name: str) -> None:
+    # As read: the walls follow the odometry in most turns (MIT CSAIL 51 of 64, ACES 63 of
+    # 64; the rest turn near 45 or 90 deg, where a building's right angles cannot tell).
+    scans = list(open_log(shared_file(name)))
+    config = IcegConfig()
+    as_read = mirror_test(scans, config)
+    assert as_read is not None and not as_read.beams_mirrored
+    assert as_read.as_read > 3 * as_read.mirrored
+    mirrored = mirror_test([s.mirrored() for s in scans], config)
+    assert mirrored is not None and mirrored.beams_mirrored and mirrored.p_value < 1e-4
+
+
+@pytest.fixture(scope="module")
+def mirrored_log(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[LaserScan]]:
+    scans = simulate(office_world(), seed=2).scans[:150]
+    log = tmp_path_factory.mktemp("mirrored") / "mirrored.clf"
+    write_carmen(log, [s.mirrored() for s in scans])
+    return log, scans
+
+
+def test_read_log_scans_reads_mirrored_beams_back(
+    mirrored_log: tuple[Path, list[LaserScan]], caplog: pytest.LogCaptureFixture
+) -> None:
+    log, truth = mirrored_log
+    with caplog.at_level(logging.WARNING, logger="iceg.log_checks"):
+        scans, record, options = read_log_scans(log, IcegConfig())
+    assert "the scans turn against the odometry (in 61 of 61 turns" in caplog.text
+    assert options == {"mirror_beams": True} and record == {"applied_s": 0.0}
+    _assert_read_back(scans, truth)
+    again, _, options_again = read_log_scans(log, IcegConfig(), reader_options=options)
+    assert options_again == options  # read mirrored, the test finds nothing more to do
+    _assert_read_back(again, truth)
+
+
+def test_a_batch_run_reads_mirrored_beams_back(
+    tmp_path: Path, mirrored_log: tuple[Path, list[LaserScan]]
+) -> None:
+    log, truth = mirrored_log
+    (task,) = expand(spec_from_dict({"logs": [{"path": str(log)}]}), tmp_path, tmp_path)
+    data = load_input(task)
+    assert data.adjusted == {"mirror_beams": True}
+    _assert_read_back(data.scans, truth)
+
+
+def _assert_read_back(scans: list[LaserScan], truth: list[LaserScan]) -> None:
+    """The simulated scans as CARMEN stores them: ranges to the centimetre, bearings within
+    rounding of the 180 deg fan (written mirrored, read mirrored back)."""
+    assert len(scans) == len(truth)
+    for got, want in zip(scans, truth, strict=True):
+        np.testing.assert_allclose(got.ranges_m, want.ranges_m, atol=0.005)
+        np.testing.assert_allclose(got.angles_rad, want.angles_rad, atol=1e-12)
+        assert got.odom_pose is not None and want.odom_pose is not None
+        np.testing.assert_allclose(got.odom_pose, want.odom_pose, atol=1e-3)

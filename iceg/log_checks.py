@@ -1,0 +1,141 @@
+"""What a log's scans say about how to read them, checked before a run (docs/design.md
+"Readers"): a log without a single return is refused (:func:`check_returns`); odometry that
+never moves is left out (:func:`motionless_odometry`); beams that turn against the odometry
+are mirrored (:func:`mirrored_beams`). :func:`reading_adjustments` gives the last two as the
+reader options that read the log so (a session keeps them to read it again), and
+:func:`~frontends.registry.adjust_scan` applies them to scans already read.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from frontends import LaserScan
+from iceg.mirrored_laser import MirrorTest, mirror_test
+from iceg.scan_store import ScanStore
+from iceg_common.errors import LogFormatError
+
+if TYPE_CHECKING:
+    from iceg.config import IcegConfig
+
+logger = logging.getLogger(__name__)
+
+
+def check_returns(source: str | Path, scans: Iterable[LaserScan]) -> None:
+    """Refuse a log in which no beam of any scan is a return (every range outside its scan's
+    ``(range_min_m, range_max_m)``): nothing could be matched or mapped, and the run would
+    end with odometry alone. Ranges written in millimetres do that (MIT CSAIL so written:
+    1814 nodes, no scan-match factor and an empty map, without a word). Reads up to the
+    first scan with a return: one scan of a usable log.
+
+    Raises:
+        LogFormatError: no return in the log, naming the range limits and the ranges read.
+    """
+    ranges: list[np.ndarray] = []
+    limits: set[tuple[float, float]] = set()
+    for scan in scans:
+        if scan.valid_mask().any():
+            return
+        ranges.append(scan.ranges_m[np.isfinite(scan.ranges_m)])
+        limits.add((scan.range_min_m, scan.range_max_m))
+    if not ranges:
+        return  # no scans: refused where the run starts
+    read = np.concatenate(ranges)
+    seen = f"from {read.min():.4g} to {read.max():.4g}" if read.size else "none finite"
+    bounds = ", ".join(f"{lo:g}..{hi:g} m" for lo, hi in sorted(limits))
+    raise LogFormatError(
+        f"{source}: none of its {len(ranges)} scans has a return: every range lies outside the "
+        f"scan's limits ({bounds}; the ranges read: {seen}); are the ranges in metres, and "
+        "is the scanner's maximum range right (PARAM robot_front_laser_max, or the reader's "
+        "default_range_max_m)?"
+    )
+
+
+def motionless_odometry(source: str | Path, scans: ScanStore | Sequence[LaserScan]) -> bool:
+    """Whether a log's odometry carries no motion at all: two or more scans, every one with
+    a finite odometry pose, all the same pose bit for bit (a log without odometry written
+    with zeros, a wheel odometry that never ran). Such odometry holds every scan in place:
+    a run would make a node only every ``slam.keyframe_max_interval_s`` (MIT CSAIL with its
+    odometry zeroed: 15 nodes, no scan-match factor, 0.43 m / 18.9 deg against its
+    relations). Where it does, a warning says the log is read without it, as
+    ``--laser-only`` reads it (each scan predicted by constant velocity, docs/design.md
+    "Readers").
+
+    Args:
+        source: The log, for the warning.
+        scans: Its scans, as read.
+    """
+    if isinstance(scans, ScanStore):
+        odom_poses = scans.odometry[1]
+    else:
+        nan = np.full(3, np.nan)
+        odom_poses = np.array([nan if s.odom_pose is None else s.odom_pose for s in scans])
+    n = len(scans)
+    if n < 2 or not np.isfinite(odom_poses).all() or not (odom_poses == odom_poses[0]).all():
+        return False
+    x, y, theta = odom_poses[0].tolist()
+    logger.warning(
+        "%s: the odometry is the same pose (%.3f m, %.3f m, %.1f deg) in all %d scans: it "
+        "carries no motion, so the log is read without it, as with --laser-only",
+        source,
+        x,
+        y,
+        np.degrees(theta),
+        n,
+    )
+    return True
+
+
+def mirrored_beams(
+    source: str | Path, scans: ScanStore | Sequence[LaserScan], config: IcegConfig
+) -> MirrorTest | None:
+    """:func:`~iceg.mirrored_laser.mirror_test` of a log's scans, warned where the beams
+    turn against the odometry (a laser mounted upside down, or beams written clockwise).
+
+    Args:
+        source: The log, for the warning.
+        scans: Its scans as read, with their odometry.
+        config: The run's configuration (features, odometry noise).
+
+    Returns:
+        The test (None: no odometry turn to test on).
+    """
+    test = mirror_test(scans, config)
+    if test is not None and test.beams_mirrored:
+        logger.warning(
+            "%s: the scans turn against the odometry (in %d of %d turns the walls follow it "
+            "only with the beams mirrored, p = %.1g): the laser is read mirrored, as one "
+            "mounted upside down (or with its beams written clockwise); if the odometry is "
+            "the one mirrored (left-handed), the map is the mirror image",
+            source,
+            test.mirrored,
+            test.as_read + test.mirrored,
+            test.p_value,
+        )
+    return test
+
+
+def reading_adjustments(
+    source: str | Path, scans: ScanStore | Sequence[LaserScan], config: IcegConfig
+) -> dict[str, bool]:
+    """The reader options (:func:`frontends.open_log`) that read a log as its scans say it
+    must be read, each warned: ``laser_only`` where its odometry carries no motion
+    (:func:`motionless_odometry`), else ``mirror_beams`` where the beams turn against it
+    (:func:`mirrored_beams`); empty where the log reads as it is.
+
+    Args:
+        source: The log, for the warnings.
+        scans: Its scans as read (with the reader options it was opened with).
+        config: The run's configuration.
+    """
+    if motionless_odometry(source, scans):
+        return {"laser_only": True}
+    test = mirrored_beams(source, scans, config)
+    if test is not None and test.beams_mirrored:
+        return {"mirror_beams": True}
+    return {}
