@@ -1,8 +1,9 @@
 """What a log's scans say about how to read them, checked before a run (docs/design.md
 "Readers"): a log without a single return is refused (:func:`check_returns`); odometry that
 never moves is left out (:func:`motionless_odometry`); beams that turn against the odometry
-are mirrored (:func:`mirrored_beams`). :func:`reading_adjustments` gives the last two as the
-reader options that read the log so (a session keeps them to read it again), and
+are mirrored, and an odometry heading the walls do not follow is left out
+(:func:`~iceg.turn_test.turn_test`). :func:`reading_adjustments` gives those as the reader
+options that read the log so (a session keeps them to read it again), and
 :func:`~frontends.registry.adjust_scan` applies them to scans already read.
 """
 
@@ -16,8 +17,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from frontends import LaserScan
-from iceg.mirrored_laser import MirrorTest, mirror_test
 from iceg.scan_store import ScanStore
+from iceg.turn_test import turn_test
 from iceg_common.errors import LogFormatError
 
 if TYPE_CHECKING:
@@ -91,21 +92,35 @@ def motionless_odometry(source: str | Path, scans: ScanStore | Sequence[LaserSca
     return True
 
 
-def mirrored_beams(
+def reading_adjustments(
     source: str | Path, scans: ScanStore | Sequence[LaserScan], config: IcegConfig
-) -> MirrorTest | None:
-    """:func:`~iceg.mirrored_laser.mirror_test` of a log's scans, warned where the beams
-    turn against the odometry (a laser mounted upside down, or beams written clockwise).
+) -> dict[str, bool]:
+    """The reader options (:func:`frontends.open_log`) that read a log as its scans say it
+    must be read, each warned: ``laser_only`` where its odometry carries no motion
+    (:func:`motionless_odometry`) or its heading is not the robot's (the walls stay
+    unturned where it turns: :func:`~iceg.turn_test.turn_test`), ``mirror_beams`` where the
+    walls turn against it; empty where the log reads as it is.
 
     Args:
-        source: The log, for the warning.
-        scans: Its scans as read, with their odometry.
+        source: The log, for the warnings.
+        scans: Its scans as read (with the reader options it was opened with).
         config: The run's configuration (features, odometry noise).
-
-    Returns:
-        The test (None: no odometry turn to test on).
     """
-    test = mirror_test(scans, config)
+    if motionless_odometry(source, scans):
+        return {"laser_only": True}
+    test = turn_test(scans, config)
+    if test is not None and test.heading_unusable:
+        logger.warning(
+            "%s: the walls do not turn where the odometry turns (in %d of %d turns of 30-90 "
+            "deg they line up better unturned, p = %.1g): its heading is not the robot's (in "
+            "degrees instead of radians? another column?), so the log is read without it, as "
+            "with --laser-only",
+            source,
+            test.unturned,
+            test.turned + test.unturned,
+            test.p_unturned,
+        )
+        return {"laser_only": True}
     if test is not None and test.beams_mirrored:
         logger.warning(
             "%s: the scans turn against the odometry (in %d of %d turns the walls follow it "
@@ -115,27 +130,7 @@ def mirrored_beams(
             source,
             test.mirrored,
             test.as_read + test.mirrored,
-            test.p_value,
+            test.p_mirrored,
         )
-    return test
-
-
-def reading_adjustments(
-    source: str | Path, scans: ScanStore | Sequence[LaserScan], config: IcegConfig
-) -> dict[str, bool]:
-    """The reader options (:func:`frontends.open_log`) that read a log as its scans say it
-    must be read, each warned: ``laser_only`` where its odometry carries no motion
-    (:func:`motionless_odometry`), else ``mirror_beams`` where the beams turn against it
-    (:func:`mirrored_beams`); empty where the log reads as it is.
-
-    Args:
-        source: The log, for the warnings.
-        scans: Its scans as read (with the reader options it was opened with).
-        config: The run's configuration.
-    """
-    if motionless_odometry(source, scans):
-        return {"laser_only": True}
-    test = mirrored_beams(source, scans, config)
-    if test is not None and test.beams_mirrored:
         return {"mirror_beams": True}
     return {}

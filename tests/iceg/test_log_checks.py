@@ -3,8 +3,9 @@
 (``iceg.log_checks``): a log without a single return is refused (``check_returns``), a log
 whose odometry is one pose throughout is read without it, as ``--laser-only`` reads it
 (``motionless_odometry``; the run itself is compared bit for bit with ``--laser-only`` in
-``test_cli.py``), and a log whose beams turn against its odometry is read with them mirrored
-(``mirrored_beams``, ``iceg.mirrored_laser``)."""
+``test_cli.py``), a log whose walls turn against its odometry is read with its beams
+mirrored, and one whose walls do not turn where its odometry turns is read without the
+odometry (``iceg.turn_test``)."""
 
 from __future__ import annotations
 
@@ -22,10 +23,10 @@ from frontends.simulate import office_world, simulate
 from iceg.batch import expand, spec_from_dict
 from iceg.batch_run import load_input
 from iceg.config import IcegConfig
-from iceg.log_checks import check_returns, motionless_odometry
-from iceg.mirrored_laser import MirrorTest, mirror_test
+from iceg.log_checks import check_returns, motionless_odometry, reading_adjustments
 from iceg.pipeline import read_log_scans, run_log
 from iceg.scan_store import ScanStore
+from iceg.turn_test import TurnTest, turn_test
 from iceg_common.errors import LogFormatError
 from tests.conftest import shared_file
 
@@ -130,15 +131,38 @@ def test_mirrored_beams_are_told_by_the_turns(office_scans: list[LaserScan]) -> 
     # and in every one against it with the beams mirrored (p = 2^-61).
     scans = simulate(office_world(), seed=2).scans[:150]
     config = IcegConfig()
-    as_read = mirror_test(scans, config)
-    assert as_read == MirrorTest(turns=7, as_read=7, mirrored=0, p_value=1.0)
-    assert not as_read.beams_mirrored
-    mirrored = mirror_test([s.mirrored() for s in scans], config)
+    as_read = turn_test(scans, config)
+    assert as_read == TurnTest(7, 7, 0, 1.0, 7, 0, 1.0)
+    assert not as_read.beams_mirrored and not as_read.heading_unusable
+    mirrored = turn_test([s.mirrored() for s in scans], config)
     assert mirrored is not None and (mirrored.as_read, mirrored.mirrored) == (0, 61)
-    assert mirrored.p_value == pytest.approx(0.5**61) and mirrored.beams_mirrored
-    assert mirror_test(ScanStore([s.mirrored() for s in scans]), config) == mirrored
-    assert mirror_test(office_scans[:20], config) is None  # no turn of 30 deg yet
-    assert mirror_test([s.without_odometry() for s in scans], config) is None
+    assert mirrored.p_mirrored == pytest.approx(0.5**61) and mirrored.beams_mirrored
+    assert not mirrored.heading_unusable  # the walls do turn, the other way
+    assert turn_test(ScanStore([s.mirrored() for s in scans]), config) == mirrored
+    assert turn_test(office_scans[:20], config) is None  # no turn of 30 deg yet
+    assert turn_test([s.without_odometry() for s in scans], config) is None
+
+
+def _in_degrees(scans: list[LaserScan]) -> list[LaserScan]:
+    """The scans with their odometry heading written in degrees."""
+    return [
+        dataclasses.replace(s, odom_pose=np.array([*s.odom_pose[:2], np.degrees(s.odom_pose[2])]))
+        for s in scans
+        if s.odom_pose is not None
+    ]
+
+
+def test_a_heading_the_walls_do_not_follow_is_told(caplog: pytest.LogCaptureFixture) -> None:
+    # The whole office with the odometry's heading in degrees: a turn of 30-90 "degrees" as
+    # radians is one of 0.5-1.6 deg, and in every such turn the walls line up unturned.
+    scans = _in_degrees(simulate(office_world(), seed=2).scans)
+    test = turn_test(scans, IcegConfig())
+    assert test is not None and test.heading_unusable and not test.beams_mirrored
+    assert test.turned == 0 and test.unturned >= 7 and test.p_unturned == 0.5**test.unturned
+    with caplog.at_level(logging.WARNING, logger="iceg.log_checks"):
+        assert reading_adjustments("deg.clf", scans, IcegConfig()) == {"laser_only": True}
+    assert "deg.clf: the walls do not turn where the odometry turns" in caplog.text
+    assert "(in degrees instead of radians? another column?)" in caplog.text
 
 
 def test_mirroring_twice_gives_the_scan_back(office_scans: list[LaserScan]) -> None:
@@ -153,18 +177,20 @@ def test_mirroring_twice_gives_the_scan_back(office_scans: list[LaserScan]) -> N
     assert twice.odom_pose is scan.odom_pose and twice.stamp_s == scan.stamp_s
 
 
-@pytest.mark.parametrize("name", ["mit-csail/mit-csail.clf", "aces/aces-corrected.log.gz"])
-def test_real_logs_read_as_they_are_and_mirrored_are_told(name: str) -> None:
+@pytest.mark.parametrize("name", ["mit-csail/mit-csail.clf", "mit-csail/csail.log"])
+def test_real_logs_read_as_they_are_and_broken_ones_are_told(name: str) -> None:
     # As read: the walls follow the odometry in most turns (MIT CSAIL 12 of the 14 it takes
-    # to decide, ACES 7 of 7; the others turn near 45 or 90 deg, where a building's right
-    # angles cannot tell).
+    # to decide, csail.log 7 of 7; the others turn near 45 or 90 deg, where a building's
+    # right angles cannot tell). Beams reversed: mirrored; heading in degrees: unturned.
     scans = list(open_log(shared_file(name)))
     config = IcegConfig()
-    as_read = mirror_test(scans, config)
-    assert as_read is not None and not as_read.beams_mirrored
-    assert as_read.as_read > 3 * as_read.mirrored
-    mirrored = mirror_test([s.mirrored() for s in scans], config)
-    assert mirrored is not None and mirrored.beams_mirrored and mirrored.p_value < 1e-4
+    as_read = turn_test(scans, config)
+    assert as_read is not None and not as_read.beams_mirrored and not as_read.heading_unusable
+    assert as_read.as_read > 3 * as_read.mirrored and as_read.turned > 3 * as_read.unturned
+    mirrored = turn_test([s.mirrored() for s in scans], config)
+    assert mirrored is not None and mirrored.beams_mirrored and mirrored.p_mirrored < 1e-4
+    degrees = turn_test(_in_degrees(scans), config)
+    assert degrees is not None and degrees.heading_unusable and degrees.p_unturned < 1e-3
 
 
 @pytest.fixture(scope="module")
@@ -197,6 +223,17 @@ def test_a_batch_run_reads_mirrored_beams_back(
     data = load_input(task)
     assert data.adjusted == {"mirror_beams": True}
     _assert_read_back(data.scans, truth)
+
+
+def test_a_log_with_its_heading_in_degrees_is_read_as_laser_only(tmp_path: Path) -> None:
+    log = tmp_path / "degrees.clf"
+    write_carmen(log, _in_degrees(simulate(office_world(), seed=2).scans))
+    scans, record, options = read_log_scans(log, IcegConfig(), odometry_time_offset_s="auto")
+    assert options == {"laser_only": True} and record == {"applied_s": 0.0}
+    assert len(scans) == 701 and all(s.odom_pose is None for s in scans)
+    (task,) = expand(spec_from_dict({"logs": [{"path": str(log)}]}), tmp_path, tmp_path)
+    data = load_input(task)
+    assert data.adjusted == {"laser_only": True} and all(s.odom_pose is None for s in data.scans)
 
 
 def _assert_read_back(scans: list[LaserScan], truth: list[LaserScan]) -> None:
