@@ -86,14 +86,17 @@ class RobotBodyEstimate:
         return asdict(self)
 
 
-def turn_pairs(poses: FloatArray) -> IntArray:
+def turn_pairs(poses: FloatArray, breaks: NDArray[np.bool_] | None = None) -> IntArray:
     """``(M, 2)`` int64 index pairs ``(k, l)``, ``l > k``: for each scan ``k`` the first later
     scan whose heading differs from it by at least :data:`TURN_DEG` (and at most three times
-    that), if the robot travelled at most :data:`MAX_PATH_M` between them.
+    that), if the robot travelled at most :data:`MAX_PATH_M` between them and no odometry
+    break lies between them (a jump of the odometry is no turn of the robot).
 
     Args:
         poses: ``(N, 3)`` float64 robot poses ``[x_m, y_m, theta_rad]``, one per scan, in
             scan order (any frame; NaN rows never pair).
+        breaks: ``(N,)`` bool, an odometry break just before each scan (``odom_break``);
+            None: none.
     """
     p = np.asarray(poses, dtype=np.float64)
     n = p.shape[0]
@@ -113,7 +116,11 @@ def turn_pairs(poses: FloatArray) -> IntArray:
         first = np.flatnonzero(turn >= lo)
         if first.shape[0] and turn[first[0]] <= hi:
             pairs.append((k, k + 1 + int(first[0])))
-    return np.array(pairs, dtype=np.int64).reshape(-1, 2)
+    out = np.array(pairs, dtype=np.int64).reshape(-1, 2)
+    if breaks is None or not np.any(breaks):
+        return out
+    broken = np.concatenate([[0], np.cumsum(breaks, dtype=np.int64)])  # breaks up to scan i-1
+    return out[broken[out[:, 1] + 1] == broken[out[:, 0] + 1]]
 
 
 def _binned_beams(
@@ -255,7 +262,9 @@ def dark_bearings(
     )
 
 
-def robot_body_range(store: ScanStore, poses: FloatArray) -> RobotBodyEstimate | None:
+def robot_body_range(
+    store: ScanStore, poses: FloatArray, breaks: NDArray[np.bool_] | None = None
+) -> RobotBodyEstimate | None:
     """The robot's own body in ``store``'s scans (module docstring): bearing bins whose
     nearest return agrees within :data:`AGREEMENT_M` across at least :data:`MIN_AGREEMENT`
     of the turns of :func:`turn_pairs` (at most :data:`MAX_PAIRS` of them, evenly spread).
@@ -266,6 +275,7 @@ def robot_body_range(store: ScanStore, poses: FloatArray) -> RobotBodyEstimate |
         store: The run's scans.
         poses: ``(N, 3)`` float64 a pose per scan (the run's optimized trajectory, or the
             odometry), robot frame -> world.
+        breaks: ``(N,)`` bool odometry breaks (:func:`turn_pairs`); None for a trajectory.
 
     Raises:
         ValueError: ``poses`` does not hold one row per scan.
@@ -273,7 +283,7 @@ def robot_body_range(store: ScanStore, poses: FloatArray) -> RobotBodyEstimate |
     p = np.asarray(poses, dtype=np.float64)
     if p.shape != (len(store), 3):
         raise ValueError(f"poses must have shape ({len(store)}, 3), got {p.shape}")
-    pairs = turn_pairs(p)
+    pairs = turn_pairs(p, breaks)
     if pairs.shape[0] < MIN_PAIRS:
         return None
     if pairs.shape[0] > MAX_PAIRS:
@@ -309,8 +319,8 @@ def with_measured_body(
     """
     if not config.features.measure_robot_body:
         return config, None
-    _, odometry, _ = store.odometry
-    estimate = robot_body_range(store, odometry)
+    _, odometry, breaks = store.odometry
+    estimate = robot_body_range(store, odometry, breaks)
     return leaving_out(config, estimate), estimate
 
 

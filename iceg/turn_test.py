@@ -115,7 +115,7 @@ def turn_test(scans: ScanStore | Sequence[LaserScan], config: IcegConfig) -> Tur
 
     Args:
         scans: A log's scans in time order, with their odometry (``odom_pose``; scans without
-            one never pair).
+            one never pair, nor two with an odometry break, ``odom_break``, between them).
         config: Its run's configuration: the features' settings (segments) and the odometry
             noise (heading variance of a turn).
 
@@ -127,11 +127,12 @@ def turn_test(scans: ScanStore | Sequence[LaserScan], config: IcegConfig) -> Tur
         other readings keep the sign tests' level.
     """
     if isinstance(scans, ScanStore):
-        odometry = scans.odometry[1]
+        _, odometry, breaks = scans.odometry
     else:
         nan = np.full(3, np.nan)
         odometry = np.array([nan if s.odom_pose is None else s.odom_pose for s in scans])
-    pairs = turn_pairs(odometry.reshape(-1, 3))
+        breaks = np.array([s.odom_break for s in scans], dtype=bool)
+    pairs = turn_pairs(odometry.reshape(-1, 3), breaks)
     if pairs.shape[0] == 0:
         return None
     if pairs.shape[0] > MAX_TURNS:

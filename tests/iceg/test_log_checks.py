@@ -143,6 +143,24 @@ def test_mirrored_beams_are_told_by_the_turns(office_scans: list[LaserScan]) -> 
     assert turn_test([s.without_odometry() for s in scans], config) is None
 
 
+def test_a_jump_of_the_odometry_at_a_break_is_no_turn(office_scans: list[LaserScan]) -> None:
+    # A robot standing still whose odometry jumps by 45 deg every ten scans: across the
+    # jumps the walls stay put. Flagged as breaks (as a reader flags a reset), no pair
+    # spans one; unflagged, the jumps read as turns the walls do not follow.
+    still = office_scans[0]
+    scans = [
+        dataclasses.replace(
+            still,
+            odom_pose=np.array([0.0, 0.0, np.radians(45.0) * (i // 10)]),
+            odom_break=i > 0 and i % 10 == 0,
+        )
+        for i in range(40)
+    ]
+    assert turn_test(scans, IcegConfig()) is None
+    unflagged = turn_test([dataclasses.replace(s, odom_break=False) for s in scans], IcegConfig())
+    assert unflagged is not None and unflagged.heading_unusable
+
+
 def _in_degrees(scans: list[LaserScan]) -> list[LaserScan]:
     """The scans with their odometry heading written in degrees."""
     return [

@@ -53,6 +53,12 @@ def test_turn_pairs_by_hand() -> None:
     np.testing.assert_array_equal(turn_pairs(hole), [[0, 3], [5, 8], [6, 9]])
     far = np.array([[0.0, 0.0, 0.0], [np.nan] * 3, [0.0, 0.0, 0.0], [5.0, 0.0, 0.6]])
     assert turn_pairs(far).shape == (0, 2)  # 5 m of travel after the hole
+    # An odometry break just before scan 4: the pairs that span it, (1, 4) to (3, 6), go.
+    breaks = np.zeros(15, dtype=bool)
+    breaks[4] = True
+    np.testing.assert_array_equal(
+        turn_pairs(np.array(spin + drive), breaks), [[0, 3], [4, 7], [5, 8], [6, 9]]
+    )
 
 
 def test_the_body_s_reach_is_its_farthest_return_by_hand() -> None:
