@@ -254,7 +254,9 @@ def _claimed_suffixes() -> set[str]:
     return out | {x + ".gz" for x in out}
 
 
-def describe_log(reader: LogReader) -> list[tuple[str, str]]:
+def describe_log(
+    reader: LogReader, on_scan: Callable[[LaserScan], object] | None = None
+) -> list[tuple[str, str]]:
     """``(key, value)`` rows saying what a log holds, for ``iceg info``.
 
     A reader with a ``describe()`` method (ROS bags: topics, types, counts, frames) answers
@@ -262,6 +264,11 @@ def describe_log(reader: LogReader) -> list[tuple[str, str]]:
     range limits, returns (beams inside their scan's limits), odometry (and whether it is one
     pose throughout), the reader's skipped record types and where a recording was cut short,
     if it keeps them.
+
+    Args:
+        reader: The log's reader, not yet iterated.
+        on_scan: Called with each streamed scan, for the caller's own look at them (not
+            called by a reader that answers itself).
 
     Raises:
         LogFormatError: the log cannot be read or holds no scans.
@@ -276,6 +283,8 @@ def describe_log(reader: LogReader) -> list[tuple[str, str]]:
     beams: set[int] = set()
     limits: set[tuple[float, float]] = set()
     for scan in reader:
+        if on_scan is not None:
+            on_scan(scan)
         first = scan if first is None else first
         n += 1
         with_odom += scan.odom_pose is not None

@@ -545,11 +545,16 @@ def info(
     """Print what a log holds: topics or record types, counts, duration, beams, range
     limits, returns, odometry source."""
     from frontends.registry import describe_log, open_log
+    from iceg.config import IcegConfig
+    from iceg.log_checks import describe_turns
+    from iceg.scan_store import ScanStore
 
     options = _reader_options(
         scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset, False, lenient
     )
-    rows = describe_log(open_log(log, **options))
+    scans = ScanStore()
+    rows = describe_log(open_log(log, **options), on_scan=scans.append)
+    rows += describe_turns(scans, IcegConfig())  # the scans a CARMEN log streamed
     typer.echo(f"iceg info: {log}")
     _print_table(rows)
 

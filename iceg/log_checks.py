@@ -134,3 +134,27 @@ def reading_adjustments(
         )
         return {"mirror_beams": True}
     return {}
+
+
+def describe_turns(
+    scans: ScanStore | Sequence[LaserScan], config: IcegConfig
+) -> list[tuple[str, str]]:
+    """``iceg info``'s row on how the walls turn with the odometry (``turn_test``), as
+    :func:`reading_adjustments` would read the log; none where the odometry has no turn to
+    compare (no odometry, one that never moves, no turn of 30-90 deg within 1 m)."""
+    test = turn_test(scans, config)
+    if test is None:
+        return []
+    if test.heading_unusable:
+        text = (
+            f"the walls do not turn where the odometry turns ({test.unturned} of "
+            f"{test.turned + test.unturned} turns): a run reads the log without its odometry"
+        )
+    elif test.beams_mirrored:
+        text = (
+            f"the walls turn against the odometry ({test.mirrored} of "
+            f"{test.as_read + test.mirrored} turns): a run reads the beams mirrored"
+        )
+    else:
+        text = f"they turn together ({test.as_read} of {test.as_read + test.mirrored} turns)"
+    return [("walls and odometry", text)]

@@ -23,7 +23,12 @@ from frontends.simulate import office_world, simulate
 from iceg.batch import expand, spec_from_dict
 from iceg.batch_run import load_input
 from iceg.config import IcegConfig
-from iceg.log_checks import check_returns, motionless_odometry, reading_adjustments
+from iceg.log_checks import (
+    check_returns,
+    describe_turns,
+    motionless_odometry,
+    reading_adjustments,
+)
 from iceg.pipeline import read_log_scans, run_log
 from iceg.scan_store import ScanStore
 from iceg.turn_test import TurnTest, turn_test
@@ -252,6 +257,25 @@ def test_a_log_with_its_heading_in_degrees_is_read_as_laser_only(tmp_path: Path)
     (task,) = expand(spec_from_dict({"logs": [{"path": str(log)}]}), tmp_path, tmp_path)
     data = load_input(task)
     assert data.adjusted == {"laser_only": True} and all(s.odom_pose is None for s in data.scans)
+
+
+def test_info_says_how_the_walls_turn_with_the_odometry(
+    mirrored_log: tuple[Path, list[LaserScan]],
+) -> None:
+    from typer.testing import CliRunner
+
+    from iceg.cli import app
+
+    log, scans = mirrored_log
+    config = IcegConfig()
+    assert describe_turns(scans, config) == [
+        ("walls and odometry", "they turn together (7 of 7 turns)")
+    ]
+    assert describe_turns([s.without_odometry() for s in scans], config) == []
+    result = CliRunner().invoke(app, ["info", str(log)])
+    assert result.exit_code == 0, result.output
+    row = r"walls and odometry +the walls turn against the odometry \(61 of 61 turns\): a run"
+    assert re.search(row + r" reads the beams mirrored", result.output)
 
 
 def _assert_read_back(scans: list[LaserScan], truth: list[LaserScan]) -> None:
