@@ -543,7 +543,7 @@ def info(
     lenient: SkipMalformedOption = False,
 ) -> None:
     """Print what a log holds: topics or record types, counts, duration, beams, range
-    limits, returns, odometry source."""
+    limits, returns, odometry source, and whether its walls turn with its odometry."""
     from frontends.registry import describe_log, open_log
     from iceg.config import IcegConfig
     from iceg.log_checks import describe_turns
