@@ -211,9 +211,10 @@ def run_log(
     ``file:line``); the policy and what the reader found (out-of-order and duplicate stamps,
     odometry breaks) are in ``result.metrics["stamps"]``. ``reader_options`` go to
     :func:`frontends.open_log` (e.g. ``scan_topic`` for ROS bags); a log whose odometry is one
-    pose throughout is read without it, as ``laser_only`` reads it, and one whose beams turn
-    against its odometry with them mirrored, as ``mirror_beams`` reads it
-    (:func:`~iceg.log_checks.reading_adjustments`, recorded so for its session). Each scan's
+    pose throughout, or turns where its walls do not, is read without it, as ``laser_only``
+    reads it, and one whose walls turn against its odometry with its beams mirrored, as
+    ``mirror_beams`` reads it (:func:`~iceg.log_checks.reading_adjustments`, recorded so for
+    its session). Each scan's
     odometry is read at its stamp plus
     ``odometry_time_offset_s``
     (:func:`~frontends.odometry_shift.shift_odometry`);
@@ -433,11 +434,12 @@ def _read(
     """The log at ``path`` (``reader``, not yet iterated) in a store, compact (no LaserScan
     object per scan held during the run), each scan's odometry read at its stamp plus
     ``offset_s``, and read as the scans say it must be (:func:`~iceg.log_checks.
-    reading_adjustments`: without an odometry that carries no motion, with beams that turn
-    against the odometry mirrored); the reader's stamp report (out-of-order and duplicate
-    stamps, odometry breaks; None for a reader without one); ``config`` with what the scans
-    show of the scanner (:func:`measure_scanner`: it runs in the process that reads, beside
-    the start); and the reader options of those adjustments.
+    reading_adjustments`: without an odometry that carries no motion or turns where the
+    walls do not, with beams that turn against the odometry mirrored); the reader's stamp
+    report (out-of-order and duplicate stamps, odometry breaks; None for a reader without
+    one); ``config`` with what the scans show of the scanner (:func:`measure_scanner`: it
+    runs in the process that reads, beside the start); and the reader options of those
+    adjustments.
 
     Raises:
         LogFormatError: the log holds no scan, or no return
@@ -465,9 +467,9 @@ def read_log_scans(
     """A log's scans, each one's odometry read at its stamp plus ``odometry_time_offset_s``
     (``"auto"``: :func:`~iceg.odometry_timing.offset_to_read` with ``config``, as
     :func:`run_log` measures it), read as the scans say (:func:`~iceg.log_checks.
-    reading_adjustments`: without an odometry that carries no motion, with beams that turn
-    against it mirrored), for the runs that take a list of scans (a session's continuation,
-    a localization).
+    reading_adjustments`: without an odometry that carries no motion or turns where the
+    walls do not, with beams that turn against it mirrored), for the runs that take a list of
+    scans (a session's continuation, a localization).
 
     Returns:
         The scans; the offset's record for ``metrics.json``: ``applied_s`` and, with
