@@ -27,6 +27,18 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 
+#: What a run does with a log where the turn test finds its reader option (the warning), and
+#: how it reads the log (``iceg info``).
+_WHAT_A_RUN_DOES = {
+    "laser_only": "its heading is not the robot's (in degrees instead of radians? another "
+    "column?), so the log is read without it, as with --laser-only",
+    "mirror_beams": "the laser is read mirrored, as one mounted upside down (or with its "
+    "beams written clockwise); if the odometry is the one mirrored (left-handed), the map is "
+    "the mirror image",
+}
+_HOW_A_RUN_READS = {"laser_only": "without its odometry", "mirror_beams": "with its beams mirrored"}
+
+
 def check_returns(source: str | Path, scans: Iterable[LaserScan]) -> None:
     """Refuse a log in which no beam of any scan is a return (every range outside its scan's
     ``(range_min_m, range_max_m)``): nothing could be matched or mapped, and the run would
@@ -109,31 +121,12 @@ def reading_adjustments(
     if motionless_odometry(source, scans):
         return {"laser_only": True}
     test = turn_test(scans, config)
-    if test is not None and test.heading_unusable:
-        logger.warning(
-            "%s: the walls do not turn where the odometry turns (in %d of %d turns of 30-90 "
-            "deg they line up better unturned, p = %.1g): its heading is not the robot's (in "
-            "degrees instead of radians? another column?), so the log is read without it, as "
-            "with --laser-only",
-            source,
-            test.unturned,
-            test.turned + test.unturned,
-            test.p_unturned,
-        )
-        return {"laser_only": True}
-    if test is not None and test.beams_mirrored:
-        logger.warning(
-            "%s: the scans turn against the odometry (in %d of %d turns the walls follow it "
-            "only with the beams mirrored, p = %.1g): the laser is read mirrored, as one "
-            "mounted upside down (or with its beams written clockwise); if the odometry is "
-            "the one mirrored (left-handed), the map is the mirror image",
-            source,
-            test.mirrored,
-            test.as_read + test.mirrored,
-            test.p_mirrored,
-        )
-        return {"mirror_beams": True}
-    return {}
+    finding = None if test is None else test.finding()
+    if finding is None:
+        return {}
+    option, found = finding
+    logger.warning("%s: %s: %s", source, found, _WHAT_A_RUN_DOES[option])
+    return {option: True}
 
 
 def describe_turns(
@@ -145,16 +138,10 @@ def describe_turns(
     test = turn_test(scans, config)
     if test is None:
         return []
-    if test.heading_unusable:
-        text = (
-            f"the walls do not turn where the odometry turns ({test.unturned} of "
-            f"{test.turned + test.unturned} turns): a run reads the log without its odometry"
-        )
-    elif test.beams_mirrored:
-        text = (
-            f"the walls turn against the odometry ({test.mirrored} of "
-            f"{test.as_read + test.mirrored} turns): a run reads the beams mirrored"
-        )
-    else:
+    finding = test.finding()
+    if finding is None:
         text = f"they turn together ({test.as_read} of {test.as_read + test.mirrored} turns)"
+    else:
+        option, found = finding
+        text = f"{found}: a run reads the log {_HOW_A_RUN_READS[option]}"
     return [("walls and odometry", text)]

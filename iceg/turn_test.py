@@ -101,6 +101,24 @@ class TurnTest:
         its heading is the robot's)."""
         return self.p_mirrored < SIGNIFICANCE_LEVEL and not self.heading_unusable
 
+    def finding(self) -> tuple[str, str] | None:
+        """The reader option the test calls for (:func:`frontends.open_log`: ``laser_only``
+        where the heading is not the robot's, else ``mirror_beams`` where the beams are
+        mirrored) and what it found, in words; None where the log reads as it is."""
+        if self.heading_unusable:
+            return "laser_only", (
+                f"the walls do not turn where the odometry turns (in {self.unturned} of "
+                f"{self.turned + self.unturned} turns of 30-90 deg they line up better "
+                f"unturned, p = {self.p_unturned:.1g})"
+            )
+        if self.beams_mirrored:
+            return "mirror_beams", (
+                f"the walls turn against the odometry (in {self.mirrored} of "
+                f"{self.as_read + self.mirrored} turns they follow it only with the beams "
+                f"mirrored, p = {self.p_mirrored:.1g})"
+            )
+        return None
+
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready fields."""
         return {

@@ -230,7 +230,7 @@ def test_read_log_scans_reads_mirrored_beams_back(
     log, truth = mirrored_log
     with caplog.at_level(logging.WARNING, logger="iceg.log_checks"):
         scans, record, options = read_log_scans(log, IcegConfig())
-    assert "the scans turn against the odometry (in 61 of 61 turns" in caplog.text
+    assert "the walls turn against the odometry (in 61 of 61 turns" in caplog.text
     assert options == {"mirror_beams": True} and record == {"applied_s": 0.0}
     _assert_read_back(scans, truth)
     again, _, options_again = read_log_scans(log, IcegConfig(), reader_options=options)
@@ -274,8 +274,8 @@ def test_info_says_how_the_walls_turn_with_the_odometry(
     assert describe_turns([s.without_odometry() for s in scans], config) == []
     result = CliRunner().invoke(app, ["info", str(log)])
     assert result.exit_code == 0, result.output
-    row = r"walls and odometry +the walls turn against the odometry \(61 of 61 turns\): a run"
-    assert re.search(row + r" reads the beams mirrored", result.output)
+    row = r"walls and odometry +the walls turn against the odometry \(in 61 of 61 turns they "
+    assert re.search(row + r"follow .*: a run reads the log with its beams mirrored", result.output)
 
 
 def _assert_read_back(scans: list[LaserScan], truth: list[LaserScan]) -> None:
