@@ -31,7 +31,7 @@ from iceg.log_checks import (
 )
 from iceg.pipeline import read_log_scans, run_log
 from iceg.scan_store import ScanStore
-from iceg.turn_test import TurnTest, turn_test
+from iceg.turn_test import TurnTest, sign_test_p, turn_test
 from iceg_common.errors import LogFormatError
 from tests.conftest import shared_file
 
@@ -164,6 +164,14 @@ def test_a_jump_of_the_odometry_at_a_break_is_no_turn(office_scans: list[LaserSc
     assert turn_test(scans, IcegConfig()) is None
     unflagged = turn_test([dataclasses.replace(s, odom_break=False) for s in scans], IcegConfig())
     assert unflagged is not None and unflagged.heading_unusable
+
+
+@pytest.mark.parametrize(("wins", "losses"), [(0, 0), (7, 0), (0, 10), (49, 15), (3, 2), (60, 4)])
+def test_the_sign_test_is_the_binomial_tail(wins: int, losses: int) -> None:
+    from scipy.stats import binomtest
+
+    expected = binomtest(wins, wins + losses, 0.5, "greater").pvalue if wins + losses else 1.0
+    assert sign_test_p(wins, losses) == pytest.approx(expected, rel=1e-12)
 
 
 def _in_degrees(scans: list[LaserScan]) -> list[LaserScan]:
