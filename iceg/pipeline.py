@@ -214,14 +214,12 @@ def run_log(
     pose throughout, or turns where its walls do not, is read without it, as ``laser_only``
     reads it, and one whose walls turn against its odometry with its beams mirrored, as
     ``mirror_beams`` reads it (:func:`~iceg.log_checks.reading_adjustments`, recorded so for
-    its session). Each scan's
-    odometry is read at its stamp plus
-    ``odometry_time_offset_s``
+    its session). Each scan's odometry is read at its stamp plus ``odometry_time_offset_s``
     (:func:`~frontends.odometry_shift.shift_odometry`);
     ``result.metrics["odometry_time_offset"]`` holds that value and the offset the run's
-    matches measure (:func:`~iceg.odometry_timing.odometry_time_offset`), with a warning
-    when the measured one is significant. With ``"auto"`` (:data:`AUTO_OFFSET`) the offset
-    is measured before the run, each scan matched against the one before it
+    matches measure (:func:`~iceg.odometry_timing.odometry_time_offset`), warned when
+    significant. With ``"auto"`` (:data:`AUTO_OFFSET`) the offset is measured before the
+    run, each scan matched against the one before it
     (:func:`~iceg.odometry_timing.scan_pairs_time_offset`), and where significant the
     odometry is read there (docs/design.md "Readers", the latency); the metrics then also
     hold that measurement (``before_run``). Before the first scan, the robot's own body is
@@ -237,8 +235,8 @@ def run_log(
 
     Raises:
         LogFormatError: missing, unreadable or empty log, no return in it
-            (:func:`~iceg.log_checks.check_returns`),
-            disordered timestamps under ``"refuse"``, malformed relations.
+            (:func:`~iceg.log_checks.check_returns`), disordered timestamps under
+            ``"refuse"``, malformed relations.
         EvaluationError: the relations match no scan of the log.
         ConfigError: a non-finite ``odometry_time_offset_s``, a string other than
             ``"auto"``, or an offset with ``reader_options`` ``laser_only``.
