@@ -724,9 +724,10 @@ class RosbagReader:
             base = self._first_frame(bag, odom.topic or "", "child_frame_id")
         if base is None and odom.kind == "tf":
             base = odom.child_frame
-        if base is None and odom.kind == "none" and not _in_tf(s, laser_frame):
-            # No odometry and no transform names the laser: its frame is the robot's only
-            # frame (the trajectory is the laser's; a mounting option gives the base's).
+        unmounted = self.laser_frame_offset is None and not _in_tf(s, laser_frame)
+        if base is None and odom.kind == "none" and unmounted:
+            # No odometry and nothing places the laser: its frame is the robot's only frame
+            # (the trajectory is the laser's; a mounting option gives the base's).
             base = laser_frame
         child_to_base = None
         if odom.kind == "tf" and base is not None:

@@ -377,7 +377,10 @@ def test_rc_car_without_odometry_or_laser_tf_runs_in_the_laser_frame(
     np.testing.assert_array_equal(own[0].laser_offset, [0.0, 0.0, 0.0])
     rows = dict(open_log(bag).describe())  # type: ignore[attr-defined]
     assert rows["base frame"].startswith("laser (the laser's own")
-    scans = list(open_log(bag, laser_frame_offset=(-0.12, 0.0, 0.0)))
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="frontends.rosbag"):
+        scans = list(open_log(bag, laser_frame_offset=(-0.12, 0.0, 0.0)))
+    assert "no tf names laser frame" not in caplog.text  # the mounting was given
     for a, b in zip(own, scans, strict=True):  # the same scans, mounted as asked
         assert a.stamp_s == b.stamp_s
         np.testing.assert_array_equal(a.ranges_m, b.ranges_m)
