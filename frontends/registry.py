@@ -126,7 +126,7 @@ def open_log(
             it is otherwise (a bag's frames and laser mounting included).
         mirror_beams: Every scan's beams mirrored in the laser frame
             (:meth:`~frontends.scan.LaserScan.mirrored`): a laser mounted upside down that
-            the log does not say is (:mod:`iceg.turn_test` finds one).
+            the log does not say is (:mod:`iceg.odometry_check` finds one).
         **options: Passed to the reader (e.g. ``strict=False`` for the CARMEN reader,
             ``scan_topic="/scan"`` for ROS bags).
 

@@ -543,10 +543,10 @@ def info(
     lenient: SkipMalformedOption = False,
 ) -> None:
     """Print what a log holds: topics or record types, counts, duration, beams, range
-    limits, returns, odometry source, and whether its walls turn with its odometry."""
+    limits, returns, odometry source, and whether its walls turn and move with its odometry."""
     from frontends.registry import describe_log, open_log
     from iceg.config import IcegConfig
-    from iceg.log_checks import describe_turns
+    from iceg.log_checks import describe_odometry_check
     from iceg.scan_store import ScanStore
 
     options = _reader_options(
@@ -554,7 +554,7 @@ def info(
     )
     scans = ScanStore()
     rows = describe_log(open_log(log, **options), on_scan=scans.append)
-    rows += describe_turns(scans, IcegConfig())  # the scans a CARMEN log streamed
+    rows += describe_odometry_check(scans, IcegConfig())  # the scans a CARMEN log streamed
     typer.echo(f"iceg info: {log}")
     _print_table(rows)
 

@@ -1,9 +1,9 @@
 """What a log's scans say about how to read them, checked before a run (docs/design.md
 "Readers"): a log without a single return is refused (:func:`check_returns`); odometry that
 never moves is left out (:func:`motionless_odometry`); beams that turn against the odometry
-are mirrored, and an odometry heading the walls do not follow is left out
-(:func:`~iceg.turn_test.turn_test`). :func:`reading_adjustments` gives those as the reader
-options that read the log so (a session keeps them to read it again), and
+are mirrored, and an odometry whose heading or translation the walls do not follow is left
+out (:func:`~iceg.odometry_check.odometry_check`). :func:`reading_adjustments` gives those
+as the reader options that read the log so (a session keeps them to read it again), and
 :func:`~frontends.registry.adjust_scan` applies them to scans already read.
 """
 
@@ -17,8 +17,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from frontends import LaserScan
+from iceg.odometry_check import odometry_check
 from iceg.scan_store import ScanStore
-from iceg.turn_test import turn_test
 from iceg_common.errors import LogFormatError
 
 if TYPE_CHECKING:
@@ -27,11 +27,10 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 
-#: What a run does with a log where the turn test finds its reader option (the warning), and
-#: how it reads the log (``iceg info``).
+#: What a run does with a log where the odometry check finds its reader option (the
+#: warning), and how it reads the log (``iceg info``).
 _WHAT_A_RUN_DOES = {
-    "laser_only": "its heading is not the robot's (in degrees instead of radians? another "
-    "column?), so the log is read without it, as with --laser-only",
+    "laser_only": "the log is read without its odometry, as with --laser-only",
     "mirror_beams": "the laser is read mirrored, as one mounted upside down (or with its "
     "beams written clockwise); if the odometry is the one mirrored (left-handed), the map is "
     "the mirror image",
@@ -109,9 +108,10 @@ def reading_adjustments(
 ) -> dict[str, bool]:
     """The reader options (:func:`frontends.open_log`) that read a log as its scans say it
     must be read, each warned: ``laser_only`` where its odometry carries no motion
-    (:func:`motionless_odometry`) or its heading is not the robot's (the walls stay
-    unturned where it turns: :func:`~iceg.turn_test.turn_test`), ``mirror_beams`` where the
-    walls turn against it; empty where the log reads as it is.
+    (:func:`motionless_odometry`) or its heading or translation is not the robot's (the
+    walls stay unturned or unmoved where it turns or moves:
+    :func:`~iceg.odometry_check.odometry_check`), ``mirror_beams`` where the walls turn
+    against it; empty where the log reads as it is.
 
     Args:
         source: The log, for the warnings.
@@ -120,8 +120,8 @@ def reading_adjustments(
     """
     if motionless_odometry(source, scans):
         return {"laser_only": True}
-    test = turn_test(scans, config)
-    finding = None if test is None else test.finding()
+    check = odometry_check(scans, config)
+    finding = None if check is None else check.finding()
     if finding is None:
         return {}
     option, found = finding
@@ -129,18 +129,23 @@ def reading_adjustments(
     return {option: True}
 
 
-def describe_turns(
+def describe_odometry_check(
     scans: ScanStore | Sequence[LaserScan], config: IcegConfig
 ) -> list[tuple[str, str]]:
-    """``iceg info``'s row on how the walls turn with the odometry (``turn_test``), as
-    :func:`reading_adjustments` would read the log; none where the odometry has no turn to
-    compare (no odometry, one that never moves, no turn of 30-90 deg within 1 m)."""
-    test = turn_test(scans, config)
-    if test is None:
+    """``iceg info``'s row on how the walls turn and move with the odometry
+    (:func:`~iceg.odometry_check.odometry_check`), as :func:`reading_adjustments` would read
+    the log; none where the odometry has nothing to compare (no odometry, one that never
+    moves, no turn of 30-90 deg within 1 m and no move of 0.5-1 m)."""
+    check = odometry_check(scans, config)
+    if check is None:
         return []
-    finding = test.finding()
+    finding = check.finding()
     if finding is None:
-        text = f"they turn together ({test.as_read} of {test.as_read + test.mirrored} turns)"
+        text = (
+            f"they turn and move together ({check.as_read} of "
+            f"{check.as_read + check.mirrored} turns, {check.moved} of "
+            f"{check.moved + check.unmoved} moves)"
+        )
     else:
         option, found = finding
         text = f"{found}: a run reads the log {_HOW_A_RUN_READS[option]}"

@@ -102,9 +102,7 @@ def turn_pairs(poses: FloatArray, breaks: NDArray[np.bool_] | None = None) -> In
     n = p.shape[0]
     if n < 2:
         return np.zeros((0, 2), dtype=np.int64)
-    step = np.hypot(np.diff(p[:, 0]), np.diff(p[:, 1]))
-    # a step to or from a scan without a pose counts as beyond reach (its travel is unknown)
-    path = np.concatenate([[0.0], np.cumsum(np.nan_to_num(step, nan=2.0 * MAX_PATH_M))])
+    path = path_travelled(p)
     heading = np.full(n, np.nan)
     known = np.isfinite(p[:, 2])
     heading[known] = np.unwrap(p[known, 2])
@@ -116,11 +114,24 @@ def turn_pairs(poses: FloatArray, breaks: NDArray[np.bool_] | None = None) -> In
         first = np.flatnonzero(turn >= lo)
         if first.shape[0] and turn[first[0]] <= hi:
             pairs.append((k, k + 1 + int(first[0])))
-    out = np.array(pairs, dtype=np.int64).reshape(-1, 2)
+    return without_breaks(np.array(pairs, dtype=np.int64).reshape(-1, 2), breaks)
+
+
+def path_travelled(poses: FloatArray) -> FloatArray:
+    """``(N,)`` float64 metres along the path of ``poses`` (``(N, 3)``, scan order) from the
+    first; a step to or from a scan without a pose (a NaN row) counts as twice
+    :data:`MAX_PATH_M`, beyond the reach of any pair (its travel is unknown)."""
+    step = np.hypot(np.diff(poses[:, 0]), np.diff(poses[:, 1]))
+    return np.concatenate([[0.0], np.cumsum(np.nan_to_num(step, nan=2.0 * MAX_PATH_M))])
+
+
+def without_breaks(pairs: IntArray, breaks: NDArray[np.bool_] | None) -> IntArray:
+    """The ``(M, 2)`` scan index pairs ``(k, l)``, ``l > k``, with no odometry break between
+    their scans (``breaks``: ``(N,)`` bool, a break just before each scan; None: none)."""
     if breaks is None or not np.any(breaks):
-        return out
+        return pairs
     broken = np.concatenate([[0], np.cumsum(breaks, dtype=np.int64)])  # breaks up to scan i-1
-    return out[broken[out[:, 1] + 1] == broken[out[:, 0] + 1]]
+    return pairs[broken[pairs[:, 1] + 1] == broken[pairs[:, 0] + 1]]
 
 
 def _binned_beams(

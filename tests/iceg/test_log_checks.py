@@ -4,8 +4,8 @@
 whose odometry is one pose throughout is read without it, as ``--laser-only`` reads it
 (``motionless_odometry``; the run itself is compared bit for bit with ``--laser-only`` in
 ``test_cli.py``), a log whose walls turn against its odometry is read with its beams
-mirrored, and one whose walls do not turn where its odometry turns is read without the
-odometry (``iceg.turn_test``)."""
+mirrored, and one whose walls do not turn or move where its odometry turns or moves is read
+without the odometry (``iceg.odometry_check``)."""
 
 from __future__ import annotations
 
@@ -25,13 +25,13 @@ from iceg.batch_run import load_input
 from iceg.config import IcegConfig
 from iceg.log_checks import (
     check_returns,
-    describe_turns,
+    describe_odometry_check,
     motionless_odometry,
     reading_adjustments,
 )
+from iceg.odometry_check import OdometryCheck, move_pairs, odometry_check, sign_test_p
 from iceg.pipeline import read_log_scans, run_log
 from iceg.scan_store import ScanStore
-from iceg.turn_test import TurnTest, sign_test_p, turn_test
 from iceg_common.errors import LogFormatError
 from tests.conftest import shared_file
 
@@ -136,16 +136,32 @@ def test_mirrored_beams_are_told_by_the_turns(office_scans: list[LaserScan]) -> 
     # and in every one against it with the beams mirrored (p = 2^-61).
     scans = simulate(office_world(), seed=2).scans[:150]
     config = IcegConfig()
-    as_read = turn_test(scans, config)
-    assert as_read == TurnTest(7, 7, 0, 1.0, 7, 0, 1.0)
+    as_read = odometry_check(scans, config)
+    assert as_read == OdometryCheck(7, 7, 0, 1.0, 7, 0, 1.0, 7, 7, 0, 1.0)
     assert not as_read.beams_mirrored and not as_read.heading_unusable
-    mirrored = turn_test([s.mirrored() for s in scans], config)
+    mirrored = odometry_check([s.mirrored() for s in scans], config)
     assert mirrored is not None and (mirrored.as_read, mirrored.mirrored) == (0, 61)
     assert mirrored.p_mirrored == pytest.approx(0.5**61) and mirrored.beams_mirrored
     assert not mirrored.heading_unusable  # the walls do turn, the other way
-    assert turn_test(ScanStore([s.mirrored() for s in scans]), config) == mirrored
-    assert turn_test(office_scans[:20], config) is None  # no turn of 30 deg yet
-    assert turn_test([s.without_odometry() for s in scans], config) is None
+    assert odometry_check(ScanStore([s.mirrored() for s in scans]), config) == mirrored
+    early = odometry_check(office_scans[:20], config)  # no turn of 30 deg yet; moves
+    assert early == OdometryCheck(0, 0, 0, 1.0, 0, 0, 1.0, 7, 7, 0, 1.0)
+    assert odometry_check([s.without_odometry() for s in scans], config) is None
+
+
+def test_move_pairs_by_hand() -> None:
+    # Scans 0.2 m apart: each pairs with the first one 0.5 m or more along the path (three
+    # steps on, 0.6 m). A scan without a pose is a step beyond reach; a break is no move.
+    poses = np.array([[0.2 * k, 0.0, 0.0] for k in range(8)])
+    np.testing.assert_array_equal(move_pairs(poses), [[k, k + 3] for k in range(5)])
+    hole = poses.copy()
+    hole[4] = np.nan
+    np.testing.assert_array_equal(move_pairs(hole), [[0, 3]])  # 5-7: 0.4 m after the hole
+    breaks = np.zeros(8, dtype=bool)
+    breaks[5] = True
+    np.testing.assert_array_equal(move_pairs(poses, breaks), [[0, 3], [1, 4]])
+    far = np.array([[0.0, 0.0, 0.0], [1.2, 0.0, 0.0]])  # the next scan is beyond 1 m
+    assert move_pairs(far).shape == (0, 2)
 
 
 def test_a_jump_of_the_odometry_at_a_break_is_no_turn(office_scans: list[LaserScan]) -> None:
@@ -161,9 +177,10 @@ def test_a_jump_of_the_odometry_at_a_break_is_no_turn(office_scans: list[LaserSc
         )
         for i in range(40)
     ]
-    assert turn_test(scans, IcegConfig()) is None
-    unflagged = turn_test([dataclasses.replace(s, odom_break=False) for s in scans], IcegConfig())
-    assert unflagged is not None and unflagged.heading_unusable
+    assert odometry_check(scans, IcegConfig()) is None
+    unflagged = [dataclasses.replace(s, odom_break=False) for s in scans]
+    unflagged_check = odometry_check(unflagged, IcegConfig())
+    assert unflagged_check is not None and unflagged_check.heading_unusable
 
 
 @pytest.mark.parametrize(("wins", "losses"), [(0, 0), (7, 0), (0, 10), (49, 15), (3, 2), (60, 4)])
@@ -187,7 +204,7 @@ def test_a_heading_the_walls_do_not_follow_is_told(caplog: pytest.LogCaptureFixt
     # The whole office with the odometry's heading in degrees: a turn of 30-90 "degrees" as
     # radians is one of 0.5-1.6 deg, and in every such turn the walls line up unturned.
     scans = _in_degrees(simulate(office_world(), seed=2).scans)
-    test = turn_test(scans, IcegConfig())
+    test = odometry_check(scans, IcegConfig())
     assert test is not None and test.heading_unusable and not test.beams_mirrored
     assert test.turned == 0 and test.unturned >= 7 and test.p_unturned == 0.5**test.unturned
     with caplog.at_level(logging.WARNING, logger="iceg.log_checks"):
@@ -215,13 +232,30 @@ def test_real_logs_read_as_they_are_and_broken_ones_are_told(name: str) -> None:
     # right angles cannot tell). Beams reversed: mirrored; heading in degrees: unturned.
     scans = list(open_log(shared_file(name)))
     config = IcegConfig()
-    as_read = turn_test(scans, config)
-    assert as_read is not None and not as_read.beams_mirrored and not as_read.heading_unusable
+    as_read = odometry_check(scans, config)
+    assert as_read is not None and as_read.finding() is None
     assert as_read.as_read > 3 * as_read.mirrored and as_read.turned > 3 * as_read.unturned
-    mirrored = turn_test([s.mirrored() for s in scans], config)
+    assert as_read.moved > 3 * as_read.unmoved  # MIT CSAIL 7 of 7, csail.log 10 of 11
+    mirrored = odometry_check([s.mirrored() for s in scans], config)
     assert mirrored is not None and mirrored.beams_mirrored and mirrored.p_mirrored < 1e-4
-    degrees = turn_test(_in_degrees(scans), config)
+    degrees = odometry_check(_in_degrees(scans), config)
     assert degrees is not None and degrees.heading_unusable and degrees.p_unturned < 1e-3
+
+
+def test_an_odometry_in_centimetres_is_told_by_the_moves() -> None:
+    # MIT CSAIL with its odometry's x and y in centimetres: its moves of 0.5-1 "m" are the
+    # robot's 0.5-1 cm, and in each the walls line up better unmoved (12 of 12, p = 2^-12).
+    scans = list(open_log(shared_file("mit-csail/mit-csail.clf")))
+    centimetres = [
+        dataclasses.replace(s, odom_pose=s.odom_pose * np.array([100.0, 100.0, 1.0]))
+        for s in scans
+        if s.odom_pose is not None
+    ]
+    check = odometry_check(centimetres, IcegConfig())
+    assert check is not None and check.translation_unusable and not check.heading_unusable
+    assert (check.moved, check.unmoved) == (0, 12) and check.p_unmoved == 0.5**12
+    finding = check.finding()
+    assert finding is not None and finding[0] == "laser_only"
 
 
 @pytest.fixture(scope="module")
@@ -276,10 +310,10 @@ def test_info_says_how_the_walls_turn_with_the_odometry(
 
     log, scans = mirrored_log
     config = IcegConfig()
-    assert describe_turns(scans, config) == [
-        ("walls and odometry", "they turn together (7 of 7 turns)")
+    assert describe_odometry_check(scans, config) == [
+        ("walls and odometry", "they turn and move together (7 of 7 turns, 7 of 7 moves)")
     ]
-    assert describe_turns([s.without_odometry() for s in scans], config) == []
+    assert describe_odometry_check([s.without_odometry() for s in scans], config) == []
     result = CliRunner().invoke(app, ["info", str(log)])
     assert result.exit_code == 0, result.output
     row = r"walls and odometry +the walls turn against the odometry \(in 61 of 61 turns they "
