@@ -158,7 +158,7 @@ def load_input(task: RunTask) -> _Input:
     check_returns(task.source, scans)
     config = config_from_dict(task.config, source=f"batch variant {task.variant!r}")
     reads_odometry = task.odometry is None and not task.laser_only  # the log's own
-    adjusted = reading_adjustments(task.source, scans, config) if reads_odometry else {}
+    adjusted = reading_adjustments(task.source, scans, config).options if reads_odometry else {}
     if adjusted.get("mirror_beams"):
         scans = [s.mirrored() for s in scans]
     offset = task.odometry_time_offset_s

@@ -12,12 +12,12 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
 from frontends import LaserScan
-from iceg.odometry_check import odometry_check
+from iceg.odometry_check import OdometryCheck, odometry_check
 from iceg.scan_store import ScanStore
 from iceg_common.errors import LogFormatError
 
@@ -103,15 +103,29 @@ def motionless_odometry(source: str | Path, scans: ScanStore | Sequence[LaserSca
     return True
 
 
+class Reading(NamedTuple):
+    """How a log must be read (:func:`reading_adjustments`).
+
+    Attributes:
+        options: The reader options that read it so (``laser_only``, ``mirror_beams``;
+            empty: as it is).
+        check: The odometry check behind them (None: not made, the odometry never moves, or
+            nothing to compare).
+    """
+
+    options: dict[str, bool]
+    check: OdometryCheck | None
+
+
 def reading_adjustments(
     source: str | Path, scans: ScanStore | Sequence[LaserScan], config: IcegConfig
-) -> dict[str, bool]:
-    """The reader options (:func:`frontends.open_log`) that read a log as its scans say it
-    must be read, each warned: ``laser_only`` where its odometry carries no motion
-    (:func:`motionless_odometry`) or its heading or translation is not the robot's (the
-    walls stay unturned or unmoved where it turns or moves:
+) -> Reading:
+    """How a log must be read, as its scans say: the reader options
+    (:func:`frontends.open_log`), each warned, ``laser_only`` where its odometry carries no
+    motion (:func:`motionless_odometry`) or its heading or translation is not the robot's
+    (the walls stay unturned or unmoved where it turns or moves:
     :func:`~iceg.odometry_check.odometry_check`), ``mirror_beams`` where the walls turn
-    against it; empty where the log reads as it is.
+    against it, none where the log reads as it is; and the check behind them.
 
     Args:
         source: The log, for the warnings.
@@ -119,14 +133,14 @@ def reading_adjustments(
         config: The run's configuration (features, odometry noise).
     """
     if motionless_odometry(source, scans):
-        return {"laser_only": True}
+        return Reading({"laser_only": True}, None)
     check = odometry_check(scans, config)
     finding = None if check is None else check.finding()
     if finding is None:
-        return {}
+        return Reading({}, check)
     option, found = finding
     logger.warning("%s: %s: %s", source, found, _WHAT_A_RUN_DOES[option])
-    return {option: True}
+    return Reading({option: True}, check)
 
 
 def describe_odometry_check(

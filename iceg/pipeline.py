@@ -27,8 +27,9 @@ from iceg.consistency import FactorNees, factor_nees, per_node, relation_factor_
 from iceg.evaluation import position_errors, relation_errors
 from iceg.features.prefetch import FeaturePrefetcher, auto_workers
 from iceg.kernel_warmup import cache_is_new, probed
-from iceg.log_checks import check_returns, reading_adjustments
+from iceg.log_checks import Reading, check_returns, reading_adjustments
 from iceg.match_pool import MatchPool
+from iceg.odometry_check import OdometryCheck
 from iceg.odometry_timing import TimeOffsetEstimate, odometry_time_offset, offset_to_read
 from iceg.results import SlamResult
 from iceg.robot_body import (
@@ -250,12 +251,12 @@ def run_log(
     auto, before_run = odometry_time_offset_s == AUTO_OFFSET, None
     applied_s = 0.0 if isinstance(odometry_time_offset_s, str) else odometry_time_offset_s
     with _started(slam, lambda: _read(path, reader, applied_s, slam.config)) as (
-        (scans, report, measured, adjusted),
+        (scans, report, measured, reading),
         prefetch,
     ):
-        if adjusted:  # so read again by its session
-            reader_options = {**(reader_options or {}), **adjusted}
-        if adjusted.get("laser_only"):  # as --laser-only reads it: no odometry to offset
+        if reading.options:  # so read again by its session
+            reader_options = {**(reader_options or {}), **reading.options}
+        if reading.options.get("laser_only"):  # as --laser-only reads it: no odometry to offset
             auto, applied_s = False, 0.0
         if auto:
             scans, measured, applied_s, before_run = _at_measured_offset(
@@ -272,7 +273,7 @@ def run_log(
         slam = Slam(run_config)
         with helper_processes(slam) as prefetch:
             result = _process(slam, prefetch, scans, progress, len(scans))
-    _note_reading(result, path, reader_options, applied_s, (auto, before_run))
+    _note_reading(result, path, (reader_options, reading.check), applied_s, (auto, before_run))
     _log_metrics(result, path, (report, stamps), scans, measured, rel)
     return result
 
@@ -280,13 +281,17 @@ def run_log(
 def _note_reading(
     result: SlamResult,
     path: str | Path,
-    reader_options: Mapping[str, Any] | None,
+    read: tuple[Mapping[str, Any] | None, OdometryCheck | None],
     applied_s: float,
     measured_before: tuple[bool, TimeOffsetEstimate | None],
 ) -> None:
-    """How a log run read its log: in its session (to read the log again the same way) and
-    in ``result.metrics["odometry_time_offset"]`` (the offset applied, and with ``"auto"``
-    the measurement before the run, ``measured_before`` = ``(auto, measurement)``)."""
+    """How a log run read its log (``read`` = ``(reader options, odometry check)``): in its
+    session (to read the log again the same way), in ``result.metrics["odometry_check"]``
+    (:meth:`~iceg.odometry_check.OdometryCheck.as_dict`, None without one) and in
+    ``result.metrics["odometry_time_offset"]`` (the offset applied, and with ``"auto"`` the
+    measurement before the run, ``measured_before`` = ``(auto, measurement)``)."""
+    reader_options, check = read
+    result.metrics["odometry_check"] = None if check is None else check.as_dict()
     if result.slam is not None:
         from iceg.session import record_reading  # 23 ms of imports a run without a session skips
 
@@ -428,7 +433,7 @@ def _as_dict(estimate: TimeOffsetEstimate | None) -> dict[str, Any] | None:
 
 def _read(
     path: str | Path, reader: Iterable[LaserScan], offset_s: float, config: IcegConfig
-) -> tuple[ScanStore, StampReport | None, MeasuredScanner, dict[str, bool]]:
+) -> tuple[ScanStore, StampReport | None, MeasuredScanner, Reading]:
     """The log at ``path`` (``reader``, not yet iterated) in a store, compact (no LaserScan
     object per scan held during the run), each scan's odometry read at its stamp plus
     ``offset_s``, and read as the scans say it must be (:func:`~iceg.log_checks.
@@ -447,12 +452,12 @@ def _read(
     if not len(store):
         raise LogFormatError(f"{path}: the log holds no laser scans")
     check_returns(path, store)
-    adjusted = reading_adjustments(path, store, config)
-    if adjusted:
-        store = ScanStore(adjust_scan(scan, **adjusted) for scan in store)
+    reading = reading_adjustments(path, store, config)
+    if reading.options:
+        store = ScanStore(adjust_scan(scan, **reading.options) for scan in store)
     report = getattr(reader, "stamp_report", None)
     stamp_report = report if isinstance(report, StampReport) else None
-    return store, stamp_report, measure_scanner(config, store), adjusted
+    return store, stamp_report, measure_scanner(config, store), reading
 
 
 def read_log_scans(
@@ -485,7 +490,7 @@ def read_log_scans(
     check_log_file(Path(path))
     scans = list(open_log(path, stamps=stamps, **(reader_options or {})))
     check_returns(path, scans)
-    adjusted = reading_adjustments(path, scans, config)
+    adjusted = reading_adjustments(path, scans, config).options
     options = {**(reader_options or {}), **adjusted}
     scans = [adjust_scan(s, **adjusted) for s in scans] if adjusted else scans
     if adjusted.get("laser_only"):

@@ -494,6 +494,8 @@ def test_beams_that_turn_against_the_odometry_are_read_mirrored(tmp_path: Path) 
         result = runner.invoke(app, ["run", str(log), "--out", str(out), "--no-progress"])
         assert result.exit_code == 0, result.output
         _, poses[name] = read_tum(out / "trajectory.tum")
+        check = json.loads((out / "metrics.json").read_text())["odometry_check"]
+        assert check["beams_mirrored"] == (name == "mirrored") and check["turns"] >= 7
         session = sess.read(out / "session")
         options = session.manifest["logs"][0].get("reader_options", {})
         assert options == ({"mirror_beams": True} if name == "mirrored" else {})

@@ -208,7 +208,8 @@ def test_a_heading_the_walls_do_not_follow_is_told(caplog: pytest.LogCaptureFixt
     assert test is not None and test.heading_unusable and not test.beams_mirrored
     assert test.turned == 0 and test.unturned >= 7 and test.p_unturned == 0.5**test.unturned
     with caplog.at_level(logging.WARNING, logger="iceg.log_checks"):
-        assert reading_adjustments("deg.clf", scans, IcegConfig()) == {"laser_only": True}
+        reading = reading_adjustments("deg.clf", scans, IcegConfig())
+    assert reading.options == {"laser_only": True} and reading.check == test
     assert "deg.clf: the walls do not turn where the odometry turns" in caplog.text
     assert "(in degrees instead of radians? another column?)" in caplog.text
 
