@@ -50,8 +50,9 @@ def test_the_store_read_aside_is_the_store_read_here_bit_for_bit() -> None:
     config = IcegConfig()
     with compute_aside(lambda: pipeline._read(path, open_log(path), -0.12, config)) as reading:
         assert reading._proc is not None  # it is read in another process
-        store, report, (run_config, body, dropouts), dropped = reading.result()
-    assert not dropped  # its odometry moves
+        store, report, (run_config, body, dropouts), how = reading.result()
+    assert how.options == {}  # its odometry moves, and the walls turn and move with it
+    assert how.check is not None and how.check.finding() is None
     _assert_same_store(store, here)
     assert report is not None and report.as_dict()["out_of_order"] == 0
     # the scanner is measured there too: a SICK that sees none of its robot and loses few
