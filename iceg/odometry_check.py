@@ -106,10 +106,10 @@ class OdometryCheck:
     turned: int
     unturned: int
     p_unturned: float
-    moves: int = 0
-    moved: int = 0
-    unmoved: int = 0
-    p_unmoved: float = 1.0
+    moves: int
+    moved: int
+    unmoved: int
+    p_unmoved: float
 
     @property
     def heading_unusable(self) -> bool:

@@ -122,7 +122,8 @@ def path_travelled(poses: FloatArray) -> FloatArray:
     first; a step to or from a scan without a pose (a NaN row) counts as twice
     :data:`MAX_PATH_M`, beyond the reach of any pair (its travel is unknown)."""
     step = np.hypot(np.diff(poses[:, 0]), np.diff(poses[:, 1]))
-    return np.concatenate([[0.0], np.cumsum(np.nan_to_num(step, nan=2.0 * MAX_PATH_M))])
+    path = np.concatenate([[0.0], np.cumsum(np.nan_to_num(step, nan=2.0 * MAX_PATH_M))])
+    return path[: poses.shape[0]]  # (0,) for no pose
 
 
 def without_breaks(pairs: IntArray, breaks: NDArray[np.bool_] | None) -> IntArray:
