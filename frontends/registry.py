@@ -11,7 +11,7 @@ import gzip
 import inspect
 import io
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -112,6 +112,7 @@ def open_log(
     *,
     laser_only: bool = False,
     mirror_beams: bool = False,
+    odometry_stalls_s: Sequence[Sequence[float]] = (),
     **options: Any,
 ) -> LogReader:
     """Open a laser log for streaming.
@@ -127,6 +128,9 @@ def open_log(
         mirror_beams: Every scan's beams mirrored in the laser frame
             (:meth:`~frontends.scan.LaserScan.mirrored`): a laser mounted upside down that
             the log does not say is (:mod:`iceg.odometry_check` finds one).
+        odometry_stalls_s: ``[start_s, end_s]`` stamp intervals (inclusive) whose scans are
+            read without odometry: where it held one pose while the robot moved
+            (:mod:`iceg.odometry_stalls` finds them).
         **options: Passed to the reader (e.g. ``strict=False`` for the CARMEN reader,
             ``scan_topic="/scan"`` for ROS bags).
 
@@ -155,14 +159,19 @@ def open_log(
             + (" (strict: --skip-malformed, for CARMEN logs)" if strict else "")
         ) from None
     reader = spec.factory(p, **options)
-    if laser_only or mirror_beams:
-        return AdjustedReader(reader, laser_only=laser_only, mirror_beams=mirror_beams)
+    if laser_only or mirror_beams or len(odometry_stalls_s):
+        return AdjustedReader(reader, laser_only, mirror_beams, odometry_stalls_s)
     return reader
 
 
-def adjust_scan(scan: LaserScan, laser_only: bool = False, mirror_beams: bool = False) -> LaserScan:
+def adjust_scan(
+    scan: LaserScan,
+    laser_only: bool = False,
+    mirror_beams: bool = False,
+    odometry_stalls_s: Sequence[Sequence[float]] = (),
+) -> LaserScan:
     """``scan`` as :class:`AdjustedReader` reads it with these options."""
-    if laser_only:
+    if laser_only or any(start <= scan.stamp_s <= end for start, end in odometry_stalls_s):
         scan = scan.without_odometry()
     return scan.mirrored() if mirror_beams else scan
 
@@ -171,25 +180,34 @@ class AdjustedReader:
     """A reader's scans read otherwise than the log has them: with their odometry left out
     (``laser_only``: ``odom_pose=None`` and no ``odom_break``; a laser-only run, e.g. of a
     log whose wheel odometry is wrong; the SLAM predicts each scan by constant velocity),
-    and/or with their beams mirrored (``mirror_beams``: a laser mounted upside down).
-    Everything else (stamps, laser mounting, sources) is the reader's.
+    and/or with their beams mirrored (``mirror_beams``: a laser mounted upside down), and/or
+    the scans of stamp intervals without their odometry (``odometry_stalls_s``: where it held
+    one pose while the robot moved). Everything else (stamps, laser mounting, sources) is the
+    reader's.
 
     Args:
         reader: The log's own reader.
         laser_only: Leave the odometry out (:meth:`~frontends.scan.LaserScan.without_odometry`).
         mirror_beams: Mirror the beams (:meth:`~frontends.scan.LaserScan.mirrored`).
+        odometry_stalls_s: ``[start_s, end_s]`` stamp intervals (inclusive) whose scans are
+            read without odometry.
 
     Attributes:
         path: The log (the reader's).
     """
 
     def __init__(
-        self, reader: LogReader, laser_only: bool = False, mirror_beams: bool = False
+        self,
+        reader: LogReader,
+        laser_only: bool = False,
+        mirror_beams: bool = False,
+        odometry_stalls_s: Sequence[Sequence[float]] = (),
     ) -> None:
         self.reader = reader
         self.path = reader.path
         self.laser_only = laser_only
         self.mirror_beams = mirror_beams
+        self.odometry_stalls_s = [(float(a), float(b)) for a, b in odometry_stalls_s]
 
     @property
     def stamp_report(self) -> StampReport | None:
@@ -200,7 +218,7 @@ class AdjustedReader:
 
     def __iter__(self) -> Iterator[LaserScan]:
         for scan in self.reader:
-            yield adjust_scan(scan, self.laser_only, self.mirror_beams)
+            yield adjust_scan(scan, self.laser_only, self.mirror_beams, self.odometry_stalls_s)
 
     def count_scans(self) -> int:
         """Number of scans in the log (the reader's count)."""

@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 
 from frontends import LaserScan, open_log
 from frontends.odometry_shift import shift_odometry
+from frontends.registry import adjust_scan
 from frontends.relations import Relations, match_stamps, read_relations
 from frontends.simulate import OdometryModel, simulate_scenario, synthetic_odometry
 from frontends.tum import read_tum
@@ -127,7 +128,7 @@ class _Input:
     reference: FloatArray | None = None  # (N, 3) per scan, NaN rows where unknown
     relations: Relations | None = None
     offset_s: float = 0.0  # the odometry time offset the scans' odometry is read at
-    adjusted: dict[str, bool] = field(default_factory=dict)  # log_checks.reading_adjustments
+    adjusted: dict[str, Any] = field(default_factory=dict)  # log_checks.reading_adjustments
 
 
 # ---------------------------------------------------------------------------- input
@@ -178,6 +179,9 @@ def load_input(task: RunTask) -> _Input:
         data.reference = np.array([s.odom_pose for s in data.scans], dtype=np.float64)
     if task.laser_only or adjusted.get("laser_only"):
         data.scans = [s.without_odometry() for s in data.scans]
+    elif adjusted.get("odometry_stalls_s"):
+        stalls = adjusted["odometry_stalls_s"]
+        data.scans = [adjust_scan(s, odometry_stalls_s=stalls) for s in data.scans]
     if task.reference not in (None, LOG_ODOMETRY):
         data.reference = _tum_reference(task.reference, data.scans)
     if task.relations is not None:

@@ -1,10 +1,12 @@
 """What a log's scans say about how to read them, checked before a run (docs/design.md
 "Readers"): a log without a single return is refused (:func:`check_returns`); odometry that
-never moves is left out (:func:`motionless_odometry`); beams that turn against the odometry
-are mirrored, and an odometry whose heading or translation the walls do not follow is left
-out (:func:`~iceg.odometry_check.odometry_check`). :func:`reading_adjustments` gives those
-as the reader options that read the log so (a session keeps them to read it again), and
-:func:`~frontends.registry.adjust_scan` applies them to scans already read.
+never moves is left out (:func:`motionless_odometry`), and so is odometry where it holds
+one pose while the scans move (:func:`~iceg.odometry_stalls.odometry_stalls`); beams that
+turn against the odometry are mirrored, and an odometry whose heading or translation the
+walls do not follow is left out (:func:`~iceg.odometry_check.odometry_check`).
+:func:`reading_adjustments` gives those as the reader options that read the log so (a
+session keeps them to read it again), and :func:`~frontends.registry.adjust_scan` applies
+them to scans already read.
 """
 
 from __future__ import annotations
@@ -12,13 +14,14 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
 from frontends import LaserScan
 from iceg.odometry_check import OdometryCheck, odometry_check
-from iceg.scan_store import ScanStore
+from iceg.odometry_stalls import OdometryStall, odometry_stalls
+from iceg.scan_store import ScanStore, odometry_of
 from iceg_common.errors import LogFormatError
 
 if TYPE_CHECKING:
@@ -82,11 +85,7 @@ def motionless_odometry(source: str | Path, scans: ScanStore | Sequence[LaserSca
         source: The log, for the warning.
         scans: Its scans, as read.
     """
-    if isinstance(scans, ScanStore):
-        odom_poses = scans.odometry[1]
-    else:
-        nan = np.full(3, np.nan)
-        odom_poses = np.array([nan if s.odom_pose is None else s.odom_pose for s in scans])
+    odom_poses = odometry_of(scans)[1]
     n = len(scans)
     if n < 2 or not np.isfinite(odom_poses).all() or not (odom_poses == odom_poses[0]).all():
         return False
@@ -107,14 +106,16 @@ class Reading(NamedTuple):
     """How a log must be read (:func:`reading_adjustments`).
 
     Attributes:
-        options: The reader options that read it so (``laser_only``, ``mirror_beams``;
-            empty: as it is).
+        options: The reader options that read it so (``laser_only``, ``mirror_beams``,
+            ``odometry_stalls_s``; empty: as it is).
         check: The odometry check behind them (None: not made, the odometry never moves, or
             nothing to compare).
+        stalls: The runs of scans whose odometry stalled (read without it).
     """
 
-    options: dict[str, bool]
+    options: dict[str, Any]
     check: OdometryCheck | None
+    stalls: tuple[OdometryStall, ...] = ()
 
 
 def reading_adjustments(
@@ -125,7 +126,9 @@ def reading_adjustments(
     motion (:func:`motionless_odometry`) or its heading or translation is not the robot's
     (the walls stay unturned or unmoved where it turns or moves:
     :func:`~iceg.odometry_check.odometry_check`), ``mirror_beams`` where the walls turn
-    against it, none where the log reads as it is; and the check behind them.
+    against it, ``odometry_stalls_s`` over the runs of scans where it holds one pose while
+    they move (:func:`~iceg.odometry_stalls.odometry_stalls`), none where the log reads as
+    it is; and the checks behind them.
 
     Args:
         source: The log, for the warnings.
@@ -136,11 +139,40 @@ def reading_adjustments(
         return Reading({"laser_only": True}, None)
     check = odometry_check(scans, config)
     finding = None if check is None else check.finding()
-    if finding is None:
-        return Reading({}, check)
-    option, found = finding
-    logger.warning("%s: %s: %s", source, found, _WHAT_A_RUN_DOES[option])
-    return Reading({option: True}, check)
+    if finding is not None and finding[0] == "laser_only":
+        option, found = finding
+        logger.warning("%s: %s: %s", source, found, _WHAT_A_RUN_DOES[option])
+        return Reading({option: True}, check)
+    options: dict[str, Any] = {}
+    if finding is not None:
+        option, found = finding
+        logger.warning("%s: %s: %s", source, found, _WHAT_A_RUN_DOES[option])
+        options[option] = True
+    stalls = tuple(odometry_stalls(scans, config))
+    for stall in stalls:
+        _warn_stall(source, scans, stall)
+    if stalls:
+        options["odometry_stalls_s"] = [[stall.start_s, stall.end_s] for stall in stalls]
+    return Reading(options, check, stalls)
+
+
+def _warn_stall(
+    source: str | Path, scans: ScanStore | Sequence[LaserScan], stall: OdometryStall
+) -> None:
+    """The warning of a run of scans read without their odometry, which held there."""
+    logger.warning(
+        "%s: the odometry holds one pose over %d scans (%s to %s, %.1f s) while the scans "
+        "move (in %d of %d pairs of consecutive scans compared, p = %.1g): those scans are "
+        "read without odometry",
+        source,
+        stall.stop - stall.first + 1,
+        scans[stall.first - 1].source,
+        scans[stall.stop - 1].source,
+        stall.end_s - scans[stall.first - 1].stamp_s,
+        stall.moved,
+        stall.moved + stall.stood,
+        stall.p,
+    )
 
 
 def describe_odometry_check(

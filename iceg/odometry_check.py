@@ -55,7 +55,7 @@ from numpy.typing import NDArray
 from graph import odometry_covariance
 from iceg.features.extract import extract
 from iceg.robot_body import MAX_PATH_M, path_travelled, turn_pairs, without_breaks
-from iceg.scan_store import ScanStore
+from iceg.scan_store import ScanStore, odometry_of
 from iceg_common import se2
 
 if TYPE_CHECKING:
@@ -184,13 +184,7 @@ def odometry_check(
         (seven of seven where every pair decides), else all of them: stopping early can
         only keep a log as read, so the other readings keep the sign tests' level.
     """
-    if isinstance(scans, ScanStore):
-        _, odometry, breaks = scans.odometry
-    else:
-        nan = np.full(3, np.nan)
-        odometry = np.array([nan if s.odom_pose is None else s.odom_pose for s in scans])
-        breaks = np.array([s.odom_break for s in scans], dtype=bool)
-    odometry = odometry.reshape(-1, 3)
+    _, odometry, breaks = odometry_of(scans)
     turns = _spread(turn_pairs(odometry, breaks))
     moves = _spread(move_pairs(odometry, breaks))
     if turns.shape[0] == 0 and moves.shape[0] == 0:

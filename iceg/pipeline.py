@@ -29,7 +29,6 @@ from iceg.features.prefetch import FeaturePrefetcher, auto_workers
 from iceg.kernel_warmup import cache_is_new, probed
 from iceg.log_checks import Reading, check_returns, reading_adjustments
 from iceg.match_pool import MatchPool
-from iceg.odometry_check import OdometryCheck
 from iceg.odometry_timing import TimeOffsetEstimate, odometry_time_offset, offset_to_read
 from iceg.results import SlamResult
 from iceg.robot_body import (
@@ -273,7 +272,7 @@ def run_log(
         slam = Slam(run_config)
         with helper_processes(slam) as prefetch:
             result = _process(slam, prefetch, scans, progress, len(scans))
-    _note_reading(result, path, (reader_options, reading.check), applied_s, (auto, before_run))
+    _note_reading(result, path, (reader_options, reading), applied_s, (auto, before_run))
     _log_metrics(result, path, (report, stamps), scans, measured, rel)
     return result
 
@@ -281,17 +280,21 @@ def run_log(
 def _note_reading(
     result: SlamResult,
     path: str | Path,
-    read: tuple[Mapping[str, Any] | None, OdometryCheck | None],
+    read: tuple[Mapping[str, Any] | None, Reading],
     applied_s: float,
     measured_before: tuple[bool, TimeOffsetEstimate | None],
 ) -> None:
-    """How a log run read its log (``read`` = ``(reader options, odometry check)``): in its
-    session (to read the log again the same way), in ``result.metrics["odometry_check"]``
-    (:meth:`~iceg.odometry_check.OdometryCheck.as_dict`, None without one) and in
+    """How a log run read its log (``read`` = ``(reader options, the checks' reading)``): in
+    its session (to read the log again the same way), in ``result.metrics["odometry_check"]``
+    (:meth:`~iceg.odometry_check.OdometryCheck.as_dict`, None without one),
+    ``result.metrics["odometry_stalls"]`` (the runs read without their held odometry,
+    :meth:`~iceg.odometry_stalls.OdometryStall.as_dict` each) and
     ``result.metrics["odometry_time_offset"]`` (the offset applied, and with ``"auto"`` the
     measurement before the run, ``measured_before`` = ``(auto, measurement)``)."""
-    reader_options, check = read
+    reader_options, reading = read
+    check = reading.check
     result.metrics["odometry_check"] = None if check is None else check.as_dict()
+    result.metrics["odometry_stalls"] = [stall.as_dict() for stall in reading.stalls]
     if result.slam is not None:
         from iceg.session import record_reading  # 23 ms of imports a run without a session skips
 

@@ -336,6 +336,21 @@ class ScanStore(Sequence[LaserScan]):
         return list(itertools.pairwise(cuts))
 
 
+def odometry_of(
+    scans: ScanStore | Sequence[LaserScan],
+) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+    """Every scan's stamp ``(N,)`` (s), odometry pose ``(N, 3)`` float64 ``[x_m, y_m,
+    theta_rad]`` (NaN rows: no odometry) and odometry break flag ``(N,)``, of a store
+    (:attr:`ScanStore.odometry`) or a list of scans alike."""
+    if isinstance(scans, ScanStore):
+        return scans.odometry
+    stamps = np.array([s.stamp_s for s in scans], dtype=np.float64)
+    nan = np.full(3, np.nan)
+    poses = np.array([nan if s.odom_pose is None else s.odom_pose for s in scans])
+    breaks = np.array([s.odom_break for s in scans], dtype=bool)
+    return stamps, poses.reshape(-1, 3).astype(np.float64), breaks
+
+
 def _encode(ranges: FloatArray) -> tuple[int, np.ndarray]:
     """The first of :data:`RANGE_ENCODINGS` that gives back every bit of ``ranges``:
     ``(index, encoded array)``. An integer encoding stores ``rint(range * scale)``; its

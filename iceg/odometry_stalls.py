@@ -1,0 +1,190 @@
+"""Odometry that holds one pose while the scans move: a stalled odometry.
+
+A wheel odometry that stops reporting (a driver that hangs, a topic that stops, encoders
+that drop out) leaves a log's scans with the last pose it gave, bit for bit, while the robot
+drives on. A run then sees no motion: no keyframe until ``slam.keyframe_max_interval_s``,
+whose prediction misses every metre driven meanwhile, and a jump, or a lasting offset, where
+the odometry comes back. MIT CSAIL with its odometry held over scans 800-999 (43 s) gave
+0.97 m / 5.5° against its relations where it comes back at the robot's pose, 1.27 m / 6.4°
+where it comes back offset by the motion it missed (0.0298 m / 0.417° as recorded).
+
+A robot that stands still holds its odometry too (MIT CSAIL stands for 7 s at its start and
+6 s at its end), so a held pose alone says nothing: the scans tell the two apart. In each run
+of consecutive scans whose odometry is one pose (:func:`held_runs`), consecutive scans are
+compared: the later scan is ICE-matched against the earlier one at the held pose (identity
+prediction, the local match's bounds), and the pair moved where the match places it beyond
+the chi-square quantile of :data:`~iceg.slam.CONSISTENCY_PROBABILITY` under the match's own
+covariance, stood where within it, and tells nothing where the match fails. The ranges beam
+by beam cannot tell it: a scanner driven along a corridor measures its side walls at the
+same ranges (the office world's robot moving 10 cm a scan: median difference under 3 cm),
+where the match finds the motion from the corners and ends (9.8 cm, standard deviation
+2.8 mm along the corridor).
+The odometry stalled over the run where moved pairs outnumber stood ones beyond chance: a
+one-sided sign test at :data:`~iceg.odometry_check.SIGNIFICANCE_LEVEL` over at most
+:data:`MAX_PAIRS` pairs evenly spread over the run. A run of fewer than 8 scans cannot pass
+it (7 of 7 pairs is the least significant win): MIT CSAIL holds its odometry over 4-5 scans
+three times while the robot drives 10-22 cm a scan, and its odometry catches up after each.
+
+The scans of a stalled run after its first are read without odometry
+(:func:`frontends.open_log`'s ``odometry_stalls_s``): each is a node tracked by the laser
+alone, predicted by constant velocity, and the scan after the run starts the odometry
+again as after a break.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from iceg.features.extract import extract
+from iceg.matching.config import MatchBounds
+from iceg.matching.matcher import IceMatcher
+from iceg.odometry_check import SIGNIFICANCE_LEVEL, sign_test_p
+from iceg.scan_store import ScanStore, odometry_of
+from iceg.slam import chi2_3dof
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from frontends import LaserScan
+    from iceg.config import IcegConfig
+    from iceg.types import ScanFeatures
+
+FloatArray = NDArray[np.float64]
+
+#: Most pairs compared in one held run, evenly spread over it: a stall wins nearly all of
+#: them (MIT CSAIL held over 200 scans: 22 of the 22 that match; the simulated two-loop
+#: world: 20 of 24), a robot standing still is decided in six.
+MAX_PAIRS = 24
+#: Scans back to the second match of a pair whose step the first could not tell from
+#: standing: the simulated two-loop world's robot moves 10 cm a scan where the walls fix
+#: the motion along them to 3-6 cm (two of seven steps beyond the quantile), 30 cm there.
+LONGER_STEP = 3
+
+_ORIGIN = np.zeros(3)
+
+
+@dataclass(frozen=True)
+class OdometryStall:
+    """A run of scans whose odometry holds one pose while they move (module docstring).
+
+    Attributes:
+        first, stop: Scans ``[first, stop)`` read without odometry: the held run but its
+            first scan, whose pose the odometry holds.
+        start_s, end_s: Stamps of scans ``first`` and ``stop - 1``, seconds.
+        moved, stood: Compared pairs in which the scans moved, and stood.
+        p: One-sided binomial probability of ``moved`` or more of ``moved + stood`` by
+            chance.
+    """
+
+    first: int
+    stop: int
+    start_s: float
+    end_s: float
+    moved: int
+    stood: int
+    p: float
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready fields."""
+        return asdict(self)
+
+
+def held_runs(odometry: FloatArray, breaks: NDArray[np.bool_]) -> list[tuple[int, int]]:
+    """The runs ``[lo, hi)`` of two or more consecutive scans whose odometry is one finite
+    pose, bit for bit, with no odometry break within them.
+
+    Args:
+        odometry: ``(N, 3)`` float64 odometry poses in scan order (NaN rows: none).
+        breaks: ``(N,)`` bool, an odometry break just before each scan.
+    """
+    poses = np.asarray(odometry, dtype=np.float64).reshape(-1, 3)
+    finite = np.all(np.isfinite(poses[1:]), axis=1)
+    repeated = np.all(poses[1:] == poses[:-1], axis=1)
+    same = repeated & finite & ~np.asarray(breaks, dtype=bool).reshape(-1)[1:]
+    edges = np.diff(np.concatenate(([0], same.astype(np.int8), [0])))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    return [(int(lo), int(hi) + 1) for lo, hi in zip(starts, ends, strict=True)]
+
+
+def odometry_stalls(
+    scans: ScanStore | Sequence[LaserScan], config: IcegConfig
+) -> list[OdometryStall]:
+    """The runs of ``scans`` whose odometry stalled (module docstring), in scan order.
+
+    Args:
+        scans: A log's scans in time order, with their odometry (``odom_pose``, ``odom_break``).
+        config: Its run's configuration: the features' and the matcher's settings, the local
+            match's bounds.
+    """
+    stamps, odometry, breaks = odometry_of(scans)
+    runs = [r for r in held_runs(odometry, breaks) if _may_pass(r[1] - r[0] - 1)]
+    if not runs:
+        return []
+    compare = _PairComparison(scans, config)
+    stalls = []
+    for lo, hi in runs:
+        moved, stood = compare.run(lo, hi)
+        p = sign_test_p(moved, stood)
+        if p < SIGNIFICANCE_LEVEL:
+            start_s, end_s = float(stamps[lo + 1]), float(stamps[hi - 1])
+            stalls.append(OdometryStall(lo + 1, hi, start_s, end_s, moved, stood, p))
+    return stalls
+
+
+def _may_pass(n_pairs: int) -> bool:
+    """Whether a run of ``n_pairs`` consecutive pairs can pass the sign test at all."""
+    return sign_test_p(min(n_pairs, MAX_PAIRS), 0) < SIGNIFICANCE_LEVEL
+
+
+class _PairComparison:
+    """Consecutive scans compared at one pose (module docstring), each scan's features
+    extracted once."""
+
+    def __init__(self, scans: ScanStore | Sequence[LaserScan], config: IcegConfig) -> None:
+        self.scans, self.config = scans, config
+        self.features: dict[int, ScanFeatures] = {}
+        self.matcher = IceMatcher(config.matching)
+        self.bounds = MatchBounds.local(
+            config.slam.match_max_translation_m, config.slam.match_max_rotation_deg
+        )
+
+    def run(self, lo: int, hi: int) -> tuple[int, int]:
+        """The pairs that moved and that stood of up to :data:`MAX_PAIRS` of run
+        ``[lo, hi)``, compared in order until the stood ones leave the sign test no chance
+        (which stops only in favour of the odometry, so the test keeps its level)."""
+        n_pairs = hi - lo - 1
+        later = lo + 1 + np.linspace(0, n_pairs - 1, min(n_pairs, MAX_PAIRS)).round()
+        moved = stood = 0
+        for n, k in enumerate(later.astype(np.int64).tolist(), start=1):
+            verdict = self._moved(k, lo)
+            moved += verdict is True
+            stood += verdict is False
+            if sign_test_p(moved + len(later) - n, stood) >= SIGNIFICANCE_LEVEL:
+                break
+        return moved, stood
+
+    def _moved(self, k: int, lo: int) -> bool | None:
+        """Whether scan ``k`` moved from the scan before it, or failing that (a motion
+        within the match's uncertainty, or no match) from the scan :data:`LONGER_STEP`
+        before it (or the run's first, ``lo``, where nearer): True where either match places it beyond the
+        chi-square quantile, False where one places it within and none beyond, None where
+        both fail."""
+        verdict = None
+        for back in sorted({1, min(LONGER_STEP, k - lo)}):
+            new, reference = self._features(k), self._features(k - back)
+            result = self.matcher.match(new, reference, _ORIGIN, self.bounds)
+            if result.success:
+                pose = np.asarray(result.pose, dtype=np.float64)
+                if pose @ np.linalg.solve(result.cov, pose) > chi2_3dof():
+                    return True
+                verdict = False
+        return verdict
+
+    def _features(self, k: int) -> ScanFeatures:
+        if k not in self.features:
+            self.features[k] = extract(self.scans[k], self.config.features)
+        return self.features[k]
