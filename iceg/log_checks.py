@@ -162,8 +162,8 @@ def _warn_stall(
     """The warning of a run of scans read without their odometry, which held there."""
     logger.warning(
         "%s: the odometry holds one pose over %d scans (%s to %s, %.1f s) while the scans "
-        "move (in %d of %d pairs of consecutive scans compared, p = %.1g): those scans are "
-        "read without odometry",
+        "move (in %d of %d pairs of its scans matched, p = %.1g): those scans are read "
+        "without odometry",
         source,
         stall.stop - stall.first + 1,
         scans[stall.first - 1].source,

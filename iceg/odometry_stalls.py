@@ -170,9 +170,9 @@ class _PairComparison:
     def _moved(self, k: int, lo: int) -> bool | None:
         """Whether scan ``k`` moved from the scan before it, or failing that (a motion
         within the match's uncertainty, or no match) from the scan :data:`LONGER_STEP`
-        before it (or the run's first, ``lo``, where nearer): True where either match places it beyond the
-        chi-square quantile, False where one places it within and none beyond, None where
-        both fail."""
+        before it (or the run's first, ``lo``, where nearer): True where either match
+        places it beyond the chi-square quantile, False where one places it within and none
+        beyond, None where both fail."""
         verdict = None
         for back in sorted({1, min(LONGER_STEP, k - lo)}):
             new, reference = self._features(k), self._features(k - back)
