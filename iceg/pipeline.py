@@ -249,10 +249,8 @@ def run_log(
     result: SlamResult | None = None
     auto, before_run = odometry_time_offset_s == AUTO_OFFSET, None
     applied_s = 0.0 if isinstance(odometry_time_offset_s, str) else odometry_time_offset_s
-    with _started(slam, lambda: _read(path, reader, applied_s, slam.config)) as (
-        (scans, report, measured, reading),
-        prefetch,
-    ):
+    with _started(slam, lambda: _read(path, reader, applied_s)) as ((read, report), prefetch):
+        scans, measured, reading = _checked(path, read, slam.config)
         if reading.options:  # so read again by its session
             reader_options = {**(reader_options or {}), **reading.options}
         if reading.options.get("laser_only"):  # as --laser-only reads it: no odometry to offset
@@ -435,32 +433,42 @@ def _as_dict(estimate: TimeOffsetEstimate | None) -> dict[str, Any] | None:
 
 
 def _read(
-    path: str | Path, reader: Iterable[LaserScan], offset_s: float, config: IcegConfig
-) -> tuple[ScanStore, StampReport | None, MeasuredScanner, Reading]:
+    path: str | Path, reader: Iterable[LaserScan], offset_s: float
+) -> tuple[ScanStore, StampReport | None]:
     """The log at ``path`` (``reader``, not yet iterated) in a store, compact (no LaserScan
     object per scan held during the run), each scan's odometry read at its stamp plus
-    ``offset_s``, and read as the scans say it must be (:func:`~iceg.log_checks.
-    reading_adjustments`: without an odometry that carries no motion or turns where the
-    walls do not, with beams that turn against the odometry mirrored); the reader's stamp
-    report (out-of-order and duplicate stamps, odometry breaks; None for a reader without
-    one); ``config`` with what the scans show of the scanner (:func:`measure_scanner`: it
-    runs in the process that reads, beside the start); and the reader options of those
-    adjustments.
+    ``offset_s``; and the reader's stamp report (out-of-order and duplicate stamps, odometry
+    breaks; None for a reader without one). No compiled kernel runs here (it runs in the
+    forked process of :func:`_started`, beside the loading of numba's registry).
 
     Raises:
-        LogFormatError: the log holds no scan, or no return
-            (:func:`~iceg.log_checks.check_returns`).
+        LogFormatError: the log holds no scan.
     """
     store = ScanStore(shift_odometry(while_caller_runs(reader), offset_s))
     if not len(store):
         raise LogFormatError(f"{path}: the log holds no laser scans")
+    report = getattr(reader, "stamp_report", None)
+    return store, report if isinstance(report, StampReport) else None
+
+
+def _checked(
+    path: str | Path, store: ScanStore, config: IcegConfig
+) -> tuple[ScanStore, MeasuredScanner, Reading]:
+    """The log's scans read as they say they must be (:func:`~iceg.log_checks.
+    reading_adjustments`: without an odometry that carries no motion or turns where the
+    walls do not, with beams that turn against the odometry mirrored, without it where it
+    holds while they move); ``config`` with what the scans show of the scanner
+    (:func:`measure_scanner`); and the reading. Its first feature extraction and match load
+    the compiled kernels the run's first keyframes would load otherwise.
+
+    Raises:
+        LogFormatError: no return in the log (:func:`~iceg.log_checks.check_returns`).
+    """
     check_returns(path, store)
     reading = reading_adjustments(path, store, config)
     if reading.options:
         store = ScanStore(adjust_scan(scan, **reading.options) for scan in store)
-    report = getattr(reader, "stamp_report", None)
-    stamp_report = report if isinstance(report, StampReport) else None
-    return store, stamp_report, measure_scanner(config, store), reading
+    return store, measure_scanner(config, store), reading
 
 
 def read_log_scans(

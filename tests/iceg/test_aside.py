@@ -48,15 +48,16 @@ def test_the_store_read_aside_is_the_store_read_here_bit_for_bit() -> None:
     path = shared_file("mit-csail/mit-csail.clf")
     here = ScanStore(shift_odometry(open_log(path), -0.12))
     config = IcegConfig()
-    with compute_aside(lambda: pipeline._read(path, open_log(path), -0.12, config)) as reading:
+    with compute_aside(lambda: pipeline._read(path, open_log(path), -0.12)) as reading:
         assert reading._proc is not None  # it is read in another process
-        store, report, (run_config, body, dropouts), how = reading.result()
-    assert how.options == {}  # its odometry moves, and the walls turn and move with it
-    assert how.check is not None and how.check.finding() is None
+        store, report = reading.result()
     _assert_same_store(store, here)
     assert report is not None and report.as_dict()["out_of_order"] == 0
-    # the scanner is measured there too: a SICK that sees none of its robot and loses few
-    # returns on walls
+    # then checked and measured here: read as it is (its odometry moves, and the walls turn
+    # and move with it), a SICK that sees none of its robot and loses few returns on walls
+    checked, (run_config, body, dropouts), how = pipeline._checked(path, store, config)
+    assert checked is store and how.options == {} and how.stalls == ()
+    assert how.check is not None and how.check.finding() is None
     assert run_config == config and body is not None and body.range_m is None
     assert dropouts is not None and not dropouts.rule_on and dropouts.patches_per_1000 < 2.5
     assert np.array_equal(store.beams()[1], here.beams()[1])
@@ -84,9 +85,9 @@ def test_the_readers_findings_and_log_records_come_back(
     path = write_odometry_jump_log(tmp_path / "jump.clf")
     with (
         caplog.at_level(logging.WARNING),
-        compute_aside(lambda: pipeline._read(path, open_log(path), 0.0, IcegConfig())) as reading,
+        compute_aside(lambda: pipeline._read(path, open_log(path), 0.0)) as reading,
     ):
-        store, report, _, _ = reading.result()
+        store, report = reading.result()
     assert [store[k].odom_break for k in range(len(store))] == [False, False, False, True, False]
     assert f"{path}:4: odometry jumps 50.00 m" in caplog.text
     assert report is not None and report.odometry_breaks[0][0] == f"{path}:4"
@@ -95,7 +96,7 @@ def test_the_readers_findings_and_log_records_come_back(
 def test_a_log_that_fails_to_read_raises_here_with_its_line(tmp_path: Path) -> None:
     path = tmp_path / "bad.clf"
     path.write_text(flaser_line(0.0, 10.0) + "\nFLASER 3 1.0 oops 3.0 0 0 0 0 0 0 11.0 h 11.0\n")
-    reading = compute_aside(lambda: pipeline._read(path, open_log(path), 0.0, IcegConfig()))
+    reading = compute_aside(lambda: pipeline._read(path, open_log(path), 0.0))
     with reading, pytest.raises(LogFormatError, match=":2"):
         reading.result()
 
