@@ -546,7 +546,7 @@ def info(
     limits, returns, odometry source, and whether its walls turn and move with its odometry."""
     from frontends.registry import describe_log, open_log
     from iceg.config import IcegConfig
-    from iceg.log_checks import describe_odometry_check
+    from iceg.log_checks import describe_odometry_checks
     from iceg.scan_store import ScanStore
 
     options = _reader_options(
@@ -554,7 +554,7 @@ def info(
     )
     scans = ScanStore()
     rows = describe_log(open_log(log, **options), on_scan=scans.append)
-    rows += describe_odometry_check(scans, IcegConfig())  # the scans a CARMEN log streamed
+    rows += describe_odometry_checks(scans, IcegConfig())  # the scans a CARMEN log streamed
     typer.echo(f"iceg info: {log}")
     _print_table(rows)
 

@@ -168,20 +168,22 @@ def _warn_stall(
         stall.stop - stall.first + 1,
         scans[stall.first - 1].source,
         scans[stall.stop - 1].source,
-        stall.end_s - scans[stall.first - 1].stamp_s,
+        stall.held_s,
         stall.moved,
         stall.moved + stall.stood,
         stall.p,
     )
 
 
-def describe_odometry_check(
+def describe_odometry_checks(
     scans: ScanStore | Sequence[LaserScan], config: IcegConfig
 ) -> list[tuple[str, str]]:
-    """``iceg info``'s row on how the walls turn and move with the odometry
-    (:func:`~iceg.odometry_check.odometry_check`), as :func:`reading_adjustments` would read
-    the log; none where the odometry has nothing to compare (no odometry, one that never
-    moves, no turn of 30-90 deg within 1 m and no move of 0.5-1 m)."""
+    """``iceg info``'s rows on how the walls turn and move with the odometry
+    (:func:`~iceg.odometry_check.odometry_check`) and where the odometry holds while the
+    scans move (:func:`~iceg.odometry_stalls.odometry_stalls`), as
+    :func:`reading_adjustments` would read the log; none where the odometry has nothing to
+    compare (no odometry, one that never moves, no turn of 30-90 deg within 1 m and no move
+    of 0.5-1 m)."""
     check = odometry_check(scans, config)
     if check is None:
         return []
@@ -195,4 +197,15 @@ def describe_odometry_check(
     else:
         option, found = finding
         text = f"{found}: a run reads the log {_HOW_A_RUN_READS[option]}"
-    return [("walls and odometry", text)]
+    rows = [("walls and odometry", text)]
+    if finding is not None and finding[0] == "laser_only":
+        return rows
+    stalls = odometry_stalls(scans, config)
+    held = "; ".join(
+        f"scans {stall.first - 1}-{stall.stop - 1} ({stall.held_s:.1f} s, {stall.moved} of "
+        f"{stall.moved + stall.stood} pairs moved)"
+        for stall in stalls
+    )
+    if held:
+        held += ": a run reads them without odometry"
+    return [*rows, ("odometry held while moving", held or "nowhere")]

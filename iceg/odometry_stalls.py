@@ -75,6 +75,7 @@ class OdometryStall:
         first, stop: Scans ``[first, stop)`` read without odometry: the held run but its
             first scan, whose pose the odometry holds.
         start_s, end_s: Stamps of scans ``first`` and ``stop - 1``, seconds.
+        held_s: How long the odometry held, from the run's first scan to its last, seconds.
         moved, stood: Compared pairs in which the scans moved, and stood.
         p: One-sided binomial probability of ``moved`` or more of ``moved + stood`` by
             chance.
@@ -84,6 +85,7 @@ class OdometryStall:
     stop: int
     start_s: float
     end_s: float
+    held_s: float
     moved: int
     stood: int
     p: float
@@ -131,7 +133,8 @@ def odometry_stalls(
         p = sign_test_p(moved, stood)
         if p < SIGNIFICANCE_LEVEL:
             start_s, end_s = float(stamps[lo + 1]), float(stamps[hi - 1])
-            stalls.append(OdometryStall(lo + 1, hi, start_s, end_s, moved, stood, p))
+            held_s = end_s - float(stamps[lo])
+            stalls.append(OdometryStall(lo + 1, hi, start_s, end_s, held_s, moved, stood, p))
     return stalls
 
 

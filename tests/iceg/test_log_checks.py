@@ -25,7 +25,7 @@ from iceg.batch_run import load_input
 from iceg.config import IcegConfig
 from iceg.log_checks import (
     check_returns,
-    describe_odometry_check,
+    describe_odometry_checks,
     motionless_odometry,
     reading_adjustments,
 )
@@ -311,10 +311,11 @@ def test_info_says_how_the_walls_turn_with_the_odometry(
 
     log, scans = mirrored_log
     config = IcegConfig()
-    assert describe_odometry_check(scans, config) == [
-        ("walls and odometry", "they turn and move together (7 of 7 turns, 7 of 7 moves)")
+    assert describe_odometry_checks(scans, config) == [
+        ("walls and odometry", "they turn and move together (7 of 7 turns, 7 of 7 moves)"),
+        ("odometry held while moving", "nowhere"),
     ]
-    assert describe_odometry_check([s.without_odometry() for s in scans], config) == []
+    assert describe_odometry_checks([s.without_odometry() for s in scans], config) == []
     result = CliRunner().invoke(app, ["info", str(log)])
     assert result.exit_code == 0, result.output
     row = r"walls and odometry +the walls turn against the odometry \(in 61 of 61 turns they "

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import re
 from pathlib import Path
 
 import numpy as np
@@ -77,6 +78,7 @@ def test_a_held_odometry_over_the_office_loop_is_found(
     assert (stall.first, stall.stop) == (HELD.start, HELD.stop)
     assert (stall.start_s, stall.end_s) == (scans[200].stamp_s, scans[349].stamp_s)
     assert (stall.moved, stall.stood) == (24, 0) and stall.p == 0.5**24
+    assert stall.held_s == scans[349].stamp_s - scans[199].stamp_s
     assert odometry_stalls(scans, IcegConfig()) == []  # as simulated: nothing held
 
 
@@ -153,6 +155,17 @@ def test_a_run_through_the_held_odometry_keeps_to_the_truth(
     truth = office[1][result.node_scan_index]
     assert position_errors(result.node_poses, truth).rmse_m < 0.02
     assert [(s["first"], s["stop"]) for s in result.metrics["odometry_stalls"]] == [(200, 350)]
+
+
+def test_info_says_where_the_odometry_held(held_log: Path) -> None:
+    from typer.testing import CliRunner
+
+    from iceg.cli import app
+
+    result = CliRunner().invoke(app, ["info", str(held_log)])
+    assert result.exit_code == 0, result.output
+    row = r"odometry held while moving +scans 199-349 \(30.0 s, 24 of 24 pairs moved\): a run "
+    assert re.search(row + "reads them without odometry", result.output)
 
 
 def test_reading_adjustments_of_a_log_read_without_odometry_find_no_stall(
