@@ -16,6 +16,8 @@ from frontends import LaserScan, open_log
 from frontends.carmen import write_carmen
 from frontends.registry import adjust_scan
 from frontends.simulate import office_world, simulate
+from frontends.simulate.trajectory import default_trajectory
+from frontends.simulate.worlds import with_pedestrians
 from iceg.batch import expand, spec_from_dict
 from iceg.batch_run import load_input
 from iceg.config import IcegConfig
@@ -99,6 +101,18 @@ def test_a_robot_standing_still_keeps_its_odometry(
     ]
     assert held_runs(ScanStore(standing).odometry[1], np.zeros(40, dtype=bool)) == [(0, 40)]
     assert odometry_stalls(standing, IcegConfig()) == []
+
+
+def test_a_robot_standing_among_walking_people_keeps_its_odometry() -> None:
+    # The office with 30 people walking it; the robot stands 30 s (150 scans) at its 100th
+    # pose: its odometry holds, the legs move, the walls do not.
+    world = with_pedestrians(office_world(), 30, seed=1)
+    route = default_trajectory(world)[:200]
+    trajectory = np.concatenate([route[:100], np.repeat(route[100:101], 150, axis=0), route[101:]])
+    scans = ScanStore(simulate(world, trajectory, seed=0).scans)
+    _, poses, breaks = scans.odometry
+    assert held_runs(poses, breaks) == [(100, 250)]
+    assert odometry_stalls(scans, IcegConfig()) == []
 
 
 def test_mit_csail_stands_and_holds_briefly_but_never_stalls() -> None:
