@@ -10,20 +10,24 @@ where it comes back offset by the motion it missed (0.0298 m / 0.417° as record
 
 A robot that stands still holds its odometry too (MIT CSAIL stands for 7 s at its start and
 6 s at its end), so a held pose alone says nothing: the scans tell the two apart. In each run
-of consecutive scans whose odometry is one pose (:func:`held_runs`), consecutive scans are
-compared: the later scan is ICE-matched against the earlier one at the held pose (identity
-prediction, the local match's bounds), and the pair moved where the match places it beyond
-the chi-square quantile of :data:`~iceg.slam.CONSISTENCY_PROBABILITY` under the match's own
-covariance, stood where within it, and tells nothing where the match fails. The ranges beam
-by beam cannot tell it: a scanner driven along a corridor measures its side walls at the
-same ranges (the office world's robot moving 10 cm a scan: median difference under 3 cm),
-where the match finds the motion from the corners and ends (9.8 cm, standard deviation
-2.8 mm along the corridor).
-The odometry stalled over the run where moved pairs outnumber stood ones beyond chance: a
+of consecutive scans whose odometry is one pose (:func:`held_runs`), scans are compared at
+the held pose: each is ICE-matched against the scan before it (identity prediction, the
+local match's bounds) and, where that match cannot tell its step from standing, against the
+scan :data:`LONGER_STEP` before it. It moved where a match places it beyond the chi-square
+quantile of :data:`~iceg.slam.CONSISTENCY_PROBABILITY` under the match's own covariance,
+stood where within it, and tells nothing where both fail. The ranges beam by beam cannot
+tell it: a scanner driven along a corridor measures its side walls at the same ranges (the
+office world's robot moving 10 cm a scan: median difference under 3 cm), where the match
+finds the motion from the corners and ends (9.8 cm, standard deviation 2.8 mm along the
+corridor).
+
+The odometry stalled over the run where moved scans outnumber stood ones beyond chance: a
 one-sided sign test at :data:`~iceg.odometry_check.SIGNIFICANCE_LEVEL` over at most
-:data:`MAX_PAIRS` pairs evenly spread over the run. A run of fewer than 8 scans cannot pass
-it (7 of 7 pairs is the least significant win): MIT CSAIL holds its odometry over 4-5 scans
-three times while the robot drives 10-22 cm a scan, and its odometry catches up after each.
+:data:`MAX_PAIRS` scans evenly spread over the run, of the runs that last
+:data:`MIN_UPDATES` of the odometry's usual intervals between updates. A run of fewer than 8
+scans cannot pass it (7 of 7 is the least significant win): MIT CSAIL holds its odometry
+over 4-5 scans three times while the robot drives 10-22 cm a scan, and its odometry catches
+up after each.
 
 The scans of a stalled run after its first are read without odometry
 (:func:`frontends.open_log`'s ``odometry_stalls_s``): each is a node tracked by the laser
@@ -59,6 +63,11 @@ FloatArray = NDArray[np.float64]
 #: them (MIT CSAIL held over 200 scans: 22 of the 22 that match; the simulated two-loop
 #: world: 20 of 24), a robot standing still is decided in six.
 MAX_PAIRS = 24
+#: A held run is tested only where it lasts this many of the odometry's usual intervals
+#: between updates (:func:`_update_interval`): an odometry that updates once every ten
+#: scans (2 Hz beside a 20 Hz laser) holds for ten scans at a time while the robot drives,
+#: and catches up each time; each such run alone passes the sign test (9 of 9 pairs).
+MIN_UPDATES = 8
 #: Scans back to the second match of a pair whose step the first could not tell from
 #: standing: the simulated two-loop world's robot moves 10 cm a scan where the walls fix
 #: the motion along them to 3-6 cm (two of seven steps beyond the quantile), 30 cm there.
@@ -123,7 +132,9 @@ def odometry_stalls(
             match's bounds.
     """
     stamps, odometry, breaks = odometry_of(scans)
-    runs = [r for r in held_runs(odometry, breaks) if _may_pass(r[1] - r[0] - 1)]
+    held = held_runs(odometry, breaks)
+    longest = MIN_UPDATES * _update_interval(held, int(np.isfinite(odometry).all(axis=1).sum()))
+    runs = [(lo, hi) for lo, hi in held if hi - lo >= longest and _may_pass(hi - lo - 1)]
     if not runs:
         return []
     compare = _PairComparison(scans, config)
@@ -136,6 +147,16 @@ def odometry_stalls(
             held_s = end_s - float(stamps[lo])
             stalls.append(OdometryStall(lo + 1, hi, start_s, end_s, held_s, moved, stood, p))
     return stalls
+
+
+def _update_interval(held: list[tuple[int, int]], n_with_odometry: int) -> float:
+    """The odometry's usual interval between updates, in scans: the median length of its
+    runs of one pose (the held runs, and one scan for each scan between them)."""
+    lengths = [hi - lo for lo, hi in held]
+    single = max(n_with_odometry - sum(lengths), 0)
+    if not lengths and not single:
+        return 1.0
+    return float(np.median(np.concatenate([np.ones(single), lengths])))
 
 
 def _may_pass(n_pairs: int) -> bool:

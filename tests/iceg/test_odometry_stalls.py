@@ -84,6 +84,22 @@ def test_a_held_odometry_over_the_office_loop_is_found(
     assert odometry_stalls(scans, IcegConfig()) == []  # as simulated: nothing held
 
 
+def test_an_odometry_that_updates_every_tenth_scan_does_not_stall(
+    office: tuple[list[LaserScan], np.ndarray],
+) -> None:
+    # It holds each pose for ten scans while the robot drives on (a 2 Hz odometry beside a
+    # 20 Hz laser): that is its rate, not a stall, and it catches up every time; each of its
+    # runs, 9 of 9 pairs moved, would pass the sign test alone. A hold of 30 s in it is one.
+    scans = office[0]
+    low_rate = [
+        dataclasses.replace(scan, odom_pose=scans[k - k % 10].odom_pose)
+        for k, scan in enumerate(scans)
+    ]
+    assert odometry_stalls(low_rate, IcegConfig()) == []
+    (stall,) = odometry_stalls(_held(low_rate, HELD, offset=False), IcegConfig())
+    assert (stall.first, stall.stop) == (191, HELD.stop)  # held since scan 190's update
+
+
 def test_a_robot_standing_still_keeps_its_odometry(
     office: tuple[list[LaserScan], np.ndarray],
 ) -> None:
