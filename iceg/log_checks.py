@@ -139,15 +139,13 @@ def reading_adjustments(
         return Reading({"laser_only": True}, None)
     check = odometry_check(scans, config)
     finding = None if check is None else check.finding()
-    if finding is not None and finding[0] == "laser_only":
-        option, found = finding
-        logger.warning("%s: %s: %s", source, found, _WHAT_A_RUN_DOES[option])
-        return Reading({option: True}, check)
     options: dict[str, Any] = {}
     if finding is not None:
         option, found = finding
         logger.warning("%s: %s: %s", source, found, _WHAT_A_RUN_DOES[option])
         options[option] = True
+        if option == "laser_only":  # no odometry left to hold
+            return Reading(options, check)
     stalls = tuple(odometry_stalls(scans, config))
     for stall in stalls:
         _warn_stall(source, scans, stall)
