@@ -316,7 +316,10 @@ def run_metrics(result: SlamResult, data: _Input, online: FloatArray) -> dict[st
     (:func:`~iceg.odometry_timing.odometry_time_offset`): ``odom_time_offset_s`` where
     significant (else NaN), the best fit ``odom_time_offset_best_s`` and its
     ``odom_time_offset_p``; ``robot_body_range_m``, the range left out as the robot's own
-    body; ``sm_nees`` and ``odo_nees`` (:func:`_nees_medians`)."""
+    body; ``sm_nees`` and ``odo_nees`` (:func:`_nees_medians`); how the log's own checks had
+    it read (:func:`~iceg.log_checks.reading_adjustments`): ``beams_mirrored`` (1: mirrored,
+    else 0) and ``scans_without_odometry`` (all of them where its odometry is not the
+    robot's, those where it held while they moved, else 0)."""
     n_nodes = int(result.node_ids.shape[0])
     matched = {f.j for f in result.factors if f.kind == FactorKind.SCAN_MATCH}
     out: dict[str, Any] = {
@@ -349,6 +352,13 @@ def run_metrics(result: SlamResult, data: _Input, online: FloatArray) -> dict[st
             warnings.simplefilter("ignore", UserWarning)
             out |= _reference_metrics(result, data, online)
     out |= _nees_medians(result, data)
+    adjusted, stalls = data.adjusted, data.adjusted.get("odometry_stalls_s", ())
+    out["beams_mirrored"] = int(bool(adjusted.get("mirror_beams")))
+    out["scans_without_odometry"] = (
+        len(data.scans)
+        if adjusted.get("laser_only")
+        else sum(any(a <= scan.stamp_s <= b for a, b in stalls) for scan in data.scans)
+    )
     return out
 
 

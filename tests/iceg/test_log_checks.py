@@ -21,7 +21,7 @@ from frontends import LaserScan, open_log
 from frontends.carmen import write_carmen
 from frontends.simulate import office_world, simulate
 from iceg.batch import expand, spec_from_dict
-from iceg.batch_run import load_input
+from iceg.batch_run import execute_run, load_input
 from iceg.config import IcegConfig
 from iceg.log_checks import (
     check_returns,
@@ -289,6 +289,9 @@ def test_a_batch_run_reads_mirrored_beams_back(
     data = load_input(task)
     assert data.adjusted == {"mirror_beams": True}
     _assert_read_back(data.scans, truth)
+    row = execute_run(dataclasses.replace(task, outputs="metrics"))
+    assert row["status"] == "ok", row["error"]
+    assert (row["metrics"]["beams_mirrored"], row["metrics"]["scans_without_odometry"]) == (1, 0)
 
 
 def test_a_log_with_its_heading_in_degrees_is_read_as_laser_only(tmp_path: Path) -> None:

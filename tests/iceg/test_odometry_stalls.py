@@ -19,7 +19,7 @@ from frontends.simulate import office_world, simulate
 from frontends.simulate.trajectory import default_trajectory
 from frontends.simulate.worlds import with_pedestrians
 from iceg.batch import expand, spec_from_dict
-from iceg.batch_run import load_input
+from iceg.batch_run import execute_run, load_input
 from iceg.config import IcegConfig
 from iceg.evaluation import position_errors
 from iceg.log_checks import reading_adjustments
@@ -173,6 +173,15 @@ def test_every_path_reads_the_held_scans_without_odometry(
     reopened = list(open_log(held_log, **options))  # as a session reads it again
     assert [k for k, s in enumerate(reopened) if s.odom_pose is None] == list(HELD)
     assert adjust_scan(reopened[199], **options).odom_pose is not None
+
+
+def test_a_batch_row_counts_the_scans_read_without_odometry(tmp_path: Path, held_log: Path) -> None:
+    spec = spec_from_dict({"logs": [{"path": str(held_log)}], "outputs": "metrics"})
+    (task,) = expand(spec, tmp_path, tmp_path)
+    row = execute_run(task)
+    assert row["status"] == "ok", row["error"]
+    assert row["metrics"]["scans_without_odometry"] == len(HELD)
+    assert row["metrics"]["beams_mirrored"] == 0
 
 
 def test_a_run_through_the_held_odometry_keeps_to_the_truth(
