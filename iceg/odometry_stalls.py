@@ -14,8 +14,9 @@ of consecutive scans whose odometry is one pose (:func:`held_runs`), scans are c
 the held pose: each is ICE-matched against the scan before it (identity prediction, the
 local match's bounds) and, where that match cannot tell its step from standing, against the
 scan :data:`LONGER_STEP` before it. It moved where a match places it beyond the chi-square
-quantile of :data:`~iceg.slam.CONSISTENCY_PROBABILITY` under the match's own covariance,
-stood where within it, and tells nothing where both fail. The ranges beam by beam cannot
+quantile of :data:`~iceg.slam.CONSISTENCY_PROBABILITY` under the match's own covariance and
+moves its points by more than their range noise (:data:`NOISE_SIGMAS`), stood where neither
+match does both, and tells nothing where both fail. The ranges beam by beam cannot
 tell it: a scanner driven along a corridor measures its side walls at the same ranges (the
 office world's robot moving 10 cm a scan: median difference under 3 cm), where the match
 finds the motion from the corners and ends (9.8 cm, standard deviation 2.8 mm along the
@@ -27,9 +28,11 @@ one-sided sign test at :data:`~iceg.odometry_check.SIGNIFICANCE_LEVEL` over at m
 :data:`MIN_UPDATES` of the odometry's usual intervals between updates. A run of fewer than 8
 scans cannot pass it (7 of 7 is the least significant win): MIT CSAIL holds its odometry
 over 4-5 scans three times while the robot drives 10-22 cm a scan, and its odometry catches
-up after each.
+up after each. Where a run does not pass as a whole but some of its scans moved, the span
+around the most of them in a row is tested alone (a robot that stood, then drove on, or
+drove, then stopped): the odometry is wrong from where that motion began.
 
-The scans of a stalled run after its first are read without odometry
+The scans of a stalled run from there (but its first) are read without odometry
 (:func:`frontends.open_log`'s ``odometry_stalls_s``): each is a node tracked by the laser
 alone, predicted by constant velocity, and the scan after the run starts the odometry
 again as after a break.
@@ -49,6 +52,7 @@ from iceg.matching.matcher import IceMatcher
 from iceg.odometry_check import SIGNIFICANCE_LEVEL, sign_test_p
 from iceg.scan_store import ScanStore, odometry_of
 from iceg.slam import chi2_3dof
+from iceg_common import se2
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -72,6 +76,11 @@ MIN_UPDATES = 8
 #: standing: the simulated two-loop world's robot moves 10 cm a scan where the walls fix
 #: the motion along them to 3-6 cm (two of seven steps beyond the quantile), 30 cm there.
 LONGER_STEP = 3
+#: A scan moved where its match, besides being beyond the chi-square quantile, moves its
+#: points (the median) by more than this many range standard deviations
+#: (``features.sigma_range_m``): the TurtleBot 4 standing still gives matches 2-4 mm off,
+#: beyond the quantile of its covariances (0.6-0.7 mm across the beams), in 9 of 15 pairs.
+NOISE_SIGMAS = 3.0
 
 _ORIGIN = np.zeros(3)
 
@@ -140,13 +149,34 @@ def odometry_stalls(
     compare = _PairComparison(scans, config)
     stalls = []
     for lo, hi in runs:
-        moved, stood = compare.run(lo, hi)
+        stall = _stall(compare, lo, hi)
+        if stall is not None:
+            first, moved, stood, p = stall
+            start_s, end_s = float(stamps[first]), float(stamps[hi - 1])
+            held_s = end_s - float(stamps[lo])
+            stalls.append(OdometryStall(first, hi, start_s, end_s, held_s, moved, stood, p))
+    return stalls
+
+
+def _stall(compare: _PairComparison, lo: int, hi: int) -> tuple[int, int, int, float] | None:
+    """Whether held run ``[lo, hi)`` stalled, and where: ``(first, moved, stood, p)`` with
+    ``first`` the first scan of it read without odometry, or None. Where the run as a whole
+    does not pass the sign test but some scans of it moved, the span of the most of them in
+    a row is tested alone (:func:`_moving_span`: a robot that stood, then drove on while the
+    odometry held, or drove, then stopped), and so on within it while the span shrinks: the
+    odometry is wrong from where that motion began to the end of the run. Under a robot
+    standing still, a scan's false move is rare and a span around it passes the test no more
+    often than a run does."""
+    start, end = lo, hi
+    while True:
+        moved, stood, verdicts = compare.run(start, end)
         p = sign_test_p(moved, stood)
         if p < SIGNIFICANCE_LEVEL:
-            start_s, end_s = float(stamps[lo + 1]), float(stamps[hi - 1])
-            held_s = end_s - float(stamps[lo])
-            stalls.append(OdometryStall(lo + 1, hi, start_s, end_s, held_s, moved, stood, p))
-    return stalls
+            return start + 1, moved, stood, p
+        span = _moving_span(verdicts, start, end)
+        if span is None:
+            return None
+        start, end = span
 
 
 def _update_interval(held: list[tuple[int, int]], n_with_odometry: int) -> float:
@@ -157,6 +187,56 @@ def _update_interval(held: list[tuple[int, int]], n_with_odometry: int) -> float
     if not lengths and not single:
         return 1.0
     return float(np.median(np.concatenate([np.ones(single), lengths])))
+
+
+def _beyond_noise(pose: FloatArray, points_xy: FloatArray, noise_m: float) -> bool:
+    """Whether ``pose`` ``(3,)`` ``[x_m, y_m, theta_rad]`` moves the median of ``points_xy``
+    ``(P, 2)`` (metres, the scan's frame) by more than ``noise_m``."""
+    if points_xy.shape[0] == 0:
+        return False
+    moved = se2.transform_points(pose, points_xy) - points_xy
+    return float(np.median(np.hypot(moved[:, 0], moved[:, 1]))) > noise_m
+
+
+def _moving_span(verdicts: dict[int, bool | None], lo: int, hi: int) -> tuple[int, int] | None:
+    """The span ``[start, end)`` of run ``[lo, hi)`` around its compared scans that moved
+    with no stood one between them, the most of them (the latest of equals): from the stood
+    scan before them (else ``lo``) to the stood scan after them (else ``hi``); None where no
+    scan moved, the span is the run, or it is too short for the sign test."""
+    best: list[int] = []
+    current: list[int] = []
+    before = {}  # the stood scan before each run of moves
+    last_stood = lo
+    for k in sorted(verdicts):
+        verdict = verdicts[k]
+        if verdict is True:
+            if not current:
+                before[k] = last_stood
+            current.append(k)
+            if len(current) >= len(best):
+                best = list(current)
+        elif verdict is False:
+            current, last_stood = [], k
+    if not best:
+        return None
+    start = before[best[0]]
+    end = min((k for k, v in verdicts.items() if v is False and k > best[-1]), default=hi)
+    if (start, end) == (lo, hi) or not _may_pass(end - start - 1):
+        return None
+    return start, end
+
+
+def _coarse_to_fine(n: int) -> list[int]:
+    """``0 .. n - 1`` in the order of halving: both ends, the middle, the quarters, ..."""
+    order: list[int] = []
+    parts = 1
+    while len(order) < n:
+        for j in range(parts + 1):
+            i = round(j * (n - 1) / parts)
+            if i not in order:
+                order.append(i)
+        parts *= 2
+    return order
 
 
 def _may_pass(n_pairs: int) -> bool:
@@ -176,34 +256,43 @@ class _PairComparison:
             config.slam.match_max_translation_m, config.slam.match_max_rotation_deg
         )
 
-    def run(self, lo: int, hi: int) -> tuple[int, int]:
-        """The pairs that moved and that stood of up to :data:`MAX_PAIRS` of run
-        ``[lo, hi)``, compared in order until the stood ones leave the sign test no chance
-        (which stops only in favour of the odometry, so the test keeps its level)."""
+    def run(self, lo: int, hi: int) -> tuple[int, int, dict[int, bool | None]]:
+        """The scans that moved and that stood of up to :data:`MAX_PAIRS` of run
+        ``[lo, hi)``, evenly spread and compared coarse to fine (both ends, the middle, the
+        quarters, ...) until the stood ones leave the sign test no chance (which stops only
+        in favour of the odometry, so the test keeps its level); and each compared scan's
+        verdict (None: no match)."""
         n_pairs = hi - lo - 1
-        later = lo + 1 + np.linspace(0, n_pairs - 1, min(n_pairs, MAX_PAIRS)).round()
+        n = min(n_pairs, MAX_PAIRS)
+        later = (lo + 1 + np.linspace(0, n_pairs - 1, n).round()).astype(np.int64).tolist()
         moved = stood = 0
-        for n, k in enumerate(later.astype(np.int64).tolist(), start=1):
-            verdict = self._moved(k, lo)
+        verdicts: dict[int, bool | None] = {}
+        for done, i in enumerate(_coarse_to_fine(n), start=1):
+            k = later[i]
+            verdicts[k] = verdict = self._moved(k, lo)
             moved += verdict is True
             stood += verdict is False
-            if sign_test_p(moved + len(later) - n, stood) >= SIGNIFICANCE_LEVEL:
+            if sign_test_p(moved + n - done, stood) >= SIGNIFICANCE_LEVEL:
                 break
-        return moved, stood
+        return moved, stood, verdicts
 
     def _moved(self, k: int, lo: int) -> bool | None:
         """Whether scan ``k`` moved from the scan before it, or failing that (a motion
         within the match's uncertainty, or no match) from the scan :data:`LONGER_STEP`
         before it (or the run's first, ``lo``, where nearer): True where either match
         places it beyond the chi-square quantile, False where one places it within and none
-        beyond, None where both fail."""
+        beyond and moves the scan's points by more than its range noise
+        (:func:`_beyond_noise`), False where one does neither and none both, None where both
+        fail."""
         verdict = None
+        noise_m = NOISE_SIGMAS * self.config.features.sigma_range_m
         for back in sorted({1, min(LONGER_STEP, k - lo)}):
             new, reference = self._features(k), self._features(k - back)
             result = self.matcher.match(new, reference, _ORIGIN, self.bounds)
             if result.success:
                 pose = np.asarray(result.pose, dtype=np.float64)
-                if pose @ np.linalg.solve(result.cov, pose) > chi2_3dof():
+                significant = pose @ np.linalg.solve(result.cov, pose) > chi2_3dof()
+                if significant and _beyond_noise(pose, new.points_xy, noise_m):
                     return True
                 verdict = False
         return verdict

@@ -131,6 +131,48 @@ def test_a_robot_standing_among_walking_people_keeps_its_odometry() -> None:
     assert odometry_stalls(scans, IcegConfig()) == []
 
 
+@pytest.mark.parametrize(
+    ("stand", "drive", "first"),
+    [(100, 100, 279), (50, 150, 200), (150, 50, 348)],
+)
+def test_a_hold_over_a_robot_that_stands_then_drives_is_found_where_it_drives(
+    stand: int, drive: int, first: int
+) -> None:
+    # The office's robot stands at its 200th pose, then drives on; its odometry holds from
+    # the stop for stand + drive scans. Where the standing scans outnumber the driving ones
+    # the run as a whole does not pass, and the span of the moves is tested alone: the
+    # scans from the last compared standing one on are read without odometry.
+    world = office_world()
+    route = default_trajectory(world)[:600]
+    trajectory = np.concatenate(
+        [route[:200], np.repeat(route[200:201], stand, axis=0), route[200:]]
+    )
+    scans = _held(list(simulate(world, trajectory, seed=0).scans), range(200, 400), False)
+    (stall,) = odometry_stalls(scans, IcegConfig())
+    assert (stall.first, stall.stop) == (first, 400)
+    assert stall.p < 0.01
+
+
+def test_a_hold_over_a_robot_that_drives_then_stops_is_found_from_where_it_drove() -> None:
+    # Driving 50 scans, then standing 150 at a pose the odometry does not know: every scan
+    # from the hold's start is read without odometry.
+    world = office_world()
+    route = default_trajectory(world)[:600]
+    trajectory = np.concatenate([route[:250], np.repeat(route[250:251], 150, axis=0), route[250:]])
+    scans = _held(list(simulate(world, trajectory, seed=0).scans), range(200, 400), False)
+    (stall,) = odometry_stalls(scans, IcegConfig())
+    assert (stall.first, stall.stop) == (200, 400)
+
+
+def test_the_turtlebot4_standing_at_its_start_keeps_its_odometry() -> None:
+    # Its RPLIDAR's scans of a robot standing still match 2-4 mm apart, beyond their
+    # covariances (0.6-0.7 mm across the beams) but within the range noise: no scan moved.
+    scans = ScanStore(open_log(shared_file("rosbag/turtlebot4-ros2")))
+    _, poses, breaks = scans.odometry
+    assert [r for r in held_runs(poses, breaks) if r[1] - r[0] >= 8] == [(2, 80)]
+    assert odometry_stalls(scans, IcegConfig()) == []
+
+
 def test_mit_csail_stands_and_holds_briefly_but_never_stalls() -> None:
     # It stands at its start and end (33 and 31 scans); three times its odometry holds for
     # 4-5 scans while the robot drives (too short to tell at 1 %, and it catches up).
