@@ -91,10 +91,12 @@ class OdometryStall:
 
     Attributes:
         first, stop: Scans ``[first, stop)`` read without odometry: the held run but its
-            first scan, whose pose the odometry holds.
+            first scan, whose pose the odometry holds, or from the stood scan before the
+            span whose moves decided (:func:`_moving_span`) to the run's end.
         start_s, end_s: Stamps of scans ``first`` and ``stop - 1``, seconds.
         held_s: How long the odometry held, from the run's first scan to its last, seconds.
-        moved, stood: Compared pairs in which the scans moved, and stood.
+        moved, stood: Compared scans of the run (or span) that decided that moved, and
+            stood.
         p: One-sided binomial probability of ``moved`` or more of ``moved + stood`` by
             chance.
     """
@@ -205,21 +207,18 @@ def _moving_span(verdicts: dict[int, bool | None], lo: int, hi: int) -> tuple[in
     scan moved, the span is the run, or it is too short for the sign test."""
     best: list[int] = []
     current: list[int] = []
-    before = {}  # the stood scan before each run of moves
-    last_stood = lo
+    start = current_start = last_stood = lo
     for k in sorted(verdicts):
-        verdict = verdicts[k]
-        if verdict is True:
+        if verdicts[k] is True:
             if not current:
-                before[k] = last_stood
+                current_start = last_stood
             current.append(k)
             if len(current) >= len(best):
-                best = list(current)
-        elif verdict is False:
+                best, start = list(current), current_start
+        elif verdicts[k] is False:
             current, last_stood = [], k
     if not best:
         return None
-    start = before[best[0]]
     end = min((k for k, v in verdicts.items() if v is False and k > best[-1]), default=hi)
     if (start, end) == (lo, hi) or not _may_pass(end - start - 1):
         return None
@@ -277,13 +276,11 @@ class _PairComparison:
         return moved, stood, verdicts
 
     def _moved(self, k: int, lo: int) -> bool | None:
-        """Whether scan ``k`` moved from the scan before it, or failing that (a motion
-        within the match's uncertainty, or no match) from the scan :data:`LONGER_STEP`
-        before it (or the run's first, ``lo``, where nearer): True where either match
-        places it beyond the chi-square quantile, False where one places it within and none
-        beyond and moves the scan's points by more than its range noise
-        (:func:`_beyond_noise`), False where one does neither and none both, None where both
-        fail."""
+        """Whether scan ``k`` moved from the scan before it, or failing that from the scan
+        :data:`LONGER_STEP` before it (or the run's first, ``lo``, where nearer): True where a
+        match places it beyond the chi-square quantile and moves its points by more than their
+        range noise (:func:`_beyond_noise`), False where a match does not do both and none
+        does, None where both fail."""
         verdict = None
         noise_m = NOISE_SIGMAS * self.config.features.sigma_range_m
         for back in sorted({1, min(LONGER_STEP, k - lo)}):
