@@ -543,7 +543,8 @@ def info(
     lenient: SkipMalformedOption = False,
 ) -> None:
     """Print what a log holds: topics or record types, counts, duration, beams, range
-    limits, returns, odometry source, and whether its walls turn and move with its odometry."""
+    limits, returns, odometry source, whether its walls turn and move with its odometry, and
+    where its odometry holds while the scans move."""
     from frontends.registry import describe_log, open_log
     from iceg.config import IcegConfig
     from iceg.log_checks import describe_odometry_checks
