@@ -47,7 +47,7 @@ from frontends.scan import LaserScan
 from iceg.features.config import FeatureConfig
 from iceg.features.extract import extract_beams
 from iceg.features.points import BeamPoints
-from iceg.scan_store import ScanStore
+from iceg.scan_store import odometry_of
 from iceg_common import se2
 
 if TYPE_CHECKING:
@@ -149,20 +149,6 @@ def lost_again(
     return seen, seen & (beams.no_return[nearest] | beyond)
 
 
-def scan_odometry(scans: Sequence[LaserScan]) -> tuple[FloatArray, NDArray[np.bool_]]:
-    """Every scan's odometry pose ``(N, 3)`` float64 ``[x_m, y_m, theta_rad]`` (NaN rows: none)
-    and odometry break flag ``(N,)`` bool; from a :class:`~iceg.scan_store.ScanStore`'s header
-    without decoding its scans."""
-    if isinstance(scans, ScanStore):
-        _, odom, breaks = scans.odometry
-        return odom, breaks
-    odom = np.array(
-        [np.full(3, np.nan) if s.odom_pose is None else s.odom_pose for s in scans],
-        dtype=np.float64,
-    ).reshape(-1, 3)
-    return odom, np.array([s.odom_break for s in scans], dtype=bool)
-
-
 def spread_scans(odom: FloatArray, count: int) -> IntArray:
     """Indices (sorted, unique) of at most ``count`` of the scans whose odometry poses are
     ``odom`` ``(N, 3)`` (NaN rows: none), spread evenly along the odometry's path (a step to
@@ -189,7 +175,7 @@ def wall_dropouts(scans: Sequence[LaserScan], config: FeatureConfig) -> WallDrop
     Raises:
         ScanError: a measured scan's bearings do not increase strictly.
     """
-    odom, breaks = scan_odometry(scans)
+    _, odom, breaks = odometry_of(scans)
     picked = spread_scans(odom, MAX_SCANS).tolist()
     returns = patches = followed = recurring = 0
     found: list[tuple[int, FloatArray]] = []  # each measured scan with patches, its middles
