@@ -94,7 +94,8 @@ class OdometryStall:
             first scan, whose pose the odometry holds, or from the stood scan before the
             span whose moves decided (:func:`_moving_span`) to the run's end.
         start_s, end_s: Stamps of scans ``first`` and ``stop - 1``, seconds.
-        held_s: How long the odometry held, from the run's first scan to its last, seconds.
+        held_s: From scan ``first - 1`` (the last at the held pose) to scan ``stop - 1``,
+            seconds: how long it held wrong.
         moved, stood: Compared scans of the run (or span) that decided that moved, and
             stood.
         p: One-sided binomial probability of ``moved`` or more of ``moved + stood`` by
@@ -155,7 +156,7 @@ def odometry_stalls(
         if stall is not None:
             first, moved, stood, p = stall
             start_s, end_s = float(stamps[first]), float(stamps[hi - 1])
-            held_s = end_s - float(stamps[lo])
+            held_s = end_s - float(stamps[first - 1])
             stalls.append(OdometryStall(first, hi, start_s, end_s, held_s, moved, stood, p))
     return stalls
 
