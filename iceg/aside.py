@@ -1,5 +1,5 @@
-"""A run's input computed in a forked process while the calling process starts the run
-(issue 13).
+"""A run's input, or its checks, computed in a forked process while the calling process
+starts the run (issue 13).
 
 The first run of a process starts serially: numba's typing registry loads (0.3-0.4 s, at
 :func:`iceg.kernel_warmup.cache_is_new`), then the input is made (MIT CSAIL's 1988 CARMEN
@@ -13,6 +13,9 @@ through ``pickle`` with its arrays' bytes out of band: the run is the same bit f
 (``tests/iceg/test_aside.py``). Forked before the calling process has loaded numba's
 registry, what it computes must call no compiled kernel, or the process would load the
 registry itself.
+
+A run can also go on as if a value computed aside will change nothing, and stop where it
+does (:meth:`Aside.until`): :mod:`iceg.pipeline` runs a log's checks so, beside the run.
 
 Where the forked process fails for any reason (an error in the computation, a killed
 process, a value that cannot be pickled) the calling process computes the value itself: an
@@ -41,12 +44,18 @@ from iceg import forked
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
+S = TypeVar("S")
 
 #: In a process forked by :func:`compute_aside`: the calling process's id (else None).
 _CALLER_PID: int | None = None
 
 #: :func:`while_caller_runs` checks every this many items that the calling process runs.
 CALLER_CHECK_ITEMS = 256
+
+
+class Superseded(Exception):
+    """The value computed aside says that the work done meanwhile on the items it was
+    speculating on must be done again otherwise (:meth:`Aside.until`)."""
 
 
 @dataclass(eq=False)
@@ -62,21 +71,54 @@ class Aside(Generic[T]):
     compute: Callable[[], T]
     _conn: Connection | None = field(default=None, repr=False)
     _proc: BaseProcess | None = field(default=None, repr=False)
+    _value: tuple[T] | None = field(default=None, repr=False)
 
     def result(self) -> T:
         """The value, from the forked process (its log records handled here as if logged
-        here), or computed here where that process failed or never started. Call it once.
+        here), or computed here where that process failed or never started; waited for
+        where it has yet to arrive. A later call gives the same value.
 
         Raises:
             Whatever ``compute`` raises.
         """
-        got = self._received()
-        if got is None:
-            return self.compute()
-        value, records = got
-        for record in records:
-            logging.getLogger(record.name).handle(record)
-        return value
+        if self._value is None:
+            got = self._received()
+            if got is None:
+                self._value = (self.compute(),)
+            else:
+                value, records = got
+                for record in records:
+                    logging.getLogger(record.name).handle(record)
+                self._value = (value,)
+        return self._value[0]
+
+    def ready(self) -> bool:
+        """Whether :meth:`result` would return without waiting for the forked process (its
+        value has arrived, the process has ended, or there is none: then :meth:`result`
+        computes the value here)."""
+        conn = self._conn
+        if conn is None:
+            return True
+        try:
+            return conn.poll()
+        except (EOFError, OSError):
+            return True
+
+    def until(self, items: Iterable[S], stops: Callable[[T], bool], every: int) -> Iterator[S]:
+        """``items`` while the value, where it has arrived, does not ``stops`` the work on them
+        (a speculation on what it will be): looked at every ``every`` items without
+        waiting (:meth:`ready`), and waited for after the last.
+
+        Raises:
+            Superseded: ``stops(value)``, at the first look after the value arrived.
+            Whatever ``compute`` raises.
+        """
+        for k, item in enumerate(items):
+            if k % every == 0 and self.ready() and stops(self.result()):
+                raise Superseded
+            yield item
+        if stops(self.result()):
+            raise Superseded
 
     def __enter__(self) -> Aside[T]:
         return self
@@ -104,9 +146,10 @@ class Aside(Generic[T]):
             proc.join()
 
 
-def compute_aside(compute: Callable[[], T], fork: bool = True) -> Aside[T]:
+def compute_aside(compute: Callable[[], T], fork: bool = True, niceness: int = 0) -> Aside[T]:
     """Start ``compute()`` in a forked process (with ``fork``, on Linux; else, or where the
-    fork fails, :meth:`Aside.result` computes it)::
+    fork fails, :meth:`Aside.result` computes it), at ``niceness`` added to this process's
+    (a positive one: spare CPU only)::
 
         with compute_aside(lambda: ScanStore(open_log(path))) as reading:
             ...  # other work
@@ -125,7 +168,10 @@ def compute_aside(compute: Callable[[], T], fork: bool = True) -> Aside[T]:
         ctx = multiprocessing.get_context("fork")
         conn, child = ctx.Pipe(duplex=False)
         proc = ctx.Process(
-            target=_run, args=(child, aside, os.getpid()), daemon=True, name="iceg-aside"
+            target=_run,
+            args=(child, aside, os.getpid(), niceness),
+            daemon=True,
+            name="iceg-aside",
         )
         with forked.signals_held():
             proc.start()
@@ -147,12 +193,15 @@ def while_caller_runs(items: Iterable[T]) -> Iterator[T]:
         yield item
 
 
-def _run(conn: Connection, aside: Aside[T], caller_pid: int) -> None:
+def _run(conn: Connection, aside: Aside[T], caller_pid: int, niceness: int) -> None:
     """The forked process: sends the value and the log records (:func:`_send`), or None
     where computing it failed."""
     global _CALLER_PID
     _CALLER_PID = caller_pid
     forked.helper_signals()
+    if niceness:
+        with contextlib.suppress(OSError):
+            os.nice(niceness)
     records = _collect_records()
     try:
         value = aside.compute()

@@ -21,11 +21,11 @@ from frontends.odometry_shift import shift_odometry
 from frontends.registry import adjust_scan
 from frontends.relations import Relations, match_stamps, read_relations
 from frontends.scan import StampPolicy, StampReport
-from iceg.aside import compute_aside, while_caller_runs
+from iceg.aside import Superseded, compute_aside, while_caller_runs
 from iceg.config import IcegConfig
 from iceg.consistency import FactorNees, factor_nees, per_node, relation_factor_nees
 from iceg.evaluation import position_errors, relation_errors
-from iceg.features.prefetch import FeaturePrefetcher, auto_workers
+from iceg.features.prefetch import WORKER_NICENESS, FeaturePrefetcher, auto_workers
 from iceg.kernel_warmup import cache_is_new, probed
 from iceg.log_checks import Reading, check_returns, reading_adjustments
 from iceg.match_pool import MatchPool
@@ -52,6 +52,8 @@ T = TypeVar("T")
 RELATION_TOLERANCE_S = 1e-3
 #: ``run_log``'s odometry time offset measured before the run (``--odometry-time-offset auto``).
 AUTO_OFFSET = "auto"
+#: A run beside its log's checks looks whether they have arrived every this many scans.
+CHECKS_POLL_SCANS = 8
 
 
 def run_scans(
@@ -206,7 +208,7 @@ def run_log(
 ) -> SlamResult:
     """Run SLAM over a log file and, if given, score it with a ``.relations`` file.
 
-    The log is checked before anything runs; its timestamps are ordered by ``stamps``
+    The log file is checked before anything runs; its timestamps are ordered by ``stamps``
     (``"sort"``: reorder out-of-order scans, ``"refuse"``: fail at the first one, naming
     ``file:line``); the policy and what the reader found (out-of-order and duplicate stamps,
     odometry breaks) are in ``result.metrics["stamps"]``. ``reader_options`` go to
@@ -233,6 +235,11 @@ def run_log(
     :func:`~iceg.wall_dropouts.with_measured_dropouts`, warned);
     ``result.metrics["wall_dropouts"]`` holds the measurement (None: not measured).
 
+    A run of two or more processes (``slam.workers``) without ``"auto"`` starts at once and
+    makes these checks and measurements in a forked process beside it; where they change
+    the reading or the configuration, it starts again with them (:func:`_run_beside_checks`).
+    Either way the result is the run made after them, bit for bit.
+
     Raises:
         LogFormatError: missing, unreadable or empty log, no return in it
             (:func:`~iceg.log_checks.check_returns`), disordered timestamps under
@@ -250,7 +257,15 @@ def run_log(
     auto, before_run = odometry_time_offset_s == AUTO_OFFSET, None
     applied_s = 0.0 if isinstance(odometry_time_offset_s, str) else odometry_time_offset_s
     with _started(slam, lambda: _read(path, reader, applied_s)) as ((read, report), prefetch):
-        scans, measured, reading = _checked(path, read, slam.config)
+        check_returns(path, read)
+        if rel is not None:
+            check_relations_match(rel, read.stamps_s)
+        fresh = auto or prefetch.workers < 2  # the run waits for the checks
+        if fresh:
+            (measured, reading), result = _reading_checks(path, read, slam.config), None
+        else:  # the checks beside the run, which goes on as if they change nothing
+            (measured, reading), result = _run_beside_checks(path, slam, prefetch, read, progress)
+        scans = _as_read(read, reading)
         if reading.options:  # so read again by its session
             reader_options = {**(reader_options or {}), **reading.options}
         if reading.options.get("laser_only"):  # as --laser-only reads it: no odometry to offset
@@ -260,12 +275,10 @@ def run_log(
                 path, scans, slam.config, measured
             )
         run_config = measured.config
-        if rel is not None:
-            check_relations_match(rel, scans.stamps_s)
-        if run_config == slam.config:
-            result = _process(slam, prefetch, scans, progress, len(scans))
-        else:
+        if run_config != slam.config:
             _warn_measured(path, slam.config, measured)
+        elif fresh:
+            result = _process(slam, prefetch, scans, progress, len(scans))
     if result is None:  # the helpers were started with the features before the scanner was known
         slam = Slam(run_config)
         with helper_processes(slam) as prefetch:
@@ -451,24 +464,56 @@ def _read(
     return store, report if isinstance(report, StampReport) else None
 
 
-def _checked(
+def _reading_checks(
     path: str | Path, store: ScanStore, config: IcegConfig
-) -> tuple[ScanStore, MeasuredScanner, Reading]:
-    """The log's scans read as they say they must be (:func:`~iceg.log_checks.
-    reading_adjustments`: without an odometry that carries no motion or turns where the
-    walls do not, with beams that turn against the odometry mirrored, without it where it
-    holds while they move); ``config`` with what the scans show of the scanner
-    (:func:`measure_scanner`); and the reading. Its first feature extraction and match load
-    the compiled kernels the run's first keyframes would load otherwise.
-
-    Raises:
-        LogFormatError: no return in the log (:func:`~iceg.log_checks.check_returns`).
+) -> tuple[MeasuredScanner, Reading]:
+    """How the log's scans must be read (:func:`~iceg.log_checks.reading_adjustments`:
+    without an odometry that carries no motion or turns where the walls do not, with beams
+    that turn against the odometry mirrored, without it where it holds while they move),
+    and ``config`` with what the scans so read show of the scanner (:func:`measure_scanner`).
     """
-    check_returns(path, store)
     reading = reading_adjustments(path, store, config)
-    if reading.options:
-        store = ScanStore(adjust_scan(scan, **reading.options) for scan in store)
-    return store, measure_scanner(config, store), reading
+    return measure_scanner(config, _as_read(store, reading)), reading
+
+
+def _as_read(store: ScanStore, reading: Reading) -> ScanStore:
+    """The scans of ``store`` read as ``reading`` says (``store`` itself where it says
+    nothing)."""
+    if not reading.options:
+        return store
+    return ScanStore(adjust_scan(scan, **reading.options) for scan in store)
+
+
+def _run_beside_checks(
+    path: str | Path,
+    slam: Slam,
+    prefetch: FeaturePrefetcher,
+    store: ScanStore,
+    progress: bool,
+) -> tuple[tuple[MeasuredScanner, Reading], SlamResult | None]:
+    """The log's checks (:func:`_reading_checks`) in a forked process, at the helpers'
+    niceness, while ``slam`` runs over ``store`` as if they change nothing: its result where
+    they do not, None where they change the reading or the configuration (the run stopped at
+    its first look after they arrived, every :data:`CHECKS_POLL_SCANS` scans, and at the
+    latest before ``finish``: :meth:`~iceg.aside.Aside.until`). Where they change nothing,
+    the run is the one that would have started after them, bit for bit; where they do, the
+    caller runs again with what they found, as it would have from the start. The checks'
+    warnings are logged here as they arrive."""
+
+    def changes(checks: tuple[MeasuredScanner, Reading]) -> bool:
+        measured, reading = checks
+        return bool(reading.options) or measured.config != slam.config
+
+    with compute_aside(
+        lambda: _reading_checks(path, store, slam.config), niceness=WORKER_NICENESS
+    ) as checks:
+        scans = checks.until(store, changes, CHECKS_POLL_SCANS)
+        try:
+            result: SlamResult | None = _process(slam, prefetch, scans, progress, len(store))
+        except Superseded:
+            logger.info("%s: the checks read the log otherwise; the run starts again", path)
+            result = None
+        return checks.result(), result
 
 
 def read_log_scans(

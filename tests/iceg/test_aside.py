@@ -4,6 +4,7 @@ reading fails; the built-in demo is the same run."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import multiprocessing
 import pickle
@@ -53,10 +54,10 @@ def test_the_store_read_aside_is_the_store_read_here_bit_for_bit() -> None:
         store, report = reading.result()
     _assert_same_store(store, here)
     assert report is not None and report.as_dict()["out_of_order"] == 0
-    # then checked and measured here: read as it is (its odometry moves, and the walls turn
+    # then checked and measured: read as it is (its odometry moves, and the walls turn
     # and move with it), a SICK that sees none of its robot and loses few returns on walls
-    checked, (run_config, body, dropouts), how = pipeline._checked(path, store, config)
-    assert checked is store and how.options == {} and how.stalls == ()
+    (run_config, body, dropouts), how = pipeline._reading_checks(path, store, config)
+    assert pipeline._as_read(store, how) is store and how.options == {} and how.stalls == ()
     assert how.check is not None and how.check.finding() is None
     assert run_config == config and body is not None and body.range_m is None
     assert dropouts is not None and not dropouts.rule_on and dropouts.patches_per_1000 < 2.5
@@ -178,3 +179,49 @@ def test_the_demo_simulated_aside_is_the_demo_simulated_here(
     aside_run, here = runs
     assert aside_run.poses.tobytes() == here.poses.tobytes()
     assert aside_run.metrics["ground_truth"] == here.metrics["ground_truth"]
+
+
+class _ArrivesLate(aside.Aside[bool]):
+    """A value (``stops``) that arrives after ``looks`` looks (:meth:`ready`)."""
+
+    def __init__(self, stops: bool, looks: int) -> None:
+        super().__init__(lambda: stops)
+        self.looks, self.looked = looks, 0
+
+    def ready(self) -> bool:
+        self.looked += 1
+        return self.looked > self.looks
+
+
+@pytest.mark.parametrize(
+    ("stops", "looks", "given", "looked"),
+    [(False, 2, 50, 7), (True, 2, 16, 3), (True, 99, 50, 7)],
+)
+def test_the_items_go_until_the_value_arrives_saying_they_must_stop(
+    stops: bool, looks: int, given: int, looked: int
+) -> None:
+    # Looked at every 8 items (0, 8, ..., 48) without waiting: a value that arrives at the
+    # third look (item 16) and says stop stops there; one that never arrives while the items
+    # go is waited for after the last (all 50 given, then stopped).
+    late = _ArrivesLate(stops, looks)
+    out: list[int] = []
+    with pytest.raises(aside.Superseded) if stops else contextlib.nullcontext():
+        for item in late.until(range(50), lambda value: value, every=8):
+            out.append(item)
+    assert out == list(range(given))
+    assert late.looked == looked
+
+
+@forked
+def test_a_value_computed_aside_is_taken_once_and_given_again() -> None:
+    calls = []
+
+    def compute() -> int:
+        calls.append(1)
+        return 42
+
+    with compute_aside(compute, niceness=5) as value:
+        while not value.ready():
+            time.sleep(0.01)
+        assert value.result() == value.result() == 42
+    assert calls == []  # computed in the forked process only
