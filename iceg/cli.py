@@ -549,13 +549,17 @@ def info(
     from iceg.config import IcegConfig
     from iceg.log_checks import describe_odometry_checks
     from iceg.scan_store import ScanStore
+    from iceg_common.errors import LogFormatError
 
     options = _reader_options(
         scan_topic, odom_topic, odom_frame, base_frame, laser_frame_offset, False, lenient
     )
     scans = ScanStore()
     rows = describe_log(open_log(log, **options), on_scan=scans.append)
-    rows += describe_odometry_checks(scans, IcegConfig())  # the scans a CARMEN log streamed
+    if not len(scans):  # a bag answered from its index: its scans are read for the checks
+        with contextlib.suppress(LogFormatError):  # the plan needs an option: its row says so
+            scans = ScanStore(open_log(log, **options))
+    rows += describe_odometry_checks(scans, IcegConfig())
     typer.echo(f"iceg info: {log}")
     _print_table(rows)
 

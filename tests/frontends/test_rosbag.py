@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import re
 import shutil
 import sys
 from pathlib import Path
@@ -436,12 +437,19 @@ def test_iceg_info_on_a_bag_and_on_a_carmen_log() -> None:
     assert "ROS 2 sqlite3" in out and "sensor_msgs/msg/LaserScan × 357" in out
     assert "nav_msgs/Odometry on /odom" in out and "720, -179.0 to 180.0 deg" in out
     assert "0.15 to 12 m" in out and "yaw 90.0 deg" in out
+    # its scans read for the odometry checks, as a run reads them
+    assert re.search(r"walls and odometry +they turn and move together \(7 of 7 turns", out)
+    assert re.search(r"odometry held while moving +nowhere", out)
     # An ambiguous bag: info still lists the topics and says which option reading needs.
     neato = _bag_dir("neato-ros1") / "neato-obstacle-avoid.bag"
     result = runner.invoke(app, ["info", str(neato)])
     assert result.exit_code == 0, result.output
     assert "/stable_scan" in result.output and "sensor_msgs/msg/LaserScan × 364" in result.output
     assert "reading needs an option" in result.output and "--scan-topic" in result.output
+    assert "walls and odometry" not in result.output  # no scans to check without the option
+    result = runner.invoke(app, ["info", str(neato), "--scan-topic", "/scan"])
+    assert result.exit_code == 0, result.output
+    assert re.search(r"walls and odometry +they turn and move together", result.output)
     result = runner.invoke(app, ["info", str(shared_file("mit-csail/mit-csail.clf"))])
     assert result.exit_code == 0, result.output
     assert "1988" in result.output and "361" in result.output and "0 to 81.91 m" in result.output
