@@ -105,9 +105,9 @@ class Aside(Generic[T]):
             return True
 
     def until(self, items: Iterable[S], stops: Callable[[T], bool], every: int) -> Iterator[S]:
-        """``items`` while the value, where it has arrived, does not ``stops`` the work on them
-        (a speculation on what it will be): looked at every ``every`` items without
-        waiting (:meth:`ready`), and waited for after the last.
+        """``items``, given on the speculation that the value will not stop the work on them:
+        every ``every`` items it is looked at where it has arrived (:meth:`ready`, no wait),
+        and after the last item it is waited for; ``stops(value)`` says it stops the work.
 
         Raises:
             Superseded: ``stops(value)``, at the first look after the value arrived.

@@ -1,12 +1,11 @@
-"""A log run whose checks go on in a forked process beside it (``iceg.pipeline``): the run
-goes on as if they change nothing, stops as soon as they say otherwise, and is in every
-case the run that starts after them, bit for bit."""
+"""A log run whose checks go on in a forked process beside it (``iceg.pipeline``; the run
+stopping where they arrive is ``test_aside.py``'s): in every case the run that starts after
+them, bit for bit."""
 
 from __future__ import annotations
 
 import dataclasses
 import logging
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -17,8 +16,6 @@ from frontends.carmen import write_carmen
 from frontends.simulate import office_world, simulate
 from iceg.config import IcegConfig
 from iceg.pipeline import run_log
-
-forked = pytest.mark.skipif(sys.platform != "linux", reason="the checks fork on Linux only")
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +38,6 @@ def _logs(scans: list[LaserScan], directory: Path) -> dict[str, Path]:
     return {name: directory / f"{name}.clf" for name in logs}
 
 
-@forked
 @pytest.mark.parametrize("name", ["as recorded", "held", "still"])
 def test_the_run_beside_its_checks_is_the_run_after_them(
     office_scans: list[LaserScan], tmp_path: Path, name: str, caplog: pytest.LogCaptureFixture
