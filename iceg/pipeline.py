@@ -279,7 +279,7 @@ def run_log(
             _warn_measured(path, slam.config, measured)
         elif fresh:
             result = _process(slam, prefetch, scans, progress, len(scans))
-    if result is None:  # the helpers were started with the features before the scanner was known
+    if result is None:  # the helpers (and a run beside the checks) had what the checks changed
         slam = Slam(run_config)
         with helper_processes(slam) as prefetch:
             result = _process(slam, prefetch, scans, progress, len(scans))
