@@ -17,10 +17,16 @@ from typer.testing import CliRunner
 
 pytest.importorskip("rosbags", reason="the ROS bag reader needs the 'ros' extra (rosbags)")
 
+from rosbags.interfaces import MessageDefinitionFormat, Nodetype
+
 from frontends import LaserScan, open_log
 from frontends.rosbag import (
+    READ_TYPES,
+    TF_TYPE,
     RosbagReader,
     Transform3,
+    _Bag,
+    _read_types,
     interpolate_se2,
     project_mounting,
     quaternion_yaw,
@@ -406,6 +412,37 @@ def test_no_odometry_with_the_laser_in_tf_needs_a_base_frame(tmp_path: Path) -> 
     with pytest.raises(LogFormatError, match=r"topic /odom holds no messages"):
         list(open_log(path, odom_topic="/odom"))  # named: the user asked for that one
     np.testing.assert_allclose(got[0].laser_offset, [0.2, -0.1, 0.3], atol=1e-12)
+
+
+@pytest.mark.parametrize("ros1", [True, False])
+def test_the_read_types_are_the_typestores_definitions(ros1: bool) -> None:
+    # Truth: rosbags' own Noetic / Humble typestore. Every type the reader deserializes, and
+    # every type those hold, is there with the store's definition, and nothing else is.
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    types = _read_types(ros1)
+    known = {name for name in READ_TYPES if name in store.fielddefs}
+    assert known == set(READ_TYPES) - ({TF_TYPE} if ros1 else set())  # Noetic lacks tf2's
+    assert all(types[name] == store.fielddefs[name] for name in types)
+
+    def named(desc: tuple) -> str | None:  # a field's type name; arrays' their elements'
+        kind, detail = desc
+        if kind in (Nodetype.ARRAY, Nodetype.SEQUENCE):
+            return named(detail[0])
+        return detail if kind == Nodetype.NAME else None
+
+    held = {named(desc) for _, fields in types.values() for _, desc in fields} - {None}
+    assert held <= set(types) | {"builtin_interfaces/msg/Time"}  # the store's own builtin
+    assert set(types) - held == known  # the read types and what they hold, only
+
+
+def test_a_bag_without_definitions_registers_the_read_types_only() -> None:
+    bag = _Bag(_bag_dir("turtlebot4-ros2"))  # a ROS 2 sqlite3 bag that defines no type
+    with bag:
+        assert {c.msgdef.format for c in bag.connections} == {MessageDefinitionFormat.NONE}
+        assert set(_read_types(False)) <= set(bag.reader.typestore.fielddefs)
+        assert "sensor_msgs/msg/Imu" not in bag.reader.typestore.fielddefs
 
 
 def test_turtlebot3_sim_time_and_chained_static_tf() -> None:
