@@ -441,8 +441,11 @@ def test_a_bag_without_definitions_registers_the_read_types_only() -> None:
     bag = _Bag(_bag_dir("turtlebot4-ros2"))  # a ROS 2 sqlite3 bag that defines no type
     with bag:
         assert {c.msgdef.format for c in bag.connections} == {MessageDefinitionFormat.NONE}
-        assert set(_read_types(False)) <= set(bag.reader.typestore.fielddefs)
-        assert "sensor_msgs/msg/Imu" not in bag.reader.typestore.fielddefs
+        registered = set(bag.reader.typestore.fielddefs)
+        assert set(_read_types(False)) <= registered
+        unread = {c.msgtype for c in bag.connections} - set(_read_types(False))
+        assert unread == {"std_msgs/msg/String"}  # /robot_description: never deserialized
+        assert not unread & registered
 
 
 def test_turtlebot3_sim_time_and_chained_static_tf() -> None:
