@@ -169,13 +169,13 @@ def main() -> None:
     ap.add_argument("b", nargs="?", default=str(ROOT), help="version B (default: this checkout)")
     ap.add_argument("--pairs", type=int, default=4)
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--log", default=str(DATA), help="a log file, or 'demo'")
+    ap.add_argument("--log", default=str(DATA), help="a log (file or bag folder), or 'demo'")
     args = ap.parse_args()
     if args.pairs < 1:
         ap.error("--pairs must be at least 1")
     if args.log != "demo":
-        if not Path(args.log).is_file():
-            ap.error(f"--log {args.log}: no such file")
+        if not Path(args.log).exists():  # a file, or a ROS 2 bag's folder
+            ap.error(f"--log {args.log}: no such file or folder")
         args.log = str(Path(args.log).resolve())  # the children run in the versions' folders
     with tempfile.TemporaryDirectory(prefix="iceg-compare-") as tmp:
         made: list[Path] = []
