@@ -107,15 +107,21 @@ class Aside(Generic[T]):
     def until(self, items: Iterable[S], stops: Callable[[T], bool], every: int) -> Iterator[S]:
         """``items``, given on the speculation that the value will not stop the work on them:
         every ``every`` items it is looked at where it has arrived (:meth:`ready`, no wait),
-        and after the last item it is waited for; ``stops(value)`` says it stops the work.
+        and after the last item it is waited for; ``stops(value)`` says it stops the work,
+        asked once.
 
         Raises:
             Superseded: ``stops(value)``, at the first look after the value arrived.
             Whatever ``compute`` raises.
         """
-        for k, item in enumerate(items):
-            if k % every == 0 and self.ready() and stops(self.result()):
-                raise Superseded
+        rest = iter(items)
+        for k, item in enumerate(rest):
+            if k % every == 0 and self.ready():
+                if stops(self.result()):
+                    raise Superseded
+                yield item  # the value goes on: the other items without a look
+                yield from rest
+                return
             yield item
         if stops(self.result()):
             raise Superseded

@@ -247,6 +247,14 @@ class ScanStore(Sequence[LaserScan]):
             del _GIVEN[next(iter(_GIVEN))]
         return scan
 
+    def sources(self) -> list[str]:
+        """Every scan's ``source`` (``"path:line"``), as its :class:`LaserScan` gives it."""
+        h, table, n = self._head, self._source_table, self._n
+        return [
+            table[s] if line < 0 else f"{table[s]}:{line}"
+            for s, line in zip(h["source"][:n].tolist(), h["line"][:n].tolist(), strict=True)
+        ]
+
     def stamp_s(self, index: int) -> float:
         """Timestamp of scan ``index`` (s; negative indices count from the end)."""
         k = index + self._n if index < 0 else index

@@ -57,7 +57,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from frontends import LaserScan, open_log
 from frontends.odometry_shift import shift_odometry
@@ -286,13 +286,54 @@ def rebuild_graph(a: Mapping[str, np.ndarray], config: GraphConfig) -> PoseGraph
 def scan_hash(scan: LaserScan) -> str:
     """Content hash of a scan (16 hex digits of sha256 over stamp, ranges, bearings,
     odometry and laser offset): the check that a re-read scan is the saved one."""
+    return _content_hash(
+        scan.stamp_s, scan.ranges_m, scan.angles_rad, scan.laser_offset, scan.odom_pose
+    )
+
+
+def _content_hash(
+    stamp_s: float,
+    ranges_m: ArrayLike,
+    angles_rad: ArrayLike,
+    laser_offset: ArrayLike,
+    odom_pose: ArrayLike | None,
+) -> str:
+    """:func:`scan_hash` of a scan's values."""
     h = hashlib.sha256()
-    h.update(np.float64(scan.stamp_s).tobytes())
-    for arr in (scan.ranges_m, scan.angles_rad, scan.laser_offset):
+    h.update(np.float64(stamp_s).tobytes())
+    for arr in (ranges_m, angles_rad, laser_offset):
         h.update(np.ascontiguousarray(arr, dtype=np.float64).tobytes())
-    if scan.odom_pose is not None:
-        h.update(np.ascontiguousarray(scan.odom_pose, dtype=np.float64).tobytes())
+    if odom_pose is not None:
+        h.update(np.ascontiguousarray(odom_pose, dtype=np.float64).tobytes())
     return h.hexdigest()[:16]
+
+
+#: Scans whose beams :func:`_store_hashes` decodes at a time.
+_HASH_CHUNK_SCANS = 1024
+
+
+def _store_hashes(scans: ScanStore) -> list[str]:
+    """:func:`scan_hash` of every scan of a store, from its arrays (a chunk of scans' beams
+    decoded at a time), without building the scans."""
+    _, odom, _ = scans.odometry
+    has_odom = ~np.isnan(odom).any(axis=1)  # a scan's odometry is finite, or a NaN row
+    stamps = scans.stamps_s.tolist()
+    hashes: list[str] = []
+    for lo in range(0, len(scans), _HASH_CHUNK_SCANS):
+        chunk = scans.beam_chunk(lo, min(lo + _HASH_CHUNK_SCANS, len(scans)))
+        ends = np.cumsum(chunk.beam_counts).tolist()
+        for k, (a, b) in enumerate(zip([0, *ends[:-1]], ends, strict=True)):
+            n = lo + k
+            hashes.append(
+                _content_hash(
+                    stamps[n],
+                    chunk.ranges_m[a:b],
+                    chunk.angles_rad[a:b],
+                    chunk.laser_offsets[k],
+                    odom[n] if has_odom[n] else None,
+                )
+            )
+    return hashes
 
 
 def _split_source(source: str, resolved: dict[str, str | None]) -> tuple[str, str] | None:
@@ -319,16 +360,18 @@ def scan_arrays(
     logs: dict[str, int] = {}
     log_idx: list[int] = []
     keys: list[str] = []
-    hashes: list[str] = []
     inline: list[LaserScan] = []
     resolved: dict[str, str | None] = {}  # a source's log, resolved once per path
-    for scan in scans:  # one pass: a ScanStore builds each scan as it is read
-        hashes.append(scan_hash(scan))
-        split = _split_source(scan.source, resolved)
+    if isinstance(scans, ScanStore):  # from its arrays: no scan built but the inline ones
+        hashes, sources = _store_hashes(scans), scans.sources()
+    else:
+        hashes, sources = [scan_hash(s) for s in scans], [s.source for s in scans]
+    for k, source in enumerate(sources):
+        split = _split_source(source, resolved)
         if split is None or (readings or {}).get(split[0], {}).get(STORED_INLINE):
             log_idx.append(-1)
             keys.append(str(len(inline)))
-            inline.append(scan)
+            inline.append(scans[k])
             continue
         path, key = split
         log_idx.append(logs.setdefault(path, len(logs)))

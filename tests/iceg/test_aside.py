@@ -195,21 +195,29 @@ class _ArrivesLate(aside.Aside[bool]):
 
 @pytest.mark.parametrize(
     ("stops", "looks", "given", "looked"),
-    [(False, 2, 50, 7), (True, 2, 16, 3), (True, 99, 50, 7)],
+    [(False, 2, 50, 3), (True, 2, 16, 3), (True, 99, 50, 7)],
 )
 def test_the_items_go_until_the_value_arrives_saying_they_must_stop(
     stops: bool, looks: int, given: int, looked: int
 ) -> None:
     # Looked at every 8 items (0, 8, ..., 48) without waiting: a value that arrives at the
-    # third look (item 16) and says stop stops there; one that never arrives while the items
-    # go is waited for after the last (all 50 given, then stopped).
+    # third look (item 16) and says stop stops there; one that says go on is not looked at
+    # again (the other items follow without a look); one that never arrives while the items
+    # go is waited for after the last (all 50 given, then stopped). The value is asked once.
     late = _ArrivesLate(stops, looks)
+    asked: list[bool] = []
+
+    def ask(value: bool) -> bool:
+        asked.append(value)
+        return value
+
     out: list[int] = []
     with pytest.raises(aside.Superseded) if stops else contextlib.nullcontext():
-        for item in late.until(range(50), lambda value: value, every=8):
+        for item in late.until(range(50), ask, every=8):
             out.append(item)
     assert out == list(range(given))
     assert late.looked == looked
+    assert asked == [stops]
 
 
 @forked

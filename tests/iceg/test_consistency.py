@@ -92,6 +92,18 @@ def test_honest_noise_has_the_chi_square_statistics() -> None:
     )
 
 
+def test_the_default_bound_is_scipy_s_quantile() -> None:
+    # The 95 % bound written out (a run scored against relations imports no scipy.special) is
+    # scipy's chi-square quantile bit for bit; another confidence asks scipy.
+    from scipy.special import chdtri
+
+    values = np.array([0.5, 2.0, 9.0])
+    assert summarize_nees(values).bound == float(chdtri(3, 1.0 - 0.95))
+    assert summarize_nees(values, 0.99).bound == float(chdtri(3, 1.0 - 0.99))
+    assert summarize_nees(values, 0.99).beyond_bound == 0.0  # 9.0 < 11.34
+    assert summarize_nees(values).beyond_bound == pytest.approx(1 / 3)
+
+
 def test_factors_of_nodes_without_truth_are_left_out() -> None:
     truth = TRUTH.copy()
     truth[2] = np.nan

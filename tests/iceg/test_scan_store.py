@@ -40,7 +40,7 @@ _floats = st.floats(-1e6, 1e6, allow_nan=False)
 
 
 @st.composite
-def _scans(draw: st.DrawFn) -> list[LaserScan]:
+def scan_lists(draw: st.DrawFn) -> list[LaserScan]:
     n = draw(st.integers(0, 40))
     fans = [np.linspace(-1.5, 1.5, 11), np.linspace(-2.0, 2.0, 7), np.array([0.1])]
     out = []
@@ -87,7 +87,7 @@ def _scans(draw: st.DrawFn) -> list[LaserScan]:
 
 
 @settings(max_examples=60, deadline=None)
-@given(_scans())
+@given(scan_lists())
 def test_scans_round_trip_exactly(scans: list[LaserScan]) -> None:
     store = ScanStore(scans)
     assert len(store) == len(scans)
@@ -96,6 +96,7 @@ def test_scans_round_trip_exactly(scans: list[LaserScan]) -> None:
         assert _same(store[-1], scans[-1])
         assert store.stamp_s(-1) == scans[-1].stamp_s
         assert [s.source for s in store[1:3]] == [s.source for s in scans[1:3]]
+        assert store.sources() == [s.source for s in scans]
         counts, ranges, angles, rmin, rmax, offsets = store.beams()
         np.testing.assert_array_equal(counts, [s.ranges_m.shape[0] for s in scans])
         np.testing.assert_array_equal(ranges, np.concatenate([s.ranges_m for s in scans]))
@@ -117,7 +118,7 @@ def _contents(
 
 
 @settings(max_examples=40, deadline=None)
-@given(_scans())
+@given(scan_lists())
 def test_a_scan_read_from_a_store_is_stored_again_without_encoding(
     scans: list[LaserScan],
 ) -> None:

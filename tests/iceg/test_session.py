@@ -3,18 +3,24 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from frontends import LaserScan
 from frontends.simulate import office_world, simulate
 from graph import GraphConfig, PoseGraph
 from graph.pose_graph import STEP_BATCH_CORRECTION
 from iceg import session
 from iceg.config import config_from_dict
 from iceg.pipeline import run_log
+from iceg.scan_store import ScanStore
 from iceg.slam import Slam
 from iceg_common.errors import SessionError
+from tests.iceg.test_scan_store import scan_lists
 
 N_SCANS = 260  # office prefix: enough for nodes, matches and map pruning, a few seconds
 
@@ -148,6 +154,35 @@ def test_scans_are_re_read_from_the_log_by_reference_and_checked(office_scans, t
     log.write_text("".join(lines))
     with pytest.raises(SessionError, match="content hash"):
         session.load(folder)
+
+
+@settings(max_examples=40, deadline=None)
+@given(scans=scan_lists(), from_log=st.lists(st.booleans(), min_size=40, max_size=40))
+def test_a_store_s_scan_references_are_its_scans(
+    scans: list[LaserScan], from_log: list[bool], tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    """A store's references and hashes, taken from its arrays without building its scans
+    (a few scans' beams at a time), are those of the scans it gives back."""
+    folder = tmp_path_factory.mktemp("refs")
+    log = folder / "run.clf"
+    log.write_text("")
+    # some scans from a log on disk (by reference), the others inline
+    scans = [
+        replace(s, source=f"{log}:{k + 1}") if f else s
+        for k, (s, f) in enumerate(zip(scans, from_log, strict=False))
+    ]
+    store = ScanStore(scans)
+    session._HASH_CHUNK_SCANS, chunk = 3, session._HASH_CHUNK_SCANS
+    try:
+        arrays, logs = session.scan_arrays(store, folder)
+    finally:
+        session._HASH_CHUNK_SCANS = chunk
+    expected, expected_logs = session.scan_arrays(list(store), folder)
+    assert logs == expected_logs
+    assert arrays.keys() == expected.keys()
+    for key, value in expected.items():
+        np.testing.assert_array_equal(arrays[key], value)
+    assert arrays["s_hash"].tolist() == [session.scan_hash(s) for s in scans]
 
 
 def test_unknown_version_and_non_session_are_refused(whole, tmp_path) -> None:  # type: ignore[no-untyped-def]
