@@ -316,7 +316,7 @@ def _store_hashes(scans: ScanStore) -> list[str]:
     """:func:`scan_hash` of every scan of a store, from its arrays (a chunk of scans' beams
     decoded at a time), without building the scans."""
     _, odom, _ = scans.odometry
-    has_odom: list[bool] = (~np.isnan(odom).any(axis=1)).tolist()  # finite, or a NaN row
+    has_odom = [bool(v) for v in np.isfinite(odom[:, 0])]  # finite odometry, or a NaN row
     stamps = scans.stamps_s.tolist()
     hashes: list[str] = []
     for lo in range(0, len(scans), _HASH_CHUNK_SCANS):
