@@ -29,7 +29,7 @@ work were split evenly between them. With ``--profile`` the CSAIL run is profile
 pyinstrument instead (wall figures then include the profiler's overhead): the HTML goes to
 the printed path and the five largest self-time costs are listed.
 
-Last, ``iceg run`` as a user types it (``python -m iceg.cli run``), in a fresh process on
+Last, ``iceg run`` as a user types it (``python -m iceg run``), in a fresh process on
 the log with its relations and on the demo: the wall time from start to exit, and how much of
 it is not the run's stages (interpreter, imports, log reading, saving, exit); ``--no-cli``
 skips it. ``--fresh-install`` first times a new user's first ``iceg run`` of the demo, with
@@ -39,8 +39,15 @@ a minute on the benchmark machine).
 ``--workers N`` sets both ``slam.workers`` and ``grid.threads`` (left at 0, each takes 2
 when the cores are idle enough, :func:`iceg.features.prefetch.auto_workers`).
 
+Like the ``iceg`` command, the benchmark first starts itself again with malloc on transparent
+huge pages where the machine offers them (:func:`iceg.huge_pages.exec_with_huge_pages`), so
+that its in-process runs, its child processes and its ``iceg run`` measure what the command
+gets; ``--default-pages`` keeps them all on malloc's default pages
+(``glibc.malloc.hugetlb=0``). The first line says which.
+
 Run: ``python benchmarks/bench_pipeline.py [--profile [HTML]] [--no-demo] [--no-cold]
-[--no-cli] [--fresh-install] [--workers N] [path/to/mit-csail.clf [path/to/relations]]``
+[--no-cli] [--fresh-install] [--default-pages] [--workers N] [path/to/mit-csail.clf
+[path/to/relations]]``
 """
 
 from __future__ import annotations
@@ -369,9 +376,9 @@ def _cli_env() -> dict[str, str]:
 
 
 def _iceg_run(args: list[str], out: Path, env: dict[str, str]) -> tuple[float, float]:
-    """``python -m iceg.cli run ARGS --out OUT`` in a fresh process: its wall time from start
-    to exit and the run's stages (``total_seconds`` of its metrics.json), seconds."""
-    cmd = [sys.executable, "-m", "iceg.cli", "run", *args, "--out", str(out), "--no-progress"]
+    """``python -m iceg run ARGS --out OUT`` in a fresh process: its wall time from start to
+    exit and the run's stages (``total_seconds`` of its metrics.json), seconds."""
+    cmd = [sys.executable, "-m", "iceg", "run", *args, "--out", str(out), "--no-progress"]
     t0 = time.perf_counter()
     subprocess.run(cmd, env=env, capture_output=True, check=True)
     wall = time.perf_counter() - t0
@@ -446,6 +453,19 @@ def _print_top_costs(profiler: Any, n: int) -> None:
         print(f"  {t:7.3f} s  {100 * t / total:5.1f} %  {name}")
 
 
+def _choose_pages(default_pages: bool) -> None:
+    """Start again on malloc's huge pages as ``iceg`` does, or with ``default_pages`` keep this
+    process's children on the default ones; print the choice in force."""
+    from iceg.huge_pages import TUNABLE, exec_with_huge_pages
+
+    tunables = os.environ.get("GLIBC_TUNABLES", "")
+    if default_pages and TUNABLE not in tunables:
+        os.environ["GLIBC_TUNABLES"] = f"{tunables}:{TUNABLE}=0".lstrip(":")
+    elif not default_pages:
+        exec_with_huge_pages()
+    print(f"malloc: GLIBC_TUNABLES={os.environ.get('GLIBC_TUNABLES', '')!r}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("log", nargs="?", type=Path, default=DATA / "mit-csail.clf")
@@ -458,7 +478,9 @@ def main() -> None:
     ap.add_argument("--no-cli", action="store_true")
     ap.add_argument("--fresh-install", action="store_true")
     ap.add_argument("--out", type=Path, default=None, help="save the CSAIL result here")
+    ap.add_argument("--default-pages", action="store_true", help="malloc without huge pages")
     args = ap.parse_args()
+    _choose_pages(args.default_pages)
     print(f"python {sys.version.split()[0]} ({sys.executable})")
     if args.fresh_install:
         fresh_install()
