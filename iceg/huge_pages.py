@@ -6,9 +6,10 @@ guest's and the host's). The kernel backs memory with 2 MiB pages where a progra
 (``madvise(MADV_HUGEPAGE)``, Linux's default ``madvise`` mode of
 ``/sys/kernel/mm/transparent_hugepage/enabled``), and glibc's malloc asks for them for its
 heap when its tunable ``glibc.malloc.hugetlb=1`` is set (glibc 2.35 and later). That heap
-holds numpy's arrays, numba's and gtsam's allocations. With it a MIT CSAIL run took 5-10 %
-less time on that machine, with the same results bit for bit (docs/design.md, "malloc on
-huge pages" under "Speed").
+holds numpy's arrays, numba's and gtsam's allocations. With it a MIT CSAIL run with two
+workers took about 3 % less time on that machine (faster in 29 of 40 alternated pairs; one
+process on a core of its own showed no difference), with the same results bit for bit
+(docs/design.md, "malloc on huge pages" under "Speed").
 
 A tunable is read once, when the process starts, so the ``iceg`` command
 (:mod:`iceg.__main__`) replaces its process by itself with the tunable added to
