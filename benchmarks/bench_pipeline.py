@@ -456,10 +456,10 @@ def _print_top_costs(profiler: Any, n: int) -> None:
 def _choose_pages(default_pages: bool) -> None:
     """Start again on malloc's huge pages as ``iceg`` does, or with ``default_pages`` keep this
     process's children on the default ones; print the choice in force."""
-    from iceg.huge_pages import TUNABLE, exec_with_huge_pages
+    from iceg.huge_pages import TUNABLE, exec_with_huge_pages, sets_tunable
 
-    tunables = os.environ.get("GLIBC_TUNABLES", "")
-    if default_pages and TUNABLE not in tunables:
+    if default_pages and not sets_tunable(os.environ):
+        tunables = os.environ.get("GLIBC_TUNABLES", "")
         os.environ["GLIBC_TUNABLES"] = f"{tunables}:{TUNABLE}=0".lstrip(":")
     elif not default_pages:
         exec_with_huge_pages()

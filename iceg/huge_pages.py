@@ -65,6 +65,13 @@ def thp_mode(path: Path = THP_ENABLED) -> str | None:
     return found.group(1) if found else None
 
 
+def sets_tunable(environ: Mapping[str, str]) -> bool:
+    """Whether ``GLIBC_TUNABLES`` in ``environ`` (``:``-separated ``name=value`` items) sets
+    :data:`TUNABLE`, to any value."""
+    tunables = environ.get("GLIBC_TUNABLES", "")
+    return any(item.partition("=")[0] == TUNABLE for item in tunables.split(":"))
+
+
 def huge_page_environment(
     environ: Mapping[str, str], glibc: tuple[int, int] | None, thp: str | None
 ) -> dict[str, str] | None:
@@ -84,11 +91,9 @@ def huge_page_environment(
         :data:`TUNABLE` already, to any value (a user's choice, and the mark of a process
         started by :func:`exec_with_huge_pages`).
     """
-    if glibc is None or glibc < MIN_GLIBC or thp != "madvise":
+    if glibc is None or glibc < MIN_GLIBC or thp != "madvise" or sets_tunable(environ):
         return None
     tunables = environ.get("GLIBC_TUNABLES", "")
-    if any(item.partition("=")[0] == TUNABLE for item in tunables.split(":")):
-        return None
     env = dict(environ)
     env["GLIBC_TUNABLES"] = f"{tunables}:{TUNABLE}=1" if tunables else f"{TUNABLE}=1"
     return env
