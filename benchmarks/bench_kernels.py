@@ -14,9 +14,14 @@ adds numba's dispatch and the cache misses of code and data that the rest of eac
 displaced (on this 2-core virtual machine the two differ by up to three times; docs/design.md,
 "Kernels that touch each value once"). The replayed figure hardly moves with the machine's
 load, so it is the one to compare when a kernel's code changes; the run's says what the
-change is worth.
+change is worth. The same calls are then replayed once more with a sum over ``--sweep-mb``
+megabytes of other data before each call (each call timed alone): the kernel with its code
+and data evicted from the core's caches, as the rest of a keyframe leaves them. Where that
+figure is near the run's, the kernel's loss in the run is the caches' (docs/design.md, "More
+levers measured, none landed"); the last line sums it over the replayed kernels' calls.
 
-Run: ``python benchmarks/bench_kernels.py [log] [--workers N] [--replay N] [--passes N]``
+Run: ``python benchmarks/bench_kernels.py [log] [--workers N] [--replay N] [--passes N]
+[--sweep-mb MB]``
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from numba.core.registry import CPUDispatcher
 
 from iceg.config import IcegConfig
@@ -147,6 +153,24 @@ def _replayed_us(kernel: Callable[..., Any], calls: list[tuple[Any, ...]], passe
     return 1e6 * best
 
 
+def _swept_us(
+    kernel: Callable[..., Any], calls: list[tuple[Any, ...]], passes: int, sweep: np.ndarray
+) -> float:
+    """Minimum over ``passes`` of the mean time (µs) of the calls replayed each after a sum
+    over ``sweep`` (not timed), so that each starts with its code and data out of the core's
+    caches."""
+    best = float("inf")
+    for _ in range(passes):
+        total = 0.0
+        for args in calls:
+            sweep.sum()
+            t0 = time.perf_counter()
+            kernel(*args)
+            total += time.perf_counter() - t0
+        best = min(best, total / len(calls))
+    return 1e6 * best
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("log", nargs="?", type=Path, default=DATA / "mit-csail.clf")
@@ -154,6 +178,9 @@ def main() -> None:
     ap.add_argument("--replay", type=int, default=300, help="calls kept per replayed kernel")
     ap.add_argument("--passes", type=int, default=7)
     ap.add_argument("--top", type=int, default=25)
+    ap.add_argument(
+        "--sweep-mb", type=float, default=8.0, help="data swept before each call (0: none)"
+    )
     args = ap.parse_args()
     cfg = IcegConfig()
     cfg = cfg.model_copy(update={"slam": cfg.slam.model_copy(update={"workers": args.workers})})
@@ -170,18 +197,31 @@ def main() -> None:
         f"{args.log.name}, {args.workers} worker(s): run {wall:.2f} s, of which the main "
         f"process's kernels {in_kernels:.2f} s ({100 * in_kernels / wall:.0f} %)"
     )
+    sweep = np.ones(max(1, int(args.sweep_mb * 2**20) // 8)) if args.sweep_mb > 0 else None
     print(
-        f"{'kernel':26s} {'calls':>6s} {'run s':>7s} {'run µs':>8s} {'alone µs':>9s} {'ratio':>6s}"
+        f"{'kernel':26s} {'calls':>6s} {'run s':>7s} {'run µs':>8s} {'alone µs':>9s} "
+        f"{'ratio':>6s} {'swept µs':>9s} {'ratio':>6s}"
     )
+    evicted_s = 0.0
     for name in sorted(timings.total_s, key=lambda k: -timings.total_s[k])[: args.top]:
         run_us = 1e6 * timings.total_s[name] / timings.calls[name]
         alone = ""
         if timings.args[name]:
-            alone_us = _replayed_us(timings.kernels[name], timings.args[name], args.passes)
+            kernel, calls = timings.kernels[name], timings.args[name]
+            alone_us = _replayed_us(kernel, calls, args.passes)
             alone = f"{alone_us:9.1f} {run_us / alone_us:6.2f}"
+            if sweep is not None:
+                swept_us = _swept_us(kernel, calls, args.passes, sweep)
+                alone += f" {swept_us:9.1f} {run_us / swept_us:6.2f}"
+                evicted_s += 1e-6 * max(0.0, swept_us - alone_us) * timings.calls[name]
         print(
             f"{name:26s} {timings.calls[name]:6d} {timings.total_s[name]:7.3f} "
             f"{run_us:8.1f} {alone}"
+        )
+    if sweep is not None:
+        print(
+            f"the replayed kernels above, swept against alone, times their calls: "
+            f"{evicted_s:.2f} s of the run ({args.sweep_mb:g} MB swept before each call)"
         )
 
 
