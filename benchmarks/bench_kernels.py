@@ -205,18 +205,18 @@ def main() -> None:
     evicted_s = 0.0
     for name in sorted(timings.total_s, key=lambda k: -timings.total_s[k])[: args.top]:
         run_us = 1e6 * timings.total_s[name] / timings.calls[name]
-        alone = ""
+        replayed = ""
         if timings.args[name]:
             kernel, calls = timings.kernels[name], timings.args[name]
             alone_us = _replayed_us(kernel, calls, args.passes)
-            alone = f"{alone_us:9.1f} {run_us / alone_us:6.2f}"
+            replayed = f"{alone_us:9.1f} {run_us / alone_us:6.2f}"
             if sweep is not None:
                 swept_us = _swept_us(kernel, calls, args.passes, sweep)
-                alone += f" {swept_us:9.1f} {run_us / swept_us:6.2f}"
+                replayed += f" {swept_us:9.1f} {run_us / swept_us:6.2f}"
                 evicted_s += 1e-6 * max(0.0, swept_us - alone_us) * timings.calls[name]
         print(
             f"{name:26s} {timings.calls[name]:6d} {timings.total_s[name]:7.3f} "
-            f"{run_us:8.1f} {alone}"
+            f"{run_us:8.1f} {replayed}"
         )
     if sweep is not None:
         print(
