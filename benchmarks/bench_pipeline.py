@@ -39,14 +39,15 @@ a minute on the benchmark machine).
 ``--workers N`` sets both ``slam.workers`` and ``grid.threads`` (left at 0, each takes 2
 when the cores are idle enough, :func:`iceg.features.prefetch.auto_workers`).
 
-Like the ``iceg`` command, the benchmark first starts itself again with malloc on transparent
-huge pages where the machine offers them (:func:`iceg.huge_pages.exec_with_huge_pages`), so
-that its in-process runs, its child processes and its ``iceg run`` measure what the command
-gets; ``--default-pages`` keeps them all on malloc's default pages
+Like the ``iceg`` command, the benchmark first starts itself again with mimalloc where it is
+installed, else with glibc's malloc on transparent huge pages where the machine offers them
+(:func:`iceg.malloc.exec_with_fast_malloc`), so that its in-process runs, its child processes
+and its ``iceg run`` measure what the command gets; ``--glibc`` starts them on glibc's malloc
+on huge pages (``ICEG_MALLOC=glibc``), ``--default-pages`` on glibc's default pages
 (``glibc.malloc.hugetlb=0``). The first line says which.
 
 Run: ``python benchmarks/bench_pipeline.py [--profile [HTML]] [--no-demo] [--no-cold]
-[--no-cli] [--fresh-install] [--default-pages] [--workers N] [path/to/mit-csail.clf
+[--no-cli] [--fresh-install] [--glibc | --default-pages] [--workers N] [path/to/mit-csail.clf
 [path/to/relations]]``
 """
 
@@ -453,17 +454,24 @@ def _print_top_costs(profiler: Any, n: int) -> None:
         print(f"  {t:7.3f} s  {100 * t / total:5.1f} %  {name}")
 
 
-def _choose_pages(default_pages: bool) -> None:
-    """Start again on malloc's huge pages as ``iceg`` does, or with ``default_pages`` keep this
-    process's children on the default ones; print the choice in force."""
-    from iceg.huge_pages import TUNABLE, exec_with_huge_pages, sets_tunable
+def _choose_malloc(glibc: bool, default_pages: bool) -> None:
+    """Start again with the malloc the ``iceg`` command gets (mimalloc where installed), or
+    with ``glibc`` glibc's on huge pages, or with ``default_pages`` glibc's on its default
+    pages (this process's children too); print the choice in force."""
+    from iceg.huge_pages import TUNABLE, sets_tunable
+    from iceg.malloc import CHOICE_VARIABLE, exec_with_fast_malloc
 
+    if glibc or default_pages:
+        os.environ[CHOICE_VARIABLE] = "glibc"
     if default_pages and not sets_tunable(os.environ):
         tunables = os.environ.get("GLIBC_TUNABLES", "")
         os.environ["GLIBC_TUNABLES"] = f"{tunables}:{TUNABLE}=0".lstrip(":")
-    elif not default_pages:
-        exec_with_huge_pages()
-    print(f"malloc: GLIBC_TUNABLES={os.environ.get('GLIBC_TUNABLES', '')!r}")
+    exec_with_fast_malloc()
+    preload = os.environ.get("LD_PRELOAD", "")
+    if "libmimalloc" in preload:
+        print(f"malloc: mimalloc (LD_PRELOAD={preload!r})")
+    else:
+        print(f"malloc: glibc (GLIBC_TUNABLES={os.environ.get('GLIBC_TUNABLES', '')!r})")
 
 
 def main() -> None:
@@ -478,9 +486,10 @@ def main() -> None:
     ap.add_argument("--no-cli", action="store_true")
     ap.add_argument("--fresh-install", action="store_true")
     ap.add_argument("--out", type=Path, default=None, help="save the CSAIL result here")
-    ap.add_argument("--default-pages", action="store_true", help="malloc without huge pages")
+    ap.add_argument("--glibc", action="store_true", help="glibc's malloc on huge pages")
+    ap.add_argument("--default-pages", action="store_true", help="glibc's malloc, default pages")
     args = ap.parse_args()
-    _choose_pages(args.default_pages)
+    _choose_malloc(args.glibc, args.default_pages)
     print(f"python {sys.version.split()[0]} ({sys.executable})")
     if args.fresh_install:
         fresh_install()

@@ -1,15 +1,15 @@
 """The ``iceg`` command (also ``python -m iceg``): the command line (:mod:`iceg.cli`), started
-with malloc on transparent huge pages where the machine offers them
-(:func:`iceg.huge_pages.exec_with_huge_pages`)."""
+with mimalloc, or glibc's malloc on transparent huge pages, where the machine offers them
+(:func:`iceg.malloc.exec_with_fast_malloc`)."""
 
 from __future__ import annotations
 
-from iceg.huge_pages import exec_with_huge_pages
+from iceg.malloc import exec_with_fast_malloc
 
 
 def main() -> None:
-    """Run the command line in a process whose malloc asks for huge pages."""
-    exec_with_huge_pages()
+    """Run the command line in a process with the faster malloc."""
+    exec_with_fast_malloc()
     from iceg.cli import app
 
     app(prog_name="iceg")

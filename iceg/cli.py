@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal, TypeVar
 import typer
 
 from iceg import __version__
+from iceg.malloc import chosen_malloc
 from iceg_common.errors import IcegError, OutputError
 
 if TYPE_CHECKING:
@@ -71,6 +72,7 @@ def _version(value: bool) -> None:
 
 
 @app.callback()
+@_one_line_errors
 def main(
     version: Annotated[
         bool, typer.Option("--version", callback=_version, is_eager=True, help="Show version.")
@@ -78,6 +80,7 @@ def main(
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log progress details.")] = False,
 ) -> None:
     """ICEG: ICE matching + iSAM2 2D laser SLAM."""
+    chosen_malloc(os.environ)  # a wrong ICEG_MALLOC (iceg.malloc) is reported here
     # A run leaves a large heap (graph, map, scans, numba's types); the interpreter's
     # teardown would traverse it in its cycle collections (0.3 s after MIT CSAIL) only to
     # free memory the exit returns anyway. Frozen at exit, they skip it (files are closed and

@@ -1,4 +1,4 @@
-"""malloc on transparent huge pages for a command's whole process (issue 13).
+"""glibc's malloc on transparent huge pages for a command's whole process (issue 13).
 
 On this project's 2-core virtual benchmark machine a run's heap lies far beyond what the TLB
 covers with 4 KiB pages, and every TLB miss of a virtual machine walks two page tables (the
@@ -13,24 +13,21 @@ process on a core of its own showed no difference), with the same results bit fo
 
 A tunable is read once, when the process starts, so the ``iceg`` command
 (:mod:`iceg.__main__`) replaces its process by itself with the tunable added to
-``GLIBC_TUNABLES`` (:func:`exec_with_huge_pages`), before it imports anything heavy: about one
-interpreter start (20-40 ms). A library user gets the same by starting Python (or Jupyter)
-with ``GLIBC_TUNABLES=glibc.malloc.hugetlb=1``; ``glibc.malloc.hugetlb=0`` in the variable
-keeps a command on the default pages.
+``GLIBC_TUNABLES`` (:func:`iceg.malloc.exec_with_fast_malloc`) where it keeps glibc's malloc
+(mimalloc is not installed, or ``ICEG_MALLOC=glibc``), before it imports anything heavy. A
+library user gets the same by starting Python (or Jupyter) with
+``GLIBC_TUNABLES=glibc.malloc.hugetlb=1``; ``glibc.malloc.hugetlb=0`` in the variable keeps a
+command on the default pages.
 
 This module uses the standard library only.
 """
 
 from __future__ import annotations
 
-import logging
 import os
 import re
-import sys
 from collections.abc import Mapping
 from pathlib import Path
-
-log = logging.getLogger(__name__)
 
 #: glibc's malloc tunable that makes its heap ask for transparent huge pages.
 TUNABLE = "glibc.malloc.hugetlb"
@@ -89,7 +86,7 @@ def huge_page_environment(
         2.35 or later, where the kernel's mode is not ``madvise`` (``always`` backs the heap
         with huge pages already, ``never`` refuses them), or where ``GLIBC_TUNABLES`` sets
         :data:`TUNABLE` already, to any value (a user's choice, and the mark of a process
-        started by :func:`exec_with_huge_pages`).
+        started by :func:`iceg.malloc.exec_with_fast_malloc`).
     """
     if glibc is None or glibc < MIN_GLIBC or thp != "madvise" or sets_tunable(environ):
         return None
@@ -97,23 +94,3 @@ def huge_page_environment(
     env = dict(environ)
     env["GLIBC_TUNABLES"] = f"{tunables}:{TUNABLE}=1" if tunables else f"{TUNABLE}=1"
     return env
-
-
-def exec_with_huge_pages() -> None:
-    """Replace this process by the same command (``sys.orig_argv``) started with malloc on
-    huge pages (:func:`huge_page_environment`); return where that would change nothing or
-    cannot be done (then the command runs on as it is). Call it first thing in a command's
-    entry point, before anything has been read or written: the process image is replaced.
-    """
-    if sys.platform != "linux":
-        return
-    env = huge_page_environment(os.environ, glibc_version(), thp_mode())
-    argv = list(getattr(sys, "orig_argv", []))
-    if env is None or not sys.executable or not argv:
-        return
-    sys.stdout.flush()
-    sys.stderr.flush()
-    try:
-        os.execve(sys.executable, argv, env)
-    except OSError as exc:  # the command runs on default pages
-        log.debug("malloc stays on default pages: cannot start %s again (%s)", argv[0], exc)
