@@ -3,17 +3,12 @@ where it keeps glibc's malloc (``ICEG_MALLOC=glibc``, :mod:`iceg.malloc`)."""
 
 from __future__ import annotations
 
-import os
 import platform
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
-from iceg import __version__
 from iceg.huge_pages import (
-    TUNABLE,
     glibc_version,
     huge_page_environment,
     thp_mode,
@@ -93,61 +88,3 @@ def test_the_glibc_version_is_the_platform_s() -> None:
         return
     major, minor = (int(v) for v in version.split(".")[:2])
     assert glibc_version() == (major, minor)
-
-
-def _without_tunables() -> dict[str, str]:
-    """This environment on glibc's malloc (``ICEG_MALLOC=glibc``), without tunables."""
-    env = dict(os.environ, ICEG_MALLOC="glibc")
-    env.pop("GLIBC_TUNABLES", None)
-    env.pop("LD_PRELOAD", None)
-    return env
-
-
-@pytest.mark.skipif(
-    sys.platform != "linux" or huge_page_environment({}, glibc_version(), thp_mode()) is None,
-    reason="this machine offers no transparent huge pages to glibc's malloc "
-    "(needs Linux, glibc >= 2.35 and the kernel's 'madvise' mode)",
-)
-def test_a_command_starts_once_more_with_the_tunable() -> None:
-    code = (
-        "import os; print('start', flush=True)\n"
-        "from iceg.malloc import exec_with_fast_malloc; exec_with_fast_malloc()\n"
-        "print(os.environ['GLIBC_TUNABLES'])\n"
-        "print(b'glibc.malloc.hugetlb=1' in open('/proc/self/environ', 'rb').read())\n"
-    )
-    done = subprocess.run(
-        [sys.executable, "-c", code],
-        env=_without_tunables(),
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=True,
-    )
-    # printed once by the first process and once by the one it became, which did not start
-    # again: the tunable it carries is the mark
-    assert done.stdout.splitlines() == ["start", "start", f"{TUNABLE}=1", "True"]
-
-
-def test_a_chosen_tunable_is_never_replaced() -> None:
-    env = dict(_without_tunables(), GLIBC_TUNABLES=f"{TUNABLE}=0")
-    code = (
-        "import os; print('start', flush=True)\n"
-        "from iceg.malloc import exec_with_fast_malloc; exec_with_fast_malloc()\n"
-        "print(os.environ['GLIBC_TUNABLES'])\n"
-    )
-    done = subprocess.run(
-        [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
-    )
-    assert done.stdout.splitlines() == ["start", f"{TUNABLE}=0"]
-
-
-def test_python_m_iceg_is_the_command_line() -> None:
-    done = subprocess.run(
-        [sys.executable, "-m", "iceg", "--version"],
-        env=_without_tunables(),
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=True,
-    )
-    assert done.stdout.strip() == f"iceg {__version__}"

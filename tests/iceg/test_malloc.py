@@ -10,8 +10,9 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
+from iceg import __version__
 from iceg.cli import app
-from iceg.huge_pages import TUNABLE
+from iceg.huge_pages import TUNABLE, glibc_version, huge_page_environment, thp_mode
 from iceg.malloc import (
     CHOICE_VARIABLE,
     LARGE_PAGES_VARIABLE,
@@ -102,31 +103,69 @@ def test_the_dependency_installs_the_library() -> None:
     assert found is not None and found.name.startswith("libmimalloc.so")
 
 
-def _fresh_environment() -> dict[str, str]:
+def _fresh_environment(**set_: str) -> dict[str, str]:
+    """This environment without any malloc setting, then ``set_``."""
     env = dict(os.environ)
     for name in (CHOICE_VARIABLE, "LD_PRELOAD", "GLIBC_TUNABLES", LARGE_PAGES_VARIABLE):
         env.pop(name, None)
-    return env
+    return dict(env, **set_)
+
+
+def _started(env: dict[str, str], then: str) -> list[str]:
+    """The lines a fresh process prints: "start", :func:`exec_with_fast_malloc`, then the
+    code ``then`` (the process it became prints "start" again)."""
+    code = (
+        "import os; print('start', flush=True)\n"
+        "from iceg.malloc import exec_with_fast_malloc; exec_with_fast_malloc()\n" + then
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    )
+    return done.stdout.splitlines()
 
 
 @pytest.mark.skipif(not ON_MIMALLOC_WHEELS, reason="mimalloc is preloaded on Linux only")
 def test_a_command_starts_once_more_on_mimalloc() -> None:
-    code = (
-        "import os; print('start', flush=True)\n"
-        "from iceg.malloc import exec_with_fast_malloc; exec_with_fast_malloc()\n"
-        "print(any('libmimalloc.so' in line for line in open('/proc/self/maps')))\n"
+    # started again once: the one it became has mimalloc mapped and its path is the mark
+    then = "print(any('libmimalloc.so' in line for line in open('/proc/self/maps')))\n"
+    assert _started(_fresh_environment(), then) == ["start", "start", "True"]
+
+
+@pytest.mark.skipif(
+    sys.platform != "linux" or huge_page_environment({}, glibc_version(), thp_mode()) is None,
+    reason="this machine offers no transparent huge pages to glibc's malloc "
+    "(needs Linux, glibc >= 2.35 and the kernel's 'madvise' mode)",
+)
+def test_on_glibc_a_command_starts_once_more_with_the_huge_page_tunable() -> None:
+    then = (
+        "print(os.environ['GLIBC_TUNABLES'])\n"
+        "print(b'glibc.malloc.hugetlb=1' in open('/proc/self/environ', 'rb').read())\n"
     )
+    lines = _started(_fresh_environment(**{CHOICE_VARIABLE: "glibc"}), then)
+    assert lines == ["start", "start", f"{TUNABLE}=1", "True"]  # the tunable is the mark
+
+
+def test_a_chosen_tunable_is_never_replaced() -> None:
+    env = _fresh_environment(**{CHOICE_VARIABLE: "glibc", "GLIBC_TUNABLES": f"{TUNABLE}=0"})
+    then = "print(os.environ['GLIBC_TUNABLES'])\n"
+    assert _started(env, then) == ["start", f"{TUNABLE}=0"]
+
+
+def test_python_m_iceg_is_the_command_line() -> None:
     done = subprocess.run(
-        [sys.executable, "-c", code],
+        [sys.executable, "-m", "iceg", "--version"],
         env=_fresh_environment(),
         capture_output=True,
         text=True,
         timeout=120,
         check=True,
     )
-    # printed once by the first process and once by the one it became, which has mimalloc
-    # mapped and did not start again
-    assert done.stdout.splitlines() == ["start", "start", "True"]
+    assert done.stdout.strip() == f"iceg {__version__}"
 
 
 def test_a_run_is_the_same_bits_with_every_malloc(tmp_path: Path) -> None:
