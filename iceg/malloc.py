@@ -115,15 +115,18 @@ def malloc_environment(
     Returns:
         A copy of ``environ`` with ``LD_PRELOAD`` set to ``mimalloc`` (and
         :data:`LARGE_PAGES_VARIABLE` set to 1 where ``thp`` is ``madvise`` and the variable
-        is unset) where ``choice`` is ``mimalloc``, it is installed and ``LD_PRELOAD`` names
-        no library; None where ``LD_PRELOAD`` names ``mimalloc`` already (the mark of a
-        process this module started); otherwise
-        :func:`~iceg.huge_pages.huge_page_environment` (glibc's malloc on huge pages).
+        is unset) where ``choice`` is ``mimalloc``, it is installed (at a path without spaces
+        or colons, which ``LD_PRELOAD`` cannot name) and ``LD_PRELOAD`` names no library;
+        None where ``LD_PRELOAD`` names ``mimalloc`` already (the mark of a process this
+        module started); otherwise :func:`~iceg.huge_pages.huge_page_environment` (glibc's
+        malloc on huge pages).
     """
     preloaded = environ.get("LD_PRELOAD", "").replace(":", " ").split()
     if mimalloc is not None and str(mimalloc) in preloaded:
         return None
-    if choice != "mimalloc" or mimalloc is None or preloaded:
+    # the dynamic loader splits LD_PRELOAD at spaces and colons: such a path cannot be named
+    unnamable = mimalloc is None or any(c in str(mimalloc) for c in " :")
+    if choice != "mimalloc" or unnamable or preloaded:
         return huge_page_environment(environ, glibc, thp)
     env = dict(environ)
     env["LD_PRELOAD"] = str(mimalloc)

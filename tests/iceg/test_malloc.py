@@ -56,6 +56,9 @@ def test_a_process_started_on_mimalloc_starts_no_more() -> None:
         ({}, "glibc", LIB),  # ICEG_MALLOC=glibc
         ({}, "mimalloc", None),  # not installed
         ({"LD_PRELOAD": "/usr/lib/libjemalloc.so.2"}, "mimalloc", LIB),  # the user's allocator
+        # LD_PRELOAD is split at spaces and colons: no name for these (nor a mark, so no end)
+        ({}, "mimalloc", Path("/home/A User/site/cmeel.prefix/lib/libmimalloc.so")),
+        ({}, "mimalloc", Path("/opt/a:b/cmeel.prefix/lib/libmimalloc.so")),
     ],
 )
 def test_without_mimalloc_glibc_s_malloc_gets_huge_pages(
