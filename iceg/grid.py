@@ -32,7 +32,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, NamedTuple
 
-import numba
 import numpy as np
 import yaml
 from numpy.typing import ArrayLike, NDArray
@@ -42,6 +41,7 @@ from frontends.scan import LaserScan
 from iceg.features.prefetch import CoreWatch
 from iceg_common.atomic import atomic_path, atomic_write
 from iceg_common.errors import GridError
+from iceg_common.numba_loading import njit
 from iceg_common.se2 import compose
 
 __all__ = [
@@ -950,7 +950,7 @@ class InverseSensorModel(NamedTuple):
     l_max: float
 
 
-@numba.njit(cache=True, inline="always")
+@njit(cache=True, inline="always")
 def _axis_start(p0: float, i0: int, d: float) -> tuple[int, float, float]:
     """Amanatides & Woo (1987) set-up along one axis, in cell units: the step direction,
     the ray parameter per cell, and the parameter of the first cell boundary."""
@@ -963,7 +963,7 @@ def _axis_start(p0: float, i0: int, d: float) -> tuple[int, float, float]:
     return 0, math.inf, math.inf
 
 
-@numba.njit(cache=True, inline="always")
+@njit(cache=True, inline="always")
 def _next_cell(
     ix: int,
     iy: int,
@@ -983,7 +983,7 @@ def _next_cell(
     return ix + step_x, iy, t_max_x + t_delta_x, t_max_y
 
 
-@numba.njit(cache=True, inline="always")
+@njit(cache=True, inline="always")
 def _cell(tile_index: NDArray[np.int64], shift: int, ix: int, iy: int) -> int:
     """Flat storage index of cell (column ``ix``, row ``iy``; both >= 0) in the tiled arrays
     (tiles of ``2**shift`` cells on a side), or -1 when its tile has no storage."""
@@ -994,7 +994,7 @@ def _cell(tile_index: NDArray[np.int64], shift: int, ix: int, iy: int) -> int:
     return ((tile << shift) + (iy & mask) << shift) + (ix & mask)
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True)
 def _mark_tiles(
     scan_start: NDArray[np.int64],
     origin_g: FloatArray,
@@ -1033,7 +1033,7 @@ def _mark_tiles(
                 )
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True)
 def _trace_scans(
     scan_start: NDArray[np.int64],
     origin_g: FloatArray,

@@ -25,7 +25,6 @@ import logging
 from collections.abc import Iterator
 
 import numpy as np
-from numba import njit
 
 from frontends.scan import LaserScan
 from iceg.config import IcegConfig
@@ -37,6 +36,7 @@ from iceg.matching.refine import points_within
 from iceg.node_index import NodeGrid, nearest_within
 from iceg.scan_store import ScanStore
 from iceg.types import MatchResult, ScanFeatures
+from iceg_common.numba_loading import njit
 
 log = logging.getLogger(__name__)
 

@@ -17,9 +17,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
 from iceg.landmark_frames import _compose_rows, move_features, move_lines, move_points
+from iceg_common.numba_loading import njit
 
 
 @njit(cache=True, nogil=True)

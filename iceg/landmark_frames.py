@@ -22,9 +22,9 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
 
 from iceg_common import se2
+from iceg_common.numba_loading import njit
 
 
 @njit(cache=True, nogil=True)

@@ -23,8 +23,9 @@ import itertools
 import math
 
 import numpy as np
-from numba import njit
 from numpy.typing import ArrayLike, NDArray
+
+from iceg_common.numba_loading import njit
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]

@@ -5,7 +5,8 @@ round")."""
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from iceg_common.numba_loading import njit
 
 #: numpy's pairwise summation: blocks up to this long are summed with eight accumulators.
 _PW_BLOCKSIZE = 128

@@ -29,12 +29,12 @@ import weakref
 from collections.abc import Callable, Sequence
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 from threadpoolctl import ThreadpoolController
 
 from iceg.types import ScanFeatures
+from iceg_common.numba_loading import njit
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]

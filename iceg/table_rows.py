@@ -5,7 +5,8 @@ Python loop made a slice assignment per column and per kept block."""
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from iceg_common.numba_loading import njit
 
 
 @njit(cache=True, nogil=True)

@@ -24,9 +24,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
 from iceg.numpy_sums import median
+from iceg_common.numba_loading import njit
 
 
 @njit(cache=True, nogil=True)

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 from numpy.typing import ArrayLike, NDArray
+
+from iceg_common.numba_loading import njit
 
 
 def sorted_unique(ids: ArrayLike) -> NDArray[np.int64]:

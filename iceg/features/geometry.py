@@ -14,8 +14,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
+
+from iceg_common.numba_loading import njit
 
 FloatArray = NDArray[np.float64]
 

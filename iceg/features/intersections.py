@@ -7,7 +7,6 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
 from iceg.features.config import FeatureConfig
@@ -17,6 +16,7 @@ from iceg.features.neighbours import close_pairs, close_to_any
 from iceg.features.pairs import SegmentPairs
 from iceg.features.points import BeamPoints
 from iceg.features.segments import Segments
+from iceg_common.numba_loading import njit
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]

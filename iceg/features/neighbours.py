@@ -13,10 +13,10 @@ import math
 from typing import TYPE_CHECKING
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
 from iceg.features.geometry import norm
+from iceg_common.numba_loading import njit
 
 if TYPE_CHECKING:
     from scipy.spatial import cKDTree

@@ -9,13 +9,13 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
 from iceg.features.config import FeatureConfig
 from iceg.features.geometry import line_intersections
 from iceg.features.neighbours import segment_pairs_within
 from iceg.features.segments import Segments
+from iceg_common.numba_loading import njit
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]

@@ -6,11 +6,11 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
 from frontends.scan import LaserScan
 from iceg_common.errors import ScanError
+from iceg_common.numba_loading import njit
 from iceg_common.se2 import wrap_angle
 
 FloatArray = NDArray[np.float64]

@@ -9,7 +9,6 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
 from iceg.features.config import FeatureConfig
@@ -17,6 +16,7 @@ from iceg.features.geometry import dot2
 from iceg.features.lines import fit_lines
 from iceg.features.points import BeamPoints
 from iceg.features.segmentation import breakpoints, split_and_merge
+from iceg_common.numba_loading import njit
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]

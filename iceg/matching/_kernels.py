@@ -16,9 +16,9 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
 
 from iceg.numpy_sums import median, pairwise_sum
+from iceg_common.numba_loading import njit
 
 #: Fewest associated points for a noise estimate from the residuals (else the previous one).
 MIN_POINTS_FOR_SIGMA = 6
