@@ -1,4 +1,5 @@
-"""Shared root of the ICEG distribution: the exception hierarchy, SE(2) algebra and id sets.
+"""Shared root of the ICEG distribution: the exception hierarchy, SE(2) algebra, id sets and
+the loading of numba's cached kernels (:mod:`iceg_common.numba_loading`).
 
 ``frontends`` and ``graph`` are leaves that must not import ``iceg`` or each other, yet the
 project has one exception hierarchy and one set of SE(2) conventions. Both live here, in a
