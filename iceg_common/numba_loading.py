@@ -98,11 +98,23 @@ def elf_defined_symbols(object_code: bytes) -> frozenset[str] | None:
 
     Returns:
         The names, or None where ``object_code`` is not a 64-bit little-endian ELF file
-        with one symbol table.
+        with one symbol table, or is truncated (a table or name past its end).
     """
     head = memoryview(object_code)
     if len(head) < 64 or bytes(head[:6]) != b"\x7fELF\x02\x01":
         return None
+    try:
+        return _defined_names(object_code, head)
+    except (ValueError, IndexError):  # truncated or inconsistent: numba's own step decides
+        return None
+
+
+def _defined_names(object_code: bytes, head: memoryview) -> frozenset[str] | None:
+    """:func:`elf_defined_symbols` of an ELF64 little-endian header's file.
+
+    Raises:
+        ValueError, IndexError: a table or name lies outside the file.
+    """
     section_offset = int.from_bytes(head[0x28:0x30], "little")
     entry_size = int.from_bytes(head[0x3A:0x3C], "little")
     n_sections = int.from_bytes(head[0x3C:0x3E], "little")

@@ -102,9 +102,17 @@ def test_install_replaces_numbas_step_on_the_numba_it_knows() -> None:
         b"\x7fELF\x01\x01" + bytes(58),  # 32-bit ELF
         b"\x7fELF\x02\x02" + bytes(58),  # big-endian ELF
         b"\x7fELF\x02\x01" + bytes(58),  # no section headers
+        # section headers said to lie past the end of the file
+        b"\x7fELF\x02\x01"
+        + bytes(34)
+        + (4096).to_bytes(8, "little")
+        + bytes(10)
+        + (64).to_bytes(2, "little")
+        + (3).to_bytes(2, "little")
+        + bytes(2),
     ],
 )
-def test_object_code_other_than_little_endian_elf64_is_left_to_numba(head: bytes) -> None:
+def test_object_code_other_than_whole_little_endian_elf64_is_left_to_numba(head: bytes) -> None:
     assert elf_defined_symbols(head) is None
 
 
