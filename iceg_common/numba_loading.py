@@ -104,13 +104,13 @@ def elf_defined_symbols(object_code: bytes) -> frozenset[str] | None:
     if len(head) < 64 or bytes(head[:6]) != b"\x7fELF\x02\x01":
         return None
     try:
-        return _defined_names(object_code, head)
+        return _defined_names(head)
     except (ValueError, IndexError):  # truncated or inconsistent: numba's own step decides
         return None
 
 
-def _defined_names(object_code: bytes, head: memoryview) -> frozenset[str] | None:
-    """:func:`elf_defined_symbols` of an ELF64 little-endian header's file.
+def _defined_names(head: memoryview) -> frozenset[str] | None:
+    """:func:`elf_defined_symbols` of a file with an ELF64 little-endian header.
 
     Raises:
         ValueError, IndexError: a table or name lies outside the file.
@@ -120,7 +120,7 @@ def _defined_names(object_code: bytes, head: memoryview) -> frozenset[str] | Non
     n_sections = int.from_bytes(head[0x3C:0x3E], "little")
     if entry_size != _SECTION.itemsize or n_sections == 0:
         return None
-    sections = np.frombuffer(object_code, _SECTION, n_sections, section_offset)
+    sections = np.frombuffer(head, _SECTION, n_sections, section_offset)
     tables = np.flatnonzero(sections["type"] == _SHT_SYMTAB)
     if tables.shape[0] != 1:
         return None
@@ -129,7 +129,7 @@ def _defined_names(object_code: bytes, head: memoryview) -> frozenset[str] | Non
         return None
     names = sections[int(table["link"])]
     symbols = np.frombuffer(
-        object_code, _SYMBOL, int(table["size"]) // _SYMBOL.itemsize, int(table["offset"])
+        head, _SYMBOL, int(table["size"]) // _SYMBOL.itemsize, int(table["offset"])
     )
     kind = symbols["info"] & 0xF
     defined = (
