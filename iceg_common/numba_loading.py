@@ -30,6 +30,8 @@ import numpy as np
 from numba import njit
 from numba.core import codegen
 
+from iceg_common import scipy_lapack
+
 __all__ = ["elf_defined_symbols", "install", "njit"]
 
 log = logging.getLogger(__name__)
@@ -196,3 +198,5 @@ def install() -> bool:
 
 
 install()
+# numba's linear algebra finds scipy's BLAS and LAPACK modules without scipy.linalg's package
+scipy_lapack.preload()
