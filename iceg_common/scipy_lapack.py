@@ -60,7 +60,7 @@ def preload() -> bool:
         for name in SUBMODULES:
             _load_extension(name, folders)
             loaded.append(name)
-    except (ImportError, OSError) as exc:
+    except Exception as exc:  # numba's own path imports them as before
         for name in loaded:
             sys.modules.pop(name, None)
         log.debug("%s: loaded through its package (%s)", PACKAGE, exc)
