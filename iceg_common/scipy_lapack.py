@@ -55,13 +55,11 @@ def preload() -> bool:
     if scipy_spec is None or not scipy_spec.submodule_search_locations:
         return False
     folders = [os.path.join(folder, "linalg") for folder in scipy_spec.submodule_search_locations]
-    loaded: list[str] = []
     try:
         for name in SUBMODULES:
             _load_extension(name, folders)
-            loaded.append(name)
     except Exception as exc:  # numba's own path imports them as before
-        for name in loaded:
+        for name in SUBMODULES:  # none was there before
             sys.modules.pop(name, None)
         log.debug("%s: loaded through its package (%s)", PACKAGE, exc)
         return False
@@ -70,22 +68,18 @@ def preload() -> bool:
 
 
 def _load_extension(name: str, folders: Sequence[str]) -> None:
-    """Load the extension module ``name`` from ``folders`` into ``sys.modules`` (removed
-    again where its initialisation fails).
+    """Load the extension module ``name`` from ``folders`` into ``sys.modules``.
 
     Raises:
-        ImportError: no extension module of that name there, or its initialisation failed.
+        ImportError: no extension module of that name there; whatever its initialisation
+            raises (it is then left in ``sys.modules`` for the caller to remove).
     """
     spec = importlib.machinery.PathFinder.find_spec(name, list(folders))
     if spec is None or not isinstance(spec.loader, importlib.machinery.ExtensionFileLoader):
         raise ImportError(f"no extension module {name} in {list(folders)}")
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module
-    try:
-        spec.loader.exec_module(module)
-    except BaseException:
-        sys.modules.pop(name, None)
-        raise
+    spec.loader.exec_module(module)
 
 
 class _AttachToPackage(MetaPathFinder):
