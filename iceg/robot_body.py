@@ -20,14 +20,14 @@ its optimized trajectory shows more (docs/design.md, "The robot's own body").
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
 from dataclasses import asdict, dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
 from iceg.scan_store import ScanStore
+from iceg_common.numba_loading import njit
 from iceg_common.se2 import wrap_angle
 
 if TYPE_CHECKING:
@@ -52,6 +52,10 @@ MIN_AGREEMENT = 0.9
 MIN_PAIRS = 20
 #: Most pairs compared, evenly spread over the log (a share's standard error about 2 %).
 MAX_PAIRS = 200
+#: Scans between two compared ones that are read along with them rather than skipped: a
+#: read of the store (:meth:`~iceg.scan_store.ScanStore.beam_chunk`) costs about what
+#: decoding this many scans more does (MIT CSAIL: 0.1 ms against 4-5 µs a scan).
+READ_THROUGH_SCANS = 16
 #: Width of a bearing bin in the search for the body's dark bearings, degrees: finer than a
 #: beam of the scanners here (0.25-1°), so that a bin holds the beams of one bearing.
 DARK_BIN_DEG = 0.25
@@ -107,14 +111,25 @@ def turn_pairs(poses: FloatArray, breaks: NDArray[np.bool_] | None = None) -> In
     known = np.isfinite(p[:, 2])
     heading[known] = np.unwrap(p[known, 2])
     end = np.searchsorted(path, path + MAX_PATH_M, side="right")  # scans within reach
-    lo, hi = math.radians(TURN_DEG), 3.0 * math.radians(TURN_DEG)
-    pairs = []
-    for k in range(n - 1):
-        turn = np.abs(heading[k + 1 : end[k]] - heading[k])
-        first = np.flatnonzero(turn >= lo)
-        if first.shape[0] and turn[first[0]] <= hi:
-            pairs.append((k, k + 1 + int(first[0])))
-    return without_breaks(np.array(pairs, dtype=np.int64).reshape(-1, 2), breaks)
+    turned = _first_turns(heading, end, math.radians(TURN_DEG), 3.0 * math.radians(TURN_DEG))
+    k = np.flatnonzero(turned >= 0)
+    return without_breaks(np.stack([k, turned[k]], axis=1), breaks)
+
+
+@njit(cache=True, nogil=True)
+def _first_turns(heading: FloatArray, end: IntArray, lo: float, hi: float) -> IntArray:
+    """``(N,)`` int64 for each scan ``k`` the first scan ``j`` in ``(k, end[k])`` whose
+    ``heading`` (rad, unwrapped) differs from ``k``'s by at least ``lo`` when that difference
+    is at most ``hi``, else -1 (a NaN heading turns by nothing)."""
+    out = np.full(heading.shape[0], -1, dtype=np.int64)
+    for k in range(heading.shape[0] - 1):
+        for j in range(k + 1, end[k]):
+            turn = abs(heading[j] - heading[k])
+            if turn >= lo:
+                if turn <= hi:
+                    out[k] = j
+                break
+    return out
 
 
 def path_travelled(poses: FloatArray) -> FloatArray:
@@ -135,85 +150,102 @@ def without_breaks(pairs: IntArray, breaks: NDArray[np.bool_] | None) -> IntArra
     return pairs[broken[pairs[:, 1] + 1] == broken[pairs[:, 0] + 1]]
 
 
-def _binned_beams(
-    store: ScanStore, scans: IntArray, width_deg: float = BIN_DEG
-) -> Iterator[tuple[IntArray, FloatArray, BoolArray, BoolArray]]:
-    """Every beam of the scans ``scans`` (sorted, unique indices into ``store``), a run of
-    consecutive scans at a time: its key ``i * B + b`` (``i`` its scan's position in
-    ``scans``, ``b`` its bearing bin of ``width_deg``, ``B = 360 / width_deg``, bin ``b``
-    centred at ``-180 + (b + 0.5) width_deg`` degrees; the bearing is the robot frame's: the
-    beam's plus the laser's mounting yaw), its range (metres), and whether it is a valid
-    return (``range_min < r < range_max``) or no return (``+inf``, or at least
-    ``range_max``)."""
-    n_bins = round(360.0 / width_deg)
-    width = math.radians(width_deg)
-    breaks = np.flatnonzero(np.diff(scans) != 1) + 1
-    firsts, lasts = np.concatenate([[0], breaks]), np.append(breaks, scans.shape[0])
-    for first, last in zip(firsts.tolist(), lasts.tolist(), strict=True):
-        c = store.beam_chunk(int(scans[first]), int(scans[last - 1]) + 1)
-        row = np.repeat(np.arange(first, last), c.beam_counts)
-        r = c.ranges_m
+class ComparedBeams(NamedTuple):
+    """Every beam of the compared scans, read from the store once for the steps of
+    :func:`robot_body_range` (:meth:`of`).
+
+    Attributes:
+        n_scans: Scans compared ``S``.
+        row: ``(B,)`` int64 position of each beam's scan among the compared scans.
+        bearing_rad: ``(B,)`` float64 bearing in the robot frame (the beam's plus the
+            laser's mounting yaw).
+        range_m: ``(B,)`` float64 range, metres.
+        ok: ``(B,)`` bool a valid return (``range_min < r < range_max``).
+        none: ``(B,)`` bool no return (``+inf``, or at least ``range_max``).
+    """
+
+    n_scans: int
+    row: IntArray
+    bearing_rad: FloatArray
+    range_m: FloatArray
+    ok: BoolArray
+    none: BoolArray
+
+    @classmethod
+    def of(cls, store: ScanStore, scans: IntArray) -> ComparedBeams:
+        """The beams of the scans ``scans`` (sorted, unique indices into ``store``), read in
+        spans of the store (:meth:`ScanStore.beam_chunk`) that take in gaps of up to
+        :data:`READ_THROUGH_SCANS` scans."""
+        gaps = np.flatnonzero(np.diff(scans) > READ_THROUGH_SCANS + 1) + 1
+        firsts, lasts = np.concatenate([[0], gaps]), np.append(gaps, scans.shape[0])
+        rows, bearings, ranges, lows, highs = [], [], [], [], []
+        for first, last in zip(firsts.tolist(), lasts.tolist(), strict=True):
+            lo = int(scans[first])
+            c = store.beam_chunk(lo, int(scans[last - 1]) + 1)
+            wanted = np.zeros(c.beam_counts.shape[0], dtype=bool)
+            wanted[scans[first:last] - lo] = True
+            take = np.repeat(wanted, c.beam_counts)
+            counts = c.beam_counts[wanted]
+            rows.append(np.repeat(np.arange(first, last), counts))
+            yaw = np.repeat(c.laser_offsets[wanted, 2], counts)
+            bearings.append(c.angles_rad[take] + yaw)
+            ranges.append(c.ranges_m[take])
+            lows.append(c.range_min_m[take])
+            highs.append(c.range_max_m[take])
+        r, low, high = (np.concatenate(x) if x else np.zeros(0) for x in (ranges, lows, highs))
         with np.errstate(invalid="ignore"):
-            ok = np.isfinite(r) & (r > c.range_min_m) & (r < c.range_max_m)
-            none = r >= c.range_max_m  # +inf included, NaN excluded
-        bearing = c.angles_rad + np.repeat(c.laser_offsets[:, 2], c.beam_counts)
-        b = np.floor((bearing + math.pi) / width).astype(np.int64) % n_bins
-        yield row * n_bins + b, r, ok, none
+            ok = np.isfinite(r) & (r > low) & (r < high)
+            none = r >= high  # +inf included, NaN excluded
+        row = np.concatenate(rows) if rows else np.zeros(0, dtype=np.int64)
+        bearing = np.concatenate(bearings) if bearings else np.zeros(0)
+        return cls(int(scans.shape[0]), row, bearing, r, ok, none)
+
+    def keys(self, width_deg: float = BIN_DEG) -> IntArray:
+        """``(B,)`` int64 each beam's key ``i * n + b``: ``i`` its scan's position, ``b`` its
+        bearing bin of ``width_deg`` (``n = 360 / width_deg`` bins, bin ``b`` centred at
+        ``-180 + (b + 0.5) width_deg`` degrees)."""
+        n_bins = round(360.0 / width_deg)
+        b = np.floor((self.bearing_rad + math.pi) / math.radians(width_deg)).astype(np.int64)
+        return self.row * n_bins + b % n_bins
 
 
-def _binned_returns(store: ScanStore, scans: IntArray) -> Iterator[tuple[IntArray, FloatArray]]:
-    """The valid returns of :func:`_binned_beams` (bins of :data:`BIN_DEG`): keys, ranges."""
-    for key, r, ok, _ in _binned_beams(store, scans):
-        yield key[ok], r[ok]
-
-
-def nearest_by_bearing(store: ScanStore, scans: IntArray) -> FloatArray:
-    """``(len(scans), B)`` float64 the nearest valid return (``range_min < r < range_max``)
-    of each of the scans ``scans`` (sorted, unique indices into ``store``) in each bearing
-    bin of :data:`BIN_DEG` (robot frame, as in :func:`_binned_beams`; ``B = 360 / BIN_DEG``,
-    bin ``b`` centred at ``-180 + (b + 0.5) BIN_DEG`` degrees), metres; NaN where the bin
-    has none."""
+def nearest_by_bearing(beams: ComparedBeams) -> FloatArray:
+    """``(S, B)`` float64 the nearest valid return (``range_min < r < range_max``) of each
+    compared scan in each bearing bin of :data:`BIN_DEG` (robot frame;
+    :meth:`ComparedBeams.keys`, ``B = 360 / BIN_DEG``), metres; NaN where the bin has none."""
     n_bins = round(360.0 / BIN_DEG)
-    out = np.full(scans.shape[0] * n_bins, np.inf)
-    for key, r in _binned_returns(store, scans):
-        order = np.lexsort((r, key))  # by key, nearest first
-        key, nearest = key[order], r[order]
-        head = np.ones(key.shape, dtype=bool)
-        head[1:] = key[1:] != key[:-1]
-        out[key[head]] = nearest[head]
-    out[np.isinf(out)] = np.nan
-    return out.reshape(scans.shape[0], n_bins)
+    out = np.full(beams.n_scans * n_bins, np.inf)
+    np.minimum.at(out, beams.keys()[beams.ok], beams.range_m[beams.ok])
+    out[np.isinf(out)] = np.nan  # valid returns are finite
+    return out.reshape(beams.n_scans, n_bins)
 
 
-def body_reach(store: ScanStore, scans: IntArray, body_bins: IntArray) -> float:
-    """The farthest return of the robot's body in the scans ``scans`` (sorted, unique indices
-    into ``store``), metres: in each bearing bin of ``body_bins`` (bin indices as in
-    :func:`nearest_by_bearing`) of each scan, the returns from the nearest one up to the
-    first gap wider than :data:`AGREEMENT_M` between two in range order (the body's surface,
-    with all of its range noise; past the gap the beams see past the body, to the world).
-    The nearest return of a bin alone would fall short: it is the least of several noisy
-    returns. NaN when the bins hold no return."""
+def body_reach(beams: ComparedBeams, body_bins: IntArray) -> float:
+    """The farthest return of the robot's body in the compared scans, metres: in each
+    bearing bin of ``body_bins`` (bin indices as in :func:`nearest_by_bearing`) of each scan,
+    the returns from the nearest one up to the first gap wider than :data:`AGREEMENT_M`
+    between two in range order (the body's surface, with all of its range noise; past the
+    gap the beams see past the body, to the world). The nearest return of a bin alone would
+    fall short: it is the least of several noisy returns. NaN when the bins hold no return."""
     n_bins = round(360.0 / BIN_DEG)
-    reach = math.nan
-    for key, r in _binned_returns(store, scans):
-        keep = np.isin(key % n_bins, body_bins)
-        order = np.lexsort((r[keep], key[keep]))  # by key, nearest first
-        key, near = key[keep][order], r[keep][order]
-        if key.shape[0] == 0:
-            continue
-        head = np.ones(key.shape, dtype=bool)
-        head[1:] = key[1:] != key[:-1]
-        # a run of one bin's returns ends at a gap; the body's is each bin's first run
-        step = np.ones(key.shape, dtype=bool)
-        step[1:] = head[1:] | (np.diff(near) > AGREEMENT_M)
-        run = np.cumsum(step)
-        body = np.isin(run, run[head])
-        reach = float(np.fmax(reach, near[body].max()))
-    return reach
+    key, r = beams.keys()[beams.ok], beams.range_m[beams.ok]
+    keep = np.isin(key % n_bins, body_bins)
+    order = np.lexsort((r[keep], key[keep]))  # by key, nearest first
+    key, near = key[keep][order], r[keep][order]
+    if key.shape[0] == 0:
+        return math.nan
+    head = np.ones(key.shape, dtype=bool)
+    head[1:] = key[1:] != key[:-1]
+    # a run of one bin's returns ends at a gap; the body's is each bin's first run
+    step = np.ones(key.shape, dtype=bool)
+    step[1:] = head[1:] | (np.diff(near) > AGREEMENT_M)
+    run = np.cumsum(step)
+    body = np.isin(run, run[head])
+    return float(near[body].max())
 
 
 def dark_bearings(
-    store: ScanStore, scans: IntArray, pairs: IntArray, turn_rad: FloatArray
+    beams: ComparedBeams, pairs: IntArray, turn_rad: FloatArray
 ) -> tuple[tuple[float, float], ...]:
     """Bearings where the robot's own body hides the view and the scans hold no return for
     it (``+inf`` or at least ``range_max``: a driver's reading of a body inside its
@@ -231,21 +263,20 @@ def dark_bearings(
     ground, dark in both scans, gives neither.
 
     Args:
-        store: The run's scans.
-        scans: ``(S,)`` sorted, unique indices into ``store`` of the compared scans.
-        pairs: ``(P, 2)`` int64 positions in ``scans`` of each turn's two scans.
+        beams: The compared scans' beams.
+        pairs: ``(P, 2)`` int64 positions among the compared scans of each turn's two scans.
         turn_rad: ``(P,)`` float64 heading change from the first scan to the second, rad.
     """
     n_fine = round(360.0 / DARK_BIN_DEG)
     per = round(BIN_DEG / DARK_BIN_DEG)
     n_coarse = n_fine // per
-    dark = np.zeros(scans.shape[0] * n_fine, dtype=bool)
-    lit = np.zeros(scans.shape[0] * n_fine, dtype=bool)
+    dark = np.zeros(beams.n_scans * n_fine, dtype=bool)
+    lit = np.zeros(beams.n_scans * n_fine, dtype=bool)
     beam = np.zeros(n_fine, dtype=bool)  # the bins that hold a beam of some scan
-    for key, _, ok, none in _binned_beams(store, scans, DARK_BIN_DEG):
-        lit[key[ok]] = True
-        dark[key[none]] = True
-        beam[key % n_fine] = True
+    key = beams.keys(DARK_BIN_DEG)
+    lit[key[beams.ok]] = True
+    dark[key[beams.none]] = True
+    beam[key % n_fine] = True
     dark = (dark & ~lit).reshape(-1, n_fine)
     lit = lit.reshape(-1, n_fine)
     seen = np.any(lit.reshape(-1, n_coarse, per), axis=2)  # a return per 2-degree bin
@@ -301,17 +332,18 @@ def robot_body_range(
     if pairs.shape[0] > MAX_PAIRS:
         pairs = pairs[np.linspace(0, pairs.shape[0] - 1, MAX_PAIRS).round().astype(np.int64)]
     scans, row = np.unique(pairs, return_inverse=True)
-    nearest = nearest_by_bearing(store, scans)
+    beams = ComparedBeams.of(store, scans)
+    nearest = nearest_by_bearing(beams)
     row = row.reshape(pairs.shape)
     a, b = nearest[row[:, 0]], nearest[row[:, 1]]
     with np.errstate(invalid="ignore"):
         agreement = (np.abs(a - b) <= AGREEMENT_M).mean(axis=0)
     turn = wrap_angle(p[pairs[:, 1], 2] - p[pairs[:, 0], 2])
-    dark = dark_bearings(store, scans, row, turn)
+    dark = dark_bearings(beams, row, turn)
     body = np.flatnonzero(agreement >= MIN_AGREEMENT)
     if body.shape[0] == 0:
         return RobotBodyEstimate(None, (), int(pairs.shape[0]), (), dark)
-    reach = body_reach(store, scans, body)
+    reach = body_reach(beams, body)
     return RobotBodyEstimate(
         math.ceil(round(reach * 100.0, 6)) / 100.0,
         tuple(float(c) for c in -180.0 + (body + 0.5) * BIN_DEG),

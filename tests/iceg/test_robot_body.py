@@ -18,7 +18,15 @@ from iceg.batch_run import RunTask, execute_run
 from iceg.config import IcegConfig
 from iceg.grid import render
 from iceg.pipeline import run_log
-from iceg.robot_body import BIN_DEG, DARK_BIN_DEG, body_reach, robot_body_range, turn_pairs
+from iceg.robot_body import (
+    BIN_DEG,
+    DARK_BIN_DEG,
+    READ_THROUGH_SCANS,
+    ComparedBeams,
+    body_reach,
+    robot_body_range,
+    turn_pairs,
+)
 from iceg.scan_store import ScanStore
 
 POSTS_DEG = (45.0, 135.0, -135.0, -45.0)
@@ -61,6 +69,42 @@ def test_turn_pairs_by_hand() -> None:
     )
 
 
+def test_compared_beams_are_the_compared_scans_beams_across_near_and_far_gaps() -> None:
+    # Scans of 3-5 beams with their own range limits and laser yaws; the compared ones come
+    # back to back, a few scans apart (read along with the scans between) and farther apart
+    # than READ_THROUGH_SCANS (read on their own). Each beam is its scan's own, in order.
+    rng = np.random.default_rng(5)
+    scans = [
+        LaserScan(
+            float(k),
+            np.r_[rng.uniform(0.05, 9.0, 2 + k % 3), np.inf],
+            np.sort(rng.uniform(-3.0, 3.0, 3 + k % 3)),
+            0.1 + 0.01 * (k % 2),
+            8.0,
+            np.zeros(3),
+            laser_offset=np.array([0.1, 0.0, 0.05 * (k % 4)]),
+        )
+        for k in range(70)
+    ]
+    store = ScanStore(scans)
+    compared = np.array([0, 1, 2, 6, 7, 7 + READ_THROUGH_SCANS + 2, 60, 69])
+    beams = ComparedBeams.of(store, compared)
+    expect = [scans[k] for k in compared.tolist()]
+    assert beams.n_scans == len(expect)
+    np.testing.assert_array_equal(
+        beams.row, np.repeat(np.arange(len(expect)), [s.n_beams for s in expect])
+    )
+    np.testing.assert_array_equal(beams.range_m, np.concatenate([s.ranges_m for s in expect]))
+    np.testing.assert_array_equal(
+        beams.bearing_rad, np.concatenate([s.angles_rad + s.laser_offset[2] for s in expect])
+    )
+    valid = [(s.ranges_m > s.range_min_m) & (s.ranges_m < s.range_max_m) for s in expect]
+    np.testing.assert_array_equal(beams.ok, np.concatenate(valid))
+    np.testing.assert_array_equal(
+        beams.none, np.concatenate([s.ranges_m >= s.range_max_m for s in expect])
+    )
+
+
 def test_the_body_s_reach_is_its_farthest_return_by_hand() -> None:
     # Two scans of five beams 0.5 deg apart, in the bin ahead (bearings 0 to 2 deg). A body
     # return is any from the nearest up to the first gap of more than 5 cm in range order:
@@ -77,11 +121,13 @@ def test_the_body_s_reach_is_its_farthest_return_by_hand() -> None:
         ]
     )
     ahead = round(180.0 / BIN_DEG)  # the bin from 0 to 2 deg
-    assert body_reach(store, np.array([0, 1]), np.array([ahead])) == pytest.approx(0.24)
+    both = ComparedBeams.of(store, np.array([0, 1]))
+    assert body_reach(both, np.array([ahead])) == pytest.approx(0.24)
     # The bin at 90 deg holds 3.0 and 0.21: its own nearest runs.
     side = round(270.0 / BIN_DEG)
-    assert body_reach(store, np.array([0, 1]), np.array([side])) == pytest.approx(3.0)
-    assert body_reach(store, np.array([1]), np.array([ahead, side])) == pytest.approx(0.23)
+    assert body_reach(both, np.array([side])) == pytest.approx(3.0)
+    second = ComparedBeams.of(store, np.array([1]))
+    assert body_reach(second, np.array([ahead, side])) == pytest.approx(0.23)
 
 
 @pytest.fixture(scope="module")
