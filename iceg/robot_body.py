@@ -270,8 +270,8 @@ def dark_bearings(
     n_fine = round(360.0 / DARK_BIN_DEG)
     per = round(BIN_DEG / DARK_BIN_DEG)
     n_coarse = n_fine // per
-    dark = np.zeros(beams.n_scans * n_fine, dtype=bool)
-    lit = np.zeros(beams.n_scans * n_fine, dtype=bool)
+    dark: BoolArray = np.zeros(beams.n_scans * n_fine, dtype=bool)
+    lit: BoolArray = np.zeros(beams.n_scans * n_fine, dtype=bool)
     beam = np.zeros(n_fine, dtype=bool)  # the bins that hold a beam of some scan
     key = beams.keys(DARK_BIN_DEG)
     lit[key[beams.ok]] = True
