@@ -173,9 +173,13 @@ class ComparedBeams(NamedTuple):
 
     @classmethod
     def of(cls, store: ScanStore, scans: IntArray) -> ComparedBeams:
-        """The beams of the scans ``scans`` (sorted, unique indices into ``store``), read in
-        spans of the store (:meth:`ScanStore.beam_chunk`) that take in gaps of up to
-        :data:`READ_THROUGH_SCANS` scans."""
+        """The beams of the scans ``scans`` (``(S,)`` int64 sorted, unique indices into
+        ``store``), read in spans of the store (:meth:`ScanStore.beam_chunk`) that take in
+        gaps of up to :data:`READ_THROUGH_SCANS` scans.
+
+        Raises:
+            IndexError: an index outside ``store``.
+        """
         gaps = np.flatnonzero(np.diff(scans) > READ_THROUGH_SCANS + 1) + 1
         firsts, lasts = np.concatenate([[0], gaps]), np.append(gaps, scans.shape[0])
         rows, bearings, ranges, lows, highs = [], [], [], [], []
