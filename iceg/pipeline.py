@@ -254,26 +254,17 @@ def run_log(
     rel = read_relations(relations) if relations is not None else None
     slam = Slam(config)
     result: SlamResult | None = None
-    auto, before_run = odometry_time_offset_s == AUTO_OFFSET, None
-    applied_s = 0.0 if isinstance(odometry_time_offset_s, str) else odometry_time_offset_s
-    with _started(slam, lambda: _read(path, reader, applied_s)) as ((read, report), prefetch):
-        check_returns(path, read)
-        if rel is not None:
-            check_relations_match(rel, read.stamps_s)
-        fresh = auto or prefetch.workers < 2  # the run waits for the checks
+    given_s = 0.0 if isinstance(odometry_time_offset_s, str) else odometry_time_offset_s
+    with _started(slam, lambda: _read(path, reader, given_s)) as ((read, report), prefetch):
+        _check_read(path, read, rel)
+        fresh = odometry_time_offset_s == AUTO_OFFSET or prefetch.workers < 2  # waits for them
         if fresh:
             (measured, reading), result = _reading_checks(path, read, slam.config), None
         else:  # the checks beside the run, which goes on as if they change nothing
             (measured, reading), result = _run_beside_checks(path, slam, prefetch, read, progress)
-        scans = _as_read(read, reading)
-        if reading.options:  # so read again by its session
-            reader_options = {**(reader_options or {}), **reading.options}
-        if reading.options.get("laser_only"):  # as --laser-only reads it: no odometry to offset
-            auto, applied_s = False, 0.0
-        if auto:
-            scans, measured, applied_s, before_run = _at_measured_offset(
-                path, scans, slam.config, measured
-            )
+        scans, measured, applied_s, offset_measured = _as_checked(
+            path, (read, reading), slam.config, measured, odometry_time_offset_s
+        )
         run_config = measured.config
         if run_config != slam.config:
             _warn_measured(path, slam.config, measured)
@@ -283,9 +274,39 @@ def run_log(
         slam = Slam(run_config)
         with helper_processes(slam) as prefetch:
             result = _process(slam, prefetch, scans, progress, len(scans))
-    _note_reading(result, path, (reader_options, reading), applied_s, (auto, before_run))
+    _note_reading(result, path, (reader_options, reading), applied_s, offset_measured)
     _log_metrics(result, path, (report, stamps), scans, measured, rel)
     return result
+
+
+def _check_read(path: str | Path, scans: ScanStore, rel: Relations | None) -> None:
+    """Fail before the run on a log without a return
+    (:func:`~iceg.log_checks.check_returns`) or relations for another log
+    (:func:`check_relations_match`)."""
+    check_returns(path, scans)
+    if rel is not None:
+        check_relations_match(rel, scans.stamps_s)
+
+
+def _as_checked(
+    path: str | Path,
+    read: tuple[ScanStore, Reading],
+    config: IcegConfig,
+    measured: MeasuredScanner,
+    offset_s: float | Literal["auto"],
+) -> tuple[ScanStore, MeasuredScanner, float, tuple[bool, TimeOffsetEstimate | None]]:
+    """The scans of ``read`` = ``(store, the checks' reading)`` read as the checks say, with
+    ``offset_s`` applied (``"auto"``: measured, :func:`_at_measured_offset`; a log read
+    without its odometry, ``laser_only``, has none to offset); the scanner ``measured`` along
+    them, the offset applied (s) and, for the metrics, ``(auto, the measurement)``."""
+    store, reading = read
+    scans = _as_read(store, reading)
+    if reading.options.get("laser_only"):  # as --laser-only reads it: no odometry to offset
+        return scans, measured, 0.0, (False, None)
+    if not isinstance(offset_s, str):  # a string is "auto" (checked before the run)
+        return scans, measured, offset_s, (False, None)
+    scans, measured, applied_s, before_run = _at_measured_offset(path, scans, config, measured)
+    return scans, measured, applied_s, (True, before_run)
 
 
 def _note_reading(
@@ -296,13 +317,16 @@ def _note_reading(
     measured_before: tuple[bool, TimeOffsetEstimate | None],
 ) -> None:
     """How a log run read its log (``read`` = ``(reader options, the checks' reading)``): in
-    its session (to read the log again the same way), in ``result.metrics["odometry_check"]``
+    its session (to read the log again the same way: the options with the reading's added),
+    in ``result.metrics["odometry_check"]``
     (:meth:`~iceg.odometry_check.OdometryCheck.as_dict`, None without one),
     ``result.metrics["odometry_stalls"]`` (the runs read without their held odometry,
     :meth:`~iceg.odometry_stalls.OdometryStall.as_dict` each) and
     ``result.metrics["odometry_time_offset"]`` (the offset applied, and with ``"auto"`` the
     measurement before the run, ``measured_before`` = ``(auto, measurement)``)."""
     reader_options, reading = read
+    if reading.options:
+        reader_options = {**(reader_options or {}), **reading.options}
     check = reading.check
     result.metrics["odometry_check"] = None if check is None else check.as_dict()
     result.metrics["odometry_stalls"] = [stall.as_dict() for stall in reading.stalls]
