@@ -34,7 +34,7 @@ from graph import FactorKind
 from iceg.config import IcegConfig, config_from_dict
 from iceg.consistency import FactorNees, factor_nees, per_node
 from iceg.evaluation import position_errors, relation_errors
-from iceg.log_checks import check_returns, reading_adjustments
+from iceg.log_checks import check_returns, reading_adjustments, warn_sparse_stamps
 from iceg.odometry_timing import odometry_time_offset, offset_to_read
 from iceg.pipeline import AUTO_OFFSET, check_log_file, measure_scanner, relation_nees
 from iceg.results import SlamResult
@@ -157,6 +157,7 @@ def load_input(task: RunTask) -> _Input:
     if not scans:
         raise LogFormatError(f"{task.source}: the log holds no laser scans")
     check_returns(task.source, scans)
+    warn_sparse_stamps(task.source, [s.stamp_s for s in scans])
     config = config_from_dict(task.config, source=f"batch variant {task.variant!r}")
     reads_odometry = task.odometry is None and not task.laser_only  # the log's own
     adjusted = reading_adjustments(task.source, scans, config).options if reads_odometry else {}

@@ -27,7 +27,7 @@ from iceg.consistency import FactorNees, factor_nees, per_node, relation_factor_
 from iceg.evaluation import position_errors, relation_errors
 from iceg.features.prefetch import WORKER_NICENESS, FeaturePrefetcher, auto_workers
 from iceg.kernel_warmup import cache_is_new, probed
-from iceg.log_checks import Reading, check_returns, reading_adjustments
+from iceg.log_checks import Reading, check_returns, reading_adjustments, warn_sparse_stamps
 from iceg.match_pool import MatchPool
 from iceg.odometry_timing import TimeOffsetEstimate, odometry_time_offset, offset_to_read
 from iceg.results import SlamResult
@@ -282,8 +282,10 @@ def run_log(
 def _check_read(path: str | Path, scans: ScanStore, rel: Relations | None) -> None:
     """Fail before the run on a log without a return
     (:func:`~iceg.log_checks.check_returns`) or relations for another log
-    (:func:`check_relations_match`)."""
+    (:func:`check_relations_match`); warn where its stamps do not look like seconds
+    (:func:`~iceg.log_checks.warn_sparse_stamps`)."""
     check_returns(path, scans)
+    warn_sparse_stamps(path, scans.stamps_s)
     if rel is not None:
         check_relations_match(rel, scans.stamps_s)
 
@@ -570,6 +572,7 @@ def read_log_scans(
     check_log_file(Path(path))
     scans = list(open_log(path, stamps=stamps, **(reader_options or {})))
     check_returns(path, scans)
+    warn_sparse_stamps(path, [s.stamp_s for s in scans])
     adjusted = reading_adjustments(path, scans, config).options
     options = {**(reader_options or {}), **adjusted}
     scans = [adjust_scan(s, **adjusted) for s in scans] if adjusted else scans

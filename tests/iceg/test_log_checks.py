@@ -24,10 +24,12 @@ from iceg.batch import expand, spec_from_dict
 from iceg.batch_run import execute_run, load_input
 from iceg.config import IcegConfig
 from iceg.log_checks import (
+    MAX_MEDIAN_SCAN_INTERVAL_S,
     check_returns,
     describe_odometry_checks,
     motionless_odometry,
     reading_adjustments,
+    warn_sparse_stamps,
 )
 from iceg.odometry_check import OdometryCheck, move_pairs, odometry_check, sign_test_p
 from iceg.pipeline import read_log_scans, run_log
@@ -212,6 +214,52 @@ def test_a_heading_the_walls_do_not_follow_is_told(caplog: pytest.LogCaptureFixt
     assert reading.options == {"laser_only": True} and reading.check == test
     assert "deg.clf: the walls do not turn where the odometry turns" in caplog.text
     assert "(in degrees instead of radians? another column?)" in caplog.text
+
+
+def test_the_median_scan_interval_by_hand(caplog: pytest.LogCaptureFixture) -> None:
+    with caplog.at_level(logging.WARNING, logger="iceg.log_checks"):
+        assert warn_sparse_stamps("s", [0.0, 0.1, 0.3, 0.6]) == pytest.approx(0.2)
+        assert warn_sparse_stamps("one", [5.0]) is None
+        assert not caplog.text
+        # any order; intervals 100, 200, 300 (milliseconds read as seconds)
+        assert warn_sparse_stamps("ms", [600.0, 0.0, 300.0, 100.0]) == pytest.approx(200.0)
+    assert "ms: its scans are 200 s apart at the median" in caplog.text
+    assert "are its stamps in seconds?" in caplog.text
+
+
+def test_stamps_in_milliseconds_are_told(
+    tmp_path: Path, office_scans: list[LaserScan], caplog: pytest.LogCaptureFixture
+) -> None:
+    # The office scans are 0.2 s apart (5 Hz); written in milliseconds, 200 units apart.
+    log = tmp_path / "ms.clf"
+    write_carmen(log, [dataclasses.replace(s, stamp_s=s.stamp_s * 1000.0) for s in office_scans])
+    told = "ms.clf: its scans are 200 s apart at the median"
+    with caplog.at_level(logging.WARNING, logger="iceg.log_checks"):
+        run_log(log)
+    assert caplog.text.count(told) == 1
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="iceg.log_checks"):
+        read_log_scans(log, IcegConfig())
+        (task,) = expand(spec_from_dict({"logs": [{"path": str(log)}]}), tmp_path, tmp_path)
+        load_input(task)
+    assert caplog.text.count(told) == 2
+
+
+@pytest.mark.parametrize(
+    ("name", "median_s"),
+    [("mit-csail/mit-csail.clf", 0.21), ("aces/aces-corrected.log.gz", 2.159)],
+)
+def test_real_logs_stamps_read_as_seconds(
+    name: str, median_s: float, caplog: pytest.LogCaptureFixture
+) -> None:
+    # MIT CSAIL's scanner at about 5 Hz; ACES thinned to the scans where the robot moved,
+    # still well under the bound.
+    stamps = [s.stamp_s for s in open_log(shared_file(name))]
+    with caplog.at_level(logging.WARNING, logger="iceg.log_checks"):
+        median = warn_sparse_stamps(name, stamps)
+    assert median == pytest.approx(median_s, abs=0.001)
+    assert median is not None and median < MAX_MEDIAN_SCAN_INTERVAL_S / 4
+    assert not caplog.text
 
 
 def test_mirroring_twice_gives_the_scan_back(office_scans: list[LaserScan]) -> None:
