@@ -318,9 +318,9 @@ def _note_reading(
     applied_s: float,
     measured_before: tuple[bool, TimeOffsetEstimate | None],
 ) -> None:
-    """How a log run read its log (``read`` = ``(reader options, the checks' reading)``): in
-    its session (to read the log again the same way: the options with the reading's added),
-    in ``result.metrics["odometry_check"]``
+    """How a log run read its log (``read`` = ``(reader options, the checks' reading)``):
+    in its session (to read the log again the same way: the options with the reading's
+    added), in ``result.metrics["odometry_check"]``
     (:meth:`~iceg.odometry_check.OdometryCheck.as_dict`, None without one),
     ``result.metrics["odometry_stalls"]`` (the runs read without their held odometry,
     :meth:`~iceg.odometry_stalls.OdometryStall.as_dict` each) and
