@@ -546,11 +546,11 @@ def info(
     lenient: SkipMalformedOption = False,
 ) -> None:
     """Print what a log holds: topics or record types, counts, duration, beams, range
-    limits, returns, odometry source, whether its walls turn and move with its odometry, and
-    where its odometry holds while the scans move."""
+    limits, returns, odometry source, the interval between its scans, whether its walls turn
+    and move with its odometry, and where its odometry holds while the scans move."""
     from frontends.registry import describe_log, open_log
     from iceg.config import IcegConfig
-    from iceg.log_checks import describe_odometry_checks
+    from iceg.log_checks import describe_odometry_checks, describe_stamps
     from iceg.scan_store import ScanStore
     from iceg_common.errors import LogFormatError
 
@@ -562,7 +562,7 @@ def info(
     if not len(scans):  # a bag answered from its index: its scans are read for the checks
         with contextlib.suppress(LogFormatError):  # the plan needs an option: its row says so
             scans = ScanStore(open_log(log, **options))
-    rows += describe_odometry_checks(scans, IcegConfig())
+    rows += describe_stamps(scans.stamps_s) + describe_odometry_checks(scans, IcegConfig())
     typer.echo(f"iceg info: {log}")
     _print_table(rows)
 

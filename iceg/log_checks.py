@@ -99,22 +99,45 @@ def warn_sparse_stamps(source: str | Path, stamps_s: ArrayLike) -> float | None:
         The median interval between consecutive stamps (in the stamps' units), None for
         fewer than two scans.
     """
-    stamps = np.sort(np.asarray(stamps_s, dtype=np.float64).reshape(-1))
-    if stamps.shape[0] < 2:
-        return None
-    median = float(np.median(np.diff(stamps)))
-    if median > MAX_MEDIAN_SCAN_INTERVAL_S:
+    median = _median_interval(stamps_s)
+    if median is not None and median > MAX_MEDIAN_SCAN_INTERVAL_S:
         logger.warning(
-            "%s: its scans are %.4g s apart at the median, and a laser scanner sends 1 to 100 "
-            "scans a second: are its stamps in seconds? Read as seconds, stamps in "
-            "milliseconds make every scan a keyframe and prune landmarks within a scan; "
+            "%s: its scans are %.4g s apart at the median, and %s Read as seconds, stamps in "
+            "milliseconds make every scan a keyframe and prune landmarks within a scan: "
             "write them in seconds (a log thinned to a scan every %g s or more can ignore "
             "this)",
             source,
             median,
+            _NOT_SECONDS,
             MAX_MEDIAN_SCAN_INTERVAL_S,
         )
     return median
+
+
+def describe_stamps(stamps_s: ArrayLike) -> list[tuple[str, str]]:
+    """``iceg info``'s row on the interval between consecutive scans (the median, s), with
+    the question :func:`warn_sparse_stamps` asks above :data:`MAX_MEDIAN_SCAN_INTERVAL_S`;
+    none for fewer than two scans. ``stamps_s`` ``(N,)`` float64, in any order."""
+    median = _median_interval(stamps_s)
+    if median is None:
+        return []
+    text = f"{median:.4g} s at the median"
+    if median > MAX_MEDIAN_SCAN_INTERVAL_S:
+        text += f"; {_NOT_SECONDS}"
+    return [("scan interval", text)]
+
+
+#: What a run asks of a log whose scans lie too far apart.
+_NOT_SECONDS = "a laser scanner sends 1 to 100 scans a second: are the stamps in seconds?"
+
+
+def _median_interval(stamps_s: ArrayLike) -> float | None:
+    """The median interval between consecutive stamps ``(N,)`` (any order; in their units),
+    None for fewer than two."""
+    stamps = np.sort(np.asarray(stamps_s, dtype=np.float64).reshape(-1))
+    if stamps.shape[0] < 2:
+        return None
+    return float(np.median(np.diff(stamps)))
 
 
 def motionless_odometry(source: str | Path, scans: ScanStore | Sequence[LaserScan]) -> bool:

@@ -27,6 +27,7 @@ from iceg.log_checks import (
     MAX_MEDIAN_SCAN_INTERVAL_S,
     check_returns,
     describe_odometry_checks,
+    describe_stamps,
     motionless_odometry,
     reading_adjustments,
     warn_sparse_stamps,
@@ -224,7 +225,16 @@ def test_the_median_scan_interval_by_hand(caplog: pytest.LogCaptureFixture) -> N
         # any order; intervals 100, 200, 300 (milliseconds read as seconds)
         assert warn_sparse_stamps("ms", [600.0, 0.0, 300.0, 100.0]) == pytest.approx(200.0)
     assert "ms: its scans are 200 s apart at the median" in caplog.text
-    assert "are its stamps in seconds?" in caplog.text
+    assert "are the stamps in seconds? Read as seconds" in caplog.text
+    assert describe_stamps([600.0, 0.0, 300.0, 100.0]) == [
+        (
+            "scan interval",
+            "200 s at the median; a laser scanner sends 1 to 100 scans a second: are the "
+            "stamps in seconds?",
+        )
+    ]
+    assert describe_stamps([0.0, 0.1, 0.3, 0.6]) == [("scan interval", "0.2 s at the median")]
+    assert describe_stamps([5.0]) == []
 
 
 def test_stamps_in_milliseconds_are_told(
