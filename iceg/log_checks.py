@@ -78,6 +78,8 @@ def check_returns(source: str | Path, scans: Iterable[LaserScan]) -> None:
 #: keeps them seconds apart (ACES: 2.2 s at the median); stamps in milliseconds put even a
 #: 100 Hz scanner's scans 10 units apart.
 MAX_MEDIAN_SCAN_INTERVAL_S = 10.0
+#: What a run asks of a log whose scans lie further apart than that.
+_NOT_SECONDS = "a laser scanner sends 1 to 100 scans a second: are the stamps in seconds?"
 
 
 def warn_sparse_stamps(source: str | Path, stamps_s: ArrayLike) -> float | None:
@@ -125,10 +127,6 @@ def describe_stamps(stamps_s: ArrayLike) -> list[tuple[str, str]]:
     if median > MAX_MEDIAN_SCAN_INTERVAL_S:
         text += f"; {_NOT_SECONDS}"
     return [("scan interval", text)]
-
-
-#: What a run asks of a log whose scans lie too far apart.
-_NOT_SECONDS = "a laser scanner sends 1 to 100 scans a second: are the stamps in seconds?"
 
 
 def _median_interval(stamps_s: ArrayLike) -> float | None:
