@@ -285,9 +285,10 @@ def _check_read(path: str | Path, scans: ScanStore, rel: Relations | None) -> No
     (:func:`check_relations_match`); warn where its stamps do not look like seconds
     (:func:`~iceg.log_checks.warn_sparse_stamps`)."""
     check_returns(path, scans)
-    warn_sparse_stamps(path, scans.stamps_s)
+    stamps = scans.stamps_s  # a copy: read once
+    warn_sparse_stamps(path, stamps)
     if rel is not None:
-        check_relations_match(rel, scans.stamps_s)
+        check_relations_match(rel, stamps)
 
 
 def _as_checked(
