@@ -248,7 +248,7 @@ def describe_odometry_checks(
     scans move (:func:`~iceg.odometry_stalls.odometry_stalls`), as
     :func:`reading_adjustments` would read the log; none where the odometry has nothing to
     compare (no odometry, one that never moves, no turn of 30-90 deg within 1 m and no move
-    of 0.5-1 m)."""
+    of 0.5 m or more)."""
     check = odometry_check(scans, config)
     if check is None:
         return []

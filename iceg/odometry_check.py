@@ -17,8 +17,8 @@ map of rays):
   1853, 2.7 m and 81° against its relations.
 - *A translation that is not the robot's.* The odometry's x and y in centimetres or
   millimetres (the robot's 1 cm read as 1 m). The walls then hardly move where the odometry
-  moves by 0.5-1 m. MIT CSAIL with them in centimetres: 745 scan-match factors of 1846,
-  43.5 m against its relations.
+  moves by half a metre or more. MIT CSAIL with them in centimetres: 745 scan-match factors
+  of 1846, 43.5 m against its relations.
 
 No scan is matched. For turns of the odometry (:func:`iceg.robot_body.turn_pairs`: 30-90°
 within 1 m of travel) the segment directions of the later scan are compared with the earlier
@@ -26,21 +26,22 @@ one's turned by ``dθ`` (as read), by ``-dθ`` (mirrored) and by 0 (unturned): a
 correlation over every segment pair, lines undirected (modulo π), weighted by the shorter
 segment, each pair's kernel variance the two directions' variances plus the odometry's
 heading variance (:func:`graph.odometry_covariance`). For moves of the odometry
-(:func:`move_pairs`: 0.5-1 m of its path) the later scan's lines, turned by ``dθ``, are
-placed by the odometry's translation (moved) or by none (unmoved) and compared with the
-earlier one's in direction and offset, over the lines that the translation shifts by more
-than :data:`INFORMATIVE_SIGMAS` of their offsets' standard deviation (the offsets' variances
-plus the odometry's translation variance): a wall along the motion, which both readings
-place alike, tells nothing and counts in neither. One-sided sign tests (binomial) over the
-pairs whose correlations differ, each other reading against the one as read, at the
-conventional 1 % (:data:`SIGNIFICANCE_LEVEL`). The odometry need not be accurate, only turn
-and move as the robot did.
+(:func:`move_pairs`: each scan and the first later one half a metre or more along its path)
+the later scan's lines, turned by ``dθ``, are placed by the odometry's translation (moved)
+or by none (unmoved) and compared with the earlier one's in direction and offset, over the
+lines that the translation shifts by more than :data:`INFORMATIVE_SIGMAS` of their offsets'
+standard deviation (the offsets' variances plus the odometry's translation variance): a
+wall along the motion, which both readings place alike, tells nothing and counts in
+neither. One-sided sign tests (binomial) over the pairs whose correlations differ, each
+other reading against the one as read, at the conventional 1 % (:data:`SIGNIFICANCE_LEVEL`).
+The odometry need not be accurate, only turn and move as the robot did.
 
 What it cannot tell: whether the laser is mirrored or the odometry is left-handed (``y`` and
 ``θ`` negated); the relative motions agree once either is mirrored, and the map of the other
 reading is the mirror image. A mirrored laser is by far the commoner (an upside-down mount),
-so the beams are the ones mirrored. A log whose scans lie more than 1 m apart has no pair to
-test a translation on, and a log without odometry nothing to test.
+so the beams are the ones mirrored. Where scans lie so far apart that they see few of the
+same walls (MIT CSAIL or ACES thinned to one scan in 7-8 m), the moves win either reading
+by chance and decide nothing; a log without odometry has nothing to test.
 """
 
 from __future__ import annotations
@@ -73,9 +74,13 @@ IntArray = NDArray[np.int64]
 SIGNIFICANCE_LEVEL = 0.01
 #: Most turns, and most moves, compared, evenly spread over the log: MIT CSAIL with its beams
 #: reversed wins mirrored in 49 of 64 turns (p ~ 1e-5), with its heading in degrees
-#: unturned in 55 of 64, with its x and y in centimetres unmoved in 12 of 12 moves; a log as
+#: unturned in 55 of 64, with its x and y in centimetres unmoved in 64 of 64 moves; a log as
 #: read is decided in 7-27 pairs of each (two feature extractions per pair).
 MAX_PAIRS = 64
+#: Shortest move of the odometry compared, metres: half of the turns' largest travel
+#: (:data:`~iceg.robot_body.MAX_PATH_M`), enough to shift the walls across the motion by
+#: many times a line's offset noise.
+MIN_MOVE_M = MAX_PATH_M / 2
 #: A line's offset tells moved from unmoved where the odometry's translation shifts it by
 #: more than this many standard deviations (the conventional three).
 INFORMATIVE_SIGMAS = 3.0
@@ -150,7 +155,7 @@ class OdometryCheck:
         if self.translation_unusable:
             return "laser_only", (
                 f"the walls do not move where the odometry moves (in {self.unmoved} of "
-                f"{self.moved + self.unmoved} moves of 0.5-1 m they line up better unmoved, "
+                f"{self.moved + self.unmoved} moves of 0.5 m or more they line up better unmoved, "
                 f"p = {self.p_unmoved:.1g}): its translation is not the robot's (in "
                 "centimetres or millimetres instead of metres?)"
             )
@@ -179,7 +184,7 @@ def odometry_check(
 
     Returns:
         The check, or None where the odometry neither turns nor moves (no odometry, one that
-        never moves, no turn of 30-90° within 1 m and no move of 0.5-1 m). The pairs are
+        never moves, no turn of 30-90° within 1 m and no move of 0.5 m or more). The pairs are
         compared in order until the reading as read wins at :data:`SIGNIFICANCE_LEVEL`
         (seven of seven where every pair decides), else all of them: stopping early can
         only keep a log as read, so the other readings keep the sign tests' level.
@@ -227,21 +232,24 @@ def odometry_check(
 
 def move_pairs(poses: FloatArray, breaks: NDArray[np.bool_] | None = None) -> IntArray:
     """``(M, 2)`` int64 index pairs ``(k, l)``, ``l > k``: for each scan ``k`` the first later
-    scan at least half of :data:`~iceg.robot_body.MAX_PATH_M` along the path of ``poses``,
-    if at most :data:`~iceg.robot_body.MAX_PATH_M` along it and no odometry break lies
-    between them.
+    scan at least :data:`MIN_MOVE_M` along the path of ``poses``, however far (the nearest
+    view the log has that the odometry moved; a log whose scans lie metres apart pairs each
+    scan with the next), where no odometry break and no scan without a pose lie between them.
 
     Args:
         poses: ``(N, 3)`` float64 robot poses ``[x_m, y_m, theta_rad]``, one per scan, in
             scan order (any frame; NaN rows never pair, nor do pairs across them).
         breaks: ``(N,)`` bool, an odometry break just before each scan; None: none.
     """
-    path = path_travelled(np.asarray(poses, dtype=np.float64).reshape(-1, 3))
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    path = path_travelled(poses)
     first = np.arange(path.shape[0])
-    second = np.searchsorted(path, path + MAX_PATH_M / 2, side="left")
+    second = np.searchsorted(path, path + MIN_MOVE_M, side="left")
     ok = second < path.shape[0]
     first, second = first[ok], second[ok]
-    ok = path[second] - path[first] <= MAX_PATH_M
+    # NaN rows up to each scan: none from the pair's first scan to its second
+    unposed = np.concatenate([[0], np.cumsum(~np.isfinite(poses).all(axis=1))])
+    ok = unposed[second + 1] == unposed[first]
     return without_breaks(np.stack([first[ok], second[ok]], axis=1).astype(np.int64), breaks)
 
 

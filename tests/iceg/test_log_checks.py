@@ -154,7 +154,7 @@ def test_mirrored_beams_are_told_by_the_turns(office_scans: list[LaserScan]) -> 
 
 def test_move_pairs_by_hand() -> None:
     # Scans 0.2 m apart: each pairs with the first one 0.5 m or more along the path (three
-    # steps on, 0.6 m). A scan without a pose is a step beyond reach; a break is no move.
+    # steps on, 0.6 m). No pair spans a scan without a pose, nor a break.
     poses = np.array([[0.2 * k, 0.0, 0.0] for k in range(8)])
     np.testing.assert_array_equal(move_pairs(poses), [[k, k + 3] for k in range(5)])
     hole = poses.copy()
@@ -163,8 +163,11 @@ def test_move_pairs_by_hand() -> None:
     breaks = np.zeros(8, dtype=bool)
     breaks[5] = True
     np.testing.assert_array_equal(move_pairs(poses, breaks), [[0, 3], [1, 4]])
-    far = np.array([[0.0, 0.0, 0.0], [1.2, 0.0, 0.0]])  # the next scan is beyond 1 m
-    assert move_pairs(far).shape == (0, 2)
+    # Scans metres apart (a sparse log, or centimetres read as metres): each with the next.
+    far = np.array([[0.0, 0.0, 0.0], [1.2, 0.0, 0.0], [9.0, 0.0, 0.0], [9.3, 0.0, 0.0]])
+    np.testing.assert_array_equal(move_pairs(far), [[0, 1], [1, 2]])  # 9.3 is 0.3 m on
+    far[1] = np.nan
+    np.testing.assert_array_equal(move_pairs(far), np.zeros((0, 2)))
 
 
 def test_a_jump_of_the_odometry_at_a_break_is_no_turn(office_scans: list[LaserScan]) -> None:
@@ -302,8 +305,9 @@ def test_real_logs_read_as_they_are_and_broken_ones_are_told(name: str) -> None:
 
 
 def test_an_odometry_in_centimetres_is_told_by_the_moves() -> None:
-    # MIT CSAIL with its odometry's x and y in centimetres: its moves of 0.5-1 "m" are the
-    # robot's 0.5-1 cm, and in each the walls line up better unmoved (12 of 12, p = 2^-12).
+    # MIT CSAIL with its odometry's x and y in centimetres: its moves of 0.5 "m" or more are
+    # the robot's centimetres from one scan to the next, and in each the walls line up
+    # better unmoved (64 of 64, p = 2^-64).
     scans = list(open_log(shared_file("mit-csail/mit-csail.clf")))
     centimetres = [
         dataclasses.replace(s, odom_pose=s.odom_pose * np.array([100.0, 100.0, 1.0]))
@@ -312,7 +316,29 @@ def test_an_odometry_in_centimetres_is_told_by_the_moves() -> None:
     ]
     check = odometry_check(centimetres, IcegConfig())
     assert check is not None and check.translation_unusable and not check.heading_unusable
-    assert (check.moved, check.unmoved) == (0, 12) and check.p_unmoved == 0.5**12
+    assert (check.moved, check.unmoved) == (0, 64) and check.p_unmoved == 0.5**64
+    finding = check.finding()
+    assert finding is not None and finding[0] == "laser_only"
+
+
+@pytest.mark.parametrize("log", ["mit-csail/csail.log", "aces/aces-corrected.log.gz"])
+def test_an_odometry_in_centimetres_is_told_on_a_sparse_log(log: str) -> None:
+    # csail.log's scans lie 0.3-1 m apart and ACES's 1-3 m: read in centimetres, their
+    # odometry moves tens of "m" between consecutive scans, and only a robot standing
+    # nearly still gave a move of 0.5-1 "m" (one or two pairs: not told). Each scan pairs
+    # with the first later one 0.5 "m" or more on, its neighbour: in all 64 compared the
+    # walls line up better unmoved (p = 2^-64). Read in metres, the moves follow the
+    # odometry (csail.log 7 of 7, ACES 12 of 14).
+    scans = list(open_log(shared_file(log)))
+    as_read = odometry_check(scans, IcegConfig())
+    assert as_read is not None and as_read.finding() is None
+    assert as_read.moved > 3 * as_read.unmoved
+    centimetres = [
+        dataclasses.replace(s, odom_pose=s.odom_pose * np.array([100.0, 100.0, 1.0])) for s in scans
+    ]
+    check = odometry_check(centimetres, IcegConfig())
+    assert check is not None and check.translation_unusable
+    assert (check.moved, check.unmoved) == (0, 64) and check.p_unmoved == 0.5**64
     finding = check.finding()
     assert finding is not None and finding[0] == "laser_only"
 
