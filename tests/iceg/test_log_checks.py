@@ -323,7 +323,7 @@ def test_an_odometry_in_centimetres_is_told_by_the_moves() -> None:
 
 @pytest.mark.parametrize("log", ["mit-csail/csail.log", "aces/aces-corrected.log.gz"])
 def test_an_odometry_in_centimetres_is_told_on_a_sparse_log(log: str) -> None:
-    # csail.log's scans lie 0.3-1 m apart and ACES's 1-3 m: read in centimetres, their
+    # csail.log's scans lie 0.4-0.7 m apart and ACES's about 1 m: read in centimetres, their
     # odometry moves tens of "m" between consecutive scans, and only a robot standing
     # nearly still gave a move of 0.5-1 "m" (one or two pairs: not told). Each scan pairs
     # with the first later one 0.5 "m" or more on, its neighbour: in all 64 compared the
