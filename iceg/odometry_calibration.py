@@ -41,9 +41,20 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
+from graph import OdometryNoiseConfig
+
 FloatArray = NDArray[np.float64]
 
-__all__ = ["OdometryCalibrationConfig", "OdometryCalibrator"]
+__all__ = [
+    "OdometryCalibrationConfig",
+    "OdometryCalibrator",
+    "SystematicError",
+    "systematic_errors",
+]
+
+#: Standard deviations of its estimate by which a systematic error must exceed what the
+#: odometry noise model allows before it is called beyond the model (the conventional three).
+BEYOND_SIGMAS = 3.0
 
 
 class OdometryCalibrationConfig(BaseModel):
@@ -337,3 +348,64 @@ class OdometryCalibrator:
         w = _huber_weight(r / math.sqrt(var * s2), self.config.huber_k)
         self._s2_r.add(r * r / var, 1.0, w)
         self._heading.add_row(h, dtheta, w / var)
+
+
+@dataclass(frozen=True)
+class SystematicError:
+    """One systematic error of the odometry as the scans measure it (:func:`systematic_errors`).
+
+    Attributes:
+        value: The estimate (a fraction, or degrees per metre).
+        std: Its standard deviation, same unit.
+        allowed: What the odometry noise model allows for, same unit.
+    """
+
+    value: float
+    std: float
+    allowed: float
+
+    @property
+    def beyond_noise_model(self) -> bool:
+        """Larger than ``allowed`` by more than :data:`BEYOND_SIGMAS` standard deviations."""
+        return abs(self.value) - BEYOND_SIGMAS * self.std > self.allowed
+
+
+def systematic_errors(
+    calibrator: OdometryCalibrator, noise: OdometryNoiseConfig
+) -> dict[str, SystematicError]:
+    """The odometry's systematic errors as the run's accepted scan matches measure them
+    (:class:`OdometryCalibrator`, which estimates whether or not it corrects), against what
+    the odometry noise model (``graph.odometry_covariance``) allows for: per metre driven, a
+    translation error of ``sigma_xy_per_distance_m_per_m`` and a heading error of
+    ``sigma_theta_per_distance_deg_per_m``; per unit turned, ``sigma_theta_per_rotation``.
+    One beyond the model biases every odometry factor beyond its covariance, the same way
+    at every step, so the walls bend (Borenstein & Feng 1996); the online calibration is
+    what corrects it.
+
+    Args:
+        calibrator: The run's calibrator (``Slam.odometry_calibrator``).
+        noise: The run's odometry noise model (``IcegConfig.odometry_noise``).
+
+    Returns:
+        ``distance_scale_error`` (``1 / kappa - 1``: the odometry's distance over the true
+        one, less 1), ``turn_scale_error`` (``1 / gamma - 1``) and
+        ``heading_drift_deg_per_m`` (``beta``), their standard deviations to first order.
+        Raises nothing.
+    """
+    var_k, cov_gb = calibrator.parameter_covariance()
+    kappa, gamma = calibrator.scale, calibrator.turn_scale
+    return {
+        "distance_scale_error": SystematicError(
+            1.0 / kappa - 1.0, math.sqrt(var_k) / kappa**2, noise.sigma_xy_per_distance_m_per_m
+        ),
+        "turn_scale_error": SystematicError(
+            1.0 / gamma - 1.0,
+            math.sqrt(float(cov_gb[0, 0])) / gamma**2,
+            noise.sigma_theta_per_rotation_deg_per_deg,
+        ),
+        "heading_drift_deg_per_m": SystematicError(
+            math.degrees(calibrator.heading_drift_rad_per_m),
+            math.degrees(math.sqrt(float(cov_gb[1, 1]))),
+            noise.sigma_theta_per_distance_deg_per_m,
+        ),
+    }

@@ -29,6 +29,7 @@ from iceg.features.prefetch import WORKER_NICENESS, FeaturePrefetcher, auto_work
 from iceg.kernel_warmup import cache_is_new, probed
 from iceg.log_checks import Reading, check_returns, reading_adjustments, warn_sparse_stamps
 from iceg.match_pool import MatchPool
+from iceg.odometry_calibration import systematic_errors
 from iceg.odometry_timing import TimeOffsetEstimate, odometry_time_offset, offset_to_read
 from iceg.results import SlamResult
 from iceg.robot_body import (
@@ -352,10 +353,12 @@ def _log_metrics(
     rel: Relations | None,
 ) -> None:
     """A log run's metrics on its input: the stamps' report (or policy), the robot's body
-    (:func:`_robot_body_metrics`), the wall dropouts and, with ``rel``, the relation error."""
+    (:func:`_robot_body_metrics`), the odometry's systematic errors
+    (:func:`_calibration_metrics`), the wall dropouts and, with ``rel``, the relation error."""
     report, policy = stamps
     result.metrics["stamps"] = report.as_dict() if report is not None else {"policy": policy}
     result.metrics["robot_body"] = _robot_body_metrics(path, scans, result, measured.body)
+    result.metrics["odometry_calibration"] = _calibration_metrics(path, result)
     dropouts = measured.dropouts
     result.metrics["wall_dropouts"] = None if dropouts is None else dropouts.as_dict()
     if rel is not None:
@@ -685,6 +688,49 @@ def _robot_body_metrics(
         "dark_deg": applied.robot_body_dark_deg,
         "on_odometry": None if on_odometry is None else on_odometry.as_dict(),
         "on_trajectory": None if on_trajectory is None else on_trajectory.as_dict(),
+    }
+
+
+#: How a warning names each systematic error of the odometry, and the format of its unit.
+_SYSTEMATIC_ERRORS = {
+    "distance_scale_error": ("distance scale error", "{:+.1%}", "{:.1%}", "{:.0%} per metre"),
+    "turn_scale_error": ("turn scale error", "{:+.1%}", "{:.1%}", "{:.0%} of a turn"),
+    "heading_drift_deg_per_m": ("heading drift", "{:+.2f}", "{:.2f} deg/m", "{:.2f} deg/m"),
+}
+
+
+def _calibration_metrics(path: str | Path, result: SlamResult) -> dict[str, Any] | None:
+    """The odometry's systematic errors as the run's matches measure them
+    (:func:`~iceg.odometry_calibration.systematic_errors`: each one's ``value``, ``std``,
+    ``allowed`` and ``beyond_noise_model``), the matches used and whether the run corrected
+    them (``enabled``); warned, naming the setting, where one is beyond the odometry noise
+    model and the run did not correct it. None without a Slam (nothing was matched)."""
+    if result.slam is None:
+        return None
+    calibrator = result.slam.odometry_calibrator
+    errors = systematic_errors(calibrator, result.config.odometry_noise)
+    enabled = result.config.odometry_calibration.enabled
+    said = [
+        f"{words} {value.format(e.value)} ± {std.format(e.std)} (its noise model allows "
+        f"{allowed.format(e.allowed)})"
+        for name, (words, value, std, allowed) in _SYSTEMATIC_ERRORS.items()
+        if (e := errors[name]).beyond_noise_model
+    ]
+    if said and not enabled:
+        logger.warning(
+            "%s: the scans' matches measure the odometry's %s: its factors are biased beyond "
+            "their covariance, the same way at every step; to correct it during the run, set "
+            "odometry_calibration.enabled: true",
+            path,
+            ", ".join(said),
+        )
+    return {
+        "enabled": enabled,
+        "observations": calibrator.n_observations,
+        **{
+            name: {**asdict(e), "beyond_noise_model": e.beyond_noise_model}
+            for name, e in errors.items()
+        },
     }
 
 

@@ -52,7 +52,13 @@ def test_the_run_beside_its_checks_is_the_run_after_them(
     again = "the checks read the log otherwise; the run starts again"
     assert (again in caplog.text) == (name != "as recorded")
     assert one.poses.tobytes() == two.poses.tobytes()
-    for key in ("odometry_stalls", "odometry_check", "robot_body", "wall_dropouts"):
+    for key in (
+        "odometry_stalls",
+        "odometry_check",
+        "robot_body",
+        "wall_dropouts",
+        "odometry_calibration",
+    ):
         assert one.metrics[key] == two.metrics[key], key
     stalls = [(s["first"], s["stop"]) for s in two.metrics["odometry_stalls"]]
     assert stalls == ([(200, 350)] if name == "held" else [])

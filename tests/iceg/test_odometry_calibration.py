@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import logging
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from frontends.simulate import OdometryModel, simulate_scenario
+from frontends.carmen import write_carmen
+from frontends.simulate import OdometryModel, default_trajectory, simulate, simulate_scenario
 from graph import FactorKind, odometry_covariance
 from iceg.config import IcegConfig
 from iceg.evaluation import position_errors
@@ -15,7 +18,9 @@ from iceg.odometry_calibration import (
     OdometryCalibrationConfig,
     OdometryCalibrator,
     signed_distance,
+    systematic_errors,
 )
+from iceg.pipeline import run_log
 from iceg.slam import Slam
 from iceg_common import se2
 
@@ -174,3 +179,65 @@ def test_simulated_biased_office_calibration_and_ate(biased_office) -> None:  # 
     e = np.asarray(errs)
     standard_error = e.std() / math.sqrt(e.size)
     assert abs(e.mean()) < min(3.0 * standard_error, 0.5 * np.mean(drift)), (e.mean(), drift)
+
+
+@pytest.mark.parametrize(
+    ("scale_error", "drift_deg_per_m", "beyond"),
+    [
+        (0.015, 0.3, []),  # an uncalibrated base's (issue 11): within the noise model
+        (0.04, 2.0, ["distance_scale_error", "heading_drift_deg_per_m"]),
+    ],
+)
+def test_systematic_errors_against_the_noise_model_by_hand(
+    scale_error: float, drift_deg_per_m: float, beyond: list[str]
+) -> None:
+    # Exact matches of the true steps, the odometry's distances scaled and its heading
+    # drifting per metre: the estimates are the biases (odometry over truth, less 1; the
+    # drift per odometry metre), and the default noise model allows 2 % of the distance,
+    # 5 % of a turn and 0.5 deg per metre.
+    rng = np.random.default_rng(5)
+    true = _steps(rng, 300)
+    signed = np.array([signed_distance(u) for u in true])
+    odo = true * np.array([1 + scale_error, 1 + scale_error, 1.0])
+    odo[:, 2] += math.radians(drift_deg_per_m) * (1 + scale_error) * signed
+    cal = OdometryCalibrator()
+    for u_true, u_odo in zip(true, odo, strict=True):
+        cal.observe(u_odo, odometry_covariance(u_odo), u_true, MATCH_COV)
+    errors = systematic_errors(cal, IcegConfig().odometry_noise)
+    assert errors["distance_scale_error"].value == pytest.approx(scale_error, abs=1e-3)
+    assert errors["turn_scale_error"].value == pytest.approx(0.0, abs=1e-3)
+    assert errors["heading_drift_deg_per_m"].value == pytest.approx(drift_deg_per_m, abs=0.02)
+    assert [e.allowed for e in errors.values()] == [0.02, 0.05, 0.5]
+    assert all(e.std > 0.0 for e in errors.values())
+    assert [name for name, e in errors.items() if e.beyond_noise_model] == beyond
+
+
+def test_a_run_names_an_odometry_drift_beyond_its_noise_model(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # The office loop with its heading drifting 2 deg/m (four times what the noise model
+    # allows): the run measures it, warns with the setting, and reports it; the office as
+    # simulated (0.4 deg/m) warns of nothing, nor does the run that corrects the drift.
+    office = simulate_scenario("office_biased", seed=0)
+    drifting = OdometryModel.biased(scale_error=0.01, heading_drift_deg_per_m=2.0)
+    route = default_trajectory(office.world)
+    runs = {"biased": office, "drift": simulate(office.world, route, seed=0, odometry=drifting)}
+    logs = {name: tmp_path / f"{name}.clf" for name in runs}
+    for name, run in runs.items():
+        write_carmen(logs[name], run.scans[:400])
+    with caplog.at_level(logging.WARNING, logger="iceg.pipeline"):
+        result = run_log(logs["drift"])
+    drift = result.metrics["odometry_calibration"]["heading_drift_deg_per_m"]
+    assert drift["value"] == pytest.approx(2.0, abs=0.2) and drift["beyond_noise_model"]
+    assert "the scans' matches measure the odometry's heading drift +" in caplog.text
+    assert "set odometry_calibration.enabled: true" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="iceg.pipeline"):
+        biased = run_log(logs["biased"])
+        calibrated = run_log(
+            logs["drift"], IcegConfig(odometry_calibration=OdometryCalibrationConfig(enabled=True))
+        )
+    assert "odometry_calibration" not in caplog.text
+    found = biased.metrics["odometry_calibration"]["heading_drift_deg_per_m"]
+    assert found["value"] == pytest.approx(0.4, abs=0.2) and not found["beyond_noise_model"]
+    assert calibrated.metrics["odometry_calibration"]["enabled"]
