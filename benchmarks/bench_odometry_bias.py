@@ -11,8 +11,9 @@ what the bias costs from what the noise and the scan matcher cost. ``aces_strong
 (a stress case: docs/design.md "Walls of nodes the odometry placed").
 
 Per case and setting (``calib`` = :class:`iceg.odometry_calibration.OdometryCalibrator`
-enabled; ``off`` = disabled, the configuration's default): ATE (RMSE after SE(2) alignment) against the
-reference, mean relation error (CSAIL), the final calibration estimate and the wall time.
+enabled; ``off`` = disabled, the configuration's default): ATE (RMSE after SE(2) alignment)
+against the reference, mean relation error (CSAIL), the final calibration estimate and the
+wall time.
 
 Run: ``PYTHONPATH=. python benchmarks/bench_odometry_bias.py [--only CASE ...] [--setting
 calib|off ...] [--seed N] [--json PATH]``.
