@@ -48,34 +48,27 @@ BIAS_ONLY = OdometryModel.biased(scale_error=0.01, heading_drift_deg_per_m=0.4, 
 STRONG_DRIFT = OdometryModel.biased(scale_error=0.01, heading_drift_deg_per_m=2.0)
 
 
-def _bias_only(relative: str) -> Callable[[int], ba.CaseInput]:
+def _with_odometry(relative: str, model: OdometryModel, what: str) -> Callable[[int], ba.CaseInput]:
+    """A corrected log with synthetic odometry of ``model`` (described as ``what``)."""
+
     def build(seed: int) -> ba.CaseInput:
         scans = list(ba.open_log(ba._shared(relative)))
-        synth = synthetic_odometry(scans, BIAS_ONLY, seed)
+        synth = synthetic_odometry(scans, model, seed)
         ref = np.array(synth.reference_poses)
-        return ba.CaseInput(synth.scans, ref, None, f"{relative} + bias only")
+        return ba.CaseInput(synth.scans, ref, None, f"{relative} + {what}")
 
     return build
 
 
-def _strong_drift(relative: str) -> Callable[[int], ba.CaseInput]:
-    def build(seed: int) -> ba.CaseInput:
-        scans = list(ba.open_log(ba._shared(relative)))
-        synth = synthetic_odometry(scans, STRONG_DRIFT, seed)
-        ref = np.array(synth.reference_poses)
-        return ba.CaseInput(synth.scans, ref, None, f"{relative} + 1 %, 2 deg/m, noise")
-
-    return build
-
-
+ACES, CSAIL_LOG = "aces/aces-corrected.log.gz", "mit-csail/csail.log"
 CASES: dict[str, Callable[[int], ba.CaseInput]] = {
     name: ba.CASES[name]
     for name in ("office_biased", "aces_synth", "csail_log_synth", "csail_raw", "csail_raw_drift")
 } | {
-    "aces_bias_only": _bias_only("aces/aces-corrected.log.gz"),
-    "csail_log_bias_only": _bias_only("mit-csail/csail.log"),
-    "aces_strong_drift": _strong_drift("aces/aces-corrected.log.gz"),
-    "csail_log_strong_drift": _strong_drift("mit-csail/csail.log"),
+    "aces_bias_only": _with_odometry(ACES, BIAS_ONLY, "bias only"),
+    "csail_log_bias_only": _with_odometry(CSAIL_LOG, BIAS_ONLY, "bias only"),
+    "aces_strong_drift": _with_odometry(ACES, STRONG_DRIFT, "1 %, 2 deg/m, noise"),
+    "csail_log_strong_drift": _with_odometry(CSAIL_LOG, STRONG_DRIFT, "1 %, 2 deg/m, noise"),
 }
 
 
