@@ -35,6 +35,7 @@ from iceg.config import IcegConfig, config_from_dict
 from iceg.consistency import FactorNees, factor_nees, per_node
 from iceg.evaluation import position_errors, relation_errors
 from iceg.log_checks import check_returns, reading_adjustments, warn_sparse_stamps
+from iceg.odometry_calibration import systematic_errors
 from iceg.odometry_timing import odometry_time_offset, offset_to_read
 from iceg.pipeline import AUTO_OFFSET, check_log_file, measure_scanner, relation_nees
 from iceg.results import SlamResult
@@ -317,7 +318,8 @@ def run_metrics(result: SlamResult, data: _Input, online: FloatArray) -> dict[st
     (:func:`~iceg.odometry_timing.odometry_time_offset`): ``odom_time_offset_s`` where
     significant (else NaN), the best fit ``odom_time_offset_best_s`` and its
     ``odom_time_offset_p``; ``robot_body_range_m``, the range left out as the robot's own
-    body; ``sm_nees`` and ``odo_nees`` (:func:`_nees_medians`); how the log's own checks had
+    body; ``sm_nees`` and ``odo_nees`` (:func:`_nees_medians`); the odometry's systematic
+    errors (:func:`_odometry_errors`); how the log's own checks had
     it read (:func:`~iceg.log_checks.reading_adjustments`): ``beams_mirrored`` (1: mirrored,
     else 0) and ``scans_without_odometry`` (all of them where its odometry is not the
     robot's, those where it held while they moved, else 0)."""
@@ -353,6 +355,7 @@ def run_metrics(result: SlamResult, data: _Input, online: FloatArray) -> dict[st
             warnings.simplefilter("ignore", UserWarning)
             out |= _reference_metrics(result, data, online)
     out |= _nees_medians(result, data)
+    out |= _odometry_errors(result)
     adjusted, stalls = data.adjusted, data.adjusted.get("odometry_stalls_s", ())
     out["beams_mirrored"] = int(bool(adjusted.get("mirror_beams")))
     out["scans_without_odometry"] = (
@@ -361,6 +364,21 @@ def run_metrics(result: SlamResult, data: _Input, online: FloatArray) -> dict[st
         else sum(any(a <= scan.stamp_s <= b for a, b in stalls) for scan in data.scans)
     )
     return out
+
+
+def _odometry_errors(result: SlamResult) -> dict[str, float]:
+    """``odom_scale_error``, ``odom_turn_scale_error`` (fractions) and
+    ``odom_heading_drift_deg_per_m``: the odometry's systematic errors as the run's matches
+    measure them (:func:`~iceg.odometry_calibration.systematic_errors`); none without a
+    matched keyframe step with odometry."""
+    if result.slam is None or not result.slam.odometry_calibrator.n_observations:
+        return {}
+    errors = systematic_errors(result.slam.odometry_calibrator, result.config.odometry_noise)
+    return {
+        "odom_scale_error": errors["distance_scale_error"].value,
+        "odom_turn_scale_error": errors["turn_scale_error"].value,
+        "odom_heading_drift_deg_per_m": errors["heading_drift_deg_per_m"].value,
+    }
 
 
 def _nees_medians(result: SlamResult, data: _Input) -> dict[str, float]:

@@ -131,6 +131,22 @@ def test_a_laser_only_run_is_scored_against_the_odometry_it_drops(tmp_path: Path
         spec_from_dict({"logs": [{**entry, "synthetic_odometry": {}}]})
 
 
+def test_a_row_holds_the_odometry_systematic_errors(tmp_path: Path) -> None:
+    # The biased office's odometry: distances 1.5 % long, the heading drifting 0.4 deg per
+    # true metre (0.394 per odometry metre), turns unscaled. The laser-only run has no
+    # odometry to measure.
+    logs = [
+        {"path": "sim:office_biased", "name": "biased"},
+        {"path": "sim:office", "name": "laser", "laser_only": True, "max_scans": 100},
+    ]
+    tasks = expand(spec_from_dict({"logs": logs}), tmp_path, tmp_path)
+    rows = {t.log_name: execute_run(t)["metrics"] for t in tasks}
+    assert rows["biased"]["odom_scale_error"] == pytest.approx(0.015, abs=0.003)
+    assert rows["biased"]["odom_heading_drift_deg_per_m"] == pytest.approx(0.4 / 1.015, abs=0.05)
+    assert abs(rows["biased"]["odom_turn_scale_error"]) < 0.02
+    assert "odom_scale_error" not in rows["laser"]
+
+
 def test_an_odometry_time_offset_is_applied_and_measured(tmp_path: Path) -> None:
     # The simulated office world with its odometry read 0.1 s after each scan was taken:
     # the row measures -0.1 s; the offset is part of the run's key.
