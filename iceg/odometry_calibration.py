@@ -377,7 +377,8 @@ def systematic_errors(
     (:class:`OdometryCalibrator`, which estimates whether or not it corrects), against what
     the odometry noise model (``graph.odometry_covariance``) allows for: per metre driven, a
     translation error of ``sigma_xy_per_distance_m_per_m`` and a heading error of
-    ``sigma_theta_per_distance_deg_per_m``; per unit turned, ``sigma_theta_per_rotation``.
+    ``sigma_theta_per_distance_deg_per_m``; per unit turned,
+    ``sigma_theta_per_rotation_deg_per_deg``.
     One beyond the model biases every odometry factor beyond its covariance, the same way
     at every step, so the walls bend (Borenstein & Feng 1996); the online calibration is
     what corrects it.
