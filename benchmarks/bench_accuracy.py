@@ -18,8 +18,11 @@ reports, in one table:
   rotations show (:func:`iceg.odometry_timing.odometry_time_offset`; negative: the scans
   were taken before their stamps), where significant; the JSON rows hold the best fit and
   its p-value either way (``odom_time_offset_best_s``, ``odom_time_offset_p``);
-- ``LC acc`` / ``LC false``: loop closures accepted, and those whose measured relative pose
-  differs from the true one by more than 0.3 m or 3 deg (only where a reference exists);
+- ``LC acc`` / ``LC false`` / ``LC disp``: loop closures accepted, those whose measured
+  relative pose differs from the true one by more than 0.3 m or 3 deg, and those as far off
+  whose two scans dispute the reference (matched again from it, they land on the closure:
+  a corrected log's own error; :func:`iceg.batch_run.check_loop_closures`), only where a
+  reference exists;
 - ``body m``: the range left out as the robot's own body (``features.robot_body_range_m``
   after :func:`iceg.pipeline.measure_scanner`, as ``iceg run`` measures it);
 - ``drops/k`` / ``drop gap``: the scanner's patches of lost returns on walls per 1000
@@ -94,9 +97,10 @@ from frontends.simulate import (
 from frontends.simulate.raycast import LaserModel
 from graph import FactorKind
 from iceg.batch_report import seed_table
-from iceg.batch_run import false_loop_closures
+from iceg.batch_run import check_loop_closures
 from iceg.config import IcegConfig, config_from_yaml
 from iceg.evaluation import position_errors, relation_errors
+from iceg.features import extract
 from iceg.odometry_timing import odometry_time_offset
 from iceg.pipeline import measure_scanner
 from iceg.results import SlamResult
@@ -281,10 +285,15 @@ def _odom_or_nan(scan: LaserScan) -> FloatArray:
 
 
 def _reference_metrics(
-    result: SlamResult, odom: FloatArray, online: FloatArray, ref: FloatArray
+    result: SlamResult,
+    scans: Sequence[LaserScan],
+    odom: FloatArray,
+    online: FloatArray,
+    ref: FloatArray,
 ) -> dict[str, Any]:
     nodes = result.node_scan_index
     ref_len = _path_length(ref[nodes])
+    closures = check_loop_closures(result, ref, lambda k: extract(scans[k], result.config.features))
     return {
         "online_max_m": float(np.hypot(*(online[:, :2] - ref[:, :2]).T).max()),
         "ate_m": position_errors(result.poses, ref).rmse_m,
@@ -292,7 +301,8 @@ def _reference_metrics(
         "odom_ate_m": position_errors(odom, ref).rmse_m if np.isfinite(odom).all() else math.nan,
         "odom_end_m": float(np.hypot(*(odom[-1, :2] - ref[-1, :2]))),
         "length_ratio": _path_length(result.node_poses) / ref_len if ref_len > 0 else math.nan,
-        "lc_false": false_loop_closures(result, ref),
+        "lc_false": closures.n_false,
+        "lc_disputed": closures.n_disputed,
     }
 
 
@@ -342,10 +352,10 @@ def run_case(
         A JSON-ready dict: ``name``, ``description``, ``scans``, ``nodes``, ``seconds``,
         ``lc_accepted``, ``sm_per_kf`` and, where a reference exists, ``ate_m`` (RMSE after
         SE(2) alignment), ``end_m``, ``online_max_m``, ``odom_ate_m``, ``odom_end_m``,
-        ``length_ratio``, ``lc_false``; with relations ``rel_trans_m``, ``rel_rot_deg``,
-        ``odom_rel_trans_m``, ``odom_rel_rot_deg``; with odometry ``odom_time_offset_s``
-        (the measured offset where significant, else None), ``odom_time_offset_best_s`` and
-        ``odom_time_offset_p``. A case whose input is absent returns
+        ``length_ratio``, ``lc_false``, ``lc_disputed``; with relations ``rel_trans_m``,
+        ``rel_rot_deg``, ``odom_rel_trans_m``, ``odom_rel_rot_deg``; with odometry
+        ``odom_time_offset_s`` (the measured offset where significant, else None),
+        ``odom_time_offset_best_s`` and ``odom_time_offset_p``. A case whose input is absent returns
         ``{"name", "skipped": reason}``.
 
     Raises:
@@ -392,7 +402,7 @@ def run_case(
         row["odom_time_offset_p"] = timing.p_value
         row["odom_time_offset_s"] = timing.offset_s if timing.significant else None
     if case.reference is not None:
-        row |= _reference_metrics(result, odom, online, case.reference[:n])
+        row |= _reference_metrics(result, scans, odom, online, case.reference[:n])
     if case.relations is not None:
         row |= _relation_metrics(result, odom, case.relations)
     if maps_dir is not None:
@@ -418,6 +428,7 @@ _COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("odom_time_offset_s", "odo dt s", "{:+.2f}"),
     ("lc_accepted", "LC acc", "{:d}"),
     ("lc_false", "LC false", "{:d}"),
+    ("lc_disputed", "LC disp", "{:d}"),
     ("body_m", "body m", "{:.2f}"),
     ("dropout_patches_per_1000", "drops/k", "{:.1f}"),
     ("dropout_gap_m", "drop gap", "{:.1f}"),

@@ -40,7 +40,7 @@ the same result). CPU times are the main process's.
 ``--check-closures`` (the CSAIL source) scores, after the timed run, every accepted loop
 closure against the relative pose of its two source scans in a single pass through the log
 (two copies of one scan are the same pose) and prints how many are off by more than 0.3 m or
-3 degrees (``iceg.batch_run.false_loop_closures``).
+3 degrees (``iceg.batch_run.check_loop_closures``).
 
 ``--no-reuse-nodes`` turns ``slam.reuse_nodes`` off (every keyframe a node, as before it):
 the back-and-forth log then adds a set of nodes and landmarks per pass.
@@ -242,14 +242,14 @@ def run_one(
 
 def _false_against_single_pass(result: SlamResult, source: Sequence, n: int) -> int:
     """Loop closures of a back-and-forth run off the single pass through ``source``."""
-    from iceg.batch_run import false_loop_closures
+    from iceg.batch_run import check_loop_closures
     from iceg.slam import Slam
 
     single = Slam()
     for scan in source:
         single.process(scan)
     index, _ = back_and_forth_plan(np.array([s.stamp_s for s in source]), n)
-    return false_loop_closures(result, single.finish().poses[index])
+    return check_loop_closures(result, single.finish().poses[index]).n_false
 
 
 def _grown(fig: dict) -> float:

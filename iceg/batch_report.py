@@ -30,6 +30,7 @@ METRIC_ORDER = (
     "match_failures",
     "lc_accepted",
     "lc_false",
+    "lc_disputed",
     "rel_trans_m",
     "rel_rot_deg",
     "rel_matched",

@@ -16,7 +16,7 @@ import shutil
 import time
 import traceback
 import warnings
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -30,11 +30,14 @@ from frontends.registry import adjust_scan
 from frontends.relations import Relations, match_stamps, read_relations
 from frontends.simulate import OdometryModel, simulate_scenario, synthetic_odometry
 from frontends.tum import read_tum
-from graph import FactorKind
+from graph import FactorKind, FactorRecord
 from iceg.config import IcegConfig, config_from_dict
 from iceg.consistency import FactorNees, factor_nees, per_node
 from iceg.evaluation import position_errors, relation_errors
+from iceg.features import extract
 from iceg.log_checks import check_returns, reading_adjustments, warn_sparse_stamps
+from iceg.matching.config import MatchBounds
+from iceg.matching.peers import make_matcher
 from iceg.odometry_calibration import systematic_errors
 from iceg.odometry_timing import odometry_time_offset, offset_to_read
 from iceg.pipeline import AUTO_OFFSET, check_log_file, measure_scanner, relation_nees
@@ -42,6 +45,7 @@ from iceg.results import SlamResult
 from iceg.scan_store import ScanStore
 from iceg.session import record_reading
 from iceg.slam import Slam
+from iceg.types import ScanFeatures
 from iceg_common import se2
 from iceg_common.atomic import atomic_write
 from iceg_common.errors import IcegError, LogFormatError
@@ -314,15 +318,16 @@ def run_metrics(result: SlamResult, data: _Input, online: FloatArray) -> dict[st
     factor), ``match_failures`` (failed local matches), ``lc_accepted``; with relations
     ``rel_trans_m``, ``rel_rot_deg``, ``rel_matched`` (Kümmerle et al. 2009); with a
     reference ``ate_m`` (RMSE after SE(2) alignment), ``end_m``, ``online_max_m``,
-    ``odom_ate_m`` and ``lc_false``; with odometry the time offset its matches show
+    ``odom_ate_m``, ``lc_false`` and ``lc_disputed`` (:func:`check_loop_closures`); with
+    odometry the time offset its matches show
     (:func:`~iceg.odometry_timing.odometry_time_offset`): ``odom_time_offset_s`` where
     significant (else NaN), the best fit ``odom_time_offset_best_s`` and its
     ``odom_time_offset_p``; ``robot_body_range_m``, the range left out as the robot's own
     body; ``sm_nees`` and ``odo_nees`` (:func:`_nees_medians`); the odometry's systematic
-    errors (:func:`_odometry_errors`); how the log's own checks had
-    it read (:func:`~iceg.log_checks.reading_adjustments`): ``beams_mirrored`` (1: mirrored,
-    else 0) and ``scans_without_odometry`` (all of them where its odometry is not the
-    robot's, those where it held while they moved, else 0)."""
+    errors (:func:`_odometry_errors`); how the log's own checks had it read
+    (:func:`~iceg.log_checks.reading_adjustments`): ``beams_mirrored`` (1: mirrored, else 0)
+    and ``scans_without_odometry`` (all of them where its odometry is not the robot's, those
+    where it held while they moved, else 0)."""
     n_nodes = int(result.node_ids.shape[0])
     matched = {f.j for f in result.factors if f.kind == FactorKind.SCAN_MATCH}
     out: dict[str, Any] = {
@@ -410,34 +415,106 @@ def _reference_metrics(result: SlamResult, data: _Input, online: FloatArray) -> 
         "ate_m": position_errors(result.poses[ok], ref[ok]).rmse_m,
         "end_m": float(np.hypot(*(result.poses[ok][-1, :2] - ref[ok][-1, :2]))),
         "online_max_m": float(np.hypot(*(online[ok, :2] - ref[ok, :2]).T).max()),
-        "lc_false": false_loop_closures(result, ref),
     }
+    closures = check_loop_closures(
+        result, ref, lambda k: extract(data.scans[k], result.config.features)
+    )
+    out |= {"lc_false": closures.n_false, "lc_disputed": closures.n_disputed}
     if np.all(np.isfinite(odom)):
         out["odom_ate_m"] = position_errors(odom[ok], ref[ok]).rmse_m
     return out
 
 
-def false_loop_closures(result: SlamResult, reference: FloatArray) -> int:
-    """Accepted loop closures whose measurement is off the reference relative pose of their
-    two scans by more than :data:`FALSE_LC_TRANS_M` or :data:`FALSE_LC_ROT_DEG`.
+@dataclass(frozen=True)
+class ClosureCheck:
+    """Accepted loop closures judged against a reference trajectory
+    (:func:`check_loop_closures`).
+
+    Attributes:
+        n_false: Closures off the reference relative pose of their two scans by more than
+            :data:`FALSE_LC_TRANS_M` or :data:`FALSE_LC_ROT_DEG` that the scans do not
+            dispute.
+        n_disputed: Closures as far off whose two scans dispute the reference: matched
+            again from the reference's relative pose, they land on the closure. A reference
+            made by another SLAM run (a "corrected" log) is wrong there, not the closure.
+    """
+
+    n_false: int
+    n_disputed: int
+
+
+def check_loop_closures(
+    result: SlamResult,
+    reference: FloatArray,
+    scan_features: Callable[[int], ScanFeatures] | None = None,
+) -> ClosureCheck:
+    """Judge the accepted loop closures against the reference relative pose of their two
+    scans. A closure off it by more than :data:`FALSE_LC_TRANS_M` or
+    :data:`FALSE_LC_ROT_DEG` is false, unless the scans dispute the reference: the run's
+    matcher, predicting the later scan at the reference's relative pose within the run's
+    local-match bounds (``slam.match_max_translation_m``, ``slam.match_max_rotation_deg``),
+    lands within those thresholds of the closure. A wrong closure is not disputed so: from
+    the true relative pose the scans match there, and a look-alike metres away is outside
+    the bounds. A corrected log's own error can be (csail-corrected's scan 399 lies about
+    10° off where its scan aligns with its neighbours'; docs/design.md, "Closures against a
+    corrected log").
 
     Args:
-        result: A finished run (its loop-closure factors and the scan of each node).
+        result: A finished run (its loop-closure factors, the scan of each node and, with
+            ``scan_features``, its ``config``).
         reference: ``(S, 3)`` float64 reference pose ``[x_m, y_m, theta_rad]`` of each of
             the run's scans, map frame; a closure with a non-finite end is not counted.
+        scan_features: The features of a scan by its index, extracted as the run extracted
+            them; ``None`` disputes nothing.
+
+    Returns:
+        A :class:`ClosureCheck`.
+
+    Raises:
+        ConfigError: the run's matching method's library is not installed.
     """
     scan_of = dict(zip(result.node_ids.tolist(), result.node_scan_index.tolist(), strict=True))
-    n_false = 0
+    n_false = n_disputed = 0
     for f in result.factors:
         if f.kind != FactorKind.LOOP_CLOSURE or f.j is None:
             continue
-        a, b = reference[scan_of[f.i]], reference[scan_of[f.j]]
+        si, sj = scan_of[f.i], scan_of[f.j]
+        a, b = reference[si], reference[sj]
         if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
             continue
-        err = se2.compose(se2.inverse(se2.between(a, b)), f.measured)
-        if (
-            math.hypot(err[0], err[1]) > FALSE_LC_TRANS_M
-            or abs(math.degrees(err[2])) > FALSE_LC_ROT_DEG
-        ):
+        truth = se2.between(a, b)
+        if _within_false_limits(truth, f.measured):
+            continue
+        if scan_features is not None and _scans_dispute(result, scan_features, si, sj, truth, f):
+            n_disputed += 1
+        else:
             n_false += 1
-    return n_false
+    return ClosureCheck(n_false, n_disputed)
+
+
+def _within_false_limits(pose: FloatArray, other: FloatArray) -> bool:
+    """Whether two relative poses differ by at most :data:`FALSE_LC_TRANS_M` and
+    :data:`FALSE_LC_ROT_DEG`."""
+    err = se2.between(pose, other)
+    return bool(
+        math.hypot(err[0], err[1]) <= FALSE_LC_TRANS_M
+        and abs(math.degrees(err[2])) <= FALSE_LC_ROT_DEG
+    )
+
+
+def _scans_dispute(
+    result: SlamResult,
+    scan_features: Callable[[int], ScanFeatures],
+    si: int,
+    sj: int,
+    truth: FloatArray,
+    closure: FactorRecord,
+) -> bool:
+    """Whether scan ``sj`` matched against scan ``si`` from the reference's relative pose
+    ``truth`` lands on the ``closure``'s measurement (:func:`check_loop_closures`)."""
+    slam = result.config.slam
+    bounds = MatchBounds.local(slam.match_max_translation_m, slam.match_max_rotation_deg)
+    match = make_matcher(result.config.matching).match(
+        scan_features(sj), scan_features(si), truth, bounds
+    )
+    return bool(match.success and _within_false_limits(match.pose, closure.measured))

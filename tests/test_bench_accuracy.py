@@ -45,7 +45,8 @@ def test_false_loop_closures_and_scan_match_fraction(bench: ModuleType) -> None:
     factors += [_factor(10 + k, FactorKind.SCAN_MATCH, k - 1, k, np.zeros(3)) for k in (1, 2, 4)]
     factors += [_factor(20, FactorKind.SCAN_MATCH, 1, 2, np.zeros(3))]
     result = SimpleNamespace(node_ids=nodes, node_scan_index=2 * nodes, factors=factors)
-    assert bench.false_loop_closures(result, ref) == 2
+    check = bench.check_loop_closures(result, ref)
+    assert (check.n_false, check.n_disputed) == (2, 0)
     assert bench._scan_match_fraction(result) == pytest.approx(3 / 5)
 
 

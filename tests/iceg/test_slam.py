@@ -27,7 +27,7 @@ from frontends.simulate import (
 )
 from graph import FactorKind
 from graph.pose_graph import STEP_UPDATE
-from iceg.batch_run import false_loop_closures
+from iceg.batch_run import check_loop_closures
 from iceg.config import IcegConfig, SlamConfig
 from iceg.evaluation import position_errors
 from iceg.features import FeatureConfig, extract
@@ -315,7 +315,7 @@ def test_people_walking_the_corridors_leave_the_closures_true_and_get_pruned() -
     truth = np.asarray(run.true_poses)
     errors = position_errors(res.poses, truth)
     assert errors.rmse_m <= 0.03
-    assert res.loop_closures.accepted >= 1 and false_loop_closures(res, truth) == 0
+    assert res.loop_closures.accepted >= 1 and check_loop_closures(res, truth).n_false == 0
     pruned = slam.feature_map.pruned
     node = {int(k): i for i, k in enumerate(res.node_ids)}
     anchors = res.node_poses[[node[int(a)] for a in pruned.anchor]]
@@ -344,7 +344,7 @@ def test_a_scanner_that_drops_beams_in_runs_needs_the_dropout_gap() -> None:
         errors.append(position_errors(res.poses, truth).rmse_m)
     assert errors[0] > 0.05  # the failure is reproduced
     assert errors[1] <= 0.02
-    assert res.loop_closures.accepted >= 1 and false_loop_closures(res, truth) == 0
+    assert res.loop_closures.accepted >= 1 and check_loop_closures(res, truth).n_false == 0
 
 
 def test_point_fallback_gives_feature_poor_outdoor_keyframes_a_factor() -> None:
