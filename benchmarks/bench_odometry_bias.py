@@ -10,13 +10,14 @@ what the bias costs from what the noise and the scan matcher cost. ``aces_strong
 ``csail_log_strong_drift``: 1 % scale error and 2 deg/m heading drift with the default noise
 (a stress case: docs/design.md "Walls of nodes the odometry placed").
 
-Per case and setting (``calib`` = :class:`iceg.odometry_calibration.OdometryCalibrator`
-enabled; ``off`` = disabled, the configuration's default): ATE (RMSE after SE(2) alignment)
+Per case and setting (``odometry_calibration.enabled``: ``auto`` = correcting while an error
+is beyond the odometry noise model, the configuration's default; ``calib`` = always; ``off`` =
+never): ATE (RMSE after SE(2) alignment)
 against the reference, mean relation error (CSAIL), the final calibration estimate and the
 wall time.
 
 Run: ``PYTHONPATH=. python benchmarks/bench_odometry_bias.py [--only CASE ...] [--setting
-calib|off ...] [--seed N] [--json PATH]``.
+off|auto|calib ...] [--seed N] [--json PATH]``.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -72,13 +73,18 @@ CASES: dict[str, Callable[[int], ba.CaseInput]] = {
 }
 
 
+#: ``odometry_calibration.enabled`` of each setting.
+SETTINGS: dict[str, bool | Literal["auto"]] = {"off": False, "auto": "auto", "calib": True}
+
+
 def run(name: str, setting: str, seed: int = 0) -> dict[str, Any]:
-    """Run case ``name`` with calibration ``setting`` (``calib`` or ``off``); return its row."""
+    """Run case ``name`` with calibration ``setting`` (a key of :data:`SETTINGS`); return its
+    row."""
     try:
         case = CASES[name](seed)
     except ba.CaseSkipped as exc:
         return {"name": name, "setting": setting, "skipped": str(exc)}
-    cal = OdometryCalibrationConfig(enabled=setting == "calib")
+    cal = OdometryCalibrationConfig(enabled=SETTINGS[setting])
     slam = Slam(IcegConfig(odometry_calibration=cal))
     t0 = time.perf_counter()
     for scan in case.scans:
@@ -93,6 +99,7 @@ def run(name: str, setting: str, seed: int = 0) -> dict[str, Any]:
         "gamma": c.turn_scale,
         "beta_deg_per_m": math.degrees(c.heading_drift_rad_per_m),
         "rejected": result.match_failures.get("inconsistent with odometry", 0),
+        "corrected": c.correcting,
     }
     odom = np.array([s.odom_pose for s in case.scans], dtype=np.float64)
     if case.reference is not None:
@@ -121,6 +128,7 @@ def _fmt(row: dict[str, Any]) -> str:
         ("gamma", "gamma {:.4f}"),
         ("beta_deg_per_m", "beta {:+.3f} deg/m"),
         ("rejected", "rej {:d}"),
+        ("corrected", "corrected {}"),
         ("seconds", "{:.1f} s"),
     ):
         if key in row:
@@ -131,13 +139,13 @@ def _fmt(row: dict[str, Any]) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
     ap.add_argument("--only", action="append", choices=sorted(CASES))
-    ap.add_argument("--setting", action="append", choices=("calib", "off"))
+    ap.add_argument("--setting", action="append", choices=tuple(SETTINGS))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     rows = []
     for name in args.only or list(CASES):
-        for setting in args.setting or ("off", "calib"):
+        for setting in args.setting or tuple(SETTINGS):
             rows.append(run(name, setting, args.seed))
             sys.stdout.write(_fmt(rows[-1]) + "\n")
             sys.stdout.flush()

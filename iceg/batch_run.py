@@ -374,15 +374,18 @@ def run_metrics(result: SlamResult, data: _Input, online: FloatArray) -> dict[st
 def _odometry_errors(result: SlamResult) -> dict[str, float]:
     """``odom_scale_error``, ``odom_turn_scale_error`` (fractions) and
     ``odom_heading_drift_deg_per_m``: the odometry's systematic errors as the run's matches
-    measure them (:func:`~iceg.odometry_calibration.systematic_errors`); none without a
-    matched keyframe step with odometry."""
+    measure them (:func:`~iceg.odometry_calibration.systematic_errors`), and
+    ``odom_corrected`` (1 where the run was correcting them at its end, else 0); none without
+    a matched keyframe step with odometry."""
     if result.slam is None or not result.slam.odometry_calibrator.n_observations:
         return {}
-    errors = systematic_errors(result.slam.odometry_calibrator, result.config.odometry_noise)
+    calibrator = result.slam.odometry_calibrator
+    errors = systematic_errors(calibrator, result.config.odometry_noise)
     return {
         "odom_scale_error": errors["distance_scale_error"].value,
         "odom_turn_scale_error": errors["turn_scale_error"].value,
         "odom_heading_drift_deg_per_m": errors["heading_drift_deg_per_m"].value,
+        "odom_corrected": int(calibrator.correcting),
     }
 
 

@@ -702,30 +702,31 @@ _SYSTEMATIC_ERRORS = {
 def _calibration_metrics(path: str | Path, result: SlamResult) -> dict[str, Any] | None:
     """The odometry's systematic errors as the run's matches measure them
     (:func:`~iceg.odometry_calibration.systematic_errors`: each one's ``value``, ``std``,
-    ``allowed`` and ``beyond_noise_model``), the matches used and whether the run corrected
-    them (``enabled``); warned, naming the setting, where one is beyond the odometry noise
+    ``allowed`` and ``beyond_noise_model``), the matches used, the setting (``enabled``:
+    true, false or "auto") and whether the run was correcting the odometry at its end
+    (``corrected``); warned, naming the setting, where one is beyond the odometry noise
     model and the run did not correct it. None without a Slam (nothing was matched)."""
     if result.slam is None:
         return None
     calibrator = result.slam.odometry_calibrator
     errors = systematic_errors(calibrator, result.config.odometry_noise)
-    enabled = result.config.odometry_calibration.enabled
     said = [
         f"{words} {value.format(e.value)} ± {std.format(e.std)} (its noise model allows "
         f"{allowed.format(e.allowed)})"
         for name, (words, value, std, allowed) in _SYSTEMATIC_ERRORS.items()
         if (e := errors[name]).beyond_noise_model
     ]
-    if said and not enabled:
+    if said and not calibrator.correcting:
         logger.warning(
             "%s: the scans' matches measure the odometry's %s: its factors are biased beyond "
             "their covariance, the same way at every step; to correct it during the run, set "
-            "odometry_calibration.enabled: true",
+            "odometry_calibration.enabled: auto (the default) or true",
             path,
             ", ".join(said),
         )
     return {
-        "enabled": enabled,
+        "enabled": result.config.odometry_calibration.enabled,
+        "corrected": calibrator.correcting,
         "observations": calibrator.n_observations,
         **{
             name: {**asdict(e), "beyond_noise_model": e.beyond_noise_model}

@@ -2,7 +2,8 @@
 
 Per scan (docs/design.md "Data flow of one scan"): ICE features; prediction from odometry (corrected
 by the online calibration of :mod:`iceg.odometry_calibration`, which every accepted local
-match updates, when enabled); keyframe decision; ICE match against the feature map of the
+match updates, while it corrects: by default where the odometry's errors are beyond its noise
+model); keyframe decision; ICE match against the feature map of the
 recent nodes; odometry and scan-match factors (covariance from the match); iSAM2 update;
 feature-map update with time-validity pruning; and, every few nodes, a loop-closure search
 among older nodes near the current estimate and, by appearance, among all older places
@@ -341,7 +342,9 @@ class Slam:
         self.loop_closer = LoopCloser(
             self.config.loop_closure, self.matcher, self._feature_map, self.config.odometry_noise
         )
-        self.odometry_calibrator = OdometryCalibrator(self.config.odometry_calibration)
+        self.odometry_calibrator = OdometryCalibrator(
+            self.config.odometry_calibration, self.config.odometry_noise
+        )
         self.timer = StageTimer()
         self._s = SlamState()
         self._result: SlamResult | None = None
@@ -652,7 +655,7 @@ class Slam:
         raw = se2.between(anchor.odom, odom)
         raw_cov = odometry_covariance(raw, self.config.odometry_noise)
         delta, cov = raw, raw_cov
-        if self.config.odometry_calibration.enabled:
+        if self.odometry_calibrator.correcting:
             delta, cov = self.odometry_calibrator.correct(raw, raw_cov)
         is_keyframe = bool(
             np.hypot(delta[0], delta[1]) >= cfg.keyframe_distance_m
@@ -846,7 +849,7 @@ class Slam:
         raw = se2.between(s.node_odom[last], odom)
         raw_cov = odometry_covariance(raw, self.config.odometry_noise)
         delta, cov = raw, raw_cov
-        if self.config.odometry_calibration.enabled:
+        if self.odometry_calibrator.correcting:
             delta, cov = self.odometry_calibrator.correct(raw, raw_cov)
         dt = scan.stamp_s - s.scans.stamp_s(s.node_scan_index[last])
         is_keyframe = bool(

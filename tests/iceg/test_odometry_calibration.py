@@ -9,8 +9,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from frontends import open_log
 from frontends.carmen import write_carmen
-from frontends.simulate import OdometryModel, default_trajectory, simulate, simulate_scenario
+from frontends.simulate import (
+    OdometryModel,
+    default_trajectory,
+    simulate,
+    simulate_scenario,
+    synthetic_odometry,
+)
 from graph import FactorKind, odometry_covariance
 from iceg.config import IcegConfig
 from iceg.evaluation import position_errors
@@ -23,6 +30,7 @@ from iceg.odometry_calibration import (
 from iceg.pipeline import run_log
 from iceg.slam import Slam
 from iceg_common import se2
+from tests.conftest import shared_file
 
 #: The office_biased scenario's odometry: 1.5 % scale error, 0.4 deg/m heading drift.
 SCALE_ERROR = 0.015
@@ -212,12 +220,49 @@ def test_systematic_errors_against_the_noise_model_by_hand(
     assert [name for name, e in errors.items() if e.beyond_noise_model] == beyond
 
 
-def test_a_run_names_an_odometry_drift_beyond_its_noise_model(
+@pytest.mark.parametrize(
+    ("enabled", "drift_deg_per_m", "correcting_after"),
+    [
+        ("auto", 2.0, [False, False, True]),  # beyond the model once the matches show it
+        ("auto", 0.3, [False, False, False]),  # within the model: the raw odometry
+        (True, 0.3, [True, True, True]),
+        (False, 2.0, [False, False, False]),
+    ],
+)
+def test_auto_corrects_while_an_error_is_beyond_the_noise_model(
+    enabled: bool | str, drift_deg_per_m: float, correcting_after: list[bool]
+) -> None:
+    # Exact matches of the true steps, the odometry's heading drifting per metre (1 %
+    # scale): after no match, 5 and 300. With "auto" the calibrator corrects once the
+    # drift's estimate exceeds the 0.5 deg/m the default noise model allows by three
+    # standard deviations: not after 5 steps of 0.05-0.6 m (the prior's 2 deg/m still
+    # dominates), after 300; a drift of 0.3 deg/m never. A restored state gives the same
+    # answer.
+    rng = np.random.default_rng(7)
+    true = _steps(rng, 300)
+    signed = np.array([signed_distance(u) for u in true])
+    odo = true * np.array([1.01, 1.01, 1.0])
+    odo[:, 2] += math.radians(drift_deg_per_m) * 1.01 * signed
+    config = OdometryCalibrationConfig(enabled=enabled)  # type: ignore[arg-type]
+    cal = OdometryCalibrator(config)
+    seen = [cal.correcting]
+    for k, (u_true, u_odo) in enumerate(zip(true, odo, strict=True), start=1):
+        cal.observe(u_odo, odometry_covariance(u_odo), u_true, MATCH_COV)
+        if k in (5, 300):
+            seen.append(cal.correcting)
+    assert seen == correcting_after
+    restored = OdometryCalibrator(config)
+    restored.restore_state(cal.export_state())
+    assert restored.correcting == cal.correcting
+
+
+def test_a_run_corrects_an_odometry_drift_beyond_its_noise_model(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     # The office loop with its heading drifting 2 deg/m (four times what the noise model
-    # allows): the run measures it, warns with the setting, and reports it; the office as
-    # simulated (0.4 deg/m) warns of nothing, nor does the run that corrects the drift.
+    # allows): by default the run measures it, corrects it and reports both; told never to
+    # correct, it warns with the setting. The office as simulated (0.4 deg/m) is within the
+    # model: not corrected, no warning.
     office = simulate_scenario("office_biased", seed=0)
     drifting = OdometryModel.biased(scale_error=0.01, heading_drift_deg_per_m=2.0)
     route = default_trajectory(office.world)
@@ -225,19 +270,43 @@ def test_a_run_names_an_odometry_drift_beyond_its_noise_model(
     logs = {name: tmp_path / f"{name}.clf" for name in runs}
     for name, run in runs.items():
         write_carmen(logs[name], run.scans[:400])
+    never = IcegConfig(odometry_calibration=OdometryCalibrationConfig(enabled=False))
     with caplog.at_level(logging.WARNING, logger="iceg.pipeline"):
-        result = run_log(logs["drift"])
-    drift = result.metrics["odometry_calibration"]["heading_drift_deg_per_m"]
+        uncorrected = run_log(logs["drift"], never)
+    report = uncorrected.metrics["odometry_calibration"]
+    drift = report["heading_drift_deg_per_m"]
     assert drift["value"] == pytest.approx(2.0, abs=0.2) and drift["beyond_noise_model"]
+    assert not report["corrected"]
     assert "the scans' matches measure the odometry's heading drift +" in caplog.text
-    assert "set odometry_calibration.enabled: true" in caplog.text
+    assert "set odometry_calibration.enabled: auto (the default) or true" in caplog.text
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="iceg.pipeline"):
         biased = run_log(logs["biased"])
-        calibrated = run_log(
-            logs["drift"], IcegConfig(odometry_calibration=OdometryCalibrationConfig(enabled=True))
-        )
+        corrected = run_log(logs["drift"])
     assert "odometry_calibration" not in caplog.text
-    found = biased.metrics["odometry_calibration"]["heading_drift_deg_per_m"]
-    assert found["value"] == pytest.approx(0.4, abs=0.2) and not found["beyond_noise_model"]
-    assert calibrated.metrics["odometry_calibration"]["enabled"]
+    found = biased.metrics["odometry_calibration"]
+    assert found["heading_drift_deg_per_m"]["value"] == pytest.approx(0.4, abs=0.2)
+    assert not found["heading_drift_deg_per_m"]["beyond_noise_model"] and not found["corrected"]
+    assert corrected.metrics["odometry_calibration"]["corrected"]
+    assert corrected.metrics["odometry_calibration"]["enabled"] == "auto"
+
+
+def test_aces_with_a_strong_heading_drift_keeps_its_chain() -> None:
+    # ACES's corrected poses as the truth, synthetic odometry with 1 % scale error and a
+    # 2 deg/m heading drift (the default noise, seed 0). Never corrected, the chain breaks
+    # in a cascade of failed matches (docs/design.md, "Walls of nodes the odometry placed":
+    # 4.38 m ATE); by default the run corrects the drift once its matches show it beyond
+    # the noise model, 19-37 keyframes in, and ends 0.20 m off.
+    scans = list(open_log(shared_file("aces/aces-corrected.log.gz")))
+    model = OdometryModel.biased(scale_error=0.01, heading_drift_deg_per_m=2.0)
+    synth = synthetic_odometry(scans, model, seed=0)
+    truth = np.array(synth.reference_poses)
+    ate = {}
+    for enabled in (False, "auto"):
+        config = IcegConfig(odometry_calibration=OdometryCalibrationConfig(enabled=enabled))
+        slam = Slam(config)
+        for scan in synth.scans:
+            slam.process(scan)
+        ate[enabled] = position_errors(slam.finish().poses, truth).rmse_m
+    assert ate[False] > 1.0  # the failure is reproduced
+    assert ate["auto"] < 0.3
