@@ -178,6 +178,12 @@ def _summary_rows(result: SlamResult, out: Path, wall_s: float) -> list[tuple[st
             )
         )
     rows += _time_offset_rows(result.metrics.get("odometry_time_offset"))
+    calibration = result.metrics.get("odometry_calibration")
+    if calibration is not None and calibration["corrected"]:
+        from iceg.pipeline import beyond_noise_model_phrases
+
+        said = ", ".join(beyond_noise_model_phrases(calibration))
+        rows.append(("odometry corrected", said or "always (odometry_calibration.enabled: true)"))
     rows.append(("output", str(out)))
     return rows
 

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 from pathlib import Path
 
 import numpy as np
 import pytest
+from typer.testing import CliRunner
 
 from frontends import open_log
 from frontends.carmen import write_carmen
@@ -19,6 +21,7 @@ from frontends.simulate import (
     synthetic_odometry,
 )
 from graph import FactorKind, odometry_covariance
+from iceg.cli import app
 from iceg.config import IcegConfig
 from iceg.evaluation import position_errors
 from iceg.odometry_calibration import (
@@ -260,8 +263,8 @@ def test_a_run_corrects_an_odometry_drift_beyond_its_noise_model(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     # The office loop with its heading drifting 2 deg/m (four times what the noise model
-    # allows): by default the run measures it, corrects it and reports both; told never to
-    # correct, it warns with the setting. The office as simulated (0.4 deg/m) is within the
+    # allows): by default the run measures it, corrects it and reports both (metrics.json,
+    # and a line of iceg run's summary); told never to correct, it warns with the setting. The office as simulated (0.4 deg/m) is within the
     # model: not corrected, no warning.
     office = simulate_scenario("office_biased", seed=0)
     drifting = OdometryModel.biased(scale_error=0.01, heading_drift_deg_per_m=2.0)
@@ -282,13 +285,17 @@ def test_a_run_corrects_an_odometry_drift_beyond_its_noise_model(
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="iceg.pipeline"):
         biased = run_log(logs["biased"])
-        corrected = run_log(logs["drift"])
+        out = tmp_path / "corrected"
+        args = ["run", str(logs["drift"]), "--out", str(out), "--no-progress"]
+        cli = CliRunner().invoke(app, args)
+    assert cli.exit_code == 0, cli.output
     assert "odometry_calibration" not in caplog.text
     found = biased.metrics["odometry_calibration"]
     assert found["heading_drift_deg_per_m"]["value"] == pytest.approx(0.4, abs=0.2)
     assert not found["heading_drift_deg_per_m"]["beyond_noise_model"] and not found["corrected"]
-    assert corrected.metrics["odometry_calibration"]["corrected"]
-    assert corrected.metrics["odometry_calibration"]["enabled"] == "auto"
+    corrected = json.loads((out / "metrics.json").read_text())["odometry_calibration"]
+    assert corrected["corrected"] and corrected["enabled"] == "auto"
+    assert "odometry corrected  heading drift +" in cli.output
 
 
 def test_aces_with_a_strong_heading_drift_keeps_its_chain() -> None:
