@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from frontends import LaserScan
-from frontends.simulate import office_world, simulate
+from frontends.simulate import OdometryModel, office_world, simulate
 from graph import GraphConfig, PoseGraph
 from graph.pose_graph import STEP_BATCH_CORRECTION
 from iceg import session
@@ -85,6 +85,34 @@ def test_split_run_with_odometry_calibration_is_bit_identical(office_scans, tmp_
     second = session.load(tmp_path / "s")
     assert second.odometry_calibrator.n_observations > 0
     for scan in office_scans[120:]:
+        second.process(scan)
+    assert np.array_equal(second.finish().poses, w.poses)
+
+
+def test_a_session_saved_while_auto_corrects_continues_bit_for_bit(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    # The office with its heading drifting 2 deg/m: by default (odometry_calibration
+    # "auto") the run starts correcting once its matches show the drift beyond the noise
+    # model. Saved after that, the loaded session corrects from its first scan on, as the
+    # whole run does.
+    drifting = OdometryModel.biased(scale_error=0.01, heading_drift_deg_per_m=2.0)
+    scans = simulate(office_world(), seed=1, odometry=drifting).scans[:N_SCANS]
+    whole = Slam()
+    for scan in scans:
+        whole.process(scan)
+    w = whole.finish()
+    first = Slam()
+    k = 0
+    while not first.odometry_calibrator.correcting:
+        first.process(scans[k])
+        k += 1
+    assert k < N_SCANS - 20
+    for scan in scans[k : k + 10]:
+        first.process(scan)
+    first.finish()
+    session.save(first, tmp_path / "s")
+    second = session.load(tmp_path / "s")
+    assert second.odometry_calibrator.correcting
+    for scan in scans[k + 10 :]:
         second.process(scan)
     assert np.array_equal(second.finish().poses, w.poses)
 
