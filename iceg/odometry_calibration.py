@@ -281,6 +281,25 @@ class OdometryCalibrator:
         var_k = float(self._scale.cov[0, 0]) * max(self._s2_t.value, 1.0)
         return var_k, self._heading.cov * max(self._s2_r.value, 1.0)
 
+    def estimates_and_variances(self) -> tuple[float, float, float, float, float, float]:
+        """``kappa``, ``gamma``, ``beta`` (rad/m) and their variances as
+        :meth:`parameter_covariance` scales them, in floats (the inverses written out: the
+        "auto" setting asks after every match, and numpy's 2 x 2 inverse costs most of a
+        call there)."""
+        (i_k,), (v_k,) = self._scale.info[0].tolist(), self._scale.vec.tolist()
+        (a, b), (c, d) = self._heading.info.tolist()
+        v0, v1 = self._heading.vec.tolist()
+        det = a * d - b * c
+        s2_t, s2_r = (max(v, 1.0) for v in self.variance_factors())
+        return (
+            v_k / i_k,
+            (d * v0 - b * v1) / det,
+            (a * v1 - c * v0) / det,
+            s2_t / i_k,
+            s2_r * d / det,
+            s2_r * a / det,
+        )
+
     # ------------------------------------------------------------------ state (sessions)
 
     def export_state(self) -> np.ndarray:
@@ -429,20 +448,19 @@ def systematic_errors(
         ``heading_drift_deg_per_m`` (``beta``), their standard deviations to first order.
         Raises nothing.
     """
-    var_k, cov_gb = calibrator.parameter_covariance()
-    kappa, gamma = calibrator.scale, calibrator.turn_scale
+    kappa, gamma, beta, var_k, var_g, var_b = calibrator.estimates_and_variances()
     return {
         "distance_scale_error": SystematicError(
             1.0 / kappa - 1.0, math.sqrt(var_k) / kappa**2, noise.sigma_xy_per_distance_m_per_m
         ),
         "turn_scale_error": SystematicError(
             1.0 / gamma - 1.0,
-            math.sqrt(float(cov_gb[0, 0])) / gamma**2,
+            math.sqrt(var_g) / gamma**2,
             noise.sigma_theta_per_rotation_deg_per_deg,
         ),
         "heading_drift_deg_per_m": SystematicError(
-            math.degrees(calibrator.heading_drift_rad_per_m),
-            math.degrees(math.sqrt(float(cov_gb[1, 1]))),
+            math.degrees(beta),
+            math.degrees(math.sqrt(var_b)),
             noise.sigma_theta_per_distance_deg_per_m,
         ),
     }
