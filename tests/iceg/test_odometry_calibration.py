@@ -264,8 +264,8 @@ def test_a_run_corrects_an_odometry_drift_beyond_its_noise_model(
 ) -> None:
     # The office loop with its heading drifting 2 deg/m (four times what the noise model
     # allows): by default the run measures it, corrects it and reports both (metrics.json,
-    # and a line of iceg run's summary); told never to correct, it warns with the setting. The office as simulated (0.4 deg/m) is within the
-    # model: not corrected, no warning.
+    # and a line of iceg run's summary); told never to correct, it warns with the setting.
+    # The office as simulated (0.4 deg/m) is within the model: not corrected, no warning.
     office = simulate_scenario("office_biased", seed=0)
     drifting = OdometryModel.biased(scale_error=0.01, heading_drift_deg_per_m=2.0)
     route = default_trajectory(office.world)
