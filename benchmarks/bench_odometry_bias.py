@@ -12,9 +12,8 @@ what the bias costs from what the noise and the scan matcher cost. ``aces_strong
 
 Per case and setting (``odometry_calibration.enabled``: ``auto`` = correcting while an error
 is beyond the odometry noise model, the configuration's default; ``calib`` = always; ``off`` =
-never): ATE (RMSE after SE(2) alignment)
-against the reference, mean relation error (CSAIL), the final calibration estimate and the
-wall time.
+never): ATE (RMSE after SE(2) alignment) against the reference, mean relation error (CSAIL),
+the final calibration estimate, whether the run was correcting at its end, and the wall time.
 
 Run: ``PYTHONPATH=. python benchmarks/bench_odometry_bias.py [--only CASE ...] [--setting
 off|auto|calib ...] [--seed N] [--json PATH]``.
