@@ -37,11 +37,18 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidatorFunctionWrapHandler,
+    field_validator,
+)
 
 from graph import OdometryNoiseConfig
 
@@ -107,6 +114,15 @@ class OdometryCalibrationConfig(BaseModel):
         description="Huber threshold on the normalised innovation (1.345: 95 % efficiency "
         "under Gaussian noise; Huber 1964).",
     )
+
+    @field_validator("enabled", mode="wrap")
+    @classmethod
+    def _true_false_or_auto(cls, value: Any, handler: ValidatorFunctionWrapHandler) -> Any:
+        """One message for the three choices (pydantic gives one per member of the union)."""
+        try:
+            return handler(value)
+        except ValidationError:
+            raise ValueError(f"must be true, false or 'auto', not {value!r}") from None
 
     @property
     def prior_heading_drift_sigma_rad_per_m(self) -> float:

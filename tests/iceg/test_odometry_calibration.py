@@ -22,7 +22,7 @@ from frontends.simulate import (
 )
 from graph import FactorKind, odometry_covariance
 from iceg.cli import app
-from iceg.config import IcegConfig
+from iceg.config import IcegConfig, config_from_dict
 from iceg.evaluation import position_errors
 from iceg.odometry_calibration import (
     OdometryCalibrationConfig,
@@ -33,6 +33,7 @@ from iceg.odometry_calibration import (
 from iceg.pipeline import run_log
 from iceg.slam import Slam
 from iceg_common import se2
+from iceg_common.errors import ConfigError
 from tests.conftest import shared_file
 
 #: The office_biased scenario's odometry: 1.5 % scale error, 0.4 deg/m heading drift.
@@ -257,6 +258,17 @@ def test_auto_corrects_while_an_error_is_beyond_the_noise_model(
     restored = OdometryCalibrator(config)
     restored.restore_state(cal.export_state())
     assert restored.correcting == cal.correcting
+
+
+def test_a_wrong_setting_names_its_three_choices() -> None:
+    with pytest.raises(ConfigError, match=r"enabled': .*true, false or 'auto', not 'sometimes'"):
+        config_from_dict({"odometry_calibration": {"enabled": "sometimes"}})
+    assert (
+        config_from_dict(
+            {"odometry_calibration": {"enabled": "false"}}
+        ).odometry_calibration.enabled
+        is False
+    )
 
 
 def test_a_run_corrects_an_odometry_drift_beyond_its_noise_model(
