@@ -263,12 +263,8 @@ def test_auto_corrects_while_an_error_is_beyond_the_noise_model(
 def test_a_wrong_setting_names_its_three_choices() -> None:
     with pytest.raises(ConfigError, match=r"enabled': .*true, false or 'auto', not 'sometimes'"):
         config_from_dict({"odometry_calibration": {"enabled": "sometimes"}})
-    assert (
-        config_from_dict(
-            {"odometry_calibration": {"enabled": "false"}}
-        ).odometry_calibration.enabled
-        is False
-    )
+    config = config_from_dict({"odometry_calibration": {"enabled": "false"}})
+    assert config.odometry_calibration.enabled is False
 
 
 def test_a_run_corrects_an_odometry_drift_beyond_its_noise_model(
