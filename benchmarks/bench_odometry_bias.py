@@ -43,9 +43,6 @@ from iceg.odometry_calibration import OdometryCalibrationConfig
 from iceg.slam import Slam
 
 BIAS_ONLY = OdometryModel.biased(scale_error=0.01, heading_drift_deg_per_m=0.4, noise=False)
-#: Five times the usual heading drift (docs/design.md "Walls of nodes the odometry placed":
-#: ACES breaks down in a cascade of unmatched keyframes on two seeds of three).
-STRONG_DRIFT = OdometryModel.biased(scale_error=0.01, heading_drift_deg_per_m=2.0)
 
 
 def _with_odometry(relative: str, model: OdometryModel, what: str) -> Callable[[int], ba.CaseInput]:
@@ -63,12 +60,20 @@ def _with_odometry(relative: str, model: OdometryModel, what: str) -> Callable[[
 ACES, CSAIL_LOG = "aces/aces-corrected.log.gz", "mit-csail/csail.log"
 CASES: dict[str, Callable[[int], ba.CaseInput]] = {
     name: ba.CASES[name]
-    for name in ("office_biased", "aces_synth", "csail_log_synth", "csail_raw", "csail_raw_drift")
+    for name in (
+        "office_biased",
+        "aces_synth",
+        "csail_log_synth",
+        "csail_raw",
+        "csail_raw_drift",
+        "aces_strong_drift",
+    )
 } | {
     "aces_bias_only": _with_odometry(ACES, BIAS_ONLY, "bias only"),
     "csail_log_bias_only": _with_odometry(CSAIL_LOG, BIAS_ONLY, "bias only"),
-    "aces_strong_drift": _with_odometry(ACES, STRONG_DRIFT, "1 %, 2 deg/m, noise"),
-    "csail_log_strong_drift": _with_odometry(CSAIL_LOG, STRONG_DRIFT, "1 %, 2 deg/m, noise"),
+    "csail_log_strong_drift": _with_odometry(
+        CSAIL_LOG, ba.SYNTH_STRONG_DRIFT, "1 %, 2 deg/m, noise"
+    ),
 }
 
 
