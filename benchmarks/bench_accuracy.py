@@ -218,7 +218,8 @@ def _corrected(
         desc = (
             f"{Path(relative).name} + synthetic odometry "
             f"({100 * model.translation_scale_bias:.0f} %, "
-            f"{math.degrees(model.rotation_bias_rad_per_m):.1f} deg/m, noise)"
+            f"{math.degrees(model.rotation_bias_rad_per_m):.1f} deg/m, "
+            f"{'noise' if model.translation_sigma_per_m > 0 else 'no noise'})"
         )
         return CaseInput(synth.scans, np.array(synth.reference_poses), None, desc)
 

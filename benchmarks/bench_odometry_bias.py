@@ -36,25 +36,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import bench_accuracy as ba
 
-from frontends.simulate import OdometryModel, synthetic_odometry
+from frontends.simulate import OdometryModel
 from iceg.config import IcegConfig
 from iceg.evaluation import position_errors, relation_errors
 from iceg.odometry_calibration import OdometryCalibrationConfig
 from iceg.slam import Slam
 
 BIAS_ONLY = OdometryModel.biased(scale_error=0.01, heading_drift_deg_per_m=0.4, noise=False)
-
-
-def _with_odometry(relative: str, model: OdometryModel, what: str) -> Callable[[int], ba.CaseInput]:
-    """A corrected log with synthetic odometry of ``model`` (described as ``what``)."""
-
-    def build(seed: int) -> ba.CaseInput:
-        scans = list(ba.open_log(ba._shared(relative)))
-        synth = synthetic_odometry(scans, model, seed)
-        ref = np.array(synth.reference_poses)
-        return ba.CaseInput(synth.scans, ref, None, f"{relative} + {what}")
-
-    return build
 
 
 ACES, CSAIL_LOG = "aces/aces-corrected.log.gz", "mit-csail/csail.log"
@@ -69,11 +57,9 @@ CASES: dict[str, Callable[[int], ba.CaseInput]] = {
         "aces_strong_drift",
     )
 } | {
-    "aces_bias_only": _with_odometry(ACES, BIAS_ONLY, "bias only"),
-    "csail_log_bias_only": _with_odometry(CSAIL_LOG, BIAS_ONLY, "bias only"),
-    "csail_log_strong_drift": _with_odometry(
-        CSAIL_LOG, ba.SYNTH_STRONG_DRIFT, "1 %, 2 deg/m, noise"
-    ),
+    "aces_bias_only": ba._corrected(ACES, None, BIAS_ONLY),
+    "csail_log_bias_only": ba._corrected(CSAIL_LOG, None, BIAS_ONLY),
+    "csail_log_strong_drift": ba._corrected(CSAIL_LOG, None, ba.SYNTH_STRONG_DRIFT),
 }
 
 
