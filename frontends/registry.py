@@ -235,18 +235,7 @@ def _choose(p: Path, format: str | None) -> ReaderSpec:
             raise LogFormatError(f"{p}: no such log file")
         return _READERS[format]
     if p.is_dir():
-        for spec in _READERS.values():
-            if spec.sniff_dir is not None and spec.sniff_dir(p):
-                return spec
-        logs = sorted(
-            f.name
-            for f in p.iterdir()
-            if f.is_file() and any(f.name.lower().endswith(x) for x in _claimed_suffixes())
-        )
-        inside = f"; it holds {', '.join(logs[:5])}: pass the log file itself" if logs else ""
-        raise LogFormatError(
-            f"{p}: a folder no reader recognises (a ROS 2 bag folder holds metadata.yaml){inside}"
-        )
+        return folder_reader(p)
     if not p.is_file():
         raise LogFormatError(f"{p}: no such log file")
     suffixes = [s.lower() for s in p.suffixes if s.lower() != ".gz"]
@@ -263,6 +252,32 @@ def _choose(p: Path, format: str | None) -> ReaderSpec:
         f"{p}: not a recognised laser log (suffix {suffix!r}, and no reader recognised the "
         f"first lines); if it is one, give it a reader's suffix ({', '.join(own)}) or open it "
         f"with format= one of {', '.join(available_formats())}"
+    )
+
+
+def folder_reader(path: Path) -> ReaderSpec:
+    """The reader that claims the folder ``path`` (a ROS 2 bag folder, which holds
+    ``metadata.yaml``).
+
+    Raises:
+        LogFormatError: no reader claims it; the message names the log files the folder
+            holds (a ROS 1 ``.bag``, a CARMEN ``.clf``), the first five, to pass instead.
+    """
+    # Importing the built-in readers registers them.
+    import frontends.carmen
+    import frontends.rosbag  # noqa: F401
+
+    for spec in _READERS.values():
+        if spec.sniff_dir is not None and spec.sniff_dir(path):
+            return spec
+    logs = sorted(
+        f.name
+        for f in path.iterdir()
+        if f.is_file() and any(f.name.lower().endswith(x) for x in _claimed_suffixes())
+    )
+    inside = f"; it holds {', '.join(logs[:5])}: pass the log file itself" if logs else ""
+    raise LogFormatError(
+        f"{path}: a folder no reader recognises (a ROS 2 bag folder holds metadata.yaml){inside}"
     )
 
 

@@ -18,7 +18,7 @@ import numpy as np
 
 from frontends import LaserScan, open_log
 from frontends.odometry_shift import shift_odometry
-from frontends.registry import adjust_scan
+from frontends.registry import adjust_scan, folder_reader
 from frontends.relations import Relations, match_stamps, read_relations
 from frontends.scan import StampPolicy, StampReport
 from iceg.aside import Superseded, compute_aside, while_caller_runs
@@ -781,18 +781,18 @@ def _body_settings(config: IcegConfig) -> str:
 def check_log_file(path: Path) -> None:
     """Fail early, with one clear line, when ``path`` cannot be a readable log file.
 
-    A folder is accepted only when it is a ROS 2 bag (it holds ``metadata.yaml``).
+    A folder is accepted only when a reader claims it (a ROS 2 bag folder, which holds
+    ``metadata.yaml``): :func:`frontends.registry.folder_reader`.
 
     Raises:
-        LogFormatError: ``path`` is missing, a folder that is not a bag, not a regular file
-            (a FIFO, a device), or not readable.
+        LogFormatError: ``path`` is missing, a folder no reader claims (the message names
+            the log files it holds), not a regular file (a FIFO, a device), or not readable.
     """
     if not path.exists():
         raise LogFormatError(f"{path}: no such log file")
     if path.is_dir():
-        if (path / "metadata.yaml").is_file():
-            return
-        raise LogFormatError(f"{path}: is a folder, not a log file (nor a ROS 2 bag folder)")
+        folder_reader(path)
+        return
     if not stat.S_ISREG(path.stat().st_mode):
         raise LogFormatError(f"{path}: not a regular file (a FIFO or a device?); pass a log file")
     if not os.access(path, os.R_OK):

@@ -257,7 +257,12 @@ def test_log_that_is_a_folder_or_fifo(tmp_path: Path) -> None:
 
     folder = tmp_path / "dir.clf"
     folder.mkdir()
-    _assert_one_line_error(["run", str(folder)], tmp_path / "o", "is a folder, not a log file")
+    _assert_one_line_error(["run", str(folder)], tmp_path / "o", "a folder no reader recognises")
+    # a folder that holds a log (as a downloaded ROS 1 bag's does): the message names it
+    (folder / "run1.bag").write_bytes(b"#ROSBAG V2.0\n")
+    _assert_one_line_error(
+        ["run", str(folder)], tmp_path / "o", "it holds run1.bag: pass the log file itself"
+    )
     fifo = tmp_path / "fifo.clf"
     os.mkfifo(fifo)
     _assert_one_line_error(["run", str(fifo)], tmp_path / "o", "not a regular file")
