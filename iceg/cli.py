@@ -39,6 +39,8 @@ app = typer.Typer(
     add_completion=False,
     no_args_is_help=False,
     pretty_exceptions_enable=False,
+    # a docstring's single line breaks are reflowed, not kept, in --help
+    rich_markup_mode="markdown",
 )
 
 F = TypeVar("F", bound=Callable[..., Any])
@@ -482,8 +484,9 @@ def eval_(
     relations: RelationsArgument,
     tolerance_s: ToleranceOption = 1e-3,
 ) -> None:
-    """Score a TUM trajectory with benchmark relations (mean/std translational and
-    rotational error)."""
+    """Score a TUM trajectory with benchmark relations.
+
+    Prints the mean and standard deviation of the translational and rotational errors."""
     from frontends.relations import read_relations
     from frontends.tum import read_tum
     from iceg.evaluation import relation_errors
@@ -503,8 +506,9 @@ def nees_(
     relations: RelationsArgument,
     tolerance_s: ToleranceOption = 1e-3,
 ) -> None:
-    """NEES of a saved run's factors against benchmark relations, per factor kind: whether
-    their covariances are honest (mean 3 and 5 % beyond the 95 % bound if they are)."""
+    """Whether a saved run's covariances are honest: its factors' NEES against relations.
+
+    Per factor kind: mean 3 and 5 % beyond the 95 % bound if they are honest."""
     from frontends.relations import read_relations
     from iceg import session
     from iceg.consistency import relation_factor_nees
@@ -551,9 +555,11 @@ def info(
     ] = None,
     lenient: SkipMalformedOption = False,
 ) -> None:
-    """Print what a log holds: topics or record types, counts, duration, beams, range
-    limits, returns, odometry source, the interval between its scans, whether its walls turn
-    and move with its odometry, and where its odometry holds while the scans move."""
+    """Print what a log holds, and what in it a run would have to correct.
+
+    Topics or record types, counts, duration, beams, range limits, returns, odometry source,
+    the interval between its scans, whether its walls turn and move with its odometry, and
+    where its odometry holds while the scans move."""
     from frontends.registry import describe_log, open_log
     from iceg.config import IcegConfig
     from iceg.log_checks import describe_odometry_checks, describe_stamps
@@ -639,8 +645,10 @@ def batch(
         bool, typer.Option(help="Run failed and timed-out runs again.")
     ] = False,
 ) -> None:
-    """Run many logs x configs x seeds (Ray, or --local) into one table: summary.csv,
-    timings.csv, summary.md and variants.png. Finished runs are kept (resumable)."""
+    """Run many logs x configs x seeds (Ray, or --local) into one table.
+
+    Writes summary.csv, timings.csv, summary.md and variants.png. Finished runs are kept
+    (resumable)."""
     from iceg.batch import load_spec, run_batch
 
     s = load_spec(spec)
@@ -752,8 +760,10 @@ def localize(
     laser_only: LaserOnlyOption = False,
     lenient: SkipMalformedOption = False,
 ) -> None:
-    """Localize a log in a saved map (nothing is added to it): trajectory with per-pose
-    covariance (localization.csv), trajectory.tum and a map.png overlay."""
+    """Localize a log in a saved map (nothing is added to it).
+
+    Writes the trajectory with per-pose covariance (localization.csv), trajectory.tum and a
+    map.png overlay."""
     import numpy as np
 
     from iceg import session as sess
@@ -796,8 +806,10 @@ def merge(
         Path | None, typer.Option(help="Score the merged trajectory with a .relations file.")
     ] = None,
 ) -> None:
-    """Merge two sessions of one building into one graph and one map, linked by
-    inter-session loop closures found by global ICE matching and checked for consistency."""
+    """Merge two sessions of one building into one graph and one map.
+
+    The sessions are linked by inter-session loop closures found by global ICE matching and
+    checked for consistency."""
     from iceg import session as sess
     from iceg.merge import merge_sessions
 

@@ -535,3 +535,19 @@ def test_nees_of_a_folder_without_a_session(tmp_path: Path) -> None:
     rel = tmp_path / "r.relations"
     rel.write_text("1.0 2.0 0.1 0 0 0 0 0\n")
     _fails_in_one_line(["nees", str(tmp_path), str(rel)], "not a readable iceg session")
+
+
+def test_help_lists_every_command_with_its_summary() -> None:
+    # Each command's summary is its docstring's first line, a sentence of its own: the
+    # command list shows it whole (reflowed, never cut), and nothing more of the docstring.
+    result = runner.invoke(app, ["--help"], terminal_width=80)
+    assert result.exit_code == 0, result.output
+    box = result.output.split("Commands")[1]
+    listed = " ".join(box.translate(str.maketrans("│╮╯╰─", "     ")).split())
+    expected = []
+    for command in app.registered_commands:
+        assert command.callback is not None
+        summary = (command.callback.__doc__ or "").splitlines()[0].strip()
+        assert summary.endswith("."), (command.name, summary)
+        expected.append(f"{command.name or command.callback.__name__} {summary}")
+    assert listed == " ".join(" ".join(expected).split()), result.output
