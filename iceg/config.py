@@ -13,7 +13,9 @@ import math
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
 import yaml
+from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from graph import GraphConfig, OdometryNoiseConfig
@@ -153,6 +155,13 @@ class SlamConfig(BaseModel):
         "with any number (features do not depend on the pose, a match is a pure function of "
         "its inputs).",
     )
+
+    def no_odometry_covariance(self) -> NDArray[np.float64]:
+        """``(3, 3)`` float64 covariance of the constant-velocity motion prior between
+        consecutive nodes where there is no odometry (``no_odometry_sigma_m``,
+        ``no_odometry_sigma_deg``; m², rad²)."""
+        sigma_rad = np.radians(self.no_odometry_sigma_deg)
+        return np.diag([self.no_odometry_sigma_m**2] * 2 + [sigma_rad**2])
 
 
 class IcegConfig(BaseModel):

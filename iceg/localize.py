@@ -532,9 +532,7 @@ class Localizer:
             return delta, odometry_covariance(delta, cfg.odometry_noise)
         if first:
             return delta, np.zeros((3, 3))
-        s = cfg.slam
-        q = np.diag([s.no_odometry_sigma_m**2] * 2 + [np.radians(s.no_odometry_sigma_deg) ** 2])
-        return delta, q
+        return delta, cfg.slam.no_odometry_covariance()
 
     def _keyframe(self, scan: LaserScan) -> bool:
         t, st = self._t, self.settings

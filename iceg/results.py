@@ -82,7 +82,8 @@ class SlamResult:
     Attributes:
         stamps_s: ``(N,)`` timestamp of every input scan, seconds.
         poses: ``(N, 3)`` optimized robot pose of every input scan ``[x_m, y_m, theta_rad]``
-            in the map frame (non-node scans: their node's estimate ∘ odometry delta).
+            in the map frame (non-node scans: their node's estimate ∘ odometry delta, bent
+            to meet the next node's: :func:`iceg.scan_poses.scan_poses`).
         node_ids: ``(M,)`` graph node ids; ``node_poses`` ``(M, 3)`` their estimates.
         node_scan_index: ``(M,)`` index of each node's scan in the input.
         factors: every factor of the graph (``graph.FactorRecord``: index, kind, nodes

@@ -73,6 +73,7 @@ from graph.pose_graph import (
 from iceg.config import IcegConfig, config_from_yaml
 from iceg.feature_map import FeatureMap
 from iceg.loop_closure import LoopClosure, LoopClosureStats
+from iceg.scan_poses import odometry_steps, scan_poses
 from iceg.scan_store import ScanStore
 from iceg.slam import Anchor, ScanRecords, Slam, SlamState
 from iceg_common import se2
@@ -680,11 +681,30 @@ class Session:
 
     def trajectory(self, node_poses: FloatArray | None = None) -> tuple[FloatArray, FloatArray]:
         """Pose of every scan, ``(stamps_s (R,), poses (R, 3))``, from node poses (the saved
-        estimates by default; rows = ``g_node_ids`` order) and each scan's odometry delta."""
+        estimates by default; rows = ``g_node_ids`` order) and each scan's odometry delta,
+        as :meth:`iceg.slam.Slam.trajectory` gives them (:func:`iceg.scan_poses.scan_poses`)."""
         a = self.arrays
         poses = a["g_node_final"] if node_poses is None else node_poses
-        row = np.searchsorted(a["g_node_ids"], a["s_node"])
-        return a["s_stamp"].copy(), se2.compose(poses[row], a["s_delta"])
+        ids = a["g_node_ids"]
+        step_from, steps = odometry_steps(
+            a["g_kind"] == FACTOR_KINDS.index(FactorKind.ODOMETRY),
+            a["g_ij"],
+            a["g_measured"],
+            a["g_cov"],
+            self.config.slam.no_odometry_covariance(),
+        )
+        stamps = a["s_stamp"].copy()
+        return stamps, scan_poses(
+            stamps,
+            a["s_node"],
+            a["s_delta"],
+            ids,
+            poses,
+            a["n_scan"],
+            step_from,
+            steps,
+            self.config.odometry_noise,
+        )
 
     def feature_map(self) -> FeatureMap:
         """The saved feature map."""

@@ -56,6 +56,7 @@ from iceg.matching.plicp import PlIcpMatcher
 from iceg.matching.refine import points_within
 from iceg.odometry_calibration import OdometryCalibrator
 from iceg.results import SlamResult
+from iceg.scan_poses import odometry_steps, scan_poses
 from iceg.scan_store import ScanStore
 from iceg.types import MatchResult, ScanFeatures
 from iceg_common import se2
@@ -647,9 +648,7 @@ class Slam:
         odometry the scan is a keyframe predicted at the anchoring scan's pose."""
         cfg = self.config.slam
         if scan.odom_pose is None or scan.odom_break:
-            cov = np.diag(
-                [cfg.no_odometry_sigma_m**2] * 2 + [np.radians(cfg.no_odometry_sigma_deg) ** 2]
-            )
+            cov = cfg.no_odometry_covariance()
             measured = scan.odom_pose is not None
             return _Motion(odom, anchor.offset, anchor.offset_cov + cov, True, measured, measured)
         raw = se2.between(anchor.odom, odom)
@@ -840,9 +839,7 @@ class Slam:
             # the reader, or the last node had none): the scan is a node, predicted by constant
             # velocity, and a weak motion prior keeps the graph connected where matching fails.
             delta = self._constant_velocity_delta(last)
-            cov = np.diag(
-                [cfg.no_odometry_sigma_m**2] * 2 + [np.radians(cfg.no_odometry_sigma_deg) ** 2]
-            )
+            cov = cfg.no_odometry_covariance()
             if scan.odom_pose is None:
                 return _Motion(se2.compose(s.node_odom[last], delta), delta, cov, True, False)
             return _Motion(odom, delta, cov, True, odometry_break=True)  # new odometry frame
@@ -1250,11 +1247,23 @@ class Slam:
         """Current estimate of every processed scan: ``(stamps_s (N,), poses (N, 3))``.
 
         A scan that is not a graph node takes its node's estimate composed with the
-        odometry delta from the node's scan (docs/design.md "Data flow of one scan").
+        odometry delta from the node's scan, bent to meet the next node's estimate
+        (:func:`iceg.scan_poses.scan_poses`; docs/design.md "Scans between two nodes").
         """
-        _, poses = self.graph.estimates()
+        ids, poses = self.graph.estimates()
         stamps, node, delta = self._s.records.arrays()
-        return stamps, se2.compose(poses[node], delta)
+        recs = self._graph.factors
+        step_from, steps = odometry_steps(
+            [r.kind is FactorKind.ODOMETRY for r in recs],
+            [(r.i, -1 if r.j is None else r.j) for r in recs],
+            [r.measured for r in recs],
+            [r.cov for r in recs],
+            self.config.slam.no_odometry_covariance(),
+        )
+        node_scan = np.asarray(self._s.node_scan_index, dtype=np.int64)  # rows of ``ids``
+        return stamps, scan_poses(
+            stamps, node, delta, ids, poses, node_scan, step_from, steps, self.config.odometry_noise
+        )
 
     def finish(self) -> SlamResult:
         """Optionally batch-refine and return the :class:`SlamResult` (idempotent: a second

@@ -61,16 +61,30 @@ def test_every_scan_gets_a_pose_and_non_nodes_follow_odometry(office_run) -> Non
     result = slam.finish()
     assert result.poses.shape == (len(office_run.scans), 3)
     np.testing.assert_array_equal(result.stamps_s, office_run.stamps_s)
-    # docs/design.md: a non-node scan takes its node's estimate composed with the odometry delta.
+    # docs/design.md: a non-node scan takes its node's estimate composed with the odometry
+    # delta, bent to meet the next node by the fraction of the step's motion it has made
     is_node = np.zeros(len(office_run.scans), dtype=bool)
     is_node[result.node_scan_index] = True
     assert 0 < is_node.sum() < len(is_node)
     node_of_scan = np.maximum.accumulate(np.where(is_node, np.arange(len(is_node)), 0))
-    node_row = np.searchsorted(result.node_scan_index, node_of_scan)
-    expected = se2.compose(
-        result.node_poses[node_row],
-        se2.between(office_run.odom_poses[node_of_scan], office_run.odom_poses),
+    row = np.searchsorted(result.node_scan_index, node_of_scan)
+    odom = office_run.odom_poses
+    delta = se2.between(odom[node_of_scan], odom)
+    expected = se2.compose(result.node_poses[row], delta)
+    has_next = (~is_node) & (row + 1 < len(result.node_ids))
+    k = row[has_next]
+    step = se2.between(odom[result.node_scan_index[k]], odom[result.node_scan_index[k + 1]])
+    off = se2.between(se2.compose(result.node_poses[k], step), result.node_poses[k + 1])
+    d = delta[has_next]
+    noise = slam.config.odometry_noise
+    w_r, w_d = noise.sigma_theta_per_rotation_deg_per_deg, noise.sigma_theta_per_distance_rad_per_m
+    along = np.hypot(d[:, 0], d[:, 1]) / np.hypot(step[:, 0], step[:, 1])
+    turned = (w_r * np.abs(d[:, 2]) + w_d * np.hypot(d[:, 0], d[:, 1])) / (
+        w_r * np.abs(step[:, 2]) + w_d * np.hypot(step[:, 0], step[:, 1])
     )
+    fraction = np.clip(np.stack([along, along, turned], axis=1), 0.0, 1.0)
+    expected[has_next] = se2.compose(expected[has_next], fraction * off)
+    assert has_next.sum() > 150
     np.testing.assert_allclose(result.poses, expected, atol=1e-9)
     # Truth: the simulator's poses. Online (iSAM2) and refined estimates both beat odometry.
     odom = position_errors(office_run.odom_poses, office_run.true_poses, align=False).mean_m
