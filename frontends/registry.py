@@ -141,10 +141,7 @@ def open_log(
         LogFormatError: the file does not exist, or no reader recognises it.
         ConfigError: the chosen reader takes none of ``options``' names.
     """
-    # Importing the built-in readers registers them.
-    import frontends.carmen
-    import frontends.rosbag  # noqa: F401
-
+    _register_builtin_readers()
     p = Path(path)
     spec = _choose(p, format)
     signature = inspect.signature(spec.factory)
@@ -263,10 +260,7 @@ def folder_reader(path: Path) -> ReaderSpec:
         LogFormatError: no reader claims it; the message names the log files the folder
             holds (a ROS 1 ``.bag``, a CARMEN ``.clf``), the first five, to pass instead.
     """
-    # Importing the built-in readers registers them.
-    import frontends.carmen
-    import frontends.rosbag  # noqa: F401
-
+    _register_builtin_readers()
     for spec in _READERS.values():
         if spec.sniff_dir is not None and spec.sniff_dir(path):
             return spec
@@ -279,6 +273,12 @@ def folder_reader(path: Path) -> ReaderSpec:
     raise LogFormatError(
         f"{path}: a folder no reader recognises (a ROS 2 bag folder holds metadata.yaml){inside}"
     )
+
+
+def _register_builtin_readers() -> None:
+    """Import the built-in readers (CARMEN, ROS bags): importing one registers it."""
+    import frontends.carmen
+    import frontends.rosbag  # noqa: F401
 
 
 def _claimed_suffixes() -> set[str]:
