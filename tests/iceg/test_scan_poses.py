@@ -4,7 +4,6 @@ the scans left on their node, and the simulated office's truth."""
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from frontends.simulate import simulate_scenario
 from graph import FactorKind, OdometryNoiseConfig
@@ -105,9 +104,8 @@ def test_odometry_steps_are_the_consecutive_odometry_factors_read_from_odometry(
     np.testing.assert_array_equal(steps, measured[[1]])
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_the_office_scans_between_nodes_are_closer_to_the_truth(seed: int) -> None:
-    run = simulate_scenario("office", seed)
+def test_the_office_scans_between_nodes_are_closer_to_the_truth() -> None:
+    run = simulate_scenario("office", 0)
     result = run_scans(run.scans, IcegConfig())
     assert result.slam is not None
     stamps, node, delta = result.slam.export_state().records.arrays()
@@ -117,7 +115,7 @@ def test_the_office_scans_between_nodes_are_closer_to_the_truth(seed: int) -> No
     errors = {}
     for name, poses in (("bridged", result.poses), ("on node", on_node)):
         errors[name] = position_errors(poses, run.true_poses).rmse_m
-    # measured: 0.0105 against 0.0109 m (seed 0), 0.0050 against 0.0057 m (seed 1)
+    # measured: 0.0105 against 0.0109 m (seed 1: 0.0050 against 0.0057 m)
     assert errors["bridged"] < errors["on node"], errors
     nodes = result.poses[result.node_scan_index]
     np.testing.assert_allclose(nodes, result.node_poses, rtol=0, atol=1e-12)
