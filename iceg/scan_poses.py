@@ -69,7 +69,7 @@ def scan_poses(
         noise: The odometry noise model, for the rotation's weights.
 
     Returns:
-        ``(N, 3)`` float64 scan poses, map frame.
+        ``(N, 3)`` float64 scan poses, map frame. Raises nothing for a run's own records.
     """
     t = np.asarray(stamps_s, dtype=np.float64)
     node = np.asarray(scan_node, dtype=np.int64)
@@ -125,6 +125,8 @@ def odometry_steps(
         no_odometry_cov: ``(3, 3)`` the constant-velocity prior's covariance
             (:meth:`iceg.config.SlamConfig.no_odometry_covariance`): a step with it was
             predicted, not read from odometry, and is left out.
+
+    Raises nothing.
     """
     odometry = np.asarray(kinds, dtype=bool)
     pairs = np.asarray(ij, dtype=np.int64).reshape(-1, 2)
