@@ -31,7 +31,7 @@ import bisect
 import itertools
 import logging
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -268,11 +268,15 @@ class AcceptedClosures:
             with a global closure, or a global closure whose correction lies beyond its own
             covariance): the pipeline re-solves in batch rather than leaving the correction
             to iSAM2's incremental relinearisation.
+        confirmed_steps: Nodes whose disputed step (:meth:`LoopCloser.finish_search`,
+            ``disputed``) the closure confirmed: their unverified hypotheses enter as
+            scan-match factors with it.
     """
 
     closures: tuple[LoopClosure, ...]
     robust_kernel: Literal["huber", "cauchy"] | None
     large_correction: bool = False
+    confirmed_steps: tuple[int, ...] = ()
 
 
 def innovation_chi2(
@@ -330,6 +334,25 @@ def closures_agree(
         np.hypot(diff[0], diff[1]) <= config.agreement_translation_m
         and abs(diff[2]) <= np.radians(config.agreement_rotation_deg)
     )
+
+
+def with_step_replaced(
+    before: FloatArray, at: FloatArray, later: FloatArray, step: FloatArray
+) -> FloatArray:
+    """A later pose of a chain moved rigidly with one of its steps replaced:
+    ``before ∘ step ∘ at^-1 ∘ later``.
+
+    Args:
+        before: ``(3,)`` float64 pose ``[x_m, y_m, theta_rad]`` of the step's first node.
+        at: ``(3,)`` float64 pose of its second node, as the chain has it.
+        later: ``(3,)`` float64 pose of a node after it.
+        step: ``(3,)`` float64 the replacing step, the second node in the first's frame.
+
+    Returns:
+        ``(3,)`` float64 ``later`` with everything after ``at`` moved as ``at`` moves, same
+        frame as the inputs.
+    """
+    return se2.compose(se2.compose(before, step), se2.between(at, later))
 
 
 def pcm_chi2(
@@ -770,11 +793,19 @@ class LoopCloser:
         return OpenSearch(search, places, candidates, predictions, sent)
 
     def finish_search(
-        self, begun: OpenSearch, graph: PoseGraph, path_m: Sequence[float]
+        self,
+        begun: OpenSearch,
+        graph: PoseGraph,
+        path_m: Sequence[float],
+        disputed: Mapping[int, FloatArray] | None = None,
     ) -> AcceptedClosures | None:
         """Decide a search begun by :meth:`start_search`: the matches' results (from
         :attr:`match_pool` when set, else run here), then the gates and agreement described
-        there.
+        there. ``disputed`` maps a node ``k`` whose tracking match failed for lack of
+        evidence to its unverified hypothesis (``(3,)`` float64 pose of ``k`` in the frame of
+        ``k - 1``); the caller keeps only those after the newest accepted closure. A local
+        closure beyond the gate that passes it with one of them in place of the estimate's
+        step confirms that step (:meth:`_confirmed_step`).
 
         Returns:
             The closures to add as factors, or ``None``.
@@ -790,7 +821,8 @@ class LoopCloser:
             every = [self.matcher.match(*job) for job in begun.sent.jobs]
         n_global = 0 if places is None else len(places)
         best = self._best(s, begun.candidates, begun.predictions, every[n_global:])
-        accepted = self._decide(s, best, graph, path_m) if best is not None else None
+        steps = disputed or {}
+        accepted = self._decide(s, best, graph, path_m, steps) if best is not None else None
         if accepted is None and places is not None:
             accepted = self._global(s, places, every[:n_global], graph, path_m)
         if accepted is not None:
@@ -976,9 +1008,15 @@ class LoopCloser:
         return MatchJob(features, self._reference(s, candidate, window), prediction, bounds)
 
     def _decide(
-        self, s: _Search, best: _Best, graph: PoseGraph, path_m: Sequence[float]
+        self,
+        s: _Search,
+        best: _Best,
+        graph: PoseGraph,
+        path_m: Sequence[float],
+        disputed: Mapping[int, FloatArray],
     ) -> AcceptedClosures | None:
-        """Chi-square gate, else pairwise agreement with a held closure, else hold it."""
+        """Chi-square gate, else pairwise agreement with a held closure, else a disputed step
+        it confirms, else hold it."""
         lc = self.config
         result = best.result
         innovation, d2 = innovation_chi2(best.prediction, result.pose, s.marginal, result.cov)
@@ -1006,12 +1044,38 @@ class LoopCloser:
                 *([c.node_from for c in agreeing], s.node_id, d2),
             )
             return self._accept_group(agreeing, closure)
+        confirmed = self._confirmed_step(s, closure, disputed)
+        if confirmed is not None:
+            logger.debug(
+                "loop closure %d->%d accepted with the disputed step into node %d",
+                *(best.candidate, s.node_id, confirmed),
+            )
+            return self._accept([closure], lc.robust_kernel, confirmed_steps=(confirmed,))
         self.stats.rejected_consistency += 1
         self._hold(closure)
         logger.debug(
             "loop closure %d->%d held back: innovation %s, chi2 %.1f",
             *(best.candidate, s.node_id, rounded, d2),
         )
+        return None
+
+    def _confirmed_step(
+        self, s: _Search, closure: LoopClosure, disputed: Mapping[int, FloatArray]
+    ) -> int | None:
+        """The newest disputed step between the closure's old node and the current node with
+        which the closure passes the gate: the current node's estimate moved rigidly with the
+        step replaced by its hypothesis (``x_{k-1} ∘ h ∘ x_k^-1 ∘ x_now``, the chain after
+        the newest accepted closure being open), under the same marginal and match
+        covariance. The hypothesis's own checks (bounds, free space) and a match to another
+        place then agree: two independent validations (docs/design.md, "A disputed step
+        confirmed by a loop closure"). ``None`` where none does."""
+        old, now = closure.node_from, s.node_id
+        for k in sorted((k for k in disputed if old < k <= now), reverse=True):
+            moved = with_step_replaced(s.poses[k - 1], s.poses[k], s.poses[now], disputed[k])
+            prediction = se2.between(s.poses[old], moved)
+            _, d2 = innovation_chi2(prediction, closure.measured, s.marginal, closure.cov)
+            if d2 <= self.config.consistency_chi2:
+                return k
         return None
 
     def _agreeing(
@@ -1516,6 +1580,7 @@ class LoopCloser:
         closures: list[LoopClosure],
         kernel: Literal["huber", "cauchy"] | None,
         large_correction: bool = False,
+        confirmed_steps: tuple[int, ...] = (),
     ) -> AcceptedClosures:
         self.stats.accepted += len(closures)
         window = self.config.global_window_nodes
@@ -1523,7 +1588,7 @@ class LoopCloser:
         self._accepted = [c for c in self._accepted if newest - c.node_to <= window]
         self._accepted += closures
         self.stats.global_accepted += sum(c.is_global for c in closures)
-        return AcceptedClosures(tuple(closures), kernel, large_correction)
+        return AcceptedClosures(tuple(closures), kernel, large_correction, confirmed_steps)
 
 
 def _same_place(window: IntArray, other: IntArray) -> bool:

@@ -33,6 +33,8 @@ Layout of a session folder (``<run output>/session/``, format ``iceg-session`` v
   the global loop-closure search ``lc_places_rows (n, D)`` (descriptors) and
   ``lc_places_ids (n,)``; the odometry calibration ``cal_state (14,)``
   (:meth:`iceg.odometry_calibration.OdometryCalibrator.export_state`).
+- disputed keyframe steps ``d_*`` (:attr:`iceg.slam.SlamState.disputed`): ``d_node (D,)``,
+  ``d_pose (D, 3)``, ``d_cov (D, 3, 3)``, ``d_correlation (D,)``.
 - the feature map ``fm_*`` (:meth:`iceg.feature_map.FeatureMap.export_state`).
 - inline scans (runs from memory, e.g. the simulator): ``inline_meta (K, 10)``
   ``[stamp, range_min, range_max, odom x y theta (NaN: none), offset x y theta, odom_break]``,
@@ -76,6 +78,7 @@ from iceg.loop_closure import LoopClosure, LoopClosureStats
 from iceg.scan_poses import odometry_steps, scan_poses
 from iceg.scan_store import ScanStore
 from iceg.slam import Anchor, ScanRecords, Slam, SlamState
+from iceg.types import MatchResult
 from iceg_common import se2
 from iceg_common.atomic import atomic_write
 from iceg_common.errors import IcegError, SessionError
@@ -543,6 +546,11 @@ def _slam_arrays(slam: Slam) -> dict[str, np.ndarray]:
         "reuse_anchor": _anchor_array(s.anchor),
         "reuse_from": _anchor_array(s.reuse_from),
         "reuse_count": np.array([s.reused_keyframes], dtype=np.int64),
+        # the disputed keyframe steps a later closure may confirm (SlamState.disputed)
+        "d_node": np.array(list(s.disputed), dtype=np.int64),
+        "d_pose": np.array([r.pose for r in s.disputed.values()]).reshape(-1, 3),
+        "d_cov": np.array([r.cov for r in s.disputed.values()]).reshape(-1, 3, 3),
+        "d_correlation": np.array([r.correlation for r in s.disputed.values()], dtype=np.float64),
     }
 
 
@@ -570,7 +578,19 @@ def _slam_state(session: Session, a: Mapping[str, np.ndarray], scans: list[Laser
         anchor=_anchor_of(a, "reuse_anchor"),
         reuse_from=_anchor_of(a, "reuse_from"),
         reused_keyframes=int(a["reuse_count"][0]) if "reuse_count" in a else 0,
+        disputed=_disputed(a),
     )
+
+
+def _disputed(a: Mapping[str, np.ndarray]) -> dict[int, MatchResult]:
+    """The disputed keyframe steps (:attr:`iceg.slam.SlamState.disputed`); none in a session
+    saved before they were kept."""
+    if "d_node" not in a:
+        return {}
+    return {
+        int(k): MatchResult(True, p.copy(), c.copy(), float(r))
+        for k, p, c, r in zip(a["d_node"], a["d_pose"], a["d_cov"], a["d_correlation"], strict=True)
+    }
 
 
 def _anchor_array(anchor: Anchor | None) -> np.ndarray:

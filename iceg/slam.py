@@ -310,6 +310,11 @@ class SlamState:
     anchor: Anchor | None = None
     reuse_from: Anchor | None = None
     reused_keyframes: int = 0  # keyframes that hung from an old node instead of a new one
+    # keyframe steps k-1 -> k whose tracking match failed for lack of evidence, by node k:
+    # the match's unverified hypothesis, for a later loop closure to confirm (only those
+    # after the newest accepted closure; docs/design.md "A disputed step confirmed by a
+    # loop closure")
+    disputed: dict[int, MatchResult] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not isinstance(self.scans, ScanStore):
@@ -1033,6 +1038,13 @@ class Slam:
         self._add_factor(FactorKind.ODOMETRY, last, new_id, motion.delta, motion.cov)
         if result.success:
             self._add_scan_match(last, new_id, result, motion.delta, motion.cov)
+        elif (
+            result.unverified is not None
+            and motion.measured
+            and not motion.odometry_break
+            and last == new_id - 1
+        ):
+            self._s.disputed[new_id] = result.unverified
         return new_id
 
     def _add_scan_match(
@@ -1083,7 +1095,10 @@ class Slam:
         if open_ is None:
             return False
         t0 = time.perf_counter()
-        accepted = self.loop_closer.finish_search(open_.begun, self._graph, self._s.node_path_m)
+        disputed = {k: r.pose for k, r in self._s.disputed.items()}
+        accepted = self.loop_closer.finish_search(
+            open_.begun, self._graph, self._s.node_path_m, disputed
+        )
         if accepted is not None:
             if open_.checkpoint is not None:
                 self._feature_map.restore(open_.checkpoint)
@@ -1096,7 +1111,22 @@ class Slam:
         return True
 
     def _add_closures(self, accepted: AcceptedClosures) -> None:
-        """Accepted closures as factors, then the iSAM2 update (or a batch solve)."""
+        """Accepted closures as factors, with the scan-match factors of the disputed steps
+        they confirmed, then the iSAM2 update (or a batch solve). The disputed steps before
+        the newest closure's node are dropped: a later closure's chain no longer runs open
+        through them."""
+        disputed = self._s.disputed
+        for k in accepted.confirmed_steps:
+            link = next(
+                r
+                for r in reversed(self._graph.factors)
+                if r.kind is FactorKind.ODOMETRY and r.j == k
+            )
+            self._add_scan_match(k - 1, k, disputed.pop(k), link.measured, link.cov)
+            self._s.node_matched[k] = True
+        newest = max(c.node_to for c in accepted.closures)
+        for k in [k for k in disputed if k <= newest]:
+            del disputed[k]
         for c in accepted.closures:
             self._add_factor(
                 FactorKind.LOOP_CLOSURE,

@@ -121,6 +121,11 @@ class MatchResult:
         inlier_pairs: ``(I, 2)`` int64 ``[new feature index, reference feature index]``.
         n_hypotheses: number of transform hypotheses that were scored.
         reason: empty on success, otherwise why the match failed.
+        unverified: on a tracking match's failure, its best hypothesis from the prediction
+            that passed the bounds and free space and lacked only the evidence (a result
+            with its pose, covariance and correlation), which a later loop closure may
+            confirm (docs/design.md, "A disputed step confirmed by a loop closure"); else
+            ``None``.
     """
 
     success: bool
@@ -130,6 +135,7 @@ class MatchResult:
     inlier_pairs: IntArray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
     n_hypotheses: int = 0
     reason: str = ""
+    unverified: MatchResult | None = None
 
     @classmethod
     def failed(cls, prediction: FloatArray, reason: str, n_hypotheses: int = 0) -> MatchResult:

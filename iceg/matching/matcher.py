@@ -13,7 +13,7 @@ import functools
 import logging
 import math
 import weakref
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -76,6 +76,8 @@ REASON_INCONSISTENT = "inconsistent with free space"
 REASON_AMBIGUOUS = "ambiguous"
 REASON_OUT_OF_BOUNDS = "outside the bounds"
 REASON_WEAK_CLUSTER = "weak cluster"
+#: Failures of a hypothesis that passed the bounds and free space (``IceMatcher._unverified``).
+_EVIDENCE_REASONS = (REASON_FEW_INLIERS, REASON_LOW_CORRELATION)
 
 #: Ranking (fitness) of a refined hypothesis: correlation + point overlap, plus this per
 #: feature pair up to ``FITNESS_MAX_PAIRS``, minus this times the see-through fraction.
@@ -584,7 +586,10 @@ class IceMatcher:
                 continue
             if any(_same_pose(starts.poses[k], o.refined.pose, near_d, near_a) for o in cands):
                 continue
-            ref = refine(problem, starts.poses[k], matched_pairs(corr0.match[k]))
+            pairs = matched_pairs(corr0.match[k])
+            ref = refine(problem, starts.poses[k], pairs)
+            if not ctx.strict:
+                ref = self._held_along_weak_directions(ctx, problem, ref, pairs)
             if any(
                 _same_pose(ref.pose, o.refined.pose, DUPLICATE_DISTANCE_M, DUPLICATE_ANGLE_RAD)
                 for o in cands
@@ -604,6 +609,40 @@ class IceMatcher:
                 break
             weak.append(cand)
         return cands
+
+    @staticmethod
+    def _held_along_weak_directions(
+        ctx: MatchContext, problem: RefineProblem, ref: Refined, pairs: IntArray
+    ) -> Refined:
+        """Solution remapping inside a tracking match (after Zhang, Kaess & Singh, ICRA 2016,
+        "On degeneracy of optimization-based state estimation problems"): a refinement that
+        ended beyond the bounds' translation from the prediction, along translation
+        directions where the scene's own information (the least-squares information less the
+        bounds' prior) is below the prior's, slid there because nothing stopped it (a
+        corridor), not because the scene says so. It is refined again from its pose with
+        those directions moved back to the prediction and held there
+        (:func:`~iceg.matching.refine.refine`, ``held``); its covariance stays the scene's,
+        as weak along them as it is. ``ref`` itself otherwise (docs/design.md, "Solution
+        remapping inside the match")."""
+        pose = ref.pose
+        d = pose[:2] - ctx.prediction[:2]
+        if not math.hypot(d[0], d[1]) > ctx.bounds.max_translation_m:
+            return ref
+        cov_ls = ref.cov_ls
+        if not np.all(np.isfinite(cov_ls)):
+            return ref
+        prior = problem.prior.info[:2, :2]
+        try:
+            scene = np.linalg.inv(cov_ls)[:2, :2] - prior
+        except np.linalg.LinAlgError:
+            return ref
+        evals, evecs = np.linalg.eigh(0.5 * (scene + scene.T))
+        weak = evecs[:, evals < prior[0, 0]]
+        if weak.shape[1] == 0:
+            return ref
+        start = pose.copy()
+        start[:2] -= weak @ (weak.T @ d)
+        return refine(problem, start, pairs, held=weak)
 
     @staticmethod
     def _global_evidence(ctx: MatchContext, cand: _Candidate) -> bool:
@@ -786,12 +825,30 @@ class IceMatcher:
         ok = sorted((k for k in cands if not k.failure), key=lambda k: -k.fitness)
         if not ok:
             worst_first = sorted(cands, key=lambda k: -k.fitness)
-            return ctx.fail(worst_first[0].failure, n_hyp)
+            failed = ctx.fail(worst_first[0].failure, n_hyp)
+            return replace(failed, unverified=self._unverified(ctx, worst_first, n_hyp))
         best = ok[0]
         reason = self._ambiguity(ctx, cands, best)
         if reason:
             return ctx.fail(reason, n_hyp)
         return self._covariance(ctx, best, n_hyp)
+
+    def _unverified(
+        self, ctx: MatchContext, best_first: list[_Candidate], n_hyp: int
+    ) -> MatchResult | None:
+        """A failed tracking match's best hypothesis from the prediction that passed the
+        bounds and free space and lacked only the evidence (feature pairs, correlation,
+        point overlap), as a result with its covariance; ``None`` for a strict match, where
+        there is none, or where its covariance is degenerate. Not a measurement: a later loop
+        closure may confirm it (docs/design.md, "A disputed step confirmed by a loop
+        closure")."""
+        if ctx.strict:
+            return None
+        for cand in best_first:
+            if cand.from_prediction and cand.failure.startswith(_EVIDENCE_REASONS):
+                result = self._covariance(ctx, cand, n_hyp)
+                return result if result.success else None
+        return None
 
     def _ambiguity(self, ctx: MatchContext, cands: list[_Candidate], best: _Candidate) -> str:
         """The failure reason when a rival distinct from ``best`` scores within

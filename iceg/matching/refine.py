@@ -379,8 +379,16 @@ def effective_line_info(segs: SegmentSet, wall_end_sigma_m: float) -> tuple[Floa
     )
 
 
+#: Information (1 / m^2) that holds a refinement at the prediction along a direction
+#: (:func:`refine`, ``held``): a 1 mm standard deviation.
+HOLD_INFORMATION = 1.0e6
+
+
 def refine(
-    problem: RefineProblem, pose0: FloatArray, initial_pairs: IntArray | None = None
+    problem: RefineProblem,
+    pose0: FloatArray,
+    initial_pairs: IntArray | None = None,
+    held: FloatArray | None = None,
 ) -> Refined:
     """Gauss-Newton refinement and covariance of one hypothesis (docs/design.md steps 8-9; paper
     §III-C3 "an optimization problem"; covariance after Olson 2009).
@@ -396,15 +404,24 @@ def refine(
             ``[x_m, y_m, theta_rad]``.
         initial_pairs: ``(Q, 2)`` int64 feature pairs ``[new, ref]`` at ``pose0`` if already
             known (else from ``problem.pairing``).
+        held: ``(2, m)`` float64 unit translation directions (reference frame) along which
+            the refinement is held at the prior's mean (:data:`HOLD_INFORMATION` added to the
+            prior there), or ``None``. The covariances stay those of ``problem`` (unheld) at
+            the held pose: the factor is as weak there as the scene makes it.
 
     Returns:
         A :class:`Refined`; its covariances are perturbations of ``(x, y, theta)`` in the
         reference frame.
     """
+    prior = problem.prior
+    if held is not None:
+        info = prior.info.copy()
+        info[:2, :2] += HOLD_INFORMATION * (held @ held.T)
+        prior = PosePrior(prior.mean, info)
     pose, sigma, gate, iterations, pairs, hess, idx, res = refine_pose(
         np.asarray(pose0, dtype=np.float64),
         None if initial_pairs is None else np.ascontiguousarray(initial_pairs, dtype=np.int64),
-        problem.prior,
+        prior,
         problem.points,
         problem.lines,
         problem.pair_geometry,

@@ -35,6 +35,7 @@ from iceg.loop_closure import (
     innovation_chi2,
     odometry_bias_covariance,
     pcm_chi2,
+    with_step_replaced,
 )
 from iceg.slam import Slam
 from iceg_common import se2
@@ -45,6 +46,19 @@ def _closure(node_from: int, node_to: int, implied: list[float]) -> LoopClosure:
     return LoopClosure(
         node_from, node_to, np.zeros(3), np.eye(3) * 1e-4, 0.9, np.asarray(implied, dtype=float)
     )
+
+
+def test_a_replaced_step_moves_the_rest_of_the_chain_rigidly() -> None:
+    # A chain 0 -> 1 -> 2 along +x, 1 m steps. Its first step replaced by 1 m ahead turning
+    # 90 deg left: node 2, 1 m ahead of node 1, lands 1 m to the left of (1, 0), heading +y.
+    before, at, later = np.zeros(3), np.array([1.0, 0.0, 0.0]), np.array([2.0, 0.0, 0.0])
+    moved = with_step_replaced(before, at, later, np.array([1.0, 0.0, math.pi / 2]))
+    np.testing.assert_allclose(moved, [1.0, 1.0, math.pi / 2], atol=1e-12)
+    # the chain's own step leaves it where it was, from any frame
+    start = np.array([3.0, -2.0, 0.7])
+    chain = [se2.compose(start, p) for p in (before, at, later)]
+    same = with_step_replaced(*chain, se2.between(chain[0], chain[1]))
+    np.testing.assert_allclose(same, chain[2], atol=1e-12)
 
 
 def test_innovation_is_in_the_predicted_frame_and_its_chi2_is_exact() -> None:

@@ -1470,6 +1470,31 @@ def test_refine_pairs_the_features_at_the_start_when_not_given() -> None:
     assert math.hypot(d[0], d[1]) < 0.01 and abs(d[2]) < math.radians(0.2)
 
 
+def test_a_held_refinement_stays_at_the_prediction_along_the_corridor_only() -> None:
+    # Two scans 0.30 m apart in a 60 m corridor along x (its ends beyond the 20 m range),
+    # predicted 0.40 m too far along it. Held along x and started 0.3 m / 4 cm / 1.1 deg off
+    # the prediction, the refinement ends at the prediction's x (1 mm hold) and finds the
+    # true y and heading from the walls; its covariance is the
+    # unheld problem's, as weak along the corridor as the bounds' prior leaves it
+    # (0.5 m / sqrt(3) = 0.29 m), not the hold's millimetre.
+    pa = np.array([30.0, 1.0, 0.0])
+    sa, sb = simulate_pair(corridor_world(60.0), pa, compose(pa, [0.3, 0.05, 0.03]), seed=2)
+    truth = between(pa, compose(pa, [0.3, 0.05, 0.03]))
+    prediction = truth + np.array([0.4, 0.0, 0.0])
+    matcher = IceMatcher()
+    ctx = MatchContext(
+        extract(sb), extract(sa), prediction, MatchBounds.local(0.5, 15), matcher.config
+    )
+    problem = matcher._refine_problem(ctx)
+    start = prediction + np.array([0.3, 0.04, 0.02])
+    held = refine(problem, start, held=np.array([[1.0], [0.0]]))
+    assert abs(held.pose[0] - prediction[0]) < 0.002
+    assert abs(held.pose[1] - truth[1]) < 0.01
+    assert abs(held.pose[2] - truth[2]) < math.radians(0.2)
+    assert 0.2 < math.sqrt(held.cov_ls[0, 0]) < 0.3
+    assert math.sqrt(held.cov_ls[1, 1]) < 0.01
+
+
 def test_the_covariance_at_a_refined_pose_is_the_refinements_to_a_few_percent() -> None:
     # covariance_at linearises at a given pose with the coarse gate and the point noise
     # estimated there, without feature pairs; at the pose a refinement reached (simulated

@@ -19,6 +19,7 @@ from iceg.config import config_from_dict
 from iceg.pipeline import run_log
 from iceg.scan_store import ScanStore
 from iceg.slam import Slam
+from iceg.types import MatchResult
 from iceg_common.errors import SessionError
 from tests.iceg.test_scan_store import scan_lists
 
@@ -69,6 +70,28 @@ def test_split_run_equals_the_whole_run_bit_for_bit(office_scans, whole, tmp_pat
         split.slam.odometry_calibrator.export_state(),
         whole.slam.odometry_calibrator.export_state(),
     )
+
+
+def test_disputed_steps_are_saved_and_restored(office_scans, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    # A disputed keyframe step (a failed tracking match's unverified hypothesis, which a
+    # later closure may confirm) is state a continued run decides with: saved and loaded
+    # as it was, every bit; a session without them (saved before) loads with none.
+    first = Slam()
+    for scan in office_scans[:97]:
+        first.process(scan)
+    hypothesis = MatchResult(
+        True, np.array([0.21, -0.013, -0.37]), np.diag([4e-4, 1e-4, 2e-5]), 0.31
+    )
+    first.export_state().disputed[12] = hypothesis
+    session.save(first, tmp_path / "s")
+    got = session.load(tmp_path / "s").export_state().disputed
+    assert list(got) == [12]
+    assert np.array_equal(got[12].pose, hypothesis.pose)
+    assert np.array_equal(got[12].cov, hypothesis.cov)
+    assert got[12].correlation == hypothesis.correlation
+    first.export_state().disputed.clear()
+    session.save(first, tmp_path / "none")
+    assert session.load(tmp_path / "none").export_state().disputed == {}
 
 
 def test_split_run_with_odometry_calibration_is_bit_identical(office_scans, tmp_path) -> None:  # type: ignore[no-untyped-def]
