@@ -658,6 +658,57 @@ def test_final_estimate_satisfies_the_accepted_closures_on_aces() -> None:
     assert position_errors(result.poses, reference).rmse_m <= 0.3
 
 
+def test_a_closure_beyond_the_gate_confirms_the_disputed_step_that_explains_it() -> None:
+    """A chain of 60 nodes on a 12 m circle whose odometry step into node 50 turns 0.2 rad
+    too far; a closure from node 5 measures node 58 where the truth has it. Against the
+    estimate it fails the gate and is held. With node 50's true step as a disputed
+    hypothesis it passes (node 58 moved rigidly with the step: innovation zero) and enters,
+    naming the step it confirms; with a disputed step that does not explain it (node 40's,
+    the same as its odometry) it is held."""
+    from graph import PoseGraph
+    from iceg.feature_map import FeatureMap
+    from iceg.loop_closure import _Best, _Nearby, _Poses, _Search
+    from iceg.matching import IceMatcher
+    from iceg.types import MatchResult
+
+    t = np.linspace(0.0, 1.5 * np.pi, 60)
+    truth = np.stack([12 * np.cos(t), 12 * np.sin(t), t + np.pi / 2], axis=1)
+    steps = [se2.between(truth[k - 1], truth[k]) for k in range(1, 60)]
+    odometry = [s.copy() for s in steps]
+    odometry[49][2] += 0.2  # the step into node 50
+    cov = np.diag([1e-4, 1e-4, 1e-6])
+
+    def decide(disputed: dict[int, np.ndarray]):  # type: ignore[no-untyped-def]
+        graph = PoseGraph()
+        graph.add_node(0, truth[0])
+        graph.add_prior(0, truth[0], cov)
+        pose = truth[0]
+        for k in range(1, 60):
+            pose = se2.compose(pose, odometry[k - 1])
+            graph.add_node(k, pose)
+            graph.add_between(k - 1, k, odometry[k - 1], cov)
+        graph.update()
+        closer = LoopCloser(LoopClosureConfig(), IceMatcher(), FeatureMap())
+        poses = _Poses(graph)
+        closer._sync_index(graph, poses)
+        closer._sync_steps(graph)  # the odometry tests read the steps' odometry factors
+        nearby = _Nearby(closer.nodes, poses, poses[58][:2], 30, 2.0)
+        s = _Search(58, poses, 30, np.diag([1e-3, 1e-3, 1e-4]), 2.0, nearby)
+        measured = se2.between(truth[5], truth[58])
+        match = MatchResult(True, measured, np.diag([1e-4, 1e-4, 1e-5]), 0.8)
+        best = _Best(5, se2.between(poses[5], poses[58]), match)
+        path_m = np.arange(60, dtype=np.float64)
+        return closer, closer._decide(s, best, graph, path_m.tolist(), disputed)
+
+    closer, held = decide({})
+    assert held is None and [c.node_from for c in closer.pending] == [5]
+    _, accepted = decide({50: steps[49]})
+    assert accepted is not None and accepted.confirmed_steps == (50,)
+    assert [(c.node_from, c.node_to) for c in accepted.closures] == [(5, 58)]
+    _, unexplained = decide({40: steps[39]})
+    assert unexplained is None
+
+
 def test_node_index_gives_the_candidates_of_a_scan_of_every_node() -> None:
     """The search's node index (grid hash with a staleness margin) selects the same old
     nodes as a distance test over every estimate: those within the radius, nearest first,
