@@ -211,7 +211,9 @@ class LoopClosureStats:
     they found and ``rejected_ambiguous`` verified global matches dropped as aliased;
     ``rejected_odometry`` matches that the odometry between their two nodes rules out
     (:meth:`LoopCloser._contradicts_odometry`), ``rejected_accepted`` those that contradict a
-    closure accepted shortly before (:meth:`LoopCloser._contradicts_accepted`).
+    closure accepted shortly before (:meth:`LoopCloser._contradicts_accepted`);
+    ``confirmed_steps`` the disputed keyframe steps an accepted closure confirmed
+    (:meth:`LoopCloser._confirmed_step`).
     """
 
     searches: int = 0
@@ -225,6 +227,7 @@ class LoopClosureStats:
     rejected_ambiguous: int = 0
     rejected_odometry: int = 0
     rejected_accepted: int = 0
+    confirmed_steps: int = 0
 
     def as_dict(self) -> dict[str, int]:
         """Plain dict for JSON output."""
@@ -1050,6 +1053,7 @@ class LoopCloser:
                 "loop closure %d->%d accepted with the disputed step into node %d",
                 *(best.candidate, s.node_id, confirmed),
             )
+            self.stats.confirmed_steps += 1
             return self._accept([closure], lc.robust_kernel, confirmed_steps=(confirmed,))
         self.stats.rejected_consistency += 1
         self._hold(closure)

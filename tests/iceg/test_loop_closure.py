@@ -702,8 +702,9 @@ def test_a_closure_beyond_the_gate_confirms_the_disputed_step_that_explains_it()
 
     closer, held = decide({})
     assert held is None and [c.node_from for c in closer.pending] == [5]
-    _, accepted = decide({50: steps[49]})
+    closer, accepted = decide({50: steps[49]})
     assert accepted is not None and accepted.confirmed_steps == (50,)
+    assert closer.stats.confirmed_steps == 1 and closer.stats.rejected_consistency == 0
     assert [(c.node_from, c.node_to) for c in accepted.closures] == [(5, 58)]
     _, unexplained = decide({40: steps[39]})
     assert unexplained is None
