@@ -34,7 +34,7 @@ the log with its relations and on the demo: the wall time from start to exit, an
 it is not the run's stages (interpreter, imports, log reading, saving, exit); ``--no-cli``
 skips it. ``--fresh-install`` first times a new user's first ``iceg run`` of the demo, with
 numba's cache empty so that every kernel is compiled, and the same command once more (about
-a minute on the benchmark machine).
+two and a half minutes on the benchmark machine).
 
 ``--workers N`` sets both ``slam.workers`` and ``grid.threads`` (left at 0, each takes 2
 when the cores are idle enough, :func:`iceg.features.prefetch.auto_workers`).

@@ -123,7 +123,7 @@ def helper_processes(slam: Slam, workers: int | None = None) -> Iterator[Feature
     if new_cache:
         logger.warning(
             "numba's cache holds no compiled kernels of this version yet: this run compiles "
-            "them as it first calls them (half a minute to a minute); later runs load them"
+            "them as it first calls them (one to three minutes); later runs load them"
         )
     with (
         _frozen_heap(),
