@@ -1,4 +1,5 @@
-"""CARMEN laser logs: a streaming reader (FLASER, RLASER, ROBOTLASER1, ODOM, PARAM) and a writer.
+"""CARMEN laser logs: a streaming reader (FLASER, RLASER, ROBOTLASER1, RAWLASER1, ODOM, PARAM)
+and a writer.
 
 The format is the one of the CARMEN robot toolkit (Montemerlo, Roy, Thrun 2003) as written by
 its logger and by GMapping into ``*-corrected`` logs; see ``../shared/data/README.md``. One
@@ -11,12 +12,21 @@ message per line; the last three fields of a message are always
                 n r_1 .. r_n  n_rem rem_1 .. rem_nrem
                 laser_x laser_y laser_theta  robot_x robot_y robot_theta
                 tv rv forward_safety_dist side_safety_dist turn_axis     ts host ts
+    RAWLASER1 laser_type start_angle fov angular_res max_range accuracy remission_mode
+              n r_1 .. r_n  n_rem rem_1 .. rem_nrem                     ts host ts
     ODOM x y theta tv rv accel                                          ts host ts
     PARAM name value                                                    [ts host ts]
 
 Angle conventions (FLASER/RLASER carry no angles): ``-pi/2 + i*pi/(n-1)`` for 181 or 361
 beams (endpoint-inclusive 1 deg / 0.5 deg), ``-pi/2 + i*pi/n`` otherwise (GMapping's CARMEN
-reader, ``carmenconfiguration.cpp``). ROBOTLASER1: ``start_angle + i*angular_res``.
+reader, ``carmenconfiguration.cpp``). ROBOTLASER1 and RAWLASER1: ``start_angle +
+i*angular_res``.
+
+``RAWLASER1`` is the front laser's own message (CARMEN's laser module; ``RAWLASER2-4`` are the
+other lasers), without a pose. CARMEN's robot module republishes the same scans with poses as
+``FLASER`` or ``ROBOTLASER1``, so a log holding both has every scan twice: the raw records are
+read only from a log that holds none of the records with a pose, their odometry interpolated
+from the ODOM records.
 """
 
 from __future__ import annotations
@@ -52,8 +62,12 @@ FloatArray = NDArray[np.float64]
 CARMEN_NO_RETURN_M = 81.91
 
 _LASER_RECORDS = ("FLASER", "RLASER", "ROBOTLASER1")
-_SNIFF = re.compile(r"\s*(?:FLASER|RLASER|ROBOTLASER1|ODOM|PARAM)(?:\s|$)")
+#: The laser record without a pose that a log holding none of ``_LASER_RECORDS`` is read from.
+_RAW_LASER = "RAWLASER1"
+_SNIFF = re.compile(r"\s*(?:FLASER|RLASER|ROBOTLASER1|RAWLASER[1-4]|ODOM|PARAM)(?:\s|$)")
 _LASER_LINE = re.compile(r"\s*(?:FLASER|RLASER|ROBOTLASER1)(?:\s|$)")
+_RAW_LASER_LINE = re.compile(r"\s*RAWLASER1(?:\s|$)")
+_ODOM_LINE = re.compile(r"\s*ODOM(?:\s|$)")
 _RECORD_NAME = re.compile(r"[A-Z][A-Z0-9_]*\Z")
 _FIX_HINT = (
     "fix or delete the line, or skip malformed lines (iceg --skip-malformed; "
@@ -152,9 +166,18 @@ class _PendingScan:
     ranges_m: FloatArray
     angles_rad: FloatArray
     range_max_m: float
-    record_odom: FloatArray
+    record_odom: FloatArray | None  # None: the record has no pose (RAWLASER1)
     laser_offset: FloatArray
     frame: str  # odometry frame: "FLASER" (FLASER/RLASER), "ROBOTLASER1", or "ODOM"
+
+
+@dataclass(frozen=True)
+class _RawLasers:
+    """Whether a log's RAWLASER1 records are read (it holds no laser record with a pose) and
+    whether it holds ODOM records to place them with."""
+
+    read: bool
+    has_odom: bool
 
 
 def _sniff(lines: list[str]) -> bool:
@@ -273,17 +296,72 @@ def flaser_angles(n: int) -> FloatArray:
     return angles
 
 
-def _robotlaser_angles(start_tok: str, res_tok: str, n: int) -> FloatArray:
+def _configured_angles(start_tok: str, res_tok: str, n: int, kind: str) -> FloatArray:
+    """``start_angle + i*angular_res`` of a ROBOTLASER1 or RAWLASER1 record (cached)."""
     key = ("R", start_tok, res_tok, n)
     angles = _ANGLE_CACHE.get(key)
     if angles is None:
-        start = _float(start_tok, "ROBOTLASER1 start_angle")
-        res = _float(res_tok, "ROBOTLASER1 angular_res")
+        start = _float(start_tok, f"{kind} start_angle")
+        res = _float(res_tok, f"{kind} angular_res")
         angles = _readonly(start + np.arange(n, dtype=np.float64) * res)
         if len(_ANGLE_CACHE) > 1024:
             _ANGLE_CACHE.clear()
         _ANGLE_CACHE[key] = angles
     return angles
+
+
+#: Fields after the remissions: RAWLASER1 ends with ``ipc_timestamp ipc_hostname
+#: logger_timestamp``; ROBOTLASER1 has 11 more before them (laser and robot poses, ``tv rv``,
+#: two safety distances, the turn axis).
+_TRAILER_FIELDS = 3
+_ROBOTLASER_TAIL = 11 + _TRAILER_FIELDS
+
+
+@dataclass(frozen=True)
+class _Beams:
+    """The beams of a ROBOTLASER1 or RAWLASER1 record, and where its tail starts."""
+
+    ranges_m: FloatArray
+    angles_rad: FloatArray
+    range_max_m: float
+    tail: int  # index of the first field after the remissions
+
+
+def _configured_beams(tokens: list[str], kind: str, tail_fields: int) -> _Beams:
+    """The laser configuration, ranges and remissions that ROBOTLASER1 and RAWLASER1 records
+    share (``laser_type start_angle fov angular_res max_range accuracy remission_mode n
+    r_1..r_n n_rem rem_1..rem_nrem``), the record ending ``tail_fields`` fields later.
+
+    Raises:
+        _Malformed: a field is not a number, or the counts and the line's length disagree.
+    """
+    if len(tokens) < 9:
+        raise _Malformed(
+            f"{kind} record has {len(tokens)} fields; the header alone needs 9 (a truncated line?)"
+        )
+    _numbers(tokens, 1, 2, f"{kind} laser_type")
+    max_range = _float(tokens[5], f"{kind} max_range")
+    if max_range <= 0.0:
+        raise _Malformed(f"{kind} max_range {tokens[5]!r} must be positive")
+    _numbers(tokens, 3, 4, f"{kind} fov")
+    _numbers(tokens, 6, 8, f"{kind} accuracy/remission_mode")
+    n = _int(tokens[8], f"{kind} beam count")
+    if len(tokens) < 9 + n + 1:
+        raise _Malformed(
+            f"{kind} declares {n} beams but the line ends after {len(tokens) - 9} values "
+            "(a truncated line?)"
+        )
+    n_rem = _int(tokens[9 + n], f"{kind} remission count (field {10 + n}, after {n} beams)")
+    expected = 10 + n + n_rem + tail_fields
+    if len(tokens) != expected:
+        raise _Malformed(
+            f"{kind} declares {n} beams and {n_rem} remission values: {expected} fields "
+            f"expected, the line has {len(tokens)} (wrong beam count, or a truncated line?)"
+        )
+    ranges = _ranges(tokens, 9, n, kind)
+    _numbers(tokens, 10 + n, 10 + n + n_rem, f"{kind} remission value")
+    angles = _configured_angles(tokens[2], tokens[4], n, kind)
+    return _Beams(ranges, angles, max_range, 10 + n + n_rem)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -306,11 +384,20 @@ class CarmenReader:
       Angles: see :func:`flaser_angles`.
     - ``ROBOTLASER1``: angles ``start_angle + i*angular_res``, ``range_max_m = max_range``,
       ``odom_pose`` the robot pose, ``laser_offset = between(robot, laser)``.
+    - ``RAWLASER1`` (the front laser's message, no pose), read only from a log that holds no
+      FLASER, RLASER or ROBOTLASER1 record (a log with both has each scan twice; the first
+      RAWLASER1 record sets off one pass over the log's first words to tell): angles and
+      ``range_max_m`` as ROBOTLASER1, ``laser_offset`` ``[offset, 0, 0]`` from PARAM
+      ``robot_frontlaser_offset`` (else zero), ``odom_pose`` interpolated from the ODOM
+      records as with ``odometry="odom"`` in either mode, or None in a log without ODOM
+      records (a laser-only run). Otherwise, and ``RAWLASER2``-``RAWLASER4`` (lasers whose
+      mounting the log does not give) always, they are skipped and counted.
     - ``ODOM``: with ``odometry="odom"`` a scan's ``odom_pose`` is interpolated (linear in
       x, y and in the wrapped heading difference) between the ODOM records bracketing its
       ipc timestamp; scans wait until an ODOM record at or after their stamp arrives, scans
       before the first ODOM take the first one and scans after the last take the last one.
-      With ``odometry="record"`` (default) ODOM lines are only checked and counted.
+      With ``odometry="record"`` (default) ODOM lines are only checked and counted, unless
+      RAWLASER1 records are read.
     - Everything else (NEFF, PARAMs not listed above, g2o ``VERTEX_SE2``/``EDGE_SE2``,
       ``#`` comments, blank lines, any other upper-case record name) is skipped and counted in
       :attr:`skipped_records` by type (``"comment"``, ``"blank"`` or the record name).
@@ -391,6 +478,7 @@ class CarmenReader:
         self.stamp_report = StampReport(policy=self.config.stamps)
         self._line_no = 0  # the last line read by _record_lines
         self._unterminated = 0  # the line the file ends inside (no newline after it), or 0
+        self._raw: _RawLasers | None = None  # set at the first RAWLASER1 record (_raw_lasers)
 
     @property
     def strict(self) -> bool:
@@ -404,7 +492,8 @@ class CarmenReader:
         )
 
     def count_scans(self) -> int:
-        """Number of laser records (FLASER, RLASER, ROBOTLASER1) in the log.
+        """Number of laser records the log is read from: FLASER, RLASER and ROBOTLASER1, or
+        RAWLASER1 in a log without those (see the class).
 
         A fast pass that looks only at the first token of each line and parses no ranges, so
         malformed laser records are counted too (in lenient mode iteration may yield fewer).
@@ -412,18 +501,44 @@ class CarmenReader:
         Raises:
             LogFormatError: the file cannot be read.
         """
-        match = _LASER_LINE.match
-        count = 0
+        match, match_raw = _LASER_LINE.match, _RAW_LASER_LINE.match
+        count = raw = 0
         try:
             with open_text(self.path) as fh:
                 for line in fh:
                     if match(line):
                         count += 1
+                    elif match_raw(line):
+                        raw += 1
         except EOFError:  # a .gz cut short: the records before the cut (see the class)
-            return count
+            pass
         except (OSError, zlib.error) as exc:
             raise LogFormatError(f"{self.path}: cannot read the log ({exc})") from exc
-        return count
+        return count or raw
+
+    def _raw_lasers(self) -> _RawLasers:
+        """Whether this log's RAWLASER1 records are read: one pass over the first words of its
+        lines, to the first laser record with a pose (then not) or to the end (then they
+        are; and whether it holds ODOM records). Kept for the iteration.
+
+        Raises:
+            LogFormatError: the file cannot be read.
+        """
+        if self._raw is None:
+            has_odom = False
+            try:
+                with open_text(self.path) as fh:
+                    for line in fh:
+                        if _LASER_LINE.match(line):
+                            self._raw = _RawLasers(read=False, has_odom=has_odom)
+                            return self._raw
+                        has_odom = has_odom or _ODOM_LINE.match(line) is not None
+            except EOFError:  # a .gz cut short: its records up to the cut
+                pass
+            except (OSError, zlib.error) as exc:
+                raise LogFormatError(f"{self.path}: cannot read the log ({exc})") from exc
+            self._raw = _RawLasers(read=True, has_odom=has_odom)
+        return self._raw
 
     def __iter__(self) -> Iterator[LaserScan]:
         """Stream the scans in timestamp order (see the class docstring for the rules).
@@ -484,6 +599,7 @@ class CarmenReader:
         self.truncated_at = None
         self._line_no = self._unterminated = 0
         self.n_odom_records = 0
+        self._raw = None
         params = _Params()
         use_odom = self.config.odometry == "odom"
         odom = _OdomTrack()
@@ -505,7 +621,11 @@ class CarmenReader:
                         if item is None:
                             continue
                         if isinstance(item, _PendingScan):
-                            ready = self._place_scan(item, odom, use_odom, line_no)
+                            # a RAWLASER1 scan has no pose: the ODOM records place it
+                            by_odom = use_odom or (
+                                item.record_odom is None and self._raw_lasers().has_odom
+                            )
+                            ready = self._place_scan(item, odom, by_odom, line_no)
                         else:
                             ready = [
                                 ("ODOM", self._finish(sc, odom.t, odom.p)) for sc in odom.add(*item)
@@ -523,7 +643,27 @@ class CarmenReader:
         for scan in self._flush_pending(odom):
             n_scans += 1
             yield "ODOM", scan
+        if self._raw is not None and self._raw.read:
+            self.skipped_records.pop("ODOM", None)  # they placed the RAWLASER1 scans
+        if n_scans == 0:
+            self._refuse_unread_lasers()
         self._warn_malformed(n_scans)
+
+    def _refuse_unread_lasers(self) -> None:
+        """For a log that gave no scan: refuse it if it holds laser records of a kind this
+        reader does not read, naming them (a log of ``RAWLASER2`` records, say).
+
+        Raises:
+            LogFormatError: the log holds such records.
+        """
+        unread = sorted(k for k in self.skipped_records if "LASER" in k)
+        if unread:
+            held = ", ".join(f"{self.skipped_records[k]} {k}" for k in unread)
+            raise LogFormatError(
+                f"{self.path}: the log's laser records ({held}) are of a kind this reader does "
+                "not read; it reads FLASER, RLASER and ROBOTLASER1 records, or RAWLASER1 (the "
+                "front laser) from a log without those"
+            )
 
     def _record_lines(self, fh: Iterable[str]) -> Iterator[tuple[int, str, list[str]]]:
         """``(line number, record name, tokens)`` of every line that is not blank or a comment
@@ -543,21 +683,23 @@ class CarmenReader:
     def _parse_record(
         self, kind: str, tokens: list[str], params: _Params, line_no: int, use_odom: bool
     ) -> _PendingScan | tuple[float, FloatArray] | None:
-        """A laser record's scan, an ODOM record's ``(stamp, pose)`` (when odometry comes from
-        ODOM records), or ``None`` for a record that is skipped (counted) or a PARAM.
+        """A laser record's scan, an ODOM record's ``(stamp, pose)``, or ``None`` for a record
+        that is skipped (counted) or a PARAM.
 
         Raises:
             _Malformed: the line is not a valid record.
         """
         if kind in _LASER_RECORDS:
             return self._parse_laser(kind, tokens, params, line_no)
+        if kind == _RAW_LASER and self._raw_lasers().read:
+            return self._parse_rawlaser(tokens, params, line_no)
         if kind == "ODOM":
             t, pose = self._parse_odom(tokens)
             self.n_odom_records += 1
-            if use_odom:
-                return t, pose
-            self.skipped_records["ODOM"] += 1
-        elif kind == "PARAM":
+            if not use_odom:
+                self.skipped_records["ODOM"] += 1
+            return t, pose  # kept in either mode: RAWLASER1 scans are placed with them
+        if kind == "PARAM":
             if not self._parse_param(tokens, params):
                 self.skipped_records["PARAM"] += 1
         elif _RECORD_NAME.match(kind):
@@ -584,10 +726,15 @@ class CarmenReader:
             return [("ODOM", self._finish(scan, odom.t, odom.p))]
         odom.pending.append(scan)
         if len(odom.pending) > self.config.max_pending_scans:
+            hint = (
+                "RAWLASER1 records carry no pose of their own"
+                if scan.record_odom is None
+                else "open the log with odometry='record' to use the poses inside the laser records"
+            )
             raise LogFormatError(
                 f"{self.path}:{line_no}: {len(odom.pending)} scans since line "
                 f"{odom.pending[0].line_no} have no ODOM record at or after their timestamp; "
-                "open the log with odometry='record' to use the poses inside the laser records"
+                f"{hint}"
             )
         return []
 
@@ -598,6 +745,11 @@ class CarmenReader:
             LogFormatError: scans wait but the log has no valid ODOM record at all.
         """
         if odom.pending and not odom.t:
+            if odom.pending[0].record_odom is None:
+                raise LogFormatError(
+                    f"{self.path}: the log has no valid ODOM record to place its "
+                    f"{len(odom.pending)} RAWLASER1 scans (they carry no pose of their own)"
+                )
             raise LogFormatError(
                 f"{self.path}: odometry='odom' but the log has no valid ODOM record for its "
                 f"{len(odom.pending)} scans; open it with odometry='record' to use the poses "
@@ -692,34 +844,8 @@ class CarmenReader:
 
     def _parse_robotlaser(self, tokens: list[str], line_no: int) -> _PendingScan:
         kind = "ROBOTLASER1"
-        if len(tokens) < 9:
-            raise _Malformed(
-                f"{kind} record has {len(tokens)} fields; the header alone needs 9 (a "
-                "truncated line?)"
-            )
-        _numbers(tokens, 1, 2, f"{kind} laser_type")
-        max_range = _float(tokens[5], f"{kind} max_range")
-        if max_range <= 0.0:
-            raise _Malformed(f"{kind} max_range {tokens[5]!r} must be positive")
-        _numbers(tokens, 3, 4, f"{kind} fov")
-        _numbers(tokens, 6, 8, f"{kind} accuracy/remission_mode")
-        n = _int(tokens[8], f"{kind} beam count")
-        if len(tokens) < 9 + n + 1:
-            raise _Malformed(
-                f"{kind} declares {n} beams but the line ends after {len(tokens) - 9} values "
-                "(a truncated line?)"
-            )
-        n_rem = _int(tokens[9 + n], f"{kind} remission count (field {10 + n}, after {n} beams)")
-        expected = n + n_rem + 24
-        if len(tokens) != expected:
-            raise _Malformed(
-                f"{kind} declares {n} beams and {n_rem} remission values: {expected} fields "
-                f"expected, the line has {len(tokens)} (wrong beam count, or a truncated line?)"
-            )
-        ranges = _ranges(tokens, 9, n, kind)
-        at = 10 + n
-        _numbers(tokens, at, at + n_rem, f"{kind} remission value")
-        at += n_rem
+        beams = _configured_beams(tokens, kind, _ROBOTLASER_TAIL)
+        at = beams.tail
         laser = _pose(tokens, at, f"{kind} laser pose")
         robot = _pose(tokens, at + 3, f"{kind} robot pose")
         for i, name in enumerate(("tv", "rv", "forward_safety_dist", "side_safety_dist")):
@@ -729,12 +855,27 @@ class CarmenReader:
         return _PendingScan(
             line_no=line_no,
             stamp_s=stamp,
-            ranges_m=ranges,
-            angles_rad=_robotlaser_angles(tokens[2], tokens[4], n),
-            range_max_m=max_range,
+            ranges_m=beams.ranges_m,
+            angles_rad=beams.angles_rad,
+            range_max_m=beams.range_max_m,
             record_odom=robot,
             laser_offset=_between(robot, laser),
             frame="ROBOTLASER1",
+        )
+
+    @staticmethod
+    def _parse_rawlaser(tokens: list[str], params: _Params, line_no: int) -> _PendingScan:
+        beams = _configured_beams(tokens, _RAW_LASER, _TRAILER_FIELDS)
+        offset_m = params.front_offset_m
+        return _PendingScan(
+            line_no=line_no,
+            stamp_s=_trailer(tokens, _RAW_LASER),
+            ranges_m=beams.ranges_m,
+            angles_rad=beams.angles_rad,
+            range_max_m=beams.range_max_m,
+            record_odom=None,
+            laser_offset=np.array([0.0 if offset_m is None else offset_m, 0.0, 0.0]),
+            frame="ODOM",
         )
 
     @staticmethod

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import gzip
 import logging
 import math
@@ -545,6 +546,134 @@ def test_round_trip_robotlaser1_arbitrary_fov(tmp_path: Path) -> None:
     _assert_round_trip(scans, back)
     with pytest.raises(LogFormatError, match="not the FLASER grid"):
         write_carmen(tmp_path / "x.clf", scans)
+
+
+# ---------------------------------------------------------------------------------------------
+# RAWLASER1: the front laser's own records, without a pose, placed by the ODOM records
+# ---------------------------------------------------------------------------------------------
+
+
+def _as_raw_records(robotlaser_log: Path) -> list[str]:
+    """The scans of a ROBOTLASER1 log as CARMEN's base and laser modules log them: per scan an
+    ODOM record at its stamp (the robot pose) and a RAWLASER1 record (the laser's
+    configuration, ranges and remissions, the same text; no pose)."""
+    lines = []
+    for line in robotlaser_log.read_text().splitlines():
+        tok = line.split()
+        if tok[:1] != ["ROBOTLASER1"]:
+            continue
+        n = int(tok[8])
+        tail = 10 + n + int(tok[9 + n])  # after the remissions: laser pose, robot pose, ...
+        lines.append(" ".join(["ODOM", *tok[tail + 3 : tail + 6], "0 0 0", *tok[-3:]]))
+        lines.append(" ".join(["RAWLASER1", *tok[1:tail], *tok[-3:]]))
+    return lines
+
+
+def _front_laser_scans(tmp_path: Path) -> tuple[Path, list[LaserScan]]:
+    """A 270 deg scanner at 0.5 deg, 0.12 m ahead of the robot's origin, as ROBOTLASER1 records,
+    and the scans read back from them."""
+    angles = np.radians(-135.0 + 0.5 * np.arange(541))
+    scans = [
+        dataclasses.replace(s, laser_offset=np.array([0.12, 0.0, 0.0]))
+        for s in _synthetic_scans(20, 541, angles)
+    ]
+    path = tmp_path / "robot.log"
+    write_carmen(path, scans, laser_record="ROBOTLASER1")
+    return path, list(open_log(path))
+
+
+def test_a_rawlaser1_log_reads_as_its_robotlaser1_twin(tmp_path: Path) -> None:
+    """The same scans as RAWLASER1 + ODOM records: every scan the same bits as read from the
+    ROBOTLASER1 records (the odometry is the ODOM record at the scan's own stamp), the
+    laser's mounting from ``PARAM robot_frontlaser_offset``."""
+    robot, expected = _front_laser_scans(tmp_path)
+    raw = tmp_path / "raw.txt"  # an unknown suffix: told a CARMEN log by its first lines
+    raw.write_text(
+        "PARAM robot_frontlaser_offset 0.12 nohost 0\n" + "\n".join(_as_raw_records(robot)) + "\n"
+    )
+    reader = open_log(raw)
+    assert isinstance(reader, CarmenReader)
+    got = list(reader)
+    assert reader.count_scans() == len(got) == 20
+    for a, b in zip(expected, got, strict=True):
+        assert (b.stamp_s, b.range_max_m, b.odom_break) == (a.stamp_s, a.range_max_m, a.odom_break)
+        np.testing.assert_array_equal(b.ranges_m, a.ranges_m)
+        np.testing.assert_array_equal(b.angles_rad, a.angles_rad)
+        np.testing.assert_array_equal(b.odom_pose, a.odom_pose)
+        np.testing.assert_array_equal(b.laser_offset, [0.12, 0.0, 0.0])
+        # ROBOTLASER1's offset is between() of two poses written to 1e-6
+        np.testing.assert_allclose(b.laser_offset, a.laser_offset, atol=2.5e-6)
+    assert reader.n_odom_records == 20 and "ODOM" not in reader.skipped_records
+
+
+def test_rawlaser1_beside_records_with_a_pose_is_skipped(tmp_path: Path) -> None:
+    """A log of both kinds holds every scan twice (CARMEN's laser module and its robot module):
+    only the records with a pose are read, even where a RAWLASER1 record comes first."""
+    robot, expected = _front_laser_scans(tmp_path)
+    raw = _as_raw_records(robot)
+    records = [line for line in robot.read_text().splitlines() if line.startswith("ROBOTLASER1")]
+    both = tmp_path / "both.log"
+    both.write_text(
+        "".join(f"{r}\n{o}\n{s}\n" for o, r, s in zip(raw[::2], raw[1::2], records, strict=True))
+    )
+    reader = CarmenReader(both)
+    got = list(reader)
+    assert reader.count_scans() == len(got) == 20
+    assert reader.skipped_records["RAWLASER1"] == 20 and reader.skipped_records["ODOM"] == 20
+    for a, b in zip(expected, got, strict=True):
+        np.testing.assert_array_equal(b.ranges_m, a.ranges_m)
+        np.testing.assert_array_equal(b.odom_pose, a.odom_pose)
+        np.testing.assert_array_equal(b.laser_offset, a.laser_offset)
+
+
+_RAW_HAND_LOG = (
+    "ODOM 0.0 0.0 0.0 0 0 0 10.0 h 10.0\n"
+    # start -0.5 rad, 0.25 rad a beam, max range 20; 5 beams, 2 remission values
+    "RAWLASER1 0 -0.5 1.0 0.25 20.0 0.01 0 5 1 2 3 20 nan 2 0.5 0.7 10.25 h 10.3\n"
+    "ODOM 2.0 0.0 1.0 0 0 0 11.0 h 11.0\n"
+    "RAWLASER2 0 -0.5 1.0 0.25 20.0 0.01 0 2 1 2 0 10.5 h 10.5\n"  # a rear laser: not read
+)
+
+
+@pytest.mark.parametrize("odometry", ["record", "odom"])
+def test_rawlaser1_by_hand(tmp_path: Path, odometry: str) -> None:
+    path = tmp_path / "raw.log"
+    path.write_text(_RAW_HAND_LOG)
+    reader = CarmenReader(path, odometry=odometry)
+    (scan,) = list(reader)
+    assert scan.stamp_s == 10.25 and scan.range_max_m == 20.0
+    np.testing.assert_array_equal(scan.angles_rad, [-0.5, -0.25, 0.0, 0.25, 0.5])
+    np.testing.assert_array_equal(scan.ranges_m, [1.0, 2.0, 3.0, 20.0, np.inf])
+    np.testing.assert_array_equal(scan.valid_mask(), [True, True, True, False, False])
+    # a quarter of the way from the ODOM at 10 s to the one at 11 s
+    np.testing.assert_array_equal(scan.odom_pose, [0.5, 0.0, 0.25])
+    np.testing.assert_array_equal(scan.laser_offset, [0.0, 0.0, 0.0])  # no PARAM
+    assert reader.skipped_records == {"RAWLASER2": 1}
+
+
+def test_rawlaser1_without_odom_records_is_a_laser_only_log(tmp_path: Path) -> None:
+    path = tmp_path / "raw.log"
+    path.write_text("".join(x for x in _RAW_HAND_LOG.splitlines(True) if "ODOM" not in x))
+    (scan,) = list(CarmenReader(path))
+    assert scan.odom_pose is None and scan.n_beams == 5
+    with pytest.raises(LogFormatError, match="no valid ODOM record to place its 1 RAWLASER1"):
+        list(CarmenReader(path, odometry="odom"))
+
+
+def test_a_log_of_laser_records_it_does_not_read_is_refused_by_name(tmp_path: Path) -> None:
+    path = tmp_path / "rear.log"
+    path.write_text(_RAW_HAND_LOG.replace("RAWLASER1", "RAWLASER3"))
+    with pytest.raises(LogFormatError) as info:
+        list(CarmenReader(path))
+    assert str(info.value).startswith(f"{path}: the log's laser records (1 RAWLASER2, 1 RAWLASER3)")
+    assert "RAWLASER1 (the front laser)" in str(info.value)
+
+
+def test_a_malformed_rawlaser1_record_names_its_line(tmp_path: Path) -> None:
+    path = tmp_path / "bad.log"
+    path.write_text(_RAW_HAND_LOG.replace("nan 2 0.5 0.7", "nan 3 0.5 0.7"))
+    with pytest.raises(LogFormatError, match=rf"{path}:2: RAWLASER1 declares 5 beams and 3 rem"):
+        list(CarmenReader(path))
 
 
 def test_round_trip_real_mit_csail(tmp_path: Path, mit_csail_scans: list[LaserScan]) -> None:
