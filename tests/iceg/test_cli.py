@@ -80,6 +80,15 @@ def test_log_without_scans(tmp_path: Path) -> None:
     _assert_one_line_error(["run", str(log)], tmp_path / "o", "no laser scans")
 
 
+def test_a_log_of_laser_records_the_reader_skips_is_refused_by_name(tmp_path: Path) -> None:
+    log = tmp_path / "rear.log"
+    log.write_text(
+        "ODOM 0.0 0.0 0.0 0 0 0 10.0 h 10.0\n"
+        "RAWLASER2 0 -0.5 1.0 0.25 20.0 0.01 0 5 1 2 3 4 5 0 10.25 h 10.3\n"
+    )
+    _assert_one_line_error(["run", str(log)], tmp_path / "o", "laser records (1 RAWLASER2)")
+
+
 @pytest.mark.skipif(sys.platform != "linux", reason="the helper processes are Linux only")
 def test_a_malformed_log_is_one_line_with_the_helpers_running(tmp_path: Path) -> None:
     # The helpers are stopped at once when the run fails; they inherit the command's SIGTERM
