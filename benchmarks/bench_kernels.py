@@ -22,6 +22,7 @@ levers measured, none landed"); the last line sums it over the replayed kernels'
 
 Run: ``python benchmarks/bench_kernels.py [log] [--workers N] [--replay N] [--passes N]
 [--sweep-mb MB]``
+(``--replay 0``: the run's figures only, nothing replayed).
 """
 
 from __future__ import annotations
@@ -128,7 +129,9 @@ class _Timings:
     def start_recording(self) -> None:
         """Strides from the calls counted so far (the first run), then time and record."""
         self.stride = {
-            name: max(1, n // self.keep) for name, n in self.calls.items() if name in REPLAYED
+            name: max(1, n // self.keep)
+            for name, n in self.calls.items()
+            if name in REPLAYED and self.keep > 0
         }
         self.calls.clear()
         self.recording = True
@@ -175,7 +178,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("log", nargs="?", type=Path, default=DATA / "mit-csail.clf")
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--replay", type=int, default=300, help="calls kept per replayed kernel")
+    ap.add_argument(
+        "--replay", type=int, default=300, help="calls kept per replayed kernel (0: none)"
+    )
     ap.add_argument("--passes", type=int, default=7)
     ap.add_argument("--top", type=int, default=25)
     ap.add_argument(
@@ -218,7 +223,7 @@ def main() -> None:
             f"{name:26s} {timings.calls[name]:6d} {timings.total_s[name]:7.3f} "
             f"{run_us:8.1f} {replayed}"
         )
-    if sweep is not None:
+    if sweep is not None and args.replay > 0:
         print(
             f"the replayed kernels above, swept against alone, times their calls: "
             f"{evicted_s:.2f} s of the run ({args.sweep_mb:g} MB swept before each call)"
