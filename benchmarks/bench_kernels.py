@@ -203,10 +203,10 @@ def main() -> None:
         f"process's kernels {in_kernels:.2f} s ({100 * in_kernels / wall:.0f} %)"
     )
     sweep = np.ones(max(1, int(args.sweep_mb * 2**20) // 8)) if args.sweep_mb > 0 else None
-    print(
-        f"{'kernel':26s} {'calls':>6s} {'run s':>7s} {'run µs':>8s} {'alone µs':>9s} "
-        f"{'ratio':>6s} {'swept µs':>9s} {'ratio':>6s}"
-    )
+    header = f"{'kernel':26s} {'calls':>6s} {'run s':>7s} {'run µs':>8s}"
+    if args.replay > 0:
+        header += f" {'alone µs':>9s} {'ratio':>6s} {'swept µs':>9s} {'ratio':>6s}"
+    print(header)
     evicted_s = 0.0
     for name in sorted(timings.total_s, key=lambda k: -timings.total_s[k])[: args.top]:
         run_us = 1e6 * timings.total_s[name] / timings.calls[name]
