@@ -672,8 +672,9 @@ def test_a_log_of_laser_records_it_does_not_read_is_refused_by_name(tmp_path: Pa
 def test_a_malformed_rawlaser1_record_names_its_line(tmp_path: Path) -> None:
     path = tmp_path / "bad.log"
     path.write_text(_RAW_HAND_LOG.replace("nan 2 0.5 0.7", "nan 3 0.5 0.7"))
-    with pytest.raises(LogFormatError, match=rf"{path}:2: RAWLASER1 declares 5 beams and 3 rem"):
+    with pytest.raises(LogFormatError) as info:
         list(CarmenReader(path))
+    assert str(info.value).startswith(f"{path}:2: RAWLASER1 declares 5 beams and 3 remission")
 
 
 def test_round_trip_real_mit_csail(tmp_path: Path, mit_csail_scans: list[LaserScan]) -> None:
