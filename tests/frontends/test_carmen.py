@@ -660,21 +660,30 @@ def test_rawlaser1_without_odom_records_is_a_laser_only_log(tmp_path: Path) -> N
         list(CarmenReader(path, odometry="odom"))
 
 
-def test_a_log_of_laser_records_it_does_not_read_is_refused_by_name(tmp_path: Path) -> None:
-    path = tmp_path / "rear.log"
-    path.write_text(_RAW_HAND_LOG.replace("RAWLASER1", "RAWLASER3"))
+@pytest.mark.parametrize(
+    ("old", "new", "where", "message"),
+    [
+        # no laser record the reader reads: the ones it skips, named
+        (
+            "RAWLASER1",
+            "RAWLASER3",
+            "",
+            "the log's laser records (1 RAWLASER2, 1 RAWLASER3) "
+            "are of a kind this reader does not read; it reads FLASER, RLASER and ROBOTLASER1 "
+            "records, or RAWLASER1 (the front laser) from a log without those",
+        ),
+        # one remission value declared too many: the line, and what is wrong with it
+        ("nan 2 0.5 0.7", "nan 3 0.5 0.7", ":2", "RAWLASER1 declares 5 beams and 3 remission"),
+    ],
+)
+def test_a_raw_laser_log_refused_says_why_and_where(
+    tmp_path: Path, old: str, new: str, where: str, message: str
+) -> None:
+    path = tmp_path / "raw.log"
+    path.write_text(_RAW_HAND_LOG.replace(old, new))
     with pytest.raises(LogFormatError) as info:
         list(CarmenReader(path))
-    assert str(info.value).startswith(f"{path}: the log's laser records (1 RAWLASER2, 1 RAWLASER3)")
-    assert "RAWLASER1 (the front laser)" in str(info.value)
-
-
-def test_a_malformed_rawlaser1_record_names_its_line(tmp_path: Path) -> None:
-    path = tmp_path / "bad.log"
-    path.write_text(_RAW_HAND_LOG.replace("nan 2 0.5 0.7", "nan 3 0.5 0.7"))
-    with pytest.raises(LogFormatError) as info:
-        list(CarmenReader(path))
-    assert str(info.value).startswith(f"{path}:2: RAWLASER1 declares 5 beams and 3 remission")
+    assert str(info.value).startswith(f"{path}{where}: {message}")
 
 
 def test_round_trip_real_mit_csail(tmp_path: Path, mit_csail_scans: list[LaserScan]) -> None:
