@@ -32,6 +32,7 @@ from the ODOM records.
 from __future__ import annotations
 
 import bisect
+import contextlib
 import dataclasses
 import gzip
 import logging
@@ -503,18 +504,29 @@ class CarmenReader:
         """
         match, match_raw = _LASER_LINE.match, _RAW_LASER_LINE.match
         count = raw = 0
+        with self._quick_pass() as lines:
+            for line in lines:
+                if match(line):
+                    count += 1
+                elif match_raw(line):
+                    raw += 1
+        return count or raw
+
+    @contextlib.contextmanager
+    def _quick_pass(self) -> Iterator[Iterable[str]]:
+        """The log's lines for a pass that reads their first words only; a ``.gz`` cut short
+        ends it at the cut (see the class).
+
+        Raises:
+            LogFormatError: the file cannot be read.
+        """
         try:
             with open_text(self.path) as fh:
-                for line in fh:
-                    if match(line):
-                        count += 1
-                    elif match_raw(line):
-                        raw += 1
-        except EOFError:  # a .gz cut short: the records before the cut (see the class)
+                yield fh
+        except EOFError:  # a .gz cut short: the records before the cut
             pass
         except (OSError, zlib.error) as exc:
             raise LogFormatError(f"{self.path}: cannot read the log ({exc})") from exc
-        return count or raw
 
     def _raw_lasers(self) -> _RawLasers:
         """Whether this log's RAWLASER1 records are read: one pass over the first words of its
@@ -526,17 +538,12 @@ class CarmenReader:
         """
         if self._raw is None:
             has_odom = False
-            try:
-                with open_text(self.path) as fh:
-                    for line in fh:
-                        if _LASER_LINE.match(line):
-                            self._raw = _RawLasers(read=False, has_odom=has_odom)
-                            return self._raw
-                        has_odom = has_odom or _ODOM_LINE.match(line) is not None
-            except EOFError:  # a .gz cut short: its records up to the cut
-                pass
-            except (OSError, zlib.error) as exc:
-                raise LogFormatError(f"{self.path}: cannot read the log ({exc})") from exc
+            with self._quick_pass() as lines:
+                for line in lines:
+                    if _LASER_LINE.match(line):
+                        self._raw = _RawLasers(read=False, has_odom=has_odom)
+                        return self._raw
+                    has_odom = has_odom or _ODOM_LINE.match(line) is not None
             self._raw = _RawLasers(read=True, has_odom=has_odom)
         return self._raw
 
