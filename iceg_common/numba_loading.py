@@ -1,7 +1,7 @@
 """numba's cached kernels loaded without parsing their linking bitcode (issue 13, cold start).
 
-The project's kernels take :func:`njit` from here, so that :func:`install` has run before any
-of them loads.
+The project's kernels take :func:`njit` from here, so that :func:`install` (and
+:func:`iceg_common.numba_boxing.install`) has run before any of them loads or compiles.
 
 numba keeps a compiled kernel in its cache as object code and, beside it, the kernel's LLVM
 bitcode, which a kernel compiled later links in to inline it. Loading a kernel from the
@@ -30,7 +30,7 @@ import numpy as np
 from numba import njit
 from numba.core import codegen
 
-from iceg_common import scipy_lapack
+from iceg_common import numba_boxing, scipy_lapack
 
 __all__ = ["elf_defined_symbols", "install", "njit"]
 
@@ -198,5 +198,7 @@ def install() -> bool:
 
 
 install()
+# the arrays the kernels return boxed without a call back into Python
+numba_boxing.install()
 # numba's linear algebra finds scipy's BLAS and LAPACK modules without scipy.linalg's package
 scipy_lapack.preload()
