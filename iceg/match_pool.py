@@ -119,6 +119,7 @@ class MatchPool:
         self.remote = 0
         self.local = 0
         self._conn: Connection | None = None
+        self._readable: forked.Readable | None = None  # of _conn
         self._proc: BaseProcess | None = None
         self._open = False  # inside the with-block
         self._started = False  # the helper was forked (or failed to be)
@@ -149,6 +150,7 @@ class MatchPool:
             with forked.signals_held():
                 self._proc.start()
             child.close()
+            self._readable = forked.Readable(self._conn)
         except OSError as exc:
             log.warning("match helper off (%s); matching here", exc)
             self._conn = self._proc = None
@@ -289,11 +291,13 @@ class MatchPool:
         """A result of ``batch`` from the helper (None for a match that failed there), if
         one arrives within ``timeout_s`` (None: however long it takes; results of older
         batches are dropped)."""
-        conn = self._conn
+        conn, readable = self._conn, self._readable
         deadline = time.perf_counter() + (0.0 if timeout_s is None else timeout_s)
         try:
-            while conn is not None and conn.poll(
-                None if timeout_s is None else max(0.0, deadline - time.perf_counter())
+            while (
+                conn is not None
+                and readable is not None
+                and readable(None if timeout_s is None else deadline - time.perf_counter())
             ):
                 got, k, result, cpu_s = conn.recv()
                 if result is not None:

@@ -150,6 +150,7 @@ class _Worker:
         with forked.signals_held():
             self.proc.start()
         child.close()
+        self.readable = forked.Readable(self.conn)
         self.alive = True
         self.outstanding = 0  # scans sent whose results have not been read
 
@@ -172,7 +173,7 @@ class _Worker:
     def drain(self, inbox: _Inbox) -> None:
         """Move every result already arrived into ``inbox`` (never blocks)."""
         try:
-            while self.alive and self.conn.poll(0):
+            while self.alive and self.readable():
                 inbox.put(*self.conn.recv())
                 self.outstanding -= 1
         except (EOFError, OSError):
@@ -196,9 +197,7 @@ class _Worker:
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         try:
             while self.alive and pending():
-                if deadline is not None and not self.conn.poll(
-                    max(0.0, deadline - time.monotonic())
-                ):
+                if deadline is not None and not self.readable(deadline - time.monotonic()):
                     return
                 inbox.put(*self.conn.recv())
                 self.outstanding -= 1

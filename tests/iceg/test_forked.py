@@ -1,4 +1,5 @@
-"""The forked helpers' shared pieces (iceg.forked): their signals."""
+"""The forked helpers' shared pieces (iceg.forked): their signals, and the check that a pipe
+has something to read."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import multiprocessing
 import signal
 import sys
 import time
+from multiprocessing.connection import Connection
 
 import pytest
 
@@ -72,3 +74,52 @@ def test_a_helper_terminated_as_it_starts_ends_by_the_signal() -> None:
     finally:
         signal.signal(signal.SIGTERM, previous)
     assert codes == [-signal.SIGTERM] * 5
+
+
+def test_readable_answers_as_connection_poll_in_every_state_of_a_pipe() -> None:
+    ours, theirs = multiprocessing.Pipe(duplex=True)
+    readable = forked.Readable(ours)
+    # nothing sent yet
+    assert readable() is False
+    assert ours.poll(0) is False
+    # a message waiting, then read
+    theirs.send(("a", 1))
+    assert readable() is True
+    assert ours.poll(0) is True
+    assert ours.recv() == ("a", 1)
+    assert readable() is False
+    # the other end closed: readable (the read then raises), as poll says
+    theirs.close()
+    assert readable() is True
+    assert ours.poll(0) is True
+    with pytest.raises(EOFError):
+        ours.recv()
+    # this end closed: an error, as poll's
+    ours.close()
+    with pytest.raises(OSError):
+        readable()
+    with pytest.raises(OSError):
+        ours.poll(0)
+
+
+def test_readable_waits_its_timeout_rounded_up_to_milliseconds_or_until_a_message() -> None:
+    ours, theirs = multiprocessing.Pipe(duplex=True)
+    readable = forked.Readable(ours)
+    t0 = time.monotonic()
+    assert readable(0.0004) is False  # waits at least the timeout: 1 ms, poll(2)'s step
+    assert time.monotonic() - t0 >= 0.0009
+    assert readable(-1.0) is False  # a deadline passed: no wait, as Connection.poll
+    sender = multiprocessing.get_context("fork").Process(
+        target=_send_later, args=(theirs, 0.2, "late")
+    )
+    sender.start()
+    try:
+        assert readable(None) is True  # no timeout: until the message arrives
+        assert ours.recv() == "late"
+    finally:
+        sender.join(5.0)
+
+
+def _send_later(conn: Connection, delay_s: float, msg: str) -> None:
+    time.sleep(delay_s)
+    conn.send(msg)
