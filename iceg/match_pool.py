@@ -189,7 +189,7 @@ class MatchPool:
             # a search's jobs share the new scan's features: sent with the first only
             features = None if job.features is held else job.features
             try:
-                self._conn.send((self._batch, k, features, job[1:]))
+                forked.send(self._conn, (self._batch, k, features, job[1:]))
             except (OSError, ValueError):
                 self._conn, helper = None, False
                 continue
@@ -333,6 +333,6 @@ def _serve(
         except Exception:  # the calling process runs it again and raises it there
             result = None
         try:
-            conn.send((batch, k, result, time.thread_time() - t0))
+            forked.send(conn, (batch, k, result, time.thread_time() - t0))
         except (OSError, ValueError):  # the calling process is gone
             return

@@ -163,7 +163,7 @@ class _Worker:
         if not self.alive or not batch or self.outstanding >= LOOKAHEAD_PER_WORKER:
             return False
         try:
-            self.conn.send(batch)
+            forked.send(self.conn, batch)
         except (OSError, ValueError):
             self.alive = False
             return False
@@ -247,7 +247,7 @@ def _serve(
                 except Exception:  # the calling process computes them when it reads them
                     products = None
             try:
-                conn.send((index, feats, products))
+                forked.send(conn, (index, feats, products))
             except (OSError, ValueError):  # the calling process is gone
                 return
 

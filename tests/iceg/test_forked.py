@@ -9,6 +9,7 @@ import sys
 import time
 from multiprocessing.connection import Connection
 
+import numpy as np
 import pytest
 
 from iceg import forked
@@ -123,3 +124,19 @@ def test_readable_waits_its_timeout_rounded_up_to_milliseconds_or_until_a_messag
 def _send_later(conn: Connection, delay_s: float, msg: str) -> None:
     time.sleep(delay_s)
     conn.send(msg)
+
+
+def test_send_puts_the_bytes_of_connection_send_on_the_pipe() -> None:
+    ours, theirs = multiprocessing.Pipe(duplex=True)
+    message = (3, 1, {"xy": np.arange(12.0).reshape(6, 2)}, None, 0.25)
+    ours.send(message)
+    forked.send(ours, message)
+    by_send, by_ours = theirs.recv_bytes(), theirs.recv_bytes()
+    assert by_ours == by_send
+    forked.send(ours, message)
+    got = theirs.recv()
+    assert got[:2] == (3, 1) and got[3:] == (None, 0.25)
+    assert np.array_equal(got[2]["xy"], message[2]["xy"])
+    ours.close()
+    with pytest.raises(OSError):
+        forked.send(ours, message)
