@@ -126,17 +126,54 @@ def _send_later(conn: Connection, delay_s: float, msg: str) -> None:
     conn.send(msg)
 
 
-def test_send_puts_the_bytes_of_connection_send_on_the_pipe() -> None:
+def _arrays() -> dict[str, np.ndarray]:
+    read_only = np.arange(4.0)
+    read_only.flags.writeable = False
+    return {
+        "f8": np.arange(12.0).reshape(6, 2) / 7.0,
+        "i8": np.arange(-3, 3, dtype=np.int64),
+        "f4": np.linspace(0, 1, 5, dtype=np.float32),
+        "bool": np.array([True, False, True]),
+        "empty": np.zeros((0, 2)),
+        "empty_middle": np.zeros((2, 0, 3), dtype=np.int32),
+        "scalar": np.array(3.25),
+        "big_endian": np.arange(3, dtype=">f8"),
+        "read_only": read_only,
+        "fortran": np.asfortranarray(np.arange(6.0).reshape(2, 3)),
+        "strided": np.arange(10.0)[::3],
+        "structured": np.zeros(2, dtype=[("x", "f8"), ("n", "i4")]),
+        "objects": np.array([None, "a"], dtype=object),
+    }
+
+
+def test_send_delivers_what_connection_send_delivers() -> None:
+    # every array as numpy's own pickle gives it back: dtype, shape, strides, flags, bytes
     ours, theirs = multiprocessing.Pipe(duplex=True)
-    message = (3, 1, {"xy": np.arange(12.0).reshape(6, 2)}, None, 0.25)
+    message = (3, 1, _arrays(), None, 0.25, "text")
     ours.send(message)
+    by_send = theirs.recv()
     forked.send(ours, message)
-    by_send, by_ours = theirs.recv_bytes(), theirs.recv_bytes()
-    assert by_ours == by_send
-    forked.send(ours, message)
-    got = theirs.recv()
-    assert got[:2] == (3, 1) and got[3:] == (None, 0.25)
-    assert np.array_equal(got[2]["xy"], message[2]["xy"])
+    by_ours = theirs.recv()
+    assert by_ours[:2] == (3, 1) and by_ours[3:] == (None, 0.25, "text")
+    assert by_ours[2].keys() == by_send[2].keys()
+    for name, a in by_send[2].items():
+        b = by_ours[2][name]
+        assert type(b) is np.ndarray, name
+        assert (b.dtype, b.shape, b.strides) == (a.dtype, a.shape, a.strides), name
+        for flag in ("c_contiguous", "f_contiguous", "aligned", "writeable"):
+            assert getattr(b.flags, flag) == getattr(a.flags, flag), (name, flag)
+        assert b.tobytes() == a.tobytes(), name
+    assert by_ours[2]["read_only"].flags.writeable  # as numpy's pickle: a new array
     ours.close()
     with pytest.raises(OSError):
         forked.send(ours, message)
+
+
+def test_a_plain_array_loads_as_one_constructor_call_over_its_bytes() -> None:
+    # what makes it cheaper to load: no _reconstruct, dtype built or __setstate__
+    import pickletools
+
+    text = bytes(forked.dumps(np.arange(6.0).reshape(2, 3)))
+    ops = [op.name for op, _, _ in pickletools.genops(text)]
+    assert ops.count("REDUCE") == 1 and "BUILD" not in ops and "BYTEARRAY8" in ops
+    assert "_reconstruct" not in str(text) and "dtype" not in str(text)
