@@ -127,7 +127,8 @@ def send(conn: Connection, message: object) -> None:
     which copies ``copyreg``'s dispatch table into each new instance for its reducers of
     connections, sockets and file descriptors (none of them in a helper's messages), and
     numpy's reduction of arrays. A feature worker's result (features and products, about 40
-    arrays, 33 KB) loads in about two thirds of the time, a match result in about a third.
+    arrays, 33 KB) loads in about two thirds of the time, a match result in one half to
+    three quarters (docs/design.md, "The helpers' pipes made cheaper").
 
     Raises:
         OSError: ``conn`` is closed or read-only, or the pipe broke (as ``Connection.send``).
