@@ -66,7 +66,7 @@ class Readable:
     milliseconds, as ``Connection.poll`` rounds it (the resolution of ``poll(2)``).
 
     Args:
-        conn: An open connection (its file descriptor is registered now).
+        conn: An open connection (its file descriptor is registered now); kept as ``conn``.
 
     Raises:
         OSError: ``conn`` is closed (here, or at a call after it was closed: its file
@@ -74,14 +74,14 @@ class Readable:
     """
 
     def __init__(self, conn: Connection) -> None:
-        self._conn = conn
+        self.conn = conn
         self._poller = select.poll()
         self._poller.register(conn.fileno(), select.POLLIN)
 
     def __call__(self, timeout_s: float | None = 0.0) -> bool:
         """Whether it is readable within ``timeout_s`` seconds (0: now, without waiting;
         None: wait however long it takes)."""
-        if self._conn.closed:
+        if self.conn.closed:
             raise OSError("handle is closed")
         ms = None if timeout_s is None else math.ceil(max(timeout_s, 0.0) * 1e3)
         return bool(self._poller.poll(ms))
@@ -137,14 +137,15 @@ def send(conn: Connection, message: object) -> None:
     conn.send_bytes(dumps(message))
 
 
-def next_message(conn: Connection, parent_pid: int) -> object | None:
-    """The helper's next message from its parent, or None when the parent has exited, the
-    pipe ended or broke (the helper should then return)."""
+def next_message(readable: Readable, parent_pid: int) -> object | None:
+    """The helper's next message from its parent on the connection ``readable`` checks, or
+    None when the parent has exited, the pipe ended or broke (the helper should then
+    return)."""
     try:
-        while not conn.poll(PARENT_CHECK_S):
+        while not readable(PARENT_CHECK_S):
             if os.getppid() != parent_pid:
                 return None
-        return conn.recv()
+        return readable.conn.recv()
     except Exception:  # the pipe ended or broke: the calling process is gone
         return None
 

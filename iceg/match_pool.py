@@ -322,7 +322,8 @@ def _serve(
     forked.helper_signals()
     parent_end.close()
     features: ScanFeatures | None = None
-    while (msg := forked.next_message(conn, parent_pid)) is not None:
+    readable = forked.Readable(conn)
+    while (msg := forked.next_message(readable, parent_pid)) is not None:
         batch, k, sent, rest = cast(tuple[int, int, ScanFeatures | None, tuple[Any, ...]], msg)
         features = features if sent is None else sent
         if taken[0] == batch and k >= taken[1]:

@@ -231,7 +231,8 @@ def _serve(
     for other in inherited:  # the parent's ends: never hold them open here
         other.close()
     _warm_up(config, precompute, later)
-    while (msg := forked.next_message(conn, parent_pid)) is not None:
+    readable = forked.Readable(conn)
+    while (msg := forked.next_message(readable, parent_pid)) is not None:
         for index, scan in cast(list[tuple[int, LaserScan]], msg):
             if index < floor.value:
                 feats: ScanFeatures | None = None

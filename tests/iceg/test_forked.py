@@ -4,6 +4,7 @@ has something to read."""
 from __future__ import annotations
 
 import multiprocessing
+import os
 import signal
 import sys
 import time
@@ -177,3 +178,12 @@ def test_a_plain_array_loads_as_one_constructor_call_over_its_bytes() -> None:
     ops = [op.name for op, _, _ in pickletools.genops(text)]
     assert ops.count("REDUCE") == 1 and "BUILD" not in ops and "BYTEARRAY8" in ops
     assert "_reconstruct" not in str(text) and "dtype" not in str(text)
+
+
+def test_next_message_reads_until_the_pipe_ends() -> None:
+    ours, theirs = multiprocessing.Pipe(duplex=True)
+    readable = forked.Readable(ours)
+    theirs.send(("job", 7))
+    assert forked.next_message(readable, os.getppid()) == ("job", 7)
+    theirs.close()  # the parent's end gone: the helper's loop ends
+    assert forked.next_message(readable, os.getppid()) is None
