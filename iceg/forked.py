@@ -1,8 +1,9 @@
 """What the forked helper processes share (the feature workers, :mod:`iceg.features.prefetch`;
 the match helper, :mod:`iceg.match_pool`; the input's process, :mod:`iceg.aside`): their
-signals, and the two ends of a helper's pipe: the helper waits for its next message while
-its parent lives, and the parent stops it without losing the pipe to a helper blocked on
-sending."""
+signals, and the two ends of a helper's pipe: messages pickled for it (:func:`send`), the
+check that one has arrived (:class:`Readable`), the helper waiting for its next message
+while its parent lives, and the parent stopping it without losing the pipe to a helper
+blocked on sending."""
 
 from __future__ import annotations
 
