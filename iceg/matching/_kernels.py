@@ -2422,6 +2422,78 @@ def _near_density(
     return acc, lo, hi
 
 
+#: A bin of :func:`density_peak` with at least this many samples that can be the peak
+#: bounds their near terms from its moments (:func:`_bin_near_bounds`), fewer one by one.
+_MOMENT_MIN_SAMPLES = 3
+#: Moments of :func:`_bin_near_bounds` (the Taylor polynomial of ``exp`` has this degree).
+_MOMENT_DEGREE = 6
+
+
+@njit(cache=True, nogil=True)
+def _bin_near_bounds(
+    a: int,
+    b: int,
+    ds: np.ndarray,
+    ws: np.ndarray,
+    kernel: float,
+    near: float,
+    t_low: np.ndarray,
+    t_high: np.ndarray,
+) -> tuple[int, int]:
+    """Bounds of the kernel density terms of the sorted samples ``a .. b-1`` (one bin, less
+    than a kernel width wide) from one pass over their common window, the samples ``[lo,
+    hi)`` within ``near`` plus the bin's half extent of its midpoint ``c``; every term of a
+    sample within ``near`` is in it, and every one outside lies beyond ``near``.
+
+    With ``s = x - c`` and ``t = y - c``, a term is ``exp(-s^2 / 2h^2) g_y exp(s t / h^2)``
+    where ``g_y = w_y exp(-t^2 / 2h^2)``; the last factor's Taylor polynomial of degree
+    :data:`_MOMENT_DEGREE` turns the sum over the window into a polynomial in ``s`` whose
+    coefficients are the moments ``sum g_y t^j``: one exponential per window sample for the
+    bin instead of one per pair. The remainder is at most ``U^(J+1) / (J+1)! e^U`` of the
+    sum of ``g``, ``U`` the largest ``|s t| / h^2`` (about 0.13 here); ``g`` comes from
+    :func:`_exp_near`. Writes ``t_low[x] <= terms <= t_high[x]`` for each sample ``x`` of
+    the bin and returns ``(lo, hi)``."""
+    c = 0.5 * (ds[a] + ds[b - 1])
+    half = max(c - ds[a], ds[b - 1] - c)
+    reach = near + half
+    lo = a
+    while lo > 0 and c - ds[lo - 1] <= reach:
+        lo -= 1
+    hi = b
+    while hi < ds.shape[0] and ds[hi] - c <= reach:
+        hi += 1
+    inv_h2 = 1.0 / (kernel * kernel)
+    m = np.zeros(_MOMENT_DEGREE + 1)
+    t_max = 0.0
+    for y in range(lo, hi):
+        t = ds[y] - c
+        t_max = max(t_max, abs(t))
+        g = ws[y] * _exp_near(0.5 * t * t * inv_h2)
+        for j in range(_MOMENT_DEGREE + 1):
+            m[j] += g
+            g *= t
+    for j in range(2, _MOMENT_DEGREE + 1):
+        m[j] /= math.gamma(j + 1.0)  # the polynomial's coefficients: moment / j!
+    u = half * t_max * inv_h2
+    e_u = math.exp(u)
+    rem = e_u
+    for j in range(1, _MOMENT_DEGREE + 2):
+        rem *= u / j
+    # Absolute error of the polynomial: the Taylor remainder, and the rounding of the
+    # moments' sums and of the polynomial (an ulp per operation of sums of absolute value
+    # at most m[0] e^U, twice over); the exponentials' relative error comes on top.
+    slack = (rem + (hi - lo + 2 * _MOMENT_DEGREE + 4) * 2.3e-16 * e_u) * m[0]
+    for x in range(a, b):
+        s = (ds[x] - c) * inv_h2
+        poly = m[_MOMENT_DEGREE]
+        for j in range(_MOMENT_DEGREE - 1, -1, -1):
+            poly = poly * s + m[j]
+        f = math.exp(-0.5 * (ds[x] - c) * s)
+        t_low[x] = max(0.0, f * (poly - slack) * (1.0 - _EXP_NEAR_ERROR))
+        t_high[x] = f * (poly + slack) * (1.0 + _EXP_NEAR_ERROR)
+    return lo, hi
+
+
 @njit(cache=True, nogil=True)
 def density_peak(d: np.ndarray, w: np.ndarray, kernel: float, max_abs: float) -> tuple[int, float]:
     """The sample of highest weighted Gaussian kernel density among those with
@@ -2516,18 +2588,28 @@ def density_peak(d: np.ndarray, w: np.ndarray, kernel: float, max_abs: float) ->
     tail = math.exp(-0.5 * _NEAR_WIDTHS * _NEAR_WIDTHS)
     low = -np.inf
     upper = np.full(n, -np.inf)
+    t_low = np.empty(n)  # bounds of each visited sample's terms within `near` (and more)
+    t_high = np.empty(n)
     for p in np.argsort(-bound, kind="mergesort"):
         if not eligible[p] or bound[p] < low:
             break
-        for x in range(first[p], first[p + 1]):
+        a, b = first[p], first[p + 1]
+        lo, hi, n_eligible = a, b, 0
+        for x in range(a, b):
+            if abs(ds[x]) <= max_abs:
+                n_eligible += 1
+        if n_eligible >= _MOMENT_MIN_SAMPLES:
+            lo, hi = _bin_near_bounds(a, b, ds, ws, kernel, near, t_low, t_high)
+        for x in range(a, b):
             if abs(ds[x]) > max_abs:
                 continue
-            t, lo, hi = _near_density(x, ds, ws, kernel, near)
+            if n_eligible < _MOMENT_MIN_SAMPLES:
+                t, lo, hi = _near_density(x, ds, ws, kernel, near)
+                t_low[x] = t * (1.0 - _EXP_NEAR_ERROR)
+                t_high[x] = t * (1.0 + _EXP_NEAR_ERROR)
             rest = cum_w[lo] + (cum_w[n] - cum_w[hi])
-            upper[x] = (t * (1.0 + _EXP_NEAR_ERROR) + (rest + slack_w) * tail) * (
-                1.0 + _BOUND_SLACK
-            )
-            low = max(low, t * (1.0 - _EXP_NEAR_ERROR) * (1.0 - _BOUND_SLACK))
+            upper[x] = (t_high[x] + (rest + slack_w) * tail) * (1.0 + _BOUND_SLACK)
+            low = max(low, t_low[x] * (1.0 - _BOUND_SLACK))
     best, best_k = -np.inf, -1
     for x in range(n):
         if upper[x] == -np.inf or upper[x] < low:  # not bounded (ineligible), or below
