@@ -2509,7 +2509,9 @@ def density_peak(d: np.ndarray, w: np.ndarray, kernel: float, max_abs: float) ->
     distance, plus the weight of all the others times the term at that distance. Bins are
     visited in decreasing bound until the next bound falls below the best lower bound found.
     A visited sample's density is bounded by its terms within ``_NEAR_WIDTHS`` kernels
-    (below) and those plus the rest of the weight times the term there (above). The samples
+    (below) and those plus the rest of the weight times the term there (above); a bin of
+    :data:`_MOMENT_MIN_SAMPLES` or more such samples bounds their terms from one pass over
+    its window (:func:`_bin_near_bounds`), a smaller one sample by sample. The samples
     whose upper bound reaches the best lower bound get their density summed in one fixed
     order (:func:`_density_at`), so the answer does not depend on which samples were
     bounded. Every bound has a slack (``_BOUND_SLACK``) far above the rounding of the sums.
