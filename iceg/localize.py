@@ -212,6 +212,17 @@ class FixedMap:
                 self._places[key] = got
         return got
 
+    def _kept_places(self, rows: list[int], k: int) -> Iterator[ScanFeatures]:
+        """The references of the places of node rows ``rows`` (``k`` nodes each) that this map
+        keeps (:meth:`_place_reference`), each built now, until the first one it does not
+        keep."""
+        for row in rows:
+            self._place_reference(row, k)
+            kept = self._places.get((row, k))
+            if kept is None:
+                return
+            yield kept[1].features
+
     def _match_reference(
         self,
         feats: ScanFeatures,
@@ -253,15 +264,18 @@ class FixedMap:
         """
         st = settings
         places: list[tuple[int, MapReference]] = []
+        rows = self.candidates(st.candidate_spacing_m).tolist()
+        pool = self.match_pool
+        if pool is not None:  # before its helper starts: the places it will hold from the fork
+            pool.share(self._kept_places(rows, st.reference_nodes))
 
         def jobs() -> Iterator[MatchJob]:  # each reference built as its match is sent
-            for row in self.candidates(st.candidate_spacing_m).tolist():
+            for row in rows:
                 anchor, ref = self._place_reference(row, st.reference_nodes)
                 places.append((anchor, ref))
                 prediction = se2.between(self.poses[anchor], self.poses[row])
                 yield MatchJob(feats, ref.features, prediction, MatchBounds.global_())
 
-        pool = self.match_pool
         if pool is not None:
             results = pool.run_all(jobs())
         else:

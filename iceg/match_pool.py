@@ -13,7 +13,9 @@ helper's late result is dropped): a helper starved of CPU costs little. Either p
 computes the same result from the same inputs, so the run is the same bit for bit whatever
 the timing and with or without a helper (``tests/iceg/test_match_pool.py``). A global
 placement in a saved map, a batch of a match per place of the map, shares its matches with the
-helper through :meth:`MatchPool.run_all` (:func:`iceg.localize.match_helper`).
+helper through :meth:`MatchPool.run_all` (:func:`iceg.localize.match_helper`); the places'
+references, the same at every placement, are handed to the helper at its fork
+(:meth:`MatchPool.share`) and named by a key in the jobs instead of sent.
 
 The helper is forked at the first submitted search, when the calling process has loaded the
 matcher's compiled kernels, so it starts warm; it holds the matcher and its configuration
@@ -129,6 +131,8 @@ class MatchPool:
         # [batch, k]: the calling process runs the jobs k.. of that batch (shared with the
         # helper, which skips them; a job both run costs time, not a different result)
         self._taken: Any = None
+        # references the helper holds from the fork (:meth:`share`): id -> (key, object)
+        self._shared: dict[int, tuple[int, ScanFeatures]] = {}
 
     def __enter__(self) -> MatchPool:
         self._open = True
@@ -141,9 +145,10 @@ class MatchPool:
             ctx = multiprocessing.get_context("fork")
             self._conn, child = ctx.Pipe(duplex=True)
             self._taken = ctx.RawArray("q", 2)
+            shared = [ref for _, ref in self._shared.values()]
             self._proc = ctx.Process(
                 target=_serve,
-                args=(child, self._conn, os.getpid(), self.matcher, self._taken),
+                args=(child, self._conn, os.getpid(), self.matcher, self._taken, shared),
                 daemon=True,
                 name="iceg-matches",
             )
@@ -163,6 +168,20 @@ class MatchPool:
             return
         log.debug("match helper: %d matches there, %d here", self.remote, self.local)
         forked.stop(conn, proc)
+
+    def share(self, references: Iterable[ScanFeatures]) -> bool:
+        """Let the helper hold ``references`` from its fork, so that a job naming one of
+        them (the same object) sends a key instead of the reference: a global placement
+        matches every scan against the same places of a map, about 12 KB pickled each, and
+        the helper derives each place's pose-independent quantities once instead of once a
+        job. Only before the helper is forked (the first :meth:`submit`); returns whether
+        the references will be shared. The results are the same either way."""
+        if self._started or not self.want_helper or sys.platform != "linux":
+            return False
+        for ref in references:
+            if id(ref) not in self._shared:
+                self._shared[id(ref)] = (len(self._shared), ref)
+        return True
 
     def submit(self, jobs: Iterable[MatchJob]) -> SentMatches:
         """Send every job to the helper (forked on first use), each as soon as the iterable
@@ -188,8 +207,11 @@ class MatchPool:
                 sent.batch = self._batch
             # a search's jobs share the new scan's features: sent with the first only
             features = None if job.features is held else job.features
+            shared = self._shared.get(id(job.reference))
+            reference = shared[0] if shared is not None and shared[1] is job.reference else None
+            rest = job[1:] if reference is None else (reference, *job[2:])
             try:
-                forked.send(self._conn, (self._batch, k, features, job[1:]))
+                forked.send(self._conn, (self._batch, k, features, rest))
             except (OSError, ValueError):
                 self._conn, helper = None, False
                 continue
@@ -311,12 +333,18 @@ class MatchPool:
 
 
 def _serve(
-    conn: Connection, parent_end: Connection, parent_pid: int, matcher: Matcher, taken: Any
+    conn: Connection,
+    parent_end: Connection,
+    parent_pid: int,
+    matcher: Matcher,
+    taken: Any,
+    shared: list[ScanFeatures],
 ) -> None:
     """Helper loop: jobs ``(batch, k, features or None, the job's other arguments)`` in
     (None: the features of the batch's previous job, which one object serves, so its
-    pose-independent quantities are derived once), ``(batch, k, result or None, CPU seconds
-    of the match)`` out, except for a job the calling process has taken (``taken``, shared
+    pose-independent quantities are derived once; a reference given as an int: that item
+    of ``shared``, held from the fork), ``(batch, k, result or None, CPU seconds of the
+    match)`` out, except for a job the calling process has taken (``taken``, shared
     ``[batch, first index]``): it runs that one itself. None, the end of the pipe or the
     parent's exit stops it."""
     forked.helper_signals()
@@ -328,6 +356,8 @@ def _serve(
         features = features if sent is None else sent
         if taken[0] == batch and k >= taken[1]:
             continue
+        if isinstance(rest[0], int):
+            rest = (shared[rest[0]], *rest[1:])
         t0 = time.thread_time()
         try:
             result: MatchResult | None = matcher.match(cast(ScanFeatures, features), *rest)

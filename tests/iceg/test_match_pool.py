@@ -4,6 +4,7 @@ bit for bit, whichever process ran each match. No timings here: speed is measure
 
 from __future__ import annotations
 
+import copy
 import multiprocessing
 import os
 import signal
@@ -17,7 +18,7 @@ from frontends.simulate import corridor_world, default_trajectory, simulate
 from iceg.features import extract
 from iceg.match_pool import MatchJob, MatchPool, _serve
 from iceg.matching import IceMatcher, MatchBounds, MatchingConfig
-from iceg.types import MatchResult
+from iceg.types import MatchResult, ScanFeatures
 from iceg_common.se2 import between
 
 
@@ -99,6 +100,44 @@ def test_a_large_batch_is_shared_with_the_helper_in_order(jobs: list[MatchJob]) 
         assert all(_same(a, b) for a, b in zip(results, expect, strict=True))
 
 
+class _SharedOnlyInHelper:
+    """IceMatcher's matches; in any other process than the one that made it (the helper),
+    raising unless the reference is one of ``shared`` itself, the object the helper holds
+    from its fork (the same address in both processes; a copy sent through the pipe is
+    another object)."""
+
+    def __init__(self, shared: list[ScanFeatures]) -> None:
+        self.inner = IceMatcher(MatchingConfig())
+        self.home = os.getpid()
+        self.shared = {id(ref) for ref in shared}
+
+    def match(self, *args: Any, **kwargs: Any) -> MatchResult:
+        if os.getpid() != self.home and id(args[1]) not in self.shared:
+            raise RuntimeError("a reference sent, not shared")
+        return self.inner.match(*args, **kwargs)
+
+
+def test_references_shared_before_the_fork_are_named_not_sent(jobs: list[MatchJob]) -> None:
+    # A global placement's places, held by the helper from its fork: a job naming one sends
+    # its key, and the helper matches the object it holds (a match that fails there runs
+    # here, so `local` counts the references that were sent). A copy of a shared reference,
+    # another object, is sent. The results are the matcher's either way.
+    refs = [job.reference for job in jobs]
+    matcher = IceMatcher(MatchingConfig())
+    want = [matcher.match(*job) for job in jobs]
+    copies = [job._replace(reference=copy.copy(job.reference)) for job in jobs]
+    with MatchPool(_SharedOnlyInHelper(refs), wait=True) as pool:
+        assert pool.share(refs)
+        got = pool.run_all(jobs)
+        assert (pool.remote, pool.local) == ((len(jobs) + 1) // 2, len(jobs) // 2)
+        assert not pool.share(refs)  # the helper runs: too late to share more
+        got_copies = pool.run_all(copies)
+    assert (pool.remote, pool.local) == ((len(jobs) + 1) // 2, len(jobs) // 2 + len(jobs))
+    assert not MatchPool(matcher, helper=False).share(refs)
+    for results in (got, got_copies):
+        assert all(_same(a, b) for a, b in zip(results, want, strict=True))
+
+
 class _MisbehavesInHelper:
     """IceMatcher's matches; in any other process than the one that made it (the helper),
     half a second late (``slow``) or raising."""
@@ -155,18 +194,21 @@ def test_the_helper_skips_the_jobs_the_calling_process_has_taken(jobs: list[Matc
     # The helper loop, run here on a pipe: of batch 1 the calling process has taken jobs 2
     # and 3 (shared [batch, first index]); the helper answers 0 and 1 of it and every job
     # of batch 2, each with the matcher's result. Jobs 2k and 2k + 1 share their features,
-    # which come with the first of them only (None: the previous job's).
+    # which come with the first of them only (None: the previous job's). The reference of
+    # the last job comes as its key among the references the helper holds (``shared``).
     matcher = IceMatcher(MatchingConfig())
     here, there = multiprocessing.Pipe(duplex=True)
     parent_end, _ = multiprocessing.Pipe(duplex=True)
     taken = multiprocessing.RawArray("q", [1, 2])
     assert all(jobs[i].features is jobs[i + 1].features for i in (0, 2, 4))
-    for batch, k, i in [(1, 0, 0), (1, 1, 1), (1, 2, 2), (1, 3, 3), (2, 0, 4), (2, 1, 5)]:
+    shared = [jobs[0].reference, jobs[5].reference]
+    for batch, k, i in [(1, 0, 0), (1, 1, 1), (1, 2, 2), (1, 3, 3), (2, 0, 4)]:
         here.send((batch, k, None if i % 2 else jobs[i].features, jobs[i][1:]))
+    here.send((2, 1, None, (1, *jobs[5][2:])))
     here.send(None)
     previous = signal.getsignal(signal.SIGINT)
     try:
-        _serve(there, parent_end, os.getpid(), matcher, taken)
+        _serve(there, parent_end, os.getpid(), matcher, taken, shared)
     finally:
         signal.signal(signal.SIGINT, previous)
     answered = []
