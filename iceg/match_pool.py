@@ -175,7 +175,12 @@ class MatchPool:
         matches every scan against the same places of a map, about 12 KB pickled each, and
         the helper derives each place's pose-independent quantities once instead of once a
         job. Only before the helper is forked (the first :meth:`submit`); returns whether
-        the references will be shared. The results are the same either way."""
+        the references will be shared. The results are the same either way.
+
+        Raises:
+            Whatever iterating ``references`` raises (nothing is iterated once the helper
+            runs, or without one).
+        """
         if self._started or not self.want_helper or sys.platform != "linux":
             return False
         for ref in references:
