@@ -212,9 +212,10 @@ class MatchPool:
                 sent.batch = self._batch
             # a search's jobs share the new scan's features: sent with the first only
             features = None if job.features is held else job.features
+            # a reference the helper holds from its fork: named by its key (share)
             shared = self._shared.get(id(job.reference))
-            reference = shared[0] if shared is not None and shared[1] is job.reference else None
-            rest = job[1:] if reference is None else (reference, *job[2:])
+            key = shared[0] if shared is not None and shared[1] is job.reference else None
+            rest = job[1:] if key is None else (key, *job[2:])
             try:
                 forked.send(self._conn, (self._batch, k, features, rest))
             except (OSError, ValueError):
