@@ -32,7 +32,7 @@ from iceg.feature_map import FeatureMap, compile_table_moves
 from iceg.grid import render_tiled_chunks
 from iceg.landmark_frames import move_point_blocks, poses_in_frame
 from iceg.matching.matcher import IceMatcher
-from iceg.matching.refine import points_within
+from iceg.matching.refine import blocks_explained_counts, points_within
 from iceg.node_index import NodeGrid, nearest_within
 from iceg.scan_store import ScanStore
 from iceg.types import MatchResult, ScanFeatures
@@ -88,8 +88,9 @@ def probed() -> bool:
 
 def compile_without_features(scan: LaserScan, config: IcegConfig) -> None:
     """Call the later stages' kernels that need no features on ``scan`` and drop the
-    results: the grid of two copies of it, the contradiction test's point query and its
-    recent points moved node by node, the loop-closure search's node index and its ordering
+    results: the grid of two copies of it, the contradiction test's point query (the
+    general one, and the one on points in blocks) and its recent points moved node by node
+    (the point match's), the loop-closure search's node index and its ordering
     of the nodes near a point.
 
     Args:
@@ -104,12 +105,15 @@ def compile_without_features(scan: LaserScan, config: IcegConfig) -> None:
     store = ScanStore([scan, scan])
     render_tiled_chunks(poses, store.beam_chunk, config.grid)
     points = scan.points_xy()
-    points_within(points, poses, points, config.slam.contradiction_gate_m or 0.1)
-    move_point_blocks(
+    gate_m = config.slam.contradiction_gate_m or 0.1
+    points_within(points, poses, points, gate_m)
+    blocks = (
         poses_in_frame(poses[1], poses, np.arange(2)),
         np.full(2, points.shape[0], dtype=np.int64),
         np.concatenate([points, points]),
     )
+    blocks_explained_counts(points, poses[0].copy(), poses[1].copy(), *blocks, gate_m)
+    move_point_blocks(*blocks)
     nodes = NodeGrid(1.0)
     nodes.add(np.arange(2), poses[:, :2])
     nodes.query(poses[1, :2], 1.0)

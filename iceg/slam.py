@@ -53,7 +53,7 @@ from iceg.matching.matcher import (
 )
 from iceg.matching.peers import make_matcher
 from iceg.matching.plicp import PlIcpMatcher
-from iceg.matching.refine import points_within
+from iceg.matching.refine import blocks_explained_counts, points_within
 from iceg.odometry_calibration import OdometryCalibrator
 from iceg.results import SlamResult
 from iceg.scan_poses import odometry_steps, scan_poses
@@ -66,6 +66,10 @@ logger = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+#: Points in blocks, each block in its own frame (:func:`~iceg.landmark_frames.move_point_blocks`):
+#: ``(n, 3)`` float64 the pose of each block's frame in the target frame, ``(n,)`` int64 the
+#: points in each block and ``(R, 2)`` float64 the points, one block after the other, metres.
+PointBlocks = tuple[FloatArray, IntArray, FloatArray]
 
 #: A weak match direction agrees with the prediction when their difference is within this
 #: many standard deviations of the joint noise (a 3-sigma consistency test).
@@ -115,10 +119,12 @@ KEPT_UNMATCHED_FEATURES = 256
 __all__ = [
     "Anchor",
     "LoopClosureStats",
+    "PointBlocks",
     "ScanRecords",
     "Slam",
     "SlamState",
     "StageTimer",
+    "blocks_prefer_prediction",
     "chi2_3dof",
     "consistent_with_prediction",
     "points_prefer_prediction",
@@ -886,15 +892,11 @@ class Slam:
             )
         bounds = MatchBounds.local(cfg.match_max_translation_m, cfg.match_max_rotation_deg)
         result = self.matcher.match(feats, reference.features, motion.delta, bounds)
-        # the recent nodes' points, stacked once for the points test and the point match
-        recent_xy = functools.cache(lambda: self._recent_points(recent, ids, poses))
+        # the recent nodes' points, gathered once for the points test and the point match
+        blocks = functools.cache(lambda: self._recent_blocks(recent, ids, poses))
         if result.success and cfg.contradiction_gate_m is not None:
-            contradiction = points_prefer_prediction(
-                feats.points_xy,
-                recent_xy(),
-                result.pose,
-                motion.delta,
-                cfg.contradiction_gate_m,
+            contradiction = blocks_prefer_prediction(
+                feats.points_xy, blocks(), result.pose, motion.delta, cfg.contradiction_gate_m
             )
             if contradiction:
                 result = MatchResult.failed(motion.delta, contradiction)
@@ -902,7 +904,7 @@ class Slam:
             # Counted by the reason's category (the text before the first colon).
             category = (result.reason or _UNKNOWN_REASON).split(":")[0]
             fallback = (
-                self._point_match(feats, motion, bounds, recent_xy)
+                self._point_match(feats, motion, bounds, lambda: move_point_blocks(*blocks()))
                 if category in _POINT_FALLBACK_REASONS
                 else None
             )
@@ -955,12 +957,13 @@ class Slam:
         recent_xy: Callable[[], FloatArray],
     ) -> MatchResult | None:
         """Point-to-line ICP (:class:`~iceg.matching.plicp.PlIcpMatcher`, Censi 2008) of the
-        scan's points against the recent nodes' scan points (``recent_xy()``:
-        :meth:`_recent_points`), seeded by the odometry prediction ``delta`` (frame of the last
-        node): a factor for a scan whose ICE match had too little evidence or was contradicted
-        by its points (outdoors: trees, posts), with the point match's own covariance. ``None``
-        when disabled, when the matcher is not ICE, or when a successful point match fails the
-        chi-square test against the odometry (:func:`consistent_with_prediction`)."""
+        scan's points against the recent nodes' scan points (``recent_xy()``: those of
+        :meth:`_recent_blocks` moved into the last node's frame), seeded by the odometry
+        prediction ``delta`` (frame of the last node): a factor for a scan whose ICE match had
+        too little evidence or was contradicted by its points (outdoors: trees, posts), with
+        the point match's own covariance. ``None`` when disabled, when the matcher is not ICE,
+        or when a successful point match fails the chi-square test against the odometry
+        (:func:`consistent_with_prediction`)."""
         if not self.config.slam.point_fallback or self.config.matching.method != "ice":
             return None
         ref = ScanFeatures.empty(recent_xy())
@@ -969,18 +972,18 @@ class Slam:
             return None
         return result
 
-    def _recent_points(
+    def _recent_blocks(
         self, recent: NDArray[np.int64], ids: NDArray[np.int64], poses: FloatArray
-    ) -> FloatArray:
-        """``(P, 2)`` float64 scan points of the ``recent`` nodes (ascending) in the frame of
-        the last of them, metres, placed by the estimates ``poses`` ``(N, 3)`` of the sorted
-        node ``ids`` ``(N,)`` that hold them (the reference's table, read in this state of
-        the graph)."""
+    ) -> PointBlocks:
+        """The scan points of the ``recent`` nodes (ascending) in blocks (:data:`PointBlocks`),
+        each node placed in the frame of the last of them by the estimates ``poses`` ``(N, 3)``
+        of the sorted node ``ids`` ``(N,)`` that hold them (the reference's table, read in this
+        state of the graph)."""
         rows = np.searchsorted(ids, recent)
         relative = poses_in_frame(poses[rows[-1]], poses, rows)
         points = [self._points_of(i) for i in recent.tolist()]
         counts = np.array([p.shape[0] for p in points], dtype=np.int64)
-        return move_point_blocks(relative, counts, np.concatenate(points))
+        return relative, counts, np.concatenate(points)
 
     def _remember_points(self, node_id: int, feats: ScanFeatures) -> None:
         """Keep the new node's scan points for :meth:`_point_match`, and its features where
@@ -1406,13 +1409,58 @@ def points_prefer_prediction(
     at_pose, at_prediction = points_within(
         points_xy, np.array([pose, prediction]), reference_xy, gate_m
     )
-    only_prediction = int(np.count_nonzero(at_prediction > at_pose))
-    only_pose = int(np.count_nonzero(at_pose > at_prediction))
+    return _contradiction(
+        points_xy.shape[0],
+        int(np.count_nonzero(at_pose)),
+        int(np.count_nonzero(at_prediction)),
+        int(np.count_nonzero(at_pose > at_prediction)),
+        int(np.count_nonzero(at_prediction > at_pose)),
+    )
+
+
+def blocks_prefer_prediction(
+    points_xy: FloatArray,
+    blocks: PointBlocks,
+    pose: FloatArray,
+    prediction: FloatArray,
+    gate_m: float,
+) -> str:
+    """:func:`points_prefer_prediction` against reference points given in blocks (the recent
+    nodes' scans, each in its node's frame: :data:`PointBlocks`), moved, gridded and queried
+    in one compiled call (:func:`~iceg.matching._kernels.blocks_explained_counts`): the same
+    kernels on the same arrays, so the same reason as ``points_prefer_prediction(points_xy,
+    move_point_blocks(*blocks), ...)``, without the calls' round trips through Python.
+
+    Args:
+        points_xy: ``(P, 2)`` float64 the new scan's points, its robot frame, metres.
+        blocks: The reference points in blocks, placed in the reference frame.
+        pose, prediction, gate_m: As :func:`points_prefer_prediction`.
+
+    Returns:
+        The failure reason, or "" (also when either point set is empty). Raises nothing.
+    """
+    block_poses, counts, block_points = blocks
+    if block_points.shape[0] == 0 or points_xy.shape[0] == 0:
+        return ""
+    finite, *counted = blocks_explained_counts(
+        points_xy, pose, prediction, block_poses, counts, block_points, gate_m
+    )
+    if not finite:  # points_within's general path
+        reference_xy = move_point_blocks(block_poses, counts, block_points)
+        return points_prefer_prediction(points_xy, reference_xy, pose, prediction, gate_m)
+    return _contradiction(points_xy.shape[0], *counted)
+
+
+def _contradiction(
+    n_points: int, at_pose: int, at_prediction: int, only_pose: int, only_prediction: int
+) -> str:
+    """The reason of :func:`points_prefer_prediction` from its counts of the ``n_points``
+    scan points explained at the match, at the prediction and at only one of them."""
     if only_prediction <= only_pose or not sign_test_rejects(only_prediction, only_pose):
         return ""
     return (
-        f"{REASON_CONTRADICTED}: {np.count_nonzero(at_prediction)} of {points_xy.shape[0]} "
-        f"scan points are explained at the prediction, {np.count_nonzero(at_pose)} at the match"
+        f"{REASON_CONTRADICTED}: {at_prediction} of {n_points} scan points are explained at "
+        f"the prediction, {at_pose} at the match"
     )
 
 

@@ -17,6 +17,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from iceg.landmark_frames import move_point_blocks
 from iceg.numpy_sums import median, pairwise_sum
 from iceg_common.numba_loading import njit
 
@@ -2788,6 +2789,58 @@ def finite_points_within(
     """
     origin, n_cells, key, order = sorted_cells(ref_points, gate_m)
     return points_explained(points, poses, ref_points, key, order, origin, n_cells, gate_m)
+
+
+@njit(cache=True, nogil=True)
+def blocks_explained_counts(
+    points: np.ndarray,
+    pose: np.ndarray,
+    prediction: np.ndarray,
+    block_poses: np.ndarray,
+    block_counts: np.ndarray,
+    block_points: np.ndarray,
+    gate_m: float,
+) -> tuple[bool, int, int, int, int]:
+    """The counts of ``slam.points_prefer_prediction``'s sign test against points given in
+    blocks, in one compiled call: the blocks moved into the reference frame
+    (:func:`~iceg.landmark_frames.move_point_blocks`), then :func:`finite_points_within` at
+    the match and at the prediction; the same kernels on the same arrays as those calls one
+    by one, so the same counts.
+
+    Args:
+        points: ``(P, 2)`` float64 the new scan's points, its frame, metres.
+        pose: ``(3,)`` float64 the matched pose of that frame in the reference frame.
+        prediction: ``(3,)`` float64 the predicted pose, same frame.
+        block_poses: ``(n, 3)`` float64 the pose of each block's frame in the reference frame.
+        block_counts: ``(n,)`` int64 points in each block, summing to ``R >= 1``.
+        block_points: ``(R, 2)`` float64 the blocks' points, one after the other, metres.
+        gate_m: Distance within which a reference point explains a point, metres (> 0).
+
+    Returns:
+        ``(finite, at_pose, at_prediction, only_pose, only_prediction)``: whether every
+        moved reference point is finite (where not, the counts are 0 and not computed), then
+        the points explained at the match, at the prediction, at the match only and at the
+        prediction only.
+    """
+    ref = move_point_blocks(block_poses, block_counts, block_points)
+    if not all_finite(ref):
+        return False, 0, 0, 0, 0
+    poses = np.empty((2, 3))
+    poses[0] = pose
+    poses[1] = prediction
+    within = finite_points_within(points, poses, ref, gate_m)
+    at_pose = at_prediction = only_pose = only_prediction = 0
+    for i in range(points.shape[0]):
+        a, b = within[0, i], within[1, i]
+        if a:
+            at_pose += 1
+        if b:
+            at_prediction += 1
+        if a and not b:
+            only_pose += 1
+        if b and not a:
+            only_prediction += 1
+    return True, at_pose, at_prediction, only_pose, only_prediction
 
 
 @njit(cache=True, nogil=True)

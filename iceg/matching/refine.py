@@ -59,6 +59,9 @@ from iceg.matching._kernels import (
     segment_grid,
     sorted_cells,
 )
+from iceg.matching._kernels import (  # the contradiction test's counts, for iceg.slam
+    blocks_explained_counts as blocks_explained_counts,
+)
 from iceg.matching.geometry import EOW, FeatureGeometry, SegmentSet
 
 FloatArray = NDArray[np.float64]
