@@ -10,6 +10,7 @@ run. Staging folders left by a killed save are removed by the next save into the
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import ctypes
 import errno
@@ -186,26 +187,44 @@ class SlamResult:
         """
         if self._map_tried:
             return self._map
-        self._map_tried = True
+        return self._adopt_map(*self._rendered())
+
+    def _rendered(self) -> tuple[TiledGrid | GridError | None, float]:
+        """The map as :meth:`render_map` renders it, and the seconds it took: the grid, the
+        :class:`~iceg_common.errors.GridError` that refused it, or None without scans. Reads
+        the scans, poses and configuration and changes nothing, so it may run in another
+        thread beside other reads of the result (:meth:`save`)."""
         if not self.scans:
-            self.metrics["map"] = {"rendered": False, "reason": "no scans"}
-            return None
+            return None, 0.0
         t0 = time.perf_counter()
         body = self.config.features.robot_body_range_m
         try:
             if isinstance(self.scans, ScanStore):
                 # Chunk by chunk: the grid pass adds a constant, not a copy of every beam.
-                self._map = render_tiled_chunks(
+                grid = render_tiled_chunks(
                     self.poses, self.scans.beam_chunk, self.config.grid, range_min_m=body
                 )
             else:
-                self._map = render_tiled(self.scans, self.poses, self.config.grid, range_min_m=body)
+                grid = render_tiled(self.scans, self.poses, self.config.grid, range_min_m=body)
         except GridError as exc:
-            logger.warning("no map written: %s", exc)
-            self.metrics["map"] = {"rendered": False, "reason": str(exc)}
+            return exc, time.perf_counter() - t0
+        return grid, time.perf_counter() - t0
+
+    def _adopt_map(
+        self, rendered: TiledGrid | GridError | None, seconds: float
+    ) -> TiledGrid | None:
+        """Keep what :meth:`_rendered` returned as the map, with its figures in ``metrics``
+        and its time in ``stage_seconds``; the map, or None."""
+        self._map_tried = True
+        if rendered is None:
+            self.metrics["map"] = {"rendered": False, "reason": "no scans"}
             return None
-        self.stage_seconds["grid"] = time.perf_counter() - t0
-        g = self._map
+        if isinstance(rendered, GridError):
+            logger.warning("no map written: %s", rendered)
+            self.metrics["map"] = {"rendered": False, "reason": str(rendered)}
+            return None
+        self._map = g = rendered
+        self.stage_seconds["grid"] = seconds
         self.metrics["map"] = {
             "rendered": True,
             "shape": list(g.shape),
@@ -230,10 +249,13 @@ class SlamResult:
         """Write the result files (:data:`OUTPUT_FILES`) into ``out_dir``, replacing the whole
         previous set there, never part of it.
 
-        Step 1 swaps in :data:`CORE_FILES`; step 2 renders the map and swaps in the same set
-        plus :data:`MAP_FILES` (and ``metrics.json`` with the map's figures). Each step is
-        written in a staging folder ``<out_dir>.iceg-saving-<pid>`` beside ``out_dir`` and
-        exchanged with ``out_dir`` by one rename, so ``out_dir`` always holds a complete set.
+        Step 1 swaps in :data:`CORE_FILES`; step 2 swaps in the same set plus
+        :data:`MAP_FILES` (and ``metrics.json`` with the map's figures). Each step is written
+        in a staging folder ``<out_dir>.iceg-saving-<pid>`` beside ``out_dir`` and exchanged
+        with ``out_dir`` by one rename, so ``out_dir`` always holds a complete set. A map not
+        rendered yet (:meth:`render_map`) is rendered in another thread while step 1 writes:
+        the grid's compiled passes release the interpreter, so the writing (formatting,
+        hashing, compressing) and the rendering share the cores; the files are the same.
 
         Args:
             out_dir: The output folder (created with its parents if missing).
@@ -250,15 +272,27 @@ class SlamResult:
         check_output_dir(out)
         clean_stale_staging(out)
         self.metrics.setdefault(
-            "map", {"rendered": False, "reason": "pending: rendered after the first save step"}
+            "map", {"rendered": False, "reason": "pending: written by the second save step"}
         )
+        with concurrent.futures.ThreadPoolExecutor(1, "iceg-map") as beside:
+            rendering = None if self._map_tried else beside.submit(self._rendered)
+            self._save_steps(out, on_saved, rendering)
+        return out
+
+    def _save_steps(
+        self,
+        out: Path,
+        on_saved: Callable[[str], None] | None,
+        rendering: concurrent.futures.Future[tuple[TiledGrid | GridError | None, float]] | None,
+    ) -> None:
+        """:meth:`save`'s two steps, the map from ``rendering`` where it is being rendered."""
         try:
             with _staging(out) as staging:
                 self._write_core(staging)
                 _swap_in(staging, out)
             if on_saved is not None:
                 on_saved("core")
-            grid = self.render_map()
+            grid = self.render_map() if rendering is None else self._adopt_map(*rendering.result())
             with _staging(out) as staging:
                 _link_files(out, staging, CORE_FILES)
                 if (out / SESSION_DIR).is_dir():
@@ -274,7 +308,6 @@ class SlamResult:
                 on_saved("map")
         except OSError as exc:
             raise OutputError(f"{out}: cannot write the results ({exc})") from exc
-        return out
 
     def _write_core(self, folder: Path) -> None:
         write_tum(folder / "trajectory.tum", self.stamps_s, self.poses)

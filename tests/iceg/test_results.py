@@ -99,6 +99,26 @@ def test_graph_and_config_files_are_the_graph_and_config_written_afresh(
     assert (out / SESSION_DIR).is_dir() is with_session
 
 
+def test_a_map_rendered_beside_the_first_step_is_the_map_rendered_before_it(
+    tmp_path: Path,
+) -> None:
+    # save() renders a map not rendered yet in another thread while it writes the core
+    # files; the same run with its map rendered first (render_map) saves the same files,
+    # and the map's figures and grid time are the result's either way.
+    beside, before = _result(seed=3), _result(seed=3)
+    assert not beside._map_tried
+    before.render_map()
+    beside.save(tmp_path / "beside")
+    before.save(tmp_path / "before")
+    got, want = _files(tmp_path / "beside"), _files(tmp_path / "before")
+    metrics = json.loads(got.pop("metrics.json"))
+    assert metrics["map"] == json.loads(want.pop("metrics.json"))["map"]
+    assert metrics["map"]["rendered"] is True
+    assert got == want and sorted(got) == sorted(set(OUTPUT_FILES) - {"metrics.json"})
+    assert beside.stage_seconds["grid"] > 0.0
+    assert beside.render_map() is beside._map is not None  # kept: not rendered again
+
+
 def test_unrenderable_map_keeps_trajectory_graph_metrics(tmp_path: Path) -> None:
     # A grid limit far below the run's footprint: the map cannot be rendered.
     result = _result(config={"grid": {"max_cells": 1000}})
