@@ -1433,7 +1433,7 @@ def blocks_prefer_prediction(
 
     Args:
         points_xy: ``(P, 2)`` float64 the new scan's points, its robot frame, metres.
-        blocks: The reference points in blocks, placed in the reference frame.
+        blocks: The reference points in blocks, each block's pose in the reference frame.
         pose, prediction, gate_m: As :func:`points_prefer_prediction`.
 
     Returns:
@@ -1443,7 +1443,13 @@ def blocks_prefer_prediction(
     if block_points.shape[0] == 0 or points_xy.shape[0] == 0:
         return ""
     finite, *counted = blocks_explained_counts(
-        points_xy, pose, prediction, block_poses, counts, block_points, gate_m
+        np.ascontiguousarray(points_xy, dtype=np.float64),
+        np.ascontiguousarray(pose, dtype=np.float64),
+        np.ascontiguousarray(prediction, dtype=np.float64),
+        block_poses,
+        counts,
+        block_points,
+        gate_m,
     )
     if not finite:  # points_within's general path
         reference_xy = move_point_blocks(block_poses, counts, block_points)
