@@ -426,7 +426,9 @@ def test_png_has_the_map_and_the_trajectory(room, tmp_path) -> None:
     _, g = room
     traj = np.array([[0.0, 0.0], [1.5, 0.5], [2.0, -1.0]])
     out = write_png(g, tmp_path / "room.png", traj)
-    img = np.asarray(Image.open(out))
+    with Image.open(out) as png:
+        assert png.mode == "P"  # one byte a pixel: the map leaves grey levels free
+        img = np.asarray(png.convert("RGB"))
     h, w = g.shape
     assert img.shape == (h, w, 3)
     c, r = g.world_to_cell([1.0, 1.0 / 3.0])[::-1]  # on the first leg of the trajectory
@@ -437,6 +439,24 @@ def test_png_has_the_map_and_the_trajectory(room, tmp_path) -> None:
     assert img[h - 1 - r, c, 0] < 20  # a wall: p > 0.93 -> grey < 18
     c, r = g.world_to_cell([-1.0, -1.0])[::-1]
     assert img[h - 1 - r, c, 0] > 220  # free: p < 0.12 -> grey > 224
+
+
+def test_png_of_a_map_of_every_grey_level_is_rgb_with_the_same_colours(tmp_path) -> None:
+    # A map whose cells take every grey level 255 * (1 - p) leaves no palette entry for the
+    # trajectory's colours: the PNG is RGB, each cell its own grey, the trajectory red.
+    level = np.arange(256, dtype=np.float64)
+    p = 1.0 - np.clip(level, 0.1, 254.9) / 255.0  # grey levels 0.1, 1, 2, ..., 254, 254.9
+    row = np.log(p / (1.0 - p)).astype(np.float32)
+    g = OccupancyGrid(np.tile(row, (4, 1)), resolution_m=0.1, origin_xy=np.zeros(2))
+    out = write_png(g, tmp_path / "levels.png", np.array([[0.05, 0.05], [25.0, 0.05]]))
+    with Image.open(out) as png:
+        assert png.mode == "RGB"
+        img = np.asarray(png)
+    # rows top-down: the trajectory (y = 0.05 m) on the last, its start dot at the left
+    assert np.array_equal(img[0, 8:, 0], level[8:].astype(np.uint8))
+    assert np.array_equal(img[0, 8:, 0], img[0, 8:, 2])  # grey
+    assert tuple(img[3, 128]) == (220, 30, 30)
+    assert tuple(img[1, 0]) == (0, 160, 0)
 
 
 def test_npz_round_trip(room, tmp_path) -> None:
